@@ -1,0 +1,31 @@
+//! `tcsense-sensor`: the physics of ultrafast time-compressive CMOS image sensors.
+//!
+//! A multitap charge modulator multiplies the light arriving at each subpixel by binary
+//! exposure codes `g[n][m][l]` and integrates it into `M` taps. On the reconstruction grid
+//! of `T = L·K` bins this is, per pixel, `y = A x` with a small `M × T` matrix `A[n]` that
+//! repeats over the pixel blocks (paper eqs. 1–4):
+//!
+//! `y[m, X, Y] = Σ_j A[n(X,Y)][m][j] · x[j, X, Y]`, `n(X, Y) = (X mod bh)·bw + (Y mod bw)`.
+//!
+//! Modules: [`params`] (checked sensor parameters), [`codes`] (exposure codes, JSON, the
+//! constraint checker), [`generate`] (random codes under constraints), [`matrix`] (ideal,
+//! physical, heterodyne or measured `A`), [`operator`] (fast forward/adjoint), [`noise`]
+//! (shot, read, clipping, ADC), [`export`] (the sensor's code memory), [`show`] (PNG
+//! pictures of codes), [`npy`] (`.npy` I/O and atomic writes).
+
+pub mod codes;
+pub mod error;
+pub mod export;
+pub mod generate;
+pub mod matrix;
+pub mod noise;
+pub mod npy;
+pub mod operator;
+pub mod params;
+pub mod show;
+
+pub use codes::{CodeShape, Codes, Constraints, Violation};
+pub use error::{Result, SensorError};
+pub use matrix::MeasurementMatrix;
+pub use operator::FramePlan;
+pub use params::{Irf, NoiseParams, Sampling, SensorParams, SensorSpec};

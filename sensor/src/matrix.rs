@@ -1,0 +1,321 @@
+//! The measurement matrix `A [N, M, T]` (paper eqs. 3–4, DESIGN §3).
+//!
+//! For subpixel type `n`, tap `m` and fine bin `j` (width `Δt = T_c/K`),
+//! `A[n][m][j] = (1/Δt) ∫_bin j ((g_nm ∗ h_m) ⋆ l)(τ) dτ`: the fraction of the light arriving
+//! during bin `j` that ends up in tap `m`. Time is cyclic with period `L·T_c`.
+//!
+//! - `Irf::Ideal`: rectangular gates, no blur — `A[n][m][j] = g[n][m][⌊j/K⌋]`, so
+//!   `y = A x` is a plain sum of code bits over the cube.
+//! - `Irf::Physical`: gate ∗ first-order tap response `h(t) = e^{−t/τ}/τ`, correlated with a
+//!   unit-area Gaussian laser pulse; computed on a super-sampled cyclic grid, then averaged
+//!   over each bin. Σ_m A[n][m][j] = 1 still holds for codes with exactly one tap on.
+//! - Heterodyne (`K` cycles, the scene delayed by `kΔ` in cycle `k`):
+//!   `A_het[n][m][j] = Σ_k A[n][m][(j + k) mod T]` on the fine grid.
+//! - A measured `A` (`.npy`, `[N, M, T]`) replaces the synthetic one.
+
+use crate::codes::Codes;
+use crate::error::{Result, SensorError};
+use crate::npy;
+use crate::params::{Irf, Sampling, SensorSpec};
+use ndarray::{Array3, ArrayView3, Axis, Ix3};
+use rayon::prelude::*;
+use std::path::Path;
+
+/// Upper bound on super-samples per fine bin of the physical IRF.
+const MAX_SUPERSAMPLE: usize = 64;
+
+/// A measurement matrix `A [N, M, T]` with the block geometry it repeats over.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MeasurementMatrix {
+    a: Array3<f32>,
+    block: (usize, usize),
+    bin_width_s: f64,
+}
+
+impl MeasurementMatrix {
+    /// Build `A` from codes and a sensor spec (IRF and sampling from the spec).
+    ///
+    /// # Shapes
+    /// - returns `A`: `[N, M, T]`, `N = bh·bw`, `T = L·K`.
+    pub fn synthesize(codes: &Codes, spec: &SensorSpec) -> Result<Self> {
+        spec.check_codes(codes)?;
+        let k = spec.sampling().k();
+        let dt = spec.bin_width_s();
+        let fine = match spec.irf() {
+            Irf::Ideal => ideal(codes, k),
+            Irf::Physical { laser_fwhm_s, tap_tau_s } => physical(codes, k, dt, laser_fwhm_s, tap_tau_s),
+        };
+        let a = match spec.sampling() {
+            Sampling::Oversample(_) => fine,
+            Sampling::Heterodyne(_) => heterodyne_sum(&fine.view(), k),
+        };
+        Ok(MeasurementMatrix { a, block: codes.block(), bin_width_s: dt })
+    }
+
+    /// Wrap a given (e.g. measured) `A [N, M, T]`, checking its shape against the spec.
+    pub fn from_array(a: Array3<f32>, spec: &SensorSpec) -> Result<Self> {
+        let (n, m, t) = a.dim();
+        if n != spec.subpixels() || m != spec.taps() || t != spec.bins() {
+            return Err(SensorError::Shape {
+                what: "measurement matrix A".into(),
+                got: vec![n, m, t],
+                expected: format!(
+                    "[N, M, T] = [{}, {}, {}] (block {}x{}, {} taps, T = L·K = {})",
+                    spec.subpixels(),
+                    spec.taps(),
+                    spec.bins(),
+                    spec.params().block.0,
+                    spec.params().block.1,
+                    spec.taps(),
+                    spec.bins()
+                ),
+            });
+        }
+        npy::ensure_finite(&a.view(), "measurement matrix A")?;
+        Ok(MeasurementMatrix { a, block: spec.params().block, bin_width_s: spec.bin_width_s() })
+    }
+
+    /// Load a measured `A [N, M, T]` from `.npy`; errors name the file.
+    pub fn load(path: &Path, spec: &SensorSpec) -> Result<Self> {
+        let a = npy::read_npy(path)?;
+        let a = a.into_dimensionality::<Ix3>().map_err(|_| {
+            SensorError::file(path, "measurement matrix must have rank 3 [N, M, T]".to_string())
+        });
+        let a = a?;
+        MeasurementMatrix::from_array(a, spec).map_err(|e| e.in_file(path))
+    }
+
+    /// Save `A` as `.npy` (`[N, M, T]`, float32).
+    pub fn save(&self, path: &Path) -> Result<()> {
+        npy::write_npy(path, &self.a.view())
+    }
+
+    /// The matrix, `[N, M, T]`.
+    pub fn a(&self) -> ArrayView3<'_, f32> {
+        self.a.view()
+    }
+    /// Block `(bh, bw)`.
+    pub fn block(&self) -> (usize, usize) {
+        self.block
+    }
+    /// Subpixels `N`.
+    pub fn subpixels(&self) -> usize {
+        self.a.dim().0
+    }
+    /// Taps `M`.
+    pub fn taps(&self) -> usize {
+        self.a.dim().1
+    }
+    /// Bins `T`.
+    pub fn bins(&self) -> usize {
+        self.a.dim().2
+    }
+    /// Bin width `Δt` (s).
+    pub fn bin_width_s(&self) -> f64 {
+        self.bin_width_s
+    }
+}
+
+/// `A[n][m][j] = g[n][m][⌊j/K⌋]`. Shape `[N, M, L·K]`.
+fn ideal(codes: &Codes, k: usize) -> Array3<f32> {
+    let (n, m, l) = (codes.subpixels(), codes.taps(), codes.length());
+    Array3::from_shape_fn((n, m, l * k), |(n, m, j)| codes.get(n, m, j / k) as u8 as f32)
+}
+
+/// Physical IRF on the fine grid. Shape `[N, M, L·K]`.
+fn physical(codes: &Codes, k: usize, dt: f64, fwhm: f64, tau: f64) -> Array3<f32> {
+    let (n_sub, taps, len) = (codes.subpixels(), codes.taps(), codes.length());
+    let t = len * k;
+    let sigma = fwhm / (2.0 * (2.0 * std::f64::consts::LN_2).sqrt());
+    let finest = [sigma, tau].into_iter().filter(|&v| v > 0.0).fold(f64::INFINITY, f64::min);
+    let mut s = if finest.is_finite() { (dt / (finest / 8.0)).ceil() as usize } else { 1 };
+    s = s.clamp(1, MAX_SUPERSAMPLE);
+    while s > 1 && t * s > (1 << 20) {
+        s /= 2;
+    }
+    let p = t * s;
+    let delta = dt / s as f64;
+    let kernel = laser_kernel(sigma, delta, p);
+    let decay = if tau > 0.0 { (-delta / tau).exp() } else { 0.0 };
+
+    let mut a = Array3::<f32>::zeros((n_sub, taps, t));
+    let channels: Vec<(usize, Vec<f32>)> = (0..n_sub * taps)
+        .into_par_iter()
+        .map(|c| {
+            let (n, m) = (c / taps, c % taps);
+            // Gate on the super grid: mask l covers super-samples [l·K·S, (l+1)·K·S).
+            let g: Vec<f64> = (0..p).map(|q| codes.get(n, m, q / (k * s)) as u8 as f64).collect();
+            let geff = first_order_cyclic(&g, decay);
+            let mut row = vec![0f32; t];
+            for (j, out) in row.iter_mut().enumerate() {
+                let mut acc = 0.0;
+                for q in j * s..(j + 1) * s {
+                    for &(d, w) in &kernel {
+                        let idx = (q as isize + d).rem_euclid(p as isize) as usize;
+                        acc += w * geff[idx];
+                    }
+                }
+                *out = (acc / s as f64) as f32;
+            }
+            (c, row)
+        })
+        .collect();
+    for (c, row) in channels {
+        a.index_axis_mut(Axis(0), c / taps)
+            .index_axis_mut(Axis(0), c % taps)
+            .assign(&ndarray::ArrayView1::from(&row[..]));
+    }
+    a
+}
+
+/// Cyclic steady state of `y[p] = a·y[p−1] + (1−a)·(g[p] + g[p−1])/2`: the first-order
+/// response `e^{−t/τ}/τ` with `a = e^{−δ/τ}`, unit DC gain and mean delay `τ` (to `O(δ²/τ)`).
+fn first_order_cyclic(g: &[f64], a: f64) -> Vec<f64> {
+    if a == 0.0 {
+        return g.to_vec();
+    }
+    let n = g.len();
+    let u: Vec<f64> = (0..n).map(|p| 0.5 * (g[p] + g[(p + n - 1) % n])).collect();
+    let pass = |y0: f64, out: &mut Vec<f64>| {
+        out.clear();
+        let mut y = y0;
+        for &v in &u {
+            y = a * y + (1.0 - a) * v;
+            out.push(y);
+        }
+    };
+    let mut out = Vec::with_capacity(g.len());
+    pass(0.0, &mut out);
+    let last = out.last().copied().unwrap_or(0.0);
+    let y0 = last / (1.0 - a.powi(g.len() as i32));
+    pass(y0, &mut out);
+    out
+}
+
+/// Unit-sum Gaussian kernel `(offset, weight)` on a cyclic grid of `p` samples of width `delta`.
+fn laser_kernel(sigma: f64, delta: f64, p: usize) -> Vec<(isize, f64)> {
+    if sigma <= 0.0 || sigma < delta / 8.0 {
+        return vec![(0, 1.0)];
+    }
+    let pi = p as isize;
+    let reach = (6.0 * sigma / delta).ceil() as isize;
+    // A pulse wider than half the cycle wraps: cover one whole period and add its images.
+    let (offsets, images) = if 2 * reach < pi { (-reach..=reach, 0) } else { (-(pi / 2)..=(pi - pi / 2 - 1), 4) };
+    let mut k: Vec<(isize, f64)> = offsets
+        .map(|d| {
+            let w: f64 = (-images..=images)
+                .map(|i: isize| {
+                    let x = (d + i * pi) as f64 * delta;
+                    (-x * x / (2.0 * sigma * sigma)).exp()
+                })
+                .sum();
+            (d, w)
+        })
+        .collect();
+    let total: f64 = k.iter().map(|x| x.1).sum();
+    for x in &mut k {
+        x.1 /= total;
+    }
+    k
+}
+
+/// `A_het[n][m][j] = Σ_{k<K} A[n][m][(j + k) mod T]`.
+///
+/// # Shapes
+/// - `fine`: `[N, M, T]` → `[N, M, T]`
+pub fn heterodyne_sum(fine: &ArrayView3<'_, f32>, k: usize) -> Array3<f32> {
+    let t = fine.dim().2;
+    let mut out = Array3::<f32>::zeros(fine.dim());
+    for ((n, m, j), v) in out.indexed_iter_mut() {
+        *v = (0..k).map(|kk| fine[(n, m, (j + kk) % t)]).sum();
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::codes::{CodeShape, Constraints};
+    use crate::generate::random_codes;
+    use crate::params::SensorParams;
+
+    fn codes() -> Codes {
+        let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 16, drain: false };
+        random_codes(shape, 607e6, Constraints { tap: true, hamming: Some(2), window: Some(2) }, 5).unwrap()
+    }
+
+    fn spec(c: &Codes, sampling: Sampling, irf: Irf) -> SensorSpec {
+        SensorParams { sampling, irf, ..SensorParams::from_codes(c) }.validate().unwrap()
+    }
+
+    #[test]
+    fn ideal_is_the_code_bits_oversampled() {
+        let c = codes();
+        let a = MeasurementMatrix::synthesize(&c, &spec(&c, Sampling::Oversample(4), Irf::Ideal)).unwrap();
+        assert_eq!(a.a().dim(), (4, 4, 64));
+        for n in 0..4 {
+            for m in 0..4 {
+                for j in 0..64 {
+                    assert_eq!(a.a()[(n, m, j)], c.get(n, m, j / 4) as u8 as f32);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn physical_conserves_charge_and_tends_to_ideal() {
+        let c = codes();
+        let phys = Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 };
+        let a = MeasurementMatrix::synthesize(&c, &spec(&c, Sampling::Oversample(2), phys)).unwrap();
+        // exactly one tap on at every mask -> the taps' responses sum to one at every delay
+        for n in 0..4 {
+            for j in 0..32 {
+                let s: f32 = (0..4).map(|m| a.a()[(n, m, j)]).sum();
+                assert!((s - 1.0).abs() < 1e-4, "sum {s}");
+            }
+        }
+        // a wide pulse blurs: entries strictly between 0 and 1 appear
+        assert!(a.a().iter().any(|&v| v > 0.05 && v < 0.95));
+        // a vanishing pulse and tap response give the ideal matrix
+        let tiny = Irf::Physical { laser_fwhm_s: 1e-15, tap_tau_s: 0.0 };
+        let p = MeasurementMatrix::synthesize(&c, &spec(&c, Sampling::Oversample(2), tiny)).unwrap();
+        let i = MeasurementMatrix::synthesize(&c, &spec(&c, Sampling::Oversample(2), Irf::Ideal)).unwrap();
+        let err = (&p.a() - &i.a()).iter().fold(0f32, |m, v| m.max(v.abs()));
+        assert!(err < 1e-6, "max |phys - ideal| = {err}");
+    }
+
+    #[test]
+    fn tap_response_delays_the_gate() {
+        // A single 8-mask window: a slow tap response moves its centre of mass later.
+        let shape = CodeShape { bh: 1, bw: 1, taps: 1, length: 32, drain: true };
+        let mut c = Codes::zeros(shape, 607e6, Constraints::default()).unwrap();
+        for l in 8..16 {
+            c.set(0, 0, l, true);
+        }
+        let com = |irf| {
+            let a = MeasurementMatrix::synthesize(&c, &spec(&c, Sampling::Oversample(1), irf)).unwrap();
+            let row = a.a().index_axis(Axis(0), 0).index_axis(Axis(0), 0).to_owned();
+            let total: f32 = row.sum();
+            (row.iter().enumerate().map(|(j, v)| (j as f32 + 0.5) * v).sum::<f32>() / total, total)
+        };
+        let (c_ideal, s_ideal) = com(Irf::Ideal);
+        let tau = 1.0 / 607e6; // one mask
+        let (c_slow, s_slow) = com(Irf::Physical { laser_fwhm_s: 0.0, tap_tau_s: tau });
+        assert!((c_ideal - 12.0).abs() < 1e-4);
+        // the first-order response delays the centre of mass by τ (= 1 bin)
+        assert!((c_slow - c_ideal - 1.0).abs() < 0.02, "shift {}", c_slow - c_ideal);
+        assert!((s_slow - s_ideal).abs() < 1e-3, "area is kept");
+    }
+
+    #[test]
+    fn heterodyne_is_a_shifted_sum() {
+        let c = codes();
+        let fine = MeasurementMatrix::synthesize(&c, &spec(&c, Sampling::Oversample(8), Irf::Ideal)).unwrap();
+        let het = MeasurementMatrix::synthesize(&c, &spec(&c, Sampling::Heterodyne(8), Irf::Ideal)).unwrap();
+        let t = 128;
+        for j in [0, 5, 127] {
+            let want: f32 = (0..8).map(|k| fine.a()[(1, 2, (j + k) % t)]).sum();
+            assert_eq!(het.a()[(1, 2, j)], want);
+        }
+    }
+}
