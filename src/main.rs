@@ -1,1 +1,60 @@
-fn main(){}
+//! `tcsense`: the command-line front end. Argument parsing, resolving arguments into the
+//! crates' configs, printing — no physics here.
+
+mod cmd;
+
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+
+/// Toolkit for ultrafast time-compressive CMOS image sensors (multitap charge modulators).
+#[derive(Parser)]
+#[command(name = "tcsense", version, about, long_about = None)]
+struct Cli {
+    /// Worker threads (default: all cores).
+    #[arg(long, global = true)]
+    threads: Option<usize>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Exposure codes: generate, check, export to the sensor's code memory, import, show.
+    #[command(subcommand)]
+    Codes(cmd::codes::CodesCmd),
+    /// Sensor model: the measurement matrix A.
+    #[command(subcommand)]
+    Sensor(cmd::sensor::SensorCmd),
+    /// Simulate tap images y = A x (+ noise) from a transient cube.
+    Simulate(cmd::sensor::SimulateArgs),
+    /// Synthetic and imported transient datasets.
+    #[command(subcommand)]
+    Dataset(cmd::dataset::DatasetCmd),
+    /// Throughput benchmarks (prints figures).
+    #[command(subcommand)]
+    Bench(cmd::bench::BenchCmd),
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    if let Some(n) = cli.threads {
+        if let Err(e) = rayon::ThreadPoolBuilder::new().num_threads(n.max(1)).build_global() {
+            eprintln!("error: cannot set up {n} threads: {e}");
+            return ExitCode::from(2);
+        }
+    }
+    let result = match cli.command {
+        Command::Codes(c) => cmd::codes::run(c),
+        Command::Sensor(c) => cmd::sensor::run(c),
+        Command::Simulate(a) => cmd::sensor::simulate(a),
+        Command::Dataset(c) => cmd::dataset::run(c),
+        Command::Bench(c) => cmd::bench::run(c),
+    };
+    match result {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::from(2)
+        }
+    }
+}

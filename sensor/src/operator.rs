@@ -184,16 +184,24 @@ impl FramePlan {
                     // xrow: [T, W]
                     let rb = r % bh;
                     for (j, mut out_row) in xrow.axis_iter_mut(Axis(0)).enumerate() {
-                        acc.fill(0.0);
+                        // Accumulate straight into the output row when it is contiguous.
+                        let contiguous = out_row.as_slice_mut().is_some();
+                        let dst: &mut [f32] = match out_row.as_slice_mut() {
+                            Some(d) => d,
+                            None => &mut acc[..],
+                        };
+                        dst.fill(0.0);
                         for mm in 0..m {
                             let cf = &self.coef[((rb * t + j) * m + mm) * w..][..w];
                             let yr = &ys[(mm * h + r) * w..][..w];
-                            for ((o, &c), &v) in acc.iter_mut().zip(cf).zip(yr) {
+                            for ((o, &c), &v) in dst.iter_mut().zip(cf).zip(yr) {
                                 *o += c * v;
                             }
                         }
-                        for (d, &s) in out_row.iter_mut().zip(acc.iter()) {
-                            *d = s;
+                        if !contiguous {
+                            for (d, &s) in out_row.iter_mut().zip(acc.iter()) {
+                                *d = s;
+                            }
                         }
                     }
                 },

@@ -1,0 +1,62 @@
+//! `tcsense bench …`: throughput figures, printed (never asserted).
+
+use anyhow::Result;
+use clap::Subcommand;
+use ndarray::Array3;
+use std::process::ExitCode;
+use std::time::Instant;
+use tcsense_sensor::codes::{CodeShape, Constraints};
+use tcsense_sensor::generate::random_codes;
+use tcsense_sensor::{MeasurementMatrix, Sampling, SensorParams};
+
+#[derive(Subcommand)]
+pub enum BenchCmd {
+    /// Forward and adjoint throughput (voxels/s) at the prototype's frame size.
+    Forward {
+        /// Frame size HxW.
+        #[arg(long, default_value = "188x212", value_parser = super::parse_hw)]
+        size: (usize, usize),
+        /// Repetitions per measurement (median reported).
+        #[arg(long, default_value_t = 20)]
+        reps: usize,
+    },
+    /// Dataset generation throughput (samples/s).
+    Dataset(super::dataset::BenchDatasetArgs),
+}
+
+fn median_ms(mut f: impl FnMut() -> Result<()>, reps: usize) -> Result<f64> {
+    f()?; // warm-up
+    let mut times = Vec::with_capacity(reps);
+    for _ in 0..reps.max(1) {
+        let t0 = Instant::now();
+        f()?;
+        times.push(t0.elapsed().as_secs_f64() * 1e3);
+    }
+    times.sort_by(f64::total_cmp);
+    Ok(times[times.len() / 2])
+}
+
+pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
+    match cmd {
+        BenchCmd::Forward { size: (h, w), reps } => {
+            println!("forward/adjoint, frame {h}x{w}, block 2x2, 4 taps, {} threads", rayon::current_num_threads());
+            println!("{:>5} {:>4} {:>12} {:>14} {:>12} {:>14}", "T", "K", "forward ms", "Gvoxel/s", "adjoint ms", "Gvoxel/s");
+            for (length, k) in [(32usize, 1usize), (32, 4)] {
+                let shape = CodeShape { bh: 2, bw: 2, taps: 4, length, drain: false };
+                let codes = random_codes(shape, 607e6, Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1)?;
+                let spec = SensorParams { sampling: Sampling::Oversample(k), ..SensorParams::from_codes(&codes) }.validate()?;
+                let plan = MeasurementMatrix::synthesize(&codes, &spec)?.plan(h, w)?;
+                let t = spec.bins();
+                let x = Array3::from_shape_fn((t, h, w), |(j, r, c)| ((j * 7 + r * 3 + c) % 11) as f32);
+                let mut y = Array3::zeros((4, h, w));
+                let mut xa = Array3::zeros((t, h, w));
+                let fwd = median_ms(|| Ok(plan.forward_into(&x.view(), &mut y.view_mut())?), reps)?;
+                let adj = median_ms(|| Ok(plan.adjoint_into(&y.view(), &mut xa.view_mut())?), reps)?;
+                let vox = (t * h * w) as f64;
+                println!("{t:>5} {k:>4} {fwd:>12.3} {:>14.3} {adj:>12.3} {:>14.3}", vox / fwd / 1e6, vox / adj / 1e6);
+            }
+        }
+        BenchCmd::Dataset(a) => super::dataset::bench(a)?,
+    }
+    Ok(ExitCode::SUCCESS)
+}

@@ -1,0 +1,157 @@
+//! `tcsense codes …`
+
+use anyhow::{Context, Result};
+use clap::{Args, Subcommand};
+use std::path::PathBuf;
+use std::process::ExitCode;
+use tcsense_sensor::codes::{CodeShape, Codes, Constraints, DEFAULT_CLOCK_HZ};
+use tcsense_sensor::{export, generate, show};
+
+#[derive(Subcommand)]
+pub enum CodesCmd {
+    /// Generate random codes under the chosen constraints.
+    Generate(GenerateArgs),
+    /// Check codes against their declared constraints (exit 0 feasible, 1 with violations).
+    Check {
+        /// Codes JSON file.
+        codes: PathBuf,
+        /// Print the violations as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Export codes to the sensor's code memory: chCC.bin, codes.bin, registers.json.
+    Export {
+        /// Codes JSON file.
+        codes: PathBuf,
+        /// Output directory.
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+    /// Read an exported code memory back into a codes JSON file.
+    Import {
+        /// Export directory (with registers.json).
+        dir: PathBuf,
+        /// Output codes JSON.
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+    /// Draw codes as a PNG (rows = channels grouped by subpixel, columns = masks).
+    Show {
+        /// Codes JSON file.
+        codes: PathBuf,
+        /// Output PNG.
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+}
+
+/// Geometry and constraint flags shared by code generation and selection.
+#[derive(Args, Clone)]
+pub struct DesignArgs {
+    /// Taps M (1–8).
+    #[arg(long, default_value_t = 4)]
+    pub taps: usize,
+    /// Pixel block bh×bw.
+    #[arg(long, default_value = "2x2", value_parser = super::parse_hw)]
+    pub block: (usize, usize),
+    /// Masks per cycle L (multiple of 8, 8–256).
+    #[arg(long, default_value_t = 32)]
+    pub length: usize,
+    /// The modulator has a drain (with the tap constraint: at most one tap on).
+    #[arg(long)]
+    pub drain: bool,
+    /// Code clock in MHz.
+    #[arg(long, default_value_t = DEFAULT_CLOCK_HZ / 1e6)]
+    pub clock_mhz: f64,
+    /// Tap constraint: one tap (drain included) on per subpixel at each mask.
+    #[arg(long)]
+    pub tap_constraint: bool,
+    /// Hamming-distance constraint: at most H bits change between adjacent masks.
+    #[arg(long, value_name = "H")]
+    pub hamming: Option<usize>,
+    /// Time-window constraint: every run of 1s and 0s lasts at least W masks.
+    #[arg(long, value_name = "W")]
+    pub window: Option<usize>,
+}
+
+impl DesignArgs {
+    pub fn shape(&self) -> CodeShape {
+        CodeShape { bh: self.block.0, bw: self.block.1, taps: self.taps, length: self.length, drain: self.drain }
+    }
+    pub fn constraints(&self) -> Constraints {
+        Constraints { tap: self.tap_constraint, hamming: self.hamming, window: self.window }
+    }
+    pub fn clock_hz(&self) -> f64 {
+        self.clock_mhz * 1e6
+    }
+}
+
+#[derive(Args)]
+pub struct GenerateArgs {
+    #[command(flatten)]
+    design: DesignArgs,
+    /// Random seed.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Output codes JSON.
+    #[arg(short, long)]
+    output: PathBuf,
+}
+
+pub fn run(cmd: CodesCmd) -> Result<ExitCode> {
+    match cmd {
+        CodesCmd::Generate(a) => {
+            let d = &a.design;
+            let codes = generate::random_codes(d.shape(), d.clock_hz(), d.constraints(), a.seed)?;
+            codes.save(&a.output)?;
+            let hd: Vec<usize> = (0..codes.length()).map(|l| codes.hamming_at(l)).collect();
+            println!(
+                "wrote {}: {} taps, block {}x{}, L = {}, constraints {}, max Hamming distance {}",
+                a.output.display(),
+                codes.taps(),
+                d.block.0,
+                d.block.1,
+                codes.length(),
+                codes.constraints.label(),
+                hd.iter().max().unwrap_or(&0)
+            );
+        }
+        CodesCmd::Check { codes, json } => {
+            let g = Codes::load(&codes)?;
+            let v = g.violations();
+            if json {
+                println!("{}", serde_json::to_string_pretty(&v)?);
+            } else if v.is_empty() {
+                println!("{}: feasible under {}", codes.display(), g.constraints.label());
+            } else {
+                for x in &v {
+                    println!("{x}");
+                }
+                eprintln!("{}: {} violation(s) of {}", codes.display(), v.len(), g.constraints.label());
+            }
+            return Ok(if v.is_empty() { ExitCode::SUCCESS } else { ExitCode::from(1) });
+        }
+        CodesCmd::Export { codes, output } => {
+            let g = Codes::load(&codes)?;
+            let regs = export::export(&g, &output).with_context(|| format!("cannot export {}", codes.display()))?;
+            println!(
+                "wrote {} channels of {} bytes to {} (ECLEN = {})",
+                regs.channel_count,
+                regs.bytes_per_channel,
+                output.display(),
+                regs.ECLEN
+            );
+        }
+        CodesCmd::Import { dir, output } => {
+            let g = export::import(&dir)?;
+            g.save(&output)?;
+            println!("wrote {}", output.display());
+        }
+        CodesCmd::Show { codes, output } => {
+            let g = Codes::load(&codes)?;
+            show::save_png(&g, &output)?;
+            println!("wrote {}", output.display());
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
