@@ -1,0 +1,394 @@
+//! Dataset storage: `DIR/manifest.json` plus `.npy` shards per split.
+//!
+//! ```text
+//! DIR/manifest.json
+//! DIR/train/x_000.npy          [S, T, H, W]   (S ≤ shard size)
+//! DIR/train/depth_000.npy      [S, 2, H, W]   (LiDAR)
+//! DIR/train/intensity_000.npy  [S, H, W]
+//! DIR/val/…  DIR/test/…
+//! ```
+//!
+//! The manifest records the kind, the generator's parameters, the seed, the time grid, the
+//! per-item shape of every field and, per split, its size, the global index of its first
+//! item and its shard files. Item `i` (global index over train, val, test in that order) is a
+//! pure function of `(seed, i)`: training can draw the same samples on the fly without disk.
+//! Generation writes into a temporary directory that is renamed into place at the end, so an
+//! interrupted or failed run leaves nothing behind.
+
+use crate::error::{file_err, invalid, DatasetError, Result};
+use crate::flim::FlimParams;
+use crate::grid::TimeGrid;
+use crate::lidar::{LidarParams, BOUNCES};
+use ndarray::{concatenate, stack, ArrayD, Axis, IxDyn};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use tcsense_sensor::npy::{read_npy, write_bytes, write_npy};
+
+/// Default items per shard file.
+pub const DEFAULT_SHARD: usize = 16;
+
+/// What a dataset holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Kind {
+    Lidar,
+    Flim,
+    Imported,
+}
+
+/// One shard: its item count and a file per field.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Shard {
+    pub count: usize,
+    pub files: BTreeMap<String, String>,
+}
+
+/// One split.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Split {
+    pub name: String,
+    pub count: usize,
+    /// Global index of the split's first item.
+    pub first_index: u64,
+    pub shards: Vec<Shard>,
+}
+
+/// `manifest.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    pub format: String,
+    pub version: u32,
+    pub kind: Kind,
+    pub seed: Option<u64>,
+    pub generator: serde_json::Value,
+    pub grid: TimeGrid,
+    pub bins: usize,
+    pub bin_width_s: f64,
+    /// Frame size `[H, W]`.
+    pub size: [usize; 2],
+    /// Per-item shape of every field.
+    pub fields: BTreeMap<String, Vec<usize>>,
+    pub splits: Vec<Split>,
+}
+
+/// A generator of items, each a pure function of `(seed, index)`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Generator {
+    Lidar(LidarParams),
+    Flim(FlimParams),
+}
+
+/// One item: named fields.
+pub type Item = Vec<(&'static str, ArrayD<f32>)>;
+
+impl Generator {
+    /// The dataset kind.
+    pub fn kind(&self) -> Kind {
+        match self {
+            Generator::Lidar(_) => Kind::Lidar,
+            Generator::Flim(_) => Kind::Flim,
+        }
+    }
+    /// Frame size `(H, W)`.
+    pub fn size(&self) -> (usize, usize) {
+        match self {
+            Generator::Lidar(p) => (p.height, p.width),
+            Generator::Flim(p) => (p.height, p.width),
+        }
+    }
+    /// Check parameters.
+    pub fn validate(&self, grid: &TimeGrid) -> Result<()> {
+        match self {
+            Generator::Lidar(p) => p.validate(),
+            Generator::Flim(p) => p.validate(grid),
+        }
+    }
+    /// Per-item field shapes.
+    pub fn fields(&self, grid: &TimeGrid) -> BTreeMap<String, Vec<usize>> {
+        let (h, w) = self.size();
+        let t = grid.bins();
+        let mut f = BTreeMap::new();
+        f.insert("x".into(), vec![t, h, w]);
+        f.insert("intensity".into(), vec![h, w]);
+        match self {
+            Generator::Lidar(_) => {
+                f.insert("depth".into(), vec![BOUNCES, h, w]);
+            }
+            Generator::Flim(_) => {
+                f.insert("tau".into(), vec![3]);
+                f.insert("weights".into(), vec![3, h, w]);
+                f.insert("lifetime".into(), vec![h, w]);
+            }
+        }
+        f
+    }
+    /// Item `index`, a pure function of `(seed, index)`.
+    pub fn item(&self, grid: &TimeGrid, seed: u64, index: u64) -> Item {
+        match self {
+            Generator::Lidar(p) => {
+                let s = p.sample(grid, seed, index);
+                vec![("x", s.x.into_dyn()), ("depth", s.depth.into_dyn()), ("intensity", s.intensity.into_dyn())]
+            }
+            Generator::Flim(p) => {
+                let s = p.sample(grid, seed, index);
+                vec![
+                    ("x", s.x.into_dyn()),
+                    ("tau", s.tau.into_dyn()),
+                    ("weights", s.weights.into_dyn()),
+                    ("lifetime", s.lifetime.into_dyn()),
+                    ("intensity", s.intensity.into_dyn()),
+                ]
+            }
+        }
+    }
+    fn params_json(&self) -> serde_json::Value {
+        match self {
+            Generator::Lidar(p) => serde_json::to_value(p).unwrap_or_default(),
+            Generator::Flim(p) => serde_json::to_value(p).unwrap_or_default(),
+        }
+    }
+    /// The paper's split proportions: LiDAR 63/10/10, FLIm 446/56/56.
+    pub fn proportions(&self) -> [usize; 3] {
+        match self {
+            Generator::Lidar(_) => [63, 10, 10],
+            Generator::Flim(_) => [446, 56, 56],
+        }
+    }
+}
+
+/// Split `count` items in the given proportions (train gets the remainder; val and test get at
+/// least one item each when `count ≥ 3`).
+pub fn split_counts(count: usize, proportions: [usize; 3]) -> [usize; 3] {
+    let total: usize = proportions.iter().sum();
+    let part = |p: usize| ((count * p) as f64 / total as f64).round() as usize;
+    let (mut val, mut test) = (part(proportions[1]), part(proportions[2]));
+    if count >= 3 {
+        val = val.max(1);
+        test = test.max(1);
+    } else {
+        val = 0;
+        test = 0;
+    }
+    [count - val - test, val, test]
+}
+
+/// Options for writing a dataset.
+pub struct WriteOptions<'a> {
+    pub shard_size: usize,
+    /// Replace an existing dataset directory.
+    pub force: bool,
+    /// Called once per finished item (from worker threads).
+    pub progress: &'a (dyn Fn() + Sync),
+    /// Set to stop early; nothing is written then.
+    pub cancel: &'a AtomicBool,
+}
+
+/// Generate a dataset of `count` items into `dir`.
+pub fn generate(gen: &Generator, grid: &TimeGrid, count: usize, seed: u64, dir: &Path, opts: &WriteOptions<'_>) -> Result<Manifest> {
+    let grid = grid.validate()?;
+    gen.validate(&grid)?;
+    if count == 0 {
+        return Err(invalid("count", 0, "at least 1 item"));
+    }
+    if opts.shard_size == 0 {
+        return Err(invalid("shard_size", 0, "at least 1"));
+    }
+    let counts = split_counts(count, gen.proportions());
+    let tmp = prepare_output(dir, opts.force)?;
+    let result = (|| -> Result<Manifest> {
+        let mut splits = Vec::new();
+        let mut first = 0u64;
+        for (name, &n) in ["train", "val", "test"].iter().zip(&counts) {
+            let mut shards = Vec::new();
+            let split_dir = tmp.join(name);
+            std::fs::create_dir_all(&split_dir).map_err(|e| tcsense_sensor::SensorError::io(&split_dir, e))?;
+            for (si, start) in (0..n).step_by(opts.shard_size).enumerate() {
+                let end = (start + opts.shard_size).min(n);
+                let items: Vec<Option<Item>> = (start..end)
+                    .into_par_iter()
+                    .map(|i| {
+                        if opts.cancel.load(Ordering::Relaxed) {
+                            return None;
+                        }
+                        let item = gen.item(&grid, seed, first + i as u64);
+                        (opts.progress)();
+                        Some(item)
+                    })
+                    .collect();
+                let items: Vec<Item> = items.into_iter().collect::<Option<_>>().ok_or(DatasetError::Cancelled)?;
+                shards.push(write_shard(&tmp, name, si, &items)?);
+            }
+            splits.push(Split { name: name.to_string(), count: n, first_index: first, shards });
+            first += n as u64;
+        }
+        let (h, w) = gen.size();
+        let manifest = Manifest {
+            format: "tcsense-dataset".into(),
+            version: 1,
+            kind: gen.kind(),
+            seed: Some(seed),
+            generator: gen.params_json(),
+            grid,
+            bins: grid.bins(),
+            bin_width_s: grid.bin_width_s(),
+            size: [h, w],
+            fields: gen.fields(&grid),
+            splits,
+        };
+        write_manifest(&tmp, &manifest)?;
+        Ok(manifest)
+    })();
+    finish_output(tmp, dir, result)
+}
+
+/// Create a fresh temporary directory next to `dir`; refuse an existing dataset unless `force`.
+pub(crate) fn prepare_output(dir: &Path, force: bool) -> Result<PathBuf> {
+    if dir.exists() && !force {
+        let empty = std::fs::read_dir(dir).map(|mut d| d.next().is_none()).unwrap_or(false);
+        if !empty {
+            return Err(file_err(dir, "output directory exists and is not empty; pass --force to replace it"));
+        }
+    }
+    let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "dataset".into());
+    let parent = match dir.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    std::fs::create_dir_all(&parent).map_err(|e| tcsense_sensor::SensorError::io(&parent, e))?;
+    let tmp = parent.join(format!(".{name}.{}.tmp", std::process::id()));
+    let _ = std::fs::remove_dir_all(&tmp);
+    std::fs::create_dir_all(&tmp).map_err(|e| tcsense_sensor::SensorError::io(&tmp, e))?;
+    Ok(tmp)
+}
+
+/// Rename the temporary directory into place on success; remove it on failure.
+pub(crate) fn finish_output<T>(tmp: PathBuf, dir: &Path, result: Result<T>) -> Result<T> {
+    match result {
+        Ok(v) => {
+            if dir.exists() {
+                std::fs::remove_dir_all(dir).map_err(|e| tcsense_sensor::SensorError::io(dir, e))?;
+            }
+            std::fs::rename(&tmp, dir).map_err(|e| tcsense_sensor::SensorError::io(dir, e))?;
+            Ok(v)
+        }
+        Err(e) => {
+            let _ = std::fs::remove_dir_all(&tmp);
+            Err(e)
+        }
+    }
+}
+
+/// Write one shard of items (all with the same fields) under `root/split/`.
+pub(crate) fn write_shard(root: &Path, split: &str, index: usize, items: &[Item]) -> Result<Shard> {
+    let mut files = BTreeMap::new();
+    let Some(first) = items.first() else {
+        return Ok(Shard { count: 0, files });
+    };
+    for (fi, (name, _)) in first.iter().enumerate() {
+        let views: Vec<_> = items.iter().map(|it| it[fi].1.view()).collect();
+        let stacked = stack(Axis(0), &views).map_err(|e| invalid("item shapes", name, e.to_string()))?;
+        let rel = format!("{split}/{name}_{index:03}.npy");
+        write_npy(&root.join(&rel), &stacked.view())?;
+        files.insert(name.to_string(), rel);
+    }
+    Ok(Shard { count: items.len(), files })
+}
+
+pub(crate) fn write_manifest(root: &Path, m: &Manifest) -> Result<()> {
+    let json = serde_json::to_string_pretty(m).map_err(|e| invalid("manifest", "", e.to_string()))? + "\n";
+    Ok(write_bytes(&root.join("manifest.json"), json.as_bytes())?)
+}
+
+/// An opened dataset.
+#[derive(Debug, Clone)]
+pub struct Dataset {
+    pub dir: PathBuf,
+    pub manifest: Manifest,
+}
+
+impl Dataset {
+    /// Open `DIR/manifest.json`; errors name the file and field.
+    pub fn open(dir: &Path) -> Result<Self> {
+        let path = dir.join("manifest.json");
+        let text = std::fs::read_to_string(&path).map_err(|e| tcsense_sensor::SensorError::io(&path, e))?;
+        let manifest: Manifest = serde_json::from_str(&text).map_err(|e| file_err(&path, format!("malformed manifest: {e}")))?;
+        if manifest.format != "tcsense-dataset" || manifest.version != 1 {
+            return Err(file_err(&path, format!("format {:?} version {}, expected \"tcsense-dataset\" version 1", manifest.format, manifest.version)));
+        }
+        if manifest.grid.bins() != manifest.bins {
+            return Err(file_err(&path, format!("field 'bins' is {}, but the grid gives T = L·K = {}", manifest.bins, manifest.grid.bins())));
+        }
+        Ok(Dataset { dir: dir.to_path_buf(), manifest })
+    }
+
+    /// The split called `name`.
+    pub fn split(&self, name: &str) -> Result<&Split> {
+        self.manifest.splits.iter().find(|s| s.name == name).ok_or_else(|| {
+            let names: Vec<&str> = self.manifest.splits.iter().map(|s| s.name.as_str()).collect();
+            file_err(self.dir.join("manifest.json"), format!("no split {name:?}; the dataset has {names:?}"))
+        })
+    }
+
+    /// Load one field of a whole split, `[count, …item shape]`.
+    pub fn load(&self, split: &str, field: &str) -> Result<ArrayD<f32>> {
+        let s = self.split(split)?;
+        let item_shape = self
+            .manifest
+            .fields
+            .get(field)
+            .ok_or_else(|| file_err(self.dir.join("manifest.json"), format!("no field {field:?} in 'fields'")))?;
+        let mut parts = Vec::new();
+        for sh in &s.shards {
+            let rel = sh.files.get(field).ok_or_else(|| file_err(self.dir.join("manifest.json"), format!("a shard of {split} lacks field {field:?}")))?;
+            let path = self.dir.join(rel);
+            let a = read_npy(&path)?;
+            let mut want = vec![sh.count];
+            want.extend_from_slice(item_shape);
+            if a.shape() != want.as_slice() {
+                return Err(file_err(&path, format!("shape {:?}, expected {want:?} from the manifest", a.shape())));
+            }
+            parts.push(a);
+        }
+        if parts.is_empty() {
+            let mut shape = vec![0];
+            shape.extend_from_slice(item_shape);
+            return Ok(ArrayD::zeros(IxDyn(&shape)));
+        }
+        let views: Vec<_> = parts.iter().map(|a| a.view()).collect();
+        concatenate(Axis(0), &views).map_err(|e| invalid("shards", split, e.to_string()))
+    }
+
+    /// Load one item's field (`[…item shape]`), index within the split.
+    pub fn item(&self, split: &str, index: usize, field: &str) -> Result<ArrayD<f32>> {
+        let s = self.split(split)?;
+        if index >= s.count {
+            return Err(invalid("index", index, format!("0..{} (items in split {split})", s.count)));
+        }
+        let mut offset = index;
+        for sh in &s.shards {
+            if offset < sh.count {
+                let rel = sh.files.get(field).ok_or_else(|| file_err(self.dir.join("manifest.json"), format!("no field {field:?}")))?;
+                let a = read_npy(&self.dir.join(rel))?;
+                return Ok(a.index_axis(Axis(0), offset).to_owned());
+            }
+            offset -= sh.count;
+        }
+        Err(invalid("index", index, "an item listed in the manifest"))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn splits_follow_the_paper() {
+        assert_eq!(split_counts(83, [63, 10, 10]), [63, 10, 10]);
+        assert_eq!(split_counts(558, [446, 56, 56]), [446, 56, 56]);
+        assert_eq!(split_counts(8, [63, 10, 10]), [6, 1, 1]);
+        assert_eq!(split_counts(2, [63, 10, 10]), [2, 0, 0]);
+    }
+}
