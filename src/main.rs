@@ -30,6 +30,21 @@ enum Command {
     /// Synthetic and imported transient datasets.
     #[command(subcommand)]
     Dataset(cmd::dataset::DatasetCmd),
+    /// Reconstruct transient cubes from tap images.
+    #[command(subcommand)]
+    Reconstruct(cmd::recon::ReconstructCmd),
+    /// Depth (range) per return from a cube: peaks with parabolic sub-bin refinement.
+    Depth(cmd::recon::DepthArgs),
+    /// Lifetime map (exponential fit after the peak) and phasor coordinates from a cube.
+    Lifetime(cmd::recon::LifetimeArgs),
+    /// Plots.
+    #[command(subcommand)]
+    Plot(cmd::recon::PlotCmd),
+    /// Compare decoders on a dataset split: MSE, PSNR, depth errors, lifetime error, time.
+    Eval(cmd::eval::EvalArgs),
+    /// Design sweeps of the paper's Fig. 13 and Table 1 (TVAL3 MSE over a dataset).
+    #[command(subcommand)]
+    Sweep(cmd::design::SweepCmd),
     /// Throughput benchmarks (prints figures).
     #[command(subcommand)]
     Bench(cmd::bench::BenchCmd),
@@ -48,6 +63,12 @@ fn main() -> ExitCode {
         Command::Sensor(c) => cmd::sensor::run(c),
         Command::Simulate(a) => cmd::sensor::simulate(a),
         Command::Dataset(c) => cmd::dataset::run(c),
+        Command::Reconstruct(c) => cmd::recon::reconstruct(c),
+        Command::Depth(a) => cmd::recon::depth(a),
+        Command::Lifetime(a) => cmd::recon::lifetime(a),
+        Command::Plot(c) => cmd::recon::plot(c),
+        Command::Sweep(c) => cmd::design::sweep(c),
+        Command::Eval(a) => cmd::eval::run(a),
         Command::Bench(c) => cmd::bench::run(c),
     };
     match result {

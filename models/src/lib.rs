@@ -1,0 +1,24 @@
+//! `tcsense-models`: decoders that recover the transient cube `x̂ [T, H, W]` from tap images
+//! `y [M, H, W]` and the sensor model.
+//!
+//! - [`tval3`]: TV minimisation by augmented Lagrangian with alternating shrinkage and a
+//!   nonmonotone Barzilai–Borwein line search (Li, Yin, Jiang, Zhang), 3-D TV over
+//!   `(x, y, t)` with per-axis weights — the paper's iterative baseline.
+
+pub mod tval3;
+
+pub use tval3::{tval3, Tval3Options, Tval3Report, TvNorm};
+
+/// Errors of the models crate.
+#[derive(Debug, thiserror::Error)]
+pub enum ModelError {
+    #[error(transparent)]
+    Sensor(#[from] tcsense_sensor::SensorError),
+    #[error("invalid {field}: got {got}, expected {expected}")]
+    InvalidParam { field: &'static str, got: String, expected: String },
+    #[error("interrupted")]
+    Cancelled,
+}
+
+/// Result alias of the models crate.
+pub type Result<T> = std::result::Result<T, ModelError>;

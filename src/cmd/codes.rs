@@ -35,6 +35,8 @@ pub enum CodesCmd {
         #[arg(short, long)]
         output: PathBuf,
     },
+    /// Generate random candidates and keep the one with the lowest TVAL3 MSE on a dataset.
+    Select(super::design::SelectArgs),
     /// Draw codes as a PNG (rows = channels grouped by subpixel, columns = masks).
     Show {
         /// Codes JSON file.
@@ -147,6 +149,7 @@ pub fn run(cmd: CodesCmd) -> Result<ExitCode> {
             g.save(&output)?;
             println!("wrote {}", output.display());
         }
+        CodesCmd::Select(a) => return super::design::select_cmd(a),
         CodesCmd::Show { codes, output } => {
             let g = Codes::load(&codes)?;
             show::save_png(&g, &output)?;

@@ -3,6 +3,9 @@
 pub mod bench;
 pub mod codes;
 pub mod dataset;
+pub mod design;
+pub mod eval;
+pub mod recon;
 pub mod sensor;
 
 /// Parse `HxW` (e.g. `2x2`, `188x212`).

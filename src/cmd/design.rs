@@ -1,0 +1,246 @@
+//! `tcsense codes select` and `tcsense sweep …`: TVAL3 MSE over a dataset.
+
+use anyhow::{bail, Result};
+use clap::{Args, Subcommand, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+use ndarray::{Array3, Axis, Ix4};
+use std::path::PathBuf;
+use std::process::ExitCode;
+use tcsense_datasets::Dataset;
+use tcsense_infer::chart::line_chart;
+use tcsense_infer::design::{evaluate, select, table1_settings, EvalSetup};
+use tcsense_sensor::codes::{CodeShape, Constraints};
+use tcsense_sensor::generate::random_codes;
+use tcsense_sensor::npy::write_bytes;
+use tcsense_sensor::{Irf, SensorParams};
+
+use super::codes::DesignArgs;
+use super::dataset::interrupt_flag;
+use super::recon::Tval3Args;
+
+/// Dataset and evaluation flags.
+#[derive(Args, Clone)]
+pub struct EvalArgs {
+    /// Dataset directory.
+    #[arg(long)]
+    dataset: PathBuf,
+    /// Split to evaluate on.
+    #[arg(long, default_value = "test")]
+    split: String,
+    /// Use at most this many items of the split.
+    #[arg(long, default_value_t = 2)]
+    items: usize,
+    /// Instrument response: ideal or physical.
+    #[arg(long, default_value = "ideal")]
+    irf: String,
+    #[command(flatten)]
+    tval3: Tval3Args,
+}
+
+struct Loaded {
+    cubes: Vec<Array3<f32>>,
+    setup: EvalSetup,
+    length: usize,
+    clock_hz: f64,
+    size: (usize, usize),
+}
+
+fn load(e: &EvalArgs) -> Result<Loaded> {
+    let ds = Dataset::open(&e.dataset)?;
+    if e.items == 0 {
+        bail!("--items 0: evaluate on at least one item");
+    }
+    let x = ds.load(&e.split, "x")?.into_dimensionality::<Ix4>()?;
+    if x.dim().0 == 0 {
+        bail!("{}: split {:?} is empty", e.dataset.display(), e.split);
+    }
+    let cubes: Vec<Array3<f32>> = x.axis_iter(Axis(0)).take(e.items).map(|v| v.to_owned()).collect();
+    let irf = match e.irf.as_str() {
+        "ideal" => Irf::Ideal,
+        "physical" => Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 },
+        other => bail!("--irf {other:?}: expected ideal or physical"),
+    };
+    let g = ds.manifest.grid;
+    let base = SensorParams { sampling: g.sampling, irf, length: g.length, clock_hz: g.clock_hz, ..Default::default() };
+    Ok(Loaded { cubes, setup: EvalSetup { base, tval3: e.tval3.options()? }, length: g.length, clock_hz: g.clock_hz, size: (ds.manifest.size[0], ds.manifest.size[1]) })
+}
+
+#[derive(Args)]
+pub struct SelectArgs {
+    #[command(flatten)]
+    design: DesignArgs,
+    #[command(flatten)]
+    eval: EvalArgs,
+    /// Number of random candidates (paper: 20).
+    #[arg(long, default_value_t = 20)]
+    candidates: usize,
+    /// Seed of the first candidate (the others follow).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Output codes JSON of the best candidate.
+    #[arg(short, long)]
+    output: PathBuf,
+}
+
+pub fn select_cmd(a: SelectArgs) -> Result<ExitCode> {
+    let l = load(&a.eval)?;
+    let d = &a.design;
+    if d.length != l.length {
+        bail!("--length {} differs from the dataset's L = {} ({})", d.length, l.length, a.eval.dataset.display());
+    }
+    if a.candidates == 0 {
+        bail!("--candidates 0: at least one candidate");
+    }
+    let (h, w) = l.size;
+    if h % d.block.0 != 0 || w % d.block.1 != 0 {
+        bail!("{}: frame {h}x{w} is not a multiple of the {}x{} block", a.eval.dataset.display(), d.block.0, d.block.1);
+    }
+    let cancel = interrupt_flag();
+    let pb = ProgressBar::new(a.candidates as u64);
+    pb.set_style(ProgressStyle::with_template("candidates [{bar:30}] {pos}/{len} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
+    println!("candidate seed        MSE");
+    let mut on = |c: &tcsense_infer::design::Candidate| {
+        pb.println(format!("{:>14} {:.4e}", c.seed, c.mse));
+        pb.inc(1);
+    };
+    let (best, all) = select(d.shape(), d.clock_hz(), d.constraints(), a.candidates, a.seed, &l.setup, &l.cubes, &mut on, &cancel)?;
+    pb.finish_and_clear();
+    best.save(&a.output)?;
+    let bm = all.iter().map(|c| c.mse).fold(f64::INFINITY, f64::min);
+    println!("wrote {}: best MSE {bm:.4e} of {} candidates ({})", a.output.display(), all.len(), d.constraints().label());
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Which sweep.
+#[derive(Clone, Copy, ValueEnum)]
+pub enum Which {
+    Taps,
+    Block,
+    Constraints,
+}
+
+#[derive(Subcommand)]
+pub enum SweepCmd {
+    /// MSE vs taps 1–8 at block 2×2 (Fig. 13a), one series per constraint setting.
+    Taps(SweepArgs),
+    /// MSE vs block 1×1 … 16×16 at 4 taps (Fig. 13b).
+    Block(SweepArgs),
+    /// The five constraint settings of Table 1 (4 taps, 2×2).
+    Constraints(SweepArgs),
+}
+
+#[derive(Args)]
+pub struct SweepArgs {
+    #[command(flatten)]
+    eval: EvalArgs,
+    /// Code sets per point (the best is reported; paper: 20).
+    #[arg(long, default_value_t = 1)]
+    candidates: usize,
+    /// Constraint series for taps/block sweeps: comma-separated from none, tap, tap+W2, tap+H2, tap+H2+W2.
+    #[arg(long, default_value = "none,tap")]
+    series: String,
+    /// First seed.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Output directory (sweep.csv, summary.csv, sweep.png).
+    #[arg(short, long)]
+    output: PathBuf,
+}
+
+fn parse_series(s: &str) -> Result<Vec<(String, Constraints)>> {
+    s.split(',')
+        .map(|name| {
+            let name = name.trim();
+            let c = match name {
+                "none" => Constraints::default(),
+                "tap" => Constraints { tap: true, ..Default::default() },
+                "tap+W2" => Constraints { tap: true, window: Some(2), ..Default::default() },
+                "tap+H2" => Constraints { tap: true, hamming: Some(2), ..Default::default() },
+                "tap+H2+W2" => Constraints { tap: true, hamming: Some(2), window: Some(2) },
+                other => bail!("--series: unknown setting {other:?}; expected none, tap, tap+W2, tap+H2, tap+H2+W2"),
+            };
+            Ok((name.to_string(), c))
+        })
+        .collect()
+}
+
+pub fn sweep(cmd: SweepCmd) -> Result<ExitCode> {
+    let (which, a) = match cmd {
+        SweepCmd::Taps(a) => (Which::Taps, a),
+        SweepCmd::Block(a) => (Which::Block, a),
+        SweepCmd::Constraints(a) => (Which::Constraints, a),
+    };
+    let l = load(&a.eval)?;
+    if a.candidates == 0 {
+        bail!("--candidates 0: at least one code set per point");
+    }
+    let (h, w) = l.size;
+    // points: (series name, constraints, x value, shape)
+    let mut points: Vec<(String, Constraints, f64, CodeShape)> = Vec::new();
+    let shape = |taps: usize, b: usize| CodeShape { bh: b, bw: b, taps, length: l.length, drain: false };
+    match which {
+        Which::Taps => {
+            for (name, c) in parse_series(&a.series)? {
+                for m in 1..=8 {
+                    points.push((name.clone(), c, m as f64, shape(m, 2)));
+                }
+            }
+        }
+        Which::Block => {
+            for (name, c) in parse_series(&a.series)? {
+                for b in [1usize, 2, 4, 8, 16] {
+                    if h % b == 0 && w % b == 0 {
+                        points.push((name.clone(), c, b as f64, shape(4, b)));
+                    }
+                }
+            }
+        }
+        Which::Constraints => {
+            for (i, (name, c)) in table1_settings().into_iter().enumerate() {
+                points.push((name.to_string(), c, i as f64, shape(4, 2)));
+            }
+        }
+    }
+    if h % 2 != 0 || w % 2 != 0 {
+        bail!("{}: frame {h}x{w} is not a multiple of the 2x2 block", a.eval.dataset.display());
+    }
+    let cancel = interrupt_flag();
+    let total = (points.len() * a.candidates) as u64;
+    let pb = ProgressBar::new(total);
+    pb.set_style(ProgressStyle::with_template("sweep [{bar:30}] {pos}/{len} eta {eta} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
+    let mut csv = String::from("setting,param,candidate_seed,mse\n");
+    let mut summary = String::from("setting,param,best_mse,mean_mse\n");
+    let mut series: Vec<(String, Vec<(f64, f64)>)> = Vec::new();
+    for (name, c, x, sh) in &points {
+        let mut mses = Vec::new();
+        for k in 0..a.candidates as u64 {
+            let seed = a.seed.wrapping_add(k);
+            let codes = random_codes(*sh, l.clock_hz, *c, seed)?;
+            let m = evaluate(&codes, &l.setup, &l.cubes, &cancel)?;
+            csv.push_str(&format!("{name},{x},{seed},{m:.6e}\n"));
+            pb.set_message(format!("{name} @ {x}: {m:.3e}"));
+            pb.inc(1);
+            mses.push(m);
+        }
+        let best = mses.iter().copied().fold(f64::INFINITY, f64::min);
+        let mean = mses.iter().sum::<f64>() / mses.len() as f64;
+        summary.push_str(&format!("{name},{x},{best:.6e},{mean:.6e}\n"));
+        pb.println(format!("{name:>24} {x:>4}  best {best:.3e}  mean {mean:.3e}"));
+        match series.iter_mut().find(|s| &s.0 == name) {
+            Some(s) => s.1.push((*x, best)),
+            None => series.push((name.clone(), vec![(*x, best)])),
+        }
+    }
+    pb.finish_and_clear();
+    // Table 1: one point per setting; draw them as a single series over the setting index.
+    if matches!(which, Which::Constraints) {
+        series = vec![("table1".into(), series.iter().flat_map(|s| s.1.clone()).collect())];
+    }
+    std::fs::create_dir_all(&a.output).map_err(|e| anyhow::anyhow!("{}: {e}", a.output.display()))?;
+    write_bytes(&a.output.join("sweep.csv"), csv.as_bytes())?;
+    write_bytes(&a.output.join("summary.csv"), summary.as_bytes())?;
+    line_chart(&a.output.join("sweep.png"), &series, true)?;
+    print!("{summary}");
+    println!("wrote {}/sweep.csv, summary.csv, sweep.png", a.output.display());
+    Ok(ExitCode::SUCCESS)
+}

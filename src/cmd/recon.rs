@@ -1,0 +1,325 @@
+//! `tcsense reconstruct …`, `depth`, `lifetime`, `plot`.
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+use ndarray::{ArrayD, Axis, Ix3};
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::sync::atomic::Ordering;
+use tcsense_infer::products::{depth_map, lifetime_map, map_png, plot_waveforms, write_ply, PeakOptions};
+use tcsense_models::{tval3, ModelError, Tval3Options, TvNorm};
+use tcsense_sensor::npy::{ensure_finite, read_npy, write_bytes, write_npy};
+
+use super::dataset::interrupt_flag;
+use super::sensor::SensorArgs;
+
+/// TVAL3 options (defaults: the paper's §IV settings).
+#[derive(Args, Clone)]
+pub struct Tval3Args {
+    /// Penalty of the data term (final value).
+    #[arg(long, default_value_t = 512.0)]
+    pub mu: f64,
+    /// Penalty of Du = w (final value).
+    #[arg(long, default_value_t = 32.0)]
+    pub beta: f64,
+    /// Initial mu of the continuation (default: mu).
+    #[arg(long)]
+    pub mu0: Option<f64>,
+    /// Initial beta of the continuation (default: beta).
+    #[arg(long)]
+    pub beta0: Option<f64>,
+    /// Outer tolerance.
+    #[arg(long, default_value_t = 1e-6)]
+    pub tol: f64,
+    /// Inner tolerance.
+    #[arg(long, default_value_t = 1e-3)]
+    pub tol_inn: f64,
+    /// Maximal total iterations.
+    #[arg(long, default_value_t = 200)]
+    pub maxit: usize,
+    /// Maximal outer iterations.
+    #[arg(long, default_value_t = 10)]
+    pub maxcnt: usize,
+    /// TV norm: 1 anisotropic, 2 isotropic.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=2))]
+    pub tv_norm: u8,
+    /// Allow negative values (TVAL3's nonneg = false).
+    #[arg(long)]
+    pub allow_negative: bool,
+    /// TV weights over (t, y, x), e.g. 1,1,1.
+    #[arg(long, default_value = "1,1,1")]
+    pub tv_weights: String,
+}
+
+impl Tval3Args {
+    pub fn options(&self) -> Result<Tval3Options> {
+        let w: Vec<f64> = self
+            .tv_weights
+            .split(',')
+            .map(|s| s.trim().parse::<f64>())
+            .collect::<std::result::Result<_, _>>()
+            .ok()
+            .filter(|v: &Vec<f64>| v.len() == 3)
+            .with_context(|| format!("--tv-weights {:?}: expected three numbers t,y,x (e.g. 1,1,1)", self.tv_weights))?;
+        let o = Tval3Options {
+            mu: self.mu,
+            beta: self.beta,
+            mu0: self.mu0,
+            beta0: self.beta0,
+            tol: self.tol,
+            tol_inn: self.tol_inn,
+            maxit: self.maxit,
+            maxcnt: self.maxcnt,
+            nonneg: !self.allow_negative,
+            tv_norm: if self.tv_norm == 2 { TvNorm::Isotropic } else { TvNorm::Anisotropic },
+            weights: [w[0], w[1], w[2]],
+            ..Default::default()
+        };
+        o.validate()?;
+        Ok(o)
+    }
+}
+
+#[derive(Subcommand)]
+pub enum ReconstructCmd {
+    /// TVAL3: TV-regularised reconstruction (the paper's iterative decoder).
+    Tval3 {
+        #[command(flatten)]
+        sensor: SensorArgs,
+        /// Tap images .npy, [M, H, W] or [B, M, H, W].
+        #[arg(long)]
+        measurements: PathBuf,
+        #[command(flatten)]
+        tval3: Tval3Args,
+        /// Output cube .npy, [T, H, W] (or [B, T, H, W]).
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+}
+
+pub fn reconstruct(cmd: ReconstructCmd) -> Result<ExitCode> {
+    match cmd {
+        ReconstructCmd::Tval3 { sensor, measurements, tval3: targs, output } => {
+            let opts = targs.options()?;
+            let (_, spec, a) = sensor.matrix()?;
+            let y = read_npy(&measurements)?;
+            if y.ndim() != 3 && y.ndim() != 4 {
+                bail!("{}: measurements have shape {:?}, expected [M, H, W] or [B, M, H, W]", measurements.display(), y.shape());
+            }
+            ensure_finite(&y.view(), "measurements").map_err(|e| e.in_file(&measurements))?;
+            let batch = y.ndim() == 4;
+            let frames: Vec<ndarray::Array3<f32>> = if batch {
+                y.axis_iter(Axis(0)).map(|v| v.to_owned().into_dimensionality::<Ix3>()).collect::<std::result::Result<_, _>>()?
+            } else {
+                vec![y.into_dimensionality::<Ix3>()?]
+            };
+            let (m, h, w) = frames[0].dim();
+            if m != spec.taps() {
+                bail!("{}: {m} tap images, but the codes have M = {} taps", measurements.display(), spec.taps());
+            }
+            let plan = a.plan(h, w).map_err(|e| anyhow::anyhow!("{}: {e}", measurements.display()))?;
+            let cancel = interrupt_flag();
+            let pb = ProgressBar::new((opts.maxit * frames.len()) as u64);
+            pb.set_style(ProgressStyle::with_template("TVAL3 [{bar:30}] {pos}/{len} it {per_sec} eta {eta} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
+            let mut outs = Vec::new();
+            let t0 = std::time::Instant::now();
+            for (fi, yf) in frames.iter().enumerate() {
+                let base = (fi * opts.maxit) as u64;
+                let progress = |it: usize, _: usize| pb.set_position(base + it as u64);
+                let (xh, rep) = match tval3(&a, &plan, &yf.view(), &opts, &progress, &cancel) {
+                    Err(ModelError::Cancelled) => bail!("interrupted; {} was not written", output.display()),
+                    r => r?,
+                };
+                pb.set_message(format!("frame {}: {} it, residual {:.2e}", fi + 1, rep.iterations, rep.residual));
+                outs.push(xh);
+            }
+            pb.finish_and_clear();
+            let views: Vec<_> = outs.iter().map(|x| x.view()).collect();
+            let out: ArrayD<f32> = if batch { ndarray::stack(Axis(0), &views)?.into_dyn() } else { outs.remove(0).into_dyn() };
+            if cancel.load(Ordering::Relaxed) {
+                bail!("interrupted; {} was not written", output.display());
+            }
+            write_npy(&output, &out.view())?;
+            println!("wrote {}: x̂ {:?} ({:.2} s per frame)", output.display(), out.shape(), t0.elapsed().as_secs_f64() / frames.len() as f64);
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Time-grid flags for products: Δt = T_c / K with K = T / L.
+#[derive(Args, Clone)]
+pub struct BinArgs {
+    /// Masks per cycle L (the oversampling/heterodyne factor is K = T / L).
+    #[arg(long, default_value_t = 32)]
+    pub length: usize,
+    /// Code clock in MHz.
+    #[arg(long, default_value_t = 607.0)]
+    pub clock_mhz: f64,
+    /// Bin width in ps (overrides --length/--clock-mhz).
+    #[arg(long)]
+    pub bin_width_ps: Option<f64>,
+}
+
+impl BinArgs {
+    fn bin_width(&self, t: usize, file: &Path) -> Result<f64> {
+        if let Some(ps) = self.bin_width_ps {
+            if !(ps.is_finite() && ps > 0.0) {
+                bail!("--bin-width-ps {ps}: expected a positive width");
+            }
+            return Ok(ps * 1e-12);
+        }
+        if self.length == 0 || t % self.length != 0 || !(self.clock_mhz > 0.0) {
+            bail!("{}: {t} time bins are not a multiple of L = {} (--length); pass --length or --bin-width-ps", file.display(), self.length);
+        }
+        Ok(1.0 / (self.clock_mhz * 1e6) / (t / self.length) as f64)
+    }
+}
+
+fn read_cube3(path: &Path) -> Result<ndarray::Array3<f32>> {
+    let a = tcsense_sensor::npy::read_cube(path, false)?;
+    Ok(a.into_dimensionality::<Ix3>()?)
+}
+
+#[derive(Args)]
+pub struct DepthArgs {
+    /// Reconstructed cube .npy [T, H, W].
+    cube: PathBuf,
+    #[command(flatten)]
+    bins: BinArgs,
+    /// Returns per pixel (multipath bounces).
+    #[arg(long, default_value_t = 2)]
+    peaks: usize,
+    /// Ignore peaks below this fraction of the pixel's maximum.
+    #[arg(long, default_value_t = 0.1)]
+    min_rel: f32,
+    /// Minimal separation of two returns (bins).
+    #[arg(long, default_value_t = 2)]
+    min_sep: usize,
+    /// Output range map .npy [K, H, W] (m, NaN where no return).
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Also write a point cloud (PLY).
+    #[arg(long)]
+    ply: Option<PathBuf>,
+    /// Horizontal field of view of the camera for the point cloud (degrees).
+    #[arg(long, default_value_t = 40.0)]
+    fov: f64,
+    /// Also write a PNG of the first return.
+    #[arg(long)]
+    png: Option<PathBuf>,
+}
+
+pub fn depth(a: DepthArgs) -> Result<ExitCode> {
+    if a.peaks == 0 {
+        bail!("--peaks 0: at least one return per pixel");
+    }
+    let x = read_cube3(&a.cube)?;
+    let dt = a.bins.bin_width(x.dim().0, &a.cube)?;
+    let (d, amp) = depth_map(&x.view(), dt, &PeakOptions { max_peaks: a.peaks, min_rel: a.min_rel, min_sep: a.min_sep });
+    write_npy(&a.output, &d.view())?;
+    let found: Vec<usize> = (0..a.peaks).map(|b| d.index_axis(Axis(0), b).iter().filter(|v| v.is_finite()).count()).collect();
+    println!("wrote {}: range map {:?}, returns per bounce {found:?}, bin width {:.1} ps", a.output.display(), d.shape(), dt * 1e12);
+    if let Some(p) = &a.ply {
+        let n = write_ply(p, &d.view(), &amp.view(), a.fov)?;
+        println!("wrote {}: {n} points", p.display());
+    }
+    if let Some(p) = &a.png {
+        let (_, h, w) = d.dim();
+        map_png(p, &d.index_axis(Axis(0), 0), (256 / h.max(w)).max(1))?;
+        println!("wrote {}", p.display());
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+#[derive(Args)]
+pub struct LifetimeArgs {
+    /// Reconstructed cube .npy [T, H, W].
+    cube: PathBuf,
+    #[command(flatten)]
+    bins: BinArgs,
+    /// Fit the decay while it stays above this fraction of the peak.
+    #[arg(long, default_value_t = 0.05)]
+    min_rel: f32,
+    /// Skip pixels whose total signal is below this fraction of the brightest pixel's.
+    #[arg(long, default_value_t = 0.02)]
+    min_intensity: f32,
+    /// Output lifetime map .npy [H, W] (s, NaN where no fit).
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Also write the phasor coordinates .npy [2, H, W] (g, s).
+    #[arg(long)]
+    phasor: Option<PathBuf>,
+    /// Also write a PNG of the lifetime map.
+    #[arg(long)]
+    png: Option<PathBuf>,
+}
+
+pub fn lifetime(a: LifetimeArgs) -> Result<ExitCode> {
+    let x = read_cube3(&a.cube)?;
+    let dt = a.bins.bin_width(x.dim().0, &a.cube)?;
+    let (tau, ph) = lifetime_map(&x.view(), dt, a.min_rel, a.min_intensity);
+    write_npy(&a.output, &tau.view())?;
+    let fit: Vec<f32> = tau.iter().copied().filter(|v| v.is_finite()).collect();
+    let mean = fit.iter().map(|&v| v as f64).sum::<f64>() / fit.len().max(1) as f64;
+    println!("wrote {}: {} pixels fitted, mean lifetime {:.3} ns", a.output.display(), fit.len(), mean * 1e9);
+    if let Some(p) = &a.phasor {
+        write_npy(p, &ph.view())?;
+        println!("wrote {}", p.display());
+    }
+    if let Some(p) = &a.png {
+        let (h, w) = tau.dim();
+        map_png(p, &tau.view(), (256 / h.max(w)).max(1))?;
+        println!("wrote {}", p.display());
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+#[derive(Subcommand)]
+pub enum PlotCmd {
+    /// Waveforms at chosen pixels for one or more cubes (like the paper's Figs. 18 and 20);
+    /// writes the PNG and a CSV of the values next to it.
+    Waveforms {
+        /// Cubes .npy [T, H, W] (e.g. truth, TVAL3, ADMM-Net), drawn black, blue, red, …
+        #[arg(long, num_args = 1.., required = true)]
+        cube: Vec<PathBuf>,
+        /// Pixels as ROW,COL.
+        #[arg(long, num_args = 1.., required = true)]
+        pixel: Vec<String>,
+        /// Output PNG.
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+}
+
+pub fn plot(cmd: PlotCmd) -> Result<ExitCode> {
+    match cmd {
+        PlotCmd::Waveforms { cube, pixel, output } => {
+            let cubes: Vec<ndarray::Array3<f32>> = cube.iter().map(|p| read_cube3(p)).collect::<Result<_>>()?;
+            let (_, h, w) = cubes[0].dim();
+            for (p, c) in cube.iter().zip(&cubes) {
+                if (c.dim().1, c.dim().2) != (h, w) {
+                    bail!("{}: frame {}x{} differs from {}x{} of {}", p.display(), c.dim().1, c.dim().2, h, w, cube[0].display());
+                }
+            }
+            let pixels: Vec<(usize, usize)> = pixel
+                .iter()
+                .map(|s| {
+                    let (r, c) = s.split_once(',').with_context(|| format!("--pixel {s:?}: expected ROW,COL"))?;
+                    let (r, c): (usize, usize) = (r.trim().parse().with_context(|| format!("--pixel {s:?}: expected ROW,COL"))?, c.trim().parse().with_context(|| format!("--pixel {s:?}: expected ROW,COL"))?);
+                    if r >= h || c >= w {
+                        bail!("--pixel {s}: outside the {h}x{w} frame");
+                    }
+                    Ok((r, c))
+                })
+                .collect::<Result<_>>()?;
+            let names: Vec<String> = cube.iter().map(|p| p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default()).collect();
+            let views: Vec<(&str, ndarray::ArrayView3<f32>)> = names.iter().zip(&cubes).map(|(n, c)| (n.as_str(), c.view())).collect();
+            let csv = plot_waveforms(&output, &views, &pixels)?;
+            let csv_path = output.with_extension("csv");
+            write_bytes(&csv_path, csv.as_bytes())?;
+            println!("wrote {} and {}", output.display(), csv_path.display());
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
