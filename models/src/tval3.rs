@@ -153,6 +153,8 @@ pub struct Tval3Report {
     pub residual: f64,
     /// Line searches that fell back to steepest descent.
     pub fallbacks: usize,
+    /// Backtracking steps of the line search (each one extra evaluation of `A`, `Aᵀ`, `D`).
+    pub backtracks: usize,
 }
 
 /// Per-axis periodic forward differences of a cube `[T, H, W]` (flat), scaled by the weights.
@@ -210,17 +212,58 @@ impl Grad {
             for r in 0..h {
                 let above = ((r + h - 1) % h) * w;
                 let orow = &mut o[r * w..(r + 1) * w];
-                for c in 0..w {
-                    let left = if c == 0 { w - 1 } else { c - 1 };
-                    orow[c] += self.wy * (cy[above + c] - cy[r * w + c]) + self.wx * (cx[r * w + left] - cx[r * w + c]);
+                let (ya, yc) = (&cy[above..above + w], &cy[r * w..(r + 1) * w]);
+                for ((v, &a), &b) in orow.iter_mut().zip(ya).zip(yc) {
+                    *v += self.wy * (a - b);
+                }
+                let xr = &cx[r * w..(r + 1) * w];
+                orow[0] += self.wx * (xr[w - 1] - xr[0]);
+                for c in 1..w {
+                    orow[c] += self.wx * (xr[c - 1] - xr[c]);
                 }
             }
         });
     }
 }
 
+/// `Σ a·b` of one chunk with eight f32 lanes (vectorisable); chunk sums are added in f64.
+#[inline]
+fn dot_chunk(a: &[f32], b: &[f32]) -> f64 {
+    let mut acc = [0f32; 8];
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for k in 0..8 {
+            acc[k] += x[k] * y[k];
+        }
+    }
+    let tail: f32 = ra.iter().zip(rb).map(|(x, y)| x * y).sum();
+    acc.iter().map(|&v| v as f64).sum::<f64>() + tail as f64
+}
+
+/// `Σ (a−b)²` of one chunk, eight lanes.
+#[inline]
+fn dist2_chunk(a: &[f32], b: &[f32]) -> f64 {
+    let mut acc = [0f32; 8];
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for k in 0..8 {
+            let d = x[k] - y[k];
+            acc[k] += d * d;
+        }
+    }
+    let tail: f32 = ra.iter().zip(rb).map(|(x, y)| (x - y) * (x - y)).sum();
+    acc.iter().map(|&v| v as f64).sum::<f64>() + tail as f64
+}
+
 fn dot(a: &[f32], b: &[f32]) -> f64 {
-    a.par_chunks(8192).zip(b.par_chunks(8192)).map(|(x, y)| x.iter().zip(y).map(|(p, q)| *p as f64 * *q as f64).sum::<f64>()).sum()
+    a.par_chunks(8192).zip(b.par_chunks(8192)).map(|(x, y)| dot_chunk(x, y)).sum()
+}
+
+/// `‖a − b‖²`.
+fn dist2(a: &[f32], b: &[f32]) -> f64 {
+    a.par_chunks(8192).zip(b.par_chunks(8192)).map(|(x, y)| dist2_chunk(x, y)).sum()
 }
 
 fn norm2(a: &[f32]) -> f64 {
@@ -355,31 +398,33 @@ impl Solver<'_> {
             .enumerate()
             .map(|(ci, ((ot, oy), ox))| {
                 let base = ci * CH;
-                let mut acc = 0f64;
-                for k in 0..ot.len() {
-                    let i = base + k;
-                    let vt = dt[i] - st[i] * inv;
-                    let vy = dy[i] - sy[i] * inv;
-                    let vx = dx[i] - sx[i] * inv;
-                    match tv {
-                        TvNorm::Anisotropic => {
-                            let sh = |v: f32| v.signum() * (v.abs() - inv).max(0.0);
-                            ot[k] = sh(vt);
-                            oy[k] = sh(vy);
-                            ox[k] = sh(vx);
-                            acc += (ot[k].abs() + oy[k].abs() + ox[k].abs()) as f64;
+                let len = ot.len();
+                let (dt, dy, dx) = (&dt[base..base + len], &dy[base..base + len], &dx[base..base + len]);
+                let (st, sy, sx) = (&st[base..base + len], &sy[base..base + len], &sx[base..base + len]);
+                let mut acc = 0f32;
+                match tv {
+                    TvNorm::Anisotropic => {
+                        let sh = |v: f32| v.signum() * (v.abs() - inv).max(0.0);
+                        for k in 0..len {
+                            ot[k] = sh(dt[k] - st[k] * inv);
+                            oy[k] = sh(dy[k] - sy[k] * inv);
+                            ox[k] = sh(dx[k] - sx[k] * inv);
+                            acc += ot[k].abs() + oy[k].abs() + ox[k].abs();
                         }
-                        TvNorm::Isotropic => {
+                    }
+                    TvNorm::Isotropic => {
+                        for k in 0..len {
+                            let (vt, vy, vx) = (dt[k] - st[k] * inv, dy[k] - sy[k] * inv, dx[k] - sx[k] * inv);
                             let nrm = (vt * vt + vy * vy + vx * vx).sqrt();
                             let f = if nrm > 0.0 { (nrm - inv).max(0.0) / nrm } else { 0.0 };
                             ot[k] = f * vt;
                             oy[k] = f * vy;
                             ox[k] = f * vx;
-                            acc += (f * nrm) as f64;
+                            acc += f * nrm;
                         }
                     }
                 }
-                acc
+                acc as f64
             })
             .sum();
     }
@@ -394,13 +439,10 @@ impl Solver<'_> {
                 .zip(self.wv[k].par_chunks(CH))
                 .zip(self.sigma[k].par_chunks(CH))
                 .map(|(((v, du), w), sg)| {
-                    let (mut a, mut b) = (0f64, 0f64);
-                    for i in 0..v.len() {
-                        v[i] = du[i] - w[i];
-                        a += (v[i] * v[i]) as f64;
-                        b += (v[i] * sg[i]) as f64;
+                    for ((v, &a), &b) in v.iter_mut().zip(du).zip(w) {
+                        *v = a - b;
                     }
-                    (a, b)
+                    (dot_chunk(v, v), dot_chunk(v, sg))
                 })
                 .reduce(|| (0.0, 0.0), |x, y| (x.0 + y.0, x.1 + y.1));
             lam2 += l2;
@@ -586,13 +628,14 @@ pub fn tval3(
                 .zip(s.g.par_chunks(CH).zip(s.gp.par_chunks(CH)))
                 .zip(s.g2.par_chunks(CH).zip(s.g2p.par_chunks(CH)))
                 .map(|(((u, up), (g, gp)), (g2, g2p))| {
-                    let (mut a, mut b) = (0f64, 0f64);
+                    let m = mdb as f32;
+                    let (mut a, mut b) = ([0f32; 8], [0f32; 8]);
                     for i in 0..u.len() {
-                        let uu = (u[i] - up[i]) as f64;
-                        a += uu * uu;
-                        b += uu * ((g2[i] - g2p[i]) as f64 + mdb * (g[i] - gp[i]) as f64);
+                        let uu = u[i] - up[i];
+                        a[i % 8] += uu * uu;
+                        b[i % 8] += uu * ((g2[i] - g2p[i]) + m * (g[i] - gp[i]));
                     }
-                    (a, b)
+                    (a.iter().map(|&v| v as f64).sum::<f64>(), b.iter().map(|&v| v as f64).sum::<f64>())
                 })
                 .reduce(|| (0.0, 0.0), |x, y| (x.0 + y.0, x.1 + y.1));
             (ss / sy.max(f64::EPSILON)).abs()
@@ -639,6 +682,7 @@ pub fn tval3(
             s.eval()?;
             f = s.f(beta, mu);
             cnt += 1;
+            report.backtracks += 1;
         }
         if alpha != 0.0 {
             // w-step at the accepted u
@@ -650,7 +694,7 @@ pub fn tval3(
         let qp = q;
         q = gam * qp + 1.0;
         c = (gam * qp * c + f) / q;
-        let nrm_uup = s.u.par_iter().zip(s.up.par_iter()).map(|(a, b)| ((a - b) * (a - b)) as f64).sum::<f64>().sqrt();
+        let nrm_uup = dist2(&s.u, &s.up).sqrt();
         let nrm_up = norm2(&s.up).sqrt().max(f64::MIN_POSITIVE);
         s.direction(mdb as f32);
         have_prev = true;
@@ -659,7 +703,7 @@ pub fn tval3(
 
         if nrm_uup / nrm_up < opts.tol_inn && !first_iter {
             count += 1;
-            let rel_out = s.u.par_iter().zip(rcd_u.par_iter()).map(|(a, b)| ((a - b) * (a - b)) as f64).sum::<f64>().sqrt() / nrm_up;
+            let rel_out = dist2(&s.u, &rcd_u).sqrt() / nrm_up;
             rcd_u.copy_from_slice(&s.u);
             report.rel_change = rel_out;
             report.outer = count;

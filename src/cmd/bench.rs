@@ -20,6 +20,21 @@ pub enum BenchCmd {
         #[arg(long, default_value_t = 20)]
         reps: usize,
     },
+    /// TVAL3 time per frame (LiDAR scene, tap constraint, paper settings, maxit iterations).
+    Tval3 {
+        /// Frame size HxW.
+        #[arg(long, default_value = "188x212", value_parser = super::parse_hw)]
+        size: (usize, usize),
+        /// Bins T = 32·K (K = T/32).
+        #[arg(long, default_value_t = 32)]
+        bins: usize,
+        /// Iterations.
+        #[arg(long, default_value_t = 200)]
+        maxit: usize,
+        /// Frames.
+        #[arg(long, default_value_t = 3)]
+        frames: usize,
+    },
     /// Dataset generation throughput (samples/s).
     Dataset(super::dataset::BenchDatasetArgs),
 }
@@ -57,6 +72,36 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             }
         }
         BenchCmd::Dataset(a) => super::dataset::bench(a)?,
+        BenchCmd::Tval3 { size: (h, w), bins, maxit, frames } => {
+            use tcsense_datasets::{lidar::LidarParams, TimeGrid};
+            if bins == 0 || bins % 32 != 0 {
+                anyhow::bail!("--bins {bins}: expected a multiple of 32 (L = 32, K = T/32)");
+            }
+            let k = bins / 32;
+            let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
+            let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 1)?;
+            let spec = SensorParams { sampling: Sampling::Oversample(k), ..SensorParams::from_codes(&codes) }.validate()?;
+            let a = MeasurementMatrix::synthesize(&codes, &spec)?;
+            let plan = a.plan(h, w)?;
+            let grid = TimeGrid { sampling: Sampling::Oversample(k), ..TimeGrid::default() };
+            let gen = LidarParams { height: h, width: w, ..Default::default() };
+            let opts = tcsense_models::Tval3Options { maxit, tol: 1e-12, maxcnt: usize::MAX, ..Default::default() };
+            println!("TVAL3 {h}x{w}x{bins}, 4 taps 2x2, maxit {maxit}, {} threads", rayon::current_num_threads());
+            let never = std::sync::atomic::AtomicBool::new(false);
+            let mut times = Vec::new();
+            for i in 0..frames.max(1) {
+                let x = gen.sample(&grid, 1, i as u64).x;
+                let y = plan.forward(&x.view())?;
+                let t0 = Instant::now();
+                let (xh, rep) = tcsense_models::tval3(&a, &plan, &y.view(), &opts, &|_, _| {}, &never)?;
+                let dt = t0.elapsed().as_secs_f64();
+                let mse = tcsense_infer::metrics::mse(xh.as_slice().unwrap_or(&[]), x.as_slice().unwrap_or(&[]));
+                println!("frame {i}: {:.3} s, {} iterations ({:.2} ms/iteration, {} backtracks, {} fallbacks), MSE {mse:.3e}", dt, rep.iterations, dt * 1e3 / rep.iterations.max(1) as f64, rep.backtracks, rep.fallbacks);
+                times.push(dt);
+            }
+            times.sort_by(f64::total_cmp);
+            println!("median {:.3} s per frame", times[times.len() / 2]);
+        }
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -100,7 +100,7 @@ pub fn select_cmd(a: SelectArgs) -> Result<ExitCode> {
     pb.set_style(ProgressStyle::with_template("candidates [{bar:30}] {pos}/{len} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
     println!("candidate seed        MSE");
     let mut on = |c: &tcsense_infer::design::Candidate| {
-        pb.println(format!("{:>14} {:.4e}", c.seed, c.mse));
+        pb.suspend(|| println!("{:>14} {:.4e}", c.seed, c.mse));
         pb.inc(1);
     };
     let (best, all) = select(d.shape(), d.clock_hz(), d.constraints(), a.candidates, a.seed, &l.setup, &l.cubes, &mut on, &cancel)?;
@@ -225,7 +225,7 @@ pub fn sweep(cmd: SweepCmd) -> Result<ExitCode> {
         let best = mses.iter().copied().fold(f64::INFINITY, f64::min);
         let mean = mses.iter().sum::<f64>() / mses.len() as f64;
         summary.push_str(&format!("{name},{x},{best:.6e},{mean:.6e}\n"));
-        pb.println(format!("{name:>24} {x:>4}  best {best:.3e}  mean {mean:.3e}"));
+        pb.suspend(|| println!("{name:>24} {x:>4}  best {best:.3e}  mean {mean:.3e}"));
         match series.iter_mut().find(|s| &s.0 == name) {
             Some(s) => s.1.push((*x, best)),
             None => series.push((name.clone(), vec![(*x, best)])),

@@ -1,0 +1,110 @@
+//! End-to-end tests of reconstruction, products, evaluation, code selection and sweeps.
+
+mod common;
+use common::*;
+use ndarray::{Array3, Ix2, Ix3};
+use tcsense_sensor::npy::{read_npy, write_npy};
+
+fn lidar(d: &std::path::Path) {
+    ok(d, &["dataset", "lidar", "--count", "6", "--size", "8x8", "--sheet-probability", "0", "--seed", "4", "-o", "ds"]);
+    ok(d, &["codes", "generate", "--tap-constraint", "--seed", "1", "-o", "codes.json"]);
+}
+
+#[test]
+fn reconstruct_depth_ply_png_and_waveforms() {
+    let d = tempdir();
+    let d = d.path();
+    lidar(d);
+    ok(d, &["simulate", "--codes", "codes.json", "--cube", "ds/test/x_000.npy", "-o", "y.npy"]);
+    ok(d, &["reconstruct", "tval3", "--codes", "codes.json", "--measurements", "y.npy", "--maxit", "50", "-o", "xhat.npy"]);
+    let xh = read_npy(&d.join("xhat.npy")).unwrap();
+    assert_eq!(xh.shape(), &[1, 32, 8, 8]);
+    assert!(xh.iter().all(|&v| v >= 0.0), "nonneg by default");
+    // single frames too, and the products
+    let x0 = xh.index_axis(ndarray::Axis(0), 0).to_owned().into_dimensionality::<Ix3>().unwrap();
+    write_npy(&d.join("x0.npy"), &x0.view()).unwrap();
+    let out = ok(d, &["depth", "x0.npy", "--peaks", "2", "-o", "depth.npy", "--ply", "cloud.ply", "--png", "depth.png"]);
+    assert!(out.contains("points"), "{out}");
+    let dep = read_npy(&d.join("depth.npy")).unwrap();
+    assert_eq!(dep.shape(), &[2, 8, 8]);
+    let ply = std::fs::read_to_string(d.join("cloud.ply")).unwrap();
+    assert!(ply.starts_with("ply\nformat ascii 1.0"));
+    let n: usize = ply.lines().find(|l| l.starts_with("element vertex")).unwrap().split_whitespace().last().unwrap().parse().unwrap();
+    assert_eq!(ply.lines().skip_while(|l| *l != "end_header").count() - 1, n);
+    assert!(std::fs::read(d.join("depth.png")).unwrap().starts_with(b"\x89PNG"));
+    // the truth cube's own depth equals the ground truth within a fraction of a bin
+    let truth = read_npy(&d.join("ds/test/x_000.npy")).unwrap();
+    write_npy(&d.join("t0.npy"), &truth.index_axis(ndarray::Axis(0), 0)).unwrap();
+    ok(d, &["depth", "t0.npy", "--peaks", "1", "-o", "tdepth.npy"]);
+    let td = read_npy(&d.join("tdepth.npy")).unwrap();
+    let gt = read_npy(&d.join("ds/test/depth_000.npy")).unwrap();
+    let bin_m = 299_792_458.0 * (1.0 / 607e6) / 2.0;
+    for r in 0..8 {
+        for c in 0..8 {
+            assert!((td[[0, r, c]] - gt[[0, 0, r, c]]).abs() < 0.3 * bin_m as f32);
+        }
+    }
+    ok(d, &["plot", "waveforms", "--cube", "t0.npy", "--cube", "x0.npy", "--pixel", "1,1", "--pixel", "6,5", "-o", "w.png"]);
+    let csv = std::fs::read_to_string(d.join("w.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 1 + 2 * 32);
+}
+
+#[test]
+fn lifetime_map_of_a_flim_cube() {
+    let d = tempdir();
+    let d = d.path();
+    ok(d, &["dataset", "flim", "--count", "3", "--size", "8x8", "--seed", "3", "-o", "f"]);
+    let x = read_npy(&d.join("f/train/x_000.npy")).unwrap();
+    write_npy(&d.join("x.npy"), &x.index_axis(ndarray::Axis(0), 0)).unwrap();
+    ok(d, &["lifetime", "x.npy", "-o", "tau.npy", "--phasor", "ph.npy", "--png", "tau.png"]);
+    let tau = read_npy(&d.join("tau.npy")).unwrap().into_dimensionality::<Ix2>().unwrap();
+    let truth = read_npy(&d.join("f/train/lifetime_000.npy")).unwrap();
+    // single-channel pixels recover their lifetime closely; mixtures give a value between the channels
+    let mut n = 0;
+    for ((r, c), &t) in tau.indexed_iter() {
+        let g = truth[[0, r, c]];
+        if t.is_finite() && g.is_finite() {
+            assert!(t > 0.4e-9 && t < 3.6e-9, "tau {t}");
+            n += 1;
+        }
+    }
+    assert!(n > 0);
+    assert_eq!(read_npy(&d.join("ph.npy")).unwrap().shape(), &[2, 8, 8]);
+}
+
+#[test]
+fn eval_select_and_sweep() {
+    let d = tempdir();
+    let d = d.path();
+    lidar(d);
+    let out = ok(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--maxit", "30", "-o", "report.json"]);
+    assert!(out.contains("tval3"), "{out}");
+    let rep: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("report.json")).unwrap()).unwrap();
+    assert!(rep[0]["mse"].as_f64().unwrap() > 0.0 && rep[0]["mse"].as_f64().unwrap() < 0.05);
+    let out = ok(d, &["codes", "select", "--dataset", "ds", "--tap-constraint", "--candidates", "3", "--maxit", "20", "--seed", "5", "-o", "best.json"]);
+    assert_eq!(out.lines().filter(|l| l.trim_start().starts_with(|c: char| c.is_ascii_digit())).count(), 3, "{out}");
+    ok(d, &["codes", "check", "best.json"]);
+    ok(d, &["sweep", "constraints", "--dataset", "ds", "--items", "1", "--maxit", "10", "-o", "sw"]);
+    let summary = std::fs::read_to_string(d.join("sw/summary.csv")).unwrap();
+    assert_eq!(summary.lines().count(), 6, "{summary}");
+    assert!(std::fs::read(d.join("sw/sweep.png")).unwrap().starts_with(b"\x89PNG"));
+}
+
+#[test]
+fn bad_inputs_exit_2() {
+    let d = tempdir();
+    let d = d.path();
+    ok(d, &["codes", "generate", "--tap-constraint", "--seed", "1", "-o", "codes.json"]);
+    write_npy(&d.join("y5.npy"), &Array3::<f32>::zeros((5, 4, 4)).view()).unwrap();
+    fails(d, &["reconstruct", "tval3", "--codes", "codes.json", "--measurements", "y5.npy", "-o", "x.npy"], &["y5.npy", "5 tap images", "M = 4"]);
+    write_npy(&d.join("y.npy"), &Array3::<f32>::zeros((4, 4, 4)).view()).unwrap();
+    fails(d, &["reconstruct", "tval3", "--codes", "codes.json", "--measurements", "y.npy", "--mu=-1", "-o", "x.npy"], &["mu", "positive"]);
+    fails(d, &["reconstruct", "tval3", "--codes", "codes.json", "--measurements", "y.npy", "--tv-weights", "1,1", "-o", "x.npy"], &["--tv-weights"]);
+    assert!(!d.join("x.npy").exists());
+    write_npy(&d.join("c.npy"), &Array3::<f32>::zeros((30, 4, 4)).view()).unwrap();
+    fails(d, &["depth", "c.npy", "-o", "d.npy"], &["c.npy", "not a multiple of L = 32"]);
+    fails(d, &["lifetime", "missing.npy", "-o", "t.npy"], &["missing.npy"]);
+    fails(d, &["plot", "waveforms", "--cube", "c.npy", "--pixel", "9,9", "-o", "p.png"], &["outside"]);
+    fails(d, &["eval", "--dataset", "nowhere", "--codes", "codes.json"], &["nowhere", "manifest.json"]);
+    fails(d, &["sweep", "taps", "--dataset", "nowhere", "-o", "s"], &["nowhere"]);
+}
