@@ -4,9 +4,13 @@
 //! - [`tval3`]: TV minimisation by augmented Lagrangian with alternating shrinkage and a
 //!   nonmonotone Barzilai–Borwein line search (Li, Yin, Jiang, Zhang), 3-D TV over
 //!   `(x, y, t)` with per-axis weights — the paper's iterative baseline.
+//! - [`admm`]: ADMM-Net, `S` unrolled stages with an exact per-pixel data-consistency step
+//!   and a residual CNN prior (burn modules; trained by `tcsense-train`).
 
+pub mod admm;
 pub mod tval3;
 
+pub use admm::{AdmmNet, AdmmNetConfig, SensorTensors};
 pub use tval3::{tval3, Tval3Options, Tval3Report, TvNorm};
 
 /// Errors of the models crate.
