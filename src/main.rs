@@ -33,6 +33,9 @@ enum Command {
     /// Reconstruct transient cubes from tap images.
     #[command(subcommand)]
     Reconstruct(cmd::recon::ReconstructCmd),
+    /// Train learned decoders.
+    #[command(subcommand)]
+    Train(cmd::train::TrainCmd),
     /// Depth (range) per return from a cube: peaks with parabolic sub-bin refinement.
     Depth(cmd::recon::DepthArgs),
     /// Lifetime map (exponential fit after the peak) and phasor coordinates from a cube.
@@ -64,6 +67,7 @@ fn main() -> ExitCode {
         Command::Simulate(a) => cmd::sensor::simulate(a),
         Command::Dataset(c) => cmd::dataset::run(c),
         Command::Reconstruct(c) => cmd::recon::reconstruct(c),
+        Command::Train(c) => cmd::train::run(c),
         Command::Depth(a) => cmd::recon::depth(a),
         Command::Lifetime(a) => cmd::recon::lifetime(a),
         Command::Plot(c) => cmd::recon::plot(c),

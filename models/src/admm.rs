@@ -88,20 +88,27 @@ pub struct AdmmNet {
     stages: Vec<Stage>,
 }
 
-/// The sensor model as tensors for one frame size: `A` per pixel and the eigen-decomposition
-/// of `AAᵀ` per pixel.
+/// The sensor model as tensors for one frame size, in *block layout*: a frame `[B, C, H, W]`
+/// is rearranged to `[B, N, C, P]` (subpixel type `n`, `P = (H/bh)·(W/bw)` blocks), where the
+/// per-pixel operators become small batched matrix products: `A_n [M, T]`, `A_nᵀ` and
+/// `(ρI + A_nA_nᵀ)⁻¹ = Q_n diag(1/(ρ + λ_n)) Q_nᵀ`.
 #[derive(Debug, Clone)]
 pub struct SensorTensors {
-    /// `[1, M, T, H, W]`
-    pub a: Tensor<5>,
-    /// Eigenvectors `[1, M(j), M(i), H, W]` (`Q[j][i]`: component `j` of vector `i`).
-    pub q: Tensor<5>,
-    /// Eigenvalues `[1, M, H, W]`.
+    /// `A` per subpixel type, `[1, N, M, T]`.
+    pub a: Tensor<4>,
+    /// `Aᵀ`, `[1, N, T, M]`.
+    pub at: Tensor<4>,
+    /// Eigenvectors of `A_nA_nᵀ`, `[1, N, M, M]` (columns).
+    pub q: Tensor<4>,
+    /// `Qᵀ`, `[1, N, M, M]`.
+    pub qt: Tensor<4>,
+    /// Eigenvalues, `[1, N, 1, M]`.
     pub lambda: Tensor<4>,
     pub taps: usize,
     pub bins: usize,
     pub height: usize,
     pub width: usize,
+    pub block: (usize, usize),
 }
 
 /// Eigen-decomposition of a symmetric `n × n` matrix (row-major) by cyclic Jacobi rotations:
@@ -151,45 +158,88 @@ pub fn jacobi_eigen(a: &[f64], n: usize) -> (Vec<f64>, Vec<f64>) {
 }
 
 impl SensorTensors {
-    /// Expand `A [N, M, T]` over an `H × W` frame (`H`, `W` multiples of the block).
+    /// Prepare `A [N, M, T]` for `H × W` frames (`H`, `W` multiples of the block).
     pub fn new(a: &MeasurementMatrix, height: usize, width: usize, device: &Device) -> tcsense_sensor::Result<Self> {
         a.plan(height, width)?; // checks the frame against the block
-        let (bh, bw) = a.block();
         let av = a.a();
         let (n_sub, m, t) = av.dim();
-        // per subpixel type: eigen-decomposition of A_n A_nᵀ
-        let eig: Vec<(Vec<f64>, Vec<f64>)> = (0..n_sub)
-            .map(|k| {
-                let g: Vec<f64> = (0..m * m).map(|ij| (0..t).map(|j| av[(k, ij / m, j)] as f64 * av[(k, ij % m, j)] as f64).sum()).collect();
-                jacobi_eigen(&g, m)
-            })
-            .collect();
-        let hw = height * width;
-        let sub = |p: usize| ((p / width) % bh) * bw + (p % width) % bw;
-        let mut a_pix = vec![0f32; m * t * hw];
-        let mut q_pix = vec![0f32; m * m * hw];
-        let mut l_pix = vec![0f32; m * hw];
-        for p in 0..hw {
-            let k = sub(p);
+        let mut a_v = vec![0f32; n_sub * m * t];
+        let mut at_v = vec![0f32; n_sub * t * m];
+        let mut q_v = vec![0f32; n_sub * m * m];
+        let mut qt_v = vec![0f32; n_sub * m * m];
+        let mut l_v = vec![0f32; n_sub * m];
+        for k in 0..n_sub {
             for mm in 0..m {
                 for j in 0..t {
-                    a_pix[(mm * t + j) * hw + p] = av[(k, mm, j)];
+                    a_v[(k * m + mm) * t + j] = av[(k, mm, j)];
+                    at_v[(k * t + j) * m + mm] = av[(k, mm, j)];
                 }
-                l_pix[mm * hw + p] = eig[k].0[mm].max(0.0) as f32;
-                for i in 0..m {
-                    q_pix[(mm * m + i) * hw + p] = eig[k].1[mm * m + i] as f32;
+            }
+            let g: Vec<f64> = (0..m * m).map(|ij| (0..t).map(|j| av[(k, ij / m, j)] as f64 * av[(k, ij % m, j)] as f64).sum()).collect();
+            let (l, q) = jacobi_eigen(&g, m);
+            for r in 0..m {
+                l_v[k * m + r] = l[r].max(0.0) as f32;
+                for c in 0..m {
+                    q_v[(k * m + r) * m + c] = q[r * m + c] as f32;
+                    qt_v[(k * m + c) * m + r] = q[r * m + c] as f32;
                 }
             }
         }
         Ok(SensorTensors {
-            a: Tensor::from_data(TensorData::new(a_pix, [1, m, t, height, width]), device),
-            q: Tensor::from_data(TensorData::new(q_pix, [1, m, m, height, width]), device),
-            lambda: Tensor::from_data(TensorData::new(l_pix, [1, m, height, width]), device),
+            a: Tensor::from_data(TensorData::new(a_v, [1, n_sub, m, t]), device),
+            at: Tensor::from_data(TensorData::new(at_v, [1, n_sub, t, m]), device),
+            q: Tensor::from_data(TensorData::new(q_v, [1, n_sub, m, m]), device),
+            qt: Tensor::from_data(TensorData::new(qt_v, [1, n_sub, m, m]), device),
+            lambda: Tensor::from_data(TensorData::new(l_v, [1, n_sub, 1, m]), device),
             taps: m,
             bins: t,
             height,
             width,
+            block: a.block(),
         })
+    }
+
+    /// Frame to block layout.
+    ///
+    /// # Shapes
+    /// - `x`: `[B, C, H, W]` → `[B, N, C, P]`
+    pub fn to_blocks(&self, x: Tensor<4>) -> Tensor<4> {
+        let [b, c, h, w] = x.dims();
+        let (bh, bw) = self.block;
+        let (hb, wb) = (h / bh, w / bw);
+        x.reshape([b, c, hb, bh, wb, bw]) // [B, C, H', bh, W', bw]
+            .permute([0, 3, 5, 1, 2, 4]) // [B, bh, bw, C, H', W']
+            .reshape([b, bh * bw, c, hb * wb])
+    }
+
+    /// Block layout back to frames.
+    ///
+    /// # Shapes
+    /// - `z`: `[B, N, C, P]` → `[B, C, H, W]`
+    pub fn from_blocks(&self, z: Tensor<4>) -> Tensor<4> {
+        let [b, _, c, _] = z.dims();
+        let (bh, bw) = self.block;
+        let (hb, wb) = (self.height / bh, self.width / bw);
+        z.reshape([b, bh, bw, c, hb, wb]) // [B, bh, bw, C, H', W']
+            .permute([0, 3, 4, 1, 5, 2]) // [B, C, H', bh, W', bw]
+            .reshape([b, c, self.height, self.width])
+    }
+
+    /// `A x` in block layout: `[B, N, T, P]` → `[B, N, M, P]`.
+    fn a_blocks(&self, x: Tensor<4>) -> Tensor<4> {
+        self.a.clone().matmul(x)
+    }
+
+    /// `Aᵀ y` in block layout: `[B, N, M, P]` → `[B, N, T, P]`.
+    fn at_blocks(&self, y: Tensor<4>) -> Tensor<4> {
+        self.at.clone().matmul(y)
+    }
+
+    /// `(sI + AAᵀ)⁻¹ v` in block layout: `[B, N, M, P]` → `[B, N, M, P]`; `s` is `[1]`.
+    fn solve_aat(&self, v: Tensor<4>, s: Tensor<1>) -> Tensor<4> {
+        let inv = (self.lambda.clone() + s.reshape([1, 1, 1, 1])).recip(); // [1, N, 1, M]
+        let k = (self.q.clone() * inv).matmul(self.qt.clone()); // [1, N, M, M]
+        k.matmul(v)
     }
 
     /// `A x`.
@@ -197,9 +247,7 @@ impl SensorTensors {
     /// # Shapes
     /// - `x`: `[B, T, H, W]` → `[B, M, H, W]`
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        let [b, _, h, w] = x.dims();
-        // [1, M, T, H, W] * [B, 1, T, H, W] → sum over T
-        (self.a.clone() * x.unsqueeze_dim::<5>(1)).sum_dim(2).reshape([b, self.taps, h, w])
+        self.from_blocks(self.a_blocks(self.to_blocks(x)))
     }
 
     /// `Aᵀ y`.
@@ -207,22 +255,7 @@ impl SensorTensors {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
     pub fn adjoint(&self, y: Tensor<4>) -> Tensor<4> {
-        let [b, _, h, w] = y.dims();
-        // [1, M, T, H, W] * [B, M, 1, H, W] → sum over M
-        (self.a.clone() * y.unsqueeze_dim::<5>(2)).sum_dim(1).reshape([b, self.bins, h, w])
-    }
-
-    /// `Q diag(1/(λ + s)) Qᵀ v` per pixel; `s` is a scalar tensor `[1]`.
-    ///
-    /// # Shapes
-    /// - `v`: `[B, M, H, W]` → `[B, M, H, W]`
-    fn solve_aat(&self, v: Tensor<4>, s: Tensor<1>) -> Tensor<4> {
-        let [b, m, h, w] = v.dims();
-        // c_i = Σ_j Q[j][i] v_j: [1, Mj, Mi, H, W] * [B, Mj, 1, H, W] → sum over j
-        let c = (self.q.clone() * v.unsqueeze_dim::<5>(2)).sum_dim(1).reshape([b, m, h, w]);
-        let c = c / (self.lambda.clone() + s.reshape([1, 1, 1, 1]));
-        // w_j = Σ_i Q[j][i] c_i: [1, Mj, Mi, H, W] * [B, 1, Mi, H, W] → sum over i
-        (self.q.clone() * c.unsqueeze_dim::<5>(1)).sum_dim(2).reshape([b, m, h, w])
+        self.from_blocks(self.at_blocks(self.to_blocks(y)))
     }
 
     /// The normalised back-projection `Aᵀ(AAᵀ + εI)⁻¹ y`, `ε = 1e-3·λ_max`.
@@ -232,17 +265,24 @@ impl SensorTensors {
     pub fn pinv(&self, y: Tensor<4>) -> Tensor<4> {
         let lmax: f32 = self.lambda.clone().max().into_scalar();
         let eps = Tensor::<1>::from_floats([1e-3 * lmax.max(1e-12)], &y.device());
-        self.adjoint(self.solve_aat(y, eps))
+        self.from_blocks(self.at_blocks(self.solve_aat(self.to_blocks(y), eps)))
     }
 
-    /// Exact data consistency `(AᵀA + ρI)⁻¹ v` per pixel (Woodbury).
+    /// Exact data consistency `(AᵀA + ρI)⁻¹ v` per pixel (Woodbury), in block layout.
+    ///
+    /// # Shapes
+    /// - `v`: `[B, N, T, P]`, `rho`: `[1]` → `[B, N, T, P]`
+    pub fn data_consistency_blocks(&self, v: Tensor<4>, rho: Tensor<1>) -> Tensor<4> {
+        let w = self.solve_aat(self.a_blocks(v.clone()), rho.clone());
+        (v - self.at_blocks(w)) / rho.reshape([1, 1, 1, 1])
+    }
+
+    /// Exact data consistency on frames.
     ///
     /// # Shapes
     /// - `v`: `[B, T, H, W]`, `rho`: `[1]` → `[B, T, H, W]`
     pub fn data_consistency(&self, v: Tensor<4>, rho: Tensor<1>) -> Tensor<4> {
-        let av = self.forward(v.clone());
-        let w = self.solve_aat(av, rho.clone());
-        (v - self.adjoint(w)) / rho.reshape([1, 1, 1, 1])
+        self.from_blocks(self.data_consistency_blocks(self.to_blocks(v), rho))
     }
 }
 
@@ -252,13 +292,14 @@ impl AdmmNet {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
     pub fn forward(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
-        let aty = sensor.adjoint(y.clone());
+        let aty = sensor.at_blocks(sensor.to_blocks(y.clone())); // [B, N, T, P]
         let mut z = sensor.pinv(y);
         let mut u = z.zeros_like();
         for st in &self.stages {
             let rho = st.log_rho.val().exp();
-            let v = aty.clone() + (z.clone() - u.clone()) * rho.clone().reshape([1, 1, 1, 1]);
-            let x = sensor.data_consistency(v, rho);
+            let zu = sensor.to_blocks(z.clone() - u.clone());
+            let v = aty.clone() + zu * rho.clone().reshape([1, 1, 1, 1]);
+            let x = sensor.from_blocks(sensor.data_consistency_blocks(v, rho));
             let xu = x.clone() + u.clone();
             let h = relu(st.conv1.forward(xu.clone()));
             let h = relu(st.conv2.forward(h));

@@ -11,6 +11,8 @@ pub mod admm;
 pub mod tval3;
 
 pub use admm::{AdmmNet, AdmmNetConfig, SensorTensors};
+/// The burn device type (CPU `Device::flex()` by default).
+pub use burn::tensor::Device;
 pub use tval3::{tval3, Tval3Options, Tval3Report, TvNorm};
 
 /// Errors of the models crate.

@@ -35,6 +35,27 @@ pub enum BenchCmd {
         #[arg(long, default_value_t = 3)]
         frames: usize,
     },
+    /// ADMM-Net: time per training step (batch 2) and inference time per frame.
+    Train {
+        /// Training frame size HxW.
+        #[arg(long, default_value = "64x64", value_parser = super::parse_hw)]
+        size: (usize, usize),
+        /// Bins T (L = 32, K = T/32).
+        #[arg(long, default_value_t = 32)]
+        bins: usize,
+        /// Stages S.
+        #[arg(long, default_value_t = 9)]
+        stages: usize,
+        /// Channels CN.
+        #[arg(long, default_value_t = 32)]
+        channels: usize,
+        /// Timed steps.
+        #[arg(long, default_value_t = 5)]
+        steps: usize,
+        /// Inference frame size HxW.
+        #[arg(long, default_value = "188x212", value_parser = super::parse_hw)]
+        infer_size: (usize, usize),
+    },
     /// Dataset generation throughput (samples/s).
     Dataset(super::dataset::BenchDatasetArgs),
 }
@@ -72,6 +93,22 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             }
         }
         BenchCmd::Dataset(a) => super::dataset::bench(a)?,
+        BenchCmd::Train { size: (h, w), bins, stages, channels, steps, infer_size: (ih, iw) } => {
+            if bins == 0 || bins % 32 != 0 {
+                anyhow::bail!("--bins {bins}: expected a multiple of 32");
+            }
+            let k = bins / 32;
+            let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
+            let codes = random_codes(shape, 607e6, Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1)?;
+            let spec = SensorParams { sampling: Sampling::Oversample(k), ..SensorParams::from_codes(&codes) }.validate()?;
+            let a = MeasurementMatrix::synthesize(&codes, &spec)?;
+            let cfg = tcsense_models::AdmmNetConfig::new(4, bins).with_stages(stages).with_channels(channels);
+            let r = tcsense_train::bench_step(&a, &cfg, h, w, steps)?;
+            println!("ADMM-Net S = {stages}, CN = {channels}, T = {bins}, {} threads", rayon::current_num_threads());
+            println!("training step (batch 2, {h}x{w}): {:.1} ms (forward {:.1} ms, backward {:.1} ms, Adam {:.1} ms)", r.step_ms, r.forward_ms, r.backward_ms, r.optim_ms);
+            let f = tcsense_train::bench_forward(&a, &cfg, ih, iw, 3)?;
+            println!("inference forward ({ih}x{iw}, batch 1): {f:.1} ms per frame");
+        }
         BenchCmd::Tval3 { size: (h, w), bins, maxit, frames } => {
             use tcsense_datasets::{lidar::LidarParams, TimeGrid};
             if bins == 0 || bins % 32 != 0 {

@@ -65,7 +65,6 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
             }
         );
     }
-    let _ = codes;
     let x = ds.load(&a.split, "x")?.into_dimensionality::<Ix4>()?;
     let n = a.items.unwrap_or(x.dim().0).min(x.dim().0);
     if n == 0 {
@@ -79,9 +78,17 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     let cancel = interrupt_flag();
     let mut rows = Vec::new();
     for dec in &a.decoder {
-        if dec != "tval3" {
-            bail!("--decoder {dec:?}: unknown decoder; available: tval3");
-        }
+        let mut admm = match dec.split_once(':') {
+            Some(("admm-net", run)) => {
+                let r = super::train::AdmmRunner::open(std::path::Path::new(run))?;
+                if r.codes.shape() != codes.shape() || (0..codes.subpixels() * codes.taps()).any(|c| r.codes.channel(c) != codes.channel(c)) {
+                    bail!("{run}: the run was trained with other codes than {}; evaluate it with its own {run}/codes.json", a.sensor.codes.display());
+                }
+                Some(r)
+            }
+            None if dec == "tval3" => None,
+            _ => bail!("--decoder {dec:?}: unknown decoder; expected tval3 or admm-net:RUN"),
+        };
         let mut row = EvalRow::new(dec);
         let pb = ProgressBar::new(n as u64);
         pb.set_style(ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
@@ -94,9 +101,12 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
                 y = noisy.in_input_units().into_dimensionality::<Ix3>()?;
             }
             let t0 = Instant::now();
-            let (xh, _) = match tval3(&matrix, &plan, &y.view(), &opts, &|_, _| {}, &cancel) {
-                Err(ModelError::Cancelled) => bail!("interrupted"),
-                r => r?,
+            let xh = match admm.as_mut() {
+                Some(r) => r.run(&y.clone().insert_axis(Axis(0)))?.index_axis(Axis(0), 0).to_owned(),
+                None => match tval3(&matrix, &plan, &y.view(), &opts, &|_, _| {}, &cancel) {
+                    Err(ModelError::Cancelled) => bail!("interrupted"),
+                    r => r?.0,
+                },
             };
             let secs = t0.elapsed().as_secs_f64();
             let d = depth.as_ref().map(|d| d.index_axis(Axis(0), i));

@@ -7,6 +7,7 @@ pub mod design;
 pub mod eval;
 pub mod recon;
 pub mod sensor;
+pub mod train;
 
 /// Parse `HxW` (e.g. `2x2`, `188x212`).
 pub fn parse_hw(s: &str) -> Result<(usize, usize), String> {

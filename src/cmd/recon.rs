@@ -96,10 +96,23 @@ pub enum ReconstructCmd {
         #[arg(short, long)]
         output: PathBuf,
     },
+    /// ADMM-Net from a trained run directory.
+    AdmmNet {
+        /// Run directory (from `tcsense train admm-net`).
+        #[arg(long)]
+        run: PathBuf,
+        /// Tap images .npy, [M, H, W] or [B, M, H, W].
+        #[arg(long)]
+        measurements: PathBuf,
+        /// Output cube .npy.
+        #[arg(short, long)]
+        output: PathBuf,
+    },
 }
 
 pub fn reconstruct(cmd: ReconstructCmd) -> Result<ExitCode> {
     match cmd {
+        ReconstructCmd::AdmmNet { run, measurements, output } => return super::train::reconstruct(&run, &measurements, &output),
         ReconstructCmd::Tval3 { sensor, measurements, tval3: targs, output } => {
             let opts = targs.options()?;
             let (_, spec, a) = sensor.matrix()?;

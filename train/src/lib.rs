@@ -389,6 +389,65 @@ fn read_rows(path: &Path, upto: usize) -> Result<Vec<EpochMetrics>> {
     Ok(rows)
 }
 
+/// Timings of one training step.
+#[derive(Debug, Clone, Copy)]
+pub struct StepTiming {
+    pub step_ms: f64,
+    pub forward_ms: f64,
+    pub backward_ms: f64,
+    pub optim_ms: f64,
+}
+
+/// Median time of a training step (batch 2, random cubes) at `h × w`.
+pub fn bench_step(a: &MeasurementMatrix, model_cfg: &AdmmNetConfig, h: usize, w: usize, steps: usize) -> Result<StepTiming> {
+    let device = Device::flex().autodiff();
+    device.seed(1);
+    let sensor = SensorTensors::new(a, h, w, &device)?;
+    let plan = a.plan(h, w)?;
+    let mut model = model_cfg.init(&device);
+    let mut optim = AdamConfig::new().init();
+    let t = a.bins();
+    let x = Array4::from_shape_fn((2, t, h, w), |(b, j, r, c)| if (j + r / 8 + c / 8 + b) % 11 == 0 { 1.0 } else { 0.0 });
+    let y = simulate(&plan, &x, None, 0)?;
+    let mut times: Vec<[f64; 3]> = Vec::new();
+    for _ in 0..steps.max(1) + 1 {
+        let t0 = Instant::now();
+        let pred = model.forward(to_tensor(&y, &device), &sensor);
+        let loss = loss_fn(Loss::RmseMae, pred, to_tensor(&x, &device));
+        let _: f32 = loss.clone().into_scalar();
+        let t1 = Instant::now();
+        let grads = GradientsParams::from_grads(loss.backward(), &model);
+        let t2 = Instant::now();
+        model = optim.step(1e-3, model, grads);
+        let _ = model.rhos();
+        let t3 = Instant::now();
+        times.push([(t1 - t0).as_secs_f64(), (t2 - t1).as_secs_f64(), (t3 - t2).as_secs_f64()]);
+    }
+    times.remove(0); // warm-up
+    times.sort_by(|a, b| (a[0] + a[1] + a[2]).total_cmp(&(b[0] + b[1] + b[2])));
+    let m = times[times.len() / 2];
+    Ok(StepTiming { step_ms: (m[0] + m[1] + m[2]) * 1e3, forward_ms: m[0] * 1e3, backward_ms: m[1] * 1e3, optim_ms: m[2] * 1e3 })
+}
+
+/// Median inference time (ms) of one `h × w` frame on the CPU without autodiff.
+pub fn bench_forward(a: &MeasurementMatrix, model_cfg: &AdmmNetConfig, h: usize, w: usize, reps: usize) -> Result<f64> {
+    let device = Device::flex();
+    device.seed(1);
+    let sensor = SensorTensors::new(a, h, w, &device)?;
+    let model = model_cfg.init(&device);
+    let y = Array4::from_shape_fn((1, a.taps(), h, w), |(_, m, r, c)| ((m + r + c) % 7) as f32 * 0.1);
+    let mut times = Vec::new();
+    for _ in 0..reps.max(1) + 1 {
+        let t0 = Instant::now();
+        let out = to_array(model.forward(to_tensor(&y, &device), &sensor))?;
+        std::hint::black_box(out);
+        times.push(t0.elapsed().as_secs_f64() * 1e3);
+    }
+    times.remove(0);
+    times.sort_by(f64::total_cmp);
+    Ok(times[times.len() / 2])
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
