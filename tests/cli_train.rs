@@ -1,0 +1,59 @@
+//! End-to-end tests of `tcsense train admm-net`, `reconstruct admm-net` and `eval` with both decoders.
+
+mod common;
+use common::*;
+use tcsense_sensor::npy::read_npy;
+
+fn setup(d: &std::path::Path) {
+    ok(d, &["dataset", "lidar", "--count", "8", "--size", "8x8", "--length", "8", "--seed", "2", "-o", "ds"]);
+    ok(d, &["codes", "generate", "--tap-constraint", "--length", "8", "--seed", "1", "-o", "codes.json"]);
+}
+
+#[test]
+fn train_resume_reconstruct_and_eval() {
+    let d = tempdir();
+    let d = d.path();
+    setup(d);
+    let out = ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "2", "--seed", "3", "-o", "run"]);
+    assert!(out.contains("epoch    2"), "{out}");
+    for f in ["config.json", "codes.json", "metrics.csv", "model.bpk", "checkpoint/model.bpk", "checkpoint/optim.bpk", "checkpoint/state.json"] {
+        assert!(d.join("run").join(f).exists(), "{f} missing");
+    }
+    assert_eq!(std::fs::read_to_string(d.join("run/metrics.csv")).unwrap().lines().count(), 3);
+    // resume for one more epoch
+    let out = ok(d, &["train", "admm-net", "--epochs", "3", "--resume", "-o", "run"]);
+    assert!(out.contains("epoch    3") && !out.contains("epoch    1 "), "{out}");
+    let csv = std::fs::read_to_string(d.join("run/metrics.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 4, "{csv}");
+    assert!(csv.lines().nth(3).unwrap().starts_with("3,9,"), "{csv}");
+    // a second fresh run into the same directory is refused
+    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "-o", "run"], &["--resume"]);
+
+    ok(d, &["simulate", "--codes", "codes.json", "--cube", "ds/test/x_000.npy", "-o", "y.npy"]);
+    ok(d, &["reconstruct", "admm-net", "--run", "run", "--measurements", "y.npy", "-o", "xhat.npy"]);
+    let xh = read_npy(&d.join("xhat.npy")).unwrap();
+    assert_eq!(xh.shape(), &[1, 8, 8, 8]);
+    assert!(xh.iter().all(|v| v.is_finite()));
+    let out = ok(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "tval3", "--decoder", "admm-net:run", "--maxit", "20", "-o", "rep.json"]);
+    assert!(out.contains("tval3") && out.contains("admm-net:run"), "{out}");
+    let rep: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("rep.json")).unwrap()).unwrap();
+    assert_eq!(rep.as_array().unwrap().len(), 2);
+}
+
+#[test]
+fn bad_inputs_exit_2() {
+    let d = tempdir();
+    let d = d.path();
+    setup(d);
+    fails(d, &["train", "admm-net", "--dataset", "ds", "-o", "run"], &["--codes"]);
+    ok(d, &["codes", "generate", "--tap-constraint", "--taps", "2", "--length", "8", "-o", "c2.json"]);
+    ok(d, &["codes", "generate", "--tap-constraint", "--length", "16", "-o", "c16.json"]);
+    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "c16.json", "--epochs", "1", "-o", "run16"], &["T = "]);
+    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "0", "-o", "run0"], &["epochs"]);
+    fails(d, &["train", "admm-net", "--resume", "-o", "nothing"], &["no run to resume"]);
+    fails(d, &["reconstruct", "admm-net", "--run", "nothing", "--measurements", "y.npy", "-o", "x.npy"], &["nothing", "config.json"]);
+    ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "1", "-o", "run"]);
+    ok(d, &["codes", "generate", "--tap-constraint", "--length", "8", "--seed", "9", "-o", "other.json"]);
+    fails(d, &["eval", "--dataset", "ds", "--codes", "other.json", "--decoder", "admm-net:run"], &["other codes"]);
+    fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "magic"], &["unknown decoder"]);
+}
