@@ -36,29 +36,6 @@ fn draw_map(cv: &mut Canvas, x0: usize, y0: usize, scale: usize, map: &ArrayView
     }
 }
 
-fn draw_line(cv: &mut Canvas, (x0, y0): (i64, i64), (x1, y1): (i64, i64), col: [u8; 3]) {
-    let (dx, dy) = ((x1 - x0).abs(), -(y1 - y0).abs());
-    let (sx, sy) = (if x0 < x1 { 1 } else { -1 }, if y0 < y1 { 1 } else { -1 });
-    let (mut x, mut y, mut err) = (x0, y0, dx + dy);
-    loop {
-        if x >= 0 && y >= 0 {
-            cv.rect(x as usize, y as usize, 2, 2, col);
-        }
-        if x == x1 && y == y1 {
-            break;
-        }
-        let e2 = 2 * err;
-        if e2 >= dy {
-            err += dy;
-            x += sx;
-        }
-        if e2 <= dx {
-            err += dx;
-            y += sy;
-        }
-    }
-}
-
 fn draw_waves(cv: &mut Canvas, x0: usize, y0: usize, w: usize, h: usize, x: &ArrayView3<'_, f32>, pixels: &[(usize, usize)]) {
     cv.rect(x0, y0, w, h, [250, 250, 250]);
     cv.rect(x0, y0 + h - 1, w, 1, [0, 0, 0]);
@@ -72,7 +49,7 @@ fn draw_waves(cv: &mut Canvas, x0: usize, y0: usize, w: usize, h: usize, x: &Arr
             (px, py)
         };
         for j in 1..t {
-            draw_line(cv, pt(j - 1), pt(j), WAVE_COLOURS[k % 4]);
+            cv.line(pt(j - 1), pt(j), WAVE_COLOURS[k % 4]);
         }
     }
 }

@@ -44,13 +44,7 @@ pub fn line_chart(path: &std::path::Path, series: &[(String, Vec<(f64, f64)>)], 
         let col = COLOURS[si % COLOURS.len()];
         let sp: Vec<(usize, usize)> = s.iter().filter(|p| ty(p.1).is_finite()).map(|&(x, y)| (px(x), py(ty(y)))).collect();
         for win in sp.windows(2) {
-            let ((xa, ya), (xb, yb)) = (win[0], win[1]);
-            let steps = xa.abs_diff(xb).max(ya.abs_diff(yb)).max(1);
-            for k in 0..=steps {
-                let x = xa as f64 + (xb as f64 - xa as f64) * k as f64 / steps as f64;
-                let y = ya as f64 + (yb as f64 - ya as f64) * k as f64 / steps as f64;
-                cv.rect(x as usize, y as usize, 2, 2, col);
-            }
+            cv.line((win[0].0 as i64, win[0].1 as i64), (win[1].0 as i64, win[1].1 as i64), col);
         }
         for &(x, y) in &sp {
             cv.rect(x.saturating_sub(3), y.saturating_sub(3), 7, 7, col);

@@ -262,16 +262,10 @@ pub fn plot_waveforms(path: &Path, cubes: &[(&str, ArrayView3<'_, f32>)], pixels
             let pt = |j: usize| {
                 let px = x0 + 2 + j * (pw - 4) / tt.max(2).saturating_sub(1);
                 let py = pad + ph - 2 - ((x[(j, r, c)].max(0.0) / peak) * (ph as f32 - 4.0)) as usize;
-                (px, py)
+                (px as i64, py as i64)
             };
             for j in 1..tt {
-                let ((xa, ya), (xb, yb)) = (pt(j - 1), pt(j));
-                let steps = xa.abs_diff(xb).max(ya.abs_diff(yb)).max(1);
-                for s in 0..=steps {
-                    let xs = xa as f64 + (xb as f64 - xa as f64) * s as f64 / steps as f64;
-                    let ys = ya as f64 + (yb as f64 - ya as f64) * s as f64 / steps as f64;
-                    cv.rect(xs as usize, ys as usize, 2, 2, col);
-                }
+                cv.line(pt(j - 1), pt(j), col);
             }
         }
         for j in 0..t {

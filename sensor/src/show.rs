@@ -46,6 +46,30 @@ impl Canvas {
         }
     }
 
+    /// A 2-pixel-wide straight line from `(x0, y0)` to `(x1, y1)` (Bresenham; clipped).
+    pub fn line(&mut self, (x0, y0): (i64, i64), (x1, y1): (i64, i64), c: [u8; 3]) {
+        let (dx, dy) = ((x1 - x0).abs(), -(y1 - y0).abs());
+        let (sx, sy) = (if x0 < x1 { 1 } else { -1 }, if y0 < y1 { 1 } else { -1 });
+        let (mut x, mut y, mut err) = (x0, y0, dx + dy);
+        loop {
+            if x >= 0 && y >= 0 {
+                self.rect(x as usize, y as usize, 2, 2, c);
+            }
+            if x == x1 && y == y1 {
+                break;
+            }
+            let e2 = 2 * err;
+            if e2 >= dy {
+                err += dy;
+                x += sx;
+            }
+            if e2 <= dx {
+                err += dx;
+                y += sy;
+            }
+        }
+    }
+
     /// Write as an 8-bit RGB PNG, atomically.
     pub fn save_png(&self, path: &Path) -> Result<()> {
         let (w, h) = (self.width as u32, self.height as u32);
