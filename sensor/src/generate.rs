@@ -101,13 +101,13 @@ fn fill_sequential(codes: &mut Codes, rng: &mut StdRng) {
         (n_sub * taps, 2)
     };
     let drain_state = if c.tap && drain { Some(taps) } else { None };
+    // a tap-to-tap switch flips two channel bits; a channel flip or a switch to/from the drain one
     let cost = |a: usize, b: usize| -> usize {
-        if !c.tap {
-            1
-        } else if Some(a) == drain_state || Some(b) == drain_state {
-            1
-        } else {
+        let touches_drain = Some(a) == drain_state || Some(b) == drain_state;
+        if c.tap && !touches_drain {
             2
+        } else {
+            1
         }
     };
     let w = c.window.unwrap_or(1).max(1);

@@ -182,7 +182,7 @@ impl BinArgs {
             }
             return Ok(ps * 1e-12);
         }
-        if self.length == 0 || t % self.length != 0 || !(self.clock_mhz > 0.0) {
+        if self.length == 0 || t % self.length != 0 || self.clock_mhz.is_nan() || self.clock_mhz <= 0.0 {
             bail!("{}: {t} time bins are not a multiple of L = {} (--length); pass --length or --bin-width-ps", file.display(), self.length);
         }
         Ok(1.0 / (self.clock_mhz * 1e6) / (t / self.length) as f64)
