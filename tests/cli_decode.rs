@@ -108,3 +108,13 @@ fn bad_inputs_exit_2() {
     fails(d, &["eval", "--dataset", "nowhere", "--codes", "codes.json"], &["nowhere", "manifest.json"]);
     fails(d, &["sweep", "taps", "--dataset", "nowhere", "-o", "s"], &["nowhere"]);
 }
+
+#[test]
+fn bench_bad_inputs_exit_2() {
+    let d = tempdir();
+    let d = d.path();
+    fails(d, &["bench", "forward", "--size", "5x5", "--reps", "1"], &["multiple of 2"]);
+    fails(d, &["bench", "tval3", "--bins", "30"], &["--bins 30", "multiple of 32"]);
+    fails(d, &["bench", "train", "--bins", "30"], &["--bins 30", "multiple of 32"]);
+    fails(d, &["bench", "dataset", "--size", "0x8"], &["size"]);
+}

@@ -257,6 +257,7 @@ pub fn bench(a: BenchDatasetArgs) -> Result<()> {
         ("flim T=256 (het K=8)", Generator::Flim(FlimParams { height: h, width: w, ..Default::default() }), TimeGrid { sampling: Sampling::Heterodyne(8), ..TimeGrid::default() }),
     ];
     for (name, gen, grid) in cases {
+        gen.validate(&grid)?;
         let t0 = Instant::now();
         let n: usize = (0..a.count as u64).into_par_iter().map(|i| gen.item(&grid, 1, i).len()).sum();
         let dt = t0.elapsed().as_secs_f64();
