@@ -783,10 +783,19 @@ mod tests {
         let plan = a.plan(h, w).unwrap();
         let x = Array3::from_shape_fn((8, h, w), |(j, r, c)| if (2..5).contains(&j) && r < 5 && c >= 3 { 1.0 } else if j == 6 { 0.5 } else { 0.0 });
         let y = plan.forward(&x.view()).unwrap();
-        let opts = Tval3Options { maxit: 400, tol: 1e-8, ..Default::default() };
-        let (xh, rep) = tval3(&a, &plan, &y.view(), &opts, &|_, _| {}, &AtomicBool::new(false)).unwrap();
-        let err = (&xh - &x).mapv(|v| v * v).mean().unwrap();
-        assert!(err < 1e-4, "mse {err}, {rep:?}");
-        assert!(xh.iter().all(|&v| v >= 0.0), "nonneg holds");
+        for tv_norm in [TvNorm::Anisotropic, TvNorm::Isotropic] {
+            let opts = Tval3Options { maxit: 400, tol: 1e-8, tv_norm, ..Default::default() };
+            let (xh, rep) = tval3(&a, &plan, &y.view(), &opts, &|_, _| {}, &AtomicBool::new(false)).unwrap();
+            let err = (&xh - &x).mapv(|v| v * v).mean().unwrap();
+            assert!(err < 1e-4, "{tv_norm:?}: mse {err}, {rep:?}");
+            assert!(xh.iter().all(|&v| v >= 0.0), "nonneg holds");
+            assert!(rep.residual < 1e-2, "{tv_norm:?}: residual {}", rep.residual);
+        }
+        // without nonneg the same problem is solved too, and a bad option is refused
+        let free = Tval3Options { nonneg: false, maxit: 400, tol: 1e-8, ..Default::default() };
+        let (xf, _) = tval3(&a, &plan, &y.view(), &free, &|_, _| {}, &AtomicBool::new(false)).unwrap();
+        assert!((&xf - &x).mapv(|v| v * v).mean().unwrap() < 1e-3);
+        let bad = Tval3Options { mu: -1.0, ..Default::default() };
+        assert!(tval3(&a, &plan, &y.view(), &bad, &|_, _| {}, &AtomicBool::new(false)).is_err());
     }
 }
