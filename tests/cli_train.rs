@@ -29,6 +29,13 @@ fn train_resume_reconstruct_and_eval() {
     // a second fresh run into the same directory is refused
     fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "-o", "run"], &["--resume"]);
 
+    // a saved config starts a new run, with flag overrides
+    ok(d, &["train", "admm-net", "--config", "run/config.json", "--codes", "codes.json", "--epochs", "1", "-o", "run2"]);
+    let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("run2/config.json")).unwrap()).unwrap();
+    assert_eq!((cfg["epochs"].as_u64(), cfg["model"]["channels"].as_u64(), cfg["seed"].as_u64()), (Some(1), Some(2), Some(3)));
+    std::fs::write(d.join("bad.json"), "{\"epochs\": 1}").unwrap();
+    fails(d, &["train", "admm-net", "--config", "bad.json", "--codes", "codes.json", "-o", "run3"], &["bad.json", "malformed training config"]);
+
     ok(d, &["simulate", "--codes", "codes.json", "--cube", "ds/test/x_000.npy", "-o", "y.npy"]);
     ok(d, &["reconstruct", "admm-net", "--run", "run", "--measurements", "y.npy", "-o", "xhat.npy"]);
     let xh = read_npy(&d.join("xhat.npy")).unwrap();
