@@ -19,6 +19,9 @@ fn reconstruct_depth_ply_png_and_waveforms() {
     ok(d, &["reconstruct", "tval3", "--codes", "codes.json", "--measurements", "y.npy", "--maxit", "50", "-o", "xhat.npy"]);
     let xh = read_npy(&d.join("xhat.npy")).unwrap();
     assert_eq!(xh.shape(), &[1, 32, 8, 8]);
+    // products take the batch directly
+    ok(d, &["depth", "xhat.npy", "--peaks", "2", "-o", "bdepth.npy", "--ply", "b.ply"]);
+    assert_eq!(read_npy(&d.join("bdepth.npy")).unwrap().shape(), &[1, 2, 8, 8]);
     assert!(xh.iter().all(|&v| v >= 0.0), "nonneg by default");
     // single frames too, and the products
     let x0 = xh.index_axis(ndarray::Axis(0), 0).to_owned().into_dimensionality::<Ix3>().unwrap();

@@ -194,9 +194,25 @@ fn read_cube3(path: &Path) -> Result<ndarray::Array3<f32>> {
     Ok(a.into_dimensionality::<Ix3>()?)
 }
 
+/// A cube `[T, H, W]`, or a batch `[B, T, H, W]` as `B` cubes (`batched` = true).
+fn read_cubes(path: &Path) -> Result<(bool, Vec<ndarray::Array3<f32>>)> {
+    let a = tcsense_sensor::npy::read_cube(path, true)?;
+    if a.ndim() == 3 {
+        return Ok((false, vec![a.into_dimensionality::<Ix3>()?]));
+    }
+    let cubes = a.axis_iter(Axis(0)).map(|c| c.to_owned().into_dimensionality::<Ix3>()).collect::<std::result::Result<_, _>>()?;
+    Ok((true, cubes))
+}
+
+/// Stack per-item outputs back into a batch when the input was one.
+fn stack_out<D: ndarray::Dimension>(batched: bool, items: Vec<ndarray::Array<f32, D>>) -> Result<ArrayD<f32>> {
+    let views: Vec<_> = items.iter().map(|a| a.view()).collect();
+    Ok(if batched { ndarray::stack(Axis(0), &views)?.into_dyn() } else { items.into_iter().next().context("no cube")?.into_dyn() })
+}
+
 #[derive(Args)]
 pub struct DepthArgs {
-    /// Reconstructed cube .npy [T, H, W].
+    /// Reconstructed cube .npy [T, H, W] (or a batch [B, T, H, W]).
     cube: PathBuf,
     #[command(flatten)]
     bins: BinArgs,
@@ -227,12 +243,18 @@ pub fn depth(a: DepthArgs) -> Result<ExitCode> {
     if a.peaks == 0 {
         bail!("--peaks 0: at least one return per pixel");
     }
-    let x = read_cube3(&a.cube)?;
-    let dt = a.bins.bin_width(x.dim().0, &a.cube)?;
-    let (d, amp) = depth_map(&x.view(), dt, &PeakOptions { max_peaks: a.peaks, min_rel: a.min_rel, min_sep: a.min_sep });
-    write_npy(&a.output, &d.view())?;
+    let (batched, cubes) = read_cubes(&a.cube)?;
+    let dt = a.bins.bin_width(cubes[0].dim().0, &a.cube)?;
+    let opts = PeakOptions { max_peaks: a.peaks, min_rel: a.min_rel, min_sep: a.min_sep };
+    let maps: Vec<_> = cubes.iter().map(|x| depth_map(&x.view(), dt, &opts)).collect();
+    if batched && maps.len() > 1 && (a.ply.is_some() || a.png.is_some()) {
+        bail!("{}: --ply and --png take a single cube; this batch holds {}", a.cube.display(), maps.len());
+    }
+    let out = stack_out(batched, maps.iter().map(|m| m.0.clone()).collect())?;
+    write_npy(&a.output, &out.view())?;
+    let (d, amp) = &maps[0];
     let found: Vec<usize> = (0..a.peaks).map(|b| d.index_axis(Axis(0), b).iter().filter(|v| v.is_finite()).count()).collect();
-    println!("wrote {}: range map {:?}, returns per bounce {found:?}, bin width {:.1} ps", a.output.display(), d.shape(), dt * 1e12);
+    println!("wrote {}: range map {:?}, returns per bounce {found:?} (first cube), bin width {:.1} ps", a.output.display(), out.shape(), dt * 1e12);
     if let Some(p) = &a.ply {
         let n = write_ply(p, &d.view(), &amp.view(), a.fov)?;
         println!("wrote {}: {n} points", p.display());
@@ -247,7 +269,7 @@ pub fn depth(a: DepthArgs) -> Result<ExitCode> {
 
 #[derive(Args)]
 pub struct LifetimeArgs {
-    /// Reconstructed cube .npy [T, H, W].
+    /// Reconstructed cube .npy [T, H, W] (or a batch [B, T, H, W]).
     cube: PathBuf,
     #[command(flatten)]
     bins: BinArgs,
@@ -269,15 +291,19 @@ pub struct LifetimeArgs {
 }
 
 pub fn lifetime(a: LifetimeArgs) -> Result<ExitCode> {
-    let x = read_cube3(&a.cube)?;
-    let dt = a.bins.bin_width(x.dim().0, &a.cube)?;
-    let (tau, ph) = lifetime_map(&x.view(), dt, a.min_rel, a.min_intensity);
-    write_npy(&a.output, &tau.view())?;
+    let (batched, cubes) = read_cubes(&a.cube)?;
+    let dt = a.bins.bin_width(cubes[0].dim().0, &a.cube)?;
+    if batched && cubes.len() > 1 && a.png.is_some() {
+        bail!("{}: --png takes a single cube; this batch holds {}", a.cube.display(), cubes.len());
+    }
+    let maps: Vec<_> = cubes.iter().map(|x| lifetime_map(&x.view(), dt, a.min_rel, a.min_intensity)).collect();
+    write_npy(&a.output, &stack_out(batched, maps.iter().map(|m| m.0.clone()).collect())?.view())?;
+    let (tau, _) = &maps[0];
     let fit: Vec<f32> = tau.iter().copied().filter(|v| v.is_finite()).collect();
     let mean = fit.iter().map(|&v| v as f64).sum::<f64>() / fit.len().max(1) as f64;
     println!("wrote {}: {} pixels fitted, mean lifetime {:.3} ns", a.output.display(), fit.len(), mean * 1e9);
     if let Some(p) = &a.phasor {
-        write_npy(p, &ph.view())?;
+        write_npy(p, &stack_out(batched, maps.iter().map(|m| m.1.clone()).collect())?.view())?;
         println!("wrote {}", p.display());
     }
     if let Some(p) = &a.png {
