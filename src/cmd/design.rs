@@ -12,7 +12,7 @@ use tcsense_infer::design::{evaluate, select, table1_settings, EvalSetup};
 use tcsense_sensor::codes::{CodeShape, Constraints};
 use tcsense_sensor::generate::random_codes;
 use tcsense_sensor::npy::write_bytes;
-use tcsense_sensor::{Irf, SensorParams};
+use tcsense_sensor::SensorParams;
 
 use super::codes::DesignArgs;
 use super::dataset::interrupt_flag;
@@ -55,11 +55,7 @@ fn load(e: &EvalArgs) -> Result<Loaded> {
         bail!("{}: split {:?} is empty", e.dataset.display(), e.split);
     }
     let cubes: Vec<Array3<f32>> = x.axis_iter(Axis(0)).take(e.items).map(|v| v.to_owned()).collect();
-    let irf = match e.irf.as_str() {
-        "ideal" => Irf::Ideal,
-        "physical" => Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 },
-        other => bail!("--irf {other:?}: expected ideal or physical"),
-    };
+    let irf = super::sensor::parse_irf(&e.irf)?;
     let g = ds.manifest.grid;
     let base = SensorParams { sampling: g.sampling, irf, length: g.length, clock_hz: g.clock_hz, ..Default::default() };
     Ok(Loaded { cubes, setup: EvalSetup { base, tval3: e.tval3.options()? }, length: g.length, clock_hz: g.clock_hz, size: (ds.manifest.size[0], ds.manifest.size[1]) })

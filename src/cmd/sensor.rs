@@ -7,6 +7,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use tcsense_sensor::noise::{add_noise, Exposure};
 use tcsense_sensor::npy::{read_cube, write_npy};
+use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
 use tcsense_sensor::{Codes, Irf, MeasurementMatrix, NoiseParams, Sampling, SensorParams, SensorSpec};
 
 /// Sensor-model flags shared by every command that needs `A`.
@@ -59,6 +60,15 @@ impl SensorArgs {
             other => bail!("--irf {other:?}: expected `ideal`, `physical` or a measured matrix file `A.npy`"),
         };
         Ok((codes, spec, a))
+    }
+}
+
+/// `ideal`, or `physical` with the sensor crate's default laser pulse and tap response.
+pub fn parse_irf(name: &str) -> Result<Irf> {
+    match name {
+        "ideal" => Ok(Irf::Ideal),
+        "physical" => Ok(Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S }),
+        other => bail!("--irf {other:?}: expected ideal or physical"),
     }
 }
 

@@ -10,7 +10,7 @@ use tcsense_datasets::store::Kind;
 use tcsense_datasets::Dataset;
 use tcsense_models::{AdmmNet, AdmmNetConfig, SensorTensors};
 use tcsense_sensor::npy::{ensure_finite, read_npy, write_npy};
-use tcsense_sensor::{Codes, Irf};
+use tcsense_sensor::Codes;
 use tcsense_train::{load_run, matrix, to_array, to_tensor, train, EpochMetrics, Loss, Progress, TrainConfig, TrainError};
 
 use super::dataset::interrupt_flag;
@@ -170,11 +170,7 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
         cfg.noise = None;
     }
     if let Some(irf) = &a.irf {
-        cfg.irf = match irf.as_str() {
-            "ideal" => Irf::Ideal,
-            "physical" => Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 },
-            other => bail!("--irf {other:?}: expected ideal or physical"),
-        };
+        cfg.irf = super::sensor::parse_irf(irf)?;
     }
     if a.max_train.is_some() {
         cfg.max_train_items = a.max_train;
