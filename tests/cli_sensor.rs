@@ -119,3 +119,15 @@ fn bad_inputs_exit_2_with_clear_messages() {
     fails(d, &["simulate", "--codes", "codes.json", "--cube", "junk.npy", "-o", "y.npy"], &["junk.npy", "not a .npy file"]);
     assert!(!d.join("y.npy").exists(), "no output after a failure");
 }
+
+#[test]
+fn import_and_select_bad_inputs_exit_2() {
+    let d = tempdir();
+    let d = d.path();
+    fails(d, &["codes", "import", "nowhere", "-o", "c.json"], &["registers.json"]);
+    std::fs::create_dir_all(d.join("mem")).unwrap();
+    std::fs::write(d.join("mem/registers.json"), "{\"ECLEN\": 3}").unwrap();
+    fails(d, &["codes", "import", "mem", "-o", "c.json"], &["registers.json", "malformed registers"]);
+    fails(d, &["codes", "select", "--dataset", "nowhere", "--candidates", "2", "-o", "best.json"], &["nowhere", "manifest.json"]);
+    assert!(!d.join("c.json").exists() && !d.join("best.json").exists());
+}
