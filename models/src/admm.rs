@@ -21,6 +21,8 @@ use burn::nn::PaddingConfig2d;
 use burn::tensor::{activation::relu, Device, Tensor, TensorData};
 use tcsense_sensor::MeasurementMatrix;
 
+use crate::conv_op::conv3x3;
+
 /// ADMM-Net hyper-parameters.
 #[derive(Config, Debug, PartialEq)]
 pub struct AdmmNetConfig {
@@ -286,6 +288,18 @@ impl SensorTensors {
     }
 }
 
+/// A 3×3 conv of the prior through [`conv3x3`] (im2col + GEMM forward and backward).
+///
+/// # Shapes
+/// - `x`: `[B, C_in, H, W]` → `[B, C_out, H, W]`
+fn conv(layer: &Conv2d, x: Tensor<4>) -> Tensor<4> {
+    let bias = match &layer.bias {
+        Some(b) => b.val(),
+        None => Tensor::zeros([layer.weight.dims()[0]], &x.device()),
+    };
+    conv3x3(x, layer.weight.val(), bias)
+}
+
 impl AdmmNet {
     /// Reconstruct cubes from measurements.
     ///
@@ -301,9 +315,9 @@ impl AdmmNet {
             let v = aty.clone() + zu * rho.clone().reshape([1, 1, 1, 1]);
             let x = sensor.from_blocks(sensor.data_consistency_blocks(v, rho));
             let xu = x.clone() + u.clone();
-            let h = relu(st.conv1.forward(xu.clone()));
-            let h = relu(st.conv2.forward(h));
-            z = xu + st.conv3.forward(h);
+            let h = relu(conv(&st.conv1, xu.clone()));
+            let h = relu(conv(&st.conv2, h));
+            z = xu + conv(&st.conv3, h);
             u = u + (x - z.clone()) * st.eta.val().reshape([1, 1, 1, 1]);
         }
         z

@@ -8,6 +8,8 @@
 //!   and a residual CNN prior (burn modules; trained by `tcsense-train`).
 
 pub mod admm;
+pub mod conv;
+pub mod conv_op;
 pub mod tval3;
 
 pub use admm::{AdmmNet, AdmmNetConfig, SensorTensors};

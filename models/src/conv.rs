@@ -1,0 +1,428 @@
+//! 3×3 "same" convolutions (stride 1, zero padding 1) on contiguous `f32` NCHW buffers:
+//! the forward pass and both backward passes, each as im2col + one well-shaped GEMM.
+//!
+//! ```text
+//! forward      y_b [C_out, HW]   = W  [C_out, 9·C_in]  · col(x_b)  [9·C_in, HW]   (+ bias)
+//! backward x   dx_b [C_in, HW]   = W̃  [C_in, 9·C_out]  · col(g_b)  [9·C_out, HW]
+//! backward W   dW  [C_out, 9·C_in] = Σ_b g_b [C_out, HW] · col(x_b)ᵀ [HW, 9·C_in]
+//! ```
+//!
+//! `col(x)[c·9 + 3·ky + kx, (y, x)] = x[c, y + ky − 1, x + kx − 1]` (zero outside the frame) and
+//! `W̃[c_in, c_out·9 + k] = W[c_out, c_in, 8 − k]` (the kernel transposed and rotated by 180°).
+//!
+//! burn-flex runs the weight gradient of a conv as a generic conv whose GEMM has an inner
+//! dimension of `H·W` and 9 columns; here it is one GEMM with `9·C_in` columns, which is
+//! what the training step of ADMM-Net spends most of its time on. Frames are cut into bands
+//! of rows so the im2col buffer stays in cache-sized pieces at any frame size; im2col runs in
+//! parallel over its rows and the GEMMs use the `gemm` crate's rayon parallelism.
+#![allow(unsafe_code)] // the one call into `gemm::gemm`, with every view bounds-checked first
+
+use rayon::prelude::*;
+
+/// Sizes of one 3×3 convolution over a batch.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Conv3x3 {
+    /// Batch `B`.
+    pub batch: usize,
+    /// Input channels `C_in`.
+    pub c_in: usize,
+    /// Output channels `C_out`.
+    pub c_out: usize,
+    /// Frame height `H`.
+    pub height: usize,
+    /// Frame width `W`.
+    pub width: usize,
+}
+
+/// Columns of one im2col band (about 4–8 MiB of `f32` with 9·C_in ≤ 288 rows).
+const BAND_COLS: usize = 4096;
+/// Padding of each im2col row, in elements.
+const PAD: usize = 16;
+
+impl Conv3x3 {
+    fn hw(&self) -> usize {
+        self.height * self.width
+    }
+    /// Elements of the input `[B, C_in, H, W]`.
+    pub fn x_len(&self) -> usize {
+        self.batch * self.c_in * self.hw()
+    }
+    /// Elements of the output `[B, C_out, H, W]`.
+    pub fn y_len(&self) -> usize {
+        self.batch * self.c_out * self.hw()
+    }
+    /// Elements of the kernel `[C_out, C_in, 3, 3]`.
+    pub fn w_len(&self) -> usize {
+        self.c_out * self.c_in * 9
+    }
+    /// Rows per band.
+    fn band_rows(&self) -> usize {
+        (BAND_COLS / self.width.max(1)).clamp(1, self.height.max(1))
+    }
+    /// Scratch elements one pass needs for `channels` im2col'd channels.
+    fn scratch_len(&self, channels: usize) -> usize {
+        channels * 9 * (self.band_rows() * self.width + PAD)
+    }
+
+    /// `y = conv(x, w) + bias`.
+    ///
+    /// # Shapes
+    /// - `x`: `[B, C_in, H, W]`, `w`: `[C_out, C_in, 3, 3]`, `bias`: `[C_out]` → `y`: `[B, C_out, H, W]`
+    pub fn forward(&self, x: &[f32], w: &[f32], bias: Option<&[f32]>, y: &mut [f32]) {
+        assert_eq!(x.len(), self.x_len(), "conv3x3 forward: x");
+        assert_eq!(w.len(), self.w_len(), "conv3x3 forward: w");
+        assert_eq!(y.len(), self.y_len(), "conv3x3 forward: y");
+        if let Some(b) = bias {
+            assert_eq!(b.len(), self.c_out, "conv3x3 forward: bias");
+        }
+        if self.y_len() == 0 {
+            return;
+        }
+        correlate(self.c_in, self.c_out, self.height, self.width, self.batch, x, w, bias, y, &mut vec![0.0; self.scratch_len(self.c_in)]);
+    }
+
+    /// Gradient with respect to the input: `dx = conv(g, W̃)`.
+    ///
+    /// # Shapes
+    /// - `g`: `[B, C_out, H, W]`, `w`: `[C_out, C_in, 3, 3]` → `dx`: `[B, C_in, H, W]`
+    pub fn backward_x(&self, g: &[f32], w: &[f32], dx: &mut [f32]) {
+        assert_eq!(g.len(), self.y_len(), "conv3x3 backward_x: g");
+        assert_eq!(w.len(), self.w_len(), "conv3x3 backward_x: w");
+        assert_eq!(dx.len(), self.x_len(), "conv3x3 backward_x: dx");
+        if self.x_len() == 0 {
+            return;
+        }
+        // W̃[ci, co·9 + k] = W[co, ci, 8 − k]
+        let mut wt = vec![0.0f32; w.len()];
+        for co in 0..self.c_out {
+            for ci in 0..self.c_in {
+                for k in 0..9 {
+                    wt[(ci * self.c_out + co) * 9 + k] = w[(co * self.c_in + ci) * 9 + 8 - k];
+                }
+            }
+        }
+        correlate(self.c_out, self.c_in, self.height, self.width, self.batch, g, &wt, None, dx, &mut vec![0.0; self.scratch_len(self.c_out)]);
+    }
+
+    /// Gradient with respect to the kernel: `dW = Σ_b g_b · col(x_b)ᵀ`.
+    ///
+    /// # Shapes
+    /// - `x`: `[B, C_in, H, W]`, `g`: `[B, C_out, H, W]` → `dw`: `[C_out, C_in, 3, 3]`
+    pub fn backward_w(&self, x: &[f32], g: &[f32], dw: &mut [f32]) {
+        assert_eq!(x.len(), self.x_len(), "conv3x3 backward_w: x");
+        assert_eq!(g.len(), self.y_len(), "conv3x3 backward_w: g");
+        assert_eq!(dw.len(), self.w_len(), "conv3x3 backward_w: dw");
+        dw.fill(0.0);
+        if self.x_len() == 0 || self.y_len() == 0 {
+            return;
+        }
+        let (h, wd, hw) = (self.height, self.width, self.hw());
+        let k = self.c_in * 9;
+        let mut col = vec![0.0f32; self.scratch_len(self.c_in)];
+        // The GEMM has few rows (C_out) and columns (9·C_in) and a long inner dimension, which
+        // the gemm crate does not split across threads: split it here, one partial dW per
+        // thread, summed at the end.
+        let parts = rayon::current_num_threads().max(1);
+        let mut partial = vec![0.0f32; parts * dw.len()];
+        for b in 0..self.batch {
+            let xb = &x[b * self.c_in * hw..(b + 1) * self.c_in * hw];
+            let gb = &g[b * self.c_out * hw..(b + 1) * self.c_out * hw];
+            for y0 in (0..h).step_by(self.band_rows()) {
+                let y1 = (y0 + self.band_rows()).min(h);
+                let n = (y1 - y0) * wd;
+                let ld = n + PAD;
+                let col = &mut col[..k * ld];
+                im2col(xb, self.c_in, h, wd, y0, y1, ld, col);
+                let col = &*col;
+                let step = n.div_ceil(parts);
+                partial.par_chunks_mut(dw.len()).enumerate().for_each(|(p, acc)| {
+                    let (j0, j1) = (p * step, ((p + 1) * step).min(n));
+                    if j0 >= j1 {
+                        return;
+                    }
+                    // dW_p [C_out, K] += g_b[:, band][:, j0..j1] · col[:, j0..j1]ᵀ
+                    sgemm(
+                        Mat { m: self.c_out, n: k, rs: k, cs: 1, off: 0 },
+                        acc,
+                        Mat { m: self.c_out, n: j1 - j0, rs: hw, cs: 1, off: y0 * wd + j0 },
+                        gb,
+                        Mat { m: j1 - j0, n: k, rs: 1, cs: ld, off: j0 },
+                        col,
+                        true,
+                        false,
+                    );
+                });
+            }
+        }
+        for acc in partial.chunks_exact(dw.len()) {
+            dw.iter_mut().zip(acc).for_each(|(d, &a)| *d += a);
+        }
+    }
+
+    /// Gradient with respect to the bias: `db[c] = Σ_{b,y,x} g[b, c, y, x]`.
+    ///
+    /// # Shapes
+    /// - `g`: `[B, C_out, H, W]` → `db`: `[C_out]`
+    pub fn backward_bias(&self, g: &[f32], db: &mut [f32]) {
+        assert_eq!(g.len(), self.y_len(), "conv3x3 backward_bias: g");
+        assert_eq!(db.len(), self.c_out, "conv3x3 backward_bias: db");
+        let hw = self.hw();
+        for (c, d) in db.iter_mut().enumerate() {
+            *d = (0..self.batch)
+                .map(|b| g[(b * self.c_out + c) * hw..(b * self.c_out + c + 1) * hw].iter().map(|&v| v as f64).sum::<f64>())
+                .sum::<f64>() as f32;
+        }
+    }
+}
+
+/// `out_b = K · col(in_b) (+ bias)` for every batch item, band by band.
+///
+/// # Shapes
+/// - `input`: `[B, c_src, H, W]`, `kernel`: `[c_dst, c_src·9]`, `out`: `[B, c_dst, H, W]`
+#[allow(clippy::too_many_arguments)]
+fn correlate(
+    c_src: usize,
+    c_dst: usize,
+    h: usize,
+    w: usize,
+    batch: usize,
+    input: &[f32],
+    kernel: &[f32],
+    bias: Option<&[f32]>,
+    out: &mut [f32],
+    col: &mut [f32],
+) {
+    let hw = h * w;
+    let k = c_src * 9;
+    let band = ((col.len() / k - PAD) / w).max(1);
+    for b in 0..batch {
+        let ib = &input[b * c_src * hw..(b + 1) * c_src * hw];
+        let ob = &mut out[b * c_dst * hw..(b + 1) * c_dst * hw];
+        match bias {
+            Some(bias) => ob.par_chunks_mut(hw).zip(bias.par_iter()).for_each(|(row, &v)| row.fill(v)),
+            None => ob.fill(0.0),
+        }
+        for y0 in (0..h).step_by(band) {
+            let y1 = (y0 + band).min(h);
+            let n = (y1 - y0) * w;
+            let ld = n + PAD;
+            let col = &mut col[..k * ld];
+            im2col(ib, c_src, h, w, y0, y1, ld, col);
+            // out_b[:, band] [c_dst, n] += K [c_dst, k] · col [k, n]
+            sgemm(
+                Mat { m: c_dst, n, rs: hw, cs: 1, off: y0 * w },
+                ob,
+                Mat { m: c_dst, n: k, rs: k, cs: 1, off: 0 },
+                kernel,
+                Mat { m: k, n, rs: ld, cs: 1, off: 0 },
+                col,
+                true,
+                true,
+            );
+        }
+    }
+}
+
+/// im2col of rows `y0..y1` of one item.
+///
+/// # Shapes
+/// - `x`: `[C, H, W]` → `col`: `[C·9, (y1 − y0)·W]` with row stride `ld` (padded so that the
+///   rows do not all map to the same cache sets when the band is a power of two wide)
+fn im2col(x: &[f32], c: usize, h: usize, w: usize, y0: usize, y1: usize, ld: usize, col: &mut [f32]) {
+    let n = (y1 - y0) * w;
+    debug_assert!(ld >= n && col.len() == c * 9 * ld);
+    col.par_chunks_mut(ld).enumerate().for_each(|(r, dst)| {
+        let dst = &mut dst[..n];
+        let (ci, ky, kx) = (r / 9, (r % 9) / 3, r % 3);
+        let plane = &x[ci * h * w..(ci + 1) * h * w];
+        for (y, d) in (y0..y1).zip(dst.chunks_exact_mut(w)) {
+            let sy = y as isize + ky as isize - 1;
+            if sy < 0 || sy >= h as isize {
+                d.fill(0.0);
+                continue;
+            }
+            let s = &plane[sy as usize * w..(sy as usize + 1) * w];
+            match kx {
+                0 => {
+                    d[0] = 0.0;
+                    d[1..].copy_from_slice(&s[..w - 1]);
+                }
+                1 => d.copy_from_slice(s),
+                _ => {
+                    d[..w - 1].copy_from_slice(&s[1..]);
+                    d[w - 1] = 0.0;
+                }
+            }
+        }
+    });
+}
+
+/// A strided `m × n` matrix view starting at element `off` of a buffer.
+#[derive(Clone, Copy, Debug)]
+struct Mat {
+    m: usize,
+    n: usize,
+    rs: usize,
+    cs: usize,
+    off: usize,
+}
+
+impl Mat {
+    /// Panics unless every element of the view lies inside a buffer of `len` elements.
+    fn check(&self, len: usize, what: &str) {
+        assert!(self.m > 0 && self.n > 0, "sgemm: empty {what}");
+        let last = self.off + (self.m - 1) * self.rs + (self.n - 1) * self.cs;
+        assert!(last < len, "sgemm: {what} view ends at {last}, buffer has {len}");
+    }
+}
+
+/// `dst (+)= lhs · rhs` on strided views, through the `gemm` crate (AVX2/AVX-512 kernels,
+/// rayon-parallel when the product is large enough to pay).
+#[allow(clippy::too_many_arguments)]
+fn sgemm(dv: Mat, dst: &mut [f32], lv: Mat, lhs: &[f32], rv: Mat, rhs: &[f32], accumulate: bool, parallel: bool) {
+    assert!(dv.m == lv.m && dv.n == rv.n && lv.n == rv.m, "sgemm: shapes {dv:?} = {lv:?} · {rv:?}");
+    dv.check(dst.len(), "dst");
+    lv.check(lhs.len(), "lhs");
+    rv.check(rhs.len(), "rhs");
+    let par = if parallel && dv.m * dv.n * lv.n >= 1 << 20 { gemm::Parallelism::Rayon(0) } else { gemm::Parallelism::None };
+    // SAFETY: the three views were checked to lie inside their slices; `dst` is borrowed
+    // mutably, so it cannot alias `lhs` or `rhs`.
+    unsafe {
+        gemm::gemm(
+            dv.m,
+            dv.n,
+            lv.n,
+            dst.as_mut_ptr().add(dv.off),
+            dv.cs as isize,
+            dv.rs as isize,
+            accumulate,
+            lhs.as_ptr().add(lv.off),
+            lv.cs as isize,
+            lv.rs as isize,
+            rhs.as_ptr().add(rv.off),
+            rv.cs as isize,
+            rv.rs as isize,
+            1.0,
+            1.0,
+            false,
+            false,
+            false,
+            par,
+        );
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn lcg(n: usize, seed: u64) -> Vec<f32> {
+        let mut s = seed;
+        (0..n)
+            .map(|_| {
+                s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+                ((s >> 33) as f64 / (1u64 << 31) as f64 * 2.0 - 1.0) as f32
+            })
+            .collect()
+    }
+
+    /// Direct f64 correlation, the definition.
+    fn direct(d: &Conv3x3, x: &[f32], w: &[f32], bias: &[f32]) -> Vec<f64> {
+        let (h, wd) = (d.height as isize, d.width as isize);
+        let mut y = vec![0.0f64; d.y_len()];
+        for b in 0..d.batch {
+            for co in 0..d.c_out {
+                for yy in 0..h {
+                    for xx in 0..wd {
+                        let mut s = bias[co] as f64;
+                        for ci in 0..d.c_in {
+                            for ky in 0..3isize {
+                                for kx in 0..3isize {
+                                    let (sy, sx) = (yy + ky - 1, xx + kx - 1);
+                                    if sy < 0 || sy >= h || sx < 0 || sx >= wd {
+                                        continue;
+                                    }
+                                    let xi = ((b * d.c_in + ci) as isize * h + sy) * wd + sx;
+                                    let wi = (co * d.c_in + ci) * 9 + (ky * 3 + kx) as usize;
+                                    s += x[xi as usize] as f64 * w[wi] as f64;
+                                }
+                            }
+                        }
+                        y[((b * d.c_out + co) as isize * h + yy) as usize * d.width + xx as usize] = s;
+                    }
+                }
+            }
+        }
+        y
+    }
+
+    fn close(a: &[f32], b: &[f64], tol: f64, what: &str) {
+        assert_eq!(a.len(), b.len(), "{what}: length");
+        let scale = b.iter().fold(1.0f64, |m, v| m.max(v.abs()));
+        for (i, (&p, &q)) in a.iter().zip(b).enumerate() {
+            assert!((p as f64 - q).abs() <= tol * scale, "{what}[{i}]: {p} vs {q}");
+        }
+    }
+
+    const SIZES: [Conv3x3; 5] = [
+        Conv3x3 { batch: 2, c_in: 3, c_out: 5, height: 7, width: 6 },
+        Conv3x3 { batch: 1, c_in: 4, c_out: 4, height: 1, width: 9 },
+        Conv3x3 { batch: 1, c_in: 2, c_out: 3, height: 8, width: 1 },
+        Conv3x3 { batch: 3, c_in: 1, c_out: 2, height: 2, width: 2 },
+        // more rows than one band: exercises the band loop
+        Conv3x3 { batch: 2, c_in: 2, c_out: 3, height: 70, width: 100 },
+    ];
+
+    #[test]
+    fn forward_equals_the_direct_sum() {
+        for (i, d) in SIZES.iter().enumerate() {
+            let (x, w, bias) = (lcg(d.x_len(), 1 + i as u64), lcg(d.w_len(), 10 + i as u64), lcg(d.c_out, 20));
+            let mut y = vec![f32::NAN; d.y_len()];
+            d.forward(&x, &w, Some(&bias), &mut y);
+            close(&y, &direct(d, &x, &w, &bias), 1e-5, &format!("{d:?} y"));
+        }
+    }
+
+    /// The backward passes are the adjoints of the forward map: ⟨conv(x), g⟩ = ⟨x, dx(g)⟩ and
+    /// ⟨conv_w(x), g⟩ = ⟨w, dW(x, g)⟩, checked against finite sums over every element.
+    #[test]
+    fn backward_passes_are_the_exact_gradients() {
+        for (i, d) in SIZES.iter().enumerate() {
+            let (x, w, g) = (lcg(d.x_len(), 3 + i as u64), lcg(d.w_len(), 30 + i as u64), lcg(d.y_len(), 60 + i as u64));
+            let zero = vec![0.0f32; d.c_out];
+            // dL/dx[j] for L = ⟨y, g⟩ is Σ_i g_i ∂y_i/∂x_j: compare against the direct map's
+            // transpose, built column by column on small sizes and by inner products on the large one.
+            let mut dx = vec![f32::NAN; d.x_len()];
+            d.backward_x(&g, &w, &mut dx);
+            let mut dw = vec![f32::NAN; d.w_len()];
+            d.backward_w(&x, &g, &mut dw);
+            let mut db = vec![f32::NAN; d.c_out];
+            d.backward_bias(&g, &mut db);
+            let y = direct(d, &x, &w, &zero);
+            let lhs: f64 = y.iter().zip(&g).map(|(a, &b)| a * b as f64).sum();
+            let via_x: f64 = dx.iter().zip(&x).map(|(&a, &b)| a as f64 * b as f64).sum();
+            let via_w: f64 = dw.iter().zip(&w).map(|(&a, &b)| a as f64 * b as f64).sum();
+            assert!((lhs - via_x).abs() <= 1e-4 * lhs.abs().max(1.0), "{d:?}: ⟨y,g⟩ {lhs} vs ⟨x,dx⟩ {via_x}");
+            assert!((lhs - via_w).abs() <= 1e-4 * lhs.abs().max(1.0), "{d:?}: ⟨y,g⟩ {lhs} vs ⟨w,dW⟩ {via_w}");
+            let sums: Vec<f64> = (0..d.c_out)
+                .map(|c| (0..d.batch).flat_map(|b| g[(b * d.c_out + c) * d.hw()..(b * d.c_out + c + 1) * d.hw()].iter()).map(|&v| v as f64).sum())
+                .collect();
+            close(&db, &sums, 1e-6, "db");
+            if d.x_len() <= 200 {
+                // element-wise: dx[j] = ⟨conv(e_j), g⟩, dW[j] = ⟨conv_{e_j}(x), g⟩
+                for j in 0..d.x_len() {
+                    let mut e = vec![0.0f32; d.x_len()];
+                    e[j] = 1.0;
+                    let want: f64 = direct(d, &e, &w, &zero).iter().zip(&g).map(|(a, &b)| a * b as f64).sum();
+                    assert!((dx[j] as f64 - want).abs() < 1e-5, "{d:?} dx[{j}]: {} vs {want}", dx[j]);
+                }
+                for j in 0..d.w_len() {
+                    let mut e = vec![0.0f32; d.w_len()];
+                    e[j] = 1.0;
+                    let want: f64 = direct(d, &x, &e, &zero).iter().zip(&g).map(|(a, &b)| a * b as f64).sum();
+                    assert!((dw[j] as f64 - want).abs() < 1e-4, "{d:?} dW[{j}]: {} vs {want}", dw[j]);
+                }
+            }
+        }
+    }
+}
