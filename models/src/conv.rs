@@ -2,8 +2,8 @@
 //! the forward pass and both backward passes, each as im2col + one well-shaped GEMM.
 //!
 //! ```text
-//! forward      y_b [C_out, HW]   = W  [C_out, 9·C_in]  · col(x_b)  [9·C_in, HW]   (+ bias)
-//! backward x   dx_b [C_in, HW]   = W̃  [C_in, 9·C_out]  · col(g_b)  [9·C_out, HW]
+//! forward      y_b [C_out, HW]     = [W | bias] [C_out, 9·C_in + 1] · [col(x_b); 1] [9·C_in + 1, HW]
+//! backward x   dx_b [C_in, HW]     = W̃  [C_in, 9·C_out]  · col(g_b)  [9·C_out, HW]
 //! backward W   dW  [C_out, 9·C_in] = Σ_b g_b [C_out, HW] · col(x_b)ᵀ [HW, 9·C_in]
 //! ```
 //!
@@ -12,12 +12,15 @@
 //!
 //! burn-flex runs the weight gradient of a conv as a generic conv whose GEMM has an inner
 //! dimension of `H·W` and 9 columns; here it is one GEMM with `9·C_in` columns, which is
-//! what the training step of ADMM-Net spends most of its time on. Frames are cut into bands
-//! of rows so the im2col buffer stays in cache-sized pieces at any frame size; im2col runs in
-//! parallel over its rows and the GEMMs use the `gemm` crate's rayon parallelism.
-#![allow(unsafe_code)] // the one call into `gemm::gemm`, with every view bounds-checked first
+//! what the training step of ADMM-Net spent most of its time on.
+//!
+//! Work is cut into tasks of one batch item × one band of rows, sized so that a band's im2col
+//! buffer (about 1 MiB) stays in the L2 cache of the core that builds it and multiplies it.
+//! Tasks run on rayon; each thread keeps one scratch buffer, so the hot loop does not allocate.
+#![allow(unsafe_code)] // `gemm::gemm` is an unsafe fn; every view is bounds-checked before it
 
 use rayon::prelude::*;
+use std::cell::RefCell;
 
 /// Sizes of one 3×3 convolution over a batch.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -34,9 +37,10 @@ pub struct Conv3x3 {
     pub width: usize,
 }
 
-/// Columns of one im2col band (about 4–8 MiB of `f32` with 9·C_in ≤ 288 rows).
-const BAND_COLS: usize = 4096;
-/// Padding of each im2col row, in elements.
+/// Target size of one band's im2col buffer, in `f32` (1 MiB: half the L2 of one core here).
+const BAND_ELEMS: usize = 1 << 18;
+/// Padding of each im2col row, in elements, so that rows a power of two apart do not all map
+/// to the same cache sets.
 const PAD: usize = 16;
 
 impl Conv3x3 {
@@ -55,14 +59,6 @@ impl Conv3x3 {
     pub fn w_len(&self) -> usize {
         self.c_out * self.c_in * 9
     }
-    /// Rows per band.
-    fn band_rows(&self) -> usize {
-        (BAND_COLS / self.width.max(1)).clamp(1, self.height.max(1))
-    }
-    /// Scratch elements one pass needs for `channels` im2col'd channels.
-    fn scratch_len(&self, channels: usize) -> usize {
-        channels * 9 * (self.band_rows() * self.width + PAD)
-    }
 
     /// `y = conv(x, w) + bias`.
     ///
@@ -78,7 +74,14 @@ impl Conv3x3 {
         if self.y_len() == 0 {
             return;
         }
-        correlate(self.c_in, self.c_out, self.height, self.width, self.batch, x, w, bias, y, &mut vec![0.0; self.scratch_len(self.c_in)]);
+        // [W | bias]: [C_out, 9·C_in + 1]
+        let k = self.c_in * 9;
+        let mut kernel = vec![0.0f32; self.c_out * (k + 1)];
+        for (co, row) in kernel.chunks_exact_mut(k + 1).enumerate() {
+            row[..k].copy_from_slice(&w[co * k..(co + 1) * k]);
+            row[k] = bias.map_or(0.0, |b| b[co]);
+        }
+        correlate(self.plane(self.c_in, self.c_out), x, &kernel, y);
     }
 
     /// Gradient with respect to the input: `dx = conv(g, W̃)`.
@@ -92,16 +95,17 @@ impl Conv3x3 {
         if self.x_len() == 0 {
             return;
         }
-        // W̃[ci, co·9 + k] = W[co, ci, 8 − k]
-        let mut wt = vec![0.0f32; w.len()];
+        // [W̃ | 0]: W̃[ci, co·9 + k] = W[co, ci, 8 − k]
+        let k = self.c_out * 9;
+        let mut wt = vec![0.0f32; self.c_in * (k + 1)];
         for co in 0..self.c_out {
             for ci in 0..self.c_in {
-                for k in 0..9 {
-                    wt[(ci * self.c_out + co) * 9 + k] = w[(co * self.c_in + ci) * 9 + 8 - k];
+                for t in 0..9 {
+                    wt[ci * (k + 1) + co * 9 + t] = w[(co * self.c_in + ci) * 9 + 8 - t];
                 }
             }
         }
-        correlate(self.c_out, self.c_in, self.height, self.width, self.batch, g, &wt, None, dx, &mut vec![0.0; self.scratch_len(self.c_out)]);
+        correlate(self.plane(self.c_out, self.c_in), g, &wt, dx);
     }
 
     /// Gradient with respect to the kernel: `dW = Σ_b g_b · col(x_b)ᵀ`.
@@ -116,47 +120,39 @@ impl Conv3x3 {
         if self.x_len() == 0 || self.y_len() == 0 {
             return;
         }
-        let (h, wd, hw) = (self.height, self.width, self.hw());
-        let k = self.c_in * 9;
-        let mut col = vec![0.0f32; self.scratch_len(self.c_in)];
-        // The GEMM has few rows (C_out) and columns (9·C_in) and a long inner dimension, which
-        // the gemm crate does not split across threads: split it here, one partial dW per
-        // thread, summed at the end.
-        let parts = rayon::current_num_threads().max(1);
-        let mut partial = vec![0.0f32; parts * dw.len()];
-        for b in 0..self.batch {
-            let xb = &x[b * self.c_in * hw..(b + 1) * self.c_in * hw];
-            let gb = &g[b * self.c_out * hw..(b + 1) * self.c_out * hw];
-            for y0 in (0..h).step_by(self.band_rows()) {
-                let y1 = (y0 + self.band_rows()).min(h);
-                let n = (y1 - y0) * wd;
-                let ld = n + PAD;
-                let col = &mut col[..k * ld];
-                im2col(xb, self.c_in, h, wd, y0, y1, ld, col);
-                let col = &*col;
-                let step = n.div_ceil(parts);
-                partial.par_chunks_mut(dw.len()).enumerate().for_each(|(p, acc)| {
-                    let (j0, j1) = (p * step, ((p + 1) * step).min(n));
-                    if j0 >= j1 {
-                        return;
-                    }
-                    // dW_p [C_out, K] += g_b[:, band][:, j0..j1] · col[:, j0..j1]ᵀ
-                    sgemm(
-                        Mat { m: self.c_out, n: k, rs: k, cs: 1, off: 0 },
-                        acc,
-                        Mat { m: self.c_out, n: j1 - j0, rs: hw, cs: 1, off: y0 * wd + j0 },
-                        gb,
-                        Mat { m: j1 - j0, n: k, rs: 1, cs: ld, off: j0 },
-                        col,
-                        true,
-                        false,
-                    );
-                });
-            }
-        }
-        for acc in partial.chunks_exact(dw.len()) {
-            dw.iter_mut().zip(acc).for_each(|(d, &a)| *d += a);
-        }
+        let p = self.plane(self.c_in, self.c_out);
+        let (hw, k) = (self.hw(), self.c_in * 9);
+        // One partial dW per rayon split (a handful), summed at the end.
+        let total = (0..self.batch * p.bands())
+            .into_par_iter()
+            .fold(
+                || vec![0.0f32; dw.len()],
+                |mut acc, task| {
+                    let (b, (y0, y1)) = (task / p.bands(), p.band(task % p.bands()));
+                    let n = (y1 - y0) * p.w;
+                    let ld = n + PAD;
+                    with_scratch(k * ld, |col| {
+                        im2col(&x[b * self.c_in * hw..(b + 1) * self.c_in * hw], p, y0, y1, ld, col, false);
+                        // dW [C_out, K] += g_b[:, band] [C_out, n] · colᵀ [n, K]
+                        let gb = &g[b * self.c_out * hw..(b + 1) * self.c_out * hw];
+                        sgemm(
+                            Dst::Slice(&mut acc, Mat { m: self.c_out, n: k, rs: k, cs: 1, off: 0 }),
+                            (gb, Mat { m: self.c_out, n, rs: hw, cs: 1, off: y0 * p.w }),
+                            (col, Mat { m: n, n: k, rs: 1, cs: ld, off: 0 }),
+                            true,
+                        );
+                    });
+                    acc
+                },
+            )
+            .reduce(
+                || vec![0.0f32; dw.len()],
+                |mut a, b| {
+                    a.iter_mut().zip(&b).for_each(|(u, v)| *u += v);
+                    a
+                },
+            );
+        dw.copy_from_slice(&total);
     }
 
     /// Gradient with respect to the bias: `db[c] = Σ_{b,y,x} g[b, c, y, x]`.
@@ -173,66 +169,92 @@ impl Conv3x3 {
                 .sum::<f64>() as f32;
         }
     }
+
+    fn plane(&self, c_src: usize, c_dst: usize) -> Plane {
+        let k = c_src * 9 + 1;
+        let rows = (BAND_ELEMS / (k * self.width.max(1))).clamp(1, self.height.max(1));
+        Plane { batch: self.batch, c_src, c_dst, h: self.height, w: self.width, rows }
+    }
 }
 
-/// `out_b = K · col(in_b) (+ bias)` for every batch item, band by band.
-///
-/// # Shapes
-/// - `input`: `[B, c_src, H, W]`, `kernel`: `[c_dst, c_src·9]`, `out`: `[B, c_dst, H, W]`
-#[allow(clippy::too_many_arguments)]
-fn correlate(
+/// The geometry of one correlation pass: `c_src` channels in, `c_dst` out, bands of `rows` rows.
+#[derive(Clone, Copy, Debug)]
+struct Plane {
+    batch: usize,
     c_src: usize,
     c_dst: usize,
     h: usize,
     w: usize,
-    batch: usize,
-    input: &[f32],
-    kernel: &[f32],
-    bias: Option<&[f32]>,
-    out: &mut [f32],
-    col: &mut [f32],
-) {
-    let hw = h * w;
-    let k = c_src * 9;
-    let band = ((col.len() / k - PAD) / w).max(1);
-    for b in 0..batch {
-        let ib = &input[b * c_src * hw..(b + 1) * c_src * hw];
-        let ob = &mut out[b * c_dst * hw..(b + 1) * c_dst * hw];
-        match bias {
-            Some(bias) => ob.par_chunks_mut(hw).zip(bias.par_iter()).for_each(|(row, &v)| row.fill(v)),
-            None => ob.fill(0.0),
-        }
-        for y0 in (0..h).step_by(band) {
-            let y1 = (y0 + band).min(h);
-            let n = (y1 - y0) * w;
-            let ld = n + PAD;
-            let col = &mut col[..k * ld];
-            im2col(ib, c_src, h, w, y0, y1, ld, col);
-            // out_b[:, band] [c_dst, n] += K [c_dst, k] · col [k, n]
-            sgemm(
-                Mat { m: c_dst, n, rs: hw, cs: 1, off: y0 * w },
-                ob,
-                Mat { m: c_dst, n: k, rs: k, cs: 1, off: 0 },
-                kernel,
-                Mat { m: k, n, rs: ld, cs: 1, off: 0 },
-                col,
-                true,
-                true,
-            );
-        }
+    rows: usize,
+}
+
+impl Plane {
+    fn bands(&self) -> usize {
+        self.h.div_ceil(self.rows)
+    }
+    fn band(&self, j: usize) -> (usize, usize) {
+        (j * self.rows, ((j + 1) * self.rows).min(self.h))
     }
 }
 
-/// im2col of rows `y0..y1` of one item.
+/// `out_b = K · [col(in_b); 1]` for every batch item, one task per (item, band).
 ///
 /// # Shapes
-/// - `x`: `[C, H, W]` → `col`: `[C·9, (y1 − y0)·W]` with row stride `ld` (padded so that the
-///   rows do not all map to the same cache sets when the band is a power of two wide)
-fn im2col(x: &[f32], c: usize, h: usize, w: usize, y0: usize, y1: usize, ld: usize, col: &mut [f32]) {
+/// - `input`: `[B, c_src, H, W]`, `kernel`: `[c_dst, c_src·9 + 1]`, `out`: `[B, c_dst, H, W]`
+fn correlate(p: Plane, input: &[f32], kernel: &[f32], out: &mut [f32]) {
+    let (hw, k) = (p.h * p.w, p.c_src * 9 + 1);
+    assert_eq!(input.len(), p.batch * p.c_src * hw);
+    assert_eq!(kernel.len(), p.c_dst * k);
+    assert_eq!(out.len(), p.batch * p.c_dst * hw);
+    let out = SharedOut { ptr: out.as_mut_ptr(), len: out.len() };
+    (0..p.batch * p.bands()).into_par_iter().for_each(|task| {
+        let (b, (y0, y1)) = (task / p.bands(), p.band(task % p.bands()));
+        let n = (y1 - y0) * p.w;
+        let ld = n + PAD;
+        with_scratch(k * ld, |col| {
+            im2col(&input[b * p.c_src * hw..(b + 1) * p.c_src * hw], p, y0, y1, ld, col, true);
+            // out_b[:, band] [c_dst, n] = K [c_dst, k] · col [k, n]. The tasks' views are
+            // disjoint: each covers the columns of its own band of rows of its own item.
+            sgemm(
+                Dst::Shared(out, Mat { m: p.c_dst, n, rs: hw, cs: 1, off: b * p.c_dst * hw + y0 * p.w }),
+                (kernel, Mat { m: p.c_dst, n: k, rs: k, cs: 1, off: 0 }),
+                (col, Mat { m: k, n, rs: ld, cs: 1, off: 0 }),
+                false,
+            );
+        });
+    });
+}
+
+thread_local! {
+    /// One im2col buffer per thread, grown on demand and reused by every later task.
+    static SCRATCH: RefCell<Vec<f32>> = const { RefCell::new(Vec::new()) };
+}
+
+/// Run `f` on this thread's scratch buffer of at least `len` elements. `f` must not call back
+/// into rayon (it would be re-entered on this thread while the buffer is borrowed).
+fn with_scratch<R>(len: usize, f: impl FnOnce(&mut [f32]) -> R) -> R {
+    SCRATCH.with(|s| {
+        let mut s = s.borrow_mut();
+        if s.len() < len {
+            s.resize(len, 0.0);
+        }
+        f(&mut s[..len])
+    })
+}
+
+/// im2col of rows `y0..y1` of one item, plus a row of ones when `ones` (the bias row).
+///
+/// # Shapes
+/// - `x`: `[c_src, H, W]` → `col`: `[c_src·9 (+ 1), (y1 − y0)·W]` with row stride `ld`
+fn im2col(x: &[f32], p: Plane, y0: usize, y1: usize, ld: usize, col: &mut [f32], ones: bool) {
+    let (h, w) = (p.h, p.w);
     let n = (y1 - y0) * w;
-    debug_assert!(ld >= n && col.len() == c * 9 * ld);
-    col.par_chunks_mut(ld).enumerate().for_each(|(r, dst)| {
+    for (r, dst) in col.chunks_exact_mut(ld).enumerate() {
         let dst = &mut dst[..n];
+        if r == p.c_src * 9 {
+            dst.fill(if ones { 1.0 } else { 0.0 });
+            continue;
+        }
         let (ci, ky, kx) = (r / 9, (r % 9) / 3, r % 3);
         let plane = &x[ci * h * w..(ci + 1) * h * w];
         for (y, d) in (y0..y1).zip(dst.chunks_exact_mut(w)) {
@@ -254,7 +276,7 @@ fn im2col(x: &[f32], c: usize, h: usize, w: usize, y0: usize, y1: usize, ld: usi
                 }
             }
         }
-    });
+    }
 }
 
 /// A strided `m × n` matrix view starting at element `off` of a buffer.
@@ -276,23 +298,48 @@ impl Mat {
     }
 }
 
-/// `dst (+)= lhs · rhs` on strided views, through the `gemm` crate (AVX2/AVX-512 kernels,
-/// rayon-parallel when the product is large enough to pay).
-#[allow(clippy::too_many_arguments)]
-fn sgemm(dv: Mat, dst: &mut [f32], lv: Mat, lhs: &[f32], rv: Mat, rhs: &[f32], accumulate: bool, parallel: bool) {
+/// An output buffer written by several tasks at once, each through a disjoint view.
+#[derive(Clone, Copy)]
+struct SharedOut {
+    ptr: *mut f32,
+    len: usize,
+}
+// SAFETY: `SharedOut` is only used by `correlate`, whose tasks write disjoint views of a buffer
+// that it borrows mutably for the whole parallel loop.
+unsafe impl Send for SharedOut {}
+unsafe impl Sync for SharedOut {}
+
+/// Where a product goes: a slice this task owns, or its own disjoint view of a shared buffer.
+enum Dst<'a> {
+    Slice(&'a mut [f32], Mat),
+    Shared(SharedOut, Mat),
+}
+
+/// `dst (+)= lhs · rhs` on strided views, single-threaded, through the `gemm` crate (AVX2 or
+/// AVX-512 kernels chosen at run time).
+fn sgemm(dst: Dst<'_>, (lhs, lv): (&[f32], Mat), (rhs, rv): (&[f32], Mat), accumulate: bool) {
+    let (ptr, dv) = match dst {
+        Dst::Slice(s, v) => {
+            v.check(s.len(), "dst");
+            (s.as_mut_ptr(), v)
+        }
+        Dst::Shared(s, v) => {
+            v.check(s.len, "dst");
+            (s.ptr, v)
+        }
+    };
     assert!(dv.m == lv.m && dv.n == rv.n && lv.n == rv.m, "sgemm: shapes {dv:?} = {lv:?} · {rv:?}");
-    dv.check(dst.len(), "dst");
     lv.check(lhs.len(), "lhs");
     rv.check(rhs.len(), "rhs");
-    let par = if parallel && dv.m * dv.n * lv.n >= 1 << 20 { gemm::Parallelism::Rayon(0) } else { gemm::Parallelism::None };
-    // SAFETY: the three views were checked to lie inside their slices; `dst` is borrowed
-    // mutably, so it cannot alias `lhs` or `rhs`.
+    // SAFETY: the three views were checked to lie inside their buffers. The destination is
+    // either a slice borrowed mutably (so it aliases nothing) or a shared output whose tasks
+    // write disjoint views while the caller holds the only other borrow of it.
     unsafe {
         gemm::gemm(
             dv.m,
             dv.n,
             lv.n,
-            dst.as_mut_ptr().add(dv.off),
+            ptr.add(dv.off),
             dv.cs as isize,
             dv.rs as isize,
             accumulate,
@@ -307,7 +354,7 @@ fn sgemm(dv: Mat, dst: &mut [f32], lv: Mat, lhs: &[f32], rv: Mat, rhs: &[f32], a
             false,
             false,
             false,
-            par,
+            gemm::Parallelism::None,
         );
     }
 }
@@ -364,14 +411,21 @@ mod tests {
         }
     }
 
-    const SIZES: [Conv3x3; 5] = [
+    const SIZES: [Conv3x3; 6] = [
         Conv3x3 { batch: 2, c_in: 3, c_out: 5, height: 7, width: 6 },
         Conv3x3 { batch: 1, c_in: 4, c_out: 4, height: 1, width: 9 },
         Conv3x3 { batch: 1, c_in: 2, c_out: 3, height: 8, width: 1 },
         Conv3x3 { batch: 3, c_in: 1, c_out: 2, height: 2, width: 2 },
-        // more rows than one band: exercises the band loop
         Conv3x3 { batch: 2, c_in: 2, c_out: 3, height: 70, width: 100 },
+        // 9·32 + 1 rows × 100 columns: 9 rows per band, so 3 bands with a short last one
+        Conv3x3 { batch: 2, c_in: 32, c_out: 3, height: 20, width: 100 },
     ];
+
+    #[test]
+    fn bands_cover_the_frame() {
+        let p = SIZES[5].plane(32, 3);
+        assert_eq!((p.rows, p.bands(), p.band(2)), (9, 3, (18, 20)));
+    }
 
     #[test]
     fn forward_equals_the_direct_sum() {

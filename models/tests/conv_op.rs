@@ -17,8 +17,9 @@ fn scale<const D: usize>(a: &Tensor<D>) -> f32 {
 
 #[test]
 fn forward_and_gradients_equal_burns_conv2d() {
-    // (B, C_in, C_out, H, W): odd sizes, a single row, a single column, more rows than one band
-    for &(b, ci, co, h, w) in &[(2, 3, 5, 7, 6), (1, 4, 2, 1, 9), (2, 2, 3, 9, 1), (1, 2, 2, 70, 100)] {
+    // (B, C_in, C_out, H, W): odd sizes, a single row, a single column, a large frame, and
+    // 3 bands of rows per item (9·32 + 1 im2col rows × 100 columns)
+    for &(b, ci, co, h, w) in &[(2, 3, 5, 7, 6), (1, 4, 2, 1, 9), (2, 2, 3, 9, 1), (1, 2, 2, 70, 100), (2, 32, 3, 20, 100)] {
         let device = Device::flex().autodiff();
         let x = Tensor::<4>::random([b, ci, h, w], Distribution::Normal(0.0, 1.0), &device).require_grad();
         let k = Tensor::<4>::random([co, ci, 3, 3], Distribution::Normal(0.0, 0.3), &device).require_grad();
