@@ -22,6 +22,8 @@ use burn::tensor::{activation::relu, Device, Tensor, TensorData};
 use tcsense_sensor::MeasurementMatrix;
 
 use crate::conv_op::conv3x3;
+use crate::pixel::{pixel_dc, pixel_linear, PixelMap, PixelSensor};
+use std::sync::Arc;
 
 /// ADMM-Net hyper-parameters.
 #[derive(Config, Debug, PartialEq)]
@@ -111,6 +113,18 @@ pub struct SensorTensors {
     pub height: usize,
     pub width: usize,
     pub block: (usize, usize),
+    /// The same operators for the fused frame-layout kernels of [`crate::pixel`]: `A`,
+    /// `Aᵀ`, the back-projection `Aᵀ(AAᵀ + εI)⁻¹` and the data-consistency solve.
+    pub fused: FusedSensor,
+}
+
+/// The per-pixel operators of [`SensorTensors`] for [`pixel_linear`] and [`pixel_dc`].
+#[derive(Debug, Clone)]
+pub struct FusedSensor {
+    pub a: Arc<PixelMap>,
+    pub at: Arc<PixelMap>,
+    pub pinv: Arc<PixelMap>,
+    pub dc: Arc<PixelSensor>,
 }
 
 /// Eigen-decomposition of a symmetric `n × n` matrix (row-major) by cyclic Jacobi rotations:
@@ -187,7 +201,31 @@ impl SensorTensors {
                 }
             }
         }
+        // Aᵀ(AAᵀ + εI)⁻¹ = Aᵀ Q diag(1/(λ + ε)) Qᵀ, ε = 1e-3·λ_max
+        let lmax = l_v.iter().fold(0f32, |a, &b| a.max(b)).max(1e-12);
+        let eps = 1e-3 * lmax;
+        let mut pinv_v = vec![0f32; n_sub * t * m];
+        for k in 0..n_sub {
+            for j in 0..t {
+                for c in 0..m {
+                    pinv_v[(k * t + j) * m + c] = (0..m)
+                        .map(|r| {
+                            let kinv: f32 = (0..m).map(|e| q_v[(k * m + r) * m + e] * q_v[(k * m + c) * m + e] / (l_v[k * m + e] + eps)).sum();
+                            at_v[(k * t + j) * m + r] * kinv
+                        })
+                        .sum();
+                }
+            }
+        }
+        let block = a.block();
+        let fused = FusedSensor {
+            a: Arc::new(PixelMap::new(block, m, t, width, &a_v)),
+            at: Arc::new(PixelMap::new(block, t, m, width, &at_v)),
+            pinv: Arc::new(PixelMap::new(block, t, m, width, &pinv_v)),
+            dc: Arc::new(PixelSensor::new(block, m, t, width, &a_v, &q_v, &l_v)),
+        };
         Ok(SensorTensors {
+            fused,
             a: Tensor::from_data(TensorData::new(a_v, [1, n_sub, m, t]), device),
             at: Tensor::from_data(TensorData::new(at_v, [1, n_sub, t, m]), device),
             q: Tensor::from_data(TensorData::new(q_v, [1, n_sub, m, m]), device),
@@ -249,7 +287,7 @@ impl SensorTensors {
     /// # Shapes
     /// - `x`: `[B, T, H, W]` → `[B, M, H, W]`
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        self.from_blocks(self.a_blocks(self.to_blocks(x)))
+        pixel_linear(x, self.fused.a.clone())
     }
 
     /// `Aᵀ y`.
@@ -257,7 +295,7 @@ impl SensorTensors {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
     pub fn adjoint(&self, y: Tensor<4>) -> Tensor<4> {
-        self.from_blocks(self.at_blocks(self.to_blocks(y)))
+        pixel_linear(y, self.fused.at.clone())
     }
 
     /// The normalised back-projection `Aᵀ(AAᵀ + εI)⁻¹ y`, `ε = 1e-3·λ_max`.
@@ -265,12 +303,22 @@ impl SensorTensors {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
     pub fn pinv(&self, y: Tensor<4>) -> Tensor<4> {
+        pixel_linear(y, self.fused.pinv.clone())
+    }
+
+    /// [`Self::pinv`] composed from burn ops in block layout (the reference for the fused one).
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
+    pub fn pinv_blocks(&self, y: Tensor<4>) -> Tensor<4> {
         let lmax: f32 = self.lambda.clone().max().into_scalar();
         let eps = Tensor::<1>::from_floats([1e-3 * lmax.max(1e-12)], &y.device());
         self.from_blocks(self.at_blocks(self.solve_aat(self.to_blocks(y), eps)))
     }
 
-    /// Exact data consistency `(AᵀA + ρI)⁻¹ v` per pixel (Woodbury), in block layout.
+    /// Exact data consistency `(AᵀA + ρI)⁻¹ v` per pixel (Woodbury), in block layout, composed
+    /// from burn ops: differentiable in `A` as well (for learning the codes), and the
+    /// reference for the fused [`Self::data_consistency`].
     ///
     /// # Shapes
     /// - `v`: `[B, N, T, P]`, `rho`: `[1]` → `[B, N, T, P]`
@@ -279,12 +327,12 @@ impl SensorTensors {
         (v - self.at_blocks(w)) / rho.reshape([1, 1, 1, 1])
     }
 
-    /// Exact data consistency on frames.
+    /// Exact data consistency on frames, fused ([`pixel_dc`]): differentiable in `v` and `ρ`.
     ///
     /// # Shapes
     /// - `v`: `[B, T, H, W]`, `rho`: `[1]` → `[B, T, H, W]`
     pub fn data_consistency(&self, v: Tensor<4>, rho: Tensor<1>) -> Tensor<4> {
-        self.from_blocks(self.data_consistency_blocks(self.to_blocks(v), rho))
+        pixel_dc(v, rho, self.fused.dc.clone())
     }
 }
 
@@ -306,14 +354,13 @@ impl AdmmNet {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
     pub fn forward(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
-        let aty = sensor.at_blocks(sensor.to_blocks(y.clone())); // [B, N, T, P]
+        let aty = sensor.adjoint(y.clone()); // [B, T, H, W]
         let mut z = sensor.pinv(y);
         let mut u = z.zeros_like();
         for st in &self.stages {
             let rho = st.log_rho.val().exp();
-            let zu = sensor.to_blocks(z.clone() - u.clone());
-            let v = aty.clone() + zu * rho.clone().reshape([1, 1, 1, 1]);
-            let x = sensor.from_blocks(sensor.data_consistency_blocks(v, rho));
+            let v = aty.clone() + (z.clone() - u.clone()) * rho.clone().reshape([1, 1, 1, 1]);
+            let x = sensor.data_consistency(v, rho);
             let xu = x.clone() + u.clone();
             let h = relu(conv(&st.conv1, xu.clone()));
             let h = relu(conv(&st.conv2, h));

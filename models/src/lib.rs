@@ -10,6 +10,7 @@
 pub mod admm;
 pub mod conv;
 pub mod conv_op;
+pub mod pixel;
 pub mod tval3;
 
 pub use admm::{AdmmNet, AdmmNetConfig, SensorTensors};
