@@ -1,22 +1,27 @@
 //! 3×3 "same" convolutions (stride 1, zero padding 1) on contiguous `f32` NCHW buffers:
-//! the forward pass and both backward passes, each as im2col + one well-shaped GEMM.
+//! the forward pass and both backward passes, as im2col GEMMs.
 //!
 //! ```text
-//! forward      y_b [C_out, HW]     = [W | bias] [C_out, 9·C_in + 1] · [col(x_b); 1] [9·C_in + 1, HW]
-//! backward x   dx_b [C_in, HW]     = W̃  [C_in, 9·C_out]  · col(g_b)  [9·C_out, HW]
-//! backward W   dW  [C_out, 9·C_in] = Σ_b g_b [C_out, HW] · col(x_b)ᵀ [HW, 9·C_in]
+//! forward      y_b [C_out, HW]     = Σ_ky W_ky [C_out, 3·C_in] · col_ky(x_b) [3·C_in, HW]  (+ bias)
+//! backward x   dx_b [C_in, HW]     = Σ_ky W̃_ky [C_in, 3·C_out] · col_ky(g_b) [3·C_out, HW]
+//! backward W   dW_ky [C_out, 3·C_in] = Σ_b g_b [C_out, HW] · col_ky(x_b)ᵀ [HW, 3·C_in]
 //! ```
 //!
-//! `col(x)[c·9 + 3·ky + kx, (y, x)] = x[c, y + ky − 1, x + kx − 1]` (zero outside the frame) and
-//! `W̃[c_in, c_out·9 + k] = W[c_out, c_in, 8 − k]` (the kernel transposed and rotated by 180°).
+//! `col_ky(x)[c·3 + kx, (y, x)] = x[c, y + ky − 1, x + kx − 1]` (zero outside the frame),
+//! `W_ky[co, c·3 + kx] = W[co, c, ky, kx]` and `W̃[c_in, c_out, t] = W[c_out, c_in, 8 − t]` (the
+//! kernel transposed and rotated by 180°). The three `col_ky` are views of one buffer holding
+//! three column-shifted copies of the band's rows plus one row above and below: moving down
+//! one kernel row is moving `W` columns along it. So a pass copies its input three times, not
+//! nine, and runs three GEMMs with an inner dimension of `3·C`. The bias is one more column of
+//! `W_0` against a row of ones.
 //!
 //! burn-flex runs the weight gradient of a conv as a generic conv whose GEMM has an inner
-//! dimension of `H·W` and 9 columns; here it is one GEMM with `9·C_in` columns, which is
-//! what the training step of ADMM-Net spent most of its time on.
+//! dimension of `H·W` and 9 columns; here it is GEMMs with `3·C_in` rows and `C_out` columns,
+//! which is what the training step of ADMM-Net spent most of its time on.
 //!
-//! Work is cut into tasks of one batch item × one band of rows, sized so that a band's im2col
-//! buffer (about 1 MiB) stays in the L2 cache of the core that builds it and multiplies it.
-//! Tasks run on rayon; each thread keeps one scratch buffer, so the hot loop does not allocate.
+//! Work is cut into tasks of one batch item × one band of rows, sized so that a band's buffer
+//! (about 1 MiB) stays in the L2 cache of the core that builds it and multiplies it. Tasks run
+//! on rayon; each thread keeps one scratch buffer, so the hot loop does not allocate.
 #![allow(unsafe_code)] // `gemm::gemm` is an unsafe fn; every view is bounds-checked before it
 
 use rayon::prelude::*;
@@ -37,9 +42,11 @@ pub struct Conv3x3 {
     pub width: usize,
 }
 
-/// Target size of one band's im2col buffer, in `f32` (1 MiB: half the L2 of one core here).
+/// Target size of one band's shifted-copy buffer, in `f32` (1 MiB: half the L2 of one core here).
 const BAND_ELEMS: usize = 1 << 18;
-/// Padding of each im2col row, in elements, so that rows a power of two apart do not all map
+/// Tasks to split a pass into at least (so two or more cores share even a small batch).
+const MIN_TASKS: usize = 4;
+/// Padding of each shifted row, in elements, so that rows a power of two apart do not all map
 /// to the same cache sets.
 const PAD: usize = 16;
 
@@ -74,13 +81,7 @@ impl Conv3x3 {
         if self.y_len() == 0 {
             return;
         }
-        // [W | bias]: [C_out, 9·C_in + 1]
-        let k = self.c_in * 9;
-        let mut kernel = vec![0.0f32; self.c_out * (k + 1)];
-        for (co, row) in kernel.chunks_exact_mut(k + 1).enumerate() {
-            row[..k].copy_from_slice(&w[co * k..(co + 1) * k]);
-            row[k] = bias.map_or(0.0, |b| b[co]);
-        }
+        let kernel = Kernel::new(self.c_out, self.c_in, |co, ci, t| w[(co * self.c_in + ci) * 9 + t], bias);
         correlate(self.plane(self.c_in, self.c_out), x, &kernel, y);
     }
 
@@ -95,17 +96,9 @@ impl Conv3x3 {
         if self.x_len() == 0 {
             return;
         }
-        // [W̃ | 0]: W̃[ci, co·9 + k] = W[co, ci, 8 − k]
-        let k = self.c_out * 9;
-        let mut wt = vec![0.0f32; self.c_in * (k + 1)];
-        for co in 0..self.c_out {
-            for ci in 0..self.c_in {
-                for t in 0..9 {
-                    wt[ci * (k + 1) + co * 9 + t] = w[(co * self.c_in + ci) * 9 + 8 - t];
-                }
-            }
-        }
-        correlate(self.plane(self.c_out, self.c_in), g, &wt, dx);
+        // W̃[ci, co, t] = W[co, ci, 8 − t]
+        let kernel = Kernel::new(self.c_in, self.c_out, |ci, co, t| w[(co * self.c_in + ci) * 9 + 8 - t], None);
+        correlate(self.plane(self.c_out, self.c_in), g, &kernel, dx);
     }
 
     /// Gradient with respect to the kernel: `dW = Σ_b g_b · col(x_b)ᵀ`.
@@ -121,8 +114,9 @@ impl Conv3x3 {
             return;
         }
         let p = self.plane(self.c_in, self.c_out);
-        let (hw, k) = (self.hw(), self.c_in * 9);
-        // One partial dW per rayon split (a handful), summed at the end.
+        let (hw, k3) = (self.hw(), self.c_in * 3);
+        // Accumulated as dW_kyᵀ: acc[(ky·3C_in + ci·3 + kx)·C_out + co], one partial per rayon
+        // split (a handful), summed at the end.
         let total = (0..self.batch * p.bands())
             .into_par_iter()
             .fold(
@@ -130,17 +124,19 @@ impl Conv3x3 {
                 |mut acc, task| {
                     let (b, (y0, y1)) = (task / p.bands(), p.band(task % p.bands()));
                     let n = (y1 - y0) * p.w;
-                    let ld = n + PAD;
-                    with_scratch(k * ld, |col| {
-                        im2col(&x[b * self.c_in * hw..(b + 1) * self.c_in * hw], p, y0, y1, ld, col, false);
-                        // dW [C_out, K] += g_b[:, band] [C_out, n] · colᵀ [n, K]
+                    let ld = p.ld(y0, y1);
+                    with_scratch(k3 * ld, |col| {
+                        shifts(&x[b * self.c_in * hw..(b + 1) * self.c_in * hw], p, y0, y1, ld, col);
                         let gb = &g[b * self.c_out * hw..(b + 1) * self.c_out * hw];
-                        sgemm(
-                            Dst::Slice(&mut acc, Mat { m: self.c_out, n: k, rs: k, cs: 1, off: 0 }),
-                            (gb, Mat { m: self.c_out, n, rs: hw, cs: 1, off: y0 * p.w }),
-                            (col, Mat { m: n, n: k, rs: 1, cs: ld, off: 0 }),
-                            true,
-                        );
+                        for ky in 0..3 {
+                            // dW_kyᵀ [3C_in, C_out] += col_ky [3C_in, n] · g_bᵀ [n, C_out]
+                            sgemm(
+                                Dst::Slice(&mut acc, Mat { m: k3, n: self.c_out, rs: self.c_out, cs: 1, off: ky * k3 * self.c_out }),
+                                (col, Mat { m: k3, n, rs: ld, cs: 1, off: ky * p.w }),
+                                (gb, Mat { m: n, n: self.c_out, rs: 1, cs: hw, off: y0 * p.w }),
+                                true,
+                            );
+                        }
                     });
                     acc
                 },
@@ -152,7 +148,15 @@ impl Conv3x3 {
                     a
                 },
             );
-        dw.copy_from_slice(&total);
+        for co in 0..self.c_out {
+            for ci in 0..self.c_in {
+                for ky in 0..3 {
+                    for kx in 0..3 {
+                        dw[(co * self.c_in + ci) * 9 + ky * 3 + kx] = total[(ky * k3 + ci * 3 + kx) * self.c_out + co];
+                    }
+                }
+            }
+        }
     }
 
     /// Gradient with respect to the bias: `db[c] = Σ_{b,y,x} g[b, c, y, x]`.
@@ -171,9 +175,13 @@ impl Conv3x3 {
     }
 
     fn plane(&self, c_src: usize, c_dst: usize) -> Plane {
-        let k = c_src * 9 + 1;
-        let rows = (BAND_ELEMS / (k * self.width.max(1))).clamp(1, self.height.max(1));
-        Plane { batch: self.batch, c_src, c_dst, h: self.height, w: self.width, rows }
+        let k = c_src * 3 + 1;
+        let (h, w) = (self.height.max(1), self.width.max(1));
+        let max_rows = (BAND_ELEMS / (k * w)).saturating_sub(2).clamp(1, h);
+        // equal bands, and at least MIN_TASKS tasks when the frame allows bands of 8 rows
+        let min_bands = MIN_TASKS.div_ceil(self.batch.max(1));
+        let bands = h.div_ceil(max_rows).max(min_bands.min(h / 8).max(1));
+        Plane { batch: self.batch, c_src, c_dst, h: self.height, w: self.width, rows: h.div_ceil(bands) }
     }
 }
 
@@ -195,38 +203,78 @@ impl Plane {
     fn band(&self, j: usize) -> (usize, usize) {
         (j * self.rows, ((j + 1) * self.rows).min(self.h))
     }
+    /// Row stride of the shifted copies of band `y0..y1`: its rows plus one above and below.
+    fn ld(&self, y0: usize, y1: usize) -> usize {
+        (y1 - y0 + 2) * self.w + PAD
+    }
 }
 
-/// `out_b = K · [col(in_b); 1]` for every batch item, one task per (item, band).
+/// A kernel rearranged for the three-shift GEMMs: `k[ky][c_dst][c_src·3 + kx]`, plus the bias
+/// as one more column of the `ky = 0` block (row stride `3·c_src + 1` throughout).
+struct Kernel {
+    k: Vec<f32>,
+    c_dst: usize,
+    c_src: usize,
+}
+
+impl Kernel {
+    /// `w(d, s, t)` is the weight from source channel `s` to destination `d` at tap `t = 3·ky + kx`.
+    fn new(c_dst: usize, c_src: usize, w: impl Fn(usize, usize, usize) -> f32, bias: Option<&[f32]>) -> Self {
+        let ks = 3 * c_src + 1;
+        let mut k = vec![0.0f32; 3 * c_dst * ks];
+        for ky in 0..3 {
+            for d in 0..c_dst {
+                let row = &mut k[(ky * c_dst + d) * ks..(ky * c_dst + d + 1) * ks];
+                for s in 0..c_src {
+                    for kx in 0..3 {
+                        row[s * 3 + kx] = w(d, s, ky * 3 + kx);
+                    }
+                }
+                if ky == 0 {
+                    row[3 * c_src] = bias.map_or(0.0, |b| b[d]);
+                }
+            }
+        }
+        Kernel { k, c_dst, c_src }
+    }
+}
+
+/// `out_b = Σ_ky K_ky · col_ky(in_b) (+ bias)` for every batch item, one task per (item, band).
 ///
 /// # Shapes
-/// - `input`: `[B, c_src, H, W]`, `kernel`: `[c_dst, c_src·9 + 1]`, `out`: `[B, c_dst, H, W]`
-fn correlate(p: Plane, input: &[f32], kernel: &[f32], out: &mut [f32]) {
-    let (hw, k) = (p.h * p.w, p.c_src * 9 + 1);
+/// - `input`: `[B, c_src, H, W]`, `out`: `[B, c_dst, H, W]`
+fn correlate(p: Plane, input: &[f32], kernel: &Kernel, out: &mut [f32]) {
+    let hw = p.h * p.w;
+    let (k3, ks) = (p.c_src * 3, p.c_src * 3 + 1);
+    assert!(kernel.c_src == p.c_src && kernel.c_dst == p.c_dst);
     assert_eq!(input.len(), p.batch * p.c_src * hw);
-    assert_eq!(kernel.len(), p.c_dst * k);
     assert_eq!(out.len(), p.batch * p.c_dst * hw);
     let out = SharedOut { ptr: out.as_mut_ptr(), len: out.len() };
     (0..p.batch * p.bands()).into_par_iter().for_each(|task| {
         let (b, (y0, y1)) = (task / p.bands(), p.band(task % p.bands()));
         let n = (y1 - y0) * p.w;
-        let ld = n + PAD;
-        with_scratch(k * ld, |col| {
-            im2col(&input[b * p.c_src * hw..(b + 1) * p.c_src * hw], p, y0, y1, ld, col, true);
-            // out_b[:, band] [c_dst, n] = K [c_dst, k] · col [k, n]. The tasks' views are
-            // disjoint: each covers the columns of its own band of rows of its own item.
-            sgemm(
-                Dst::Shared(out, Mat { m: p.c_dst, n, rs: hw, cs: 1, off: b * p.c_dst * hw + y0 * p.w }),
-                (kernel, Mat { m: p.c_dst, n: k, rs: k, cs: 1, off: 0 }),
-                (col, Mat { m: k, n, rs: ld, cs: 1, off: 0 }),
-                false,
-            );
+        let ld = p.ld(y0, y1);
+        with_scratch(ks * ld, |col| {
+            shifts(&input[b * p.c_src * hw..(b + 1) * p.c_src * hw], p, y0, y1, ld, &mut col[..k3 * ld]);
+            col[k3 * ld..k3 * ld + n].fill(1.0); // the bias row, read by the ky = 0 product only
+            // out_b[:, band] [c_dst, n] (+)= K_ky [c_dst, 3c_src (+1)] · col_ky [3c_src (+1), n].
+            // The tasks' views are disjoint: each covers its own band of rows of its own item.
+            let dst = Mat { m: p.c_dst, n, rs: hw, cs: 1, off: b * p.c_dst * hw + y0 * p.w };
+            for ky in 0..3 {
+                let k = if ky == 0 { ks } else { k3 };
+                sgemm(
+                    Dst::Shared(out, dst),
+                    (&kernel.k, Mat { m: p.c_dst, n: k, rs: ks, cs: 1, off: ky * p.c_dst * ks }),
+                    (col, Mat { m: k, n, rs: ld, cs: 1, off: ky * p.w }),
+                    ky > 0,
+                );
+            }
         });
     });
 }
 
 thread_local! {
-    /// One im2col buffer per thread, grown on demand and reused by every later task.
+    /// One shifted-copy buffer per thread, grown on demand and reused by every later task.
     static SCRATCH: RefCell<Vec<f32>> = const { RefCell::new(Vec::new()) };
 }
 
@@ -242,23 +290,21 @@ fn with_scratch<R>(len: usize, f: impl FnOnce(&mut [f32]) -> R) -> R {
     })
 }
 
-/// im2col of rows `y0..y1` of one item, plus a row of ones when `ones` (the bias row).
+/// The three column shifts of rows `y0 − 1 ..= y1` of one item (zero outside the frame):
+/// `col[(c·3 + kx)·ld + (y − y0 + 1)·W + x] = x[c, y, x + kx − 1]`. The im2col matrix of
+/// kernel row `ky` is then the strided view starting at column `ky·W` — three copies of the
+/// input instead of nine.
 ///
 /// # Shapes
-/// - `x`: `[c_src, H, W]` → `col`: `[c_src·9 (+ 1), (y1 − y0)·W]` with row stride `ld`
-fn im2col(x: &[f32], p: Plane, y0: usize, y1: usize, ld: usize, col: &mut [f32], ones: bool) {
+/// - `x`: `[c_src, H, W]` → `col`: `[c_src·3, ld]`
+fn shifts(x: &[f32], p: Plane, y0: usize, y1: usize, ld: usize, col: &mut [f32]) {
     let (h, w) = (p.h, p.w);
-    let n = (y1 - y0) * w;
+    debug_assert_eq!(col.len(), p.c_src * 3 * ld);
     for (r, dst) in col.chunks_exact_mut(ld).enumerate() {
-        let dst = &mut dst[..n];
-        if r == p.c_src * 9 {
-            dst.fill(if ones { 1.0 } else { 0.0 });
-            continue;
-        }
-        let (ci, ky, kx) = (r / 9, (r % 9) / 3, r % 3);
+        let (ci, kx) = (r / 3, r % 3);
         let plane = &x[ci * h * w..(ci + 1) * h * w];
-        for (y, d) in (y0..y1).zip(dst.chunks_exact_mut(w)) {
-            let sy = y as isize + ky as isize - 1;
+        for (k, d) in dst[..(y1 - y0 + 2) * w].chunks_exact_mut(w).enumerate() {
+            let sy = (y0 + k) as isize - 1;
             if sy < 0 || sy >= h as isize {
                 d.fill(0.0);
                 continue;
@@ -417,14 +463,18 @@ mod tests {
         Conv3x3 { batch: 1, c_in: 2, c_out: 3, height: 8, width: 1 },
         Conv3x3 { batch: 3, c_in: 1, c_out: 2, height: 2, width: 2 },
         Conv3x3 { batch: 2, c_in: 2, c_out: 3, height: 70, width: 100 },
-        // 9·32 + 1 rows × 100 columns: 9 rows per band, so 3 bands with a short last one
+        // 3·32 + 1 rows × 100 columns: 2 bands of 10 rows
         Conv3x3 { batch: 2, c_in: 32, c_out: 3, height: 20, width: 100 },
     ];
 
     #[test]
     fn bands_cover_the_frame() {
+        // (3·32 + 1)·100 elements per row: 25 rows per band at most, so 2 bands of 10 rows
         let p = SIZES[5].plane(32, 3);
-        assert_eq!((p.rows, p.bands(), p.band(2)), (9, 3, (18, 20)));
+        assert_eq!((p.rows, p.bands(), p.band(1)), (10, 2, (10, 20)));
+        let d = Conv3x3 { batch: 1, c_in: 32, c_out: 32, height: 188, width: 212 };
+        let p = d.plane(32, 32);
+        assert!(p.rows * 97 * 212 <= BAND_ELEMS && p.bands() * p.rows >= 188 && (p.bands() - 1) * p.rows < 188, "{p:?}");
     }
 
     #[test]
