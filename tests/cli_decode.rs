@@ -112,6 +112,17 @@ fn bad_inputs_exit_2() {
     fails(d, &["sweep", "taps", "--dataset", "nowhere", "-o", "s"], &["nowhere"]);
 }
 
+/// `bench kernels` runs on a tiny frame and prints every operation with a speed-up figure.
+#[test]
+fn bench_kernels_prints_every_op() {
+    let d = tempdir();
+    let out = ok(d.path(), &["bench", "kernels", "--size", "8x8", "--channels", "4", "--reps", "1"]);
+    for op in ["conv 3x3 forward", "conv 3x3 input grad", "conv 3x3 weight grad", "data consistency", "back-projection"] {
+        let line = out.lines().find(|l| l.starts_with(op)).unwrap_or_else(|| panic!("no {op:?} row in:\n{out}"));
+        assert!(line.trim_end().ends_with('x'), "{line}");
+    }
+}
+
 #[test]
 fn bench_bad_inputs_exit_2() {
     let d = tempdir();
@@ -120,4 +131,6 @@ fn bench_bad_inputs_exit_2() {
     fails(d, &["bench", "tval3", "--bins", "30"], &["--bins 30", "multiple of 32"]);
     fails(d, &["bench", "train", "--bins", "30"], &["--bins 30", "multiple of 32"]);
     fails(d, &["bench", "dataset", "--size", "0x8"], &["size"]);
+    fails(d, &["bench", "kernels", "--size", "5x5"], &["5x5", "even"]);
+    fails(d, &["bench", "kernels", "--bins", "20"], &["--bins 20", "multiple of 32"]);
 }

@@ -56,6 +56,25 @@ pub enum BenchCmd {
         #[arg(long, default_value = "188x212", value_parser = super::parse_hw)]
         infer_size: (usize, usize),
     },
+    /// ADMM-Net's kernels (3×3 conv forward and gradients, data consistency, back-projection)
+    /// against burn-flex's generic paths.
+    Kernels {
+        /// Frame size HxW.
+        #[arg(long, default_value = "64x64", value_parser = super::parse_hw)]
+        size: (usize, usize),
+        /// Batch B.
+        #[arg(long, default_value_t = 2)]
+        batch: usize,
+        /// Conv channels C (C → C).
+        #[arg(long, default_value_t = 32)]
+        channels: usize,
+        /// Bins T of the data-consistency step (L = 32, K = T/32).
+        #[arg(long, default_value_t = 32)]
+        bins: usize,
+        /// Repetitions per measurement (median reported).
+        #[arg(long, default_value_t = 20)]
+        reps: usize,
+    },
     /// Dataset generation throughput (samples/s).
     Dataset(super::dataset::BenchDatasetArgs),
 }
@@ -108,6 +127,24 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             println!("training step (batch 2, {h}x{w}): {:.1} ms (forward {:.1} ms, backward {:.1} ms, Adam {:.1} ms)", r.step_ms, r.forward_ms, r.backward_ms, r.optim_ms);
             let f = tcsense_train::bench_forward(&a, &cfg, ih, iw, 3)?;
             println!("inference forward ({ih}x{iw}, batch 1): {f:.1} ms per frame");
+        }
+        BenchCmd::Kernels { size: (h, w), batch, channels, bins, reps } => {
+            if bins == 0 || bins % 32 != 0 {
+                anyhow::bail!("--bins {bins}: expected a multiple of 32 (L = 32, K = T/32)");
+            }
+            if h == 0 || w == 0 || h % 2 != 0 || w % 2 != 0 || batch == 0 || channels == 0 {
+                anyhow::bail!("--size {h}x{w}, --batch {batch}, --channels {channels}: expected non-zero sizes and an even frame (2x2 blocks)");
+            }
+            let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
+            let codes = random_codes(shape, 607e6, Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1)?;
+            let spec = SensorParams { sampling: Sampling::Oversample(bins / 32), ..SensorParams::from_codes(&codes) }.validate()?;
+            let a = MeasurementMatrix::synthesize(&codes, &spec)?;
+            println!("kernels: batch {batch}, {h}x{w}, conv {channels}->{channels}, DC with T = {bins}, M = 4, 2x2 blocks, {} threads", rayon::current_num_threads());
+            println!("{:<22} {:>10} {:>10} {:>10} {:>10} {:>8}", "op", "ours ms", "GFLOP/s", "burn ms", "GFLOP/s", "speedup");
+            for r in tcsense_models::bench::bench_kernels(&a, batch, channels, h, w, reps)? {
+                let rate = |ms: f64| if r.flop > 0.0 { format!("{:.1}", r.flop / ms / 1e6) } else { "-".into() };
+                println!("{:<22} {:>10.3} {:>10} {:>10.3} {:>10} {:>7.1}x", r.name, r.ours_ms, rate(r.ours_ms), r.burn_ms, rate(r.burn_ms), r.burn_ms / r.ours_ms);
+            }
         }
         BenchCmd::Tval3 { size: (h, w), bins, maxit, frames } => {
             use tcsense_datasets::{lidar::LidarParams, TimeGrid};
