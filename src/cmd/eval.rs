@@ -31,7 +31,7 @@ pub struct EvalArgs {
     items: Option<usize>,
     #[command(flatten)]
     sensor: SensorArgs,
-    /// Decoders to compare: tval3 (more to come).
+    /// Decoders to compare: `tval3` and/or `admm-net:RUN` (a training run directory); repeat the flag.
     #[arg(long, num_args = 1.., default_value = "tval3")]
     decoder: Vec<String>,
     #[command(flatten)]
