@@ -17,7 +17,7 @@ use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::flex::{Flex, FlexTensor};
 use burn::backend::ops::{ConvOptions, FloatTensorOps, ModuleOps};
 use burn::backend::tensor::FloatTensor;
-use burn::backend::{backend_extension, Autodiff, AutodiffBackend, Backend, Dispatch, TensorMetadata};
+use burn::backend::{backend_extension, Autodiff, AutodiffBackend, Backend, Dispatch};
 use burn::tensor::{DType, Shape, Tensor, TensorData};
 
 use crate::conv::Conv3x3;
@@ -40,6 +40,8 @@ pub trait Conv3x3Backend: Backend {
     fn conv3x3_x_backward(grad: FloatTensor<Self>, weight: FloatTensor<Self>) -> FloatTensor<Self>;
     /// Input `[B, C_in, H, W]`, output gradient `[B, C_out, H, W]` → kernel gradient `[C_out, C_in, 3, 3]`
     fn conv3x3_w_backward(x: FloatTensor<Self>, grad: FloatTensor<Self>) -> FloatTensor<Self>;
+    /// Output gradient `[B, C_out, H, W]` → bias gradient `[C_out]`
+    fn conv3x3_bias_backward(grad: FloatTensor<Self>) -> FloatTensor<Self>;
 }
 
 fn options() -> ConvOptions<2> {
@@ -116,6 +118,19 @@ impl Conv3x3Backend for Flex {
         d.backward_w(f32_slice(&x), f32_slice(&grad), &mut dw);
         from_vec(dw, [co, ci, 3, 3])
     }
+
+    fn conv3x3_bias_backward(grad: FlexTensor) -> FlexTensor {
+        let [b, co, h, w] = dims4(&grad);
+        let Some(grad) = f32_contiguous(grad.clone()) else {
+            // Σ over batch, rows and columns in the tensor's own dtype
+            let g = Flex::float_reshape(grad, Shape::from([b, co, h * w]));
+            return Flex::float_reshape(Flex::float_sum_dim(Flex::float_sum_dim(g, 2), 0), Shape::from([co]));
+        };
+        let d = Conv3x3 { batch: b, c_in: 0, c_out: co, height: h, width: w };
+        let mut db = vec![0.0f32; co];
+        d.backward_bias(f32_slice(&grad), &mut db);
+        FlexTensor::from_data(TensorData::new(db, Shape::from([co])))
+    }
 }
 
 /// The backward step of [`conv3x3`]: parents `[x, weight, bias]`, state `(x, weight)`.
@@ -136,14 +151,7 @@ impl<B: Backend + Conv3x3Backend> Backward<B, 3> for Conv3x3Step {
             grads.register::<B>(node.id, B::conv3x3_w_backward(x, grad.clone()));
         }
         if let Some(node) = node_b {
-            // Σ over batch, rows and columns: [B, C, H, W] → [C]
-            let [b, c, h, w] = {
-                let s = grad.shape();
-                [s[0], s[1], s[2], s[3]]
-            };
-            let g = B::float_reshape(grad, Shape::from([b, c, h * w]));
-            let g = B::float_sum_dim(B::float_sum_dim(g, 2), 0);
-            grads.register::<B>(node.id, B::float_reshape(g, Shape::from([c])));
+            grads.register::<B>(node.id, B::conv3x3_bias_backward(grad));
         }
     }
 }
@@ -167,5 +175,9 @@ impl<B: Backend + Conv3x3Backend, C: CheckpointStrategy> Conv3x3Backend for Auto
 
     fn conv3x3_w_backward(x: FloatTensor<Self>, grad: FloatTensor<Self>) -> FloatTensor<Self> {
         Self::from_inner(B::conv3x3_w_backward(Self::inner(x), Self::inner(grad)))
+    }
+
+    fn conv3x3_bias_backward(grad: FloatTensor<Self>) -> FloatTensor<Self> {
+        Self::from_inner(B::conv3x3_bias_backward(Self::inner(grad)))
     }
 }
