@@ -22,7 +22,7 @@ use burn::tensor::{activation::relu, Device, Tensor, TensorData};
 use tcsense_sensor::MeasurementMatrix;
 
 use crate::conv_op::conv3x3;
-use crate::pixel::{pixel_dc, pixel_linear, PixelMap, PixelSensor};
+use crate::pixel::{pixel_dc, pixel_linear, woodbury_matrices, PixelMap, PixelSensor};
 use std::sync::Arc;
 
 /// ADMM-Net hyper-parameters.
@@ -203,17 +203,12 @@ impl SensorTensors {
         }
         // Aᵀ(AAᵀ + εI)⁻¹ = Aᵀ Q diag(1/(λ + ε)) Qᵀ, ε = 1e-3·λ_max
         let lmax = l_v.iter().fold(0f32, |a, &b| a.max(b)).max(1e-12);
-        let eps = 1e-3 * lmax;
+        let k_eps = woodbury_matrices(&q_v, &l_v, m, 1e-3 * lmax); // [N, M, M]
         let mut pinv_v = vec![0f32; n_sub * t * m];
         for k in 0..n_sub {
             for j in 0..t {
                 for c in 0..m {
-                    pinv_v[(k * t + j) * m + c] = (0..m)
-                        .map(|r| {
-                            let kinv: f32 = (0..m).map(|e| q_v[(k * m + r) * m + e] * q_v[(k * m + c) * m + e] / (l_v[k * m + e] + eps)).sum();
-                            at_v[(k * t + j) * m + r] * kinv
-                        })
-                        .sum();
+                    pinv_v[(k * t + j) * m + c] = (0..m).map(|r| at_v[(k * t + j) * m + r] * k_eps[(k * m + r) * m + c]).sum();
                 }
             }
         }

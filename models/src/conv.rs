@@ -346,12 +346,20 @@ impl Mat {
 
 /// An output buffer written by several tasks at once, each through a disjoint view.
 #[derive(Clone, Copy)]
-struct SharedOut {
-    ptr: *mut f32,
-    len: usize,
+pub(crate) struct SharedOut {
+    pub(crate) ptr: *mut f32,
+    pub(crate) len: usize,
 }
-// SAFETY: `SharedOut` is only used by `correlate`, whose tasks write disjoint views of a buffer
-// that it borrows mutably for the whole parallel loop.
+
+impl SharedOut {
+    /// The base pointer, read through the whole value (so closures capture `SharedOut`, which
+    /// is `Sync`, and not the bare pointer field).
+    pub(crate) fn base(self) -> *mut f32 {
+        self.ptr
+    }
+}
+// SAFETY: `SharedOut` is only used by `correlate` here and `pixel::par_bands`, whose tasks
+// write disjoint views of a buffer that the caller borrows mutably for the whole parallel loop.
 unsafe impl Send for SharedOut {}
 unsafe impl Sync for SharedOut {}
 

@@ -48,21 +48,22 @@ fn options() -> ConvOptions<2> {
     ConvOptions::new([1, 1], [1, 1], [1, 1], 1)
 }
 
-fn dims4(t: &FlexTensor) -> [usize; 4] {
+/// The shape of a rank-4 tensor (the custom ops of this crate take no other).
+pub(crate) fn dims4(t: &FlexTensor) -> [usize; 4] {
     let s = t.layout().shape();
-    assert_eq!(s.num_dims(), 4, "conv3x3: expected a rank-4 tensor, got {s:?}");
+    assert_eq!(s.num_dims(), 4, "expected a rank-4 tensor, got {s:?}");
     [s[0], s[1], s[2], s[3]]
 }
 
 /// A contiguous `f32` view of `t` (copying only when it is strided), or `None` for other dtypes.
-fn f32_contiguous(t: FlexTensor) -> Option<FlexTensor> {
+pub(crate) fn f32_contiguous(t: FlexTensor) -> Option<FlexTensor> {
     if t.dtype() != DType::F32 {
         return None;
     }
     Some(if t.as_slice::<f32>().is_some() { t } else { t.to_contiguous() })
 }
 
-fn f32_slice(t: &FlexTensor) -> &[f32] {
+pub(crate) fn f32_slice(t: &FlexTensor) -> &[f32] {
     t.as_slice::<f32>().expect("f32_contiguous returned a contiguous f32 tensor")
 }
 

@@ -25,8 +25,11 @@ use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::flex::{Flex, FlexTensor};
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{backend_extension, Autodiff, AutodiffBackend, Backend, Dispatch, TensorMetadata};
-use burn::tensor::{DType, Shape, Tensor, TensorData};
+use burn::tensor::{Shape, Tensor, TensorData};
 use rayon::prelude::*;
+
+use crate::conv::SharedOut;
+use crate::conv_op::{dims4, f32_contiguous, f32_slice};
 
 /// A per-subpixel linear map `P_n [O, I]` laid out for a frame `W` pixels wide.
 #[derive(Debug, Clone, PartialEq)]
@@ -147,17 +150,8 @@ impl PixelSensor {
 
     /// `K_n = Q_n diag(1/(ρ + λ_n)) Q_nᵀ` for every subpixel, as a map `M → M`.
     fn woodbury(&self, rho: f32) -> PixelMap {
-        let (bh, bw) = self.a.block;
         let m = self.a.outputs;
-        let mut k = vec![0.0f32; bh * bw * m * m];
-        for n in 0..bh * bw {
-            for r in 0..m {
-                for c in 0..m {
-                    k[(n * m + r) * m + c] = (0..m).map(|j| self.q[(n * m + r) * m + j] * self.q[(n * m + c) * m + j] / (rho + self.lambda[n * m + j])).sum();
-                }
-            }
-        }
-        PixelMap::new(self.a.block, m, m, self.a.width, &k)
+        PixelMap::new(self.a.block, m, m, self.a.width, &woodbury_matrices(&self.q, &self.lambda, m, rho))
     }
 
     /// `x = (AᵀA + ρI)⁻¹ v` on a `[B, T, H, W]` buffer.
@@ -214,6 +208,23 @@ impl PixelSensor {
     }
 }
 
+/// `K_n = Q_n diag(1/(s + λ_n)) Q_nᵀ = (sI + A_nA_nᵀ)⁻¹` for every subpixel `n`.
+///
+/// # Shapes
+/// - `q`: `[N, M, M]` (columns are eigenvectors), `lambda`: `[N, M]` → `[N, M, M]`
+pub fn woodbury_matrices(q: &[f32], lambda: &[f32], m: usize, s: f32) -> Vec<f32> {
+    let n_sub = lambda.len() / m.max(1);
+    let mut k = vec![0.0f32; n_sub * m * m];
+    for n in 0..n_sub {
+        for r in 0..m {
+            for c in 0..m {
+                k[(n * m + r) * m + c] = (0..m).map(|j| q[(n * m + r) * m + j] * q[(n * m + c) * m + j] / (s + lambda[n * m + j])).sum();
+            }
+        }
+    }
+    k
+}
+
 /// Run `f` compiled for the best vector extension this CPU has (AVX-512 or AVX2+FMA on x86-64,
 /// chosen at run time), so its multiply-add loops vectorise beyond the baseline SSE2.
 #[inline(always)]
@@ -241,7 +252,7 @@ where
     }
     let rows = band_rows(h, w);
     let bands = h.div_ceil(rows);
-    let base = SharedOut(out.as_mut_ptr());
+    let base = SharedOut { ptr: out.as_mut_ptr(), len: out.len() };
     (0..b * bands).into_par_iter().for_each(|task| {
         let (bi, j) = (task / bands, task % bands);
         let (y0, y1) = (j * rows, ((j + 1) * rows).min(h));
@@ -251,23 +262,12 @@ where
                 // SAFETY: `off + (y1 − y0)·w ≤ out.len()`, and `(bi, ch, y0..y1)` ranges are
                 // disjoint between tasks (see the function's doc); `out` stays borrowed
                 // mutably for the whole loop.
-                unsafe { std::slice::from_raw_parts_mut(base.get().add(off), (y1 - y0) * w) }
+                unsafe { std::slice::from_raw_parts_mut(base.base().add(off), (y1 - y0) * w) }
             })
             .collect();
         f(bi, y0, &mut planes);
     });
 }
-
-#[derive(Clone, Copy)]
-struct SharedOut(*mut f32);
-impl SharedOut {
-    fn get(self) -> *mut f32 {
-        self.0
-    }
-}
-// SAFETY: used only by `par_bands`, whose tasks touch disjoint parts of the buffer.
-unsafe impl Send for SharedOut {}
-unsafe impl Sync for SharedOut {}
 
 // ---- burn ops ---------------------------------------------------------------------------
 
@@ -296,33 +296,12 @@ pub trait PixelBackend: Backend {
     fn pixel_dc(v: FloatTensor<Self>, rho: FloatTensor<Self>, sensor: Arc<PixelSensor>) -> FloatTensor<Self>;
 }
 
-fn f32_data(t: FlexTensor) -> (Vec<f32>, [usize; 4]) {
-    let s = t.layout().shape();
-    assert_eq!(s.num_dims(), 4, "pixel op: expected a rank-4 tensor, got {s:?}");
-    let dims = [s[0], s[1], s[2], s[3]];
-    let data = t.into_data().convert::<f32>();
-    (data.try_into_vec::<f32>().expect("converted to f32"), dims)
-}
-
-fn f32_view(t: &FlexTensor) -> Option<(&[f32], [usize; 4])> {
-    let s = t.layout().shape();
-    assert_eq!(s.num_dims(), 4, "pixel op: expected a rank-4 tensor, got {s:?}");
-    let dims = [s[0], s[1], s[2], s[3]];
-    if t.dtype() == DType::F32 {
-        t.as_slice::<f32>().map(|v| (v, dims))
-    } else {
-        None
-    }
-}
-
 /// Run `f` on a contiguous f32 view of `t` (copying only when `t` is strided or not f32).
 fn with_f32<R>(t: FlexTensor, f: impl FnOnce(&[f32], [usize; 4]) -> R) -> R {
-    match f32_view(&t) {
-        Some((v, d)) => f(v, d),
-        None => {
-            let (v, d) = f32_data(t);
-            f(&v, d)
-        }
+    let dims = dims4(&t);
+    match f32_contiguous(t.clone()) {
+        Some(c) => f(f32_slice(&c), dims),
+        None => f(&t.into_data().convert::<f32>().try_into_vec::<f32>().expect("converted to f32"), dims),
     }
 }
 
