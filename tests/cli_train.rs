@@ -64,3 +64,20 @@ fn bad_inputs_exit_2() {
     fails(d, &["eval", "--dataset", "ds", "--codes", "other.json", "--decoder", "admm-net:run"], &["other codes"]);
     fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "magic"], &["unknown decoder"]);
 }
+
+#[test]
+fn reconstruct_with_a_run_from_an_earlier_build() {
+    let d = tempdir();
+    let d = d.path();
+    let fx = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/admm-net-run-v1");
+    let (run, y) = (fx.display().to_string(), fx.join("y.npy").display().to_string());
+    let out = ok(d, &["reconstruct", "admm-net", "--run", &run, "--measurements", &y, "-o", "xhat.npy"]);
+    assert!(out.contains("admm-net"), "{out}");
+    let got = read_npy(&d.join("xhat.npy")).unwrap();
+    let want = read_npy(&fx.join("xhat.npy")).unwrap();
+    assert_eq!(got.shape(), want.shape());
+    let diff = got.iter().zip(want.iter()).fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+    assert!(diff < 1e-5, "differs from the earlier build's reconstruction by {diff}");
+    fails(d, &["reconstruct", "admm-net", "--run", &run, "--measurements", &fx.join("xhat.npy").display().to_string(), "-o", "x2.npy"], &["xhat.npy", "8 tap images", "M = 4"]);
+    assert!(!d.join("x2.npy").exists());
+}

@@ -3,7 +3,7 @@
 //! so the picture carries no text.
 
 use tcsense_sensor::show::Canvas;
-use tcsense_sensor::Result;
+use crate::Result;
 
 const COLOURS: [[u8; 3]; 6] = [[31, 119, 180], [214, 39, 40], [44, 160, 44], [255, 127, 14], [148, 103, 189], [0, 0, 0]];
 
@@ -14,7 +14,7 @@ pub fn line_chart(path: &std::path::Path, series: &[(String, Vec<(f64, f64)>)], 
     let ty = |y: f64| if log_y { y.max(1e-300).log10() } else { y };
     let pts: Vec<(f64, f64)> = series.iter().flat_map(|s| s.1.iter().map(|&(x, y)| (x, ty(y)))).filter(|p| p.1.is_finite()).collect();
     if pts.is_empty() {
-        return cv.save_png(path);
+        return Ok(cv.save_png(path)?);
     }
     let (x0, x1) = pts.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |a, p| (a.0.min(p.0), a.1.max(p.0)));
     let (mut y0, mut y1) = pts.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |a, p| (a.0.min(p.1), a.1.max(p.1)));
@@ -50,5 +50,5 @@ pub fn line_chart(path: &std::path::Path, series: &[(String, Vec<(f64, f64)>)], 
             cv.rect(x.saturating_sub(3), y.saturating_sub(3), 7, 7, col);
         }
     }
-    cv.save_png(path)
+    Ok(cv.save_png(path)?)
 }

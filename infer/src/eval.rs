@@ -1,11 +1,23 @@
-//! Evaluation of a decoder's reconstructions against a dataset's ground truth: one row per
-//! decoder with the mean MSE and PSNR, depth errors per bounce (LiDAR), lifetime MAE (FLIm)
-//! and the time per frame.
+//! Evaluation of decoders against a dataset's ground truth through the decoder contract:
+//! every decoder gets the same (optionally noisy) measurements of the same items, and one
+//! row per decoder holds the mean MSE and PSNR, depth errors per bounce (LiDAR), lifetime MAE
+//! (FLIm) and the time per frame.
+
+use ndarray::{Array4, ArrayView2, ArrayView3, Axis, Ix3, Ix4};
+use serde::Serialize;
+use std::path::Path;
+use std::sync::atomic::AtomicBool;
+use std::time::Instant;
+use tcsense_datasets::Dataset;
+use tcsense_models::decoder::{Control, Decoded, Decoder, Tval3Decoder};
+use tcsense_models::{runs, Device, ModelError, Tval3Options};
+use tcsense_sensor::measure::measure_batch;
+use tcsense_sensor::noise::derive_seed;
+use tcsense_sensor::{Codes, MeasurementMatrix, NoiseParams};
 
 use crate::metrics::{depth_errors, lifetime_mae, mse, psnr, DepthErrors};
 use crate::products::{depth_map, lifetime_map, PeakOptions};
-use ndarray::{ArrayView2, ArrayView3};
-use serde::Serialize;
+use crate::{InferError, Result};
 
 /// Accumulates metrics over items.
 #[derive(Debug, Clone, Default, Serialize)]
@@ -33,8 +45,10 @@ impl EvalRow {
     }
 
     /// Add one item: reconstruction `x̂`, truth `x` (both `[T, H, W]`), optional true range
-    /// `[K, H, W]` and lifetime `[H, W]`, bin width and the decoder's time for it.
-    pub fn add(&mut self, xh: &ArrayView3<'_, f32>, x: &ArrayView3<'_, f32>, depth: Option<&ArrayView3<'_, f32>>, lifetime: Option<&ArrayView2<'_, f32>>, bin_width_s: f64, seconds: f64) {
+    /// `[K, H, W]` and lifetime `[H, W]`, bin width and the decoder's time for it. Depth comes
+    /// from peaks of `x̂`, or from `depth_est` `[K, H, W]` where the decoder estimated it.
+    #[allow(clippy::too_many_arguments)]
+    pub fn add(&mut self, xh: &ArrayView3<'_, f32>, x: &ArrayView3<'_, f32>, depth_est: Option<&ArrayView3<'_, f32>>, depth: Option<&ArrayView3<'_, f32>>, lifetime: Option<&ArrayView2<'_, f32>>, bin_width_s: f64, seconds: f64) {
         let (a, b) = (xh.as_standard_layout(), x.as_standard_layout());
         let (a, b) = (a.as_slice().unwrap_or(&[]), b.as_slice().unwrap_or(&[]));
         let m = mse(a, b);
@@ -45,8 +59,10 @@ impl EvalRow {
         self.items += 1;
         self.seconds_per_frame = self.time_sum / self.items as f64;
         if let Some(d) = depth {
-            let (est, _) = depth_map(xh, bin_width_s, &PeakOptions { max_peaks: d.dim().0, ..Default::default() });
-            let errs = depth_errors(&est.view(), d);
+            let errs = match depth_est {
+                Some(est) => depth_errors(est, d),
+                None => depth_errors(&depth_map(xh, bin_width_s, &PeakOptions { max_peaks: d.dim().0, ..Default::default() }).0.view(), d),
+            };
             if self.depth_sums.len() < errs.len() {
                 self.depth_sums.resize(errs.len(), (0, 0, 0.0, 0.0));
             }
@@ -86,4 +102,97 @@ impl EvalRow {
         s.push_str(&format!("  {:.1} ms/frame", self.seconds_per_frame * 1e3));
         s
     }
+
+    /// The rows as CSV, one line per decoder after a header.
+    pub fn csv(rows: &[EvalRow]) -> String {
+        let mut csv = String::from("decoder,items,mse,psnr_db,bounce1_rmse_m,bounce1_mae_m,bounce1_detection,bounce2_rmse_m,bounce2_mae_m,bounce2_detection,lifetime_mae_s,seconds_per_frame\n");
+        for r in rows {
+            let b = |k: usize| r.depth.get(k).map_or(",,".to_string(), |d| format!("{},{},{}", d.rmse_m, d.mae_m, d.detection_rate()));
+            csv.push_str(&format!("{},{},{},{},{},{},{},{}\n", r.decoder, r.items, r.mse, r.psnr_db, b(0), b(1), r.lifetime_mae_s.map_or(String::new(), |v| v.to_string()), r.seconds_per_frame));
+        }
+        csv
+    }
+}
+
+/// A decoder chosen by name, with the codes it was trained with (learned decoders).
+pub struct NamedDecoder {
+    /// The name as given (`tval3`, `admm-net:RUN`).
+    pub label: String,
+    pub decoder: Box<dyn Decoder>,
+    /// The run's codes: a learned decoder is evaluated with its own codes only.
+    pub codes: Option<Codes>,
+}
+
+/// Open a decoder by name: `tval3` (with `tval3` options) or `KIND:RUN`, a training run
+/// directory of a learned decoder of that kind (`admm-net:RUN`), on the CPU.
+pub fn open_decoder(name: &str, tval3: &Tval3Options) -> Result<NamedDecoder> {
+    match name.split_once(':') {
+        None if name == "tval3" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(Tval3Decoder::new(*tval3)?), codes: None }),
+        Some((kind, dir)) if kind == "admm-net" => {
+            let run = runs::open(Path::new(dir), &Device::flex())?;
+            if run.spec.model.name() != kind {
+                return Err(InferError::File { path: run.dir.join(runs::CONFIG_FILE), msg: format!("a {} run, not {kind}; name it {}:{dir}", run.spec.model.name(), run.spec.model.name()) });
+            }
+            Ok(NamedDecoder { label: name.into(), decoder: run.decoder, codes: Some(run.codes) })
+        }
+        _ => Err(InferError::UnknownDecoder(name.into())),
+    }
+}
+
+/// What to evaluate on.
+#[derive(Debug, Clone)]
+pub struct EvalSettings {
+    /// Dataset split.
+    pub split: String,
+    /// At most this many items.
+    pub items: Option<usize>,
+    /// Noise on the simulated measurements (`None`: noise-free).
+    pub noise: Option<NoiseParams>,
+    /// Item `i`'s noise is seeded by `(seed, i)`.
+    pub seed: u64,
+}
+
+/// Evaluate `decoders` on a dataset split with the sensor `a`: the same measurements of each
+/// item (`measure`, noise seeded per item) go to every decoder. `on_item(decoder, done, of)`
+/// is called after each item.
+pub fn evaluate(ds: &Dataset, a: &MeasurementMatrix, decoders: &mut [NamedDecoder], settings: &EvalSettings, on_item: &dyn Fn(&str, usize, usize), cancel: &AtomicBool) -> Result<Vec<EvalRow>> {
+    let x = ds.load(&settings.split, "x")?.into_dimensionality::<Ix4>().map_err(|e| file_err(&ds.dir, format!("field x of split {}: {e}", settings.split)))?;
+    let n = settings.items.unwrap_or(x.dim().0).min(x.dim().0);
+    if n == 0 {
+        return Err(file_err(&ds.dir, format!("no items in split {:?}", settings.split)));
+    }
+    let field = |name: &str| -> Result<Option<ndarray::ArrayD<f32>>> { Ok(if ds.manifest.fields.contains_key(name) { Some(ds.load(&settings.split, name)?) } else { None }) };
+    let depth = field("depth")?.map(|d| d.into_dimensionality::<Ix4>()).transpose().map_err(|e| file_err(&ds.dir, format!("field depth: {e}")))?;
+    let lifetime = field("lifetime")?.map(|d| d.into_dimensionality::<Ix3>()).transpose().map_err(|e| file_err(&ds.dir, format!("field lifetime: {e}")))?;
+    let (_, _, h, w) = x.dim();
+    let plan = a.plan(h, w)?;
+    // the measurements every decoder sees, [1, M, H, W] per item
+    let ys: Vec<Array4<f32>> = (0..n)
+        .map(|i| measure_batch(&plan, &x.slice_axis(Axis(0), ndarray::Slice::from(i..i + 1)), settings.noise.as_ref(), derive_seed(settings.seed, i as u64)))
+        .collect::<std::result::Result<_, _>>()?;
+    let ctl = Control::quiet(cancel);
+    let mut rows = Vec::new();
+    for d in decoders.iter_mut() {
+        let mut row = EvalRow::new(&d.label);
+        for (i, y) in ys.iter().enumerate() {
+            let t0 = Instant::now();
+            let out: Decoded = d.decoder.decode(y.view(), a, &ctl).map_err(|e| match e {
+                ModelError::Cancelled => InferError::Cancelled,
+                e => e.into(),
+            })?;
+            let secs = t0.elapsed().as_secs_f64();
+            let cube = out.cube.ok_or_else(|| InferError::InvalidParam { field: "decoder", got: d.label.clone(), expected: "a decoder that reconstructs cubes".into() })?;
+            let est = out.depth.as_ref().map(|e| e.index_axis(Axis(0), 0));
+            let truth_d = depth.as_ref().map(|t| t.index_axis(Axis(0), i));
+            let truth_l = lifetime.as_ref().map(|t| t.index_axis(Axis(0), i));
+            row.add(&cube.index_axis(Axis(0), 0), &x.index_axis(Axis(0), i), est.as_ref(), truth_d.as_ref(), truth_l.as_ref(), a.bin_width_s(), secs);
+            on_item(&d.label, i + 1, n);
+        }
+        rows.push(row);
+    }
+    Ok(rows)
+}
+
+fn file_err(path: &Path, msg: String) -> InferError {
+    InferError::File { path: path.to_path_buf(), msg }
 }

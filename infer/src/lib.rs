@@ -1,12 +1,24 @@
-//! `tcsense-infer`: what users want from a reconstructed cube `x̂ [T, H, W]`.
+//! `tcsense-infer`: from decoders to what users want — evaluation of any decoder through the
+//! contract, the products of a reconstructed cube, and code selection.
 //!
+//! - [`eval`]: decoders opened by name (`tval3`, `admm-net:RUN`) and evaluated side by side
+//!   on a dataset split with the same measurements ([`eval::evaluate`]), one [`eval::EvalRow`]
+//!   per decoder.
 //! - [`products`]: peak detection with parabolic sub-bin refinement (several returns per
-//!   pixel for multipath), depth maps `d = c·t/2`, point clouds (PLY), per-pixel lifetimes
-//!   by an exponential fit of the decay after the peak, phasor coordinates, waveform plots.
+//!   pixel for multipath), depth maps `d = c·t/2`, point clouds (PLY), per-pixel lifetimes by
+//!   an exponential fit of the decay after the peak, phasor coordinates, waveform plots.
 //! - [`metrics`]: MSE, PSNR, depth RMSE/MAE per bounce with detection rate, lifetime MAE.
+//! - [`selection`]: code selection — the TVAL3 MSE of a code set over a dataset, the best of
+//!   random candidates, and the constraint settings of the paper's Table 1.
+//! - [`chart`]: line charts (PNG) for the design sweeps.
+//!
+//! Errors are [`InferError`]; this crate never depends on the training crate.
 
+pub mod chart;
+pub mod error;
+pub mod eval;
 pub mod metrics;
 pub mod products;
-pub mod design;
-pub mod chart;
-pub mod eval;
+pub mod selection;
+
+pub use error::{InferError, Result};

@@ -1,28 +1,10 @@
-//! Evaluation metrics.
-//!
-//! Cubes are compared as stored (the datasets scale each cube so that its largest voxel of
-//! the ground truth is 1), so `MSE = mean((x̂ − x)²)` and `PSNR = 10·log₁₀(peak² / MSE)` with
-//! `peak = max x`.
+//! Evaluation metrics: the cube metrics every decoder is scored with (MSE, PSNR, from
+//! `tcsense_models::metrics`), depth errors per bounce with the detection rate, and the
+//! lifetime error.
 
 use ndarray::ArrayView3;
+pub use tcsense_models::metrics::{mse, psnr};
 use serde::Serialize;
-
-/// Mean squared error.
-pub fn mse(est: &[f32], truth: &[f32]) -> f64 {
-    let n = truth.len().max(1) as f64;
-    est.iter().zip(truth).map(|(a, b)| ((a - b) as f64).powi(2)).sum::<f64>() / n
-}
-
-/// Peak signal-to-noise ratio (dB) against the truth's maximum.
-pub fn psnr(est: &[f32], truth: &[f32]) -> f64 {
-    let peak = truth.iter().fold(0f32, |m, &v| m.max(v)) as f64;
-    let e = mse(est, truth);
-    if e <= 0.0 {
-        f64::INFINITY
-    } else {
-        10.0 * (peak * peak / e).log10()
-    }
-}
 
 /// Depth errors of one bounce.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]

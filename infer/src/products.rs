@@ -18,7 +18,7 @@ use tcsense_datasets::grid::C;
 use tcsense_datasets::lidar::Camera;
 use tcsense_sensor::npy::atomic_write;
 use tcsense_sensor::show::Canvas;
-use tcsense_sensor::Result;
+use crate::Result;
 
 /// A detected peak.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -234,7 +234,7 @@ pub fn map_png(path: &Path, map: &ndarray::ArrayView2<'_, f32>, scale: usize) ->
             cv.rect(c * scale, r * scale, scale, scale, tcsense_datasets::montage::colormap((v - lo) / span));
         }
     }
-    cv.save_png(path)
+    Ok(cv.save_png(path)?)
 }
 
 /// Plot waveforms: one panel per pixel, one coloured line per cube (e.g. truth, TVAL3,

@@ -1,14 +1,14 @@
 //! Timings of the custom kernels against what burn-flex does without them, for
 //! `tcsense bench kernels` (printed, never asserted).
 
-use std::time::Instant;
-
 use burn::backend::flex::{Flex, FlexDevice, FlexTensor};
 use burn::backend::ops::{ConvOptions, FloatTensorOps, ModuleOps};
 use burn::tensor::{Distribution, Shape, Tensor, TensorData};
 use tcsense_sensor::MeasurementMatrix;
 
-use crate::conv_op::Conv3x3Backend;
+use tcsense_kernels::conv_op::Conv3x3Backend;
+use tcsense_kernels::timing;
+
 use crate::{Device, SensorTensors};
 
 /// One operation: our kernel and burn-flex's generic path, median milliseconds.
@@ -24,17 +24,16 @@ pub struct OpTiming {
     pub flop: f64,
 }
 
+/// Median milliseconds of an infallible call (warm-up included).
 fn median_ms(mut f: impl FnMut(), reps: usize) -> f64 {
-    f(); // warm-up
-    let mut t: Vec<f64> = (0..reps.max(1))
-        .map(|_| {
-            let t0 = Instant::now();
+    timing::median_ms::<std::convert::Infallible>(
+        || {
             f();
-            t0.elapsed().as_secs_f64() * 1e3
-        })
-        .collect();
-    t.sort_by(f64::total_cmp);
-    t[t.len() / 2]
+            Ok(())
+        },
+        reps,
+    )
+    .unwrap_or(f64::NAN)
 }
 
 /// Deterministic values in [−1, 1) (a linear congruential sequence).

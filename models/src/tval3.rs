@@ -314,35 +314,6 @@ fn shape_err(e: ndarray::ShapeError, what: &str) -> ModelError {
     ModelError::InvalidParam { field: "buffer", got: what.into(), expected: e.to_string() }
 }
 
-/// `λ_max(A_n A_nᵀ)` over the subpixel types, by power iteration on each `M × M` matrix.
-pub fn max_eigenvalue_aat(a: &MeasurementMatrix) -> f64 {
-    let av = a.a();
-    let (n, m, t) = av.dim();
-    let mut best = 0f64;
-    for k in 0..n {
-        let g: Vec<f64> = (0..m * m)
-            .map(|ij| (0..t).map(|j| av[(k, ij / m, j)] as f64 * av[(k, ij % m, j)] as f64).sum())
-            .collect();
-        let mut v = vec![1.0; m];
-        let mut lambda = 0.0;
-        for _ in 0..200 {
-            let mut nv: Vec<f64> = (0..m).map(|i| (0..m).map(|j| g[i * m + j] * v[j]).sum()).collect();
-            let nrm = nv.iter().map(|x| x * x).sum::<f64>().sqrt();
-            if nrm == 0.0 {
-                break;
-            }
-            nv.iter_mut().for_each(|x| *x /= nrm);
-            let done = (nrm - lambda).abs() <= 1e-12 * nrm;
-            lambda = nrm;
-            v = nv;
-            if done {
-                break;
-            }
-        }
-        best = best.max(lambda);
-    }
-    best
-}
 
 /// Solver state: every buffer is allocated once.
 struct Solver<'a> {
@@ -532,7 +503,7 @@ pub fn tval3(
     let n = t * h * w;
     let nm = m * h * w;
     let scale_a = if opts.scale_a {
-        let l = max_eigenvalue_aat(a);
+        let l = a.max_gram_eigenvalue();
         if l > 0.0 {
             (1.0 / l.sqrt()) as f32
         } else {

@@ -9,15 +9,17 @@
 //!
 //! Modules: [`params`] (checked sensor parameters), [`codes`] (exposure codes, JSON, the
 //! constraint checker), [`generate`] (random codes under constraints), [`matrix`] (ideal,
-//! physical, heterodyne or measured `A`), [`operator`] (fast forward/adjoint), [`noise`]
-//! (shot, read, clipping, ADC), [`export`] (the sensor's code memory), [`show`] (PNG
-//! pictures of codes), [`npy`] (`.npy` I/O and atomic writes).
+//! physical, heterodyne or measured `A`, and its Gram matrices `AAᵀ`), [`operator`] (fast
+//! forward/adjoint), [`noise`] (shot, read, clipping, ADC), [`measure`] (the one physics
+//! entry, `y = quantise(clip(noise(A x)))`), [`export`] (the sensor's code memory), [`show`]
+//! (PNG pictures of codes), [`npy`] (`.npy` I/O and atomic writes).
 
 pub mod codes;
 pub mod error;
 pub mod export;
 pub mod generate;
 pub mod matrix;
+pub mod measure;
 pub mod noise;
 pub mod npy;
 pub mod operator;

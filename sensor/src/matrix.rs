@@ -17,7 +17,7 @@ use crate::codes::Codes;
 use crate::error::{Result, SensorError};
 use crate::npy;
 use crate::params::{Irf, Sampling, SensorSpec};
-use ndarray::{Array3, ArrayView3, Axis, Ix3};
+use ndarray::{Array2, Array3, ArrayView3, Axis, Ix3};
 use rayon::prelude::*;
 use std::path::Path;
 
@@ -114,6 +114,91 @@ impl MeasurementMatrix {
     pub fn bin_width_s(&self) -> f64 {
         self.bin_width_s
     }
+
+    /// The Gram matrices `A_nA_nᵀ` of every subpixel type, accumulated in f64: the one `AAᵀ`
+    /// behind TVAL3's scaling and the learned decoders' back-projection and data consistency.
+    ///
+    /// # Shapes
+    /// - returns `[N, M, M]`
+    pub fn gram(&self) -> Array3<f64> {
+        let (n, m, t) = self.a.dim();
+        Array3::from_shape_fn((n, m, m), |(k, i, j)| (0..t).map(|l| self.a[(k, i, l)] as f64 * self.a[(k, j, l)] as f64).sum())
+    }
+
+    /// The eigen-decomposition `A_nA_nᵀ = Q_n Λ_n Q_nᵀ` of every Gram matrix (cyclic Jacobi
+    /// rotations, to f64 precision).
+    ///
+    /// # Shapes
+    /// - returns eigenvalues `[N, M]` and eigenvectors `[N, M, M]`, where `q[(n, r, i)]` is
+    ///   component `r` of eigenvector `i` (the columns of `Q_n`)
+    pub fn gram_eigen(&self) -> (Array2<f64>, Array3<f64>) {
+        let g = self.gram();
+        let (n, m, _) = g.dim();
+        let mut lambda = Array2::zeros((n, m));
+        let mut q = Array3::zeros((n, m, m));
+        for k in 0..n {
+            let gk: Vec<f64> = g.index_axis(Axis(0), k).iter().copied().collect();
+            let (l, v) = symmetric_eigen(&gk, m);
+            for r in 0..m {
+                lambda[(k, r)] = l[r];
+                for c in 0..m {
+                    q[(k, r, c)] = v[r * m + c];
+                }
+            }
+        }
+        (lambda, q)
+    }
+
+    /// `λ_max(A_nA_nᵀ)` over the subpixel types (`‖A‖²` of the per-pixel operator).
+    pub fn max_gram_eigenvalue(&self) -> f64 {
+        self.gram_eigen().0.iter().fold(0f64, |a, &b| a.max(b))
+    }
+}
+
+/// Eigen-decomposition of a symmetric `n × n` matrix (row-major) by cyclic Jacobi rotations:
+/// returns `(eigenvalues, Q)` with `Q[j·n + i]` the `j`-th component of eigenvector `i`.
+fn symmetric_eigen(a: &[f64], n: usize) -> (Vec<f64>, Vec<f64>) {
+    let mut m = a.to_vec();
+    let mut q = vec![0.0; n * n];
+    for i in 0..n {
+        q[i * n + i] = 1.0;
+    }
+    for _sweep in 0..100 {
+        let off: f64 = (0..n).flat_map(|i| (0..n).filter(move |&j| j != i).map(move |j| (i, j))).map(|(i, j)| m[i * n + j].powi(2)).sum();
+        let scale: f64 = m.iter().map(|v| v * v).sum::<f64>().max(f64::MIN_POSITIVE);
+        if off <= 1e-30 * scale {
+            break;
+        }
+        for p in 0..n {
+            for r in p + 1..n {
+                let apr = m[p * n + r];
+                if apr.abs() < 1e-300 {
+                    continue;
+                }
+                let theta = (m[r * n + r] - m[p * n + p]) / (2.0 * apr);
+                let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
+                let t = if theta == 0.0 { 1.0 } else { t };
+                let c = 1.0 / (t * t + 1.0).sqrt();
+                let s = t * c;
+                for k in 0..n {
+                    let (mkp, mkr) = (m[k * n + p], m[k * n + r]);
+                    m[k * n + p] = c * mkp - s * mkr;
+                    m[k * n + r] = s * mkp + c * mkr;
+                }
+                for k in 0..n {
+                    let (mpk, mrk) = (m[p * n + k], m[r * n + k]);
+                    m[p * n + k] = c * mpk - s * mrk;
+                    m[r * n + k] = s * mpk + c * mrk;
+                }
+                for k in 0..n {
+                    let (qkp, qkr) = (q[k * n + p], q[k * n + r]);
+                    q[k * n + p] = c * qkp - s * qkr;
+                    q[k * n + r] = s * qkp + c * qkr;
+                }
+            }
+        }
+    }
+    ((0..n).map(|i| m[i * n + i]).collect(), q)
 }
 
 /// `A[n][m][j] = g[n][m][⌊j/K⌋]`. Shape `[N, M, L·K]`.
@@ -317,5 +402,38 @@ mod tests {
             let want: f32 = (0..8).map(|k| fine.a()[(1, 2, (j + k) % t)]).sum();
             assert_eq!(het.a()[(1, 2, j)], want);
         }
+    }
+
+    #[test]
+    fn jacobi_diagonalises() {
+        let a = [4.0, 1.0, 0.5, 1.0, 3.0, 0.2, 0.5, 0.2, 1.0];
+        let (l, q) = symmetric_eigen(&a, 3);
+        for i in 0..3 {
+            for r in 0..3 {
+                let aq: f64 = (0..3).map(|c| a[r * 3 + c] * q[c * 3 + i]).sum();
+                assert!((aq - l[i] * q[r * 3 + i]).abs() < 1e-10);
+            }
+        }
+    }
+
+    #[test]
+    fn gram_eigen_reconstructs_a_at() {
+        let c = codes();
+        let a = MeasurementMatrix::synthesize(&c, &spec(&c, Sampling::Oversample(2), Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 })).unwrap();
+        let g = a.gram();
+        let (l, q) = a.gram_eigen();
+        let (n, m, _) = g.dim();
+        for k in 0..n {
+            for i in 0..m {
+                for j in 0..m {
+                    let direct: f64 = (0..a.bins()).map(|t| a.a()[(k, i, t)] as f64 * a.a()[(k, j, t)] as f64).sum();
+                    let back: f64 = (0..m).map(|e| q[(k, i, e)] * l[(k, e)] * q[(k, j, e)]).sum();
+                    assert!((g[(k, i, j)] - direct).abs() < 1e-9 && (back - direct).abs() < 1e-9 * (1.0 + direct.abs()));
+                }
+            }
+        }
+        let lmax = l.iter().fold(0f64, |a, &b| a.max(b));
+        assert_eq!(a.max_gram_eigenvalue(), lmax);
+        assert!(lmax > 0.0);
     }
 }

@@ -5,8 +5,10 @@ use clap::Subcommand;
 use ndarray::Array3;
 use std::process::ExitCode;
 use std::time::Instant;
+use tcsense_kernels::timing::{median_by, median_ms};
 use tcsense_sensor::codes::{CodeShape, Constraints};
 use tcsense_sensor::generate::random_codes;
+use tcsense_models::runs::ModelConfig;
 use tcsense_sensor::{MeasurementMatrix, Sampling, SensorParams};
 
 #[derive(Subcommand)]
@@ -79,18 +81,6 @@ pub enum BenchCmd {
     Dataset(super::dataset::BenchDatasetArgs),
 }
 
-fn median_ms(mut f: impl FnMut() -> Result<()>, reps: usize) -> Result<f64> {
-    f()?; // warm-up
-    let mut times = Vec::with_capacity(reps);
-    for _ in 0..reps.max(1) {
-        let t0 = Instant::now();
-        f()?;
-        times.push(t0.elapsed().as_secs_f64() * 1e3);
-    }
-    times.sort_by(f64::total_cmp);
-    Ok(times[times.len() / 2])
-}
-
 pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
     match cmd {
         BenchCmd::Forward { size: (h, w), reps } => {
@@ -105,8 +95,8 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
                 let x = Array3::from_shape_fn((t, h, w), |(j, r, c)| ((j * 7 + r * 3 + c) % 11) as f32);
                 let mut y = Array3::zeros((4, h, w));
                 let mut xa = Array3::zeros((t, h, w));
-                let fwd = median_ms(|| Ok(plan.forward_into(&x.view(), &mut y.view_mut())?), reps)?;
-                let adj = median_ms(|| Ok(plan.adjoint_into(&y.view(), &mut xa.view_mut())?), reps)?;
+                let fwd = median_ms(|| plan.forward_into(&x.view(), &mut y.view_mut()), reps)?;
+                let adj = median_ms(|| plan.adjoint_into(&y.view(), &mut xa.view_mut()), reps)?;
                 let vox = (t * h * w) as f64;
                 println!("{t:>5} {k:>4} {fwd:>12.3} {:>14.3} {adj:>12.3} {:>14.3}", vox / fwd / 1e6, vox / adj / 1e6);
             }
@@ -121,11 +111,11 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             let codes = random_codes(shape, 607e6, Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1)?;
             let spec = SensorParams { sampling: Sampling::Oversample(k), ..SensorParams::from_codes(&codes) }.validate()?;
             let a = MeasurementMatrix::synthesize(&codes, &spec)?;
-            let cfg = tcsense_models::AdmmNetConfig::new(4, bins).with_stages(stages).with_channels(channels);
-            let r = tcsense_train::bench_step(&a, &cfg, h, w, steps)?;
+            let cfg = ModelConfig::AdmmNet(tcsense_models::AdmmNetConfig::new(4, bins).with_stages(stages).with_channels(channels));
+            let r = tcsense_train::bench::bench_step(&a, &cfg, h, w, steps)?;
             println!("ADMM-Net S = {stages}, CN = {channels}, T = {bins}, {} threads", rayon::current_num_threads());
             println!("training step (batch 2, {h}x{w}): {:.1} ms (forward {:.1} ms, backward {:.1} ms, Adam {:.1} ms)", r.step_ms, r.forward_ms, r.backward_ms, r.optim_ms);
-            let f = tcsense_train::bench_forward(&a, &cfg, ih, iw, 3)?;
+            let f = tcsense_train::bench::bench_forward(&a, &cfg, ih, iw, 3)?;
             println!("inference forward ({ih}x{iw}, batch 1): {f:.1} ms per frame");
         }
         BenchCmd::Kernels { size: (h, w), batch, channels, bins, reps } => {
@@ -173,8 +163,7 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
                 println!("frame {i}: {:.3} s, {} iterations ({:.2} ms/iteration, {} backtracks, {} fallbacks), MSE {mse:.3e}", dt, rep.iterations, dt * 1e3 / rep.iterations.max(1) as f64, rep.backtracks, rep.fallbacks);
                 times.push(dt);
             }
-            times.sort_by(f64::total_cmp);
-            println!("median {:.3} s per frame", times[times.len() / 2]);
+            println!("median {:.3} s per frame", median_by(&times, |t| *t).unwrap_or(f64::NAN));
         }
     }
     Ok(ExitCode::SUCCESS)

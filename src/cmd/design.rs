@@ -8,7 +8,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use tcsense_datasets::Dataset;
 use tcsense_infer::chart::line_chart;
-use tcsense_infer::design::{evaluate, select, table1_settings, EvalSetup};
+use tcsense_infer::selection::{evaluate, select, table1_settings, EvalSetup};
 use tcsense_sensor::codes::{CodeShape, Constraints};
 use tcsense_sensor::generate::random_codes;
 use tcsense_sensor::npy::write_bytes;
@@ -95,7 +95,7 @@ pub fn select_cmd(a: SelectArgs) -> Result<ExitCode> {
     let pb = ProgressBar::new(a.candidates as u64);
     pb.set_style(ProgressStyle::with_template("candidates [{bar:30}] {pos}/{len} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
     println!("candidate seed        MSE");
-    let mut on = |c: &tcsense_infer::design::Candidate| {
+    let mut on = |c: &tcsense_infer::selection::Candidate| {
         pb.suspend(|| println!("{:>14} {:.4e}", c.seed, c.mse));
         pb.inc(1);
     };

@@ -3,13 +3,14 @@
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
-use ndarray::{ArrayD, Axis, Ix3};
+use ndarray::{Array4, ArrayD, Axis, Ix3, Ix4};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use std::sync::atomic::Ordering;
 use tcsense_infer::products::{depth_map, lifetime_map, map_png, plot_waveforms, write_ply, PeakOptions};
-use tcsense_models::{tval3, ModelError, Tval3Options, TvNorm};
-use tcsense_sensor::npy::{ensure_finite, read_npy, write_bytes, write_npy};
+use tcsense_models::decoder::{check_measurements, Control, Decoder, Step, Tval3Decoder};
+use tcsense_models::{runs, Device, ModelError, Tval3Options, TvNorm};
+use tcsense_sensor::npy::{read_npy, write_bytes, write_npy};
+use tcsense_sensor::MeasurementMatrix;
 
 use super::dataset::interrupt_flag;
 use super::sensor::SensorArgs;
@@ -112,52 +113,62 @@ pub enum ReconstructCmd {
 
 pub fn reconstruct(cmd: ReconstructCmd) -> Result<ExitCode> {
     match cmd {
-        ReconstructCmd::AdmmNet { run, measurements, output } => return super::train::reconstruct(&run, &measurements, &output),
+        ReconstructCmd::AdmmNet { run, measurements, output } => {
+            let mut r = runs::open(&run, &Device::flex())?;
+            decode_file(r.decoder.as_mut(), &r.sensor, &measurements, &output)
+        }
         ReconstructCmd::Tval3 { sensor, measurements, tval3: targs, output } => {
-            let opts = targs.options()?;
-            let (_, spec, a) = sensor.matrix()?;
-            let y = read_npy(&measurements)?;
-            if y.ndim() != 3 && y.ndim() != 4 {
-                bail!("{}: measurements have shape {:?}, expected [M, H, W] or [B, M, H, W]", measurements.display(), y.shape());
-            }
-            ensure_finite(&y.view(), "measurements").map_err(|e| e.in_file(&measurements))?;
-            let batch = y.ndim() == 4;
-            let frames: Vec<ndarray::Array3<f32>> = if batch {
-                y.axis_iter(Axis(0)).map(|v| v.to_owned().into_dimensionality::<Ix3>()).collect::<std::result::Result<_, _>>()?
-            } else {
-                vec![y.into_dimensionality::<Ix3>()?]
-            };
-            let (m, h, w) = frames[0].dim();
-            if m != spec.taps() {
-                bail!("{}: {m} tap images, but the codes have M = {} taps", measurements.display(), spec.taps());
-            }
-            let plan = a.plan(h, w).map_err(|e| anyhow::anyhow!("{}: {e}", measurements.display()))?;
-            let cancel = interrupt_flag();
-            let pb = ProgressBar::new((opts.maxit * frames.len()) as u64);
-            pb.set_style(ProgressStyle::with_template("TVAL3 [{bar:30}] {pos}/{len} it {per_sec} eta {eta} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
-            let mut outs = Vec::new();
-            let t0 = std::time::Instant::now();
-            for (fi, yf) in frames.iter().enumerate() {
-                let base = (fi * opts.maxit) as u64;
-                let progress = |it: usize, _: usize| pb.set_position(base + it as u64);
-                let (xh, rep) = match tval3(&a, &plan, &yf.view(), &opts, &progress, &cancel) {
-                    Err(ModelError::Cancelled) => bail!("interrupted; {} was not written", output.display()),
-                    r => r?,
-                };
-                pb.set_message(format!("frame {}: {} it, residual {:.2e}", fi + 1, rep.iterations, rep.residual));
-                outs.push(xh);
-            }
-            pb.finish_and_clear();
-            let views: Vec<_> = outs.iter().map(|x| x.view()).collect();
-            let out: ArrayD<f32> = if batch { ndarray::stack(Axis(0), &views)?.into_dyn() } else { outs.remove(0).into_dyn() };
-            if cancel.load(Ordering::Relaxed) {
-                bail!("interrupted; {} was not written", output.display());
-            }
-            write_npy(&output, &out.view())?;
-            println!("wrote {}: x̂ {:?} ({:.2} s per frame)", output.display(), out.shape(), t0.elapsed().as_secs_f64() / frames.len() as f64);
+            let mut decoder = Tval3Decoder::new(targs.options()?)?;
+            let (_, _, a) = sensor.matrix()?;
+            decode_file(&mut decoder, &a, &measurements, &output)
         }
     }
+}
+
+/// Decode the tap images in `measurements` (`[M, H, W]` or a batch `[B, M, H, W]`) with any
+/// decoder and write the cubes (same batching) to `output`, with a progress bar.
+fn decode_file(decoder: &mut dyn Decoder, sensor: &MeasurementMatrix, measurements: &Path, output: &Path) -> Result<ExitCode> {
+    let y = read_npy(measurements)?;
+    let (batched, y): (bool, Array4<f32>) = match y.ndim() {
+        3 => (false, y.into_dimensionality::<Ix3>()?.insert_axis(Axis(0))),
+        4 => (true, y.into_dimensionality::<Ix4>()?),
+        _ => bail!("{}: measurements have shape {:?}, expected [M, H, W] or [B, M, H, W]", measurements.display(), y.shape()),
+    };
+    let (frames, m, _, _) = y.dim();
+    if m != sensor.taps() {
+        bail!("{}: {m} tap images, but the sensor (codes) has M = {} taps", measurements.display(), sensor.taps());
+    }
+    check_measurements(&y.view(), sensor).map_err(|e| anyhow::anyhow!("{}: {e}", measurements.display()))?;
+    let cancel = interrupt_flag();
+    let pb = ProgressBar::new(frames as u64);
+    pb.set_style(ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
+    pb.set_message(decoder.name().to_string());
+    let progress = |s: Step| {
+        pb.set_length((s.frames * s.total.max(1)) as u64);
+        pb.set_position((s.frame * s.total.max(1) + s.done) as u64);
+    };
+    let t0 = std::time::Instant::now();
+    let out = decoder.decode(y.view(), sensor, &Control { cancel: &cancel, progress: &progress });
+    pb.finish_and_clear();
+    let out = match out {
+        Err(ModelError::Cancelled) => bail!("interrupted; {} was not written", output.display()),
+        r => r.map_err(|e| anyhow::anyhow!("{}: {e}", measurements.display()))?,
+    };
+    let per_frame = t0.elapsed().as_secs_f64() / frames as f64;
+    let cube = out.cube.with_context(|| format!("decoder {} gives no cube", decoder.name()))?;
+    let cube: ArrayD<f32> = if batched { cube.into_dyn() } else { cube.index_axis(Axis(0), 0).to_owned().into_dyn() };
+    write_npy(output, &cube.view())?;
+    println!("wrote {}: x̂ {:?} ({} per frame, {})", output.display(), cube.shape(), human_time(per_frame), decoder.name());
     Ok(ExitCode::SUCCESS)
+}
+
+/// `12.3 ms` or `1.23 s`.
+fn human_time(seconds: f64) -> String {
+    if seconds < 1.0 {
+        format!("{:.1} ms", seconds * 1e3)
+    } else {
+        format!("{seconds:.2} s")
+    }
 }
 
 /// Time-grid flags for products: Δt = T_c / K with K = T / L.

@@ -2,10 +2,10 @@
 
 use anyhow::{bail, Result};
 use clap::{Args, Subcommand, ValueEnum};
-use ndarray::{Ix3, Ix4};
 use std::path::PathBuf;
 use std::process::ExitCode;
-use tcsense_sensor::noise::{add_noise, Exposure};
+use tcsense_sensor::measure::{measure, Measurement};
+use tcsense_sensor::noise::Exposure;
 use tcsense_sensor::npy::{read_cube, write_npy};
 use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
 use tcsense_sensor::{Codes, Irf, MeasurementMatrix, NoiseParams, Sampling, SensorParams, SensorSpec};
@@ -172,25 +172,20 @@ pub fn simulate(a: SimulateArgs) -> Result<ExitCode> {
         );
     }
     let plan = matrix.plan(h, w).map_err(|e| anyhow::anyhow!("{}: {e}", a.cube.display()))?;
-    let y = if x.ndim() == 3 {
-        plan.forward(&x.view().into_dimensionality::<Ix3>()?)?.into_dyn()
-    } else {
-        plan.forward_batch(&x.view().into_dimensionality::<Ix4>()?)?.into_dyn()
+    let exposure = match a.electrons_per_unit {
+        Some(s) => Exposure::ElectronsPerUnit(s),
+        None => Exposure::Auto,
     };
-    let y = if a.noise {
-        let exposure = match a.electrons_per_unit {
-            Some(s) => Exposure::ElectronsPerUnit(s),
-            None => Exposure::Auto,
-        };
-        let noisy = add_noise(&y.view(), &noise, exposure, a.seed)?;
-        eprintln!("noise: {:.4} e⁻ per unit, full well {} e⁻, read noise {} e⁻", noisy.electrons_per_unit, noise.full_well_e, noise.read_noise_e);
-        match a.units {
-            Units::Input => noisy.in_input_units(),
-            Units::Electrons => noisy.electrons,
-            Units::Adc => noisy.in_adc_codes(&noise),
+    let y = match measure(&plan, &x.view(), a.noise.then_some(&noise), exposure, a.seed)? {
+        Measurement::Noiseless(y) => y,
+        Measurement::Noisy(noisy) => {
+            eprintln!("noise: {:.4} e⁻ per unit, full well {} e⁻, read noise {} e⁻", noisy.electrons_per_unit, noise.full_well_e, noise.read_noise_e);
+            match a.units {
+                Units::Input => noisy.in_input_units(),
+                Units::Electrons => noisy.electrons,
+                Units::Adc => noisy.in_adc_codes(&noise),
+            }
         }
-    } else {
-        y
     };
     write_npy(&a.output, &y.view())?;
     println!("wrote {}: y {:?}", a.output.display(), y.shape());

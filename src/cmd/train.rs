@@ -1,17 +1,16 @@
-//! `tcsense train …` and `tcsense reconstruct admm-net`.
+//! `tcsense train …`: resolves flags and a config file into a `TrainConfig`, shows progress.
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
-use ndarray::{Array4, ArrayD, Axis, Ix3, Ix4};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::process::ExitCode;
 use tcsense_datasets::store::Kind;
 use tcsense_datasets::Dataset;
-use tcsense_models::{AdmmNet, AdmmNetConfig, SensorTensors};
-use tcsense_sensor::npy::{ensure_finite, read_npy, write_npy};
+use tcsense_models::runs::{ModelConfig, CODES_FILE, CONFIG_FILE};
+use tcsense_models::AdmmNetConfig;
 use tcsense_sensor::Codes;
-use tcsense_train::{load_run, matrix, to_array, to_tensor, train, EpochMetrics, Loss, Progress, TrainConfig, TrainError};
+use tcsense_train::{train, EpochMetrics, Loss, Progress, TrainConfig, TrainError};
 
 use super::dataset::interrupt_flag;
 
@@ -111,23 +110,18 @@ impl Progress for Bar {
     }
 }
 
-fn read_config(path: &Path) -> Result<TrainConfig> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("{}: cannot read", path.display()))?;
-    serde_json::from_str(&text).map_err(|e| anyhow::anyhow!("{}: malformed training config: {e}", path.display()))
-}
-
 pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     let TrainCmd::AdmmNet(a) = cmd;
     let run_dir = &a.output;
     // base config: the saved one on --resume, a given file, or built from the dataset
-    let saved = run_dir.join("config.json");
+    let saved = run_dir.join(CONFIG_FILE);
     let mut cfg = if a.resume {
         if !saved.exists() {
-            bail!("{}: no run to resume (config.json missing)", run_dir.display());
+            bail!("{}: no run to resume ({CONFIG_FILE} missing)", run_dir.display());
         }
-        read_config(&saved)?
+        TrainConfig::load(&saved)?
     } else if let Some(p) = &a.config {
-        read_config(p)?
+        TrainConfig::load(p)?
     } else {
         let ds_path = a.dataset.as_ref().context("--dataset is required (or --config / --resume)")?;
         let ds = Dataset::open(ds_path)?;
@@ -140,16 +134,20 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
             Preset::Flim => AdmmNetConfig::flim(m, t),
         };
         let loss = if ds.manifest.kind == Kind::Flim { Loss::Rmse } else { Loss::RmseMae };
-        TrainConfig::new(model, ds_path, loss, ds.manifest.grid.sampling)
+        TrainConfig::new(ModelConfig::AdmmNet(model), ds_path, loss, ds.manifest.grid.sampling)
     };
     if let Some(d) = &a.dataset {
         cfg.dataset = d.display().to_string();
     }
-    if let Some(v) = a.stages {
-        cfg.model.stages = v;
-    }
-    if let Some(v) = a.channels {
-        cfg.model.channels = v;
+    match &mut cfg.run.model {
+        ModelConfig::AdmmNet(m) => {
+            if let Some(v) = a.stages {
+                m.stages = v;
+            }
+            if let Some(v) = a.channels {
+                m.channels = v;
+            }
+        }
     }
     if let Some(v) = a.epochs {
         cfg.epochs = v;
@@ -170,7 +168,7 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
         cfg.noise = None;
     }
     if let Some(irf) = &a.irf {
-        cfg.irf = super::sensor::parse_irf(irf)?;
+        cfg.run.irf = super::sensor::parse_irf(irf)?;
     }
     if a.max_train.is_some() {
         cfg.max_train_items = a.max_train;
@@ -183,21 +181,20 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     }
     let codes = match (&a.codes, a.resume) {
         (Some(p), _) => Codes::load(p)?,
-        (None, true) => Codes::load(&run_dir.join("codes.json"))?,
+        (None, true) => Codes::load(&run_dir.join(CODES_FILE))?,
         (None, false) => bail!("--codes is required"),
     };
-    if codes.taps() != cfg.model.taps {
-        bail!("the codes have {} taps but the model expects M = {}", codes.taps(), cfg.model.taps);
+    if codes.taps() != cfg.run.model.taps() {
+        bail!("the codes have {} taps but the model expects M = {}", codes.taps(), cfg.run.model.taps());
     }
     let cancel = interrupt_flag();
     let pb = ProgressBar::new(1);
     pb.set_style(ProgressStyle::with_template("[{bar:30}] {pos}/{len} steps {per_sec} eta {eta} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
+    let network = match &cfg.run.model {
+        ModelConfig::AdmmNet(m) => format!("ADMM-Net S = {}, CN = {}, M = {}, T = {}", m.stages, m.channels, m.taps, m.bins),
+    };
     println!(
-        "ADMM-Net S = {}, CN = {}, M = {}, T = {}; {} epochs, batch {}, lr {}, loss {:?}, noise {}",
-        cfg.model.stages,
-        cfg.model.channels,
-        cfg.model.taps,
-        cfg.model.bins,
+        "{network}; {} epochs, batch {}, lr {}, loss {:?}, noise {}",
         cfg.epochs,
         cfg.batch_size,
         cfg.learning_rate,
@@ -218,63 +215,4 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
         Err(TrainError::Cancelled) => bail!("interrupted; the last checkpoint in {} is kept, continue with --resume", run_dir.display()),
         Err(e) => Err(e.into()),
     }
-}
-
-/// A loaded ADMM-Net run ready for inference on the CPU.
-pub struct AdmmRunner {
-    pub model: AdmmNet,
-    pub cfg: TrainConfig,
-    pub codes: Codes,
-    device: tcsense_models::Device,
-    a: tcsense_sensor::MeasurementMatrix,
-    sensor: Option<SensorTensors>,
-}
-
-impl AdmmRunner {
-    pub fn open(run: &Path) -> Result<Self> {
-        let device = tcsense_models::Device::flex();
-        let (cfg, codes, model) = load_run(run, &device)?;
-        let a = matrix(&codes, &cfg)?;
-        Ok(AdmmRunner { model, cfg, codes, device, a, sensor: None })
-    }
-
-    /// Reconstruct a batch.
-    ///
-    /// # Shapes
-    /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
-    pub fn run(&mut self, y: &Array4<f32>) -> Result<Array4<f32>> {
-        let (_, m, h, w) = y.dim();
-        if m != self.cfg.model.taps {
-            bail!("{m} tap images, but the model expects M = {}", self.cfg.model.taps);
-        }
-        let fits = self.sensor.as_ref().is_some_and(|s| (s.height, s.width) == (h, w));
-        if !fits {
-            self.sensor = Some(SensorTensors::new(&self.a, h, w, &self.device)?);
-        }
-        let sensor = self.sensor.as_ref().context("sensor tensors")?;
-        Ok(to_array(self.model.forward(to_tensor(y, &self.device), sensor))?)
-    }
-}
-
-pub fn reconstruct(run: &Path, measurements: &Path, output: &Path) -> Result<ExitCode> {
-    let mut r = AdmmRunner::open(run)?;
-    let y = read_npy(measurements)?;
-    ensure_finite(&y.view(), "measurements").map_err(|e| e.in_file(measurements))?;
-    let (batch, y4): (bool, Array4<f32>) = match y.ndim() {
-        3 => (false, y.into_dimensionality::<Ix3>()?.insert_axis(Axis(0))),
-        4 => (true, y.into_dimensionality::<Ix4>()?),
-        _ => bail!("{}: measurements have shape {:?}, expected [M, H, W] or [B, M, H, W]", measurements.display(), y.shape()),
-    };
-    let t0 = std::time::Instant::now();
-    let mut outs = Vec::new();
-    for i in 0..y4.dim().0 {
-        let yi = y4.index_axis(Axis(0), i).insert_axis(Axis(0)).to_owned();
-        outs.push(r.run(&yi).map_err(|e| anyhow::anyhow!("{}: {e:#}", measurements.display()))?);
-    }
-    let views: Vec<_> = outs.iter().map(|x| x.view()).collect();
-    let x = ndarray::concatenate(Axis(0), &views)?;
-    let out: ArrayD<f32> = if batch { x.into_dyn() } else { x.index_axis(Axis(0), 0).to_owned().into_dyn() };
-    write_npy(output, &out.view())?;
-    println!("wrote {}: x̂ {:?} ({:.1} ms per frame)", output.display(), out.shape(), t0.elapsed().as_secs_f64() * 1e3 / y4.dim().0 as f64);
-    Ok(ExitCode::SUCCESS)
 }

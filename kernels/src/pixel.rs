@@ -10,7 +10,7 @@
 //!   linear in `v`, so `∂L/∂v = (AᵀA + ρI)⁻¹ g`, and `∂x/∂ρ = −(AᵀA + ρI)⁻¹ x` gives
 //!   `∂L/∂ρ = −⟨(AᵀA + ρI)⁻¹ g, x⟩`.
 //!
-//! The composed version in [`crate::admm::SensorTensors`] (block layout, batched matmuls) does
+//! The composed version in `tcsense_models::SensorTensors` (block layout, batched matmuls) does
 //! the same algebra with burn ops, moving every cube through two permutations per call; these
 //! kernels read each voxel once and write it once. Coefficients are laid out per row class
 //! `r mod bh` and column (`[bh][O][I][W]`), so the inner loops are plain multiply-adds over a

@@ -1,12 +1,13 @@
-//! Code design by evaluation (paper III-D-1 and IV): the reconstruction MSE of a code set over
-//! a dataset with TVAL3, random generation and selection of the best of several candidates,
-//! and the design sweeps of Fig. 13 and Table 1.
+//! Code selection (paper III-D-1 and IV): the TVAL3 reconstruction MSE of a code set over a
+//! dataset, random generation under the constraints and selection of the best of several
+//! candidates, and the constraint settings of the design sweeps (Fig. 13, Table 1).
 
 use crate::metrics::mse;
+use crate::{InferError, Result};
 use ndarray::Array3;
 use serde::Serialize;
 use std::sync::atomic::AtomicBool;
-use tcsense_models::{tval3, ModelError, Tval3Options};
+use tcsense_models::{tval3, Tval3Options};
 use tcsense_sensor::codes::{CodeShape, Codes, Constraints};
 use tcsense_sensor::generate::random_codes;
 use tcsense_sensor::{MeasurementMatrix, SensorParams, SensorSpec};
@@ -23,7 +24,7 @@ pub struct EvalSetup {
 ///
 /// # Shapes
 /// - `cubes`: each `[T, H, W]`
-pub fn evaluate(codes: &Codes, setup: &EvalSetup, cubes: &[Array3<f32>], cancel: &AtomicBool) -> Result<f64, ModelError> {
+pub fn evaluate(codes: &Codes, setup: &EvalSetup, cubes: &[Array3<f32>], cancel: &AtomicBool) -> Result<f64> {
     let spec: SensorSpec = SensorParams { sampling: setup.base.sampling, irf: setup.base.irf, noise: setup.base.noise, ..SensorParams::from_codes(codes) }.validate()?;
     let a = MeasurementMatrix::synthesize(codes, &spec)?;
     let mut total = 0.0;
@@ -56,7 +57,7 @@ pub fn select(
     cubes: &[Array3<f32>],
     on_candidate: &mut dyn FnMut(&Candidate),
     cancel: &AtomicBool,
-) -> Result<(Codes, Vec<Candidate>), ModelError> {
+) -> Result<(Codes, Vec<Candidate>)> {
     let mut all = Vec::with_capacity(n);
     let mut best: Option<(f64, Codes)> = None;
     for i in 0..n.max(1) as u64 {
@@ -70,7 +71,7 @@ pub fn select(
             best = Some((m, codes));
         }
     }
-    let (m, mut codes) = best.ok_or(ModelError::InvalidParam { field: "candidates", got: "0".into(), expected: "at least 1".into() })?;
+    let (m, mut codes) = best.ok_or(InferError::InvalidParam { field: "candidates", got: "0".into(), expected: "at least 1".into() })?;
     codes.provenance = serde_json::json!({
         "method": "random+selection",
         "seed": codes.provenance.get("seed").cloned().unwrap_or_default(),

@@ -4,8 +4,8 @@
 use burn::tensor::module::conv2d;
 use burn::tensor::ops::ConvOptions;
 use burn::tensor::{Distribution, Tensor};
-use tcsense_models::conv_op::conv3x3;
-use tcsense_models::Device;
+use tcsense_kernels::conv_op::conv3x3;
+use burn::tensor::Device;
 
 fn max_abs_diff<const D: usize>(a: Tensor<D>, b: Tensor<D>) -> f32 {
     (a - b).abs().max().into_scalar::<f32>()

@@ -1,0 +1,28 @@
+//! The inference crate's error type.
+
+use std::path::PathBuf;
+
+/// Errors of the inference crate.
+#[derive(Debug, thiserror::Error)]
+pub enum InferError {
+    #[error(transparent)]
+    Sensor(#[from] tcsense_sensor::SensorError),
+    #[error(transparent)]
+    Dataset(#[from] tcsense_datasets::DatasetError),
+    #[error(transparent)]
+    Model(#[from] tcsense_models::ModelError),
+    /// A file whose content does not fit.
+    #[error("{}: {msg}", path.display())]
+    File { path: PathBuf, msg: String },
+    /// A parameter outside its valid range.
+    #[error("invalid {field}: got {got}, expected {expected}")]
+    InvalidParam { field: &'static str, got: String, expected: String },
+    /// A decoder name that names none.
+    #[error("decoder {0:?}: unknown decoder; expected `tval3` or `admm-net:RUN` (a training run directory)")]
+    UnknownDecoder(String),
+    #[error("interrupted")]
+    Cancelled,
+}
+
+/// Result alias of the inference crate.
+pub type Result<T> = std::result::Result<T, InferError>;

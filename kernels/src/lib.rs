@@ -1,0 +1,36 @@
+//! `tcsense-kernels`: the hand-written CPU kernels under tcsense's learned decoders, each
+//! registered as a burn backend extension with a handwritten backward pass.
+//!
+//! - [`conv`]: 3×3 "same" convolutions on `f32` NCHW buffers as im2col GEMMs — forward, input
+//!   gradient and weight gradient — with three column-shifted copies per band of rows.
+//! - [`conv_op`]: [`conv_op::conv3x3`], that convolution as a burn op (`Flex` and
+//!   `Autodiff<Flex>`), used by ADMM-Net's prior and by any network with 3×3 convs.
+//! - [`pixel`]: the block-periodic per-pixel sensor operators in frame layout —
+//!   `y(r, c) = P_{n(r,c)} x(r, c)` ([`pixel::pixel_linear`]: `A`, `Aᵀ`, the back-projection)
+//!   and ADMM-Net's exact data-consistency solve `x = (AᵀA + ρI)⁻¹ v` through Woodbury
+//!   ([`pixel::pixel_dc`]) — with `n(r, c) = (r mod bh)·bw + (c mod bw)` (paper eq. 4).
+//! - [`timing`]: the median timer every `tcsense bench` figure comes from.
+//!
+//! This is the only crate of the workspace with `unsafe` code, in two places, each with a
+//! `SAFETY` note: the calls into `gemm::gemm` (an `unsafe fn`; every view is bounds-checked
+//! before it) in [`conv`], and the disjoint parallel writes into output planes through
+//! `conv::SharedOut` (used by [`conv`]'s bands and by [`pixel`]'s `par_bands`). SIMD dispatch
+//! is also only here: `gemm` picks AVX2/AVX-512 at run time, and the per-pixel loops are
+//! compiled for the best extension this CPU has through `pulp::Arch::dispatch`.
+//!
+//! ```
+//! use burn::tensor::{Device, Tensor};
+//! use tcsense_kernels::conv_op::conv3x3;
+//!
+//! let device = Device::flex();
+//! // a 3×3 kernel that is 1 at its centre is the identity
+//! let x = Tensor::<4>::from_floats([[[[1.0, 2.0], [3.0, 4.0]]]], &device); // [B, C, H, W] = [1, 1, 2, 2]
+//! let k = Tensor::<4>::from_floats([[[[0.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]]]], &device);
+//! let y = conv3x3(x.clone(), k, Tensor::zeros([1], &device));
+//! assert_eq!(y.into_data(), x.into_data());
+//! ```
+
+pub mod conv;
+pub mod conv_op;
+pub mod pixel;
+pub mod timing;

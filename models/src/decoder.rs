@@ -1,0 +1,148 @@
+//! The decoder contract (DESIGN §5, deepinv's `model(y, physics)`): every decoder maps tap
+//! images `y [B, M, H, W]` plus the sensor `A [N, M, T]` to transient cubes `[B, T, H, W]`
+//! and/or the range of `K` returns `[B, K, H, W]`.
+//!
+//! Evaluation, `reconstruct`, inference and the demo see only [`Decoder`], so TVAL3, ADMM-Net
+//! and the next decoders are interchangeable there. The sensor is an argument, not part of
+//! the decoder: a learned decoder's data-consistency steps run on whatever `A` it is given (a
+//! recalibrated, measured `A` included); its own training `A` comes with its run directory
+//! ([`crate::runs`]).
+//!
+//! ```
+//! use ndarray::Array4;
+//! use std::sync::atomic::AtomicBool;
+//! use tcsense_models::decoder::{Control, Decoder, Tval3Decoder};
+//! use tcsense_models::Tval3Options;
+//! use tcsense_sensor::codes::{CodeShape, Constraints};
+//! use tcsense_sensor::generate::random_codes;
+//! use tcsense_sensor::{MeasurementMatrix, SensorParams};
+//!
+//! let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 8, drain: false };
+//! let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 1).unwrap();
+//! let a = MeasurementMatrix::synthesize(&codes, &SensorParams::from_codes(&codes).validate().unwrap()).unwrap();
+//! let y = Array4::<f32>::from_elem((1, 4, 4, 4), 1.0); // [B, M, H, W]
+//! let mut tval3 = Tval3Decoder::new(Tval3Options { maxit: 5, ..Default::default() }).unwrap();
+//! let out = tval3.decode(y.view(), &a, &Control::quiet(&AtomicBool::new(false))).unwrap();
+//! assert_eq!(out.cube.unwrap().dim(), (1, 8, 4, 4)); // [B, T, H, W]
+//! ```
+
+use ndarray::{Array4, ArrayView4, Axis};
+use std::sync::atomic::{AtomicBool, Ordering};
+use tcsense_sensor::{MeasurementMatrix, SensorError};
+
+use crate::tval3::{tval3, Tval3Options};
+use crate::{ModelError, Result};
+
+/// What a decoder returns for a batch.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Decoded {
+    /// Transient cubes `[B, T, H, W]` (TVAL3, ADMM-Net).
+    pub cube: Option<Array4<f32>>,
+    /// Range of the `K` returns in metres, in arrival order, `[B, K, H, W]`; NaN where none
+    /// (decoders that estimate depth directly).
+    pub depth: Option<Array4<f32>>,
+    /// Confidence of each return in `[0, 1]`, `[B, K, H, W]`, next to `depth`.
+    pub confidence: Option<Array4<f32>>,
+}
+
+/// Where a decoder is in a batch, for progress display.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Step {
+    /// Frame of the batch being decoded.
+    pub frame: usize,
+    /// Frames in the batch.
+    pub frames: usize,
+    /// Work done on this frame (iterations, stages …) out of `total`.
+    pub done: usize,
+    pub total: usize,
+}
+
+/// Progress reports and cancellation for a running decoder.
+#[derive(Clone, Copy)]
+pub struct Control<'a> {
+    /// Set (e.g. by Ctrl-C) to stop; the decoder returns [`ModelError::Cancelled`].
+    pub cancel: &'a AtomicBool,
+    /// Called as the work advances.
+    pub progress: &'a (dyn Fn(Step) + Sync),
+}
+
+impl<'a> Control<'a> {
+    /// No progress display.
+    pub fn quiet(cancel: &'a AtomicBool) -> Self {
+        Control { cancel, progress: &|_| {} }
+    }
+
+    /// `Err(Cancelled)` once cancellation was asked for.
+    pub fn check(&self) -> Result<()> {
+        if self.cancel.load(Ordering::Relaxed) {
+            Err(ModelError::Cancelled)
+        } else {
+            Ok(())
+        }
+    }
+}
+
+/// A decoder: tap images plus the sensor in, cubes and/or depth out.
+pub trait Decoder: Send {
+    /// A short name for tables and messages (`tval3`, `admm-net`).
+    fn name(&self) -> &str;
+
+    /// Reconstruct a batch. Implementations check `y` with [`check_measurements`] first.
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]`, `sensor`: `A [N, M, T]` → cube `[B, T, H, W]` and/or depth and
+    ///   confidence `[B, K, H, W]`
+    fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &MeasurementMatrix, ctl: &Control<'_>) -> Result<Decoded>;
+}
+
+/// The checks every decoder makes on its input: `M` tap images for this sensor, a frame that
+/// is a non-empty multiple of the block, at least one frame, finite values.
+///
+/// # Shapes
+/// - `y`: `[B, M, H, W]`
+pub fn check_measurements(y: &ArrayView4<'_, f32>, sensor: &MeasurementMatrix) -> Result<()> {
+    let (b, m, h, w) = y.dim();
+    let (bh, bw) = sensor.block();
+    if b == 0 || m != sensor.taps() || h == 0 || w == 0 || h % bh != 0 || w % bw != 0 {
+        return Err(ModelError::Sensor(SensorError::Shape {
+            what: "measurements y".into(),
+            got: y.shape().to_vec(),
+            expected: format!("[B, M, H, W] with B ≥ 1, M = {} taps and H, W non-zero multiples of the {bh}x{bw} block", sensor.taps()),
+        }));
+    }
+    tcsense_sensor::npy::ensure_finite(&y.view().into_dyn(), "measurements y")?;
+    Ok(())
+}
+
+/// TVAL3 ([`crate::tval3`]) behind the contract, frame by frame.
+#[derive(Debug, Clone)]
+pub struct Tval3Decoder {
+    pub options: Tval3Options,
+}
+
+impl Tval3Decoder {
+    /// A TVAL3 decoder with checked options.
+    pub fn new(options: Tval3Options) -> Result<Self> {
+        options.validate()?;
+        Ok(Tval3Decoder { options })
+    }
+}
+
+impl Decoder for Tval3Decoder {
+    fn name(&self) -> &str {
+        "tval3"
+    }
+
+    fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &MeasurementMatrix, ctl: &Control<'_>) -> Result<Decoded> {
+        check_measurements(&y, sensor)?;
+        let (b, _, h, w) = y.dim();
+        let plan = sensor.plan(h, w)?;
+        let mut cube = Array4::zeros((b, sensor.bins(), h, w));
+        for (i, mut out) in cube.outer_iter_mut().enumerate() {
+            let progress = |it: usize, total: usize| (ctl.progress)(Step { frame: i, frames: b, done: it, total });
+            let (x, _) = tval3(sensor, &plan, &y.index_axis(Axis(0), i), &self.options, &progress, ctl.cancel)?;
+            out.assign(&x);
+        }
+        Ok(Decoded { cube: Some(cube), ..Default::default() })
+    }
+}

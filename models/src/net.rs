@@ -1,0 +1,112 @@
+//! Learned decoders as burn modules behind the [`Decoder`] contract.
+//!
+//! A [`Network`] maps measurement tensors to its prediction on a device chosen at run time
+//! (the CPU `flex` device by default; nothing here assumes it). [`NetDecoder`] wraps any
+//! network for inference: it prepares the sensor tensors ([`SensorTensors`]) for the frame
+//! size and the `A` it is given, once, and decodes a batch frame by frame, so memory stays
+//! that of one frame.
+
+use burn::module::Module;
+use burn::tensor::{Device, Tensor, TensorData};
+use ndarray::{Array4, ArrayView4, Axis};
+use tcsense_sensor::MeasurementMatrix;
+
+use crate::decoder::{check_measurements, Control, Decoded, Decoder, Step};
+use crate::sensor_tensors::SensorTensors;
+use crate::{ModelError, Result};
+
+/// What a network predicts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Prediction {
+    /// The transient cube `[B, T, H, W]` (trained against the cube).
+    Cube,
+}
+
+/// A trainable decoder network: the training loop (`tcsense-train`) and [`NetDecoder`] see
+/// networks only through this trait.
+pub trait Network: Module + Sized + Send + 'static {
+    /// What [`Network::predict`] returns.
+    const PREDICTION: Prediction;
+
+    /// Forward pass on a batch.
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]` → `[B, T, H, W]` for [`Prediction::Cube`]
+    fn predict(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4>;
+}
+
+/// An ndarray batch as a tensor on `device`.
+///
+/// # Shapes
+/// - `a`: `[B, C, H, W]` → `[B, C, H, W]`
+pub fn to_tensor(a: &ArrayView4<'_, f32>, device: &Device) -> Tensor<4> {
+    let (b, c, h, w) = a.dim();
+    let data: Vec<f32> = a.iter().copied().collect();
+    Tensor::from_data(TensorData::new(data, [b, c, h, w]), device)
+}
+
+/// A tensor back as an ndarray batch.
+///
+/// # Shapes
+/// - `t`: `[B, C, H, W]` → `[B, C, H, W]`
+pub fn to_array(t: Tensor<4>) -> Result<Array4<f32>> {
+    let [b, c, h, w] = t.dims();
+    let v: Vec<f32> = t.into_data().try_into_vec::<f32>().map_err(|e| ModelError::InvalidParam { field: "tensor", got: format!("{e:?}"), expected: "f32 data".into() })?;
+    Array4::from_shape_vec((b, c, h, w), v).map_err(|e| ModelError::InvalidParam { field: "tensor", got: e.to_string(), expected: "a [B, C, H, W] tensor".into() })
+}
+
+/// A [`Network`] for inference behind the [`Decoder`] contract.
+#[derive(Debug)]
+pub struct NetDecoder<M> {
+    name: String,
+    model: M,
+    device: Device,
+    /// Sensor tensors of the last frame size and `A`.
+    cache: Option<(MeasurementMatrix, SensorTensors)>,
+}
+
+impl<M: Network> NetDecoder<M> {
+    /// Wrap `model` (already on `device`, without autodiff for inference).
+    pub fn new(name: &str, model: M, device: Device) -> Self {
+        NetDecoder { name: name.to_string(), model, device, cache: None }
+    }
+
+    /// The wrapped network.
+    pub fn model(&self) -> &M {
+        &self.model
+    }
+
+    /// Sensor tensors for `sensor` and `h × w` frames, reused while both stay the same.
+    fn sensor_tensors(&mut self, sensor: &MeasurementMatrix, h: usize, w: usize) -> Result<&SensorTensors> {
+        let fits = self.cache.as_ref().is_some_and(|(a, s)| a == sensor && (s.height, s.width) == (h, w));
+        if !fits {
+            self.cache = Some((sensor.clone(), SensorTensors::new(sensor, h, w, &self.device)?));
+        }
+        self.cache.as_ref().map(|(_, s)| s).ok_or(ModelError::InvalidParam { field: "sensor tensors", got: "none".into(), expected: "prepared tensors".into() })
+    }
+}
+
+impl<M: Network> Decoder for NetDecoder<M> {
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &MeasurementMatrix, ctl: &Control<'_>) -> Result<Decoded> {
+        check_measurements(&y, sensor)?;
+        let (b, _, h, w) = y.dim();
+        let device = self.device.clone();
+        let st = self.sensor_tensors(sensor, h, w)?.clone();
+        let mut frames = Vec::with_capacity(b);
+        for i in 0..b {
+            ctl.check()?;
+            let yi = y.slice_axis(Axis(0), ndarray::Slice::from(i..i + 1));
+            frames.push(to_array(self.model.predict(to_tensor(&yi, &device), &st))?);
+            (ctl.progress)(Step { frame: i, frames: b, done: 1, total: 1 });
+        }
+        let views: Vec<_> = frames.iter().map(|f| f.view()).collect();
+        let out = ndarray::concatenate(Axis(0), &views).map_err(|e| ModelError::InvalidParam { field: "batch", got: e.to_string(), expected: "frames of one shape".into() })?;
+        match M::PREDICTION {
+            Prediction::Cube => Ok(Decoded { cube: Some(out), ..Default::default() }),
+        }
+    }
+}

@@ -1,0 +1,150 @@
+//! Run directories (CONVENTIONS habit 8): what `tcsense train` writes and every later command
+//! takes. A run directory opens as a [`Decoder`] with one call, [`open`], without the
+//! training crate.
+//!
+//! ```text
+//! RUN/config.json     the run's config: {"decoder": "admm-net", "model": {…}, "sampling", "irf", …}
+//! RUN/codes.json      the exposure codes it was trained with
+//! RUN/model.bpk       the latest weights (burnpack)
+//! RUN/metrics.csv     one row per epoch            (written by tcsense-train)
+//! RUN/checkpoint/     weights, optimiser, progress (written by tcsense-train)
+//! ```
+//!
+//! The network is rebuilt from its config and the weights loaded into it:
+//! `config.init(&device).load_file(RUN/model)` (habit 1). Runs written before the `decoder`
+//! field existed are ADMM-Net runs and open as such ([`upgrade_config`]).
+
+use burn::module::Module;
+use burn::tensor::Device;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use tcsense_sensor::{Codes, Irf, MeasurementMatrix, Sampling, SensorParams};
+
+use crate::admm::{AdmmNet, AdmmNetConfig};
+use crate::decoder::Decoder;
+use crate::net::NetDecoder;
+use crate::{ModelError, Result};
+
+/// The run's config, `RUN/config.json`.
+pub const CONFIG_FILE: &str = "config.json";
+/// The run's exposure codes, `RUN/codes.json`.
+pub const CODES_FILE: &str = "codes.json";
+/// The latest weights, `RUN/model.bpk` (burn appends the extension to this stem).
+pub const WEIGHTS_STEM: &str = "model";
+/// The file name burn writes for [`WEIGHTS_STEM`].
+pub const WEIGHTS_FILE: &str = "model.bpk";
+
+/// The network of a run and its hyper-parameters, stored as `"decoder"` (the tag) and
+/// `"model"` (the config) in `config.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "decoder", content = "model", rename_all = "kebab-case")]
+pub enum ModelConfig {
+    /// ADMM-Net ([`crate::admm`]).
+    AdmmNet(AdmmNetConfig),
+}
+
+impl ModelConfig {
+    /// The decoder's name as `config.json`, `eval` and `reconstruct` spell it.
+    pub fn name(&self) -> &'static str {
+        match self {
+            ModelConfig::AdmmNet(_) => "admm-net",
+        }
+    }
+
+    /// Taps `M` the network takes.
+    pub fn taps(&self) -> usize {
+        match self {
+            ModelConfig::AdmmNet(c) => c.taps,
+        }
+    }
+
+    /// Bins `T` of the cube it reconstructs.
+    pub fn bins(&self) -> usize {
+        match self {
+            ModelConfig::AdmmNet(c) => c.bins,
+        }
+    }
+}
+
+/// What inference needs from `config.json`: the network and the sensor model it was trained
+/// with (the training settings beside them are the training crate's).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunSpec {
+    #[serde(flatten)]
+    pub model: ModelConfig,
+    pub sampling: Sampling,
+    pub irf: Irf,
+}
+
+impl RunSpec {
+    /// The measurement matrix of `codes` under this run's sampling and IRF.
+    pub fn matrix(&self, codes: &Codes) -> Result<MeasurementMatrix> {
+        let spec = SensorParams { sampling: self.sampling, irf: self.irf, ..SensorParams::from_codes(codes) }.validate()?;
+        Ok(MeasurementMatrix::synthesize(codes, &spec)?)
+    }
+}
+
+fn file_err(path: &Path, msg: impl ToString) -> ModelError {
+    ModelError::File { path: path.to_path_buf(), msg: msg.to_string() }
+}
+
+/// Add `"decoder": "admm-net"` to a config written before that field existed (all such runs
+/// are ADMM-Net runs); other configs are returned unchanged.
+pub fn upgrade_config(mut v: serde_json::Value) -> serde_json::Value {
+    if let Some(obj) = v.as_object_mut() {
+        if obj.contains_key("model") && !obj.contains_key("decoder") {
+            obj.insert("decoder".into(), serde_json::Value::String("admm-net".into()));
+        }
+    }
+    v
+}
+
+/// Read a run config (or a config given to `train --config`) as JSON, upgraded.
+pub fn read_config_json(path: &Path) -> Result<serde_json::Value> {
+    let text = std::fs::read_to_string(path).map_err(|e| file_err(path, e))?;
+    let v: serde_json::Value = serde_json::from_str(&text).map_err(|e| file_err(path, format!("malformed JSON: {e}")))?;
+    Ok(upgrade_config(v))
+}
+
+/// A run directory opened for inference.
+pub struct Run {
+    pub dir: PathBuf,
+    pub spec: RunSpec,
+    /// The codes it was trained with.
+    pub codes: Codes,
+    /// `A` of those codes under the run's sampling and IRF.
+    pub sensor: MeasurementMatrix,
+    /// The trained network behind the decoder contract.
+    pub decoder: Box<dyn Decoder>,
+}
+
+/// Load the latest weights of a run into its network, on `device`.
+pub fn load_network<M: Module>(dir: &Path, model: M) -> Result<M> {
+    let weights = dir.join(WEIGHTS_FILE);
+    if !weights.exists() {
+        return Err(file_err(&weights, "no trained weights; train at least one epoch"));
+    }
+    model.try_load_file(dir.join(WEIGHTS_STEM)).map_err(|e| file_err(&weights, e))
+}
+
+/// Open a run directory as a decoder on `device`: its config, codes, sensor model and latest
+/// weights.
+pub fn open(dir: &Path, device: &Device) -> Result<Run> {
+    let cfg_path = dir.join(CONFIG_FILE);
+    let spec: RunSpec = serde_json::from_value(read_config_json(&cfg_path)?).map_err(|e| file_err(&cfg_path, format!("not a run config: {e}")))?;
+    let codes = Codes::load(&dir.join(CODES_FILE))?;
+    let sensor = spec.matrix(&codes)?;
+    if sensor.taps() != spec.model.taps() || sensor.bins() != spec.model.bins() {
+        return Err(file_err(
+            &cfg_path,
+            format!("the model takes M = {} taps and T = {} bins, but its codes give M = {}, T = {}", spec.model.taps(), spec.model.bins(), sensor.taps(), sensor.bins()),
+        ));
+    }
+    let decoder: Box<dyn Decoder> = match &spec.model {
+        ModelConfig::AdmmNet(c) => {
+            let net: AdmmNet = load_network(dir, c.init(device))?;
+            Box::new(NetDecoder::new(spec.model.name(), net, device.clone()))
+        }
+    };
+    Ok(Run { dir: dir.to_path_buf(), spec, codes, sensor, decoder })
+}

@@ -1,0 +1,268 @@
+//! The sensor as tensors (DESIGN §5, "layers under the decoders"): `A`, `Aᵀ`, the normalised
+//! back-projection `Aᵀ(AAᵀ + εI)⁻¹` and the exact data-consistency solve `(AᵀA + ρI)⁻¹`
+//! for one frame size, on any burn device.
+//!
+//! Pixel `(r, c)` of a frame has subpixel type `n = (r mod bh)·bw + (c mod bw)` and its own
+//! `A_n [M, T]` (paper eq. 4). The Gram matrices `A_nA_nᵀ = Q_nΛ_nQ_nᵀ` come from
+//! [`MeasurementMatrix::gram_eigen`], so `(ρI_M + A_nA_nᵀ)⁻¹ = Q_n diag(1/(ρ + λ_n)) Q_nᵀ`
+//! and, by Woodbury, `(AᵀA + ρI)⁻¹ = (I − Aᵀ(ρI_M + AAᵀ)⁻¹A)/ρ` stay differentiable in `ρ`.
+//!
+//! Two implementations of the same algebra: the fused frame-layout kernels of
+//! `tcsense-kernels` ([`pixel_linear`], [`pixel_dc`]; what the networks run) and a reference
+//! composed from burn ops in *block layout* (`[B, N, C, P]`, batched matmuls; differentiable
+//! in `A` too), which the tests and `bench kernels` compare them with.
+
+use burn::tensor::{Device, Tensor, TensorData};
+use std::sync::Arc;
+use tcsense_kernels::pixel::{pixel_dc, pixel_linear, woodbury_matrices, PixelMap, PixelSensor};
+use tcsense_sensor::MeasurementMatrix;
+
+/// The sensor model as tensors for one frame size, in *block layout*: a frame `[B, C, H, W]`
+/// is rearranged to `[B, N, C, P]` (subpixel type `n`, `P = (H/bh)·(W/bw)` blocks), where the
+/// per-pixel operators become small batched matrix products: `A_n [M, T]`, `A_nᵀ` and
+/// `(ρI + A_nA_nᵀ)⁻¹ = Q_n diag(1/(ρ + λ_n)) Q_nᵀ`.
+#[derive(Debug, Clone)]
+pub struct SensorTensors {
+    /// `A` per subpixel type, `[1, N, M, T]`.
+    pub a: Tensor<4>,
+    /// `Aᵀ`, `[1, N, T, M]`.
+    pub at: Tensor<4>,
+    /// Eigenvectors of `A_nA_nᵀ`, `[1, N, M, M]` (columns).
+    pub q: Tensor<4>,
+    /// `Qᵀ`, `[1, N, M, M]`.
+    pub qt: Tensor<4>,
+    /// Eigenvalues, `[1, N, 1, M]`.
+    pub lambda: Tensor<4>,
+    pub taps: usize,
+    pub bins: usize,
+    pub height: usize,
+    pub width: usize,
+    pub block: (usize, usize),
+    /// The same operators for the fused frame-layout kernels of `tcsense_kernels::pixel`: `A`,
+    /// `Aᵀ`, the back-projection `Aᵀ(AAᵀ + εI)⁻¹` and the data-consistency solve.
+    pub fused: FusedSensor,
+}
+
+/// The per-pixel operators of [`SensorTensors`] for [`pixel_linear`] and [`pixel_dc`].
+#[derive(Debug, Clone)]
+pub struct FusedSensor {
+    pub a: Arc<PixelMap>,
+    pub at: Arc<PixelMap>,
+    pub pinv: Arc<PixelMap>,
+    pub dc: Arc<PixelSensor>,
+}
+
+impl SensorTensors {
+    /// Prepare `A [N, M, T]` for `H × W` frames (`H`, `W` multiples of the block).
+    pub fn new(a: &MeasurementMatrix, height: usize, width: usize, device: &Device) -> tcsense_sensor::Result<Self> {
+        a.plan(height, width)?; // checks the frame against the block
+        let av = a.a();
+        let (n_sub, m, t) = av.dim();
+        let (lambda, q) = a.gram_eigen(); // [N, M], [N, M, M]
+        let mut a_v = vec![0f32; n_sub * m * t];
+        let mut at_v = vec![0f32; n_sub * t * m];
+        let mut q_v = vec![0f32; n_sub * m * m];
+        let mut qt_v = vec![0f32; n_sub * m * m];
+        let mut l_v = vec![0f32; n_sub * m];
+        for k in 0..n_sub {
+            for mm in 0..m {
+                for j in 0..t {
+                    a_v[(k * m + mm) * t + j] = av[(k, mm, j)];
+                    at_v[(k * t + j) * m + mm] = av[(k, mm, j)];
+                }
+            }
+            for r in 0..m {
+                l_v[k * m + r] = lambda[(k, r)].max(0.0) as f32;
+                for c in 0..m {
+                    q_v[(k * m + r) * m + c] = q[(k, r, c)] as f32;
+                    qt_v[(k * m + c) * m + r] = q[(k, r, c)] as f32;
+                }
+            }
+        }
+        // Aᵀ(AAᵀ + εI)⁻¹ = Aᵀ Q diag(1/(λ + ε)) Qᵀ, ε = 1e-3·λ_max
+        let lmax = l_v.iter().fold(0f32, |a, &b| a.max(b)).max(1e-12);
+        let k_eps = woodbury_matrices(&q_v, &l_v, m, 1e-3 * lmax); // [N, M, M]
+        let mut pinv_v = vec![0f32; n_sub * t * m];
+        for k in 0..n_sub {
+            for j in 0..t {
+                for c in 0..m {
+                    pinv_v[(k * t + j) * m + c] = (0..m).map(|r| at_v[(k * t + j) * m + r] * k_eps[(k * m + r) * m + c]).sum();
+                }
+            }
+        }
+        let block = a.block();
+        let fused = FusedSensor {
+            a: Arc::new(PixelMap::new(block, m, t, width, &a_v)),
+            at: Arc::new(PixelMap::new(block, t, m, width, &at_v)),
+            pinv: Arc::new(PixelMap::new(block, t, m, width, &pinv_v)),
+            dc: Arc::new(PixelSensor::new(block, m, t, width, &a_v, &q_v, &l_v)),
+        };
+        Ok(SensorTensors {
+            fused,
+            a: Tensor::from_data(TensorData::new(a_v, [1, n_sub, m, t]), device),
+            at: Tensor::from_data(TensorData::new(at_v, [1, n_sub, t, m]), device),
+            q: Tensor::from_data(TensorData::new(q_v, [1, n_sub, m, m]), device),
+            qt: Tensor::from_data(TensorData::new(qt_v, [1, n_sub, m, m]), device),
+            lambda: Tensor::from_data(TensorData::new(l_v, [1, n_sub, 1, m]), device),
+            taps: m,
+            bins: t,
+            height,
+            width,
+            block: a.block(),
+        })
+    }
+
+    /// Frame to block layout.
+    ///
+    /// # Shapes
+    /// - `x`: `[B, C, H, W]` → `[B, N, C, P]`
+    pub fn to_blocks(&self, x: Tensor<4>) -> Tensor<4> {
+        let [b, c, h, w] = x.dims();
+        let (bh, bw) = self.block;
+        let (hb, wb) = (h / bh, w / bw);
+        x.reshape([b, c, hb, bh, wb, bw]) // [B, C, H', bh, W', bw]
+            .permute([0, 3, 5, 1, 2, 4]) // [B, bh, bw, C, H', W']
+            .reshape([b, bh * bw, c, hb * wb])
+    }
+
+    /// Block layout back to frames.
+    ///
+    /// # Shapes
+    /// - `z`: `[B, N, C, P]` → `[B, C, H, W]`
+    pub fn from_blocks(&self, z: Tensor<4>) -> Tensor<4> {
+        let [b, _, c, _] = z.dims();
+        let (bh, bw) = self.block;
+        let (hb, wb) = (self.height / bh, self.width / bw);
+        z.reshape([b, bh, bw, c, hb, wb]) // [B, bh, bw, C, H', W']
+            .permute([0, 3, 4, 1, 5, 2]) // [B, C, H', bh, W', bw]
+            .reshape([b, c, self.height, self.width])
+    }
+
+    /// `A x` in block layout: `[B, N, T, P]` → `[B, N, M, P]`.
+    fn a_blocks(&self, x: Tensor<4>) -> Tensor<4> {
+        self.a.clone().matmul(x)
+    }
+
+    /// `Aᵀ y` in block layout: `[B, N, M, P]` → `[B, N, T, P]`.
+    fn at_blocks(&self, y: Tensor<4>) -> Tensor<4> {
+        self.at.clone().matmul(y)
+    }
+
+    /// `(sI + AAᵀ)⁻¹ v` in block layout: `[B, N, M, P]` → `[B, N, M, P]`; `s` is `[1]`.
+    fn solve_aat(&self, v: Tensor<4>, s: Tensor<1>) -> Tensor<4> {
+        let inv = (self.lambda.clone() + s.reshape([1, 1, 1, 1])).recip(); // [1, N, 1, M]
+        let k = (self.q.clone() * inv).matmul(self.qt.clone()); // [1, N, M, M]
+        k.matmul(v)
+    }
+
+    /// `A x`.
+    ///
+    /// # Shapes
+    /// - `x`: `[B, T, H, W]` → `[B, M, H, W]`
+    pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        pixel_linear(x, self.fused.a.clone())
+    }
+
+    /// `Aᵀ y`.
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
+    pub fn adjoint(&self, y: Tensor<4>) -> Tensor<4> {
+        pixel_linear(y, self.fused.at.clone())
+    }
+
+    /// The normalised back-projection `Aᵀ(AAᵀ + εI)⁻¹ y`, `ε = 1e-3·λ_max`.
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
+    pub fn pinv(&self, y: Tensor<4>) -> Tensor<4> {
+        pixel_linear(y, self.fused.pinv.clone())
+    }
+
+    /// [`Self::pinv`] composed from burn ops in block layout (the reference for the fused one).
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
+    pub fn pinv_blocks(&self, y: Tensor<4>) -> Tensor<4> {
+        let lmax: f32 = self.lambda.clone().max().into_scalar();
+        let eps = Tensor::<1>::from_floats([1e-3 * lmax.max(1e-12)], &y.device());
+        self.from_blocks(self.at_blocks(self.solve_aat(self.to_blocks(y), eps)))
+    }
+
+    /// Exact data consistency `(AᵀA + ρI)⁻¹ v` per pixel (Woodbury), in block layout, composed
+    /// from burn ops: differentiable in `A` as well (for learning the codes), and the
+    /// reference for the fused [`Self::data_consistency`].
+    ///
+    /// # Shapes
+    /// - `v`: `[B, N, T, P]`, `rho`: `[1]` → `[B, N, T, P]`
+    pub fn data_consistency_blocks(&self, v: Tensor<4>, rho: Tensor<1>) -> Tensor<4> {
+        let w = self.solve_aat(self.a_blocks(v.clone()), rho.clone());
+        (v - self.at_blocks(w)) / rho.reshape([1, 1, 1, 1])
+    }
+
+    /// Exact data consistency on frames, fused ([`pixel_dc`]): differentiable in `v` and `ρ`.
+    ///
+    /// # Shapes
+    /// - `v`: `[B, T, H, W]`, `rho`: `[1]` → `[B, T, H, W]`
+    pub fn data_consistency(&self, v: Tensor<4>, rho: Tensor<1>) -> Tensor<4> {
+        pixel_dc(v, rho, self.fused.dc.clone())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tcsense_sensor::codes::{CodeShape, Constraints};
+    use tcsense_sensor::generate::random_codes;
+    use tcsense_sensor::SensorParams;
+
+    #[test]
+    fn data_consistency_equals_a_direct_solve() {
+        let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 8, drain: false };
+        let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 3).unwrap();
+        let spec = SensorParams { irf: tcsense_sensor::Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }, ..SensorParams::from_codes(&codes) }.validate().unwrap();
+        let a = MeasurementMatrix::synthesize(&codes, &spec).unwrap();
+        let device = Device::flex();
+        let st = SensorTensors::new(&a, 2, 4, &device).unwrap();
+        let (t, h, w) = (8, 2, 4);
+        let vals: Vec<f32> = (0..t * h * w).map(|i| ((i * 37 % 23) as f32) / 10.0 - 1.0).collect();
+        let v = Tensor::<4>::from_data(TensorData::new(vals.clone(), [1, t, h, w]), &device);
+        let rho = 0.37f64;
+        let x: Vec<f32> = st.data_consistency(v, Tensor::from_floats([rho as f32], &device)).into_data().try_into_vec::<f32>().unwrap();
+        let av = a.a();
+        for r in 0..h {
+            for c in 0..w {
+                let n = (r % 2) * 2 + c % 2;
+                // (AᵀA + ρI) x = v, solved by Gaussian elimination in f64
+                let mut mtx: Vec<f64> = (0..t * t).map(|ij| (0..4).map(|m| av[(n, m, ij / t)] as f64 * av[(n, m, ij % t)] as f64).sum::<f64>() + if ij / t == ij % t { rho } else { 0.0 }).collect();
+                let mut rhs: Vec<f64> = (0..t).map(|j| vals[(j * h + r) * w + c] as f64).collect();
+                for k in 0..t {
+                    let piv = mtx[k * t + k];
+                    for i in k + 1..t {
+                        let f = mtx[i * t + k] / piv;
+                        for j in k..t {
+                            mtx[i * t + j] -= f * mtx[k * t + j];
+                        }
+                        rhs[i] -= f * rhs[k];
+                    }
+                }
+                let mut sol = vec![0.0; t];
+                for k in (0..t).rev() {
+                    sol[k] = (rhs[k] - (k + 1..t).map(|j| mtx[k * t + j] * sol[j]).sum::<f64>()) / mtx[k * t + k];
+                }
+                for j in 0..t {
+                    let got = x[(j * h + r) * w + c] as f64;
+                    assert!((got - sol[j]).abs() < 1e-4 * (1.0 + sol[j].abs()), "pixel ({r},{c}) bin {j}: {got} vs {}", sol[j]);
+                }
+            }
+        }
+        // the normalised back-projection satisfies A x0 ≈ y for consistent measurements y = A x
+        let xr = Tensor::<4>::from_data(TensorData::new(vals.iter().map(|v| v.abs()).collect::<Vec<f32>>(), [1, t, h, w]), &device);
+        let y = st.forward(xr);
+        let yv: Vec<f32> = y.clone().into_data().try_into_vec::<f32>().unwrap();
+        let back: Vec<f32> = st.forward(st.pinv(y)).into_data().try_into_vec::<f32>().unwrap();
+        for (a, b) in back.iter().zip(&yv) {
+            assert!((a - b).abs() < 1e-2 * (1.0 + b.abs()), "{a} vs {b}");
+        }
+    }
+}

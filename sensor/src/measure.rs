@@ -1,0 +1,114 @@
+//! The one physics entry (DESIGN §3, deepinv's `physics(x)`):
+//!
+//! `y = measure(x) = quantise(clip(noise(A x)))`
+//!
+//! — the block-diagonal forward operator ([`crate::operator`]) followed, when noise is on,
+//! by the noise model ([`crate::noise`]: scale to electrons, Poisson shot noise, Gaussian read
+//! noise, clipping at full well, ADC quantisation), seeded. `tcsense simulate`, training and
+//! evaluation all measure through here, so they simulate the same sensor.
+//!
+//! ```
+//! use ndarray::Array4;
+//! use tcsense_sensor::codes::{CodeShape, Constraints};
+//! use tcsense_sensor::generate::random_codes;
+//! use tcsense_sensor::measure::measure_batch;
+//! use tcsense_sensor::{MeasurementMatrix, NoiseParams, SensorParams};
+//!
+//! let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 8, drain: false };
+//! let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 1).unwrap();
+//! let a = MeasurementMatrix::synthesize(&codes, &SensorParams::from_codes(&codes).validate().unwrap()).unwrap();
+//! let plan = a.plan(4, 4).unwrap();
+//! let x = Array4::<f32>::from_elem((2, 8, 4, 4), 0.5); // [B, T, H, W]
+//! let clean = measure_batch(&plan, &x.view(), None, 0).unwrap(); // [B, M, H, W]
+//! let noisy = measure_batch(&plan, &x.view(), Some(&NoiseParams::default()), 7).unwrap();
+//! assert_eq!(clean.dim(), (2, 4, 4, 4));
+//! assert_eq!(noisy, measure_batch(&plan, &x.view(), Some(&NoiseParams::default()), 7).unwrap());
+//! ```
+
+use ndarray::{Array4, ArrayD, ArrayView4, ArrayViewD, Ix3, Ix4};
+
+use crate::error::{invalid, Result};
+use crate::noise::{add_noise, Exposure, NoisyMeasurement};
+use crate::operator::FramePlan;
+use crate::params::NoiseParams;
+
+/// Simulated tap images.
+#[derive(Debug, Clone)]
+pub enum Measurement {
+    /// `A x`, noise off.
+    Noiseless(ArrayD<f32>),
+    /// `quantise(clip(noise(A x)))`, in electrons, with the scale used.
+    Noisy(NoisyMeasurement),
+}
+
+impl Measurement {
+    /// The tap images in the units of `A x` (noise rescaled back by the electrons per unit).
+    pub fn into_input_units(self) -> ArrayD<f32> {
+        match self {
+            Measurement::Noiseless(y) => y,
+            Measurement::Noisy(n) => n.in_input_units(),
+        }
+    }
+}
+
+/// Measure cubes `x` (`[T, H, W]` or a batch `[B, T, H, W]`) with `plan`'s sensor; with
+/// `noise`, seeded by `seed` and scaled to electrons by `exposure` (for a batch, `Auto`
+/// scales the brightest tap of the whole batch).
+///
+/// # Shapes
+/// - `x`: `[T, H, W]` → `[M, H, W]`, or `[B, T, H, W]` → `[B, M, H, W]`
+pub fn measure(plan: &FramePlan, x: &ArrayViewD<'_, f32>, noise: Option<&NoiseParams>, exposure: Exposure, seed: u64) -> Result<Measurement> {
+    let y = match x.ndim() {
+        3 => plan.forward(&x.view().into_dimensionality::<Ix3>().map_err(|e| invalid("cube", format!("{:?}", x.shape()), e.to_string()))?)?.into_dyn(),
+        4 => plan.forward_batch(&x.view().into_dimensionality::<Ix4>().map_err(|e| invalid("cube", format!("{:?}", x.shape()), e.to_string()))?)?.into_dyn(),
+        _ => return Err(invalid("cube", format!("{:?}", x.shape()), "[T, H, W] or [B, T, H, W]")),
+    };
+    match noise {
+        None => Ok(Measurement::Noiseless(y)),
+        Some(n) => Ok(Measurement::Noisy(add_noise(&y.view(), n, exposure, seed)?)),
+    }
+}
+
+/// [`measure`] for a batch, in the units of `A x`, with the brightest tap of the batch at the
+/// noise model's `signal_fraction` of full well: what training and evaluation feed decoders.
+///
+/// # Shapes
+/// - `x`: `[B, T, H, W]` → `[B, M, H, W]`
+pub fn measure_batch(plan: &FramePlan, x: &ArrayView4<'_, f32>, noise: Option<&NoiseParams>, seed: u64) -> Result<Array4<f32>> {
+    let y = measure(plan, &x.view().into_dyn(), noise, Exposure::Auto, seed)?.into_input_units();
+    y.into_dimensionality::<Ix4>().map_err(|e| invalid("measurements", "a batch".to_string(), e.to_string()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::codes::{CodeShape, Constraints};
+    use crate::generate::random_codes;
+    use crate::{MeasurementMatrix, SensorParams};
+    use ndarray::{Array3, Axis};
+
+    #[test]
+    fn noiseless_is_a_x_and_noise_is_seeded_per_call() {
+        let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 8, drain: false };
+        let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 5).unwrap();
+        let a = MeasurementMatrix::synthesize(&codes, &SensorParams::from_codes(&codes).validate().unwrap()).unwrap();
+        let plan = a.plan(4, 6).unwrap();
+        let x = Array3::from_shape_fn((8, 4, 6), |(j, r, c)| ((j * 5 + r * 3 + c) % 7) as f32 / 7.0);
+        let clean = measure(&plan, &x.view().into_dyn(), None, Exposure::Auto, 0).unwrap().into_input_units();
+        assert_eq!(clean, plan.forward(&x.view()).unwrap().into_dyn());
+        let noise = NoiseParams::default();
+        let xb = x.clone().insert_axis(Axis(0)); // [1, T, H, W]
+        let a1 = measure_batch(&plan, &xb.view(), Some(&noise), 3).unwrap();
+        let a2 = measure_batch(&plan, &xb.view(), Some(&noise), 3).unwrap();
+        let b = measure_batch(&plan, &xb.view(), Some(&noise), 4).unwrap();
+        assert_eq!(a1, a2, "same seed, same bytes");
+        assert_ne!(a1, b, "another seed, other noise");
+        // the noisy taps scatter around A x: relative error of a few percent at 80 % of full well
+        let rel = (&a1.index_axis(Axis(0), 0) - &clean).mapv(|v| v * v).sum().sqrt() / clean.mapv(|v| v * v).sum().sqrt();
+        assert!(rel > 1e-4 && rel < 0.1, "relative noise {rel}");
+        // the same frame measured alone ([M, H, W]) gets the same noise as a batch of one
+        let single = measure(&plan, &x.view().into_dyn(), Some(&noise), Exposure::Auto, 3).unwrap().into_input_units();
+        assert_eq!(single, a1.index_axis(Axis(0), 0).into_dyn());
+        assert!(measure(&plan, &ndarray::Array2::<f32>::zeros((8, 4)).view().into_dyn(), None, Exposure::Auto, 0).is_err());
+    }
+}

@@ -1,0 +1,77 @@
+//! Timings for `tcsense bench train` (printed, never asserted): one training step and one
+//! inference frame of a network, medians of several runs.
+
+use burn::optim::AdamConfig;
+use burn::tensor::Device;
+use ndarray::Array4;
+use std::sync::atomic::AtomicBool;
+use std::time::Instant;
+use tcsense_kernels::timing::{median_by, median_ms};
+use tcsense_models::decoder::{Control, Decoder};
+use tcsense_models::net::{to_tensor, NetDecoder, Network, Prediction};
+use tcsense_models::runs::ModelConfig;
+use tcsense_models::SensorTensors;
+use tcsense_sensor::measure::measure_batch;
+use tcsense_sensor::MeasurementMatrix;
+
+use crate::config::Loss;
+use crate::loss::loss_fn;
+use crate::{Result, TrainError};
+
+/// Timings of one training step (medians, ms).
+#[derive(Debug, Clone, Copy)]
+pub struct StepTiming {
+    pub step_ms: f64,
+    pub forward_ms: f64,
+    pub backward_ms: f64,
+    pub optim_ms: f64,
+}
+
+/// Median time of a training step (batch 2, synthetic cubes) at `h × w`.
+pub fn bench_step(a: &MeasurementMatrix, model: &ModelConfig, h: usize, w: usize, steps: usize) -> Result<StepTiming> {
+    match model {
+        ModelConfig::AdmmNet(c) => time_steps(a, |d| c.init(d), h, w, steps),
+    }
+}
+
+fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h: usize, w: usize, steps: usize) -> Result<StepTiming> {
+    let device = Device::flex().autodiff();
+    device.seed(1);
+    let sensor = SensorTensors::new(a, h, w, &device)?;
+    let plan = a.plan(h, w)?;
+    let mut model = init(&device);
+    let mut optim = AdamConfig::new().init();
+    let x = Array4::from_shape_fn((2, a.bins(), h, w), |(b, j, r, c)| if (j + r / 8 + c / 8 + b) % 11 == 0 { 1.0 } else { 0.0 });
+    let y = measure_batch(&plan, &x.view(), None, 0)?;
+    let mut times: Vec<[f64; 3]> = Vec::new();
+    for _ in 0..steps.max(1) + 1 {
+        let t0 = Instant::now();
+        let pred = model.predict(to_tensor(&y.view(), &device), &sensor);
+        let loss = match M::PREDICTION {
+            Prediction::Cube => loss_fn(Loss::RmseMae, pred, to_tensor(&x.view(), &device)),
+        };
+        let _: f32 = loss.clone().into_scalar();
+        let t1 = Instant::now();
+        let grads = burn::optim::GradientsParams::from_grads(loss.backward(), &model);
+        let t2 = Instant::now();
+        model = optim.step(1e-3, model, grads);
+        let t3 = Instant::now();
+        times.push([(t1 - t0).as_secs_f64(), (t2 - t1).as_secs_f64(), (t3 - t2).as_secs_f64()]);
+    }
+    times.remove(0); // warm-up
+    let m = median_by(&times, |t| t[0] + t[1] + t[2]).ok_or(TrainError::InvalidParam { field: "steps", got: "0".into(), expected: "at least 1".into() })?;
+    Ok(StepTiming { step_ms: (m[0] + m[1] + m[2]) * 1e3, forward_ms: m[0] * 1e3, backward_ms: m[1] * 1e3, optim_ms: m[2] * 1e3 })
+}
+
+/// Median inference time (ms) of one `h × w` frame on the CPU without autodiff, through the
+/// decoder contract.
+pub fn bench_forward(a: &MeasurementMatrix, model: &ModelConfig, h: usize, w: usize, reps: usize) -> Result<f64> {
+    let device = Device::flex();
+    device.seed(1);
+    let mut decoder: Box<dyn Decoder> = match model {
+        ModelConfig::AdmmNet(c) => Box::new(NetDecoder::new(model.name(), c.init(&device), device.clone())),
+    };
+    let y = Array4::from_shape_fn((1, a.taps(), h, w), |(_, m, r, c)| ((m + r + c) % 7) as f32 * 0.1);
+    let never = AtomicBool::new(false);
+    median_ms(|| decoder.decode(y.view(), a, &Control::quiet(&never)).map(|out| drop(std::hint::black_box(out))), reps).map_err(Into::into)
+}

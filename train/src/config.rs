@@ -1,0 +1,92 @@
+//! The training config, `RUN/config.json`: the network and sensor model of the run
+//! ([`RunSpec`], what inference reads back) plus the training settings (paper Table 3).
+
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+use tcsense_models::runs::{ModelConfig, RunSpec};
+use tcsense_sensor::{Irf, NoiseParams, Sampling};
+
+use crate::{Result, TrainError};
+
+/// Training loss.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Loss {
+    /// `sqrt(mean((x̂ − x)²))` (FLIm).
+    Rmse,
+    /// RMSE + `mean(|x̂ − x|)` (LiDAR).
+    RmseMae,
+}
+
+/// The noise every training run adds to its simulated measurements unless told otherwise:
+/// full well 20 000 e⁻, read noise σ = 40 e⁻, brightest tap at 80 % of full well, no ADC.
+pub const TRAINING_NOISE: NoiseParams = NoiseParams { full_well_e: 20_000.0, read_noise_e: 40.0, signal_fraction: 0.8, adc_bits: 0 };
+
+/// Everything that defines a run (saved as `config.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    /// The network (`decoder` + `model`), sampling and IRF: what inference needs.
+    #[serde(flatten)]
+    pub run: RunSpec,
+    pub epochs: usize,
+    pub batch_size: usize,
+    pub learning_rate: f64,
+    pub loss: Loss,
+    pub seed: u64,
+    /// Noise added to the simulated measurements (`None`: noise-free).
+    pub noise: Option<NoiseParams>,
+    /// Dataset directory the run was trained on.
+    pub dataset: String,
+    /// Use at most this many training / validation items.
+    pub max_train_items: Option<usize>,
+    pub max_val_items: Option<usize>,
+}
+
+impl TrainConfig {
+    /// Defaults of the paper's Table 3 for a model config.
+    pub fn new(model: ModelConfig, dataset: &Path, loss: Loss, sampling: Sampling) -> Self {
+        TrainConfig {
+            run: RunSpec { model, sampling, irf: Irf::Ideal },
+            epochs: 10,
+            batch_size: 2,
+            learning_rate: 1e-3,
+            loss,
+            seed: 0,
+            noise: Some(TRAINING_NOISE),
+            dataset: dataset.display().to_string(),
+            max_train_items: None,
+            max_val_items: None,
+        }
+    }
+
+    /// Read a config file (a run's `config.json` or one given to `train --config`); configs
+    /// written before the `decoder` field are ADMM-Net configs.
+    pub fn load(path: &Path) -> Result<Self> {
+        let v = tcsense_models::runs::read_config_json(path)?;
+        serde_json::from_value(v).map_err(|e| TrainError::File { path: path.to_path_buf(), msg: format!("malformed training config: {e}") })
+    }
+
+    /// Check the settings before any work starts.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |field: &'static str, got: String, expected: &str| Err(TrainError::InvalidParam { field, got, expected: expected.into() });
+        if self.epochs == 0 {
+            return bad("epochs", "0".into(), "at least 1");
+        }
+        if self.batch_size == 0 {
+            return bad("batch_size", "0".into(), "at least 1");
+        }
+        if !(self.learning_rate.is_finite() && self.learning_rate > 0.0) {
+            return bad("learning_rate", self.learning_rate.to_string(), "a positive number");
+        }
+        match &self.run.model {
+            ModelConfig::AdmmNet(m) if m.stages == 0 || m.channels == 0 => {
+                return bad("model", format!("{} stages, {} channels", m.stages, m.channels), "at least one stage and one channel");
+            }
+            ModelConfig::AdmmNet(_) => {}
+        }
+        if let Some(n) = &self.noise {
+            n.validate()?;
+        }
+        Ok(())
+    }
+}

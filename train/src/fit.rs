@@ -1,0 +1,175 @@
+//! One training loop for every trainable decoder ([`Network`]): Adam, batches in an order
+//! seeded by `(seed, epoch)`, measurements simulated on the fly with fresh noise seeded by
+//! `(seed, step)` through the sensor's one physics entry (`tcsense_sensor::measure`),
+//! validation after every epoch on the inference device through the decoder contract, and an
+//! atomic checkpoint after every epoch. A run is a pure function of its config, so a resumed
+//! run continues exactly where its checkpoint was taken.
+
+use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::tensor::Device;
+use ndarray::{Array4, Axis};
+use rand::rngs::StdRng;
+use rand::seq::SliceRandom;
+use rand::SeedableRng;
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+use tcsense_datasets::Dataset;
+use tcsense_models::decoder::{Control, Decoder};
+use tcsense_models::metrics::{mse, psnr};
+use tcsense_models::net::{to_tensor, NetDecoder, Network, Prediction};
+use tcsense_models::runs::{ModelConfig, CODES_FILE, CONFIG_FILE};
+use tcsense_models::SensorTensors;
+use tcsense_sensor::measure::measure_batch;
+use tcsense_sensor::noise::derive_seed;
+use tcsense_sensor::{Codes, FramePlan, MeasurementMatrix, NoiseParams};
+
+use crate::config::TrainConfig;
+use crate::data::load_cubes;
+use crate::loss::loss_fn;
+use crate::run_dir::{latest_checkpoint, load_checkpoint, read_json, read_rows, save_checkpoint, write_json, write_rows, EpochMetrics, RunState, METRICS_FILE};
+use crate::{file_err, Result, TrainError};
+
+/// Stream of the validation noise seeds, apart from the training steps' `(seed, step)`.
+const VALIDATION_STREAM: u64 = 0x5641_4C49_4441_5445;
+
+/// Callbacks for progress display.
+pub trait Progress {
+    /// After each optimiser step.
+    fn step(&self, _epoch: usize, _step_in_epoch: usize, _steps_per_epoch: usize, _loss: f64) {}
+    /// After each epoch's validation.
+    fn epoch(&self, _m: &EpochMetrics) {}
+}
+
+/// No progress display.
+pub struct Quiet;
+impl Progress for Quiet {}
+
+/// Mean MSE and PSNR of a decoder over cubes `x` with measurements simulated with noise
+/// seeded per item (the same every epoch).
+///
+/// # Shapes
+/// - `x`: `[N, T, H, W]`
+pub fn validate(decoder: &mut dyn Decoder, plan: &FramePlan, sensor: &MeasurementMatrix, x: &Array4<f32>, noise: Option<&NoiseParams>, seed: u64) -> Result<(f64, f64)> {
+    let n = x.dim().0;
+    if n == 0 {
+        return Ok((f64::NAN, f64::NAN));
+    }
+    let never = AtomicBool::new(false);
+    let (mut total_mse, mut total_psnr) = (0.0, 0.0);
+    for i in 0..n {
+        let xi = x.slice_axis(Axis(0), ndarray::Slice::from(i..i + 1)); // [1, T, H, W]
+        let y = measure_batch(plan, &xi, noise, derive_seed(seed ^ VALIDATION_STREAM, i as u64))?;
+        let out = decoder.decode(y.view(), sensor, &Control::quiet(&never))?;
+        let pred = out.cube.ok_or(TrainError::InvalidParam { field: "decoder", got: decoder.name().into(), expected: "a decoder that reconstructs cubes".into() })?;
+        let (p, t) = (pred.as_slice().unwrap_or(&[]), xi.as_slice().unwrap_or(&[]));
+        total_mse += mse(p, t);
+        total_psnr += psnr(p, t);
+    }
+    Ok((total_mse / n as f64, total_psnr / n as f64))
+}
+
+/// Train (or resume) a run in `run`.
+pub fn train(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, progress: &dyn Progress, cancel: &AtomicBool) -> Result<Vec<EpochMetrics>> {
+    match &cfg.run.model {
+        ModelConfig::AdmmNet(m) => fit(cfg, codes, run, resume, progress, cancel, |device| m.init(device)),
+    }
+}
+
+/// The loop for one network type; `init` builds the untrained network on a device.
+fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, progress: &dyn Progress, cancel: &AtomicBool, init: impl Fn(&Device) -> M) -> Result<Vec<EpochMetrics>> {
+    cfg.validate()?;
+    codes.ensure_feasible()?;
+    let ds = Dataset::open(Path::new(&cfg.dataset))?;
+    let a = cfg.run.matrix(codes)?;
+    let model_cfg = &cfg.run.model;
+    if a.bins() != ds.manifest.bins || a.taps() != model_cfg.taps() || a.bins() != model_cfg.bins() {
+        return Err(TrainError::InvalidParam {
+            field: "model/codes",
+            got: format!("T = {}, M = {} (model T = {}, M = {})", a.bins(), a.taps(), model_cfg.bins(), model_cfg.taps()),
+            expected: format!("the dataset's T = {} and the codes' M", ds.manifest.bins),
+        });
+    }
+    let train_x = load_cubes(&ds, "train", cfg.max_train_items)?;
+    let val_x = load_cubes(&ds, "val", cfg.max_val_items)?;
+    if train_x.dim().0 == 0 {
+        return Err(file_err(&ds.dir, "the train split is empty"));
+    }
+    let (_, _, h, w) = train_x.dim();
+    let plan = a.plan(h, w)?;
+    let device = Device::flex().autodiff();
+    let infer_device = Device::flex();
+    let sensor = SensorTensors::new(&a, h, w, &device)?;
+
+    std::fs::create_dir_all(run).map_err(|e| file_err(run, e))?;
+    let (mut model, mut optim, mut state, mut rows) = if resume {
+        let saved = TrainConfig::load(&run.join(CONFIG_FILE))?;
+        if saved.run.model != cfg.run.model || saved.seed != cfg.seed || saved.batch_size != cfg.batch_size {
+            return Err(file_err(&run.join(CONFIG_FILE), "the run was started with a different model, seed or batch size; resume with the saved config"));
+        }
+        let (model, optim, state) = load_checkpoint(&latest_checkpoint(run), init(&device), AdamConfig::new().init())?;
+        let rows = read_rows(&run.join(METRICS_FILE), state.epoch)?;
+        (model, optim, state, rows)
+    } else {
+        if run.join(crate::run_dir::CHECKPOINT_DIR).exists() {
+            return Err(file_err(run, "a run already exists here; pass --resume to continue it or choose another directory"));
+        }
+        // seeded initial weights: the same config gives the same run
+        device.seed(cfg.seed);
+        (init(&device), AdamConfig::new().init(), RunState::default(), Vec::new())
+    };
+    write_json(&run.join(CONFIG_FILE), cfg)?;
+    codes.save(&run.join(CODES_FILE))?;
+
+    let n = train_x.dim().0;
+    let steps_per_epoch = n.div_ceil(cfg.batch_size);
+    let mut out = Vec::new();
+    for epoch in state.epoch..cfg.epochs {
+        let t0 = Instant::now();
+        let mut order: Vec<usize> = (0..n).collect();
+        order.shuffle(&mut StdRng::seed_from_u64(derive_seed(cfg.seed, epoch as u64)));
+        let mut loss_sum = 0.0;
+        for (bi, idx) in order.chunks(cfg.batch_size).enumerate() {
+            if cancel.load(Ordering::Relaxed) {
+                return Err(TrainError::Cancelled);
+            }
+            let xb = train_x.select(Axis(0), idx); // [B, T, H, W]
+            state.step += 1;
+            let yb = measure_batch(&plan, &xb.view(), cfg.noise.as_ref(), derive_seed(cfg.seed, state.step))?;
+            let l;
+            (model, l) = step(model, &mut optim, cfg, &sensor, &yb, &xb, &device);
+            loss_sum += l;
+            progress.step(epoch, bi + 1, steps_per_epoch, l);
+        }
+        let mut valid = NetDecoder::new(model_cfg.name(), model.valid().to_device(&infer_device), infer_device.clone());
+        let (val_mse, val_psnr) = validate(&mut valid, &plan, &a, &val_x, cfg.noise.as_ref(), cfg.seed)?;
+        state.epoch = epoch + 1;
+        state.seconds += t0.elapsed().as_secs_f64();
+        let m = EpochMetrics { epoch: epoch + 1, step: state.step, train_loss: loss_sum / steps_per_epoch as f64, val_mse, val_psnr, seconds: state.seconds };
+        rows.push(m.clone());
+        save_checkpoint(run, &model, &optim, &state)?;
+        write_rows(&run.join(METRICS_FILE), &rows)?;
+        progress.epoch(&m);
+        out.push(m);
+    }
+    Ok(out)
+}
+
+/// One Adam step on a batch; returns the updated network and the batch loss.
+///
+/// # Shapes
+/// - `y`: `[B, M, H, W]`, `x`: `[B, T, H, W]`
+pub(crate) fn step<M: Network>(model: M, optim: &mut ModuleOptimizer, cfg: &TrainConfig, sensor: &SensorTensors, y: &Array4<f32>, x: &Array4<f32>, device: &Device) -> (M, f64) {
+    let pred = model.predict(to_tensor(&y.view(), device), sensor);
+    let loss = match M::PREDICTION {
+        Prediction::Cube => loss_fn(cfg.loss, pred, to_tensor(&x.view(), device)),
+    };
+    let l: f32 = loss.clone().into_scalar();
+    let grads = GradientsParams::from_grads(loss.backward(), &model);
+    (optim.step(cfg.learning_rate, model, grads), l as f64)
+}
+
+/// Read `state.json` of a run's checkpoint (for tests and tools).
+pub fn run_state(run: &Path) -> Result<RunState> {
+    read_json(&latest_checkpoint(run).join(crate::run_dir::STATE_FILE))
+}

@@ -1,0 +1,155 @@
+//! The training side of a run directory (the layout is in `tcsense_models::runs`):
+//! checkpoints replaced atomically after every epoch, the progress state, `metrics.csv`, and
+//! the latest weights at the top of the directory.
+//!
+//! ```text
+//! RUN/checkpoint/{model.bpk, optim.bpk, state.json}   written to checkpoint.tmp/, then renamed
+//! RUN/metrics.csv                                      epoch,step,train_loss,val_mse,val_psnr_db,seconds
+//! RUN/model.bpk                                        written as model-new.bpk, then renamed
+//! ```
+
+use burn::module::Module;
+use burn::optim::ModuleOptimizer;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use tcsense_models::runs::{WEIGHTS_FILE, WEIGHTS_STEM};
+use tcsense_sensor::npy::write_bytes;
+
+use crate::{file_err, Result};
+
+/// The checkpoint directory.
+pub const CHECKPOINT_DIR: &str = "checkpoint";
+/// The previous checkpoint while a new one is moved into place.
+const CHECKPOINT_OLD: &str = "checkpoint.old";
+/// A checkpoint being written.
+const CHECKPOINT_TMP: &str = "checkpoint.tmp";
+/// The metrics log.
+pub const METRICS_FILE: &str = "metrics.csv";
+/// The progress state inside a checkpoint.
+pub const STATE_FILE: &str = "state.json";
+const CSV_HEADER: &str = "epoch,step,train_loss,val_mse,val_psnr_db,seconds\n";
+
+/// Progress of a run after a checkpoint.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct RunState {
+    /// Epochs completed.
+    pub epoch: usize,
+    /// Optimiser steps taken.
+    pub step: u64,
+    /// Seconds of training so far.
+    pub seconds: f64,
+}
+
+/// One row of `metrics.csv`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EpochMetrics {
+    pub epoch: usize,
+    pub step: u64,
+    pub train_loss: f64,
+    pub val_mse: f64,
+    pub val_psnr: f64,
+    pub seconds: f64,
+}
+
+/// Write `v` as pretty JSON, atomically.
+pub fn write_json<T: Serialize>(path: &Path, v: &T) -> Result<()> {
+    let s = serde_json::to_string_pretty(v).map_err(|e| file_err(path, e))? + "\n";
+    Ok(write_bytes(path, s.as_bytes())?)
+}
+
+/// Read JSON into `T`.
+pub fn read_json<T: for<'de> Deserialize<'de>>(path: &Path) -> Result<T> {
+    let text = std::fs::read_to_string(path).map_err(|e| file_err(path, e))?;
+    serde_json::from_str(&text).map_err(|e| file_err(path, format!("malformed JSON: {e}")))
+}
+
+/// The checkpoint to resume from: `checkpoint/`, or `checkpoint.old/` when a kill came while
+/// the new one was being moved into place.
+pub fn latest_checkpoint(run: &Path) -> PathBuf {
+    let ckpt = run.join(CHECKPOINT_DIR);
+    if ckpt.join(STATE_FILE).exists() {
+        ckpt
+    } else {
+        run.join(CHECKPOINT_OLD)
+    }
+}
+
+/// Load a checkpoint's weights into `model`, its optimiser state and its progress.
+pub fn load_checkpoint<M: Module>(dir: &Path, model: M, optim: ModuleOptimizer) -> Result<(M, ModuleOptimizer, RunState)> {
+    let state: RunState = read_json(&dir.join(STATE_FILE))?;
+    let model = model.try_load_file(dir.join(WEIGHTS_STEM)).map_err(|e| file_err(&dir.join(WEIGHTS_FILE), e))?;
+    let optim = optim.load(dir.join("optim")).map_err(|e| file_err(&dir.join("optim.bpk"), e))?;
+    Ok((model, optim, state))
+}
+
+/// Write a checkpoint (weights, optimiser, progress) and the latest weights, each replaced
+/// atomically: a kill at any point leaves a complete checkpoint behind.
+pub fn save_checkpoint<M: Module>(run: &Path, model: &M, optim: &ModuleOptimizer, state: &RunState) -> Result<()> {
+    let tmp = run.join(CHECKPOINT_TMP);
+    let _ = std::fs::remove_dir_all(&tmp);
+    std::fs::create_dir_all(&tmp).map_err(|e| file_err(&tmp, e))?;
+    model.clone().save_file(tmp.join(WEIGHTS_STEM)).map_err(|e| file_err(&tmp.join(WEIGHTS_FILE), e))?;
+    optim.save(tmp.join("optim")).map_err(|e| file_err(&tmp.join("optim.bpk"), e))?;
+    write_json(&tmp.join(STATE_FILE), state)?;
+    let (ckpt, old) = (run.join(CHECKPOINT_DIR), run.join(CHECKPOINT_OLD));
+    let _ = std::fs::remove_dir_all(&old);
+    if ckpt.exists() {
+        std::fs::rename(&ckpt, &old).map_err(|e| file_err(&ckpt, e))?;
+    }
+    std::fs::rename(&tmp, &ckpt).map_err(|e| file_err(&ckpt, e))?;
+    let _ = std::fs::remove_dir_all(&old);
+    // latest weights at the top of the run directory, replaced atomically
+    let weights = run.join(WEIGHTS_FILE);
+    model.clone().save_file(run.join("model-new")).map_err(|e| file_err(&weights, e))?;
+    std::fs::rename(run.join("model-new.bpk"), &weights).map_err(|e| file_err(&weights, e))?;
+    Ok(())
+}
+
+/// Write `metrics.csv`.
+pub fn write_rows(path: &Path, rows: &[EpochMetrics]) -> Result<()> {
+    let mut s = String::from(CSV_HEADER);
+    for r in rows {
+        s.push_str(&format!("{},{},{:.6e},{:.6e},{:.3},{:.2}\n", r.epoch, r.step, r.train_loss, r.val_mse, r.val_psnr, r.seconds));
+    }
+    Ok(write_bytes(path, s.as_bytes())?)
+}
+
+/// Read the rows of `metrics.csv` up to epoch `upto` (the checkpoint's); none if it is missing.
+pub fn read_rows(path: &Path, upto: usize) -> Result<Vec<EpochMetrics>> {
+    let Ok(text) = std::fs::read_to_string(path) else { return Ok(Vec::new()) };
+    let mut rows = Vec::new();
+    for line in text.lines().skip(1) {
+        let f: Vec<&str> = line.split(',').collect();
+        if f.len() != 6 {
+            return Err(file_err(path, format!("row {line:?} does not have 6 fields")));
+        }
+        let p = |s: &str| s.parse::<f64>().map_err(|_| file_err(path, format!("bad number {s:?}")));
+        let epoch = p(f[0])? as usize;
+        if epoch <= upto {
+            rows.push(EpochMetrics { epoch, step: p(f[1])? as u64, train_loss: p(f[2])?, val_mse: p(f[3])?, val_psnr: p(f[4])?, seconds: p(f[5])? });
+        }
+    }
+    Ok(rows)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn metrics_rows_round_trip_and_stop_at_the_checkpoint() {
+        let dir = std::env::temp_dir().join(format!("tcsense-rows-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join(METRICS_FILE);
+        let rows: Vec<EpochMetrics> = (1..=3).map(|e| EpochMetrics { epoch: e, step: 3 * e as u64, train_loss: 0.5 / e as f64, val_mse: 1e-3, val_psnr: 30.0, seconds: e as f64 }).collect();
+        write_rows(&path, &rows).unwrap();
+        let back = read_rows(&path, 2).unwrap();
+        assert_eq!(back.len(), 2);
+        assert_eq!((back[1].epoch, back[1].step), (2, 6));
+        assert!((back[1].train_loss - 0.25).abs() < 1e-9);
+        std::fs::write(&path, "header\n1,2,3\n").unwrap();
+        assert!(read_rows(&path, 5).unwrap_err().to_string().contains("6 fields"));
+        assert!(read_rows(&dir.join("missing.csv"), 5).unwrap().is_empty());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
