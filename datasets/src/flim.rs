@@ -14,7 +14,17 @@
 //! `Δ ≈ 206 ps` at 607 MHz) is the default.
 //!
 //! Ground truth: cube `[T, H, W]`, lifetimes `[3]` (s), weights `P_i/ΣP_j` `[3, H, W]`,
-//! amplitude-weighted mean lifetime `[H, W]` (s; NaN in the background).
+//! amplitude-weighted mean lifetime `[H, W]` (s; NaN in the background), onset `[1]` (s).
+//!
+//! **Domain randomisation** ([`FlimRandomization`], on by default; `None` is the paper's
+//! generator above): a real instrument's delay, IRF, lifetimes, background and brightness are
+//! not the generator's, so each scene draws them — the onset anywhere in the cycle; a
+//! Gaussian instrument response of random FWHM (cyclic convolution of the bin averages with
+//! the bin-integrated Gaussian); one to three distinct lifetimes over a wider, log-uniform
+//! range (channels share them when fewer than three, so mixtures of 1–3 components); a
+//! constant background offset; a brightness factor over two decades. The knobs are drawn
+//! from their own random stream, so the cell structure of item `i` is the same with and
+//! without randomisation.
 
 use crate::error::{invalid, Result};
 use crate::grid::TimeGrid;
@@ -29,6 +39,83 @@ pub const TAU_RANGES: [(f64, f64); 3] = [(0.5e-9, 1.5e-9), (1.5e-9, 2.5e-9), (2.
 /// Below this total channel value a pixel counts as background (no lifetime).
 pub const BACKGROUND: f32 = 1e-3;
 
+/// Stream of the randomisation knobs, apart from the scene's own `(seed, index)` stream.
+const KNOB_STREAM: u64 = 0x464C_494D_5241_4E44;
+
+/// Ranges of the randomised FLIm knobs; every range is `[lo, hi]`, and `lo == hi` fixes the
+/// knob to that value.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct FlimRandomization {
+    /// Decay onset as a fraction of the code cycle, uniform.
+    pub onset_cycle: [f64; 2],
+    /// FWHM of the Gaussian instrument response (s), uniform; 0 = none.
+    pub irf_fwhm_s: [f64; 2],
+    /// Number of distinct lifetimes per scene, uniform over `lo..=hi` (1..=3).
+    pub lifetimes: [usize; 2],
+    /// Lifetimes (s), log-uniform.
+    pub tau_s: [f64; 2],
+    /// Constant background offset, as a fraction of the scene's peak, uniform.
+    pub background: [f64; 2],
+    /// Brightness factor of the whole cube, log-uniform.
+    pub brightness: [f64; 2],
+}
+
+impl Default for FlimRandomization {
+    /// Onsets over the whole cycle, IRF FWHM 0–1 ns, 1–3 lifetimes in 0.3–6 ns, background
+    /// 0–5 % of the peak, brightness over two decades.
+    fn default() -> Self {
+        FlimRandomization { onset_cycle: [0.0, 1.0], irf_fwhm_s: [0.0, 1e-9], lifetimes: [1, 3], tau_s: [0.3e-9, 6e-9], background: [0.0, 0.05], brightness: [0.01, 1.0] }
+    }
+}
+
+impl FlimRandomization {
+    /// Check the ranges.
+    pub fn validate(&self) -> Result<()> {
+        let range = |name: &'static str, r: [f64; 2], lo: f64, hi: f64, what: &str| {
+            if r[0].is_finite() && r[1].is_finite() && lo <= r[0] && r[0] <= r[1] && r[1] <= hi {
+                Ok(())
+            } else {
+                Err(invalid(name, format!("{:?}", r), format!("lo ≤ hi within [{lo:e}, {hi:e}] ({what})")))
+            }
+        };
+        range("onset_cycle", self.onset_cycle, 0.0, 1.0, "fractions of the cycle")?;
+        range("irf_fwhm_s", self.irf_fwhm_s, 0.0, 1e-7, "seconds")?;
+        range("tau_s", self.tau_s, 1e-12, 1e-6, "seconds")?;
+        range("background", self.background, 0.0, 10.0, "fractions of the peak")?;
+        range("brightness", self.brightness, 1e-6, 1e6, "factors")?;
+        if !(1 <= self.lifetimes[0] && self.lifetimes[0] <= self.lifetimes[1] && self.lifetimes[1] <= 3) {
+            return Err(invalid("lifetimes", format!("{:?}", self.lifetimes), "1 ≤ lo ≤ hi ≤ 3"));
+        }
+        Ok(())
+    }
+}
+
+/// The per-scene values of the knobs that [`render`] applies.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FlimKnobs {
+    /// Lifetime of each channel (s).
+    pub tau: [f64; 3],
+    /// Decay onset `t_0` (s).
+    pub onset_s: f64,
+    /// FWHM of the Gaussian instrument response (s); 0 = none.
+    pub irf_fwhm_s: f64,
+    /// Background offset, as a fraction of the noise-free peak.
+    pub background: f64,
+    /// Brightness factor.
+    pub brightness: f64,
+}
+
+/// A draw from `[lo, hi]`: uniform, or log-uniform; the value itself when `lo == hi`.
+fn draw(rng: &mut StdRng, r: [f64; 2], log: bool) -> f64 {
+    if r[0] >= r[1] {
+        r[0]
+    } else if log {
+        rng.random_range(r[0].ln()..r[1].ln()).exp()
+    } else {
+        rng.random_range(r[0]..r[1])
+    }
+}
+
 /// FLIm generator settings.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct FlimParams {
@@ -38,11 +125,16 @@ pub struct FlimParams {
     pub onset_s: f64,
     /// Cells per image (upper bound; at least 1).
     pub max_cells: usize,
+    /// Domain randomisation (`None`, and in manifests written before it existed: the paper's
+    /// fixed onset and lifetime ranges).
+    #[serde(default)]
+    pub randomization: Option<FlimRandomization>,
 }
 
 impl Default for FlimParams {
+    /// 64×64, up to 8 cells, randomised ([`FlimRandomization::default`]).
     fn default() -> Self {
-        FlimParams { height: 64, width: 64, onset_s: 2e-9, max_cells: 8 }
+        FlimParams { randomization: Some(FlimRandomization::default()), ..FlimParams::paper() }
     }
 }
 
@@ -57,11 +149,19 @@ pub struct FlimSample {
     pub weights: Array3<f32>,
     /// Amplitude-weighted mean lifetime `[H, W]` (s), NaN in the background.
     pub lifetime: Array2<f32>,
-    /// Intensity scale `S` `[H, W]`.
+    /// Intensity scale `S` `[H, W]` (times the brightness).
     pub intensity: Array2<f32>,
+    /// Decay onset `[1]` (s).
+    pub onset: Array1<f32>,
 }
 
 impl FlimParams {
+    /// The paper's generator: 64×64, up to 8 cells, onset 2 ns, lifetimes from
+    /// [`TAU_RANGES`], no IRF, background or brightness variation.
+    pub fn paper() -> Self {
+        FlimParams { height: 64, width: 64, onset_s: 2e-9, max_cells: 8, randomization: None }
+    }
+
     /// Check ranges.
     pub fn validate(&self, grid: &TimeGrid) -> Result<()> {
         if self.height == 0 || self.width == 0 || self.height > 4096 || self.width > 4096 {
@@ -72,6 +172,9 @@ impl FlimParams {
         }
         if self.max_cells == 0 || self.max_cells > 256 {
             return Err(invalid("max_cells", self.max_cells, "1..=256"));
+        }
+        if let Some(r) = &self.randomization {
+            r.validate()?;
         }
         Ok(())
     }
@@ -136,10 +239,29 @@ impl FlimParams {
         (p, tau)
     }
 
+    /// The knobs of item `index`: the paper's fixed onset and drawn lifetimes `tau`, or a
+    /// randomised draw from the knobs' own stream.
+    pub fn knobs(&self, grid: &TimeGrid, tau: [f64; 3], seed: u64, index: u64) -> FlimKnobs {
+        let Some(r) = &self.randomization else {
+            return FlimKnobs { tau, onset_s: self.onset_s, irf_fwhm_s: 0.0, background: 0.0, brightness: 1.0 };
+        };
+        let mut rng = StdRng::seed_from_u64(tcsense_sensor::noise::derive_seed(seed ^ KNOB_STREAM, index));
+        let onset_s = (draw(&mut rng, r.onset_cycle, false) * grid.cycle_s()).min(grid.cycle_s() * (1.0 - 1e-12));
+        let irf_fwhm_s = draw(&mut rng, r.irf_fwhm_s, false);
+        let k = rng.random_range(r.lifetimes[0]..=r.lifetimes[1]);
+        let mut taus: Vec<f64> = (0..k).map(|_| draw(&mut rng, r.tau_s, true)).collect();
+        taus.sort_by(f64::total_cmp);
+        // channel i takes lifetime i of k, the longest shared when k < 3
+        let tau = std::array::from_fn(|i| taus[i.min(k - 1)]);
+        let background = draw(&mut rng, r.background, false);
+        let brightness = draw(&mut rng, r.brightness, true);
+        FlimKnobs { tau, onset_s, irf_fwhm_s, background, brightness }
+    }
+
     /// Render item `index` on `grid`.
     pub fn sample(&self, grid: &TimeGrid, seed: u64, index: u64) -> FlimSample {
         let (p, tau) = self.channels(seed, index);
-        render(&p, tau, self.onset_s, grid)
+        render(&p, &self.knobs(grid, tau, seed, index), grid)
     }
 }
 
@@ -166,11 +288,36 @@ pub fn decay_bins(grid: &TimeGrid, tau: f64, t0: f64) -> Vec<f64> {
         .collect()
 }
 
-/// Render eq. (5) from channels `p` `[3, H, W]`.
-pub fn render(p: &Array3<f32>, tau: [f64; 3], t0: f64, grid: &TimeGrid) -> FlimSample {
+/// `erf(x)` (Abramowitz & Stegun 7.1.26, |error| < 1.5e-7).
+fn erf(x: f64) -> f64 {
+    let t = 1.0 / (1.0 + 0.327_591_1 * x.abs());
+    let poly = t * (0.254_829_592 + t * (-0.284_496_736 + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
+    (1.0 - poly * (-x * x).exp()).copysign(x)
+}
+
+/// Cyclic convolution of bin averages with a Gaussian instrument response of `fwhm_s`,
+/// integrated over each bin (the response is normalised, so the area is kept).
+pub fn blur_cyclic(bins: &[f64], bin_width_s: f64, fwhm_s: f64) -> Vec<f64> {
+    let n = bins.len();
+    if fwhm_s <= 0.0 || n == 0 {
+        return bins.to_vec();
+    }
+    let sigma = fwhm_s / (8.0 * 2f64.ln()).sqrt() / bin_width_s; // in bins (FWHM = √(8 ln 2)·σ)
+    let reach = ((4.0 * sigma).ceil() as usize).min(n / 2).max(1);
+    let cdf = |x: f64| 0.5 * (1.0 + erf(x / (sigma * std::f64::consts::SQRT_2)));
+    let kernel: Vec<f64> = (0..=2 * reach).map(|i| i as f64 - reach as f64).map(|d| cdf(d + 0.5) - cdf(d - 0.5)).collect();
+    let total: f64 = kernel.iter().sum();
+    (0..n)
+        .map(|j| kernel.iter().enumerate().map(|(i, k)| k * bins[(j + reach + n - i) % n]).sum::<f64>() / total) // Σ_d k(d)·b[j − d], d = i − reach
+        .collect()
+}
+
+/// Render eq. (5) from channels `p` `[3, H, W]` with the scene's knobs.
+pub fn render(p: &Array3<f32>, knobs: &FlimKnobs, grid: &TimeGrid) -> FlimSample {
     let (_, h, w) = p.dim();
     let t = grid.bins();
-    let decays: Vec<Vec<f64>> = tau.iter().map(|&ti| decay_bins(grid, ti, t0)).collect();
+    let (tau, t0) = (knobs.tau, knobs.onset_s);
+    let decays: Vec<Vec<f64>> = tau.iter().map(|&ti| blur_cyclic(&decay_bins(grid, ti, t0), grid.bin_width_s(), knobs.irf_fwhm_s)).collect();
     let mut x = Array3::<f32>::zeros((t, h, w));
     let mut weights = Array3::<f32>::zeros((3, h, w));
     let mut lifetime = Array2::<f32>::from_elem((h, w), f32::NAN);
@@ -194,7 +341,16 @@ pub fn render(p: &Array3<f32>, tau: [f64; 3], t0: f64, grid: &TimeGrid) -> FlimS
             }
         }
     }
-    FlimSample { x, tau: Array1::from_iter(tau.iter().map(|&v| v as f32)), weights, lifetime, intensity }
+    let b = knobs.brightness as f32;
+    if knobs.background > 0.0 {
+        let offset = knobs.background as f32 * x.iter().fold(0f32, |m, &v| m.max(v));
+        x.mapv_inplace(|v| v + offset);
+    }
+    if b != 1.0 {
+        x.mapv_inplace(|v| v * b);
+        intensity.mapv_inplace(|v| v * b);
+    }
+    FlimSample { x, tau: Array1::from_iter(tau.iter().map(|&v| v as f32)), weights, lifetime, intensity, onset: Array1::from_elem(1, t0 as f32) }
 }
 
 #[cfg(test)]
@@ -209,7 +365,7 @@ mod tests {
     #[test]
     fn decays_recover_their_lifetimes_by_a_fit() {
         let g = het();
-        let params = FlimParams { height: 16, width: 16, ..Default::default() };
+        let params = FlimParams { height: 16, width: 16, ..FlimParams::paper() };
         let s = params.sample(&g, 1, 0);
         let dt = g.bin_width_s();
         let first = (params.onset_s / dt).ceil() as usize + 1;
@@ -218,7 +374,8 @@ mod tests {
             let tau_true = s.tau[i] as f64;
             let mut p = Array3::<f32>::zeros((3, 1, 1));
             p[(i, 0, 0)] = 1.0;
-            let one = render(&p, [s.tau[0] as f64, s.tau[1] as f64, s.tau[2] as f64], params.onset_s, &g);
+            let knobs = FlimKnobs { tau: [s.tau[0] as f64, s.tau[1] as f64, s.tau[2] as f64], onset_s: params.onset_s, irf_fwhm_s: 0.0, background: 0.0, brightness: 1.0 };
+            let one = render(&p, &knobs, &g);
             let ys: Vec<f64> = (first..first + 30).map(|j| (one.x[(j, 0, 0)] as f64).ln()).collect();
             let xs: Vec<f64> = (first..first + 30).map(|j| j as f64 * dt).collect();
             let (mx, my) = (xs.iter().sum::<f64>() / 30.0, ys.iter().sum::<f64>() / 30.0);
@@ -246,8 +403,86 @@ mod tests {
     #[test]
     fn same_seed_same_sample() {
         let g = het();
+        for p in [FlimParams { height: 8, width: 8, ..FlimParams::paper() }, FlimParams { height: 8, width: 8, ..Default::default() }] {
+            assert_eq!(p.sample(&g, 4, 2).x, p.sample(&g, 4, 2).x);
+            assert_ne!(p.sample(&g, 4, 2).x, p.sample(&g, 4, 3).x);
+        }
+    }
+
+    #[test]
+    fn randomised_knobs_cover_their_ranges() {
+        let g = het();
         let p = FlimParams { height: 8, width: 8, ..Default::default() };
-        assert_eq!(p.sample(&g, 4, 2).x, p.sample(&g, 4, 2).x);
-        assert_ne!(p.sample(&g, 4, 2).x, p.sample(&g, 4, 3).x);
+        let r = FlimRandomization::default();
+        let knobs: Vec<FlimKnobs> = (0..400).map(|i| p.knobs(&g, [1e-9; 3], 9, i)).collect();
+        // the onset histogram covers the whole cycle: every eighth of it gets items
+        let mut hist = [0usize; 8];
+        for k in &knobs {
+            hist[((k.onset_s / g.cycle_s()) * 8.0) as usize] += 1;
+        }
+        assert!(hist.iter().all(|&n| n >= 25), "onset histogram {hist:?}");
+        // one, two and three distinct lifetimes all occur, inside the log-uniform range
+        for n in 1..=3 {
+            assert!(knobs.iter().any(|k| { let mut t = k.tau.to_vec(); t.dedup(); t.len() == n }), "{n} lifetimes");
+        }
+        assert!(knobs.iter().all(|k| k.tau.iter().all(|&t| t >= r.tau_s[0] && t <= r.tau_s[1])));
+        let taus: Vec<f64> = knobs.iter().map(|k| k.tau[0]).collect();
+        assert!(taus.iter().any(|&t| t < 0.5e-9) && knobs.iter().any(|k| k.tau[2] > 3.5e-9), "wider than the paper's ranges");
+        // brightness over two decades, log-uniform: about half of the draws below 0.1
+        let dim = knobs.iter().filter(|k| k.brightness < 0.1).count();
+        assert!((150..250).contains(&dim), "{dim} of 400 below 0.1");
+        assert!(knobs.iter().any(|k| k.irf_fwhm_s > 0.8e-9) && knobs.iter().any(|k| k.background > 0.04));
+        // the cells are the same with and without randomisation; the rendering is not
+        let fixed = FlimParams { height: 8, width: 8, ..FlimParams::paper() };
+        let (a, b) = (p.sample(&g, 9, 3), fixed.sample(&g, 9, 3));
+        assert_eq!(a.weights, b.weights);
+        assert_ne!(a.x, b.x);
+        assert_eq!(a.onset[0], knobs[3].onset_s as f32);
+        // a background offset lifts every voxel, the brightness scales the cube
+        let k = FlimKnobs { tau: [1e-9, 2e-9, 3e-9], onset_s: 1e-9, irf_fwhm_s: 0.0, background: 0.0, brightness: 1.0 };
+        let (ch, _) = fixed.channels(9, 3);
+        let plain = render(&ch, &k, &g).x;
+        let peak = plain.iter().fold(0f32, |m, &v| m.max(v));
+        let lifted = render(&ch, &FlimKnobs { background: 0.1, brightness: 0.5, ..k }, &g).x;
+        for (l, v) in lifted.iter().zip(plain.iter()) {
+            assert!((l - 0.5 * (v + 0.1 * peak)).abs() < 1e-6);
+        }
+        assert!(FlimRandomization { lifetimes: [0, 3], ..r }.validate().is_err());
+        assert!(FlimRandomization { onset_cycle: [0.5, 0.2], ..r }.validate().is_err());
+    }
+
+    #[test]
+    fn irf_blur_keeps_the_area_and_widens_the_rise() {
+        let g = het();
+        let d = decay_bins(&g, 1e-9, 3e-9);
+        let b = blur_cyclic(&d, g.bin_width_s(), 1e-9);
+        let (sd, sb): (f64, f64) = (d.iter().sum(), b.iter().sum());
+        assert!((sd - sb).abs() < 1e-9 * sd, "area {sd} -> {sb}");
+        // the sharp rise at the onset is spread over several bins: its peak drops
+        let (pd, pb) = (d.iter().cloned().fold(0.0, f64::max), b.iter().cloned().fold(0.0, f64::max));
+        assert!(pb < 0.9 * pd, "peak {pd} -> {pb}");
+        assert_eq!(blur_cyclic(&d, g.bin_width_s(), 0.0), d);
+        assert!((erf(0.5) - 0.520_499_877_8).abs() < 2e-7 && (erf(-1.2) + 0.910_313_978_2).abs() < 2e-7);
+    }
+
+    #[test]
+    fn a_shifted_onset_is_a_cyclic_time_shift() {
+        // the codes loop, so delaying the decay by k bins rolls the cube by k bins
+        let g = het();
+        let fixed = FlimParams { height: 8, width: 8, ..FlimParams::paper() };
+        let (ch, tau) = fixed.channels(5, 1);
+        let dt = g.bin_width_s();
+        for (irf, k) in [(0.0, 37usize), (0.6e-9, 200)] {
+            let base = FlimKnobs { tau, onset_s: 1.3e-9, irf_fwhm_s: irf, background: 0.0, brightness: 1.0 };
+            let x0 = render(&ch, &base, &g).x;
+            let shifted = render(&ch, &FlimKnobs { onset_s: (base.onset_s + k as f64 * dt) % g.cycle_s(), ..base }, &g).x;
+            let t = g.bins();
+            let peak = x0.iter().fold(0f32, |m, &v| m.max(v));
+            for j in 0..t {
+                for (a, b) in shifted.index_axis(ndarray::Axis(0), (j + k) % t).iter().zip(x0.index_axis(ndarray::Axis(0), j).iter()) {
+                    assert!((a - b).abs() < 1e-5 * peak, "bin {j}: {a} vs {b}");
+                }
+            }
+        }
     }
 }

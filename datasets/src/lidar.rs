@@ -11,6 +11,13 @@
 //!   carrying a fraction `κ` of its energy with time constant `τ_ir`;
 //! - **ambient light**: a constant level per bin proportional to the pixel's albedo.
 //!
+//! **Domain randomisation** ([`LidarRandomization`], on by default; `None` is the generator
+//! above with its fixed ranges): back walls anywhere up to the end of the unambiguous range
+//! and steeper tilts, objects from close to the camera to the wall, procedural-noise albedo
+//! (fractal value noise) besides checkers, slanted disks ("slopes") besides boxes and
+//! spheres, wider sheet transmittance, reflectance and distance ranges, an ambient level and
+//! interreflection tails of random strength on random objects.
+//!
 //! The cube is scaled so that its largest voxel is 1 (depths are not affected). Ground
 //! truth: cube `[T, H, W]`, depth (range `r`, m) per bounce `[2, H, W]` ordered by arrival
 //! (NaN where there is none), intensity `[H, W]` (the direct returns' total area, same scale).
@@ -34,6 +41,8 @@ pub enum Shape {
     Sphere { center: [f64; 3], radius: f64 },
     /// Axis-aligned box.
     Cuboid { min: [f64; 3], max: [f64; 3] },
+    /// Flat disk through `center` with unit `normal`: a slanted surface patch.
+    Disk { center: [f64; 3], normal: [f64; 3], radius: f64 },
 }
 
 /// A textured Lambertian object.
@@ -48,6 +57,10 @@ pub struct Object {
     pub texture_contrast: f64,
     /// Interreflection tail: fraction `κ` of the return and time constant (s).
     pub tail: Option<(f64, f64)>,
+    /// Fractal value-noise texture of this seed instead of checkers (period
+    /// `texture_period`, contrast `texture_contrast`).
+    #[serde(default)]
+    pub noise_seed: Option<u64>,
 }
 
 /// A weakly diffusive sheet at `z = depth`.
@@ -65,6 +78,10 @@ pub struct Scene {
     pub sheet: Option<Sheet>,
     /// Ambient level per bin relative to the cube's peak, times the pixel's albedo.
     pub ambient: f64,
+    /// Instrument delay (s): every return arrives at `2r/c + delay` (cyclically); the depth
+    /// ground truth stays the true range.
+    #[serde(default)]
+    pub delay_s: f64,
 }
 
 /// Pinhole camera.
@@ -115,11 +132,103 @@ pub struct LidarParams {
     pub interreflection: bool,
     /// Ambient level (0 = dark room, as in the paper).
     pub ambient: f64,
+    /// Domain randomisation (`None`, and in manifests written before it existed: the fixed
+    /// ranges of the generator without it).
+    #[serde(default)]
+    pub randomization: Option<LidarRandomization>,
 }
 
 impl Default for LidarParams {
+    /// 64×64, 40°, up to 4 objects, a sheet in half the scenes, randomised
+    /// ([`LidarRandomization::default`]).
     fn default() -> Self {
-        LidarParams { height: 64, width: 64, fov_deg: 40.0, max_objects: 4, sheet_probability: 0.5, interreflection: false, ambient: 0.0 }
+        LidarParams { randomization: Some(LidarRandomization::default()), ..LidarParams::paper() }
+    }
+}
+
+/// Ranges of the randomised LiDAR knobs; a range `[lo, hi]` with `lo == hi` fixes the knob.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LidarRandomization {
+    /// Distance of the back wall's farthest corner, as a fraction of the unambiguous range.
+    pub wall_range: [f64; 2],
+    /// Largest tilt of the back wall (slope in x and y).
+    pub wall_tilt: f64,
+    /// Object distances, as a fraction of the wall's.
+    pub object_range: [f64; 2],
+    /// Probability that a surface has a fractal-noise texture instead of checkers.
+    pub noise_texture: f64,
+    /// At most this many slanted disks per scene.
+    pub max_slopes: usize,
+    /// Sheet round-trip transmittance per pass, reflectance, and distance as a fraction of the
+    /// nearest surface's.
+    pub sheet_transmission: [f64; 2],
+    pub sheet_reflectance: [f64; 2],
+    pub sheet_distance: [f64; 2],
+    /// Ambient level, added to `LidarParams::ambient`.
+    pub ambient: [f64; 2],
+    /// Probability that an object has an interreflection tail, and its fraction `κ`.
+    pub interreflection_probability: f64,
+    pub interreflection: [f64; 2],
+}
+
+impl Default for LidarRandomization {
+    fn default() -> Self {
+        LidarRandomization {
+            wall_range: [0.3, 0.97],
+            wall_tilt: 0.6,
+            object_range: [0.1, 0.9],
+            noise_texture: 0.7,
+            max_slopes: 3,
+            sheet_transmission: [0.3, 0.95],
+            sheet_reflectance: [0.001, 0.05],
+            sheet_distance: [0.15, 0.85],
+            ambient: [0.0, 0.02],
+            interreflection_probability: 0.3,
+            interreflection: [0.02, 0.3],
+        }
+    }
+}
+
+impl LidarRandomization {
+    /// Check the ranges.
+    pub fn validate(&self) -> Result<()> {
+        let range = |name: &'static str, r: [f64; 2], lo: f64, hi: f64| {
+            if r[0].is_finite() && r[1].is_finite() && lo <= r[0] && r[0] <= r[1] && r[1] <= hi {
+                Ok(())
+            } else {
+                Err(invalid(name, format!("{r:?}"), format!("lo ≤ hi within [{lo}, {hi}]")))
+            }
+        };
+        range("wall_range", self.wall_range, 0.05, 0.99)?;
+        range("object_range", self.object_range, 0.01, 0.99)?;
+        range("sheet_transmission", self.sheet_transmission, 0.0, 1.0)?;
+        range("sheet_reflectance", self.sheet_reflectance, 0.0, 1.0)?;
+        range("sheet_distance", self.sheet_distance, 0.01, 0.99)?;
+        range("ambient", self.ambient, 0.0, 10.0)?;
+        range("interreflection", self.interreflection, 0.0, 10.0)?;
+        for (name, p) in [("noise_texture", self.noise_texture), ("interreflection_probability", self.interreflection_probability)] {
+            if !(0.0..=1.0).contains(&p) {
+                return Err(invalid(name, p, "a probability in [0, 1]"));
+            }
+        }
+        if !(0.0..=2.0).contains(&self.wall_tilt) {
+            return Err(invalid("wall_tilt", self.wall_tilt, "a slope in [0, 2]"));
+        }
+        if self.max_slopes > 64 {
+            return Err(invalid("max_slopes", self.max_slopes, "0..=64"));
+        }
+        Ok(())
+    }
+}
+
+/// A draw from `[lo, hi]`: uniform, or log-uniform; the value itself when `lo == hi`.
+fn draw(rng: &mut StdRng, r: [f64; 2], log: bool) -> f64 {
+    if r[0] >= r[1] {
+        r[0]
+    } else if log && r[0] > 0.0 {
+        rng.random_range(r[0].ln()..r[1].ln()).exp()
+    } else {
+        rng.random_range(r[0]..r[1])
     }
 }
 
@@ -141,7 +250,16 @@ impl LidarParams {
         if self.max_objects == 0 || self.max_objects > 64 {
             return Err(invalid("max_objects", self.max_objects, "1..=64"));
         }
+        if let Some(r) = &self.randomization {
+            r.validate()?;
+        }
         Ok(())
+    }
+
+    /// The generator without randomisation: 64×64, 40°, up to 4 objects, a sheet in half the
+    /// scenes, walls within 70–90 % of the range, checker textures.
+    pub fn paper() -> Self {
+        LidarParams { height: 64, width: 64, fov_deg: 40.0, max_objects: 4, sheet_probability: 0.5, interreflection: false, ambient: 0.0, randomization: None }
     }
 
     fn camera(&self) -> Camera {
@@ -150,6 +268,9 @@ impl LidarParams {
 
     /// The random scene of item `index` (a pure function of `(seed, index)`).
     pub fn scene(&self, grid: &TimeGrid, seed: u64, index: u64) -> Scene {
+        if let Some(r) = &self.randomization {
+            return self.random_scene(r, grid, seed, index);
+        }
         let mut rng = StdRng::seed_from_u64(tcsense_sensor::noise::derive_seed(seed, index));
         let range = grid.range_m();
         let cam = self.camera();
@@ -183,6 +304,7 @@ impl LidarParams {
             texture_period: p,
             texture_contrast: t,
             tail: tail(&mut rng, self.interreflection),
+            noise_seed: None,
         });
         // floor with probability ½
         if rng.random_bool(0.5) {
@@ -195,6 +317,7 @@ impl LidarParams {
                 texture_period: p,
                 texture_contrast: t,
                 tail: tail(&mut rng, self.interreflection),
+                noise_seed: None,
             });
         }
         let n_obj = rng.random_range(1..=self.max_objects);
@@ -211,14 +334,82 @@ impl LidarParams {
                 Shape::Cuboid { min: [cx - s[0], cy - s[1], z - s[2]], max: [cx + s[0], cy + s[1], z + s[2]] }
             };
             let (p, t) = tex(&mut rng);
-            objects.push(Object { shape, albedo: rng.random_range(0.2..1.0), texture_period: p, texture_contrast: t, tail: tail(&mut rng, self.interreflection) });
+            objects.push(Object { shape, albedo: rng.random_range(0.2..1.0), texture_period: p, texture_contrast: t, tail: tail(&mut rng, self.interreflection), noise_seed: None });
         }
         let sheet = rng.random_bool(self.sheet_probability).then(|| Sheet {
             z: rng.random_range(0.3..0.7) * z_near,
             reflectance: rng.random_range(0.002..0.02),
             transmission: rng.random_range(0.6..0.9),
         });
-        Scene { objects, sheet, ambient: self.ambient }
+        Scene { objects, sheet, ambient: self.ambient, delay_s: 0.0 }
+    }
+
+    /// A randomised scene ([`LidarRandomization`]).
+    fn random_scene(&self, r: &LidarRandomization, grid: &TimeGrid, seed: u64, index: u64) -> Scene {
+        let mut rng = StdRng::seed_from_u64(tcsense_sensor::noise::derive_seed(seed, index));
+        let range = grid.range_m();
+        let cam = self.camera();
+        let half_x = (cam.fov_deg.to_radians() / 2.0).tan();
+        let half_y = half_x * cam.height as f64 / cam.width as f64;
+        let corners = [(0, 0), (0, cam.width - 1), (cam.height - 1, 0), (cam.height - 1, cam.width - 1)];
+        let min_den = |tilt: [f64; 2]| corners.iter().map(|&(rr, c)| { let d = cam.ray(rr, c); d[2] - tilt[0] * d[0] - tilt[1] * d[1] }).fold(f64::INFINITY, f64::min);
+        // a surface's look: checkers or fractal noise, albedo, interreflection tail
+        let look = |rng: &mut StdRng, albedo: (f64, f64)| {
+            let noise = rng.random_bool(r.noise_texture);
+            let period = rng.random_range(0.02..0.4) * range / 8.0;
+            let contrast = rng.random_range(0.0..if noise { 0.9 } else { 0.6 });
+            let tail = (rng.random_bool(r.interreflection_probability) && (self.interreflection || r.interreflection[1] > 0.0))
+                .then(|| (draw(rng, r.interreflection, true), rng.random_range(0.3e-9..4e-9)));
+            (rng.random_range(albedo.0..albedo.1), period, contrast, tail, noise.then(|| rng.random::<u64>()))
+        };
+        let object = |rng: &mut StdRng, shape: Shape, albedo: (f64, f64)| {
+            let (albedo, texture_period, texture_contrast, tail, noise_seed) = look(rng, albedo);
+            Object { shape, albedo, texture_period, texture_contrast, tail, noise_seed }
+        };
+        // back wall: its farthest corner at a random fraction of the range
+        let mut tilt = [rng.random_range(-r.wall_tilt..=r.wall_tilt), rng.random_range(-r.wall_tilt..=r.wall_tilt) * 0.6];
+        if min_den(tilt) < 0.3 {
+            tilt = [0.0, 0.0];
+        }
+        let far = draw(&mut rng, r.wall_range, false) * range;
+        // plane z = zw + tilt·(x, y): the range along ray d is zw / den(d); the largest is at the smallest den
+        let zw = far * min_den(tilt);
+        // the wall's nearest depth z = t·d_z over the corners (t = zw / den)
+        let mut z_near = corners.iter().map(|&(rr, c)| { let d = cam.ray(rr, c); zw * d[2] / (d[2] - tilt[0] * d[0] - tilt[1] * d[1]) }).fold(f64::INFINITY, f64::min);
+        let mut objects = vec![object(&mut rng, Shape::Plane { point: [0.0, 0.0, zw], normal: normalize([tilt[0], tilt[1], -1.0]) }, (0.2, 1.0))];
+        if rng.random_bool(0.5) {
+            let yf = rng.random_range(0.2..0.9) * half_y * zw;
+            z_near = z_near.min(yf / half_y);
+            let normal = normalize([0.0, -1.0, rng.random_range(-0.2..0.2)]);
+            objects.push(object(&mut rng, Shape::Plane { point: [0.0, yf, 0.0], normal }, (0.1, 0.9)));
+        }
+        let n_obj = rng.random_range(1..=self.max_objects);
+        let n_slopes = rng.random_range(0..=r.max_slopes);
+        for i in 0..n_obj + n_slopes {
+            let z = draw(&mut rng, r.object_range, false) * zw;
+            let cx = rng.random_range(-0.9..0.9) * half_x * z;
+            let cy = rng.random_range(-0.9..0.9) * half_y * z;
+            let size = rng.random_range(0.05..0.35) * half_x * z;
+            z_near = z_near.min(z - 1.5 * size);
+            let shape = if i >= n_obj {
+                // a slanted disk: normal within ~70° of the view axis
+                let normal = normalize([rng.random_range(-1.5..1.5), rng.random_range(-1.5..1.5), -1.0]);
+                Shape::Disk { center: [cx, cy, z], normal, radius: size * 1.5 }
+            } else if rng.random_bool(0.5) {
+                Shape::Sphere { center: [cx, cy, z], radius: size }
+            } else {
+                let e = [size * rng.random_range(0.3..1.7), size * rng.random_range(0.3..1.7), size * rng.random_range(0.3..1.7)];
+                Shape::Cuboid { min: [cx - e[0], cy - e[1], z - e[2]], max: [cx + e[0], cy + e[1], z + e[2]] }
+            };
+            objects.push(object(&mut rng, shape, (0.1, 1.0)));
+        }
+        let z_near = z_near.max(0.02 * range);
+        let sheet = rng.random_bool(self.sheet_probability).then(|| Sheet {
+            z: draw(&mut rng, r.sheet_distance, false) * z_near,
+            reflectance: draw(&mut rng, r.sheet_reflectance, true),
+            transmission: draw(&mut rng, r.sheet_transmission, false),
+        });
+        Scene { objects, sheet, ambient: self.ambient + draw(&mut rng, r.ambient, false), delay_s: 0.0 }
     }
 
     /// Render item `index`.
@@ -249,6 +440,15 @@ fn intersect(shape: &Shape, d: [f64; 3]) -> Option<(f64, [f64; 3])> {
             }
             let t = dot(point, normal) / den;
             (t > EPS).then_some((t, normal))
+        }
+        Shape::Disk { center, normal, radius } => {
+            let den = dot(d, normal);
+            if den.abs() < EPS {
+                return None;
+            }
+            let t = dot(center, normal) / den;
+            let p = [d[0] * t - center[0], d[1] * t - center[1], d[2] * t - center[2]];
+            (t > EPS && dot(p, p) <= radius * radius).then_some((t, normal))
         }
         Shape::Sphere { center, radius } => {
             let b = dot(d, center);
@@ -294,9 +494,41 @@ fn intersect(shape: &Shape, d: [f64; 3]) -> Option<(f64, [f64; 3])> {
     }
 }
 
+/// Smooth 3-D value noise in `[0, 1]`: hashed lattice values, trilinear with a smoothstep.
+fn value_noise(p: [f64; 3], seed: u64) -> f64 {
+    let cell = p.map(f64::floor);
+    let f = [p[0] - cell[0], p[1] - cell[1], p[2] - cell[2]].map(|v| v * v * (3.0 - 2.0 * v));
+    let lattice = |dx: i64, dy: i64, dz: i64| {
+        let (x, y, z) = (cell[0] as i64 + dx, cell[1] as i64 + dy, cell[2] as i64 + dz);
+        let h = tcsense_sensor::noise::derive_seed(seed, (x as u64).wrapping_mul(0x9E37_79B9) ^ (y as u64).wrapping_mul(0x85EB_CA6B).rotate_left(21) ^ (z as u64).wrapping_mul(0xC2B2_AE35).rotate_left(42));
+        (h >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
+    let x00 = lerp(lattice(0, 0, 0), lattice(1, 0, 0), f[0]);
+    let x10 = lerp(lattice(0, 1, 0), lattice(1, 1, 0), f[0]);
+    let x01 = lerp(lattice(0, 0, 1), lattice(1, 0, 1), f[0]);
+    let x11 = lerp(lattice(0, 1, 1), lattice(1, 1, 1), f[0]);
+    lerp(lerp(x00, x10, f[1]), lerp(x01, x11, f[1]), f[2])
+}
+
+/// Fractal (fBm) value noise in `[0, 1]`: four octaves, each twice as fine and half as strong.
+fn fractal_noise(p: [f64; 3], seed: u64) -> f64 {
+    let (mut sum, mut amp, mut norm, mut scale) = (0.0, 1.0, 0.0, 1.0);
+    for octave in 0..4u64 {
+        sum += amp * value_noise(p.map(|v| v * scale), seed.wrapping_add(octave));
+        norm += amp;
+        amp *= 0.5;
+        scale *= 2.0;
+    }
+    sum / norm
+}
+
 fn texture(o: &Object, p: [f64; 3]) -> f64 {
     if o.texture_period <= 0.0 || o.texture_contrast <= 0.0 {
         return o.albedo;
+    }
+    if let Some(seed) = o.noise_seed {
+        return o.albedo * (1.0 - o.texture_contrast * fractal_noise(p.map(|v| v / o.texture_period), seed));
     }
     let k = p.iter().map(|v| (v / o.texture_period).floor() as i64).sum::<i64>();
     if k.rem_euclid(2) == 0 {
@@ -329,7 +561,7 @@ pub fn render(scene: &Scene, cam: &Camera, grid: &TimeGrid) -> LidarSample {
                 if d[2] > 0.0 {
                     let rs = s.z / d[2];
                     let a = s.reflectance * d[2] / (rs * rs);
-                    grid.splat(&mut wave, 2.0 * rs / C, a);
+                    grid.splat(&mut wave, 2.0 * rs / C + scene.delay_s, a);
                     depth[(bounce, r, c)] = rs as f32;
                     bounce += 1;
                     total += a;
@@ -345,7 +577,7 @@ pub fn render(scene: &Scene, cam: &Camera, grid: &TimeGrid) -> LidarSample {
                 let p = [d[0] * range, d[1] * range, d[2] * range];
                 let alb = texture(o, p);
                 let a = atten * alb * dot(n, d).abs() / (range * range);
-                let t0 = 2.0 * range / C;
+                let t0 = 2.0 * range / C + scene.delay_s;
                 grid.splat(&mut wave, t0, a);
                 if let Some((kappa, tau)) = o.tail {
                     // bin-integrated exponential tail starting at t0, total area κ·a
@@ -387,7 +619,7 @@ mod tests {
     }
 
     fn wall(z: f64) -> Object {
-        Object { shape: Shape::Plane { point: [0.0, 0.0, z], normal: [0.0, 0.0, -1.0] }, albedo: 0.5, texture_period: 0.0, texture_contrast: 0.0, tail: None }
+        Object { shape: Shape::Plane { point: [0.0, 0.0, z], normal: [0.0, 0.0, -1.0] }, albedo: 0.5, texture_period: 0.0, texture_contrast: 0.0, tail: None, noise_seed: None }
     }
 
     #[test]
@@ -395,7 +627,7 @@ mod tests {
         let g = grid();
         let cam = Camera { height: 2, width: 2, fov_deg: 1.2 };
         let z = 2.3456;
-        let s = render(&Scene { objects: vec![wall(z)], sheet: None, ambient: 0.0 }, &cam, &g);
+        let s = render(&Scene { objects: vec![wall(z)], sheet: None, ambient: 0.0, delay_s: 0.0 }, &cam, &g);
         for r in 0..2 {
             for c in 0..2 {
                 let range = s.depth[(0, r, c)] as f64;
@@ -417,7 +649,7 @@ mod tests {
         let g = grid();
         let cam = Camera { height: 1, width: 1, fov_deg: 1.0 };
         let sheet = Sheet { z: 0.4, reflectance: 0.01, transmission: 0.8 };
-        let s = render(&Scene { objects: vec![wall(2.0)], sheet: Some(sheet), ambient: 0.0 }, &cam, &g);
+        let s = render(&Scene { objects: vec![wall(2.0)], sheet: Some(sheet), ambient: 0.0, delay_s: 0.0 }, &cam, &g);
         let (r1, r2) = (s.depth[(0, 0, 0)] as f64, s.depth[(1, 0, 0)] as f64);
         assert!((r1 - 0.4).abs() < 1e-6 && (r2 - 2.0).abs() < 1e-6, "{r1} {r2}");
         let wave: Vec<f64> = (0..32).map(|j| s.x[(j, 0, 0)] as f64).collect();
@@ -432,19 +664,73 @@ mod tests {
 
     #[test]
     fn generator_is_deterministic_and_in_range() {
-        let p = LidarParams { height: 8, width: 8, sheet_probability: 1.0, interreflection: true, ..Default::default() };
+        for random in [None, Some(LidarRandomization::default())] {
+            let p = LidarParams { height: 8, width: 8, sheet_probability: 1.0, interreflection: true, randomization: random, ..LidarParams::paper() };
+            let g = grid();
+            let a = p.sample(&g, 3, 5);
+            let b = p.sample(&g, 3, 5);
+            let c = p.sample(&g, 3, 6);
+            assert_eq!(a.x, b.x);
+            assert_ne!(a.x, c.x);
+            let peak = a.x.iter().fold(0f32, |m, &v| m.max(v));
+            let ambient = p.scene(&g, 3, 5).ambient as f32;
+            assert!(peak >= 1.0 - 1e-6 && peak <= 1.0 + ambient + 1e-6, "peak {peak}, ambient {ambient}");
+            let range = g.range_m() as f32;
+            assert!(a.depth.iter().filter(|v| !v.is_nan()).all(|&d| d > 0.0 && d < range));
+            // the sheet is the first bounce everywhere
+            let wall_sheet = a.depth.index_axis(Axis(0), 0);
+            let objects = a.depth.index_axis(Axis(0), 1);
+            assert!(wall_sheet.iter().zip(objects.iter()).all(|(&s, &o)| s < o), "sheet in front of every object");
+        }
+    }
+
+    #[test]
+    fn randomised_scenes_cover_the_range_and_the_new_looks() {
         let g = grid();
-        let a = p.sample(&g, 3, 5);
-        let b = p.sample(&g, 3, 5);
-        let c = p.sample(&g, 3, 6);
-        assert_eq!(a.x, b.x);
-        assert_ne!(a.x, c.x);
-        assert!((a.x.iter().fold(0f32, |m, &v| m.max(v)) - 1.0).abs() < 1e-6);
-        let range = g.range_m() as f32;
-        assert!(a.depth.iter().filter(|v| !v.is_nan()).all(|&d| d > 0.0 && d < range));
-        // the sheet is the first bounce everywhere
-        let wall_sheet = a.depth.index_axis(Axis(0), 0);
-        let objects = a.depth.index_axis(Axis(0), 1);
-        assert!(wall_sheet.iter().zip(objects.iter()).all(|(&s, &o)| s < o), "sheet in front of every object");
+        let r = LidarRandomization::default();
+        let p = LidarParams { height: 16, width: 16, ..Default::default() };
+        let fixed = LidarParams { height: 16, width: 16, ..LidarParams::paper() };
+        let range = g.range_m();
+        let far = |p: &LidarParams, i: u64| p.sample(&g, 1, i).depth.iter().filter(|v| v.is_finite()).fold(0f32, |m, &v| m.max(v)) as f64 / range;
+        let random_far: Vec<f64> = (0..60).map(|i| far(&p, i)).collect();
+        let fixed_far: Vec<f64> = (0..60).map(|i| far(&fixed, i)).collect();
+        // the fixed generator keeps every wall within 90 % of the range; the randomised one
+        // reaches past it and also puts walls close
+        assert!(fixed_far.iter().all(|&f| f <= 0.9 + 1e-6), "{fixed_far:?}");
+        assert!(random_far.iter().any(|&f| f > 0.93) && random_far.iter().any(|&f| f < 0.45), "{random_far:?}");
+        assert!(random_far.iter().all(|&f| f < r.wall_range[1] + 1e-6));
+        let scenes: Vec<Scene> = (0..60).map(|i| p.scene(&g, 1, i)).collect();
+        let objects = || scenes.iter().flat_map(|s| s.objects.iter());
+        assert!(objects().any(|o| matches!(o.shape, Shape::Disk { .. })), "slanted disks");
+        let noisy = objects().filter(|o| o.noise_seed.is_some()).count() as f64 / objects().count() as f64;
+        assert!((noisy - r.noise_texture).abs() < 0.1, "{noisy} of the surfaces have noise textures");
+        assert!(objects().any(|o| o.tail.is_some_and(|(k, _)| k > 0.1)), "strong interreflection tails");
+        let sheets: Vec<Sheet> = scenes.iter().filter_map(|s| s.sheet).collect();
+        assert!(sheets.iter().any(|s| s.transmission < 0.5) && sheets.iter().all(|s| (r.sheet_transmission[0]..=r.sheet_transmission[1]).contains(&s.transmission)));
+        assert!(scenes.iter().any(|s| s.ambient > 0.01) && scenes.iter().all(|s| s.ambient <= r.ambient[1]));
+        // fractal noise varies smoothly within [0, 1]
+        let v: Vec<f64> = (0..200).map(|i| fractal_noise([i as f64 * 0.05, 0.3, 1.7], 4)).collect();
+        assert!(v.iter().all(|x| (0.0..=1.0).contains(x)));
+        assert!(v.windows(2).all(|w| (w[0] - w[1]).abs() < 0.2), "smooth");
+        assert!(v.iter().cloned().fold(0.0, f64::max) - v.iter().cloned().fold(1.0, f64::min) > 0.2, "varies");
+        assert!(LidarRandomization { wall_range: [0.5, 1.5], ..r }.validate().is_err());
+    }
+
+    #[test]
+    fn an_instrument_delay_is_a_cyclic_time_shift() {
+        let g = grid();
+        let p = LidarParams { height: 8, width: 8, sheet_probability: 1.0, ..Default::default() };
+        let scene = p.scene(&g, 2, 7);
+        let cam = p.camera();
+        let base = render(&scene, &cam, &g);
+        let k = 13;
+        let delayed = render(&Scene { delay_s: k as f64 * g.bin_width_s(), ..scene.clone() }, &cam, &g);
+        let t = g.bins();
+        for j in 0..t {
+            for (a, b) in delayed.x.index_axis(Axis(0), (j + k) % t).iter().zip(base.x.index_axis(Axis(0), j).iter()) {
+                assert!((a - b).abs() < 1e-5, "bin {j}: {a} vs {b}");
+            }
+        }
+        assert_eq!(delayed.depth, base.depth, "the true range does not move");
     }
 }

@@ -121,6 +121,7 @@ impl Generator {
                 f.insert("tau".into(), vec![3]);
                 f.insert("weights".into(), vec![3, h, w]);
                 f.insert("lifetime".into(), vec![h, w]);
+                f.insert("onset".into(), vec![1]);
             }
         }
         f
@@ -140,6 +141,7 @@ impl Generator {
                     ("weights", s.weights.into_dyn()),
                     ("lifetime", s.lifetime.into_dyn()),
                     ("intensity", s.intensity.into_dyn()),
+                    ("onset", s.onset.into_dyn()),
                 ]
             }
         }

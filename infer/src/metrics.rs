@@ -75,8 +75,6 @@ mod tests {
 
     #[test]
     fn values() {
-        assert!((mse(&[1.0, 2.0], &[1.0, 4.0]) - 2.0).abs() < 1e-12);
-        assert!((psnr(&[0.0, 0.9], &[0.0, 1.0]) - 10.0 * (1.0f64 / 0.005).log10()).abs() < 1e-4);
         let mut t = Array3::<f32>::from_elem((2, 1, 3), f32::NAN);
         let mut e = Array3::<f32>::from_elem((2, 1, 3), f32::NAN);
         t[(0, 0, 0)] = 1.0;

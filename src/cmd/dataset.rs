@@ -8,9 +8,9 @@ use std::process::ExitCode;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
-use tcsense_datasets::flim::FlimParams;
+use tcsense_datasets::flim::{FlimParams, FlimRandomization};
 use tcsense_datasets::import::{self, ImportOptions, Source};
-use tcsense_datasets::lidar::LidarParams;
+use tcsense_datasets::lidar::{LidarParams, LidarRandomization};
 use tcsense_datasets::store::{self, Dataset, Generator, WriteOptions, DEFAULT_SHARD};
 use tcsense_datasets::{montage, TimeGrid};
 use tcsense_sensor::Sampling;
@@ -69,6 +69,145 @@ pub struct CommonArgs {
     output: PathBuf,
 }
 
+/// A range flag: `LO,HI`, or one value `V` for the fixed setting `V,V`.
+fn parse_range(s: &str) -> Result<[f64; 2], String> {
+    let bad = || format!("{s:?}: expected LO,HI or one number");
+    let v: Vec<f64> = s.split(',').map(|p| p.trim().parse::<f64>().map_err(|_| bad())).collect::<std::result::Result<_, _>>()?;
+    match v[..] {
+        [a] => Ok([a, a]),
+        [a, b] => Ok([a, b]),
+        _ => Err(bad()),
+    }
+}
+
+/// Domain randomisation of the FLIm generator (on by default; `--paper` turns it off). A range
+/// flag takes `LO,HI`, or one value to fix the knob.
+#[derive(Args, Clone)]
+pub struct FlimRandomArgs {
+    /// The paper's generator: onset fixed at --onset-ns (default 2 ns), lifetimes in 0.5–1.5,
+    /// 1.5–2.5 and 2.5–3.5 ns, no IRF, background or brightness variation.
+    #[arg(long)]
+    paper: bool,
+    /// Decay onset in ns (fixes it; with --paper the default is 2).
+    #[arg(long, conflicts_with = "onset_range")]
+    onset_ns: Option<f64>,
+    /// Onset range as fractions of the code cycle [default: 0,1].
+    #[arg(long, value_parser = parse_range)]
+    onset_range: Option<[f64; 2]>,
+    /// FWHM of the Gaussian instrument response in ns [default: 0,1].
+    #[arg(long, value_parser = parse_range)]
+    irf_fwhm_ns: Option<[f64; 2]>,
+    /// Distinct lifetimes per scene, from LO to HI (1–3) [default: 1,3].
+    #[arg(long, value_parser = parse_range)]
+    lifetimes: Option<[f64; 2]>,
+    /// Lifetime range in ns, log-uniform [default: 0.3,6].
+    #[arg(long, value_parser = parse_range)]
+    tau_ns: Option<[f64; 2]>,
+    /// Background offset as a fraction of the peak [default: 0,0.05].
+    #[arg(long, value_parser = parse_range)]
+    background: Option<[f64; 2]>,
+    /// Brightness factor, log-uniform [default: 0.01,1].
+    #[arg(long, value_parser = parse_range)]
+    brightness: Option<[f64; 2]>,
+}
+
+impl FlimRandomArgs {
+    fn params(&self, height: usize, width: usize, max_cells: usize, grid: &TimeGrid) -> Result<FlimParams> {
+        let knobs = [self.onset_range.is_some(), self.irf_fwhm_ns.is_some(), self.lifetimes.is_some(), self.tau_ns.is_some(), self.background.is_some(), self.brightness.is_some()];
+        if self.paper && knobs.iter().any(|&k| k) {
+            bail!("--paper fixes every knob but the onset (--onset-ns); drop --paper to set ranges");
+        }
+        let mut p = FlimParams { height, width, max_cells, ..FlimParams::paper() };
+        if self.paper {
+            p.onset_s = self.onset_ns.unwrap_or(2.0) * 1e-9;
+            return Ok(p);
+        }
+        let d = FlimRandomization::default();
+        let ns = |r: [f64; 2]| [r[0] * 1e-9, r[1] * 1e-9];
+        let onset_cycle = match (self.onset_ns, self.onset_range) {
+            (Some(t), _) => [t * 1e-9 / grid.cycle_s(); 2],
+            (None, Some(r)) => r,
+            (None, None) => d.onset_cycle,
+        };
+        let lifetimes = match self.lifetimes {
+            Some(r) if r.iter().all(|v| v.fract() == 0.0 && *v >= 0.0) => [r[0] as usize, r[1] as usize],
+            Some(r) => bail!("--lifetimes {r:?}: expected whole numbers from 1 to 3"),
+            None => d.lifetimes,
+        };
+        p.randomization = Some(FlimRandomization {
+            onset_cycle,
+            irf_fwhm_s: self.irf_fwhm_ns.map(ns).unwrap_or(d.irf_fwhm_s),
+            lifetimes,
+            tau_s: self.tau_ns.map(ns).unwrap_or(d.tau_s),
+            background: self.background.unwrap_or(d.background),
+            brightness: self.brightness.unwrap_or(d.brightness),
+        });
+        Ok(p)
+    }
+}
+
+/// Domain randomisation of the LiDAR generator (on by default; `--paper` turns it off). A
+/// range flag takes `LO,HI`, or one value to fix the knob.
+#[derive(Args, Clone)]
+pub struct LidarRandomArgs {
+    /// The generator without randomisation: walls within 70–90 % of the range, checker
+    /// textures, boxes and spheres, fixed sheet ranges.
+    #[arg(long)]
+    paper: bool,
+    /// Back-wall distance (farthest corner) as fractions of the unambiguous range [default: 0.3,0.97].
+    #[arg(long, value_parser = parse_range)]
+    wall_range: Option<[f64; 2]>,
+    /// Object distances as fractions of the wall's [default: 0.1,0.9].
+    #[arg(long, value_parser = parse_range)]
+    object_range: Option<[f64; 2]>,
+    /// Probability of a fractal-noise texture instead of checkers [default: 0.7].
+    #[arg(long)]
+    noise_texture: Option<f64>,
+    /// At most this many slanted disks per scene [default: 3].
+    #[arg(long)]
+    max_slopes: Option<usize>,
+    /// Sheet transmittance per pass [default: 0.3,0.95].
+    #[arg(long, value_parser = parse_range)]
+    sheet_transmission: Option<[f64; 2]>,
+    /// Sheet reflectance, log-uniform [default: 0.001,0.05].
+    #[arg(long, value_parser = parse_range)]
+    sheet_reflectance: Option<[f64; 2]>,
+    /// Sheet distance as fractions of the nearest surface's [default: 0.15,0.85].
+    #[arg(long, value_parser = parse_range)]
+    sheet_distance: Option<[f64; 2]>,
+    /// Extra ambient level [default: 0,0.02].
+    #[arg(long, value_parser = parse_range)]
+    ambient_range: Option<[f64; 2]>,
+    /// Interreflection fraction κ of an object's return, log-uniform [default: 0.02,0.3].
+    #[arg(long, value_parser = parse_range)]
+    interreflection_strength: Option<[f64; 2]>,
+}
+
+impl LidarRandomArgs {
+    fn randomization(&self) -> Result<Option<LidarRandomization>> {
+        let d = LidarRandomization::default();
+        let set = [self.wall_range.is_some(), self.object_range.is_some(), self.noise_texture.is_some(), self.max_slopes.is_some(), self.sheet_transmission.is_some(), self.sheet_reflectance.is_some(), self.sheet_distance.is_some(), self.ambient_range.is_some(), self.interreflection_strength.is_some()];
+        if self.paper {
+            if set.iter().any(|&k| k) {
+                bail!("--paper fixes every knob; drop it to set ranges");
+            }
+            return Ok(None);
+        }
+        Ok(Some(LidarRandomization {
+            wall_range: self.wall_range.unwrap_or(d.wall_range),
+            object_range: self.object_range.unwrap_or(d.object_range),
+            noise_texture: self.noise_texture.unwrap_or(d.noise_texture),
+            max_slopes: self.max_slopes.unwrap_or(d.max_slopes),
+            sheet_transmission: self.sheet_transmission.unwrap_or(d.sheet_transmission),
+            sheet_reflectance: self.sheet_reflectance.unwrap_or(d.sheet_reflectance),
+            sheet_distance: self.sheet_distance.unwrap_or(d.sheet_distance),
+            ambient: self.ambient_range.unwrap_or(d.ambient),
+            interreflection: self.interreflection_strength.unwrap_or(d.interreflection),
+            ..d
+        }))
+    }
+}
+
 #[derive(Subcommand)]
 pub enum DatasetCmd {
     /// LiDAR scenes with multipath (sheet, interreflections, ambient light).
@@ -92,6 +231,8 @@ pub enum DatasetCmd {
         /// Ambient light level (relative to the peak voxel).
         #[arg(long, default_value_t = 0.0)]
         ambient: f64,
+        #[command(flatten)]
+        random: LidarRandomArgs,
     },
     /// Fluorescence-lifetime samples (eq. 5) on the heterodyne grid (default K = 8).
     Flim {
@@ -99,12 +240,11 @@ pub enum DatasetCmd {
         common: CommonArgs,
         #[command(flatten)]
         grid: GridArgs,
-        /// Decay onset in ns.
-        #[arg(long, default_value_t = 2.0)]
-        onset_ns: f64,
         /// At most this many cells per image.
         #[arg(long, default_value_t = 8)]
         max_cells: usize,
+        #[command(flatten)]
+        random: FlimRandomArgs,
     },
     /// Import cubes (.npy [T,H,W] or [F,T,H,W]) or depth (+ albedo) maps (.npy or PNG).
     Import {
@@ -205,14 +345,14 @@ fn run_generator(gen: Generator, grid: TimeGrid, c: &CommonArgs) -> Result<()> {
 
 pub fn run(cmd: DatasetCmd) -> Result<ExitCode> {
     match cmd {
-        DatasetCmd::Lidar { common, grid, fov, max_objects, sheet_probability, interreflection, ambient } => {
+        DatasetCmd::Lidar { common, grid, fov, max_objects, sheet_probability, interreflection, ambient, random } => {
             let grid = grid.grid(Sampling::Oversample(1))?;
-            let p = LidarParams { height: common.size.0, width: common.size.1, fov_deg: fov, max_objects, sheet_probability, interreflection, ambient };
+            let p = LidarParams { height: common.size.0, width: common.size.1, fov_deg: fov, max_objects, sheet_probability, interreflection, ambient, randomization: random.randomization()? };
             run_generator(Generator::Lidar(p), grid, &common)?;
         }
-        DatasetCmd::Flim { common, grid, onset_ns, max_cells } => {
+        DatasetCmd::Flim { common, grid, max_cells, random } => {
             let grid = grid.grid(Sampling::Heterodyne(8))?;
-            let p = FlimParams { height: common.size.0, width: common.size.1, onset_s: onset_ns * 1e-9, max_cells };
+            let p = random.params(common.size.0, common.size.1, max_cells, &grid)?;
             run_generator(Generator::Flim(p), grid, &common)?;
         }
         DatasetCmd::Import { cube, depth, albedo, depth_scale, grid, block, split, shard_size, force, output } => {

@@ -10,7 +10,7 @@ use tcsense_datasets::Dataset;
 use tcsense_models::runs::{ModelConfig, CODES_FILE, CONFIG_FILE};
 use tcsense_models::AdmmNetConfig;
 use tcsense_sensor::Codes;
-use tcsense_train::{train, EpochMetrics, Loss, Progress, TrainConfig, TrainError};
+use tcsense_train::{train, Augmentation, EpochMetrics, Loss, Progress, TrainConfig, TrainError};
 
 use super::dataset::interrupt_flag;
 
@@ -78,6 +78,13 @@ pub struct TrainArgs {
     /// Seed (weights, batch order, noise).
     #[arg(long)]
     seed: Option<u64>,
+    /// Train without augmentation (new runs augment by default: cyclic time shifts, flips,
+    /// brightness over two decades and a noise level per item).
+    #[arg(long, conflicts_with = "crop")]
+    no_augment: bool,
+    /// Train on random HxW crops of the frames (a multiple of the pixel block).
+    #[arg(long, value_parser = super::parse_hw)]
+    crop: Option<(usize, usize)>,
     /// Continue the run in the output directory from its last checkpoint.
     #[arg(long)]
     resume: bool,
@@ -134,8 +141,16 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
             Preset::Flim => AdmmNetConfig::flim(m, t),
         };
         let loss = if ds.manifest.kind == Kind::Flim { Loss::Rmse } else { Loss::RmseMae };
-        TrainConfig::new(ModelConfig::AdmmNet(model), ds_path, loss, ds.manifest.grid.sampling)
+        let mut cfg = TrainConfig::new(ModelConfig::AdmmNet(model), ds_path, loss, ds.manifest.grid.sampling);
+        cfg.augment = Some(Augmentation::default());
+        cfg
     };
+    if a.no_augment {
+        cfg.augment = None;
+    }
+    if let Some((h, w)) = a.crop {
+        cfg.augment = Some(Augmentation { crop: Some([h, w]), ..cfg.augment.unwrap_or_default() });
+    }
     if let Some(d) = &a.dataset {
         cfg.dataset = d.display().to_string();
     }
@@ -194,12 +209,16 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
         ModelConfig::AdmmNet(m) => format!("ADMM-Net S = {}, CN = {}, M = {}, T = {}", m.stages, m.channels, m.taps, m.bins),
     };
     println!(
-        "{network}; {} epochs, batch {}, lr {}, loss {:?}, noise {}",
+        "{network}; {} epochs, batch {}, lr {}, loss {:?}, noise {}, augmentation {}",
         cfg.epochs,
         cfg.batch_size,
         cfg.learning_rate,
         cfg.loss,
-        if cfg.noise.is_some() { "shot + read" } else { "off" }
+        if cfg.noise.is_some() { "shot + read" } else { "off" },
+        match &cfg.augment {
+            None => "off".to_string(),
+            Some(g) => format!("shifts {}, flips {}, crop {}, brightness {:?}, signal {:?} of full well", g.time_shift, g.flips, g.crop.map_or("none".into(), |[h, w]| format!("{h}x{w}")), g.brightness, g.signal_fraction),
+        }
     );
     let res = train(&cfg, &codes, run_dir, a.resume, &Bar { pb: pb.clone() }, &cancel);
     pb.finish_and_clear();

@@ -36,10 +36,9 @@ pub fn bench_step(a: &MeasurementMatrix, model: &ModelConfig, h: usize, w: usize
 
 fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h: usize, w: usize, steps: usize) -> Result<StepTiming> {
     let device = Device::flex().autodiff();
-    device.seed(1);
     let sensor = SensorTensors::new(a, h, w, &device)?;
     let plan = a.plan(h, w)?;
-    let mut model = init(&device);
+    let mut model = crate::fit::seeded_init(&device, 1, init);
     let mut optim = AdamConfig::new().init();
     let x = Array4::from_shape_fn((2, a.bins(), h, w), |(b, j, r, c)| if (j + r / 8 + c / 8 + b) % 11 == 0 { 1.0 } else { 0.0 });
     let y = measure_batch(&plan, &x.view(), None, 0)?;
@@ -67,9 +66,8 @@ fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h:
 /// decoder contract.
 pub fn bench_forward(a: &MeasurementMatrix, model: &ModelConfig, h: usize, w: usize, reps: usize) -> Result<f64> {
     let device = Device::flex();
-    device.seed(1);
     let mut decoder: Box<dyn Decoder> = match model {
-        ModelConfig::AdmmNet(c) => Box::new(NetDecoder::new(model.name(), c.init(&device), device.clone())),
+        ModelConfig::AdmmNet(c) => Box::new(NetDecoder::new(model.name(), crate::fit::seeded_init(&device, 1, |d| c.init(d)), device.clone())),
     };
     let y = Array4::from_shape_fn((1, a.taps(), h, w), |(_, m, r, c)| ((m + r + c) % 7) as f32 * 0.1);
     let never = AtomicBool::new(false);

@@ -6,6 +6,7 @@ use std::path::Path;
 use tcsense_models::runs::{ModelConfig, RunSpec};
 use tcsense_sensor::{Irf, NoiseParams, Sampling};
 
+use crate::augment::Augmentation;
 use crate::{Result, TrainError};
 
 /// Training loss.
@@ -40,6 +41,9 @@ pub struct TrainConfig {
     /// Use at most this many training / validation items.
     pub max_train_items: Option<usize>,
     pub max_val_items: Option<usize>,
+    /// Training-time augmentation (`None`, and in configs written before it existed: off).
+    #[serde(default)]
+    pub augment: Option<Augmentation>,
 }
 
 impl TrainConfig {
@@ -56,6 +60,7 @@ impl TrainConfig {
             dataset: dataset.display().to_string(),
             max_train_items: None,
             max_val_items: None,
+            augment: None,
         }
     }
 

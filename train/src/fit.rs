@@ -5,8 +5,9 @@
 //! atomic checkpoint after every epoch. A run is a pure function of its config, so a resumed
 //! run continues exactly where its checkpoint was taken.
 
+use burn::module::{Module, ModuleVisitor, Param};
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
-use burn::tensor::Device;
+use burn::tensor::{Device, Tensor};
 use ndarray::{Array4, Axis};
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
@@ -97,9 +98,18 @@ fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, p
     }
     let (_, _, h, w) = train_x.dim();
     let plan = a.plan(h, w)?;
+    // the frame the network trains on: the crop of the augmentation, else the whole frame
+    let (th, tw) = match &cfg.augment {
+        Some(aug) => {
+            aug.validate(h, w, a.block())?;
+            aug.frame(h, w)
+        }
+        None => (h, w),
+    };
+    let train_plan = a.plan(th, tw)?;
     let device = Device::flex().autodiff();
     let infer_device = Device::flex();
-    let sensor = SensorTensors::new(&a, h, w, &device)?;
+    let sensor = SensorTensors::new(&a, th, tw, &device)?;
 
     std::fs::create_dir_all(run).map_err(|e| file_err(run, e))?;
     let (mut model, mut optim, mut state, mut rows) = if resume {
@@ -114,9 +124,7 @@ fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, p
         if run.join(crate::run_dir::CHECKPOINT_DIR).exists() {
             return Err(file_err(run, "a run already exists here; pass --resume to continue it or choose another directory"));
         }
-        // seeded initial weights: the same config gives the same run
-        device.seed(cfg.seed);
-        (init(&device), AdamConfig::new().init(), RunState::default(), Vec::new())
+        (seeded_init(&device, cfg.seed, &init), AdamConfig::new().init(), RunState::default(), Vec::new())
     };
     write_json(&run.join(CONFIG_FILE), cfg)?;
     codes.save(&run.join(CODES_FILE))?;
@@ -135,7 +143,18 @@ fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, p
             }
             let xb = train_x.select(Axis(0), idx); // [B, T, H, W]
             state.step += 1;
-            let yb = measure_batch(&plan, &xb.view(), cfg.noise.as_ref(), derive_seed(cfg.seed, state.step))?;
+            let noise_seed = derive_seed(cfg.seed, state.step);
+            let (xb, yb) = match (&cfg.augment, &cfg.noise) {
+                (None, _) => {
+                    let yb = measure_batch(&plan, &xb.view(), cfg.noise.as_ref(), noise_seed)?;
+                    (xb, yb)
+                }
+                (Some(aug), noise) => {
+                    let out = aug.apply(&xb.view(), noise.as_ref().unwrap_or(&crate::config::TRAINING_NOISE), a.block(), cfg.seed, state.step);
+                    let yb = measure_items(&train_plan, &out.x, noise.as_ref().map(|_| out.noise.as_slice()), noise_seed)?;
+                    (out.x, yb)
+                }
+            };
             let l;
             (model, l) = step(model, &mut optim, cfg, &sensor, &yb, &xb, &device);
             loss_sum += l;
@@ -153,6 +172,42 @@ fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, p
         out.push(m);
     }
     Ok(out)
+}
+
+/// The device's random generator is global: seeding it and drawing the initial weights happen
+/// under one lock, so runs started in parallel (tests, tools) still get their seed's weights.
+static SEEDED_INIT: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+/// Initial weights drawn from the device generator seeded with `seed`: the same config gives
+/// the same run. burn initialises parameters lazily, on first use, so every parameter is
+/// touched before the lock is released.
+pub(crate) fn seeded_init<M: Module>(device: &Device, seed: u64, init: impl Fn(&Device) -> M) -> M {
+    struct Touch;
+    impl ModuleVisitor for Touch {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            drop(param.val());
+        }
+    }
+    let _guard = SEEDED_INIT.lock().unwrap_or_else(|e| e.into_inner());
+    device.seed(seed);
+    let model = init(device);
+    model.visit(&mut Touch);
+    model
+}
+
+/// Measure each item of `x` with its own noise model (`None`: noise-free), item `i`'s noise
+/// seeded by `(seed, i)`.
+///
+/// # Shapes
+/// - `x`: `[B, T, H, W]` → `[B, M, H, W]`
+fn measure_items(plan: &FramePlan, x: &Array4<f32>, noise: Option<&[NoiseParams]>, seed: u64) -> Result<Array4<f32>> {
+    let mut y = Array4::zeros((x.dim().0, plan.taps(), plan.height(), plan.width()));
+    for (i, mut yi) in y.outer_iter_mut().enumerate() {
+        let xi = x.slice_axis(Axis(0), ndarray::Slice::from(i..i + 1));
+        let item = measure_batch(plan, &xi, noise.map(|n| &n[i]), derive_seed(seed, i as u64))?;
+        yi.assign(&item.index_axis(Axis(0), 0));
+    }
+    Ok(y)
 }
 
 /// One Adam step on a batch; returns the updated network and the batch loss.

@@ -10,6 +10,8 @@
 //! - [`config`]: the run's `config.json` ([`TrainConfig`]: network + sensor model + training
 //!   settings) and the losses' names;
 //! - [`fit`]: the loop, validation through the decoder contract, resume;
+//! - [`augment`]: training-time augmentation (cyclic time shifts, flips, crops, brightness,
+//!   noise level per item), applied before the sensor is simulated;
 //! - [`loss`]: the losses;
 //! - [`run_dir`]: checkpoints (atomic), progress state, `metrics.csv`;
 //! - [`data`]: training cubes from a dataset;
@@ -17,6 +19,7 @@
 //!
 //! Opening a trained run for inference needs none of this: `tcsense_models::runs::open`.
 
+pub mod augment;
 pub mod bench;
 pub mod config;
 pub mod data;
@@ -24,6 +27,7 @@ pub mod fit;
 pub mod loss;
 pub mod run_dir;
 
+pub use augment::Augmentation;
 pub use config::{Loss, TrainConfig};
 pub use fit::{train, Progress, Quiet};
 pub use run_dir::{EpochMetrics, RunState};

@@ -87,3 +87,47 @@ fn training_reduces_loss_saves_and_resumes() {
     assert!(matches!(train(&cfg, &codes, &dir.join("stopped"), false, &Quiet, &stop), Err(TrainError::Cancelled)));
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn augmented_runs_crop_resume_exactly_and_shift_like_a_delayed_scene() {
+    use tcsense_datasets::flim::{FlimKnobs, FlimParams};
+    use tcsense_train::Augmentation;
+    let dir = tmp();
+    let (mut cfg, codes) = setup(&dir);
+    cfg.augment = Some(Augmentation { crop: Some([4, 6]), ..Augmentation::default() });
+    let never = AtomicBool::new(false);
+    let straight = train(&cfg, &codes, &dir.join("straight"), false, &Quiet, &never).unwrap();
+    let mut one = cfg.clone();
+    one.epochs = 1;
+    let first = train(&one, &codes, &dir.join("resumed"), false, &Quiet, &never).unwrap();
+    let more = train(&cfg, &codes, &dir.join("resumed"), true, &Quiet, &never).unwrap();
+    assert_eq!((first[0].train_loss, first[0].val_mse), (straight[0].train_loss, straight[0].val_mse));
+    assert!((more[0].train_loss - straight[1].train_loss).abs() < 1e-6 * straight[1].train_loss.abs().max(1e-9), "{} vs {}", more[0].train_loss, straight[1].train_loss);
+    // validation runs on whole 8×8 frames
+    let y = Array4::from_shape_fn((1, 4, 8, 8), |(_, m, r, c)| ((m + r * 3 + c) % 5) as f32 * 0.2);
+    assert_eq!(weights_output(&dir.join("resumed"), &y).len(), 8 * 8 * 8);
+    let mut bad = cfg.clone();
+    bad.augment = Some(Augmentation { crop: Some([3, 4]), ..Augmentation::default() });
+    let err = train(&bad, &codes, &dir.join("bad"), false, &Quiet, &never).unwrap_err().to_string();
+    assert!(err.contains("augment.crop") && err.contains("3x4"), "{err}");
+
+    // the time-shift augmentation of a FLIm cube is the scene regenerated with its onset
+    // delayed by the same number of bins
+    let grid = TimeGrid { sampling: Sampling::Heterodyne(8), ..TimeGrid::default() };
+    let p = FlimParams { height: 8, width: 8, ..FlimParams::paper() };
+    let (ch, tau) = p.channels(3, 0);
+    let knobs = FlimKnobs { tau, onset_s: 1e-9, irf_fwhm_s: 0.0, background: 0.0, brightness: 1.0 };
+    let x = tcsense_datasets::flim::render(&ch, &knobs, &grid).x.insert_axis(ndarray::Axis(0)); // [1, T, H, W]
+    let shift_only = Augmentation { time_shift: true, flips: false, crop: None, brightness: [1.0, 1.0], ..Augmentation::default() };
+    let noise = tcsense_sensor::NoiseParams::default();
+    for step in 1..4 {
+        let shifted = shift_only.apply(&x.view(), &noise, (2, 2), 11, step).x;
+        let t = grid.bins();
+        let k = (0..t).find(|&k| (0..t).all(|j| shifted[(0, (j + k) % t, 0, 0)] == x[(0, j, 0, 0)])).expect("a roll");
+        let delayed = tcsense_datasets::flim::render(&ch, &FlimKnobs { onset_s: (1e-9 + k as f64 * grid.bin_width_s()) % grid.cycle_s(), ..knobs }, &grid).x;
+        let peak = x.iter().fold(0f32, |m, &v| m.max(v));
+        let diff = shifted.index_axis(ndarray::Axis(0), 0).iter().zip(delayed.iter()).fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+        assert!(diff < 1e-5 * peak, "shift {k}: differs from the regenerated scene by {diff}");
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -1,0 +1,208 @@
+//! Training-time augmentation, applied to each batch of cubes before the sensor is simulated
+//! (so the measurements are always physical):
+//!
+//! - **cyclic time shifts**: the codes loop every cycle, so rolling a cube by `k` bins is the
+//!   scene seen through an instrument delay of `k·Δt` (cables, trigger, optics) — exactly the
+//!   generator's scene with its onset or delay moved by `k` bins (tested in `datasets`);
+//! - **flips** of rows and columns;
+//! - **crops**: a random window of a fixed size (a multiple of the pixel block);
+//! - **brightness**: a per-item factor, log-uniform, so that the network sees tap images over
+//!   decades of scale instead of cubes normalised to a peak of 1;
+//! - **noise level**: per item, a full well, a read noise and the fraction of full well the
+//!   brightest tap reaches (the photon count), each drawn from its range.
+//!
+//! Every draw comes from a generator seeded by `(seed, step)`, so a run stays a pure function
+//! of its config and resumes exactly.
+
+use ndarray::{s, Array4, ArrayView4, Axis};
+use rand::rngs::StdRng;
+use rand::{RngExt, SeedableRng};
+use serde::{Deserialize, Serialize};
+use tcsense_sensor::noise::derive_seed;
+use tcsense_sensor::NoiseParams;
+
+use crate::{Result, TrainError};
+
+/// Stream of the augmentation draws, apart from the noise's `(seed, step)`.
+const AUGMENT_STREAM: u64 = 0x4155_474D_454E_5421;
+
+/// Augmentation settings (`config.json`'s `augment`).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Augmentation {
+    /// Roll each cube by a uniform number of bins along time.
+    pub time_shift: bool,
+    /// Flip each cube's rows and columns, each with probability ½.
+    pub flips: bool,
+    /// Crop each item to a random `[H, W]` window (a multiple of the block); `None`: whole frames.
+    pub crop: Option<[usize; 2]>,
+    /// Brightness factor per item, log-uniform in `[lo, hi]`.
+    pub brightness: [f64; 2],
+    /// Full well per item (e⁻), log-uniform.
+    pub full_well_e: [f64; 2],
+    /// Read noise per item (e⁻), uniform.
+    pub read_noise_e: [f64; 2],
+    /// Fraction of full well the brightest tap reaches, per item, log-uniform.
+    pub signal_fraction: [f64; 2],
+}
+
+impl Default for Augmentation {
+    /// Shifts and flips on, no crop, brightness over two decades, full well 5 000–40 000 e⁻,
+    /// read noise 10–80 e⁻, brightest tap at 2–90 % of full well.
+    fn default() -> Self {
+        Augmentation { time_shift: true, flips: true, crop: None, brightness: [0.01, 1.0], full_well_e: [5e3, 4e4], read_noise_e: [10.0, 80.0], signal_fraction: [0.02, 0.9] }
+    }
+}
+
+/// A batch after augmentation: cubes and, per item, the noise model to measure it with.
+#[derive(Debug, Clone)]
+pub struct Augmented {
+    /// `[B, T, H', W']`.
+    pub x: Array4<f32>,
+    /// One noise model per item (from `base` with this item's levels).
+    pub noise: Vec<NoiseParams>,
+}
+
+fn draw(rng: &mut StdRng, r: [f64; 2], log: bool) -> f64 {
+    if r[0] >= r[1] {
+        r[0]
+    } else if log {
+        rng.random_range(r[0].ln()..r[1].ln()).exp()
+    } else {
+        rng.random_range(r[0]..r[1])
+    }
+}
+
+impl Augmentation {
+    /// Check the ranges against a frame of `h × w` with pixel block `block`.
+    pub fn validate(&self, h: usize, w: usize, block: (usize, usize)) -> Result<()> {
+        let bad = |field: &'static str, got: String, expected: &str| Err(TrainError::InvalidParam { field, got, expected: expected.into() });
+        for (name, r, lo) in [("augment.brightness", self.brightness, 1e-6), ("augment.full_well_e", self.full_well_e, 1.0), ("augment.signal_fraction", self.signal_fraction, 1e-6)] {
+            if !(r[0].is_finite() && r[1].is_finite() && lo <= r[0] && r[0] <= r[1]) {
+                return bad(name, format!("{r:?}"), "a range LO ≤ HI of positive numbers");
+            }
+        }
+        if !(self.read_noise_e[0] >= 0.0 && self.read_noise_e[0] <= self.read_noise_e[1] && self.read_noise_e[1].is_finite()) {
+            return bad("augment.read_noise_e", format!("{:?}", self.read_noise_e), "a range 0 ≤ LO ≤ HI");
+        }
+        if let Some([ch, cw]) = self.crop {
+            if ch == 0 || cw == 0 || ch > h || cw > w || ch % block.0 != 0 || cw % block.1 != 0 {
+                return bad("augment.crop", format!("{ch}x{cw}"), &format!("a window within the {h}x{w} frames, a multiple of the {}x{} block", block.0, block.1));
+            }
+        }
+        Ok(())
+    }
+
+    /// The frame size the network trains on.
+    pub fn frame(&self, h: usize, w: usize) -> (usize, usize) {
+        self.crop.map_or((h, w), |[ch, cw]| (ch, cw))
+    }
+
+    /// Augment batch `x` for optimiser step `step`; `base` is the run's noise model (its ADC
+    /// setting is kept).
+    ///
+    /// # Shapes
+    /// - `x`: `[B, T, H, W]` → `[B, T, H', W']` (`H' × W'` the crop, else `H × W`)
+    pub fn apply(&self, x: &ArrayView4<'_, f32>, base: &NoiseParams, block: (usize, usize), seed: u64, step: u64) -> Augmented {
+        let mut rng = StdRng::seed_from_u64(derive_seed(seed ^ AUGMENT_STREAM, step));
+        let (b, t, h, w) = x.dim();
+        let (ch, cw) = self.frame(h, w);
+        let mut out = Array4::<f32>::zeros((b, t, ch, cw));
+        let mut noise = Vec::with_capacity(b);
+        for (i, mut dst) in out.outer_iter_mut().enumerate() {
+            let shift = if self.time_shift { rng.random_range(0..t) } else { 0 };
+            let (flip_r, flip_c) = if self.flips { (rng.random_bool(0.5), rng.random_bool(0.5)) } else { (false, false) };
+            // crop origins on the block grid, so every pixel keeps its subpixel type
+            let r0 = rng.random_range(0..=(h - ch) / block.0) * block.0;
+            let c0 = rng.random_range(0..=(w - cw) / block.1) * block.1;
+            let gain = draw(&mut rng, self.brightness, true) as f32;
+            let src = x.index_axis(Axis(0), i);
+            let window = src.slice(s![.., r0..r0 + ch, c0..c0 + cw]);
+            let window = match (flip_r, flip_c) {
+                (false, false) => window,
+                (true, false) => window.slice_move(s![.., ..;-1, ..]),
+                (false, true) => window.slice_move(s![.., .., ..;-1]),
+                (true, true) => window.slice_move(s![.., ..;-1, ..;-1]),
+            };
+            for j in 0..t {
+                // roll: bin j of the source lands in bin j + shift
+                dst.index_axis_mut(Axis(0), (j + shift) % t).zip_mut_with(&window.index_axis(Axis(0), j), |d, &v| *d = v * gain);
+            }
+            noise.push(NoiseParams {
+                full_well_e: draw(&mut rng, self.full_well_e, true),
+                read_noise_e: draw(&mut rng, self.read_noise_e, false),
+                signal_fraction: draw(&mut rng, self.signal_fraction, true),
+                adc_bits: base.adc_bits,
+            });
+        }
+        Augmented { x: out, noise }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ndarray::Array4;
+
+    fn cube() -> Array4<f32> {
+        Array4::from_shape_fn((2, 8, 4, 6), |(b, j, r, c)| (b * 1000 + j * 100 + r * 10 + c) as f32)
+    }
+
+    #[test]
+    fn shifts_flips_crops_and_levels() {
+        let x = cube();
+        let base = NoiseParams::default();
+        let off = Augmentation { time_shift: false, flips: false, crop: None, brightness: [1.0, 1.0], full_well_e: [2e4, 2e4], read_noise_e: [40.0, 40.0], signal_fraction: [0.8, 0.8] };
+        let same = off.apply(&x.view(), &base, (2, 2), 1, 1);
+        assert_eq!(same.x, x, "everything off is the identity");
+        assert!(same.noise.iter().all(|n| n.full_well_e == 2e4 && n.read_noise_e == 40.0 && n.signal_fraction == 0.8 && n.adc_bits == base.adc_bits));
+
+        // a time shift is a roll of every pixel's waveform by the same number of bins
+        let shifted = Augmentation { time_shift: true, ..off }.apply(&x.view(), &base, (2, 2), 1, 2).x;
+        for b in 0..2 {
+            let k = (0..8).find(|&k| shifted[(b, k, 0, 0)] == x[(b, 0, 0, 0)]).expect("a roll of the waveform");
+            for j in 0..8 {
+                for r in 0..4 {
+                    for c in 0..6 {
+                        assert_eq!(shifted[(b, (j + k) % 8, r, c)], x[(b, j, r, c)]);
+                    }
+                }
+            }
+        }
+
+        // flips and crops move pixels, never change a waveform; crops stay on the block grid
+        let cropped = Augmentation { flips: true, crop: Some([2, 4]), ..off };
+        cropped.validate(4, 6, (2, 2)).unwrap();
+        for step in 0..8 {
+            let a = cropped.apply(&x.view(), &base, (2, 2), 3, step).x;
+            assert_eq!(a.dim(), (2, 8, 2, 4));
+            for b in 0..2 {
+                let v = a[(b, 0, 0, 0)] as usize - b * 1000;
+                let (r, c) = (v / 10 % 10, v % 10);
+                for j in 0..8 {
+                    assert_eq!(a[(b, j, 0, 0)], x[(b, j, r, c)], "one pixel's waveform");
+                }
+            }
+        }
+        for step in 0..8 {
+            let a = Augmentation { crop: Some([2, 4]), ..off }.apply(&x.view(), &base, (2, 2), 3, step).x;
+            let v = a[(0, 0, 0, 0)] as usize;
+            assert!((v / 10 % 10) % 2 == 0 && (v % 10) % 2 == 0, "crop origin ({}, {}) on the 2x2 block grid", v / 10 % 10, v % 10);
+        }
+        assert!(Augmentation { crop: Some([3, 4]), ..off }.validate(4, 6, (2, 2)).is_err());
+        assert!(Augmentation { crop: Some([6, 4]), ..off }.validate(4, 6, (2, 2)).is_err());
+        assert!(Augmentation { brightness: [1.0, 0.5], ..off }.validate(4, 6, (2, 2)).is_err());
+
+        // brightness and noise levels are drawn in their ranges, seeded by (seed, step)
+        let d = Augmentation::default();
+        let a1 = d.apply(&x.view(), &base, (2, 2), 7, 3);
+        let a2 = d.apply(&x.view(), &base, (2, 2), 7, 3);
+        let a3 = d.apply(&x.view(), &base, (2, 2), 7, 4);
+        assert_eq!(a1.x, a2.x);
+        assert_ne!(a1.x, a3.x);
+        for n in a1.noise.iter().chain(&a3.noise) {
+            assert!((5e3..=4e4).contains(&n.full_well_e) && (10.0..=80.0).contains(&n.read_noise_e) && (0.02..=0.9).contains(&n.signal_fraction));
+        }
+        let gains: Vec<f32> = (0..200).map(|s| d.apply(&x.view(), &base, (2, 2), 7, s).x.iter().map(|v| v.abs()).sum::<f32>() / x.iter().map(|v| v.abs()).sum::<f32>()).collect();
+        assert!(gains.iter().any(|&g| g < 0.05) && gains.iter().any(|&g| g > 0.5), "brightness over two decades");
+    }
+}
