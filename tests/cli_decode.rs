@@ -56,7 +56,7 @@ fn reconstruct_depth_ply_png_and_waveforms() {
 fn lifetime_map_of_a_flim_cube() {
     let d = tempdir();
     let d = d.path();
-    ok(d, &["dataset", "flim", "--count", "3", "--size", "8x8", "--seed", "3", "-o", "f"]);
+    ok(d, &["dataset", "flim", "--paper", "--count", "3", "--size", "8x8", "--seed", "3", "-o", "f"]);
     let x = read_npy(&d.join("f/train/x_000.npy")).unwrap();
     write_npy(&d.join("x.npy"), &x.index_axis(ndarray::Axis(0), 0)).unwrap();
     ok(d, &["lifetime", "x.npy", "-o", "tau.npy", "--phasor", "ph.npy", "--png", "tau.png"]);
