@@ -28,6 +28,7 @@
 
 use crate::error::{invalid, Result};
 use crate::grid::TimeGrid;
+use crate::knobs::{check_range, draw};
 use ndarray::{Array1, Array2, Array3};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
@@ -71,18 +72,11 @@ impl Default for FlimRandomization {
 impl FlimRandomization {
     /// Check the ranges.
     pub fn validate(&self) -> Result<()> {
-        let range = |name: &'static str, r: [f64; 2], lo: f64, hi: f64, what: &str| {
-            if r[0].is_finite() && r[1].is_finite() && lo <= r[0] && r[0] <= r[1] && r[1] <= hi {
-                Ok(())
-            } else {
-                Err(invalid(name, format!("{:?}", r), format!("lo ≤ hi within [{lo:e}, {hi:e}] ({what})")))
-            }
-        };
-        range("onset_cycle", self.onset_cycle, 0.0, 1.0, "fractions of the cycle")?;
-        range("irf_fwhm_s", self.irf_fwhm_s, 0.0, 1e-7, "seconds")?;
-        range("tau_s", self.tau_s, 1e-12, 1e-6, "seconds")?;
-        range("background", self.background, 0.0, 10.0, "fractions of the peak")?;
-        range("brightness", self.brightness, 1e-6, 1e6, "factors")?;
+        check_range("onset_cycle", self.onset_cycle, 0.0, 1.0)?;
+        check_range("irf_fwhm_s", self.irf_fwhm_s, 0.0, 1e-7)?;
+        check_range("tau_s", self.tau_s, 1e-12, 1e-6)?;
+        check_range("background", self.background, 0.0, 10.0)?;
+        check_range("brightness", self.brightness, 1e-6, 1e6)?;
         if !(1 <= self.lifetimes[0] && self.lifetimes[0] <= self.lifetimes[1] && self.lifetimes[1] <= 3) {
             return Err(invalid("lifetimes", format!("{:?}", self.lifetimes), "1 ≤ lo ≤ hi ≤ 3"));
         }
@@ -103,17 +97,6 @@ pub struct FlimKnobs {
     pub background: f64,
     /// Brightness factor.
     pub brightness: f64,
-}
-
-/// A draw from `[lo, hi]`: uniform, or log-uniform; the value itself when `lo == hi`.
-fn draw(rng: &mut StdRng, r: [f64; 2], log: bool) -> f64 {
-    if r[0] >= r[1] {
-        r[0]
-    } else if log {
-        rng.random_range(r[0].ln()..r[1].ln()).exp()
-    } else {
-        rng.random_range(r[0]..r[1])
-    }
 }
 
 /// FLIm generator settings.

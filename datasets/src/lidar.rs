@@ -24,6 +24,7 @@
 
 use crate::error::{invalid, Result};
 use crate::grid::{TimeGrid, C};
+use crate::knobs::{check_range, draw};
 use ndarray::{Array2, Array3, Axis};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
@@ -192,20 +193,13 @@ impl Default for LidarRandomization {
 impl LidarRandomization {
     /// Check the ranges.
     pub fn validate(&self) -> Result<()> {
-        let range = |name: &'static str, r: [f64; 2], lo: f64, hi: f64| {
-            if r[0].is_finite() && r[1].is_finite() && lo <= r[0] && r[0] <= r[1] && r[1] <= hi {
-                Ok(())
-            } else {
-                Err(invalid(name, format!("{r:?}"), format!("lo ≤ hi within [{lo}, {hi}]")))
-            }
-        };
-        range("wall_range", self.wall_range, 0.05, 0.99)?;
-        range("object_range", self.object_range, 0.01, 0.99)?;
-        range("sheet_transmission", self.sheet_transmission, 0.0, 1.0)?;
-        range("sheet_reflectance", self.sheet_reflectance, 0.0, 1.0)?;
-        range("sheet_distance", self.sheet_distance, 0.01, 0.99)?;
-        range("ambient", self.ambient, 0.0, 10.0)?;
-        range("interreflection", self.interreflection, 0.0, 10.0)?;
+        check_range("wall_range", self.wall_range, 0.05, 0.99)?;
+        check_range("object_range", self.object_range, 0.01, 0.99)?;
+        check_range("sheet_transmission", self.sheet_transmission, 0.0, 1.0)?;
+        check_range("sheet_reflectance", self.sheet_reflectance, 0.0, 1.0)?;
+        check_range("sheet_distance", self.sheet_distance, 0.01, 0.99)?;
+        check_range("ambient", self.ambient, 0.0, 10.0)?;
+        check_range("interreflection", self.interreflection, 0.0, 10.0)?;
         for (name, p) in [("noise_texture", self.noise_texture), ("interreflection_probability", self.interreflection_probability)] {
             if !(0.0..=1.0).contains(&p) {
                 return Err(invalid(name, p, "a probability in [0, 1]"));
@@ -218,17 +212,6 @@ impl LidarRandomization {
             return Err(invalid("max_slopes", self.max_slopes, "0..=64"));
         }
         Ok(())
-    }
-}
-
-/// A draw from `[lo, hi]`: uniform, or log-uniform; the value itself when `lo == hi`.
-fn draw(rng: &mut StdRng, r: [f64; 2], log: bool) -> f64 {
-    if r[0] >= r[1] {
-        r[0]
-    } else if log && r[0] > 0.0 {
-        rng.random_range(r[0].ln()..r[1].ln()).exp()
-    } else {
-        rng.random_range(r[0]..r[1])
     }
 }
 

@@ -37,6 +37,9 @@ pub enum Irf {
     Physical { laser_fwhm_s: f64, tap_tau_s: f64 },
 }
 
+/// The largest `signal_fraction`: 100× overexposed.
+pub const MAX_SIGNAL_FRACTION: f64 = 100.0;
+
 /// How the signal is brought to electrons before noise is added.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct NoiseParams {
@@ -44,7 +47,8 @@ pub struct NoiseParams {
     pub full_well_e: f64,
     /// Gaussian read noise σ in electrons.
     pub read_noise_e: f64,
-    /// The brightest tap value is scaled to this fraction of the full well.
+    /// The brightest tap value is scaled to this fraction of the full well (above 1 the
+    /// brightest taps saturate and clip: an overexposed frame).
     pub signal_fraction: f64,
     /// ADC resolution in bits over the full well; 0 disables quantisation.
     pub adc_bits: u32,
@@ -65,8 +69,8 @@ impl NoiseParams {
         if !(self.read_noise_e.is_finite() && self.read_noise_e >= 0.0) {
             return Err(invalid("read_noise", self.read_noise_e, "a non-negative number of electrons (e.g. 40)"));
         }
-        if !(self.signal_fraction > 0.0 && self.signal_fraction <= 1.0) {
-            return Err(invalid("signal_fraction", self.signal_fraction, "a fraction in (0, 1]"));
+        if !(self.signal_fraction > 0.0 && self.signal_fraction <= MAX_SIGNAL_FRACTION) {
+            return Err(invalid("signal_fraction", self.signal_fraction, format!("a fraction of full well in (0, {MAX_SIGNAL_FRACTION}] (above 1 the brightest taps clip)")));
         }
         if self.adc_bits > 24 {
             return Err(invalid("adc_bits", self.adc_bits, "0 (off) or 1..=24"));

@@ -35,6 +35,10 @@ pub struct EvalArgs {
     /// Add shot and read noise to the simulated measurements (full well 20 000 e⁻, σ = 40 e⁻).
     #[arg(long)]
     noise: bool,
+    /// Brightness of the scenes relative to the default exposure (brightest tap at 80 % of
+    /// full well): 0.1 is ten times fewer photons, 10 overexposes and clips. Needs --noise.
+    #[arg(long, default_value_t = 1.0, requires = "noise")]
+    brightness: f64,
     /// Noise seed (item i uses a stream derived from it).
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -72,7 +76,9 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
         }
         decoders.push(d);
     }
-    let settings = EvalSettings { split: a.split.clone(), items: a.items, noise: a.noise.then(NoiseParams::default), seed: a.seed };
+    let noise = NoiseParams { signal_fraction: NoiseParams::default().signal_fraction * a.brightness, ..NoiseParams::default() };
+    let noise = noise.validate().map_err(|e| anyhow::anyhow!("--brightness {}: {e}", a.brightness))?;
+    let settings = EvalSettings { split: a.split.clone(), items: a.items, noise: a.noise.then_some(noise), seed: a.seed };
     let cancel = interrupt_flag();
     let pb = ProgressBar::new(0);
     pb.set_style(ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));

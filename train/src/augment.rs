@@ -18,6 +18,7 @@ use ndarray::{s, Array4, ArrayView4, Axis};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use serde::{Deserialize, Serialize};
+use tcsense_datasets::knobs::draw;
 use tcsense_sensor::noise::derive_seed;
 use tcsense_sensor::NoiseParams;
 
@@ -60,16 +61,6 @@ pub struct Augmented {
     pub x: Array4<f32>,
     /// One noise model per item (from `base` with this item's levels).
     pub noise: Vec<NoiseParams>,
-}
-
-fn draw(rng: &mut StdRng, r: [f64; 2], log: bool) -> f64 {
-    if r[0] >= r[1] {
-        r[0]
-    } else if log {
-        rng.random_range(r[0].ln()..r[1].ln()).exp()
-    } else {
-        rng.random_range(r[0]..r[1])
-    }
 }
 
 impl Augmentation {
