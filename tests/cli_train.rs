@@ -81,3 +81,34 @@ fn reconstruct_with_a_run_from_an_earlier_build() {
     fails(d, &["reconstruct", "admm-net", "--run", &run, "--measurements", &fx.join("xhat.npy").display().to_string(), "-o", "x2.npy"], &["xhat.npy", "8 tap images", "M = 4"]);
     assert!(!d.join("x2.npy").exists());
 }
+
+#[test]
+fn train_reconstruct_and_eval_the_unet() {
+    let d = tempdir();
+    let d = d.path();
+    setup(d);
+    let out = ok(d, &["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--base-width", "4", "--levels", "2", "--epochs", "2", "--seed", "3", "-o", "unet"]);
+    assert!(out.contains("U-Net") && out.contains("depth_rmse_m"), "{out}");
+    let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("unet/config.json")).unwrap()).unwrap();
+    assert_eq!((cfg["decoder"].as_str(), cfg["model"]["returns"].as_u64(), cfg["model"]["levels"].as_u64()), (Some("unet"), Some(2), Some(2)));
+    let out = ok(d, &["train", "unet", "--epochs", "3", "--resume", "-o", "unet"]);
+    assert!(out.contains("epoch    3"), "{out}");
+    ok(d, &["simulate", "--codes", "codes.json", "--cube", "ds/test/x_000.npy", "--noise", "-o", "y.npy"]);
+    let out = ok(d, &["reconstruct", "unet", "--run", "unet", "--measurements", "y.npy", "-o", "depth.npy", "--ply", "cloud.ply", "--png", "depth.png"]);
+    assert!(out.contains("confidence"), "{out}");
+    let depth = read_npy(&d.join("depth.npy")).unwrap();
+    let conf = read_npy(&d.join("depth.confidence.npy")).unwrap();
+    assert_eq!((depth.shape(), conf.shape()), (&[1, 2, 8, 8][..], &[1, 2, 8, 8][..]));
+    assert!(depth.iter().zip(conf.iter()).all(|(d, c)| d.is_nan() == (*c < 0.5)));
+    assert!(d.join("cloud.ply").exists() && d.join("depth.png").exists());
+    let out = ok(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "tval3", "--decoder", "unet:unet", "--maxit", "10", "--noise", "-o", "rep.json"]);
+    assert!(out.contains("unet:unet"), "{out}");
+    let rep: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("rep.json")).unwrap()).unwrap();
+    assert_eq!(rep[1]["decoder"].as_str(), Some("unet:unet"));
+    assert_eq!(rep[1]["depth"].as_array().unwrap().len(), 2, "depth errors per return");
+    // bad input: a FLIm dataset has no range labels; a run of the other kind
+    ok(d, &["dataset", "flim", "--count", "3", "--size", "8x8", "--length", "8", "-o", "f"]);
+    fails(d, &["train", "unet", "--dataset", "f", "--codes", "codes.json", "--epochs", "1", "-o", "u2"], &["f", "no depth field"]);
+    fails(d, &["train", "admm-net", "--resume", "-o", "unet"], &["unet run", "tcsense train unet"]);
+    fails(d, &["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--levels", "9", "-o", "u3"], &["levels"]);
+}

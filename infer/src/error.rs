@@ -18,7 +18,7 @@ pub enum InferError {
     #[error("invalid {field}: got {got}, expected {expected}")]
     InvalidParam { field: &'static str, got: String, expected: String },
     /// A decoder name that names none.
-    #[error("decoder {0:?}: unknown decoder; expected `tval3` or `admm-net:RUN` (a training run directory)")]
+    #[error("decoder {0:?}: unknown decoder; expected `tval3`, `admm-net:RUN` or `unet:RUN` (a training run directory)")]
     UnknownDecoder(String),
     #[error("interrupted")]
     Cancelled,

@@ -44,24 +44,31 @@ impl EvalRow {
         EvalRow { decoder: decoder.to_string(), ..Default::default() }
     }
 
-    /// Add one item: reconstruction `x̂`, truth `x` (both `[T, H, W]`), optional true range
-    /// `[K, H, W]` and lifetime `[H, W]`, bin width and the decoder's time for it. Depth comes
-    /// from peaks of `x̂`, or from `depth_est` `[K, H, W]` where the decoder estimated it.
+    /// Add one item: reconstruction `x̂` (if the decoder gives one), truth `x` (both
+    /// `[T, H, W]`), optional true range `[K, H, W]` and lifetime `[H, W]`, bin width and the
+    /// decoder's time for it. Depth comes from `depth_est` `[K, H, W]` where the decoder
+    /// estimated it, else from peaks of `x̂`; MSE, PSNR and lifetimes need `x̂` (NaN without).
     #[allow(clippy::too_many_arguments)]
-    pub fn add(&mut self, xh: &ArrayView3<'_, f32>, x: &ArrayView3<'_, f32>, depth_est: Option<&ArrayView3<'_, f32>>, depth: Option<&ArrayView3<'_, f32>>, lifetime: Option<&ArrayView2<'_, f32>>, bin_width_s: f64, seconds: f64) {
-        let (a, b) = (xh.as_standard_layout(), x.as_standard_layout());
-        let (a, b) = (a.as_slice().unwrap_or(&[]), b.as_slice().unwrap_or(&[]));
-        let m = mse(a, b);
+    pub fn add(&mut self, xh: Option<&ArrayView3<'_, f32>>, x: &ArrayView3<'_, f32>, depth_est: Option<&ArrayView3<'_, f32>>, depth: Option<&ArrayView3<'_, f32>>, lifetime: Option<&ArrayView2<'_, f32>>, bin_width_s: f64, seconds: f64) {
         let n = self.items as f64;
+        let (m, p) = match xh {
+            Some(xh) => {
+                let (a, b) = (xh.as_standard_layout(), x.as_standard_layout());
+                let (a, b) = (a.as_slice().unwrap_or(&[]), b.as_slice().unwrap_or(&[]));
+                (mse(a, b), psnr(a, b))
+            }
+            None => (f64::NAN, f64::NAN),
+        };
         self.mse = (self.mse * n + m) / (n + 1.0);
-        self.psnr_db = (self.psnr_db * n + psnr(a, b)) / (n + 1.0);
+        self.psnr_db = (self.psnr_db * n + p) / (n + 1.0);
         self.time_sum += seconds;
         self.items += 1;
         self.seconds_per_frame = self.time_sum / self.items as f64;
         if let Some(d) = depth {
-            let errs = match depth_est {
-                Some(est) => depth_errors(est, d),
-                None => depth_errors(&depth_map(xh, bin_width_s, &PeakOptions { max_peaks: d.dim().0, ..Default::default() }).0.view(), d),
+            let errs = match (depth_est, xh) {
+                (Some(est), _) => depth_errors(est, d),
+                (None, Some(xh)) => depth_errors(&depth_map(xh, bin_width_s, &PeakOptions { max_peaks: d.dim().0, ..Default::default() }).0.view(), d),
+                (None, None) => Vec::new(),
             };
             if self.depth_sums.len() < errs.len() {
                 self.depth_sums.resize(errs.len(), (0, 0, 0.0, 0.0));
@@ -78,7 +85,7 @@ impl EvalRow {
                 .map(|&(t, d, se, ae)| DepthErrors { truth: t, detected: d, rmse_m: if d > 0 { (se / d as f64).sqrt() } else { f64::NAN }, mae_m: if d > 0 { ae / d as f64 } else { f64::NAN } })
                 .collect();
         }
-        if let Some(lt) = lifetime {
+        if let (Some(lt), Some(xh)) = (lifetime, xh) {
             let (tau, _) = lifetime_map(xh, bin_width_s, 0.05, 0.02);
             let t = lt.as_standard_layout();
             let (mae, k) = lifetime_mae(tau.as_slice().unwrap_or(&[]), t.as_slice().unwrap_or(&[]));
@@ -124,11 +131,11 @@ pub struct NamedDecoder {
 }
 
 /// Open a decoder by name: `tval3` (with `tval3` options) or `KIND:RUN`, a training run
-/// directory of a learned decoder of that kind (`admm-net:RUN`), on the CPU.
+/// directory of a learned decoder of that kind (`admm-net:RUN`, `unet:RUN`), on the CPU.
 pub fn open_decoder(name: &str, tval3: &Tval3Options) -> Result<NamedDecoder> {
     match name.split_once(':') {
         None if name == "tval3" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(Tval3Decoder::new(*tval3)?), codes: None }),
-        Some((kind, dir)) if kind == "admm-net" => {
+        Some((kind, dir)) if kind == "admm-net" || kind == "unet" => {
             let run = runs::open(Path::new(dir), &Device::flex())?;
             if run.spec.model.name() != kind {
                 return Err(InferError::File { path: run.dir.join(runs::CONFIG_FILE), msg: format!("a {} run, not {kind}; name it {}:{dir}", run.spec.model.name(), run.spec.model.name()) });
@@ -181,11 +188,14 @@ pub fn evaluate(ds: &Dataset, a: &MeasurementMatrix, decoders: &mut [NamedDecode
                 e => e.into(),
             })?;
             let secs = t0.elapsed().as_secs_f64();
-            let cube = out.cube.ok_or_else(|| InferError::InvalidParam { field: "decoder", got: d.label.clone(), expected: "a decoder that reconstructs cubes".into() })?;
+            if out.cube.is_none() && out.depth.is_none() {
+                return Err(InferError::InvalidParam { field: "decoder", got: d.label.clone(), expected: "a decoder that gives a cube or depth".into() });
+            }
             let est = out.depth.as_ref().map(|e| e.index_axis(Axis(0), 0));
             let truth_d = depth.as_ref().map(|t| t.index_axis(Axis(0), i));
             let truth_l = lifetime.as_ref().map(|t| t.index_axis(Axis(0), i));
-            row.add(&cube.index_axis(Axis(0), 0), &x.index_axis(Axis(0), i), est.as_ref(), truth_d.as_ref(), truth_l.as_ref(), a.bin_width_s(), secs);
+            let cube = out.cube.as_ref().map(|c| c.index_axis(Axis(0), 0));
+            row.add(cube.as_ref(), &x.index_axis(Axis(0), i), est.as_ref(), truth_d.as_ref(), truth_l.as_ref(), a.bin_width_s(), secs);
             on_item(&d.label, i + 1, n);
         }
         rows.push(row);

@@ -2,59 +2,7 @@
 //! `tcsense_models::metrics`), depth errors per bounce with the detection rate, and the
 //! lifetime error.
 
-use ndarray::ArrayView3;
-pub use tcsense_models::metrics::{mse, psnr};
-use serde::Serialize;
-
-/// Depth errors of one bounce.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
-pub struct DepthErrors {
-    /// Pixels with a ground-truth return.
-    pub truth: usize,
-    /// Of those, pixels with an estimated return.
-    pub detected: usize,
-    pub rmse_m: f64,
-    pub mae_m: f64,
-}
-
-impl DepthErrors {
-    /// Fraction of ground-truth returns that were detected.
-    pub fn detection_rate(&self) -> f64 {
-        if self.truth == 0 {
-            0.0
-        } else {
-            self.detected as f64 / self.truth as f64
-        }
-    }
-}
-
-/// Depth errors per bounce between estimated and true range maps `[K, H, W]` (NaN = none).
-/// Errors are over pixels where both have a return.
-pub fn depth_errors(est: &ArrayView3<'_, f32>, truth: &ArrayView3<'_, f32>) -> Vec<DepthErrors> {
-    let k = truth.dim().0.min(est.dim().0);
-    (0..k)
-        .map(|b| {
-            let mut e = DepthErrors::default();
-            let (mut se, mut ae) = (0f64, 0f64);
-            for (t, x) in truth.index_axis(ndarray::Axis(0), b).iter().zip(est.index_axis(ndarray::Axis(0), b).iter()) {
-                if t.is_finite() {
-                    e.truth += 1;
-                    if x.is_finite() {
-                        e.detected += 1;
-                        let d = (x - t) as f64;
-                        se += d * d;
-                        ae += d.abs();
-                    }
-                }
-            }
-            if e.detected > 0 {
-                e.rmse_m = (se / e.detected as f64).sqrt();
-                e.mae_m = ae / e.detected as f64;
-            }
-            e
-        })
-        .collect()
-}
+pub use tcsense_models::metrics::{depth_errors, mse, psnr, DepthErrors};
 
 /// Mean absolute lifetime error (s) over pixels where both are finite; `(mae, pixels)`.
 pub fn lifetime_mae(est: &[f32], truth: &[f32]) -> (f64, usize) {

@@ -8,6 +8,8 @@
 //!   `(x, y, t)` with per-axis weights — the paper's iterative baseline.
 //! - [`admm`]: ADMM-Net, `S` unrolled stages with an exact per-pixel data-consistency step
 //!   and a residual CNN prior (burn modules; trained by `tcsense-train`).
+//! - [`unet`]: Aᵀ + U-Net, a light decoder that outputs the depth of `K` returns (and a
+//!   confidence per return) directly.
 //! - [`net`]: what a trainable network provides ([`net::Network`]) and the wrapper that puts
 //!   any network behind the contract ([`net::NetDecoder`]).
 //! - [`sensor_tensors`]: the sensor as tensors for one frame size — `A`, `Aᵀ`, the
@@ -28,6 +30,7 @@ pub mod net;
 pub mod runs;
 pub mod sensor_tensors;
 pub mod tval3;
+pub mod unet;
 
 pub use admm::{AdmmNet, AdmmNetConfig};
 /// The burn device type (CPU `Device::flex()` by default).
@@ -35,6 +38,7 @@ pub use burn::tensor::Device;
 pub use decoder::{Control, Decoded, Decoder};
 pub use sensor_tensors::SensorTensors;
 pub use tval3::{tval3, TvNorm, Tval3Options, Tval3Report};
+pub use unet::{Unet, UnetConfig};
 
 use std::path::PathBuf;
 

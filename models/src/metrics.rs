@@ -1,9 +1,13 @@
-//! Reconstruction quality of a cube against its ground truth, as every decoder is scored
-//! (training validation, `tcsense eval`, code selection).
+//! Reconstruction quality against the ground truth, as every decoder is scored (training
+//! validation, `tcsense eval`, code selection): MSE and PSNR of cubes, and depth errors per
+//! return with the detection rate.
 //!
 //! Cubes are compared as stored (the datasets scale each cube so that its largest voxel of
 //! the ground truth is 1), so `MSE = mean((x̂ − x)²)` and `PSNR = 10·log₁₀(peak² / MSE)` with
 //! `peak = max x`.
+
+use ndarray::ArrayView3;
+use serde::Serialize;
 
 /// Mean squared error.
 pub fn mse(est: &[f32], truth: &[f32]) -> f64 {
@@ -20,6 +24,56 @@ pub fn psnr(est: &[f32], truth: &[f32]) -> f64 {
     } else {
         10.0 * (peak * peak / e).log10()
     }
+}
+
+/// Depth errors of one bounce.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
+pub struct DepthErrors {
+    /// Pixels with a ground-truth return.
+    pub truth: usize,
+    /// Of those, pixels with an estimated return.
+    pub detected: usize,
+    pub rmse_m: f64,
+    pub mae_m: f64,
+}
+
+impl DepthErrors {
+    /// Fraction of ground-truth returns that were detected.
+    pub fn detection_rate(&self) -> f64 {
+        if self.truth == 0 {
+            0.0
+        } else {
+            self.detected as f64 / self.truth as f64
+        }
+    }
+}
+
+/// Depth errors per bounce between estimated and true range maps `[K, H, W]` (NaN = none).
+/// Errors are over pixels where both have a return.
+pub fn depth_errors(est: &ArrayView3<'_, f32>, truth: &ArrayView3<'_, f32>) -> Vec<DepthErrors> {
+    let k = truth.dim().0.min(est.dim().0);
+    (0..k)
+        .map(|b| {
+            let mut e = DepthErrors::default();
+            let (mut se, mut ae) = (0f64, 0f64);
+            for (t, x) in truth.index_axis(ndarray::Axis(0), b).iter().zip(est.index_axis(ndarray::Axis(0), b).iter()) {
+                if t.is_finite() {
+                    e.truth += 1;
+                    if x.is_finite() {
+                        e.detected += 1;
+                        let d = (x - t) as f64;
+                        se += d * d;
+                        ae += d.abs();
+                    }
+                }
+            }
+            if e.detected > 0 {
+                e.rmse_m = (se / e.detected as f64).sqrt();
+                e.mae_m = ae / e.detected as f64;
+            }
+            e
+        })
+        .collect()
 }
 
 #[cfg(test)]

@@ -20,7 +20,13 @@ use crate::{ModelError, Result};
 pub enum Prediction {
     /// The transient cube `[B, T, H, W]` (trained against the cube).
     Cube,
+    /// Depth of `K` returns in metres then confidence logits, `[B, 2K, H, W]` (trained
+    /// against the range ground truth).
+    Depth,
 }
+
+/// A return counts as detected where its confidence is at least this.
+pub const DETECTION_THRESHOLD: f32 = 0.5;
 
 /// A trainable decoder network: the training loop (`tcsense-train`) and [`NetDecoder`] see
 /// networks only through this trait.
@@ -31,7 +37,8 @@ pub trait Network: Module + Sized + Send + 'static {
     /// Forward pass on a batch.
     ///
     /// # Shapes
-    /// - `y`: `[B, M, H, W]` → `[B, T, H, W]` for [`Prediction::Cube`]
+    /// - `y`: `[B, M, H, W]` → `[B, T, H, W]` for [`Prediction::Cube`], `[B, 2K, H, W]` for
+    ///   [`Prediction::Depth`]
     fn predict(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4>;
 }
 
@@ -53,6 +60,23 @@ pub fn to_array(t: Tensor<4>) -> Result<Array4<f32>> {
     let [b, c, h, w] = t.dims();
     let v: Vec<f32> = t.into_data().try_into_vec::<f32>().map_err(|e| ModelError::InvalidParam { field: "tensor", got: format!("{e:?}"), expected: "f32 data".into() })?;
     Array4::from_shape_vec((b, c, h, w), v).map_err(|e| ModelError::InvalidParam { field: "tensor", got: e.to_string(), expected: "a [B, C, H, W] tensor".into() })
+}
+
+/// Depth (NaN where the confidence is below [`DETECTION_THRESHOLD`]) and confidence from a
+/// depth network's output.
+///
+/// # Shapes
+/// - `out`: `[B, 2K, H, W]` (depth in metres, confidence logits) → `([B, K, H, W], [B, K, H, W])`
+pub fn split_depth(out: &Array4<f32>) -> (Array4<f32>, Array4<f32>) {
+    let k = out.dim().1 / 2;
+    let mut depth = out.slice(ndarray::s![.., ..k, .., ..]).to_owned();
+    let confidence = out.slice(ndarray::s![.., k.., .., ..]).mapv(|l| 1.0 / (1.0 + (-l).exp()));
+    depth.zip_mut_with(&confidence, |d, &c| {
+        if c < DETECTION_THRESHOLD {
+            *d = f32::NAN;
+        }
+    });
+    (depth, confidence)
 }
 
 /// A [`Network`] for inference behind the [`Decoder`] contract.
@@ -107,6 +131,10 @@ impl<M: Network> Decoder for NetDecoder<M> {
         let out = ndarray::concatenate(Axis(0), &views).map_err(|e| ModelError::InvalidParam { field: "batch", got: e.to_string(), expected: "frames of one shape".into() })?;
         match M::PREDICTION {
             Prediction::Cube => Ok(Decoded { cube: Some(out), ..Default::default() }),
+            Prediction::Depth => {
+                let (depth, confidence) = split_depth(&out);
+                Ok(Decoded { depth: Some(depth), confidence: Some(confidence), ..Default::default() })
+            }
         }
     }
 }

@@ -22,6 +22,7 @@ use tcsense_sensor::{Codes, Irf, MeasurementMatrix, Sampling, SensorParams};
 
 use crate::admm::{AdmmNet, AdmmNetConfig};
 use crate::decoder::Decoder;
+use crate::unet::{Unet, UnetConfig};
 use crate::net::NetDecoder;
 use crate::{ModelError, Result};
 
@@ -41,6 +42,8 @@ pub const WEIGHTS_FILE: &str = "model.bpk";
 pub enum ModelConfig {
     /// ADMM-Net ([`crate::admm`]).
     AdmmNet(AdmmNetConfig),
+    /// Aᵀ + U-Net ([`crate::unet`]).
+    Unet(UnetConfig),
 }
 
 impl ModelConfig {
@@ -48,6 +51,7 @@ impl ModelConfig {
     pub fn name(&self) -> &'static str {
         match self {
             ModelConfig::AdmmNet(_) => "admm-net",
+            ModelConfig::Unet(_) => "unet",
         }
     }
 
@@ -55,6 +59,15 @@ impl ModelConfig {
     pub fn taps(&self) -> usize {
         match self {
             ModelConfig::AdmmNet(c) => c.taps,
+            ModelConfig::Unet(c) => c.taps,
+        }
+    }
+
+    /// Returns `K` per pixel a depth network estimates (1 for networks of cubes).
+    pub fn returns(&self) -> usize {
+        match self {
+            ModelConfig::AdmmNet(_) => 1,
+            ModelConfig::Unet(c) => c.returns,
         }
     }
 
@@ -62,6 +75,7 @@ impl ModelConfig {
     pub fn bins(&self) -> usize {
         match self {
             ModelConfig::AdmmNet(c) => c.bins,
+            ModelConfig::Unet(c) => c.bins,
         }
     }
 }
@@ -143,6 +157,10 @@ pub fn open(dir: &Path, device: &Device) -> Result<Run> {
     let decoder: Box<dyn Decoder> = match &spec.model {
         ModelConfig::AdmmNet(c) => {
             let net: AdmmNet = load_network(dir, c.init(device))?;
+            Box::new(NetDecoder::new(spec.model.name(), net, device.clone()))
+        }
+        ModelConfig::Unet(c) => {
+            let net: Unet = load_network(dir, c.init(device))?;
             Box::new(NetDecoder::new(spec.model.name(), net, device.clone()))
         }
     };

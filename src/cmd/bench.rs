@@ -57,6 +57,12 @@ pub enum BenchCmd {
         /// Inference frame size HxW.
         #[arg(long, default_value = "188x212", value_parser = super::parse_hw)]
         infer_size: (usize, usize),
+        /// U-Net base width.
+        #[arg(long, default_value_t = 8)]
+        unet_width: usize,
+        /// U-Net levels.
+        #[arg(long, default_value_t = 3)]
+        unet_levels: usize,
     },
     /// ADMM-Net's kernels (3×3 conv forward and gradients, data consistency, back-projection)
     /// against burn-flex's generic paths.
@@ -102,7 +108,7 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             }
         }
         BenchCmd::Dataset(a) => super::dataset::bench(a)?,
-        BenchCmd::Train { size: (h, w), bins, stages, channels, steps, infer_size: (ih, iw) } => {
+        BenchCmd::Train { size: (h, w), bins, stages, channels, steps, infer_size: (ih, iw), unet_width, unet_levels } => {
             if bins == 0 || bins % 32 != 0 {
                 anyhow::bail!("--bins {bins}: expected a multiple of 32");
             }
@@ -116,7 +122,19 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             println!("ADMM-Net S = {stages}, CN = {channels}, T = {bins}, {} threads", rayon::current_num_threads());
             println!("training step (batch 2, {h}x{w}): {:.1} ms (forward {:.1} ms, backward {:.1} ms, Adam {:.1} ms)", r.step_ms, r.forward_ms, r.backward_ms, r.optim_ms);
             let f = tcsense_train::bench::bench_forward(&a, &cfg, ih, iw, 3)?;
-            println!("inference forward ({ih}x{iw}, batch 1): {f:.1} ms per frame");
+            println!("inference forward ({ih}x{iw}, batch 1): {f:.1} ms per frame; {} parameters", tcsense_train::bench::parameters(&cfg));
+            if unet_width == 0 || !(1..=6).contains(&unet_levels) {
+                anyhow::bail!("--unet-width {unet_width}, --unet-levels {unet_levels}: expected a width ≥ 1 and 1–6 levels");
+            }
+            let range_m = 299_792_458.0 * spec.cycle_s() / 2.0;
+            let unet = tcsense_models::UnetConfig::new(4, bins, range_m).with_base_width(unet_width).with_levels(unet_levels);
+            let flops = unet.flops(ih, iw);
+            let cfg = ModelConfig::Unet(unet);
+            let r = tcsense_train::bench::bench_step(&a, &cfg, h, w, steps)?;
+            println!("Aᵀ + U-Net K = 2, base width {unet_width}, {unet_levels} levels, T = {bins}");
+            println!("training step (batch 2, {h}x{w}): {:.1} ms (forward {:.1} ms, backward {:.1} ms, Adam {:.1} ms)", r.step_ms, r.forward_ms, r.backward_ms, r.optim_ms);
+            let f = tcsense_train::bench::bench_forward(&a, &cfg, ih, iw, 3)?;
+            println!("inference forward ({ih}x{iw}, batch 1): {f:.1} ms per frame, {:.2} GFLOP per frame ({:.1} GFLOP/s); {} parameters", flops / 1e9, flops / f / 1e6, tcsense_train::bench::parameters(&cfg));
         }
         BenchCmd::Kernels { size: (h, w), batch, channels, bins, reps } => {
             if bins == 0 || bins % 32 != 0 {

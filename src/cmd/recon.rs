@@ -97,6 +97,28 @@ pub enum ReconstructCmd {
         #[arg(short, long)]
         output: PathBuf,
     },
+    /// Aᵀ + U-Net from a trained run directory: depth of K returns [K, H, W] (m, NaN where the
+    /// confidence is below ½), the confidence next to it (`OUTPUT.confidence.npy`).
+    Unet {
+        /// Run directory (from `tcsense train unet`).
+        #[arg(long)]
+        run: PathBuf,
+        /// Tap images .npy, [M, H, W] or [B, M, H, W].
+        #[arg(long)]
+        measurements: PathBuf,
+        /// Output depth .npy, [K, H, W] (or [B, K, H, W]).
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Also write a point cloud of the first frame (PLY).
+        #[arg(long)]
+        ply: Option<PathBuf>,
+        /// Horizontal field of view for the point cloud (degrees).
+        #[arg(long, default_value_t = 40.0)]
+        fov: f64,
+        /// Also write a PNG of the first frame's first return.
+        #[arg(long)]
+        png: Option<PathBuf>,
+    },
     /// ADMM-Net from a trained run directory.
     AdmmNet {
         /// Run directory (from `tcsense train admm-net`).
@@ -115,19 +137,32 @@ pub fn reconstruct(cmd: ReconstructCmd) -> Result<ExitCode> {
     match cmd {
         ReconstructCmd::AdmmNet { run, measurements, output } => {
             let mut r = runs::open(&run, &Device::flex())?;
-            decode_file(r.decoder.as_mut(), &r.sensor, &measurements, &output)
+            decode_file(r.decoder.as_mut(), &r.sensor, &measurements, &output, &DepthOutputs::default())
+        }
+        ReconstructCmd::Unet { run, measurements, output, ply, fov, png } => {
+            let mut r = runs::open(&run, &Device::flex())?;
+            decode_file(r.decoder.as_mut(), &r.sensor, &measurements, &output, &DepthOutputs { ply, png, fov })
         }
         ReconstructCmd::Tval3 { sensor, measurements, tval3: targs, output } => {
             let mut decoder = Tval3Decoder::new(targs.options()?)?;
             let (_, _, a) = sensor.matrix()?;
-            decode_file(&mut decoder, &a, &measurements, &output)
+            decode_file(&mut decoder, &a, &measurements, &output, &DepthOutputs::default())
         }
     }
 }
 
+/// Products of a decoder of depth, beside the depth map.
+#[derive(Default)]
+struct DepthOutputs {
+    ply: Option<PathBuf>,
+    png: Option<PathBuf>,
+    fov: f64,
+}
+
 /// Decode the tap images in `measurements` (`[M, H, W]` or a batch `[B, M, H, W]`) with any
-/// decoder and write the cubes (same batching) to `output`, with a progress bar.
-fn decode_file(decoder: &mut dyn Decoder, sensor: &MeasurementMatrix, measurements: &Path, output: &Path) -> Result<ExitCode> {
+/// decoder and write what it gives (same batching) to `output`: the cubes, or the depth maps
+/// with their confidence, with a progress bar.
+fn decode_file(decoder: &mut dyn Decoder, sensor: &MeasurementMatrix, measurements: &Path, output: &Path, products: &DepthOutputs) -> Result<ExitCode> {
     let y = read_npy(measurements)?;
     let (batched, y): (bool, Array4<f32>) = match y.ndim() {
         3 => (false, y.into_dimensionality::<Ix3>()?.insert_axis(Axis(0))),
@@ -155,10 +190,30 @@ fn decode_file(decoder: &mut dyn Decoder, sensor: &MeasurementMatrix, measuremen
         r => r.map_err(|e| anyhow::anyhow!("{}: {e}", measurements.display()))?,
     };
     let per_frame = t0.elapsed().as_secs_f64() / frames as f64;
-    let cube = out.cube.with_context(|| format!("decoder {} gives no cube", decoder.name()))?;
-    let cube: ArrayD<f32> = if batched { cube.into_dyn() } else { cube.index_axis(Axis(0), 0).to_owned().into_dyn() };
-    write_npy(output, &cube.view())?;
-    println!("wrote {}: x̂ {:?} ({} per frame, {})", output.display(), cube.shape(), human_time(per_frame), decoder.name());
+    let unbatch = |a: Array4<f32>| -> ArrayD<f32> { if batched { a.into_dyn() } else { a.index_axis(Axis(0), 0).to_owned().into_dyn() } };
+    if let Some(cube) = out.cube {
+        let cube = unbatch(cube);
+        write_npy(output, &cube.view())?;
+        println!("wrote {}: x̂ {:?} ({} per frame, {})", output.display(), cube.shape(), human_time(per_frame), decoder.name());
+        return Ok(ExitCode::SUCCESS);
+    }
+    let (depth, confidence) = out.depth.zip(out.confidence).with_context(|| format!("decoder {} gives neither a cube nor depth", decoder.name()))?;
+    let (first_d, first_c) = (depth.index_axis(Axis(0), 0).to_owned(), confidence.index_axis(Axis(0), 0).to_owned());
+    let conf_path = output.with_extension("confidence.npy");
+    let depth = unbatch(depth);
+    write_npy(output, &depth.view())?;
+    write_npy(&conf_path, &unbatch(confidence).view())?;
+    let found: Vec<usize> = first_d.outer_iter().map(|d| d.iter().filter(|v| v.is_finite()).count()).collect();
+    println!("wrote {} and {}: depth {:?}, returns per bounce {found:?} (first frame) ({} per frame, {})", output.display(), conf_path.display(), depth.shape(), human_time(per_frame), decoder.name());
+    if let Some(p) = &products.ply {
+        let n = write_ply(p, &first_d.view(), &first_c.view(), products.fov)?;
+        println!("wrote {}: {n} points", p.display());
+    }
+    if let Some(p) = &products.png {
+        let (_, h, w) = first_d.dim();
+        map_png(p, &first_d.index_axis(Axis(0), 0), (256 / h.max(w)).max(1))?;
+        println!("wrote {}", p.display());
+    }
     Ok(ExitCode::SUCCESS)
 }
 

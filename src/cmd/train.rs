@@ -8,7 +8,7 @@ use std::process::ExitCode;
 use tcsense_datasets::store::Kind;
 use tcsense_datasets::Dataset;
 use tcsense_models::runs::{ModelConfig, CODES_FILE, CONFIG_FILE};
-use tcsense_models::AdmmNetConfig;
+use tcsense_models::{AdmmNetConfig, UnetConfig};
 use tcsense_sensor::Codes;
 use tcsense_train::{train, Augmentation, EpochMetrics, Loss, Progress, TrainConfig, TrainError};
 
@@ -27,8 +27,48 @@ pub enum Preset {
 
 #[derive(Subcommand)]
 pub enum TrainCmd {
-    /// Train ADMM-Net on a dataset with fixed codes.
-    AdmmNet(TrainArgs),
+    /// Train ADMM-Net (cubes) on a dataset with fixed codes.
+    AdmmNet {
+        #[command(flatten)]
+        common: TrainArgs,
+        #[command(flatten)]
+        net: AdmmArgs,
+    },
+    /// Train the Aᵀ + U-Net depth decoder on a LiDAR dataset (its range ground truth).
+    Unet {
+        #[command(flatten)]
+        common: TrainArgs,
+        #[command(flatten)]
+        net: UnetArgs,
+    },
+}
+
+/// ADMM-Net size.
+#[derive(Args)]
+pub struct AdmmArgs {
+    /// Model size.
+    #[arg(long, value_enum, default_value = "cpu")]
+    preset: Preset,
+    /// Unrolled stages (overrides the preset).
+    #[arg(long)]
+    stages: Option<usize>,
+    /// CNN channels (overrides the preset).
+    #[arg(long)]
+    channels: Option<usize>,
+}
+
+/// U-Net size.
+#[derive(Args)]
+pub struct UnetArgs {
+    /// Returns per pixel: 1 (first surface) or 2 (and the one behind a diffusive sheet).
+    #[arg(long, default_value_t = 2)]
+    returns: usize,
+    /// Channels of the first level (doubled per level).
+    #[arg(long, default_value_t = 8)]
+    base_width: usize,
+    /// Resolutions (frames are padded inside the model to a multiple of 2^(levels−1)).
+    #[arg(long, default_value_t = 3)]
+    levels: usize,
 }
 
 #[derive(Args)]
@@ -42,15 +82,6 @@ pub struct TrainArgs {
     /// A training config JSON (as written to RUN/config.json); flags override it.
     #[arg(long)]
     config: Option<PathBuf>,
-    /// Model size.
-    #[arg(long, value_enum, default_value = "cpu")]
-    preset: Preset,
-    /// Unrolled stages (overrides the preset).
-    #[arg(long)]
-    stages: Option<usize>,
-    /// CNN channels (overrides the preset).
-    #[arg(long)]
-    channels: Option<usize>,
     /// Epochs.
     #[arg(long)]
     epochs: Option<usize>,
@@ -113,12 +144,22 @@ impl Progress for Bar {
         self.pb.set_message(format!("epoch {} loss {loss:.4e}", epoch + 1));
     }
     fn epoch(&self, m: &EpochMetrics) {
-        self.pb.suspend(|| println!("epoch {:>4}  step {:>6}  train loss {:.4e}  val MSE {:.4e}  PSNR {:.2} dB  {:.0} s", m.epoch, m.step, m.train_loss, m.val_mse, m.val_psnr, m.seconds));
+        let val: String = m.val.iter().map(|(n, v)| format!("  {} {v:.4e}", n.trim_start_matches("val_"))).collect();
+        self.pb.suspend(|| println!("epoch {:>4}  step {:>6}  train loss {:.4e}  val{val}  {:.0} s", m.epoch, m.step, m.train_loss, m.seconds));
     }
 }
 
+/// The network a new run starts with.
+enum NetArgs {
+    Admm(AdmmArgs),
+    Unet(UnetArgs),
+}
+
 pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
-    let TrainCmd::AdmmNet(a) = cmd;
+    let (a, net) = match cmd {
+        TrainCmd::AdmmNet { common, net } => (common, NetArgs::Admm(net)),
+        TrainCmd::Unet { common, net } => (common, NetArgs::Unet(net)),
+    };
     let run_dir = &a.output;
     // base config: the saved one on --resume, a given file, or built from the dataset
     let saved = run_dir.join(CONFIG_FILE);
@@ -135,13 +176,20 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
         let codes_path = a.codes.as_ref().context("--codes is required")?;
         let codes = Codes::load(codes_path)?;
         let (m, t) = (codes.taps(), ds.manifest.bins);
-        let model = match a.preset {
-            Preset::Cpu => AdmmNetConfig::cpu(m, t),
-            Preset::Lidar => AdmmNetConfig::lidar(m, t),
-            Preset::Flim => AdmmNetConfig::flim(m, t),
+        let model = match &net {
+            NetArgs::Admm(n) => ModelConfig::AdmmNet(match n.preset {
+                Preset::Cpu => AdmmNetConfig::cpu(m, t),
+                Preset::Lidar => AdmmNetConfig::lidar(m, t),
+                Preset::Flim => AdmmNetConfig::flim(m, t),
+            }),
+            NetArgs::Unet(n) => {
+                // depth up to the unambiguous range of the dataset's cycle
+                let range_m = tcsense_datasets::grid::C * ds.manifest.bin_width_s * t as f64 / 2.0;
+                ModelConfig::Unet(UnetConfig::new(m, t, range_m).with_returns(n.returns).with_base_width(n.base_width).with_levels(n.levels))
+            }
         };
         let loss = if ds.manifest.kind == Kind::Flim { Loss::Rmse } else { Loss::RmseMae };
-        let mut cfg = TrainConfig::new(ModelConfig::AdmmNet(model), ds_path, loss, ds.manifest.grid.sampling);
+        let mut cfg = TrainConfig::new(model, ds_path, loss, ds.manifest.grid.sampling);
         cfg.augment = Some(Augmentation::default());
         cfg
     };
@@ -154,15 +202,17 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     if let Some(d) = &a.dataset {
         cfg.dataset = d.display().to_string();
     }
-    match &mut cfg.run.model {
-        ModelConfig::AdmmNet(m) => {
-            if let Some(v) = a.stages {
+    match (&mut cfg.run.model, &net) {
+        (ModelConfig::AdmmNet(m), NetArgs::Admm(n)) => {
+            if let Some(v) = n.stages {
                 m.stages = v;
             }
-            if let Some(v) = a.channels {
+            if let Some(v) = n.channels {
                 m.channels = v;
             }
         }
+        (ModelConfig::Unet(_), NetArgs::Unet(_)) => {}
+        (model, _) => bail!("{}: this is a {} run; train it with `tcsense train {}`", run_dir.display(), model.name(), model.name()),
     }
     if let Some(v) = a.epochs {
         cfg.epochs = v;
@@ -207,6 +257,7 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     pb.set_style(ProgressStyle::with_template("[{bar:30}] {pos}/{len} steps {per_sec} eta {eta} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
     let network = match &cfg.run.model {
         ModelConfig::AdmmNet(m) => format!("ADMM-Net S = {}, CN = {}, M = {}, T = {}", m.stages, m.channels, m.taps, m.bins),
+        ModelConfig::Unet(m) => format!("Aᵀ + U-Net K = {}, base width {}, {} levels, M = {}, T = {}, range {:.2} m, {:.2} GFLOP per 188x212 frame", m.returns, m.base_width, m.levels, m.taps, m.bins, m.range_m, m.flops(188, 212) / 1e9),
     };
     println!(
         "{network}; {} epochs, batch {}, lr {}, loss {:?}, noise {}, augmentation {}",
@@ -225,7 +276,8 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     match res {
         Ok(rows) => {
             if let Some(last) = rows.last() {
-                println!("wrote {}: epoch {}, val MSE {:.4e}", run_dir.display(), last.epoch, last.val_mse);
+                let (name, v) = last.val.first().map_or(("val", f64::NAN), |(n, v)| (n.as_str(), *v));
+                println!("wrote {}: epoch {}, {name} {v:.4e}", run_dir.display(), last.epoch);
             } else {
                 println!("{}: already trained for {} epochs", run_dir.display(), cfg.epochs);
             }

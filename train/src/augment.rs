@@ -14,7 +14,7 @@
 //! Every draw comes from a generator seeded by `(seed, step)`, so a run stays a pure function
 //! of its config and resumes exactly.
 
-use ndarray::{s, Array4, ArrayView4, Axis};
+use ndarray::{s, Array4, ArrayView3, ArrayView4, Axis};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use serde::{Deserialize, Serialize};
@@ -54,13 +54,43 @@ impl Default for Augmentation {
     }
 }
 
-/// A batch after augmentation: cubes and, per item, the noise model to measure it with.
+/// A batch after augmentation: cubes, their depth labels and, per item, the noise model to
+/// measure it with.
 #[derive(Debug, Clone)]
 pub struct Augmented {
     /// `[B, T, H', W']`.
     pub x: Array4<f32>,
+    /// Range labels `[B, K, H', W']` (m, NaN where none), moved with the cube: flipped,
+    /// cropped, and shifted by the time shift's range `k·c·Δt/2` (cyclically, re-sorted into
+    /// arrival order).
+    pub depth: Option<Array4<f32>>,
     /// One noise model per item (from `base` with this item's levels).
     pub noise: Vec<NoiseParams>,
+}
+
+/// Range labels to move with the cubes.
+#[derive(Debug, Clone, Copy)]
+pub struct DepthLabels<'a> {
+    /// `[B, K, H, W]` (m, NaN where none).
+    pub depth: ArrayView4<'a, f32>,
+    /// Range of one time bin, `c·Δt/2` (m).
+    pub bin_m: f64,
+    /// Unambiguous range, `c·L·T_c/2` (m).
+    pub range_m: f64,
+}
+
+/// The crop window `[r0, c0, h, w]` of `src`, flipped as asked.
+///
+/// # Shapes
+/// - `src`: `[C, H, W]` → `[C, h, w]`
+fn window(src: ArrayView3<'_, f32>, [r0, c0, ch, cw]: [usize; 4], flip_r: bool, flip_c: bool) -> ArrayView3<'_, f32> {
+    let w = src.slice_move(s![.., r0..r0 + ch, c0..c0 + cw]);
+    match (flip_r, flip_c) {
+        (false, false) => w,
+        (true, false) => w.slice_move(s![.., ..;-1, ..]),
+        (false, true) => w.slice_move(s![.., .., ..;-1]),
+        (true, true) => w.slice_move(s![.., ..;-1, ..;-1]),
+    }
 }
 
 impl Augmentation {
@@ -88,16 +118,18 @@ impl Augmentation {
         self.crop.map_or((h, w), |[ch, cw]| (ch, cw))
     }
 
-    /// Augment batch `x` for optimiser step `step`; `base` is the run's noise model (its ADC
-    /// setting is kept).
+    /// Augment batch `x` (and its depth labels) for optimiser step `step`; `base` is the run's
+    /// noise model (its ADC setting is kept).
     ///
     /// # Shapes
-    /// - `x`: `[B, T, H, W]` → `[B, T, H', W']` (`H' × W'` the crop, else `H × W`)
-    pub fn apply(&self, x: &ArrayView4<'_, f32>, base: &NoiseParams, block: (usize, usize), seed: u64, step: u64) -> Augmented {
+    /// - `x`: `[B, T, H, W]` → `[B, T, H', W']` (`H' × W'` the crop, else `H × W`); labels
+    ///   `[B, K, H, W]` → `[B, K, H', W']`
+    pub fn apply(&self, x: &ArrayView4<'_, f32>, labels: Option<DepthLabels<'_>>, base: &NoiseParams, block: (usize, usize), seed: u64, step: u64) -> Augmented {
         let mut rng = StdRng::seed_from_u64(derive_seed(seed ^ AUGMENT_STREAM, step));
         let (b, t, h, w) = x.dim();
         let (ch, cw) = self.frame(h, w);
         let mut out = Array4::<f32>::zeros((b, t, ch, cw));
+        let mut depth_out = labels.map(|l| Array4::<f32>::from_elem((b, l.depth.dim().1, ch, cw), f32::NAN));
         let mut noise = Vec::with_capacity(b);
         for (i, mut dst) in out.outer_iter_mut().enumerate() {
             let shift = if self.time_shift { rng.random_range(0..t) } else { 0 };
@@ -106,17 +138,22 @@ impl Augmentation {
             let r0 = rng.random_range(0..=(h - ch) / block.0) * block.0;
             let c0 = rng.random_range(0..=(w - cw) / block.1) * block.1;
             let gain = draw(&mut rng, self.brightness, true) as f32;
-            let src = x.index_axis(Axis(0), i);
-            let window = src.slice(s![.., r0..r0 + ch, c0..c0 + cw]);
-            let window = match (flip_r, flip_c) {
-                (false, false) => window,
-                (true, false) => window.slice_move(s![.., ..;-1, ..]),
-                (false, true) => window.slice_move(s![.., .., ..;-1]),
-                (true, true) => window.slice_move(s![.., ..;-1, ..;-1]),
-            };
+            let area = [r0, c0, ch, cw];
+            let window_x = window(x.index_axis(Axis(0), i), area, flip_r, flip_c);
+            if let (Some(l), Some(d)) = (labels, depth_out.as_mut()) {
+                let mut di = d.index_axis_mut(Axis(0), i);
+                di.assign(&window(l.depth.index_axis(Axis(0), i), area, flip_r, flip_c));
+                let delay = shift as f64 * l.bin_m;
+                for mut px in di.lanes_mut(Axis(0)) {
+                    // shift every return, wrap around the cycle, keep arrival order (NaN last)
+                    let mut v: Vec<f32> = px.iter().map(|&d| if d.is_finite() { (d as f64 + delay).rem_euclid(l.range_m) as f32 } else { f32::NAN }).collect();
+                    v.sort_by(|a, b| a.is_nan().cmp(&b.is_nan()).then(a.total_cmp(b)));
+                    px.iter_mut().zip(v).for_each(|(p, v)| *p = v);
+                }
+            }
             for j in 0..t {
                 // roll: bin j of the source lands in bin j + shift
-                dst.index_axis_mut(Axis(0), (j + shift) % t).zip_mut_with(&window.index_axis(Axis(0), j), |d, &v| *d = v * gain);
+                dst.index_axis_mut(Axis(0), (j + shift) % t).zip_mut_with(&window_x.index_axis(Axis(0), j), |d, &v| *d = v * gain);
             }
             noise.push(NoiseParams {
                 full_well_e: draw(&mut rng, self.full_well_e, true),
@@ -125,7 +162,7 @@ impl Augmentation {
                 adc_bits: base.adc_bits,
             });
         }
-        Augmented { x: out, noise }
+        Augmented { x: out, depth: depth_out, noise }
     }
 }
 
@@ -143,12 +180,12 @@ mod tests {
         let x = cube();
         let base = NoiseParams::default();
         let off = Augmentation { time_shift: false, flips: false, crop: None, brightness: [1.0, 1.0], full_well_e: [2e4, 2e4], read_noise_e: [40.0, 40.0], signal_fraction: [0.8, 0.8] };
-        let same = off.apply(&x.view(), &base, (2, 2), 1, 1);
+        let same = off.apply(&x.view(), None, &base, (2, 2), 1, 1);
         assert_eq!(same.x, x, "everything off is the identity");
         assert!(same.noise.iter().all(|n| n.full_well_e == 2e4 && n.read_noise_e == 40.0 && n.signal_fraction == 0.8 && n.adc_bits == base.adc_bits));
 
         // a time shift is a roll of every pixel's waveform by the same number of bins
-        let shifted = Augmentation { time_shift: true, ..off }.apply(&x.view(), &base, (2, 2), 1, 2).x;
+        let shifted = Augmentation { time_shift: true, ..off }.apply(&x.view(), None, &base, (2, 2), 1, 2).x;
         for b in 0..2 {
             let k = (0..8).find(|&k| shifted[(b, k, 0, 0)] == x[(b, 0, 0, 0)]).expect("a roll of the waveform");
             for j in 0..8 {
@@ -164,7 +201,7 @@ mod tests {
         let cropped = Augmentation { flips: true, crop: Some([2, 4]), ..off };
         cropped.validate(4, 6, (2, 2)).unwrap();
         for step in 0..8 {
-            let a = cropped.apply(&x.view(), &base, (2, 2), 3, step).x;
+            let a = cropped.apply(&x.view(), None, &base, (2, 2), 3, step).x;
             assert_eq!(a.dim(), (2, 8, 2, 4));
             for b in 0..2 {
                 let v = a[(b, 0, 0, 0)] as usize - b * 1000;
@@ -175,7 +212,7 @@ mod tests {
             }
         }
         for step in 0..8 {
-            let a = Augmentation { crop: Some([2, 4]), ..off }.apply(&x.view(), &base, (2, 2), 3, step).x;
+            let a = Augmentation { crop: Some([2, 4]), ..off }.apply(&x.view(), None, &base, (2, 2), 3, step).x;
             let v = a[(0, 0, 0, 0)] as usize;
             assert!((v / 10 % 10) % 2 == 0 && (v % 10) % 2 == 0, "crop origin ({}, {}) on the 2x2 block grid", v / 10 % 10, v % 10);
         }
@@ -185,15 +222,15 @@ mod tests {
 
         // brightness and noise levels are drawn in their ranges, seeded by (seed, step)
         let d = Augmentation::default();
-        let a1 = d.apply(&x.view(), &base, (2, 2), 7, 3);
-        let a2 = d.apply(&x.view(), &base, (2, 2), 7, 3);
-        let a3 = d.apply(&x.view(), &base, (2, 2), 7, 4);
+        let a1 = d.apply(&x.view(), None, &base, (2, 2), 7, 3);
+        let a2 = d.apply(&x.view(), None, &base, (2, 2), 7, 3);
+        let a3 = d.apply(&x.view(), None, &base, (2, 2), 7, 4);
         assert_eq!(a1.x, a2.x);
         assert_ne!(a1.x, a3.x);
         for n in a1.noise.iter().chain(&a3.noise) {
             assert!((5e3..=4e4).contains(&n.full_well_e) && (10.0..=80.0).contains(&n.read_noise_e) && (0.02..=0.9).contains(&n.signal_fraction));
         }
-        let gains: Vec<f32> = (0..200).map(|s| d.apply(&x.view(), &base, (2, 2), 7, s).x.iter().map(|v| v.abs()).sum::<f32>() / x.iter().map(|v| v.abs()).sum::<f32>()).collect();
+        let gains: Vec<f32> = (0..200).map(|s| d.apply(&x.view(), None, &base, (2, 2), 7, s).x.iter().map(|v| v.abs()).sum::<f32>() / x.iter().map(|v| v.abs()).sum::<f32>()).collect();
         assert!(gains.iter().any(|&g| g < 0.05) && gains.iter().any(|&g| g > 0.5), "brightness over two decades");
     }
 }

@@ -1,6 +1,7 @@
 //! Timings for `tcsense bench train` (printed, never asserted): one training step and one
 //! inference frame of a network, medians of several runs.
 
+use burn::module::Module;
 use burn::optim::AdamConfig;
 use burn::tensor::Device;
 use ndarray::Array4;
@@ -15,7 +16,7 @@ use tcsense_sensor::measure::measure_batch;
 use tcsense_sensor::MeasurementMatrix;
 
 use crate::config::Loss;
-use crate::loss::loss_fn;
+use crate::fit::{objective, Target};
 use crate::{Result, TrainError};
 
 /// Timings of one training step (medians, ms).
@@ -31,6 +32,7 @@ pub struct StepTiming {
 pub fn bench_step(a: &MeasurementMatrix, model: &ModelConfig, h: usize, w: usize, steps: usize) -> Result<StepTiming> {
     match model {
         ModelConfig::AdmmNet(c) => time_steps(a, |d| c.init(d), h, w, steps),
+        ModelConfig::Unet(c) => time_steps(a, |d| c.init(d), h, w, steps),
     }
 }
 
@@ -42,13 +44,17 @@ fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h:
     let mut optim = AdamConfig::new().init();
     let x = Array4::from_shape_fn((2, a.bins(), h, w), |(b, j, r, c)| if (j + r / 8 + c / 8 + b) % 11 == 0 { 1.0 } else { 0.0 });
     let y = measure_batch(&plan, &x.view(), None, 0)?;
+    // labels for depth networks: a return at a few metres in every other pixel
+    let depth = Array4::from_shape_fn((2, 2, h, w), |(b, k, r, c)| if (r + c + b) % 2 == 0 { 2.0 + k as f32 + (r % 7) as f32 * 0.1 } else { f32::NAN });
     let mut times: Vec<[f64; 3]> = Vec::new();
     for _ in 0..steps.max(1) + 1 {
         let t0 = Instant::now();
         let pred = model.predict(to_tensor(&y.view(), &device), &sensor);
-        let loss = match M::PREDICTION {
-            Prediction::Cube => loss_fn(Loss::RmseMae, pred, to_tensor(&x.view(), &device)),
+        let target = match M::PREDICTION {
+            Prediction::Cube => Target::Cube(&x),
+            Prediction::Depth => Target::Depth { depth: &depth, range_m: 10.0 },
         };
+        let loss = objective(Loss::RmseMae, pred, target, &device);
         let _: f32 = loss.clone().into_scalar();
         let t1 = Instant::now();
         let grads = burn::optim::GradientsParams::from_grads(loss.backward(), &model);
@@ -68,8 +74,18 @@ pub fn bench_forward(a: &MeasurementMatrix, model: &ModelConfig, h: usize, w: us
     let device = Device::flex();
     let mut decoder: Box<dyn Decoder> = match model {
         ModelConfig::AdmmNet(c) => Box::new(NetDecoder::new(model.name(), crate::fit::seeded_init(&device, 1, |d| c.init(d)), device.clone())),
+        ModelConfig::Unet(c) => Box::new(NetDecoder::new(model.name(), crate::fit::seeded_init(&device, 1, |d| c.init(d)), device.clone())),
     };
     let y = Array4::from_shape_fn((1, a.taps(), h, w), |(_, m, r, c)| ((m + r + c) % 7) as f32 * 0.1);
     let never = AtomicBool::new(false);
     median_ms(|| decoder.decode(y.view(), a, &Control::quiet(&never)).map(|out| drop(std::hint::black_box(out))), reps).map_err(Into::into)
+}
+
+/// Trainable parameters of a network.
+pub fn parameters(model: &ModelConfig) -> usize {
+    let device = Device::flex();
+    match model {
+        ModelConfig::AdmmNet(c) => c.init(&device).num_params(),
+        ModelConfig::Unet(c) => c.init(&device).num_params(),
+    }
 }

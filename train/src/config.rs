@@ -88,6 +88,11 @@ impl TrainConfig {
                 return bad("model", format!("{} stages, {} channels", m.stages, m.channels), "at least one stage and one channel");
             }
             ModelConfig::AdmmNet(_) => {}
+            ModelConfig::Unet(m) => {
+                if m.base_width == 0 || !(1..=6).contains(&m.levels) || !(1..=2).contains(&m.returns) || !(m.range_m.is_finite() && m.range_m > 0.0) {
+                    return bad("model", format!("base width {}, {} levels, {} returns, range {} m", m.base_width, m.levels, m.returns, m.range_m), "base width ≥ 1, 1–6 levels, 1 or 2 returns, a positive range");
+                }
+            }
         }
         if let Some(n) = &self.noise {
             n.validate()?;

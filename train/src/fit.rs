@@ -17,7 +17,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 use tcsense_datasets::Dataset;
 use tcsense_models::decoder::{Control, Decoder};
-use tcsense_models::metrics::{mse, psnr};
+use tcsense_datasets::grid::C;
+use tcsense_models::metrics::{depth_errors, mse, psnr};
 use tcsense_models::net::{to_tensor, NetDecoder, Network, Prediction};
 use tcsense_models::runs::{ModelConfig, CODES_FILE, CONFIG_FILE};
 use tcsense_models::SensorTensors;
@@ -26,8 +27,10 @@ use tcsense_sensor::noise::derive_seed;
 use tcsense_sensor::{Codes, FramePlan, MeasurementMatrix, NoiseParams};
 
 use crate::config::TrainConfig;
-use crate::data::load_cubes;
-use crate::loss::loss_fn;
+use crate::augment::DepthLabels;
+use crate::config::Loss;
+use crate::data::{load_cubes, load_depth};
+use crate::loss::{depth_loss, loss_fn};
 use crate::run_dir::{latest_checkpoint, load_checkpoint, read_json, read_rows, save_checkpoint, write_json, write_rows, EpochMetrics, RunState, METRICS_FILE};
 use crate::{file_err, Result, TrainError};
 
@@ -46,34 +49,52 @@ pub trait Progress {
 pub struct Quiet;
 impl Progress for Quiet {}
 
-/// Mean MSE and PSNR of a decoder over cubes `x` with measurements simulated with noise
-/// seeded per item (the same every epoch).
+/// Validation metrics of a decoder over cubes `x` with measurements simulated with noise
+/// seeded per item (the same every epoch): `val_mse`, `val_psnr_db` for decoders of cubes;
+/// `val_depth_rmse_m`, `val_depth_mae_m`, `val_detection` (over all returns) against the
+/// range labels `depth` for decoders of depth.
 ///
 /// # Shapes
-/// - `x`: `[N, T, H, W]`
-pub fn validate(decoder: &mut dyn Decoder, plan: &FramePlan, sensor: &MeasurementMatrix, x: &Array4<f32>, noise: Option<&NoiseParams>, seed: u64) -> Result<(f64, f64)> {
+/// - `x`: `[N, T, H, W]`, `depth`: `[N, K, H, W]`
+pub fn validate(decoder: &mut dyn Decoder, plan: &FramePlan, sensor: &MeasurementMatrix, x: &Array4<f32>, depth: Option<&Array4<f32>>, noise: Option<&NoiseParams>, seed: u64) -> Result<Vec<(String, f64)>> {
     let n = x.dim().0;
-    if n == 0 {
-        return Ok((f64::NAN, f64::NAN));
-    }
     let never = AtomicBool::new(false);
     let (mut total_mse, mut total_psnr) = (0.0, 0.0);
+    let (mut truth, mut detected, mut se, mut ae) = (0usize, 0usize, 0.0, 0.0);
     for i in 0..n {
         let xi = x.slice_axis(Axis(0), ndarray::Slice::from(i..i + 1)); // [1, T, H, W]
         let y = measure_batch(plan, &xi, noise, derive_seed(seed ^ VALIDATION_STREAM, i as u64))?;
         let out = decoder.decode(y.view(), sensor, &Control::quiet(&never))?;
-        let pred = out.cube.ok_or(TrainError::InvalidParam { field: "decoder", got: decoder.name().into(), expected: "a decoder that reconstructs cubes".into() })?;
-        let (p, t) = (pred.as_slice().unwrap_or(&[]), xi.as_slice().unwrap_or(&[]));
-        total_mse += mse(p, t);
-        total_psnr += psnr(p, t);
+        if let (Some(est), Some(d)) = (&out.depth, depth) {
+            for e in depth_errors(&est.index_axis(Axis(0), 0), &d.index_axis(Axis(0), i)) {
+                truth += e.truth;
+                detected += e.detected;
+                if e.detected > 0 {
+                    se += e.rmse_m * e.rmse_m * e.detected as f64;
+                    ae += e.mae_m * e.detected as f64;
+                }
+            }
+        } else if let Some(pred) = &out.cube {
+            let (p, t) = (pred.as_slice().unwrap_or(&[]), xi.as_slice().unwrap_or(&[]));
+            total_mse += mse(p, t);
+            total_psnr += psnr(p, t);
+        } else {
+            return Err(TrainError::InvalidParam { field: "decoder", got: decoder.name().into(), expected: "a cube, or depth with range labels".into() });
+        }
     }
-    Ok((total_mse / n as f64, total_psnr / n as f64))
+    let per = |v: f64, k: usize| if k > 0 { v / k as f64 } else { f64::NAN };
+    Ok(if depth.is_some() {
+        vec![("val_depth_rmse_m".into(), per(se, detected).sqrt()), ("val_depth_mae_m".into(), per(ae, detected)), ("val_detection".into(), per(detected as f64, truth))]
+    } else {
+        vec![("val_mse".into(), per(total_mse, n)), ("val_psnr_db".into(), per(total_psnr, n))]
+    })
 }
 
 /// Train (or resume) a run in `run`.
 pub fn train(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, progress: &dyn Progress, cancel: &AtomicBool) -> Result<Vec<EpochMetrics>> {
     match &cfg.run.model {
         ModelConfig::AdmmNet(m) => fit(cfg, codes, run, resume, progress, cancel, |device| m.init(device)),
+        ModelConfig::Unet(m) => fit(cfg, codes, run, resume, progress, cancel, |device| m.init(device)),
     }
 }
 
@@ -93,6 +114,15 @@ fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, p
     }
     let train_x = load_cubes(&ds, "train", cfg.max_train_items)?;
     let val_x = load_cubes(&ds, "val", cfg.max_val_items)?;
+    // range labels of the first K returns for depth networks
+    let (train_d, val_d) = match M::PREDICTION {
+        Prediction::Cube => (None, None),
+        Prediction::Depth => {
+            let k = model_cfg.returns();
+            (Some(load_depth(&ds, "train", cfg.max_train_items, k)?), Some(load_depth(&ds, "val", cfg.max_val_items, k)?))
+        }
+    };
+    let (bin_m, range_m) = (C * a.bin_width_s() / 2.0, C * a.bin_width_s() * a.bins() as f64 / 2.0);
     if train_x.dim().0 == 0 {
         return Err(file_err(&ds.dir, "the train split is empty"));
     }
@@ -142,29 +172,35 @@ fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, p
                 return Err(TrainError::Cancelled);
             }
             let xb = train_x.select(Axis(0), idx); // [B, T, H, W]
+            let db = train_d.as_ref().map(|d| d.select(Axis(0), idx)); // [B, K, H, W]
             state.step += 1;
             let noise_seed = derive_seed(cfg.seed, state.step);
-            let (xb, yb) = match (&cfg.augment, &cfg.noise) {
+            let (xb, db, yb) = match (&cfg.augment, &cfg.noise) {
                 (None, _) => {
                     let yb = measure_batch(&plan, &xb.view(), cfg.noise.as_ref(), noise_seed)?;
-                    (xb, yb)
+                    (xb, db, yb)
                 }
                 (Some(aug), noise) => {
-                    let out = aug.apply(&xb.view(), noise.as_ref().unwrap_or(&crate::config::TRAINING_NOISE), a.block(), cfg.seed, state.step);
+                    let labels = db.as_ref().map(|d| DepthLabels { depth: d.view(), bin_m, range_m });
+                    let out = aug.apply(&xb.view(), labels, noise.as_ref().unwrap_or(&crate::config::TRAINING_NOISE), a.block(), cfg.seed, state.step);
                     let yb = measure_items(&train_plan, &out.x, noise.as_ref().map(|_| out.noise.as_slice()), noise_seed)?;
-                    (out.x, yb)
+                    (out.x, out.depth, yb)
                 }
             };
+            let target = match &db {
+                Some(d) => Target::Depth { depth: d, range_m },
+                None => Target::Cube(&xb),
+            };
             let l;
-            (model, l) = step(model, &mut optim, cfg, &sensor, &yb, &xb, &device);
+            (model, l) = step(model, &mut optim, cfg, &sensor, &yb, target, &device);
             loss_sum += l;
             progress.step(epoch, bi + 1, steps_per_epoch, l);
         }
         let mut valid = NetDecoder::new(model_cfg.name(), model.valid().to_device(&infer_device), infer_device.clone());
-        let (val_mse, val_psnr) = validate(&mut valid, &plan, &a, &val_x, cfg.noise.as_ref(), cfg.seed)?;
+        let val = validate(&mut valid, &plan, &a, &val_x, val_d.as_ref(), cfg.noise.as_ref(), cfg.seed)?;
         state.epoch = epoch + 1;
         state.seconds += t0.elapsed().as_secs_f64();
-        let m = EpochMetrics { epoch: epoch + 1, step: state.step, train_loss: loss_sum / steps_per_epoch as f64, val_mse, val_psnr, seconds: state.seconds };
+        let m = EpochMetrics { epoch: epoch + 1, step: state.step, train_loss: loss_sum / steps_per_epoch as f64, val, seconds: state.seconds };
         rows.push(m.clone());
         save_checkpoint(run, &model, &optim, &state)?;
         write_rows(&run.join(METRICS_FILE), &rows)?;
@@ -210,15 +246,37 @@ fn measure_items(plan: &FramePlan, x: &Array4<f32>, noise: Option<&[NoiseParams]
     Ok(y)
 }
 
+/// What a batch is trained against.
+#[derive(Debug, Clone, Copy)]
+pub(crate) enum Target<'a> {
+    /// The cubes `[B, T, H, W]`.
+    Cube(&'a Array4<f32>),
+    /// Range labels `[B, K, H, W]` (m, NaN where none) and the unambiguous range.
+    Depth { depth: &'a Array4<f32>, range_m: f64 },
+}
+
+/// The loss of a prediction against its target.
+///
+/// # Shapes
+/// - `pred`: `[B, T, H, W]` or `[B, 2K, H, W]` → `[1]`
+pub(crate) fn objective(loss: Loss, pred: Tensor<4>, target: Target<'_>, device: &Device) -> Tensor<1> {
+    match target {
+        Target::Cube(x) => loss_fn(loss, pred, to_tensor(&x.view(), device)),
+        Target::Depth { depth, range_m } => {
+            let mask = depth.mapv(|d| if d.is_finite() { 1.0 } else { 0.0 });
+            let filled = depth.mapv(|d| if d.is_finite() { d } else { 0.0 });
+            depth_loss(pred, to_tensor(&filled.view(), device), to_tensor(&mask.view(), device), range_m)
+        }
+    }
+}
+
 /// One Adam step on a batch; returns the updated network and the batch loss.
 ///
 /// # Shapes
-/// - `y`: `[B, M, H, W]`, `x`: `[B, T, H, W]`
-pub(crate) fn step<M: Network>(model: M, optim: &mut ModuleOptimizer, cfg: &TrainConfig, sensor: &SensorTensors, y: &Array4<f32>, x: &Array4<f32>, device: &Device) -> (M, f64) {
+/// - `y`: `[B, M, H, W]`; the target as in [`Target`]
+pub(crate) fn step<M: Network>(model: M, optim: &mut ModuleOptimizer, cfg: &TrainConfig, sensor: &SensorTensors, y: &Array4<f32>, target: Target<'_>, device: &Device) -> (M, f64) {
     let pred = model.predict(to_tensor(&y.view(), device), sensor);
-    let loss = match M::PREDICTION {
-        Prediction::Cube => loss_fn(cfg.loss, pred, to_tensor(&x.view(), device)),
-    };
+    let loss = objective(cfg.loss, pred, target, device);
     let l: f32 = loss.clone().into_scalar();
     let grads = GradientsParams::from_grads(loss.backward(), &model);
     (optim.step(cfg.learning_rate, model, grads), l as f64)

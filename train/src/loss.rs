@@ -1,5 +1,8 @@
-//! Training losses (paper Table 3): RMSE for FLIm cubes, RMSE + MAE for LiDAR cubes.
+//! Training losses (paper Table 3): RMSE for FLIm cubes, RMSE + MAE for LiDAR cubes; for
+//! depth networks a masked L1 on the depth (in units of the range) where the truth has a
+//! return, plus the binary cross-entropy of the confidence against "has a return".
 
+use burn::tensor::activation::relu;
 use burn::tensor::Tensor;
 
 use crate::config::Loss;
@@ -17,6 +20,22 @@ pub fn loss_fn(loss: Loss, pred: Tensor<4>, truth: Tensor<4>) -> Tensor<1> {
     }
 }
 
+/// The depth loss of a batch.
+///
+/// # Shapes
+/// - `pred`: `[B, 2K, H, W]` (depth in metres, confidence logits), `depth`: `[B, K, H, W]` (m,
+///   0 where none), `mask`: `[B, K, H, W]` (1 where the truth has a return) → `[1]`
+pub fn depth_loss(pred: Tensor<4>, depth: Tensor<4>, mask: Tensor<4>, range_m: f64) -> Tensor<1> {
+    let k = pred.dims()[1] / 2;
+    let d = pred.clone().narrow(1, 0, k);
+    let logits = pred.narrow(1, k, k);
+    let count = mask.clone().sum().add_scalar(1.0);
+    let l1 = ((d - depth).abs() * mask.clone()).sum() / count / range_m;
+    // BCE with logits, stable: max(l, 0) − l·t + log(1 + e^{−|l|})
+    let bce = relu(logits.clone()) - logits.clone() * mask + logits.abs().neg().exp().add_scalar(1.0).log();
+    l1 + bce.mean()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -32,5 +51,17 @@ mod tests {
         let both: f32 = loss_fn(Loss::RmseMae, pred, truth).into_scalar();
         assert!((rmse - 5f32.sqrt()).abs() < 1e-6, "{rmse}");
         assert!((both - (5f32.sqrt() + 1.5)).abs() < 1e-6, "{both}");
+    }
+
+    #[test]
+    fn depth_loss_masks_and_scores_confidence() {
+        let device = Device::flex();
+        // K = 1, two pixels: one return at 3 m (predicted 4 m, logit 0), one without (logit 0)
+        let pred = Tensor::<4>::from_floats([[[[4.0, 9.0]], [[0.0, 0.0]]]], &device); // [1, 2, 1, 2]
+        let depth = Tensor::<4>::from_floats([[[[3.0, 0.0]]]], &device);
+        let mask = Tensor::<4>::from_floats([[[[1.0, 0.0]]]], &device);
+        let l: f32 = depth_loss(pred, depth, mask, 10.0).into_scalar();
+        // L1 = |4 − 3| / (1 + 1) / 10 = 0.05 (the pixel without a return does not count); BCE = ln 2
+        assert!((l - (0.05 + 2f32.ln())).abs() < 1e-6, "{l}");
     }
 }

@@ -4,7 +4,7 @@
 //!
 //! ```text
 //! RUN/checkpoint/{model.bpk, optim.bpk, state.json}   written to checkpoint.tmp/, then renamed
-//! RUN/metrics.csv                                      epoch,step,train_loss,val_mse,val_psnr_db,seconds
+//! RUN/metrics.csv                                      epoch,step,train_loss,<validation columns>,seconds
 //! RUN/model.bpk                                        written as model-new.bpk, then renamed
 //! ```
 
@@ -27,7 +27,6 @@ const CHECKPOINT_TMP: &str = "checkpoint.tmp";
 pub const METRICS_FILE: &str = "metrics.csv";
 /// The progress state inside a checkpoint.
 pub const STATE_FILE: &str = "state.json";
-const CSV_HEADER: &str = "epoch,step,train_loss,val_mse,val_psnr_db,seconds\n";
 
 /// Progress of a run after a checkpoint.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -46,9 +45,17 @@ pub struct EpochMetrics {
     pub epoch: usize,
     pub step: u64,
     pub train_loss: f64,
-    pub val_mse: f64,
-    pub val_psnr: f64,
+    /// Validation metrics by column name: `val_mse`, `val_psnr_db` for cube networks;
+    /// `val_depth_rmse_m`, `val_depth_mae_m`, `val_detection` for depth networks.
+    pub val: Vec<(String, f64)>,
     pub seconds: f64,
+}
+
+impl EpochMetrics {
+    /// A validation metric by column name (NaN if the row has none of that name).
+    pub fn get(&self, name: &str) -> f64 {
+        self.val.iter().find(|(n, _)| n == name).map_or(f64::NAN, |(_, v)| *v)
+    }
 }
 
 /// Write `v` as pretty JSON, atomically.
@@ -105,11 +112,13 @@ pub fn save_checkpoint<M: Module>(run: &Path, model: &M, optim: &ModuleOptimizer
     Ok(())
 }
 
-/// Write `metrics.csv`.
+/// Write `metrics.csv` (the validation columns of the first row name the header).
 pub fn write_rows(path: &Path, rows: &[EpochMetrics]) -> Result<()> {
-    let mut s = String::from(CSV_HEADER);
+    let names: Vec<&str> = rows.first().map(|r| r.val.iter().map(|(n, _)| n.as_str()).collect()).unwrap_or_default();
+    let mut s = format!("epoch,step,train_loss,{}seconds\n", names.iter().map(|n| format!("{n},")).collect::<String>());
     for r in rows {
-        s.push_str(&format!("{},{},{:.6e},{:.6e},{:.3},{:.2}\n", r.epoch, r.step, r.train_loss, r.val_mse, r.val_psnr, r.seconds));
+        let vals: String = r.val.iter().map(|(n, v)| if n.ends_with("_db") { format!("{v:.3},") } else { format!("{v:.6e},") }).collect();
+        s.push_str(&format!("{},{},{:.6e},{vals}{:.2}\n", r.epoch, r.step, r.train_loss, r.seconds));
     }
     Ok(write_bytes(path, s.as_bytes())?)
 }
@@ -117,16 +126,23 @@ pub fn write_rows(path: &Path, rows: &[EpochMetrics]) -> Result<()> {
 /// Read the rows of `metrics.csv` up to epoch `upto` (the checkpoint's); none if it is missing.
 pub fn read_rows(path: &Path, upto: usize) -> Result<Vec<EpochMetrics>> {
     let Ok(text) = std::fs::read_to_string(path) else { return Ok(Vec::new()) };
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
+    if header.len() < 4 {
+        return Err(file_err(path, format!("header {header:?} lacks epoch,step,train_loss,…,seconds")));
+    }
+    let names = &header[3..header.len() - 1];
     let mut rows = Vec::new();
-    for line in text.lines().skip(1) {
+    for line in lines {
         let f: Vec<&str> = line.split(',').collect();
-        if f.len() != 6 {
-            return Err(file_err(path, format!("row {line:?} does not have 6 fields")));
+        if f.len() != header.len() {
+            return Err(file_err(path, format!("row {line:?} does not have {} fields", header.len())));
         }
         let p = |s: &str| s.parse::<f64>().map_err(|_| file_err(path, format!("bad number {s:?}")));
         let epoch = p(f[0])? as usize;
         if epoch <= upto {
-            rows.push(EpochMetrics { epoch, step: p(f[1])? as u64, train_loss: p(f[2])?, val_mse: p(f[3])?, val_psnr: p(f[4])?, seconds: p(f[5])? });
+            let val = names.iter().zip(&f[3..f.len() - 1]).map(|(n, v)| Ok((n.to_string(), p(v)?))).collect::<Result<_>>()?;
+            rows.push(EpochMetrics { epoch, step: p(f[1])? as u64, train_loss: p(f[2])?, val, seconds: p(f[f.len() - 1])? });
         }
     }
     Ok(rows)
@@ -141,14 +157,17 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("tcsense-rows-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join(METRICS_FILE);
-        let rows: Vec<EpochMetrics> = (1..=3).map(|e| EpochMetrics { epoch: e, step: 3 * e as u64, train_loss: 0.5 / e as f64, val_mse: 1e-3, val_psnr: 30.0, seconds: e as f64 }).collect();
+        let val = vec![("val_mse".to_string(), 1e-3), ("val_psnr_db".to_string(), 30.0)];
+        let rows: Vec<EpochMetrics> = (1..=3).map(|e| EpochMetrics { epoch: e, step: 3 * e as u64, train_loss: 0.5 / e as f64, val: val.clone(), seconds: e as f64 }).collect();
         write_rows(&path, &rows).unwrap();
+        assert!(std::fs::read_to_string(&path).unwrap().starts_with("epoch,step,train_loss,val_mse,val_psnr_db,seconds\n"));
         let back = read_rows(&path, 2).unwrap();
         assert_eq!(back.len(), 2);
         assert_eq!((back[1].epoch, back[1].step), (2, 6));
         assert!((back[1].train_loss - 0.25).abs() < 1e-9);
-        std::fs::write(&path, "header\n1,2,3\n").unwrap();
-        assert!(read_rows(&path, 5).unwrap_err().to_string().contains("6 fields"));
+        assert_eq!((back[1].get("val_psnr_db"), back[1].get("val_mse")), (30.0, 1e-3));
+        std::fs::write(&path, "epoch,step,train_loss,val_mse,seconds\n1,2,3\n").unwrap();
+        assert!(read_rows(&path, 5).unwrap_err().to_string().contains("5 fields"));
         assert!(read_rows(&dir.join("missing.csv"), 5).unwrap().is_empty());
         std::fs::remove_dir_all(&dir).unwrap();
     }

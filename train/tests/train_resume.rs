@@ -101,7 +101,7 @@ fn augmented_runs_crop_resume_exactly_and_shift_like_a_delayed_scene() {
     one.epochs = 1;
     let first = train(&one, &codes, &dir.join("resumed"), false, &Quiet, &never).unwrap();
     let more = train(&cfg, &codes, &dir.join("resumed"), true, &Quiet, &never).unwrap();
-    assert_eq!((first[0].train_loss, first[0].val_mse), (straight[0].train_loss, straight[0].val_mse));
+    assert_eq!((first[0].train_loss, first[0].get("val_mse")), (straight[0].train_loss, straight[0].get("val_mse")));
     assert!((more[0].train_loss - straight[1].train_loss).abs() < 1e-6 * straight[1].train_loss.abs().max(1e-9), "{} vs {}", more[0].train_loss, straight[1].train_loss);
     // validation runs on whole 8×8 frames
     let y = Array4::from_shape_fn((1, 4, 8, 8), |(_, m, r, c)| ((m + r * 3 + c) % 5) as f32 * 0.2);
@@ -121,7 +121,7 @@ fn augmented_runs_crop_resume_exactly_and_shift_like_a_delayed_scene() {
     let shift_only = Augmentation { time_shift: true, flips: false, crop: None, brightness: [1.0, 1.0], ..Augmentation::default() };
     let noise = tcsense_sensor::NoiseParams::default();
     for step in 1..4 {
-        let shifted = shift_only.apply(&x.view(), &noise, (2, 2), 11, step).x;
+        let shifted = shift_only.apply(&x.view(), None, &noise, (2, 2), 11, step).x;
         let t = grid.bins();
         let k = (0..t).find(|&k| (0..t).all(|j| shifted[(0, (j + k) % t, 0, 0)] == x[(0, j, 0, 0)])).expect("a roll");
         let delayed = tcsense_datasets::flim::render(&ch, &FlimKnobs { onset_s: (1e-9 + k as f64 * grid.bin_width_s()) % grid.cycle_s(), ..knobs }, &grid).x;
@@ -129,5 +129,43 @@ fn augmented_runs_crop_resume_exactly_and_shift_like_a_delayed_scene() {
         let diff = shifted.index_axis(ndarray::Axis(0), 0).iter().zip(delayed.iter()).fold(0f32, |m, (a, b)| m.max((a - b).abs()));
         assert!(diff < 1e-5 * peak, "shift {k}: differs from the regenerated scene by {diff}");
     }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn unet_trains_on_depth_resumes_and_opens_as_a_depth_decoder() {
+    use tcsense_models::UnetConfig;
+    let dir = tmp();
+    let (mut cfg, codes) = setup(&dir);
+    let range_m = tcsense_datasets::grid::C * 8.0 / 607e6 / 2.0;
+    cfg.run.model = ModelConfig::Unet(UnetConfig::new(4, 8, range_m).with_base_width(4).with_levels(2));
+    cfg.epochs = 8;
+    cfg.learning_rate = 3e-3;
+    let never = AtomicBool::new(false);
+    let m = train(&cfg, &codes, &dir.join("unet"), false, &Quiet, &never).unwrap();
+    assert!(m[7].train_loss < m[0].train_loss, "loss {} -> {}", m[0].train_loss, m[7].train_loss);
+    let csv = std::fs::read_to_string(dir.join("unet/metrics.csv")).unwrap();
+    assert!(csv.starts_with("epoch,step,train_loss,val_depth_rmse_m,val_depth_mae_m,val_detection,seconds\n"), "{csv}");
+    let det = m[7].get("val_detection");
+    assert!((0.0..=1.0).contains(&det) && (det == 0.0 || m[7].get("val_depth_rmse_m").is_finite()), "{:?}", m[7]);
+    // resume continues exactly (augmentation on, with depth labels moved along)
+    let mut aug = cfg.clone();
+    aug.epochs = 2;
+    aug.augment = Some(tcsense_train::Augmentation::default());
+    let straight = train(&aug, &codes, &dir.join("a-straight"), false, &Quiet, &never).unwrap();
+    let mut one = aug.clone();
+    one.epochs = 1;
+    train(&one, &codes, &dir.join("a-resumed"), false, &Quiet, &never).unwrap();
+    let more = train(&aug, &codes, &dir.join("a-resumed"), true, &Quiet, &never).unwrap();
+    assert_eq!(more[0].train_loss, straight[1].train_loss);
+    // the run opens as a decoder of depth [B, K, H, W] with a confidence per return
+    let mut r = runs::open(&dir.join("unet"), &Device::flex()).unwrap();
+    assert_eq!(r.spec.model.name(), "unet");
+    let y = Array4::from_shape_fn((1, 4, 8, 8), |(_, m, r, c)| ((m + r * 3 + c) % 5) as f32 * 0.2);
+    let out = r.decoder.decode(y.view(), &r.sensor, &Control::quiet(&never)).unwrap();
+    assert!(out.cube.is_none());
+    let (d, c) = (out.depth.unwrap(), out.confidence.unwrap());
+    assert_eq!((d.dim(), c.dim()), ((1, 2, 8, 8), (1, 2, 8, 8)));
+    assert!(d.iter().zip(c.iter()).all(|(&d, &c)| (0.0..=1.0).contains(&c) && (d.is_nan() == (c < 0.5)) && (d.is_nan() || (0.0..=range_m as f32).contains(&d))));
     std::fs::remove_dir_all(&dir).ok();
 }

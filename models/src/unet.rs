@@ -1,0 +1,283 @@
+//! Aᵀ + U-Net (paper §III, its ref. [54]; DESIGN §5): a light decoder that estimates the
+//! depth of `K` returns directly, correcting multipath on the way.
+//!
+//! ```text
+//! y [B, M, H, W] ──Aᵀ──▶ x₀ [B, T, H, W] ──÷ (‖x₀‖₂ per pixel + 10⁻³·mean‖x₀‖₂)──▶ x̄
+//! x̄ ──pad to a multiple of 2^(levels−1)──▶ U-Net ──crop──▶ [B, 2K, H, W]
+//!     level ℓ: two 3×3 conv + ReLU with w·2^ℓ channels; 2×2 max-pool between levels;
+//!     decoder: nearest ×2 up-sampling, concatenation with the skip, two 3×3 conv + ReLU;
+//!     head: 1×1 conv to 2K channels
+//! depth_k = r_max·sigmoid(o_k) (m),  confidence_k = sigmoid(o_{K+k})
+//! ```
+//!
+//! The normalisation is part of the model, so deployment feeds raw tap images, and it makes
+//! the output invariant to the scale of `y` (`y` and `10·y` give the same depth). Time is the
+//! channel axis. Frames of any size work: the model pads them with zeros to a multiple of
+//! `2^(levels−1)` and crops the output back (188×212 needs no padding with 3 levels).
+//! The 3×3 convolutions run on the im2col GEMM kernels of `tcsense-kernels`.
+
+use burn::config::Config;
+use burn::module::Module;
+use burn::nn::conv::{Conv2d, Conv2dConfig};
+use burn::nn::PaddingConfig2d;
+use burn::tensor::activation::{relu, sigmoid};
+use burn::tensor::module::max_pool2d;
+use burn::tensor::ops::{MaxPoolOptions, PadMode};
+use burn::tensor::{Device, Tensor};
+use tcsense_kernels::conv_op::conv3x3;
+
+use crate::net::{Network, Prediction};
+use crate::sensor_tensors::SensorTensors;
+
+/// Relative floor of the per-pixel normalisation: dark pixels are divided by at least this
+/// fraction of the frame's mean norm, so noise alone is not blown up to unit scale.
+const NORM_FLOOR: f64 = 1e-3;
+
+/// U-Net hyper-parameters.
+#[derive(Config, Debug, PartialEq)]
+pub struct UnetConfig {
+    /// Taps `M`.
+    pub taps: usize,
+    /// Bins `T` of `x₀ = Aᵀy` (input channels).
+    pub bins: usize,
+    /// Largest range (m): the unambiguous range `c·L·T_c/2` of the codes' cycle.
+    pub range_m: f64,
+    /// Returns `K` per pixel: 1 (first surface) or 2 (and the one behind a diffusive sheet).
+    #[config(default = 2)]
+    pub returns: usize,
+    /// Channels of the first level, doubled at every level down.
+    #[config(default = 8)]
+    pub base_width: usize,
+    /// Resolutions (`levels − 1` down-samplings by 2).
+    #[config(default = 3)]
+    pub levels: usize,
+}
+
+/// Two 3×3 conv + ReLU.
+#[derive(Module, Debug)]
+pub struct Block {
+    conv1: Conv2d,
+    conv2: Conv2d,
+}
+
+/// The network.
+#[derive(Module, Debug)]
+pub struct Unet {
+    down: Vec<Block>,
+    up: Vec<Block>,
+    head: Conv2d,
+    returns: usize,
+    levels: usize,
+    range_m: f64,
+}
+
+impl UnetConfig {
+    /// Channels of level `l`.
+    pub fn width(&self, l: usize) -> usize {
+        self.base_width << l
+    }
+
+    /// Frames must be multiples of this (the model pads to it internally).
+    pub fn stride(&self) -> usize {
+        1 << self.levels.saturating_sub(1)
+    }
+
+    /// Build the network.
+    pub fn init(&self, device: &Device) -> Unet {
+        let conv = |i: usize, o: usize| Conv2dConfig::new([i, o], [3, 3]).with_padding(PaddingConfig2d::Same).init(device);
+        let block = |i: usize, o: usize| Block { conv1: conv(i, o), conv2: conv(o, o) };
+        let down = (0..self.levels).map(|l| block(if l == 0 { self.bins } else { self.width(l - 1) }, self.width(l))).collect();
+        let up = (0..self.levels.saturating_sub(1)).map(|l| block(self.width(l + 1) + self.width(l), self.width(l))).collect();
+        let head = Conv2dConfig::new([self.width(0), 2 * self.returns], [1, 1]).init(device);
+        Unet { down, up, head, returns: self.returns, levels: self.levels, range_m: self.range_m }
+    }
+
+    /// Multiply-adds ×2 per frame of `h × w` (convolutions, head and `Aᵀ`).
+    pub fn flops(&self, h: usize, w: usize) -> f64 {
+        let s = self.stride();
+        let (h, w) = (h.div_ceil(s) * s, w.div_ceil(s) * s);
+        let mut f = 2.0 * (self.taps * self.bins * h * w) as f64; // Aᵀ
+        for l in 0..self.levels {
+            let px = ((h >> l) * (w >> l)) as f64;
+            let (i, o) = (if l == 0 { self.bins } else { self.width(l - 1) }, self.width(l));
+            f += 2.0 * 9.0 * px * (i * o + o * o) as f64;
+            if l + 1 < self.levels {
+                let i = self.width(l + 1) + self.width(l);
+                f += 2.0 * 9.0 * px * (i * o + o * o) as f64;
+            }
+        }
+        f + 2.0 * (h * w * self.width(0) * 2 * self.returns) as f64
+    }
+}
+
+/// A 3×3 conv through the kernels' im2col GEMM.
+///
+/// # Shapes
+/// - `x`: `[B, C_in, H, W]` → `[B, C_out, H, W]`
+fn conv(layer: &Conv2d, x: Tensor<4>) -> Tensor<4> {
+    let bias = match &layer.bias {
+        Some(b) => b.val(),
+        None => Tensor::zeros([layer.weight.dims()[0]], &x.device()),
+    };
+    conv3x3(x, layer.weight.val(), bias)
+}
+
+impl Block {
+    fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        relu(conv(&self.conv2, relu(conv(&self.conv1, x))))
+    }
+}
+
+/// Nearest-neighbour up-sampling by 2.
+///
+/// # Shapes
+/// - `x`: `[B, C, H, W]` → `[B, C, 2H, 2W]`
+fn upsample2(x: Tensor<4>) -> Tensor<4> {
+    let [b, c, h, w] = x.dims();
+    x.reshape([b, c, h, 1, w, 1]).repeat_dim(3, 2).repeat_dim(5, 2).reshape([b, c, 2 * h, 2 * w])
+}
+
+impl Unet {
+    /// Per-pixel normalisation of `x₀ = Aᵀy`: divide each pixel's waveform by its L2 norm plus
+    /// a floor of `NORM_FLOOR` times the frame's mean norm.
+    ///
+    /// # Shapes
+    /// - `x0`: `[B, T, H, W]` → `[B, T, H, W]`
+    pub fn normalise(x0: Tensor<4>) -> Tensor<4> {
+        let norm = x0.clone().powi_scalar(2).sum_dim(1).sqrt(); // [B, 1, H, W]
+        let mean = norm.clone().mean_dim(2).mean_dim(3); // [B, 1, 1, 1]
+        x0 / (norm + mean * NORM_FLOOR + 1e-30)
+    }
+
+    /// Raw outputs: depth logits then confidence logits.
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]` → `[B, 2K, H, W]`
+    pub fn logits(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
+        let x = Self::normalise(sensor.adjoint(y)); // [B, T, H, W]
+        let [_, _, h, w] = x.dims();
+        let s = 1usize << self.levels.saturating_sub(1);
+        let (ph, pw) = (h.div_ceil(s) * s - h, w.div_ceil(s) * s - w);
+        let mut z = if ph + pw > 0 { x.pad((0, pw, 0, ph), PadMode::Constant(0.0)) } else { x };
+        let mut skips = Vec::with_capacity(self.levels);
+        for (l, block) in self.down.iter().enumerate() {
+            z = block.forward(z);
+            if l + 1 < self.levels {
+                skips.push(z.clone());
+                z = max_pool2d(z, MaxPoolOptions::new([2, 2]));
+            }
+        }
+        for (block, skip) in self.up.iter().zip(skips).rev() {
+            z = block.forward(Tensor::cat(vec![upsample2(z), skip], 1));
+        }
+        let out = self.head.forward(z); // [B, 2K, H', W']
+        if ph + pw > 0 {
+            out.narrow(2, 0, h).narrow(3, 0, w)
+        } else {
+            out
+        }
+    }
+
+    /// Depth (m) and confidence in `[0, 1]`.
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]` → `([B, K, H, W], [B, K, H, W])`
+    pub fn forward(&self, y: Tensor<4>, sensor: &SensorTensors) -> (Tensor<4>, Tensor<4>) {
+        let o = self.logits(y, sensor);
+        let k = self.returns;
+        let depth = sigmoid(o.clone().narrow(1, 0, k)) * self.range_m;
+        (depth, sigmoid(o.narrow(1, k, k)))
+    }
+
+    /// Returns `K`.
+    pub fn returns(&self) -> usize {
+        self.returns
+    }
+
+    /// Largest range (m).
+    pub fn range_m(&self) -> f64 {
+        self.range_m
+    }
+}
+
+impl Network for Unet {
+    const PREDICTION: Prediction = Prediction::Depth;
+
+    /// `[B, 2K, H, W]`: depth in metres, then confidence logits.
+    fn predict(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
+        let o = self.logits(y, sensor);
+        let k = self.returns;
+        let depth = sigmoid(o.clone().narrow(1, 0, k)) * self.range_m;
+        Tensor::cat(vec![depth, o.narrow(1, k, k)], 1)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::tensor::{Distribution, TensorData};
+    use tcsense_sensor::codes::{CodeShape, Constraints};
+    use tcsense_sensor::generate::random_codes;
+    use tcsense_sensor::{MeasurementMatrix, SensorParams};
+
+    fn sensor(h: usize, w: usize, device: &Device) -> (MeasurementMatrix, SensorTensors) {
+        let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 8, drain: false };
+        let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 1).unwrap();
+        let a = MeasurementMatrix::synthesize(&codes, &SensorParams::from_codes(&codes).validate().unwrap()).unwrap();
+        let st = SensorTensors::new(&a, h, w, device).unwrap();
+        (a, st)
+    }
+
+    #[test]
+    fn shapes_units_frame_rule_and_scale_invariance() {
+        let device = Device::flex();
+        let cfg = UnetConfig::new(4, 8, 12.0).with_base_width(4).with_levels(3);
+        assert_eq!(cfg.stride(), 4);
+        let net = cfg.init(&device);
+        // 6×10 is not a multiple of 4: padded inside, cropped back
+        for (h, w) in [(8, 8), (6, 10)] {
+            let (_, st) = sensor(h, w, &device);
+            let y = Tensor::<4>::random([2, 4, h, w], Distribution::Uniform(0.0, 1.0), &device);
+            let (depth, conf) = net.forward(y.clone(), &st);
+            assert_eq!((depth.dims(), conf.dims()), ([2, 2, h, w], [2, 2, h, w]));
+            let d: Vec<f32> = depth.clone().into_data().try_into_vec().unwrap();
+            assert!(d.iter().all(|&v| (0.0..=12.0).contains(&v)), "depth within the range (m)");
+            let c: Vec<f32> = conf.into_data().try_into_vec().unwrap();
+            assert!(c.iter().all(|&v| (0.0..=1.0).contains(&v)));
+            // y and 10·y give the same depth
+            let (d10, _) = net.forward(y * 10.0, &st);
+            let diff = (d10 - depth).abs().max().into_scalar::<f32>();
+            assert!(diff < 1e-4, "scale changes the depth by {diff} m");
+        }
+        // the normalisation makes every bright pixel's waveform unit length
+        let x0 = Tensor::<4>::from_data(TensorData::new(vec![3.0f32, 0.0, 4.0, 0.0], [1, 2, 1, 2]), &device); // pixel 0: (3, 4), pixel 1: dark
+        let n: Vec<f32> = Unet::normalise(x0).into_data().try_into_vec().unwrap();
+        assert!((n[0] - 0.6).abs() < 1e-2 && (n[1] - 0.0).abs() < 1e-6 && (n[2] - 0.8).abs() < 1e-2);
+        // FLOPs at 8×8, widths 4, 8, 16 on 64, 16, 4 pixels: Aᵀ, encoder, decoder, head
+        let want = 2.0 * (4.0 * 8.0 * 64.0)
+            + 18.0 * 64.0 * (8.0 * 4.0 + 16.0)
+            + 18.0 * 64.0 * (12.0 * 4.0 + 16.0)
+            + 18.0 * 16.0 * (4.0 * 8.0 + 64.0)
+            + 18.0 * 16.0 * (24.0 * 8.0 + 64.0)
+            + 18.0 * 4.0 * (8.0 * 16.0 + 256.0)
+            + 2.0 * 64.0 * 4.0 * 4.0;
+        assert_eq!(cfg.flops(8, 8), want);
+    }
+
+    #[test]
+    fn save_then_load_gives_identical_outputs() {
+        let device = Device::flex();
+        let cfg = UnetConfig::new(4, 8, 12.0).with_base_width(4).with_levels(2).with_returns(1);
+        let net = cfg.init(&device);
+        let (_, st) = sensor(8, 8, &device);
+        let y = Tensor::<4>::random([1, 4, 8, 8], Distribution::Uniform(0.0, 1.0), &device);
+        let before = net.predict(y.clone(), &st);
+        let dir = std::env::temp_dir().join(format!("tcsense-unet-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        net.save_file(dir.join("m")).unwrap();
+        let back = cfg.init(&device).try_load_file(dir.join("m")).unwrap();
+        let after = back.predict(y, &st);
+        assert_eq!(before.into_data(), after.into_data());
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}
