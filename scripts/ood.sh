@@ -1,13 +1,14 @@
 #!/usr/bin/env bash
-# Out-of-distribution benchmark: ADMM-Net trained on the paper's fixed generators and on the
-# randomised ones (with augmentation), next to TVAL3, on test sets that each differ from the
+# Out-of-distribution benchmark: ADMM-Net (and, for LiDAR, the Aᵀ + U-Net) trained on the
+# paper's fixed generators and on the randomised ones (with augmentation), next to TVAL3, on test sets that each differ from the
 # paper's generator in one thing, and on a real depth scene (Middlebury 2014 "Motorcycle",
 # from the scikit-image wheel). Every decoder sees the same noisy measurements of a set.
 #
 #   scripts/ood.sh [OUT]          (default OUT = ood-out; about 15 minutes on two cores)
 #
 # Sizes and budgets can be set from the environment: SIZE (32x32), LIDAR_COUNT (400),
-# FLIM_COUNT (240), LIDAR_EPOCHS (8), FLIM_EPOCHS (4), ITEMS (test items per set, 10).
+# FLIM_COUNT (240), LIDAR_EPOCHS (8), UNET_EPOCHS (20), FLIM_EPOCHS (4), ITEMS (test items
+# per set, 10).
 # The test sets are generated with their own seeds (120 items; their test splits are used).
 # "One thing each" is as close as the flags get to the paper's generator: the LiDAR sets fix
 # the randomised generator's knobs to the paper's ranges but for the one under test.
@@ -19,6 +20,7 @@ SIZE=${SIZE:-32x32}
 LIDAR_COUNT=${LIDAR_COUNT:-400}
 FLIM_COUNT=${FLIM_COUNT:-240}
 LIDAR_EPOCHS=${LIDAR_EPOCHS:-8}
+UNET_EPOCHS=${UNET_EPOCHS:-20}
 FLIM_EPOCHS=${FLIM_EPOCHS:-4}
 ITEMS=${ITEMS:-10}
 SKIMAGE=scikit-image==0.26.0
@@ -52,6 +54,9 @@ $B dataset import --depth "$OUT/range.npy" --albedo "$OUT/albedo.npy" --force -o
 T="$B train admm-net --codes $OUT/codes.json --preset cpu --seed 3"
 [ -f "$OUT/run-lidar-paper/model.bpk" ] || $T --dataset "$OUT/lidar-paper" --epochs "$LIDAR_EPOCHS" --no-augment -o "$OUT/run-lidar-paper"
 [ -f "$OUT/run-lidar-random/model.bpk" ] || $T --dataset "$OUT/lidar-random" --epochs "$LIDAR_EPOCHS" -o "$OUT/run-lidar-random"
+U="$B train unet --codes $OUT/codes.json --seed 3"
+[ -f "$OUT/unet-lidar-paper/model.bpk" ] || $U --dataset "$OUT/lidar-paper" --epochs "$UNET_EPOCHS" --no-augment -o "$OUT/unet-lidar-paper"
+[ -f "$OUT/unet-lidar-random/model.bpk" ] || $U --dataset "$OUT/lidar-random" --epochs "$UNET_EPOCHS" -o "$OUT/unet-lidar-random"
 
 # --- FLIm (heterodyne K = 8, T = 256) ------------------------------------------------------
 F="$B dataset flim --size $SIZE --force"
@@ -74,11 +79,12 @@ echo "set,decoder,items,mse,psnr_db,bounce1_rmse_m,bounce1_mae_m,bounce1_detecti
 evaluate() { # NAME DATASET SPLIT KIND [extra eval flags]
   local name=$1 ds=$2 split=$3 kind=$4
   shift 4
-  local grid=""
+  local grid="" unets=()
   [ "$kind" = flim ] && grid="--heterodyne 8"
+  [ "$kind" = lidar ] && unets=(--decoder "unet:$OUT/unet-lidar-paper" --decoder "unet:$OUT/unet-lidar-random")
   $B eval --dataset "$ds" --split "$split" --items "$ITEMS" --codes "$OUT/codes.json" $grid --noise --seed 5 \
-    --decoder tval3 --decoder "admm-net:$OUT/run-$kind-paper" --decoder "admm-net:$OUT/run-$kind-random" "$@" -o "$OUT/eval-$name.json" | tail -n 4
-  tail -n +2 "$OUT/eval-$name.csv" | sed "s|^|$name,|; s|$OUT/run-$kind-||" >> "$OUT/ood.csv"
+    --decoder tval3 --decoder "admm-net:$OUT/run-$kind-paper" --decoder "admm-net:$OUT/run-$kind-random" "${unets[@]}" "$@" -o "$OUT/eval-$name.json" | tail -n 6
+  tail -n +2 "$OUT/eval-$name.csv" | sed "s|^|$name,|; s|$OUT/run-$kind-||; s|$OUT/unet-$kind-||" >> "$OUT/ood.csv"
 }
 for s in standard far near textures dense-sheet; do evaluate "lidar-$s" "$OUT/lidar-test-$s" test lidar; done
 evaluate lidar-motorcycle "$OUT/lidar-test-motorcycle" test lidar

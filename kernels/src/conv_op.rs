@@ -31,6 +31,19 @@ pub fn conv3x3(x: Tensor<4>, weight: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
     Tensor::from_dispatch(out)
 }
 
+/// A burn `Conv2d` layer with a 3×3 kernel (stride 1, "same" padding) through [`conv3x3`]:
+/// its weight and bias (zeros when it has none).
+///
+/// # Shapes
+/// - `x`: `[B, C_in, H, W]` → `[B, C_out, H, W]`
+pub fn conv3x3_layer(layer: &burn::nn::conv::Conv2d, x: Tensor<4>) -> Tensor<4> {
+    let bias = match &layer.bias {
+        Some(b) => b.val(),
+        None => Tensor::zeros([layer.weight.dims()[0]], &x.device()),
+    };
+    conv3x3(x, layer.weight.val(), bias)
+}
+
 /// The backend extension: the forward op and the two gradient ops it needs.
 #[backend_extension(Flex, Autodiff)]
 pub trait Conv3x3Backend: Backend {

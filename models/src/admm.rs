@@ -20,7 +20,7 @@ use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::PaddingConfig2d;
 use burn::tensor::{activation::relu, Device, Tensor};
 
-use tcsense_kernels::conv_op::conv3x3;
+use tcsense_kernels::conv_op::conv3x3_layer as conv;
 
 use crate::net::{Network, Prediction};
 use crate::sensor_tensors::SensorTensors;
@@ -90,18 +90,6 @@ pub struct Stage {
 #[derive(Module, Debug)]
 pub struct AdmmNet {
     stages: Vec<Stage>,
-}
-
-/// A 3×3 conv of the prior through [`conv3x3`] (im2col + GEMM forward and backward).
-///
-/// # Shapes
-/// - `x`: `[B, C_in, H, W]` → `[B, C_out, H, W]`
-fn conv(layer: &Conv2d, x: Tensor<4>) -> Tensor<4> {
-    let bias = match &layer.bias {
-        Some(b) => b.val(),
-        None => Tensor::zeros([layer.weight.dims()[0]], &x.device()),
-    };
-    conv3x3(x, layer.weight.val(), bias)
 }
 
 impl AdmmNet {

@@ -24,7 +24,7 @@ use burn::tensor::activation::{relu, sigmoid};
 use burn::tensor::module::max_pool2d;
 use burn::tensor::ops::{MaxPoolOptions, PadMode};
 use burn::tensor::{Device, Tensor};
-use tcsense_kernels::conv_op::conv3x3;
+use tcsense_kernels::conv_op::conv3x3_layer as conv;
 
 use crate::net::{Network, Prediction};
 use crate::sensor_tensors::SensorTensors;
@@ -108,18 +108,6 @@ impl UnetConfig {
         }
         f + 2.0 * (h * w * self.width(0) * 2 * self.returns) as f64
     }
-}
-
-/// A 3×3 conv through the kernels' im2col GEMM.
-///
-/// # Shapes
-/// - `x`: `[B, C_in, H, W]` → `[B, C_out, H, W]`
-fn conv(layer: &Conv2d, x: Tensor<4>) -> Tensor<4> {
-    let bias = match &layer.bias {
-        Some(b) => b.val(),
-        None => Tensor::zeros([layer.weight.dims()[0]], &x.device()),
-    };
-    conv3x3(x, layer.weight.val(), bias)
 }
 
 impl Block {

@@ -109,15 +109,8 @@ pub enum ReconstructCmd {
         /// Output depth .npy, [K, H, W] (or [B, K, H, W]).
         #[arg(short, long)]
         output: PathBuf,
-        /// Also write a point cloud of the first frame (PLY).
-        #[arg(long)]
-        ply: Option<PathBuf>,
-        /// Horizontal field of view for the point cloud (degrees).
-        #[arg(long, default_value_t = 40.0)]
-        fov: f64,
-        /// Also write a PNG of the first frame's first return.
-        #[arg(long)]
-        png: Option<PathBuf>,
+        #[command(flatten)]
+        products: DepthProductArgs,
     },
     /// ADMM-Net from a trained run directory.
     AdmmNet {
@@ -137,32 +130,24 @@ pub fn reconstruct(cmd: ReconstructCmd) -> Result<ExitCode> {
     match cmd {
         ReconstructCmd::AdmmNet { run, measurements, output } => {
             let mut r = runs::open(&run, &Device::flex())?;
-            decode_file(r.decoder.as_mut(), &r.sensor, &measurements, &output, &DepthOutputs::default())
+            decode_file(r.decoder.as_mut(), &r.sensor, &measurements, &output, &DepthProductArgs::default())
         }
-        ReconstructCmd::Unet { run, measurements, output, ply, fov, png } => {
+        ReconstructCmd::Unet { run, measurements, output, products } => {
             let mut r = runs::open(&run, &Device::flex())?;
-            decode_file(r.decoder.as_mut(), &r.sensor, &measurements, &output, &DepthOutputs { ply, png, fov })
+            decode_file(r.decoder.as_mut(), &r.sensor, &measurements, &output, &products)
         }
         ReconstructCmd::Tval3 { sensor, measurements, tval3: targs, output } => {
             let mut decoder = Tval3Decoder::new(targs.options()?)?;
             let (_, _, a) = sensor.matrix()?;
-            decode_file(&mut decoder, &a, &measurements, &output, &DepthOutputs::default())
+            decode_file(&mut decoder, &a, &measurements, &output, &DepthProductArgs::default())
         }
     }
-}
-
-/// Products of a decoder of depth, beside the depth map.
-#[derive(Default)]
-struct DepthOutputs {
-    ply: Option<PathBuf>,
-    png: Option<PathBuf>,
-    fov: f64,
 }
 
 /// Decode the tap images in `measurements` (`[M, H, W]` or a batch `[B, M, H, W]`) with any
 /// decoder and write what it gives (same batching) to `output`: the cubes, or the depth maps
 /// with their confidence, with a progress bar.
-fn decode_file(decoder: &mut dyn Decoder, sensor: &MeasurementMatrix, measurements: &Path, output: &Path, products: &DepthOutputs) -> Result<ExitCode> {
+fn decode_file(decoder: &mut dyn Decoder, sensor: &MeasurementMatrix, measurements: &Path, output: &Path, products: &DepthProductArgs) -> Result<ExitCode> {
     let y = read_npy(measurements)?;
     let (batched, y): (bool, Array4<f32>) = match y.ndim() {
         3 => (false, y.into_dimensionality::<Ix3>()?.insert_axis(Axis(0))),
@@ -294,15 +279,28 @@ pub struct DepthArgs {
     /// Output range map .npy [K, H, W] (m, NaN where no return).
     #[arg(short, long)]
     output: PathBuf,
-    /// Also write a point cloud (PLY).
+    #[command(flatten)]
+    products: DepthProductArgs,
+}
+
+/// Pictures of a range map beside it.
+#[derive(Args, Clone)]
+pub struct DepthProductArgs {
+    /// Also write a point cloud of the (first) frame (PLY).
     #[arg(long)]
     ply: Option<PathBuf>,
     /// Horizontal field of view of the camera for the point cloud (degrees).
     #[arg(long, default_value_t = 40.0)]
     fov: f64,
-    /// Also write a PNG of the first return.
+    /// Also write a PNG of the (first) frame's first return.
     #[arg(long)]
     png: Option<PathBuf>,
+}
+
+impl Default for DepthProductArgs {
+    fn default() -> Self {
+        DepthProductArgs { ply: None, fov: 40.0, png: None }
+    }
 }
 
 pub fn depth(a: DepthArgs) -> Result<ExitCode> {
@@ -313,7 +311,7 @@ pub fn depth(a: DepthArgs) -> Result<ExitCode> {
     let dt = a.bins.bin_width(cubes[0].dim().0, &a.cube)?;
     let opts = PeakOptions { max_peaks: a.peaks, min_rel: a.min_rel, min_sep: a.min_sep };
     let maps: Vec<_> = cubes.iter().map(|x| depth_map(&x.view(), dt, &opts)).collect();
-    if batched && maps.len() > 1 && (a.ply.is_some() || a.png.is_some()) {
+    if batched && maps.len() > 1 && (a.products.ply.is_some() || a.products.png.is_some()) {
         bail!("{}: --ply and --png take a single cube; this batch holds {}", a.cube.display(), maps.len());
     }
     let out = stack_out(batched, maps.iter().map(|m| m.0.clone()).collect())?;
@@ -321,11 +319,11 @@ pub fn depth(a: DepthArgs) -> Result<ExitCode> {
     let (d, amp) = &maps[0];
     let found: Vec<usize> = (0..a.peaks).map(|b| d.index_axis(Axis(0), b).iter().filter(|v| v.is_finite()).count()).collect();
     println!("wrote {}: range map {:?}, returns per bounce {found:?} (first cube), bin width {:.1} ps", a.output.display(), out.shape(), dt * 1e12);
-    if let Some(p) = &a.ply {
-        let n = write_ply(p, &d.view(), &amp.view(), a.fov)?;
+    if let Some(p) = &a.products.ply {
+        let n = write_ply(p, &d.view(), &amp.view(), a.products.fov)?;
         println!("wrote {}: {n} points", p.display());
     }
-    if let Some(p) = &a.png {
+    if let Some(p) = &a.products.png {
         let (_, h, w) = d.dim();
         map_png(p, &d.index_axis(Axis(0), 0), (256 / h.max(w)).max(1))?;
         println!("wrote {}", p.display());

@@ -144,7 +144,15 @@ impl Progress for Bar {
         self.pb.set_message(format!("epoch {} loss {loss:.4e}", epoch + 1));
     }
     fn epoch(&self, m: &EpochMetrics) {
-        let val: String = m.val.iter().map(|(n, v)| format!("  {} {v:.4e}", n.trim_start_matches("val_"))).collect();
+        let val: String = m
+            .val
+            .iter()
+            .map(|(n, v)| match n.trim_start_matches("val_") {
+                "psnr_db" => format!("  PSNR {v:.2} dB"),
+                "detection" => format!("  detection {:.1} %", v * 100.0),
+                n => format!("  {} {v:.4e}", n.replace('_', " ")),
+            })
+            .collect();
         self.pb.suspend(|| println!("epoch {:>4}  step {:>6}  train loss {:.4e}  val{val}  {:.0} s", m.epoch, m.step, m.train_loss, m.seconds));
     }
 }
