@@ -66,6 +66,9 @@ pub struct Augmented {
     pub depth: Option<Array4<f32>>,
     /// One noise model per item (from `base` with this item's levels).
     pub noise: Vec<NoiseParams>,
+    /// The brightness factor of each item (the loss divides it out, so dim items weigh as
+    /// much as bright ones).
+    pub gains: Vec<f32>,
 }
 
 /// Range labels to move with the cubes.
@@ -131,6 +134,7 @@ impl Augmentation {
         let mut out = Array4::<f32>::zeros((b, t, ch, cw));
         let mut depth_out = labels.map(|l| Array4::<f32>::from_elem((b, l.depth.dim().1, ch, cw), f32::NAN));
         let mut noise = Vec::with_capacity(b);
+        let mut gains = Vec::with_capacity(b);
         for (i, mut dst) in out.outer_iter_mut().enumerate() {
             let shift = if self.time_shift { rng.random_range(0..t) } else { 0 };
             let (flip_r, flip_c) = if self.flips { (rng.random_bool(0.5), rng.random_bool(0.5)) } else { (false, false) };
@@ -138,6 +142,7 @@ impl Augmentation {
             let r0 = rng.random_range(0..=(h - ch) / block.0) * block.0;
             let c0 = rng.random_range(0..=(w - cw) / block.1) * block.1;
             let gain = draw(&mut rng, self.brightness, true) as f32;
+            gains.push(gain);
             let area = [r0, c0, ch, cw];
             let window_x = window(x.index_axis(Axis(0), i), area, flip_r, flip_c);
             if let (Some(l), Some(d)) = (labels, depth_out.as_mut()) {
@@ -162,7 +167,7 @@ impl Augmentation {
                 adc_bits: base.adc_bits,
             });
         }
-        Augmented { x: out, depth: depth_out, noise }
+        Augmented { x: out, depth: depth_out, noise, gains }
     }
 }
 
@@ -223,6 +228,10 @@ mod tests {
         // brightness and noise levels are drawn in their ranges, seeded by (seed, step)
         let d = Augmentation::default();
         let a1 = d.apply(&x.view(), None, &base, (2, 2), 7, 3);
+        for (i, g) in a1.gains.iter().enumerate() {
+            let ratio = a1.x.index_axis(Axis(0), i).iter().map(|v| v.abs()).sum::<f32>() / x.index_axis(Axis(0), i).iter().map(|v| v.abs()).sum::<f32>();
+            assert!((ratio / g - 1.0).abs() < 1e-4, "item {i}: scaled by {ratio}, gain {g}");
+        }
         let a2 = d.apply(&x.view(), None, &base, (2, 2), 7, 3);
         let a3 = d.apply(&x.view(), None, &base, (2, 2), 7, 4);
         assert_eq!(a1.x, a2.x);

@@ -7,7 +7,7 @@
 
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
-use burn::tensor::{Device, Tensor};
+use burn::tensor::{Device, Tensor, TensorData};
 use ndarray::{Array4, Axis};
 use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
@@ -175,21 +175,21 @@ fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, p
             let db = train_d.as_ref().map(|d| d.select(Axis(0), idx)); // [B, K, H, W]
             state.step += 1;
             let noise_seed = derive_seed(cfg.seed, state.step);
-            let (xb, db, yb) = match (&cfg.augment, &cfg.noise) {
+            let (xb, db, yb, gains) = match (&cfg.augment, &cfg.noise) {
                 (None, _) => {
                     let yb = measure_batch(&plan, &xb.view(), cfg.noise.as_ref(), noise_seed)?;
-                    (xb, db, yb)
+                    (xb, db, yb, None)
                 }
                 (Some(aug), noise) => {
                     let labels = db.as_ref().map(|d| DepthLabels { depth: d.view(), bin_m, range_m });
                     let out = aug.apply(&xb.view(), labels, noise.as_ref().unwrap_or(&crate::config::TRAINING_NOISE), a.block(), cfg.seed, state.step);
                     let yb = measure_items(&train_plan, &out.x, noise.as_ref().map(|_| out.noise.as_slice()), noise_seed)?;
-                    (out.x, out.depth, yb)
+                    (out.x, out.depth, yb, Some(out.gains))
                 }
             };
             let target = match &db {
                 Some(d) => Target::Depth { depth: d, range_m },
-                None => Target::Cube(&xb),
+                None => Target::Cube { x: &xb, gains: gains.as_deref() },
             };
             let l;
             (model, l) = step(model, &mut optim, cfg, &sensor, &yb, target, &device);
@@ -249,8 +249,9 @@ fn measure_items(plan: &FramePlan, x: &Array4<f32>, noise: Option<&[NoiseParams]
 /// What a batch is trained against.
 #[derive(Debug, Clone, Copy)]
 pub(crate) enum Target<'a> {
-    /// The cubes `[B, T, H, W]`.
-    Cube(&'a Array4<f32>),
+    /// The cubes `[B, T, H, W]`, and the brightness factor of each item when augmented (the
+    /// loss is taken on `x/g` and `x̂/g`, so every item weighs as at its original scale).
+    Cube { x: &'a Array4<f32>, gains: Option<&'a [f32]> },
     /// Range labels `[B, K, H, W]` (m, NaN where none) and the unambiguous range.
     Depth { depth: &'a Array4<f32>, range_m: f64 },
 }
@@ -261,7 +262,11 @@ pub(crate) enum Target<'a> {
 /// - `pred`: `[B, T, H, W]` or `[B, 2K, H, W]` → `[1]`
 pub(crate) fn objective(loss: Loss, pred: Tensor<4>, target: Target<'_>, device: &Device) -> Tensor<1> {
     match target {
-        Target::Cube(x) => loss_fn(loss, pred, to_tensor(&x.view(), device)),
+        Target::Cube { x, gains: None } => loss_fn(loss, pred, to_tensor(&x.view(), device)),
+        Target::Cube { x, gains: Some(g) } => {
+            let inv = Tensor::<4>::from_data(TensorData::new(g.iter().map(|g| 1.0 / g).collect::<Vec<f32>>(), [g.len(), 1, 1, 1]), device);
+            loss_fn(loss, pred * inv.clone(), to_tensor(&x.view(), device) * inv)
+        }
         Target::Depth { depth, range_m } => {
             let mask = depth.mapv(|d| if d.is_finite() { 1.0 } else { 0.0 });
             let filled = depth.mapv(|d| if d.is_finite() { d } else { 0.0 });
