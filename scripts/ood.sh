@@ -69,7 +69,7 @@ $F --paper --onset-ns 30 --count 120 --seed 13 -o "$OUT/flim-test-onset-30ns"
 FIX="--onset-ns 2 --lifetimes 3 --tau-ns 0.5,3.5 --background 0 --brightness 1"
 $F $FIX --irf-fwhm-ns 1.5 --count 120 --seed 14 -o "$OUT/flim-test-irf-1.5ns"
 $F --onset-ns 2 --lifetimes 1,3 --tau-ns 4,8 --irf-fwhm-ns 0 --background 0 --brightness 1 --count 120 --seed 15 -o "$OUT/flim-test-long-lifetimes"
-$F $FIX --irf-fwhm-ns 0 --background 0.05 --count 120 --seed 16 -o "$OUT/flim-test-background"
+$F --onset-ns 2 --lifetimes 3 --tau-ns 0.5,3.5 --irf-fwhm-ns 0 --background 0.05 --brightness 1 --count 120 --seed 16 -o "$OUT/flim-test-background"
 
 [ -f "$OUT/run-flim-paper/model.bpk" ] || $T --dataset "$OUT/flim-paper" --epochs "$FLIM_EPOCHS" --no-augment -o "$OUT/run-flim-paper"
 [ -f "$OUT/run-flim-random/model.bpk" ] || $T --dataset "$OUT/flim-random" --epochs "$FLIM_EPOCHS" -o "$OUT/run-flim-random"

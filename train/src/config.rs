@@ -89,7 +89,8 @@ impl TrainConfig {
             }
             ModelConfig::AdmmNet(_) => {}
             ModelConfig::Unet(m) => {
-                if m.base_width == 0 || !(1..=6).contains(&m.levels) || !(1..=2).contains(&m.returns) || !(m.range_m.is_finite() && m.range_m > 0.0) {
+                let fits = m.base_width > 0 && (1..=6).contains(&m.levels) && (1..=2).contains(&m.returns) && m.range_m.is_finite() && m.range_m > 0.0;
+                if !fits {
                     return bad("model", format!("base width {}, {} levels, {} returns, range {} m", m.base_width, m.levels, m.returns, m.range_m), "base width ≥ 1, 1–6 levels, 1 or 2 returns, a positive range");
                 }
             }
