@@ -44,6 +44,11 @@ pub struct AdmmNetConfig {
     /// Initial multiplier step `η`.
     #[config(default = 1.0)]
     pub eta_init: f64,
+    /// Divide `y` by its mean absolute tap value per frame and multiply the output back, so
+    /// the network sees one scale whatever the brightness (`false` in runs written before it
+    /// existed).
+    #[config(default = false)]
+    pub normalize: bool,
 }
 
 impl AdmmNetConfig {
@@ -72,7 +77,7 @@ impl AdmmNetConfig {
                 eta: Param::from_tensor(Tensor::from_floats([self.eta_init as f32], device)),
             })
             .collect();
-        AdmmNet { stages }
+        AdmmNet { stages, normalize: self.normalize }
     }
 }
 
@@ -90,6 +95,7 @@ pub struct Stage {
 #[derive(Module, Debug)]
 pub struct AdmmNet {
     stages: Vec<Stage>,
+    normalize: bool,
 }
 
 impl AdmmNet {
@@ -98,6 +104,19 @@ impl AdmmNet {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
     pub fn forward(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
+        if self.normalize {
+            // per-frame scale: the mean absolute tap value, [B, 1, 1, 1]
+            let s = y.clone().abs().mean_dim(1).mean_dim(2).mean_dim(3) + 1e-12;
+            return self.unrolled(y / s.clone(), sensor) * s;
+        }
+        self.unrolled(y, sensor)
+    }
+
+    /// The unrolled stages on `y` as given.
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
+    fn unrolled(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
         let aty = sensor.adjoint(y.clone()); // [B, T, H, W]
         let mut z = sensor.pinv(y);
         let mut u = z.zeros_like();
@@ -125,5 +144,34 @@ impl Network for AdmmNet {
 
     fn predict(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
         self.forward(y, sensor)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::tensor::Distribution;
+    use tcsense_sensor::codes::{CodeShape, Constraints};
+    use tcsense_sensor::generate::random_codes;
+    use tcsense_sensor::{MeasurementMatrix, SensorParams};
+
+    #[test]
+    fn a_normalised_net_is_scale_equivariant() {
+        let device = Device::flex();
+        let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 8, drain: false };
+        let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 1).unwrap();
+        let a = MeasurementMatrix::synthesize(&codes, &SensorParams::from_codes(&codes).validate().unwrap()).unwrap();
+        let st = SensorTensors::new(&a, 8, 8, &device).unwrap();
+        let y = Tensor::<4>::random([2, 4, 8, 8], Distribution::Uniform(0.0, 1.0), &device);
+        for normalize in [false, true] {
+            let net = AdmmNetConfig::new(4, 8).with_stages(2).with_channels(4).with_normalize(normalize).init(&device);
+            let (x1, x10) = (net.forward(y.clone(), &st), net.forward(y.clone() * 10.0, &st));
+            let rel = ((x10 - x1.clone() * 10.0).abs().max() / (x1.abs().max() * 10.0)).into_scalar::<f32>();
+            if normalize {
+                assert!(rel < 1e-5, "10·y gives 10·x̂ within {rel}");
+            } else {
+                assert!(rel > 1e-4, "the biases of the prior break equivariance without the normalisation ({rel})");
+            }
+        }
     }
 }

@@ -102,12 +102,19 @@ fn file_err(path: &Path, msg: impl ToString) -> ModelError {
     ModelError::File { path: path.to_path_buf(), msg: msg.to_string() }
 }
 
-/// Add `"decoder": "admm-net"` to a config written before that field existed (all such runs
-/// are ADMM-Net runs); other configs are returned unchanged.
+/// Bring a config written by an earlier build up to date: add `"decoder": "admm-net"` where
+/// that field is missing (all such runs are ADMM-Net runs), and `"normalize": false` to
+/// ADMM-Net models written before the input normalisation existed; other configs are
+/// returned unchanged.
 pub fn upgrade_config(mut v: serde_json::Value) -> serde_json::Value {
     if let Some(obj) = v.as_object_mut() {
         if obj.contains_key("model") && !obj.contains_key("decoder") {
             obj.insert("decoder".into(), serde_json::Value::String("admm-net".into()));
+        }
+        if obj.get("decoder").and_then(|d| d.as_str()) == Some("admm-net") {
+            if let Some(model) = obj.get_mut("model").and_then(|m| m.as_object_mut()) {
+                model.entry("normalize").or_insert(serde_json::Value::Bool(false));
+            }
         }
     }
     v

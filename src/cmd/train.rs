@@ -185,11 +185,14 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
         let codes = Codes::load(codes_path)?;
         let (m, t) = (codes.taps(), ds.manifest.bins);
         let model = match &net {
-            NetArgs::Admm(n) => ModelConfig::AdmmNet(match n.preset {
-                Preset::Cpu => AdmmNetConfig::cpu(m, t),
-                Preset::Lidar => AdmmNetConfig::lidar(m, t),
-                Preset::Flim => AdmmNetConfig::flim(m, t),
-            }),
+            NetArgs::Admm(n) => ModelConfig::AdmmNet(
+                match n.preset {
+                    Preset::Cpu => AdmmNetConfig::cpu(m, t),
+                    Preset::Lidar => AdmmNetConfig::lidar(m, t),
+                    Preset::Flim => AdmmNetConfig::flim(m, t),
+                }
+                .with_normalize(true),
+            ),
             NetArgs::Unet(n) => {
                 // depth up to the unambiguous range of the dataset's cycle
                 let range_m = tcsense_datasets::grid::C * ds.manifest.bin_width_s * t as f64 / 2.0;

@@ -66,8 +66,7 @@ pub struct Augmented {
     pub depth: Option<Array4<f32>>,
     /// One noise model per item (from `base` with this item's levels).
     pub noise: Vec<NoiseParams>,
-    /// The brightness factor of each item (the loss divides it out, so dim items weigh as
-    /// much as bright ones).
+    /// The brightness factor of each item.
     pub gains: Vec<f32>,
 }
 

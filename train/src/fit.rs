@@ -184,7 +184,9 @@ fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, p
                     let labels = db.as_ref().map(|d| DepthLabels { depth: d.view(), bin_m, range_m });
                     let out = aug.apply(&xb.view(), labels, noise.as_ref().unwrap_or(&crate::config::TRAINING_NOISE), a.block(), cfg.seed, state.step);
                     let yb = measure_items(&train_plan, &out.x, noise.as_ref().map(|_| out.noise.as_slice()), noise_seed)?;
-                    (out.x, out.depth, yb, Some(out.gains))
+                    // each item's loss on its own scale: its peak, brightness included
+                    let peaks: Vec<f32> = out.x.outer_iter().map(|xi| xi.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-12)).collect();
+                    (out.x, out.depth, yb, Some(peaks))
                 }
             };
             let target = match &db {
@@ -249,8 +251,8 @@ fn measure_items(plan: &FramePlan, x: &Array4<f32>, noise: Option<&[NoiseParams]
 /// What a batch is trained against.
 #[derive(Debug, Clone, Copy)]
 pub(crate) enum Target<'a> {
-    /// The cubes `[B, T, H, W]`, and the brightness factor of each item when augmented (the
-    /// loss is taken on `x/g` and `x̂/g`, so every item weighs as at its original scale).
+    /// The cubes `[B, T, H, W]`, and a scale per item when augmented (the loss is taken on
+    /// `x/g` and `x̂/g`, so dim items weigh as much as bright ones).
     Cube { x: &'a Array4<f32>, gains: Option<&'a [f32]> },
     /// Range labels `[B, K, H, W]` (m, NaN where none) and the unambiguous range.
     Depth { depth: &'a Array4<f32>, range_m: f64 },
