@@ -124,8 +124,18 @@ pub fn depth_map(x: &ArrayView3<'_, f32>, bin_width_s: f64, opts: &PeakOptions) 
 }
 
 /// Lifetime of one decay by a weighted log-linear fit after the peak; `None` if too few bins.
+///
+/// A constant background (ambient light, dark counts, an offset in the reconstruction) is
+/// estimated as the waveform's minimum over the cycle — the periodic decay is lowest just
+/// before its onset — and subtracted first; without it, an offset of a few percent of the
+/// peak flattens the tail into lifetimes of tens of nanoseconds.
 pub fn fit_lifetime(wave: &ArrayView1<'_, f32>, bin_width_s: f64, min_rel: f32) -> Option<f64> {
     let t = wave.len();
+    let floor = wave.iter().fold(f32::INFINITY, |m, &v| m.min(v));
+    if !floor.is_finite() {
+        return None;
+    }
+    let wave = wave.mapv(|v| v - floor);
     let (imax, &peak) = wave.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1))?;
     if peak <= 0.0 || !peak.is_finite() {
         return None;
@@ -329,6 +339,11 @@ mod tests {
             }));
             let fit = fit_lifetime(&wave.view(), dt, 0.05).unwrap();
             assert!((fit / tau - 1.0).abs() < 0.02, "fit {fit:e} tau {tau:e}");
+            // a background of 5 % of the peak is subtracted, not fitted into the tail
+            let peak = wave.iter().fold(0f32, |m, &v| m.max(v));
+            let lifted = wave.mapv(|v| v + 0.05 * peak);
+            let fit = fit_lifetime(&lifted.view(), dt, 0.05).unwrap();
+            assert!((fit / tau - 1.0).abs() < 0.02, "with a background: fit {fit:e} tau {tau:e}");
             let x = wave.into_shape_with_order((256, 1, 1)).unwrap();
             let (_, ph) = lifetime_map(&x.view(), dt, 0.05, 0.0);
             let omega = 2.0 * std::f64::consts::PI / (256.0 * dt);
