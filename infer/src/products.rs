@@ -126,17 +126,17 @@ pub fn depth_map(x: &ArrayView3<'_, f32>, bin_width_s: f64, opts: &PeakOptions) 
 /// Lifetime of one decay by a weighted log-linear fit after the peak; `None` if too few bins.
 ///
 /// A constant background (ambient light, dark counts, an offset in the reconstruction) is
-/// estimated as the waveform's minimum over the cycle — the periodic decay is lowest just
-/// before its onset — and subtracted first; without it, an offset of a few percent of the
-/// peak flattens the tail into lifetimes of tens of nanoseconds.
+/// subtracted first: the mean of the bins a quarter to an eighth of the cycle before the peak
+/// (the periodic decay's tail just before the next onset, far from the rise), when positive.
+/// Without it, an offset of a few percent of the peak flattens the tail into lifetimes of tens
+/// of nanoseconds.
 pub fn fit_lifetime(wave: &ArrayView1<'_, f32>, bin_width_s: f64, min_rel: f32) -> Option<f64> {
     let t = wave.len();
-    let floor = wave.iter().fold(f32::INFINITY, |m, &v| m.min(v));
-    if !floor.is_finite() {
-        return None;
-    }
+    let (imax, _) = wave.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1))?;
+    let window: Vec<f32> = (t / 8..t / 4).map(|k| wave[(imax + t - k) % t]).collect();
+    let floor = (window.iter().sum::<f32>() / window.len().max(1) as f32).max(0.0);
     let wave = wave.mapv(|v| v - floor);
-    let (imax, &peak) = wave.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1))?;
+    let peak = wave[imax];
     if peak <= 0.0 || !peak.is_finite() {
         return None;
     }
