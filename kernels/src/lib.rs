@@ -9,6 +9,8 @@
 //!   `y(r, c) = P_{n(r,c)} x(r, c)` ([`pixel::pixel_linear`]: `A`, `Aᵀ`, the back-projection)
 //!   and ADMM-Net's exact data-consistency solve `x = (AᵀA + ρI)⁻¹ v` through Woodbury
 //!   ([`pixel::pixel_dc`]) — with `n(r, c) = (r mod bh)·bw + (c mod bw)` (paper eq. 4).
+//! - [`resample`]: the U-Net's 2×2 max-pooling and nearest up-sampling by 2, forward and
+//!   backward, one pass over the output each.
 //! - [`timing`]: the median timer every `tcsense bench` figure comes from.
 //!
 //! This is the only crate of the workspace with `unsafe` code, in two places, each with a
@@ -33,4 +35,5 @@
 pub mod conv;
 pub mod conv_op;
 pub mod pixel;
+pub mod resample;
 pub mod timing;

@@ -99,3 +99,58 @@ pub fn bench_kernels(a: &MeasurementMatrix, batch: usize, channels: usize, h: us
     });
     Ok(out)
 }
+
+/// The U-Net's operations besides its 3×3 convs — 2×2 max-pooling and nearest up-sampling by
+/// 2, ours against burn-flex's generic paths (`max_pool2d`; reshape + `repeat_dim`), forward
+/// and forward + backward — and the whole U-Net forward pass, at an `h × w` frame (batch 1,
+/// the default widths).
+pub fn bench_unet_ops(a: &MeasurementMatrix, h: usize, w: usize, reps: usize) -> crate::Result<(Vec<OpTiming>, f64)> {
+    use crate::unet::UnetConfig;
+    use burn::tensor::module::max_pool2d;
+    use burn::tensor::ops::MaxPoolOptions;
+    use tcsense_kernels::resample::{max_pool2, upsample2};
+    let repeat_up = |x: Tensor<4>| {
+        let [b, c, h, w] = x.dims();
+        x.reshape([b, c, h, 1, w, 1]).repeat_dim(3, 2).repeat_dim(5, 2).reshape([b, c, 2 * h, 2 * w])
+    };
+    let device = Device::flex();
+    let cfg = UnetConfig::new(a.taps(), a.bins(), 10.0);
+    let (c0, c1) = (cfg.width(0), cfg.width(1));
+    let level0 = Tensor::<4>::random([1, c0, h, w], Distribution::Uniform(0.0, 1.0), &device);
+    let level1 = Tensor::<4>::random([1, c1, h / 2, w / 2], Distribution::Uniform(0.0, 1.0), &device);
+    let sync = |t: Tensor<4>| drop(t.into_data());
+    let ad = device.clone().autodiff();
+    let x0 = Tensor::<4>::random([1, c0, h, w], Distribution::Uniform(0.0, 1.0), &ad).require_grad();
+    let x1 = Tensor::<4>::random([1, c1, h / 2, w / 2], Distribution::Uniform(0.0, 1.0), &ad).require_grad();
+    let timings = vec![
+        OpTiming {
+            name: format!("max-pool 2x2 [1,{c0},{h},{w}]"),
+            ours_ms: median_ms(|| sync(max_pool2(level0.clone())), reps),
+            burn_ms: median_ms(|| sync(max_pool2d(level0.clone(), MaxPoolOptions::new([2, 2]))), reps),
+            flop: 0.0,
+        },
+        OpTiming {
+            name: "max-pool fwd+bwd".into(),
+            ours_ms: median_ms(|| drop(max_pool2(x0.clone()).sum().backward()), reps),
+            burn_ms: median_ms(|| drop(max_pool2d(x0.clone(), MaxPoolOptions::new([2, 2])).sum().backward()), reps),
+            flop: 0.0,
+        },
+        OpTiming {
+            name: format!("up-sample x2 [1,{c1},{},{}]", h / 2, w / 2),
+            ours_ms: median_ms(|| sync(upsample2(level1.clone())), reps),
+            burn_ms: median_ms(|| sync(repeat_up(level1.clone())), reps),
+            flop: 0.0,
+        },
+        OpTiming {
+            name: "up-sample fwd+bwd".into(),
+            ours_ms: median_ms(|| drop(upsample2(x1.clone()).sum().backward()), reps),
+            burn_ms: median_ms(|| drop(repeat_up(x1.clone()).sum().backward()), reps),
+            flop: 0.0,
+        },
+    ];
+    let net = cfg.init(&device);
+    let s = SensorTensors::new(a, h, w, &device)?;
+    let y = Tensor::<4>::random([1, a.taps(), h, w], Distribution::Uniform(0.0, 1.0), &device);
+    let whole = median_ms(|| sync(net.logits(y.clone(), &s)), reps);
+    Ok((timings, whole))
+}

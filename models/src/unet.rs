@@ -14,17 +14,18 @@
 //! the output invariant to the scale of `y` (`y` and `10·y` give the same depth). Time is the
 //! channel axis. Frames of any size work: the model pads them with zeros to a multiple of
 //! `2^(levels−1)` and crops the output back (188×212 needs no padding with 3 levels).
-//! The 3×3 convolutions run on the im2col GEMM kernels of `tcsense-kernels`.
+//! The 3×3 convolutions, the pooling and the up-sampling run on the kernels of
+//! `tcsense-kernels`.
 
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::PaddingConfig2d;
 use burn::tensor::activation::{relu, sigmoid};
-use burn::tensor::module::max_pool2d;
-use burn::tensor::ops::{MaxPoolOptions, PadMode};
+use burn::tensor::ops::PadMode;
 use burn::tensor::{Device, Tensor};
 use tcsense_kernels::conv_op::conv3x3_layer as conv;
+use tcsense_kernels::resample::{max_pool2, upsample2};
 
 use crate::net::{Network, Prediction};
 use crate::sensor_tensors::SensorTensors;
@@ -116,15 +117,6 @@ impl Block {
     }
 }
 
-/// Nearest-neighbour up-sampling by 2.
-///
-/// # Shapes
-/// - `x`: `[B, C, H, W]` → `[B, C, 2H, 2W]`
-fn upsample2(x: Tensor<4>) -> Tensor<4> {
-    let [b, c, h, w] = x.dims();
-    x.reshape([b, c, h, 1, w, 1]).repeat_dim(3, 2).repeat_dim(5, 2).reshape([b, c, 2 * h, 2 * w])
-}
-
 impl Unet {
     /// Per-pixel normalisation of `x₀ = Aᵀy`: divide each pixel's waveform by its L2 norm plus
     /// a floor of `NORM_FLOOR` times the frame's mean norm.
@@ -152,7 +144,7 @@ impl Unet {
             z = block.forward(z);
             if l + 1 < self.levels {
                 skips.push(z.clone());
-                z = max_pool2d(z, MaxPoolOptions::new([2, 2]));
+                z = max_pool2(z);
             }
         }
         for (block, skip) in self.up.iter().zip(skips).rev() {

@@ -153,6 +153,13 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
                 let rate = |ms: f64| if r.flop > 0.0 { format!("{:.1}", r.flop / ms / 1e6) } else { "-".into() };
                 println!("{:<22} {:>10.3} {:>10} {:>10.3} {:>10} {:>7.1}x", r.name, r.ours_ms, rate(r.ours_ms), r.burn_ms, rate(r.burn_ms), r.burn_ms / r.ours_ms);
             }
+            let (ops, whole) = tcsense_models::bench::bench_unet_ops(&a, 188, 212, reps)?;
+            println!("\nU-Net resampling at 188x212 (default widths):");
+            println!("{:<30} {:>10} {:>10} {:>8}", "op", "ours ms", "burn ms", "speedup");
+            for r in ops {
+                println!("{:<30} {:>10.3} {:>10.3} {:>7.1}x", r.name, r.ours_ms, r.burn_ms, r.burn_ms / r.ours_ms);
+            }
+            println!("whole U-Net forward (ours): {whole:.1} ms per frame");
         }
         BenchCmd::Tval3 { size: (h, w), bins, maxit, frames } => {
             use tcsense_datasets::{lidar::LidarParams, TimeGrid};
