@@ -112,3 +112,37 @@ fn train_reconstruct_and_eval_the_unet() {
     fails(d, &["train", "admm-net", "--resume", "-o", "unet"], &["unet run", "tcsense train unet"]);
     fails(d, &["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--levels", "9", "-o", "u3"], &["levels"]);
 }
+
+#[test]
+fn broken_run_directories_exit_2_naming_the_file() {
+    let d = tempdir();
+    let d = d.path();
+    let fx = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/admm-net-run-v1");
+    let y = fx.join("y.npy").display().to_string();
+    let copy = |name: &str| {
+        let dir = d.join(name);
+        std::fs::create_dir_all(&dir).unwrap();
+        for f in ["config.json", "codes.json", "model.bpk"] {
+            std::fs::copy(fx.join(f), dir.join(f)).unwrap();
+        }
+        dir
+    };
+    // truncated weights
+    let run = copy("truncated");
+    let bytes = std::fs::read(run.join("model.bpk")).unwrap();
+    std::fs::write(run.join("model.bpk"), &bytes[..bytes.len() / 2]).unwrap();
+    fails(d, &["reconstruct", "admm-net", "--run", "truncated", "--measurements", &y, "-o", "x.npy"], &["model.bpk"]);
+    // missing weights
+    let run = copy("missing");
+    std::fs::remove_file(run.join("model.bpk")).unwrap();
+    fails(d, &["reconstruct", "admm-net", "--run", "missing", "--measurements", &y, "-o", "x.npy"], &["model.bpk", "no trained weights"]);
+    // a config of another shape, and one that is not JSON
+    let run = copy("foreign");
+    std::fs::write(run.join("config.json"), "{\"decoder\": \"admm-net\", \"model\": {\"taps\": 2, \"bins\": 8, \"stages\": 2, \"channels\": 4, \"rho_init\": 0.1, \"eta_init\": 1.0}, \"sampling\": {\"mode\": \"oversample\", \"k\": 1}, \"irf\": {\"kind\": \"ideal\"}}").unwrap();
+    fails(d, &["reconstruct", "admm-net", "--run", "foreign", "--measurements", &y, "-o", "x.npy"], &["config.json", "M = 2"]);
+    std::fs::write(run.join("config.json"), "not json").unwrap();
+    fails(d, &["reconstruct", "admm-net", "--run", "foreign", "--measurements", &y, "-o", "x.npy"], &["config.json", "malformed JSON"]);
+    std::fs::write(run.join("config.json"), "{\"decoder\": \"magic\", \"model\": {}}").unwrap();
+    fails(d, &["reconstruct", "admm-net", "--run", "foreign", "--measurements", &y, "-o", "x.npy"], &["config.json", "not a run config"]);
+    assert!(!d.join("x.npy").exists(), "no output from a broken run");
+}
