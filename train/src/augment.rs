@@ -47,10 +47,11 @@ pub struct Augmentation {
 }
 
 impl Default for Augmentation {
-    /// Shifts and flips on, no crop, brightness over two decades, full well 5 000–40 000 e⁻,
-    /// read noise 10–80 e⁻, brightest tap at 2–90 % of full well.
+    /// Shifts and flips on, no crop, brightness over two decades, full well 10 000–40 000 e⁻,
+    /// read noise 10–60 e⁻, brightest tap at 5–90 % of full well (500 to 36 000 e⁻, against the
+    /// paper's 16 000).
     fn default() -> Self {
-        Augmentation { time_shift: true, flips: true, crop: None, brightness: [0.01, 1.0], full_well_e: [5e3, 4e4], read_noise_e: [10.0, 80.0], signal_fraction: [0.02, 0.9] }
+        Augmentation { time_shift: true, flips: true, crop: None, brightness: [0.01, 1.0], full_well_e: [1e4, 4e4], read_noise_e: [10.0, 60.0], signal_fraction: [0.05, 0.9] }
     }
 }
 
@@ -236,7 +237,7 @@ mod tests {
         assert_eq!(a1.x, a2.x);
         assert_ne!(a1.x, a3.x);
         for n in a1.noise.iter().chain(&a3.noise) {
-            assert!((5e3..=4e4).contains(&n.full_well_e) && (10.0..=80.0).contains(&n.read_noise_e) && (0.02..=0.9).contains(&n.signal_fraction));
+            assert!((1e4..=4e4).contains(&n.full_well_e) && (10.0..=60.0).contains(&n.read_noise_e) && (0.05..=0.9).contains(&n.signal_fraction));
         }
         let gains: Vec<f32> = (0..200).map(|s| d.apply(&x.view(), None, &base, (2, 2), 7, s).x.iter().map(|v| v.abs()).sum::<f32>() / x.iter().map(|v| v.abs()).sum::<f32>()).collect();
         assert!(gains.iter().any(|&g| g < 0.05) && gains.iter().any(|&g| g > 0.5), "brightness over two decades");
