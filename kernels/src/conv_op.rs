@@ -68,6 +68,16 @@ pub(crate) fn dims4(t: &FlexTensor) -> [usize; 4] {
     [s[0], s[1], s[2], s[3]]
 }
 
+/// Run `f` on a contiguous f32 view of `t` and its shape (copying only when `t` is strided or
+/// not f32).
+pub(crate) fn with_f32<R>(t: FlexTensor, f: impl FnOnce(&[f32], [usize; 4]) -> R) -> R {
+    let dims = dims4(&t);
+    match f32_contiguous(t.clone()) {
+        Some(c) => f(f32_slice(&c), dims),
+        None => f(&t.into_data().convert::<f32>().try_into_vec::<f32>().expect("converted to f32"), dims),
+    }
+}
+
 /// A contiguous `f32` view of `t` (copying only when it is strided), or `None` for other dtypes.
 pub(crate) fn f32_contiguous(t: FlexTensor) -> Option<FlexTensor> {
     if t.dtype() != DType::F32 {

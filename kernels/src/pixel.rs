@@ -29,7 +29,7 @@ use burn::tensor::{Shape, Tensor, TensorData};
 use rayon::prelude::*;
 
 use crate::conv::SharedOut;
-use crate::conv_op::{dims4, f32_contiguous, f32_slice};
+use crate::conv_op::with_f32;
 
 /// A per-subpixel linear map `P_n [O, I]` laid out for a frame `W` pixels wide.
 #[derive(Debug, Clone, PartialEq)]
@@ -294,15 +294,6 @@ pub trait PixelBackend: Backend {
     fn pixel_linear(x: FloatTensor<Self>, map: Arc<PixelMap>) -> FloatTensor<Self>;
     /// `[B, T, H, W]`, `[1]` → `[B, T, H, W]`
     fn pixel_dc(v: FloatTensor<Self>, rho: FloatTensor<Self>, sensor: Arc<PixelSensor>) -> FloatTensor<Self>;
-}
-
-/// Run `f` on a contiguous f32 view of `t` (copying only when `t` is strided or not f32).
-fn with_f32<R>(t: FlexTensor, f: impl FnOnce(&[f32], [usize; 4]) -> R) -> R {
-    let dims = dims4(&t);
-    match f32_contiguous(t.clone()) {
-        Some(c) => f(f32_slice(&c), dims),
-        None => f(&t.into_data().convert::<f32>().try_into_vec::<f32>().expect("converted to f32"), dims),
-    }
 }
 
 fn scalar(t: FlexTensor) -> f32 {

@@ -18,7 +18,7 @@ use burn::backend::{backend_extension, Autodiff, AutodiffBackend, Backend, Dispa
 use burn::tensor::{Shape, Tensor, TensorData};
 use rayon::prelude::*;
 
-use crate::conv_op::{dims4, f32_contiguous, f32_slice};
+use crate::conv_op::with_f32;
 
 /// 2×2 max-pooling, stride 2; `H` and `W` must be even.
 ///
@@ -49,15 +49,6 @@ pub trait ResampleBackend: Backend {
     fn upsample2_backward(grad: FloatTensor<Self>) -> FloatTensor<Self>;
 }
 
-/// A contiguous f32 copy of `t`'s values with its shape.
-fn values(t: FlexTensor) -> (Vec<f32>, [usize; 4]) {
-    let dims = dims4(&t);
-    match f32_contiguous(t.clone()) {
-        Some(c) => (f32_slice(&c).to_vec(), dims),
-        None => (t.into_data().convert::<f32>().try_into_vec::<f32>().unwrap_or_default(), dims),
-    }
-}
-
 fn tensor(v: Vec<f32>, dims: [usize; 4]) -> FlexTensor {
     FlexTensor::from_data(TensorData::new(v, Shape::from(dims)))
 }
@@ -77,71 +68,76 @@ fn argmax2(plane: &[f32], w: usize, i: usize, j: usize) -> usize {
 
 impl ResampleBackend for Flex {
     fn max_pool2(x: FlexTensor) -> FlexTensor {
-        let (x, [b, c, h, w]) = values(x);
-        assert!(h % 2 == 0 && w % 2 == 0, "max_pool2: {h}x{w} is not even");
-        let (ho, wo) = (h / 2, w / 2);
-        let mut y = vec![0f32; b * c * ho * wo];
-        if !y.is_empty() {
-            y.par_chunks_mut(ho * wo).zip(x.par_chunks(h * w)).for_each(|(out, plane)| {
-                for i in 0..ho {
-                    for j in 0..wo {
-                        out[i * wo + j] = plane[argmax2(plane, w, i, j)];
+        with_f32(x, |x, [b, c, h, w]| {
+            assert!(h % 2 == 0 && w % 2 == 0, "max_pool2: {h}x{w} is not even");
+            let (ho, wo) = (h / 2, w / 2);
+            let mut y = vec![0f32; b * c * ho * wo];
+            if !y.is_empty() {
+                y.par_chunks_mut(ho * wo).zip(x.par_chunks(h * w)).for_each(|(out, plane)| {
+                    for i in 0..ho {
+                        for j in 0..wo {
+                            out[i * wo + j] = plane[argmax2(plane, w, i, j)];
+                        }
                     }
-                }
-            });
-        }
-        tensor(y, [b, c, ho, wo])
+                });
+            }
+            tensor(y, [b, c, ho, wo])
+        })
     }
 
     fn max_pool2_backward(x: FlexTensor, grad: FlexTensor) -> FlexTensor {
-        let (x, [b, c, h, w]) = values(x);
-        let (g, _) = values(grad);
-        let (ho, wo) = (h / 2, w / 2);
-        let mut dx = vec![0f32; b * c * h * w];
-        if !dx.is_empty() {
-            dx.par_chunks_mut(h * w).zip(x.par_chunks(h * w)).zip(g.par_chunks(ho * wo)).for_each(|((out, plane), gp)| {
-                for i in 0..ho {
-                    for j in 0..wo {
-                        out[argmax2(plane, w, i, j)] = gp[i * wo + j];
-                    }
+        with_f32(x, |x, [b, c, h, w]| {
+            with_f32(grad, |g, _| {
+                let (ho, wo) = (h / 2, w / 2);
+                let mut dx = vec![0f32; b * c * h * w];
+                if !dx.is_empty() {
+                    dx.par_chunks_mut(h * w).zip(x.par_chunks(h * w)).zip(g.par_chunks(ho * wo)).for_each(|((out, plane), gp)| {
+                        for i in 0..ho {
+                            for j in 0..wo {
+                                out[argmax2(plane, w, i, j)] = gp[i * wo + j];
+                            }
+                        }
+                    });
                 }
-            });
-        }
-        tensor(dx, [b, c, h, w])
+                tensor(dx, [b, c, h, w])
+            })
+        })
     }
 
     fn upsample2(x: FlexTensor) -> FlexTensor {
-        let (x, [b, c, h, w]) = values(x);
-        let (ho, wo) = (2 * h, 2 * w);
-        let mut y = vec![0f32; b * c * ho * wo];
-        if !y.is_empty() {
-            y.par_chunks_mut(ho * wo).zip(x.par_chunks(h * w)).for_each(|(out, plane)| {
-                for (r, row) in out.chunks_mut(wo).enumerate() {
-                    let src = &plane[(r / 2) * w..(r / 2 + 1) * w];
-                    for (pair, &v) in row.chunks_mut(2).zip(src) {
-                        pair.fill(v);
+        with_f32(x, |x, [b, c, h, w]| {
+            let (ho, wo) = (2 * h, 2 * w);
+            let mut y = vec![0f32; b * c * ho * wo];
+            if !y.is_empty() {
+                y.par_chunks_mut(ho * wo).zip(x.par_chunks(h * w)).for_each(|(out, plane)| {
+                    for (r, row) in out.chunks_mut(wo).enumerate() {
+                        let src = &plane[(r / 2) * w..(r / 2 + 1) * w];
+                        for (pair, &v) in row.chunks_mut(2).zip(src) {
+                            pair.fill(v);
+                        }
                     }
-                }
-            });
-        }
-        tensor(y, [b, c, ho, wo])
+                });
+            }
+            tensor(y, [b, c, ho, wo])
+        })
     }
 
     fn upsample2_backward(grad: FlexTensor) -> FlexTensor {
-        let (g, [b, c, h2, w2]) = values(grad);
-        let (h, w) = (h2 / 2, w2 / 2);
-        let mut dx = vec![0f32; b * c * h * w];
-        if !dx.is_empty() {
-            dx.par_chunks_mut(h * w).zip(g.par_chunks(h2 * w2)).for_each(|(out, gp)| {
-                for i in 0..h {
-                    for j in 0..w {
-                        let k = 2 * i * w2 + 2 * j;
-                        out[i * w + j] = gp[k] + gp[k + 1] + gp[k + w2] + gp[k + w2 + 1];
+        with_f32(grad, |g, [b, c, h2, w2]| {
+            let (h, w) = (h2 / 2, w2 / 2);
+            let mut dx = vec![0f32; b * c * h * w];
+            if !dx.is_empty() {
+                dx.par_chunks_mut(h * w).zip(g.par_chunks(h2 * w2)).for_each(|(out, gp)| {
+                    for i in 0..h {
+                        for j in 0..w {
+                            let k = 2 * i * w2 + 2 * j;
+                            out[i * w + j] = gp[k] + gp[k + 1] + gp[k + w2] + gp[k + w2 + 1];
+                        }
                     }
-                }
-            });
-        }
-        tensor(dx, [b, c, h, w])
+                });
+            }
+            tensor(dx, [b, c, h, w])
+        })
     }
 }
 

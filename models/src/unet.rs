@@ -163,10 +163,9 @@ impl Unet {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → `([B, K, H, W], [B, K, H, W])`
     pub fn forward(&self, y: Tensor<4>, sensor: &SensorTensors) -> (Tensor<4>, Tensor<4>) {
-        let o = self.logits(y, sensor);
+        let p = self.predict(y, sensor);
         let k = self.returns;
-        let depth = sigmoid(o.clone().narrow(1, 0, k)) * self.range_m;
-        (depth, sigmoid(o.narrow(1, k, k)))
+        (p.clone().narrow(1, 0, k), sigmoid(p.narrow(1, k, k)))
     }
 
     /// Returns `K`.

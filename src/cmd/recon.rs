@@ -7,7 +7,7 @@ use ndarray::{Array4, ArrayD, Axis, Ix3, Ix4};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use tcsense_infer::products::{depth_map, lifetime_map, map_png, plot_waveforms, write_ply, PeakOptions};
-use tcsense_models::decoder::{check_measurements, Control, Decoder, Step, Tval3Decoder};
+use tcsense_models::decoder::{Control, Decoder, Step, Tval3Decoder};
 use tcsense_models::{runs, Device, ModelError, Tval3Options, TvNorm};
 use tcsense_sensor::npy::{read_npy, write_bytes, write_npy};
 use tcsense_sensor::MeasurementMatrix;
@@ -158,7 +158,6 @@ fn decode_file(decoder: &mut dyn Decoder, sensor: &MeasurementMatrix, measuremen
     if m != sensor.taps() {
         bail!("{}: {m} tap images, but the sensor (codes) has M = {} taps", measurements.display(), sensor.taps());
     }
-    check_measurements(&y.view(), sensor).map_err(|e| anyhow::anyhow!("{}: {e}", measurements.display()))?;
     let cancel = interrupt_flag();
     let pb = ProgressBar::new(frames as u64);
     pb.set_style(ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));

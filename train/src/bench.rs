@@ -51,7 +51,7 @@ fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h:
         let t0 = Instant::now();
         let pred = model.predict(to_tensor(&y.view(), &device), &sensor);
         let target = match M::PREDICTION {
-            Prediction::Cube => Target::Cube { x: &x, gains: None },
+            Prediction::Cube => Target::Cube { x: &x, scales: None },
             Prediction::Depth => Target::Depth { depth: &depth, range_m: 10.0 },
         };
         let loss = objective(Loss::RmseMae, pred, target, &device);

@@ -175,7 +175,7 @@ fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, p
             let db = train_d.as_ref().map(|d| d.select(Axis(0), idx)); // [B, K, H, W]
             state.step += 1;
             let noise_seed = derive_seed(cfg.seed, state.step);
-            let (xb, db, yb, gains) = match (&cfg.augment, &cfg.noise) {
+            let (xb, db, yb, scales) = match (&cfg.augment, &cfg.noise) {
                 (None, _) => {
                     let yb = measure_batch(&plan, &xb.view(), cfg.noise.as_ref(), noise_seed)?;
                     (xb, db, yb, None)
@@ -191,7 +191,7 @@ fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, p
             };
             let target = match &db {
                 Some(d) => Target::Depth { depth: d, range_m },
-                None => Target::Cube { x: &xb, gains: gains.as_deref() },
+                None => Target::Cube { x: &xb, scales: scales.as_deref() },
             };
             let l;
             (model, l) = step(model, &mut optim, cfg, &sensor, &yb, target, &device);
@@ -252,8 +252,8 @@ fn measure_items(plan: &FramePlan, x: &Array4<f32>, noise: Option<&[NoiseParams]
 #[derive(Debug, Clone, Copy)]
 pub(crate) enum Target<'a> {
     /// The cubes `[B, T, H, W]`, and a scale per item when augmented (the loss is taken on
-    /// `x/g` and `x̂/g`, so dim items weigh as much as bright ones).
-    Cube { x: &'a Array4<f32>, gains: Option<&'a [f32]> },
+    /// `x/s` and `x̂/s`, so dim items weigh as much as bright ones).
+    Cube { x: &'a Array4<f32>, scales: Option<&'a [f32]> },
     /// Range labels `[B, K, H, W]` (m, NaN where none) and the unambiguous range.
     Depth { depth: &'a Array4<f32>, range_m: f64 },
 }
@@ -264,9 +264,9 @@ pub(crate) enum Target<'a> {
 /// - `pred`: `[B, T, H, W]` or `[B, 2K, H, W]` → `[1]`
 pub(crate) fn objective(loss: Loss, pred: Tensor<4>, target: Target<'_>, device: &Device) -> Tensor<1> {
     match target {
-        Target::Cube { x, gains: None } => loss_fn(loss, pred, to_tensor(&x.view(), device)),
-        Target::Cube { x, gains: Some(g) } => {
-            let inv = Tensor::<4>::from_data(TensorData::new(g.iter().map(|g| 1.0 / g).collect::<Vec<f32>>(), [g.len(), 1, 1, 1]), device);
+        Target::Cube { x, scales: None } => loss_fn(loss, pred, to_tensor(&x.view(), device)),
+        Target::Cube { x, scales: Some(s) } => {
+            let inv = Tensor::<4>::from_data(TensorData::new(s.iter().map(|s| 1.0 / s).collect::<Vec<f32>>(), [s.len(), 1, 1, 1]), device);
             loss_fn(loss, pred * inv.clone(), to_tensor(&x.view(), device) * inv)
         }
         Target::Depth { depth, range_m } => {
