@@ -43,6 +43,12 @@ enum Command {
     /// Plots.
     #[command(subcommand)]
     Plot(cmd::recon::PlotCmd),
+    /// Export trained decoders for deployment.
+    #[command(subcommand)]
+    Export(cmd::deploy::ExportCmd),
+    /// Run an exported model (ONNX Runtime) on tap images: a frame, a stack or a directory,
+    /// streamed, with products (cube, depth, peaks, point clouds, lifetimes).
+    Infer(cmd::deploy::InferArgs),
     /// Compare decoders on a dataset split: MSE, PSNR, depth errors, lifetime error, time.
     Eval(cmd::eval::EvalArgs),
     /// Design sweeps of the paper's Fig. 13 and Table 1 (TVAL3 MSE over a dataset).
@@ -73,6 +79,8 @@ fn main() -> ExitCode {
         Command::Plot(c) => cmd::recon::plot(c),
         Command::Sweep(c) => cmd::design::sweep(c),
         Command::Eval(a) => cmd::eval::run(a),
+        Command::Export(c) => cmd::deploy::export(c),
+        Command::Infer(a) => cmd::deploy::infer(a, cli.threads),
         Command::Bench(c) => cmd::bench::run(c),
     };
     match result {

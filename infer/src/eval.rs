@@ -131,7 +131,8 @@ pub struct NamedDecoder {
 }
 
 /// Open a decoder by name: `tval3` (with `tval3` options) or `KIND:RUN`, a training run
-/// directory of a learned decoder of that kind (`admm-net:RUN`, `unet:RUN`), on the CPU.
+/// directory of a learned decoder of that kind (`admm-net:RUN`, `unet:RUN`), on the CPU, or
+/// `onnx:MODEL.onnx`, an exported model through ONNX Runtime.
 pub fn open_decoder(name: &str, tval3: &Tval3Options) -> Result<NamedDecoder> {
     match name.split_once(':') {
         None if name == "tval3" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(Tval3Decoder::new(*tval3)?), codes: None }),
@@ -141,6 +142,11 @@ pub fn open_decoder(name: &str, tval3: &Tval3Options) -> Result<NamedDecoder> {
                 return Err(InferError::File { path: run.dir.join(runs::CONFIG_FILE), msg: format!("a {} run, not {kind}; name it {}:{dir}", run.spec.model.name(), run.spec.model.name()) });
             }
             Ok(NamedDecoder { label: name.into(), decoder: run.decoder, codes: Some(run.codes) })
+        }
+        Some(("onnx", file)) => {
+            let model = crate::runtime::OnnxModel::open(Path::new(file), 0)?;
+            let codes = model.meta.codes.clone();
+            Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::runtime::OnnxDecoder::new(model)), codes: Some(codes) })
         }
         _ => Err(InferError::UnknownDecoder(name.into())),
     }

@@ -11,6 +11,10 @@
 //! - [`selection`]: code selection — the TVAL3 MSE of a code set over a dataset, the best of
 //!   random candidates, and the constraint settings of the paper's Table 1.
 //! - [`chart`]: line charts (PNG) for the design sweeps.
+//! - [`onnx`]: export of trained runs to ONNX (hand-built graphs, opset 17) with their codes
+//!   and sensor model in the metadata.
+//! - [`runtime`]: exported models through ONNX Runtime (`ort`, the library loaded at run
+//!   time), also behind the decoder contract.
 //!
 //! Errors are [`InferError`]; this crate never depends on the training crate.
 
@@ -18,7 +22,10 @@ pub mod chart;
 pub mod error;
 pub mod eval;
 pub mod metrics;
+pub mod onnx;
 pub mod products;
+pub mod runtime;
 pub mod selection;
+pub mod stream;
 
 pub use error::{InferError, Result};

@@ -91,6 +91,23 @@ pub struct Stage {
     eta: Param<Tensor<1>>,
 }
 
+impl Stage {
+    /// The prior's three 3×3 convolutions `T→CN→CN→T` (weights `[out, in, 3, 3]`).
+    pub fn convs(&self) -> [&Conv2d; 3] {
+        [&self.conv1, &self.conv2, &self.conv3]
+    }
+
+    /// `ρ_k = exp(log ρ_k)`.
+    pub fn rho(&self) -> f32 {
+        self.log_rho.val().exp().into_scalar::<f32>()
+    }
+
+    /// The multiplier step `η_k`.
+    pub fn eta(&self) -> f32 {
+        self.eta.val().into_scalar::<f32>()
+    }
+}
+
 /// The unrolled network.
 #[derive(Module, Debug)]
 pub struct AdmmNet {
@@ -131,6 +148,16 @@ impl AdmmNet {
             u = u + (x - z.clone()) * st.eta.val().reshape([1, 1, 1, 1]);
         }
         z
+    }
+
+    /// The unrolled stages, in order (for exporters).
+    pub fn stages(&self) -> &[Stage] {
+        &self.stages
+    }
+
+    /// Whether the input is normalised per frame (see [`AdmmNetConfig::normalize`]).
+    pub fn normalize(&self) -> bool {
+        self.normalize
     }
 
     /// Learned `ρ` per stage.

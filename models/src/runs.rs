@@ -148,9 +148,26 @@ pub fn load_network<M: Module>(dir: &Path, model: M) -> Result<M> {
     model.try_load_file(dir.join(WEIGHTS_STEM)).map_err(|e| file_err(&weights, e))
 }
 
-/// Open a run directory as a decoder on `device`: its config, codes, sensor model and latest
-/// weights.
-pub fn open(dir: &Path, device: &Device) -> Result<Run> {
+/// A trained network of either kind, as loaded from a run directory.
+#[derive(Debug)]
+pub enum TrainedNet {
+    AdmmNet(AdmmNet),
+    Unet(Unet),
+}
+
+/// A run directory loaded with its network as a concrete module (for exporters; [`open`]
+/// wraps the same network behind the decoder contract).
+#[derive(Debug)]
+pub struct LoadedRun {
+    pub dir: PathBuf,
+    pub spec: RunSpec,
+    pub codes: Codes,
+    pub sensor: MeasurementMatrix,
+    pub net: TrainedNet,
+}
+
+/// Load a run directory on `device`: its config, codes, sensor model and latest weights.
+pub fn load(dir: &Path, device: &Device) -> Result<LoadedRun> {
     let cfg_path = dir.join(CONFIG_FILE);
     let spec: RunSpec = serde_json::from_value(read_config_json(&cfg_path)?).map_err(|e| file_err(&cfg_path, format!("not a run config: {e}")))?;
     let codes = Codes::load(&dir.join(CODES_FILE))?;
@@ -161,15 +178,21 @@ pub fn open(dir: &Path, device: &Device) -> Result<Run> {
             format!("the model takes M = {} taps and T = {} bins, but its codes give M = {}, T = {}", spec.model.taps(), spec.model.bins(), sensor.taps(), sensor.bins()),
         ));
     }
-    let decoder: Box<dyn Decoder> = match &spec.model {
-        ModelConfig::AdmmNet(c) => {
-            let net: AdmmNet = load_network(dir, c.init(device))?;
-            Box::new(NetDecoder::new(spec.model.name(), net, device.clone()))
-        }
-        ModelConfig::Unet(c) => {
-            let net: Unet = load_network(dir, c.init(device))?;
-            Box::new(NetDecoder::new(spec.model.name(), net, device.clone()))
-        }
+    let net = match &spec.model {
+        ModelConfig::AdmmNet(c) => TrainedNet::AdmmNet(load_network(dir, c.init(device))?),
+        ModelConfig::Unet(c) => TrainedNet::Unet(load_network(dir, c.init(device))?),
     };
-    Ok(Run { dir: dir.to_path_buf(), spec, codes, sensor, decoder })
+    Ok(LoadedRun { dir: dir.to_path_buf(), spec, codes, sensor, net })
+}
+
+/// Open a run directory as a decoder on `device`: its config, codes, sensor model and latest
+/// weights.
+pub fn open(dir: &Path, device: &Device) -> Result<Run> {
+    let LoadedRun { dir, spec, codes, sensor, net } = load(dir, device)?;
+    let name = spec.model.name();
+    let decoder: Box<dyn Decoder> = match net {
+        TrainedNet::AdmmNet(net) => Box::new(NetDecoder::new(name, net, device.clone())),
+        TrainedNet::Unet(net) => Box::new(NetDecoder::new(name, net, device.clone())),
+    };
+    Ok(Run { dir, spec, codes, sensor, decoder })
 }

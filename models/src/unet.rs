@@ -32,7 +32,7 @@ use crate::sensor_tensors::SensorTensors;
 
 /// Relative floor of the per-pixel normalisation: dark pixels are divided by at least this
 /// fraction of the frame's mean norm, so noise alone is not blown up to unit scale.
-const NORM_FLOOR: f64 = 1e-3;
+pub const NORM_FLOOR: f64 = 1e-3;
 
 /// U-Net hyper-parameters.
 #[derive(Config, Debug, PartialEq)]
@@ -112,6 +112,11 @@ impl UnetConfig {
 }
 
 impl Block {
+    /// The two 3×3 convolutions (weights `[out, in, 3, 3]`).
+    pub fn convs(&self) -> [&Conv2d; 2] {
+        [&self.conv1, &self.conv2]
+    }
+
     fn forward(&self, x: Tensor<4>) -> Tensor<4> {
         relu(conv(&self.conv2, relu(conv(&self.conv1, x))))
     }
@@ -166,6 +171,26 @@ impl Unet {
         let p = self.predict(y, sensor);
         let k = self.returns;
         (p.clone().narrow(1, 0, k), sigmoid(p.narrow(1, k, k)))
+    }
+
+    /// Encoder blocks, finest level first (for exporters).
+    pub fn down(&self) -> &[Block] {
+        &self.down
+    }
+
+    /// Decoder blocks: `up()[l]` runs at level `l` on `[up-sampled level l+1, skip l]`.
+    pub fn up(&self) -> &[Block] {
+        &self.up
+    }
+
+    /// The 1×1 head to `2K` channels.
+    pub fn head(&self) -> &Conv2d {
+        &self.head
+    }
+
+    /// Resolutions (`levels − 1` down-samplings by 2).
+    pub fn levels(&self) -> usize {
+        self.levels
     }
 
     /// Returns `K`.

@@ -53,25 +53,9 @@ pub fn write_bytes(path: &Path, bytes: &[u8]) -> Result<()> {
 
 /// Write an `f32` array as `.npy` (little-endian `<f4`, C order), atomically.
 pub fn write_npy<D: Dimension>(path: &Path, a: &ArrayView<'_, f32, D>) -> Result<()> {
-    let shape = a.shape();
-    let shape_str = match shape.len() {
-        1 => format!("({},)", shape[0]),
-        _ => format!(
-            "({})",
-            shape.iter().map(|s| s.to_string()).collect::<Vec<_>>().join(", ")
-        ),
-    };
-    let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape_str}, }}");
-    // Total header (magic 6 + version 2 + len 2 + dict + '\n') is a multiple of 64.
-    let unpadded = MAGIC.len() + 2 + 2 + header.len() + 1;
-    header.push_str(&" ".repeat((64 - unpadded % 64) % 64));
-    header.push('\n');
-    let hlen = u16::try_from(header.len()).map_err(|_| SensorError::file(path, "npy header too long"))?;
+    let header = f32_header(a.shape()).map_err(|e| SensorError::file(path, e))?;
     atomic_write(path, |w| {
-        w.write_all(MAGIC)?;
-        w.write_all(&[1, 0])?;
-        w.write_all(&hlen.to_le_bytes())?;
-        w.write_all(header.as_bytes())?;
+        w.write_all(&header)?;
         let mut buf = Vec::with_capacity(a.len() * 4);
         for v in a.iter() {
             buf.extend_from_slice(&v.to_le_bytes());
@@ -88,6 +72,62 @@ pub fn read_npy(path: &Path) -> Result<ArrayD<f32>> {
 
 /// Parse `.npy` bytes; the error is a message without the file name.
 pub fn parse_npy(bytes: &[u8]) -> std::result::Result<ArrayD<f32>, String> {
+    let h = parse_header(bytes)?;
+    let count = h.count();
+    let data = &bytes[h.data_offset..];
+    if data.len() < count * h.size {
+        return Err(format!("npy data truncated: shape {:?} of {} needs {} bytes, file has {}", h.shape, h.descr, count * h.size, data.len()));
+    }
+    let mut values = vec![0f32; count];
+    h.decode_into(&data[..count * h.size], &mut values);
+    let arr = if h.fortran {
+        ArrayD::from_shape_vec(IxDyn(&h.shape).f(), values).map_err(|e| e.to_string())?
+    } else {
+        ArrayD::from_shape_vec(IxDyn(&h.shape), values).map_err(|e| e.to_string())?
+    };
+    Ok(if arr.is_standard_layout() {
+        arr
+    } else {
+        arr.as_standard_layout().into_owned()
+    })
+}
+
+/// A parsed `.npy` header.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NpyHeader {
+    /// The dtype as written, e.g. `<f4`.
+    pub descr: String,
+    little: bool,
+    kind: char,
+    /// Bytes per value.
+    pub size: usize,
+    pub fortran: bool,
+    pub shape: Vec<usize>,
+    /// Where the data starts.
+    pub data_offset: usize,
+}
+
+impl NpyHeader {
+    /// Values in the array.
+    pub fn count(&self) -> usize {
+        self.shape.iter().product()
+    }
+
+    /// Decode `bytes` (whole values of this dtype) into `out` as f32.
+    pub fn decode_into(&self, bytes: &[u8], out: &mut [f32]) {
+        for (chunk, o) in bytes.chunks_exact(self.size).zip(out.iter_mut()) {
+            let mut b = [0u8; 8];
+            b[..self.size].copy_from_slice(chunk);
+            if !self.little && self.size > 1 {
+                b[..self.size].reverse();
+            }
+            *o = decode(self.kind, self.size, b);
+        }
+    }
+}
+
+/// Parse the header at the start of `bytes` (which need hold only the header).
+pub fn parse_header(bytes: &[u8]) -> std::result::Result<NpyHeader, String> {
     if bytes.len() < 10 || &bytes[..6] != MAGIC {
         return Err("not a .npy file (missing the \\x93NUMPY magic)".into());
     }
@@ -98,22 +138,15 @@ pub fn parse_npy(bytes: &[u8]) -> std::result::Result<ArrayD<f32>, String> {
             if bytes.len() < 12 {
                 return Err("truncated .npy header".into());
             }
-            (
-                u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
-                12,
-            )
+            (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12)
         }
         v => return Err(format!("unsupported .npy format version {v} (expected 1, 2 or 3)")),
     };
-    let header = bytes
-        .get(start..start + hlen)
-        .ok_or("truncated .npy header")?;
+    let header = bytes.get(start..start + hlen).ok_or("truncated .npy header")?;
     let header = std::str::from_utf8(header).map_err(|_| "npy header is not text")?;
     let descr = dict_value(header, "descr").ok_or("npy header has no 'descr'")?;
     let descr = descr.trim_matches(|c| c == '\'' || c == '"');
-    let fortran = dict_value(header, "fortran_order")
-        .ok_or("npy header has no 'fortran_order'")?
-        .starts_with("True");
+    let fortran = dict_value(header, "fortran_order").ok_or("npy header has no 'fortran_order'")?.starts_with("True");
     let shape_s = dict_value(header, "shape").ok_or("npy header has no 'shape'")?;
     let shape: Vec<usize> = shape_s
         .trim_matches(|c| c == '(' || c == ')')
@@ -123,34 +156,29 @@ pub fn parse_npy(bytes: &[u8]) -> std::result::Result<ArrayD<f32>, String> {
         .map(|s| s.parse::<usize>().map_err(|_| format!("bad shape entry {s:?} in npy header")))
         .collect::<std::result::Result<_, _>>()?;
     let (little, kind, size) = parse_descr(descr)?;
-    let count: usize = shape.iter().product();
-    let data = &bytes[start + hlen..];
-    if data.len() < count * size {
-        return Err(format!(
-            "npy data truncated: shape {shape:?} of {descr} needs {} bytes, file has {}",
-            count * size,
-            data.len()
-        ));
-    }
-    let mut values = Vec::with_capacity(count);
-    for chunk in data[..count * size].chunks_exact(size) {
-        let mut b = [0u8; 8];
-        b[..size].copy_from_slice(chunk);
-        if !little && size > 1 {
-            b[..size].reverse();
-        }
-        values.push(decode(kind, size, b));
-    }
-    let arr = if fortran {
-        ArrayD::from_shape_vec(IxDyn(&shape).f(), values).map_err(|e| e.to_string())?
-    } else {
-        ArrayD::from_shape_vec(IxDyn(&shape), values).map_err(|e| e.to_string())?
+    shape.iter().try_fold(size, |acc, &d| acc.checked_mul(d)).ok_or_else(|| format!("shape {shape:?} is too large"))?;
+    Ok(NpyHeader { descr: descr.to_string(), little, kind, size, fortran, shape, data_offset: start + hlen })
+}
+
+/// The `.npy` header of a little-endian `f32` C-order array of `shape` (version 1.0, padded
+/// to 64 bytes).
+pub fn f32_header(shape: &[usize]) -> std::result::Result<Vec<u8>, String> {
+    let shape_str = match shape.len() {
+        1 => format!("({},)", shape[0]),
+        _ => format!("({})", shape.iter().map(|s| s.to_string()).collect::<Vec<_>>().join(", ")),
     };
-    Ok(if arr.is_standard_layout() {
-        arr
-    } else {
-        arr.as_standard_layout().into_owned()
-    })
+    let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape_str}, }}");
+    // Total header (magic 6 + version 2 + len 2 + dict + '\n') is a multiple of 64.
+    let unpadded = MAGIC.len() + 2 + 2 + header.len() + 1;
+    header.push_str(&" ".repeat((64 - unpadded % 64) % 64));
+    header.push('\n');
+    let hlen = u16::try_from(header.len()).map_err(|_| "npy header too long".to_string())?;
+    let mut out = Vec::with_capacity(10 + header.len());
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&[1, 0]);
+    out.extend_from_slice(&hlen.to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    Ok(out)
 }
 
 fn dict_value<'a>(header: &'a str, key: &str) -> Option<&'a str> {

@@ -1,0 +1,192 @@
+//! What an exported model carries in its `metadata_props`: the codes and sensor model it was
+//! trained with, its outputs and their units, and the frame-size rule. One key per field, so
+//! any ONNX runtime (Netron, Python's `onnx`, C++) shows them as written.
+
+use std::path::Path;
+
+use tcsense_models::runs::{LoadedRun, ModelConfig};
+use tcsense_sensor::{Codes, Irf, MeasurementMatrix, Sampling, SensorParams};
+
+use super::ExportOptions;
+use crate::{InferError, Result};
+
+/// The `format` key's value.
+pub const FORMAT: &str = "tcsense-onnx";
+/// The metadata version this build writes and reads.
+pub const VERSION: u32 = 1;
+
+/// The metadata of an exported tcsense model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OnnxMeta {
+    /// `admm-net` or `unet`.
+    pub decoder: String,
+    /// Taps `M`.
+    pub taps: usize,
+    /// Bins `T`.
+    pub bins: usize,
+    /// The code block `(bh, bw)`.
+    pub block: (usize, usize),
+    /// Frames must be `H × W` with `H`, `W` multiples of these.
+    pub frame_multiple: (usize, usize),
+    /// Returns `K` of a depth model (0 for cube models).
+    pub returns: usize,
+    /// Largest depth (m) of a depth model (0 for cube models).
+    pub range_m: f64,
+    /// Bin width `Δt` (s).
+    pub bin_s: f64,
+    /// Code clock (Hz).
+    pub clock_hz: f64,
+    pub sampling: Sampling,
+    pub irf: Irf,
+    /// The exposure codes (as `codes.json`).
+    pub codes: Codes,
+    /// The sensor matrix is the input `sensor_matrix` rather than baked in.
+    pub matrix_input: bool,
+}
+
+impl OnnxMeta {
+    /// The metadata of `run` exported with `opts`.
+    pub fn of_run(run: &LoadedRun, opts: ExportOptions) -> Self {
+        let (bh, bw) = run.sensor.block();
+        let (frame_multiple, returns, range_m) = match &run.spec.model {
+            ModelConfig::AdmmNet(_) => ((bh, bw), 0, 0.0),
+            ModelConfig::Unet(c) => {
+                let s = c.stride();
+                ((lcm(bh, s), lcm(bw, s)), c.returns, c.range_m)
+            }
+        };
+        OnnxMeta {
+            decoder: run.spec.model.name().to_string(),
+            taps: run.sensor.taps(),
+            bins: run.sensor.bins(),
+            block: (bh, bw),
+            frame_multiple,
+            returns,
+            range_m,
+            bin_s: run.sensor.bin_width_s(),
+            clock_hz: run.codes.clock_hz,
+            sampling: run.spec.sampling,
+            irf: run.spec.irf,
+            codes: run.codes.clone(),
+            matrix_input: opts.matrix_input,
+        }
+    }
+
+    /// The names of the model's outputs.
+    pub fn outputs(&self) -> &'static [&'static str] {
+        if self.decoder == "unet" {
+            &["depth", "confidence"]
+        } else {
+            &["cube"]
+        }
+    }
+
+    /// The key/value pairs written to `metadata_props`.
+    pub fn to_props(&self) -> Vec<(String, String)> {
+        let json = |v: serde_json::Result<String>| v.unwrap_or_default();
+        let mut p = vec![
+            ("format", FORMAT.to_string()),
+            ("version", VERSION.to_string()),
+            ("decoder", self.decoder.clone()),
+            ("taps", self.taps.to_string()),
+            ("bins", self.bins.to_string()),
+            ("block", format!("{}x{}", self.block.0, self.block.1)),
+            ("frame_multiple", format!("{}x{}", self.frame_multiple.0, self.frame_multiple.1)),
+            ("bin_s", format!("{:e}", self.bin_s)),
+            ("clock_hz", format!("{}", self.clock_hz)),
+            ("sampling", json(serde_json::to_string(&self.sampling))),
+            ("irf", json(serde_json::to_string(&self.irf))),
+            ("codes", self.codes.to_json()),
+            ("matrix_input", self.matrix_input.to_string()),
+            ("outputs", self.outputs().join(",")),
+        ];
+        if self.decoder == "unet" {
+            p.push(("returns", self.returns.to_string()));
+            p.push(("range_m", format!("{}", self.range_m)));
+            p.push(("units", "measurements: tap images, any scale; depth: m (c*t/2 from the start of the code cycle); confidence: probability in [0, 1] that the return exists".into()));
+        } else {
+            p.push(("units", "measurements: tap images, any scale; cube: the measurements' scale per time bin (bin j covers [j*bin_s, (j+1)*bin_s))".into()));
+        }
+        p.into_iter().map(|(k, v)| (k.to_string(), v)).collect()
+    }
+
+    /// Read the metadata back through `get` (key → value); errors name `path` and the key.
+    pub fn from_props(path: &Path, get: impl Fn(&str) -> Option<String>) -> Result<Self> {
+        let err = |key: &str, msg: String| InferError::File { path: path.to_path_buf(), msg: format!("metadata_props[{key:?}]: {msg}") };
+        let req = |key: &str| get(key).ok_or_else(|| err(key, "missing; is this a model exported by `tcsense export onnx`?".into()));
+        let format = req("format")?;
+        if format != FORMAT {
+            return Err(err("format", format!("got {format:?}, expected {FORMAT:?}")));
+        }
+        let version: u32 = req("version")?.parse().map_err(|e| err("version", format!("{e}")))?;
+        if version != VERSION {
+            return Err(err("version", format!("got {version}, this build reads version {VERSION}")));
+        }
+        let num = |key: &str| -> Result<usize> { req(key)?.parse::<usize>().map_err(|e| err(key, format!("{e}; expected a non-negative integer"))) };
+        let float = |key: &str| -> Result<f64> { req(key)?.parse::<f64>().map_err(|e| err(key, format!("{e}; expected a number"))) };
+        let pair = |key: &str| -> Result<(usize, usize)> {
+            let v = req(key)?;
+            let (a, b) = v.split_once('x').ok_or_else(|| err(key, format!("got {v:?}, expected HxW")))?;
+            match (a.parse::<usize>(), b.parse::<usize>()) {
+                (Ok(a), Ok(b)) if a > 0 && b > 0 => Ok((a, b)),
+                _ => Err(err(key, format!("got {v:?}, expected HxW with positive integers"))),
+            }
+        };
+        let decoder = req("decoder")?;
+        if decoder != "admm-net" && decoder != "unet" {
+            return Err(err("decoder", format!("got {decoder:?}, expected \"admm-net\" or \"unet\"")));
+        }
+        let codes = Codes::from_json(&req("codes")?).map_err(|e| err("codes", e))?;
+        let sampling: Sampling = serde_json::from_str(&req("sampling")?).map_err(|e| err("sampling", e.to_string()))?;
+        let irf: Irf = serde_json::from_str(&req("irf")?).map_err(|e| err("irf", e.to_string()))?;
+        let matrix_input = match req("matrix_input")?.as_str() {
+            "true" => true,
+            "false" => false,
+            v => return Err(err("matrix_input", format!("got {v:?}, expected true or false"))),
+        };
+        let (returns, range_m) = if decoder == "unet" { (num("returns")?, float("range_m")?) } else { (0, 0.0) };
+        let meta = OnnxMeta {
+            decoder,
+            taps: num("taps")?,
+            bins: num("bins")?,
+            block: pair("block")?,
+            frame_multiple: pair("frame_multiple")?,
+            returns,
+            range_m,
+            bin_s: float("bin_s")?,
+            clock_hz: float("clock_hz")?,
+            sampling,
+            irf,
+            codes,
+            matrix_input,
+        };
+        // the codes and sensor model must give the declared shape
+        let a = meta.matrix().map_err(|e| err("codes", e.to_string()))?;
+        if a.taps() != meta.taps || a.bins() != meta.bins || a.block() != meta.block {
+            return Err(err(
+                "codes",
+                format!("the codes give M = {}, T = {}, block {:?}; the metadata says M = {}, T = {}, block {:?}", a.taps(), a.bins(), a.block(), meta.taps, meta.bins, meta.block),
+            ));
+        }
+        Ok(meta)
+    }
+
+    /// The measurement matrix of the model's codes and sensor model.
+    pub fn matrix(&self) -> Result<MeasurementMatrix> {
+        let spec = SensorParams { sampling: self.sampling, irf: self.irf, ..SensorParams::from_codes(&self.codes) }.validate()?;
+        Ok(MeasurementMatrix::synthesize(&self.codes, &spec)?)
+    }
+}
+
+fn gcd(a: usize, b: usize) -> usize {
+    if b == 0 {
+        a
+    } else {
+        gcd(b, a % b)
+    }
+}
+
+/// Least common multiple.
+pub fn lcm(a: usize, b: usize) -> usize {
+    a / gcd(a, b).max(1) * b
+}

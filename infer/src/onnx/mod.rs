@@ -1,0 +1,216 @@
+//! ONNX export of the learned decoders (DESIGN §5, "the ONNX graph").
+//!
+//! ```text
+//! input   measurements   [B, M, H, W]  float32, raw tap images (any scale)
+//!         sensor_matrix  [N, M, T]     float32, only with `ExportOptions::matrix_input`
+//! output  cube           [B, T, H, W]  ADMM-Net
+//!         depth          [B, K, H, W]  Aᵀ + U-Net, metres
+//!         confidence     [B, K, H, W]  Aᵀ + U-Net, in [0, 1]
+//! ```
+//!
+//! `B`, `H` and `W` are dynamic; `H` and `W` must be multiples of the frame multiple in the
+//! metadata (the block, and for the U-Net its stride `2^(levels−1)`). Every layer emits its
+//! own nodes ([`graph::Graph`]); the sensor's per-pixel operators become plain convolutions
+//! ([`sensor`]); weights are initializers (never graph inputs). The codes, sensor model,
+//! units and frame rule travel in `metadata_props` ([`OnnxMeta`]), which `tcsense infer`
+//! checks against the measurements. Opset 17, IR version 9: any ONNX runtime of the last
+//! years reads it.
+
+pub mod graph;
+pub mod meta;
+pub mod sensor;
+
+use burn::nn::conv::Conv2d;
+use protobuf::Message;
+use std::path::Path;
+
+use tcsense_models::runs::{LoadedRun, TrainedNet};
+use tcsense_models::{AdmmNet, Unet};
+
+use crate::{InferError, Result};
+use graph::{Attr, Dim, Graph};
+pub use meta::OnnxMeta;
+use sensor::SensorGraph;
+
+/// Name of the measurements input.
+pub const INPUT: &str = "measurements";
+/// Name of the optional sensor-matrix input.
+pub const MATRIX_INPUT: &str = "sensor_matrix";
+
+/// Export options.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct ExportOptions {
+    /// Take the sensor matrix `[N, M, T]` as a second input instead of baking it in.
+    pub matrix_input: bool,
+}
+
+/// The ONNX model of a trained run, serialised.
+pub fn export(run: &LoadedRun, opts: ExportOptions) -> Result<Vec<u8>> {
+    let meta = OnnxMeta::of_run(run, opts);
+    let (n, m, t) = run.sensor.a().dim();
+    let mut g = Graph::new(run.spec.model.name());
+    let y = g.input(INPUT, &[Dim::Named("batch"), Dim::Fixed(m), Dim::Named("height"), Dim::Named("width")]);
+    let sensor = if opts.matrix_input {
+        let a = g.input(MATRIX_INPUT, &[Dim::Fixed(n), Dim::Fixed(m), Dim::Fixed(t)]);
+        SensorGraph::from_input(&mut g, &a, n, m, t, run.sensor.block())
+    } else {
+        SensorGraph::baked(&run.sensor)
+    };
+    let frame = [Dim::Named("batch"), Dim::Fixed(0), Dim::Named("height"), Dim::Named("width")];
+    let with_c = |c: usize| {
+        let mut d = frame;
+        d[1] = Dim::Fixed(c);
+        d
+    };
+    let doc = match &run.net {
+        TrainedNet::AdmmNet(net) => {
+            let cube = admm_net(&mut g, net, &sensor, &y)?;
+            g.output(&cube, "cube", &with_c(t));
+            format!("tcsense ADMM-Net ({} stages): measurements [B, M, H, W] -> cube [B, T, H, W]", net.stages().len())
+        }
+        TrainedNet::Unet(net) => {
+            let (depth, conf) = unet(&mut g, net, &sensor, &y)?;
+            let k = net.returns();
+            g.output(&depth, "depth", &with_c(k));
+            g.output(&conf, "confidence", &with_c(k));
+            format!("tcsense A^T + U-Net ({} levels): measurements [B, M, H, W] -> depth (m), confidence [B, K, H, W]", net.levels())
+        }
+    };
+    let model = g.into_model(&doc, &meta.to_props());
+    model.write_to_bytes().map_err(|e| InferError::InvalidParam { field: "ONNX model", got: e.to_string(), expected: "a serialisable model".into() })
+}
+
+/// Export `run` to `path` (written to a temporary file, then renamed).
+pub fn export_to(run: &LoadedRun, opts: ExportOptions, path: &Path) -> Result<usize> {
+    let bytes = export(run, opts)?;
+    tcsense_sensor::npy::write_bytes(path, &bytes)?;
+    Ok(bytes.len())
+}
+
+/// A burn `Conv2d` (3×3 "same" or 1×1) as an ONNX `Conv`.
+fn conv(g: &mut Graph, layer: &Conv2d, x: &str) -> Result<String> {
+    let dims = layer.weight.dims();
+    let values = |t: burn::tensor::TensorData| -> Result<Vec<f32>> {
+        t.try_into_vec::<f32>().map_err(|e| InferError::InvalidParam { field: "weights", got: format!("{e:?}"), expected: "f32 weights".into() })
+    };
+    let w = values(layer.weight.val().into_data())?;
+    let wn = g.weight("conv_w", &dims, &w);
+    let pad = (dims[2] / 2) as i64;
+    let attrs = [Attr::Ints("kernel_shape", &[dims[2] as i64, dims[3] as i64]), Attr::Ints("pads", &[pad, pad, pad, pad])];
+    match &layer.bias {
+        Some(b) => {
+            let bv = values(b.val().into_data())?;
+            let bn = g.weight("conv_b", &[bv.len()], &bv);
+            Ok(g.node("Conv", &[x, &wn, &bn], &attrs))
+        }
+        None => Ok(g.node("Conv", &[x, &wn], &attrs)),
+    }
+}
+
+fn relu(g: &mut Graph, x: &str) -> String {
+    g.node("Relu", &[x], &[])
+}
+
+/// ADMM-Net ([`tcsense_models::admm`]) on `y [B, M, H, W]` → cube `[B, T, H, W]`.
+fn admm_net(g: &mut Graph, net: &AdmmNet, sensor: &SensorGraph, y: &str) -> Result<String> {
+    // per-frame scale: the mean absolute tap value
+    let scale = if net.normalize() {
+        let abs = g.node("Abs", &[y], &[]);
+        let mean = g.node("ReduceMean", &[&abs], &[Attr::Ints("axes", &[1, 2, 3]), Attr::Int("keepdims", 1)]);
+        let tiny = g.scalar("tiny", 1e-12);
+        Some(g.node("Add", &[&mean, &tiny], &[]))
+    } else {
+        None
+    };
+    let y = match &scale {
+        Some(s) => g.node("Div", &[y, s], &[]),
+        None => y.to_string(),
+    };
+    let (aty, mut z) = sensor.adjoint_and_pinv(g, &y);
+    let rhos: Vec<f64> = net.stages().iter().map(|s| s.rho() as f64).collect();
+    let dc = sensor.dc_weights(g, &rhos);
+    let mut u: Option<String> = None;
+    for (k, st) in net.stages().iter().enumerate() {
+        // v = Aᵀy + ρ(z − u)
+        let zu = match &u {
+            Some(u) => g.node("Sub", &[&z, u], &[]),
+            None => z.clone(),
+        };
+        let rho = g.scalar("rho", st.rho());
+        let rzu = g.node("Mul", &[&zu, &rho], &[]);
+        let v = g.node("Add", &[&aty, &rzu], &[]);
+        let x = sensor.data_consistency(g, &v, &dc, k, rhos[k]);
+        let xu = match &u {
+            Some(u) => g.node("Add", &[&x, u], &[]),
+            None => x.clone(),
+        };
+        let [c1, c2, c3] = st.convs();
+        let h = conv(g, c1, &xu)?;
+        let h = relu(g, &h);
+        let h = conv(g, c2, &h)?;
+        let h = relu(g, &h);
+        let p = conv(g, c3, &h)?;
+        z = g.node("Add", &[&xu, &p], &[]);
+        let eta = g.scalar("eta", st.eta());
+        let xz = g.node("Sub", &[&x, &z], &[]);
+        let step = g.node("Mul", &[&xz, &eta], &[]);
+        u = Some(match &u {
+            Some(u) => g.node("Add", &[u, &step], &[]),
+            None => step,
+        });
+    }
+    Ok(match &scale {
+        Some(s) => g.node("Mul", &[&z, s], &[]),
+        None => z,
+    })
+}
+
+/// Aᵀ + U-Net ([`tcsense_models::unet`]) on `y [B, M, H, W]` → (depth (m), confidence), each
+/// `[B, K, H, W]`; `H`, `W` multiples of the stride.
+fn unet(g: &mut Graph, net: &Unet, sensor: &SensorGraph, y: &str) -> Result<(String, String)> {
+    let x0 = sensor.adjoint(g, y);
+    // per-pixel normalisation: x₀ / (‖x₀‖₂ + 10⁻³·mean‖x₀‖₂ + 10⁻³⁰)
+    let norm = g.node("ReduceL2", &[&x0], &[Attr::Ints("axes", &[1]), Attr::Int("keepdims", 1)]);
+    let mean = g.node("ReduceMean", &[&norm], &[Attr::Ints("axes", &[2, 3]), Attr::Int("keepdims", 1)]);
+    let floor = g.scalar("norm_floor", tcsense_models::unet::NORM_FLOOR as f32);
+    let mf = g.node("Mul", &[&mean, &floor], &[]);
+    let den = g.node("Add", &[&norm, &mf], &[]);
+    let tiny = g.scalar("tiny", 1e-30);
+    let den = g.node("Add", &[&den, &tiny], &[]);
+    let mut z = g.node("Div", &[&x0, &den], &[]);
+    let levels = net.levels();
+    let block = |g: &mut Graph, b: &tcsense_models::unet::Block, x: &str| {
+        let [c1, c2] = b.convs();
+        let h = conv(g, c1, x)?;
+        let h = relu(g, &h);
+        let h = conv(g, c2, &h)?;
+        Ok::<String, InferError>(relu(g, &h))
+    };
+    let mut skips = Vec::with_capacity(levels);
+    for (l, b) in net.down().iter().enumerate() {
+        z = block(g, b, &z)?;
+        if l + 1 < levels {
+            skips.push(z.clone());
+            z = g.node("MaxPool", &[&z], &[Attr::Ints("kernel_shape", &[2, 2]), Attr::Ints("strides", &[2, 2])]);
+        }
+    }
+    let scales = g.weight("up_scales", &[4], &[1.0, 1.0, 2.0, 2.0]);
+    for (b, skip) in net.up().iter().zip(skips).rev() {
+        let up = g.node(
+            "Resize",
+            &[&z, "", &scales],
+            &[Attr::Str("mode", "nearest"), Attr::Str("coordinate_transformation_mode", "asymmetric"), Attr::Str("nearest_mode", "floor")],
+        );
+        let cat = g.node("Concat", &[&up, &skip], &[Attr::Int("axis", 1)]);
+        z = block(g, b, &cat)?;
+    }
+    let out = conv(g, net.head(), &z)?; // [B, 2K, H, W]
+    let k = net.returns() as i64;
+    let split = g.ints("split", &[k, k]);
+    let parts = g.node_multi("Split", &[&out, &split], &[Attr::Int("axis", 1)], 2);
+    let sd = g.node("Sigmoid", &[&parts[0]], &[]);
+    let range = g.scalar("range_m", net.range_m() as f32);
+    let depth = g.node("Mul", &[&sd, &range], &[]);
+    let conf = g.node("Sigmoid", &[&parts[1]], &[]);
+    Ok((depth, conf))
+}

@@ -1,0 +1,367 @@
+//! The sensor's block-periodic per-pixel operators as plain ONNX convolutions.
+//!
+//! Pixel `(r, c)` has subpixel type `n = (r mod bh)·bw + (c mod bw)` and its own small matrix
+//! `W_n [C_out, C_in]` (`A_n`, `A_nᵀ`, the back-projection, the data-consistency solve). Such
+//! an operator is a `Conv` with a `bh × bw` kernel and stride (output channel `n·C_out + c`
+//! sees only kernel tap `(n / bw, n mod bw)`, with weight `W_n[c, :]`) that leaves the result
+//! in *block layout* `[B, N·C_out, H/bh, W/bw]`, followed by `DepthToSpace` (mode DCR) back to
+//! frames (square blocks; other blocks use the equivalent `Reshape`/`Transpose`). A second
+//! operator applied in block layout is a grouped 1×1 `Conv` (`group = N`), so the
+//! data-consistency solve `(AᵀA + ρI)⁻¹v = v/ρ − Aᵀ(ρI + AAᵀ)⁻¹A v/ρ` (Woodbury) costs two
+//! convolutions through `M` channels instead of a `T × T` product.
+//!
+//! The matrices come either from the exported run (baked in as initializers, computed in f64)
+//! or from a graph input `sensor_matrix [N, M, T]`, from which the graph itself forms `Aᵀ`,
+//! the Gram matrices `A_nA_nᵀ`, their largest eigenvalue (power iteration) and the inverses
+//! `(cI + A_nA_nᵀ)⁻¹` (Newton–Schulz, from `X₀ = I/tr`), so a recalibrated sensor needs no
+//! new export.
+
+use super::graph::{Attr, Graph};
+use tcsense_sensor::MeasurementMatrix;
+
+/// Newton–Schulz iterations for `(cI + AAᵀ)⁻¹`: from `X₀ = I/tr`, the residual's largest
+/// eigenvalue starts at `1 − λ_min/tr` and squares every step, so 30 steps reach f32
+/// precision for condition numbers up to about 10⁷.
+const NEWTON_SCHULZ_STEPS: usize = 30;
+/// Power-iteration steps for the largest eigenvalue of each `A_nA_nᵀ` (Rayleigh quotient).
+const POWER_STEPS: usize = 30;
+/// The back-projection's regularisation `ε = EPS_REL·λ_max` (as [`tcsense_models::SensorTensors`]).
+pub const EPS_REL: f64 = 1e-3;
+
+/// Where the per-subpixel matrices come from.
+enum Source {
+    /// Computed at export, in f64: `A [N, M, T]` and `(ε, (A_nA_nᵀ) [N, M, M])`.
+    Baked { a: Vec<f64>, gram: Vec<f64>, eps: f64 },
+    /// Computed in the graph from the input `[N, M, T]`: names of `A`, `Aᵀ [N, T, M]`, the
+    /// Gram matrices `[1, N, M, M]` and `ε` (shape `[1]`).
+    Input { a: String, at: String, gram: String, eps: String },
+}
+
+/// The sensor operators of one code set, as graph nodes.
+pub struct SensorGraph {
+    n: usize,
+    m: usize,
+    t: usize,
+    block: (usize, usize),
+    src: Source,
+}
+
+/// A per-subpixel matrix stack `[N, C_out, C_in]`: constant or a graph value.
+pub enum Mats {
+    Const(Vec<f64>),
+    Value(String),
+}
+
+impl SensorGraph {
+    /// Operators with `A` baked in.
+    pub fn baked(a: &MeasurementMatrix) -> Self {
+        let (n, m, t) = a.a().dim();
+        let av: Vec<f64> = a.a().iter().map(|&v| v as f64).collect();
+        let (lambda, _) = a.gram_eigen();
+        let lmax = lambda.iter().fold(0f64, |acc, &l| acc.max(l.max(0.0) as f32 as f64)).max(1e-12);
+        let gram = a.gram().iter().copied().collect();
+        SensorGraph { n, m, t, block: a.block(), src: Source::Baked { a: av, gram, eps: EPS_REL * lmax } }
+    }
+
+    /// Operators computed in the graph from the input `input [N, M, T]` (its name).
+    pub fn from_input(g: &mut Graph, input: &str, n: usize, m: usize, t: usize, block: (usize, usize)) -> Self {
+        let at = g.node("Transpose", &[input], &[Attr::Ints("perm", &[0, 2, 1])]); // [N, T, M]
+        let gram = g.op("MatMul", &[input, &at]); // [N, M, M]
+        // λ_max of each A_nA_nᵀ by power iteration from the ones vector (the Gram matrices are
+        // non-negative, so their Perron vector is not orthogonal to it)
+        let mut v = g.weight("power_v0", &[n, m, 1], &vec![1.0; n * m]);
+        let ax1 = g.ints("axis1", &[1]);
+        for _ in 0..POWER_STEPS {
+            let gv = g.op("MatMul", &[&gram, &v]);
+            let norm = g.node("ReduceL2", &[&gv], &[Attr::Ints("axes", &[1]), Attr::Int("keepdims", 1)]);
+            v = g.op("Div", &[&gv, &norm]);
+        }
+        let gv = g.op("MatMul", &[&gram, &v]);
+        let vgv = g.op("Mul", &[&v, &gv]);
+        let rayleigh = g.node("ReduceSum", &[&vgv, &ax1], &[Attr::Int("keepdims", 0)]); // [N, 1] (v has unit norm)
+        let lmax = g.node("ReduceMax", &[&rayleigh], &[Attr::Int("keepdims", 0)]); // []
+        let floor = g.scalar("lmax_floor", 1e-12);
+        let lmax = g.op("Max", &[&lmax, &floor]);
+        let rel = g.scalar("eps_rel", EPS_REL as f32);
+        let eps = g.op("Mul", &[&lmax, &rel]);
+        let shape1 = g.ints("shape1", &[1]);
+        let eps = g.op("Reshape", &[&eps, &shape1]);
+        let axis0 = g.ints("axis0", &[0]);
+        let gram4 = g.op("Unsqueeze", &[&gram, &axis0]); // [1, N, M, M]
+        SensorGraph { n, m, t, block, src: Source::Input { a: input.to_string(), at, gram: gram4, eps } }
+    }
+
+    /// Subpixel types `N`.
+    pub fn subpixels(&self) -> usize {
+        self.n
+    }
+
+    /// `Aᵀy` and the back-projection `Aᵀ(AAᵀ + εI)⁻¹y` with one convolution.
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]` → (`[B, T, H, W]`, `[B, T, H, W]`)
+    pub fn adjoint_and_pinv(&self, g: &mut Graph, y: &str) -> (String, String) {
+        let (n, m, t) = (self.n, self.m, self.t);
+        let mats = match &self.src {
+            Source::Baked { a, gram, eps } => {
+                let mut w = vec![0f64; n * 2 * t * m];
+                for k in 0..n {
+                    let inv = spd_inverse(&gram[k * m * m..(k + 1) * m * m], m, *eps);
+                    for j in 0..t {
+                        for c in 0..m {
+                            w[(k * 2 * t + j) * m + c] = a[(k * m + c) * t + j];
+                            w[(k * 2 * t + t + j) * m + c] = (0..m).map(|r| a[(k * m + r) * t + j] * inv[r * m + c]).sum();
+                        }
+                    }
+                }
+                Mats::Const(w)
+            }
+            Source::Input { at, eps, .. } => {
+                let k = self.inverses(g, eps); // [1, N, M, M]
+                let axis0 = g.ints("axis0", &[0]);
+                let k = g.op("Squeeze", &[&k, &axis0]); // [N, M, M]
+                let pinv = g.op("MatMul", &[at, &k]); // [N, T, M]
+                Mats::Value(g.node("Concat", &[at, &pinv], &[Attr::Int("axis", 1)]))
+            }
+        };
+        let w = self.frame_weight(g, "adjoint_pinv", mats, 2 * t, m);
+        let both = self.frame_op(g, y, &w, 2 * t);
+        let split = g.ints("split", &[t as i64, t as i64]);
+        let mut parts = g.node_multi("Split", &[&both, &split], &[Attr::Int("axis", 1)], 2).into_iter();
+        let aty = parts.next().unwrap_or_default();
+        let pinv = parts.next().unwrap_or_default();
+        (aty, pinv)
+    }
+
+    /// `Aᵀy`.
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
+    pub fn adjoint(&self, g: &mut Graph, y: &str) -> String {
+        let (n, m, t) = (self.n, self.m, self.t);
+        let mats = match &self.src {
+            Source::Baked { a, .. } => {
+                let mut w = vec![0f64; n * t * m];
+                for k in 0..n {
+                    for j in 0..t {
+                        for c in 0..m {
+                            w[(k * t + j) * m + c] = a[(k * m + c) * t + j];
+                        }
+                    }
+                }
+                Mats::Const(w)
+            }
+            Source::Input { at, .. } => Mats::Value(at.clone()),
+        };
+        let w = self.frame_weight(g, "adjoint", mats, t, m);
+        self.frame_op(g, y, &w, t)
+    }
+
+    /// Weights of the data-consistency solves for the stages' `ρ`: the frame-to-block `A`
+    /// convolution (shared) and one grouped 1×1 convolution per `ρ` with `A_nᵀ(ρI + A_nA_nᵀ)⁻¹/ρ`.
+    pub fn dc_weights(&self, g: &mut Graph, rhos: &[f64]) -> DcWeights {
+        let (n, m, t) = (self.n, self.m, self.t);
+        let (a_mats, back): (Mats, Vec<Mats>) = match &self.src {
+            Source::Baked { a, gram, .. } => {
+                let back = rhos
+                    .iter()
+                    .map(|&rho| {
+                        let mut w = vec![0f64; n * t * m];
+                        for k in 0..n {
+                            let inv = spd_inverse(&gram[k * m * m..(k + 1) * m * m], m, rho);
+                            for j in 0..t {
+                                for c in 0..m {
+                                    w[(k * t + j) * m + c] = (0..m).map(|r| a[(k * m + r) * t + j] * inv[r * m + c]).sum::<f64>() / rho;
+                                }
+                            }
+                        }
+                        Mats::Const(w)
+                    })
+                    .collect();
+                (Mats::Const(a.clone()), back)
+            }
+            Source::Input { a, at, .. } => {
+                let c: Vec<f32> = rhos.iter().map(|&r| r as f32).collect();
+                let cs = g.weight("rhos", &[rhos.len()], &c);
+                let k = self.inverses(g, &cs); // [S, N, M, M]
+                let axis0 = g.ints("axis0", &[0]);
+                let at4 = g.op("Unsqueeze", &[at, &axis0]); // [1, N, T, M]
+                let w = g.op("MatMul", &[&at4, &k]); // [S, N, T, M]
+                let inv_rho: Vec<f32> = rhos.iter().map(|&r| (1.0 / r) as f32).collect();
+                let inv_rho = g.weight("inv_rhos", &[rhos.len(), 1, 1, 1], &inv_rho);
+                let w = g.op("Mul", &[&w, &inv_rho]);
+                let back = (0..rhos.len())
+                    .map(|s| {
+                        let idx = g.ints("stage", &[s as i64]);
+                        let ws = g.node("Gather", &[&w, &idx], &[Attr::Int("axis", 0)]); // [1, N, T, M]
+                        Mats::Value(g.op("Squeeze", &[&ws, &axis0]))
+                    })
+                    .collect();
+                (Mats::Value(a.clone()), back)
+            }
+        };
+        let a = self.frame_weight(g, "dc_a", a_mats, m, t);
+        let back = back.into_iter().map(|mats| self.grouped_weight(g, "dc_back", mats, t, m)).collect();
+        DcWeights { a, back }
+    }
+
+    /// The exact data-consistency solve `(AᵀA + ρI)⁻¹v` of stage `s` (weights from
+    /// [`Self::dc_weights`]).
+    ///
+    /// # Shapes
+    /// - `v`: `[B, T, H, W]` → `[B, T, H, W]`
+    pub fn data_consistency(&self, g: &mut Graph, v: &str, w: &DcWeights, s: usize, rho: f64) -> String {
+        let (bh, bw) = self.block;
+        let av = g.node("Conv", &[v, &w.a], &[Attr::Ints("kernel_shape", &[bh as i64, bw as i64]), Attr::Ints("strides", &[bh as i64, bw as i64])]); // [B, N·M, H', W']
+        let back = g.node("Conv", &[&av, &w.back[s]], &[Attr::Ints("kernel_shape", &[1, 1]), Attr::Int("group", self.n as i64)]); // [B, N·T, H', W']
+        let back = self.from_blocks(g, &back, self.t);
+        let inv = g.scalar("inv_rho", (1.0 / rho) as f32);
+        let scaled = g.op("Mul", &[v, &inv]);
+        g.op("Sub", &[&scaled, &back])
+    }
+
+    /// `(cI + A_nA_nᵀ)⁻¹` for each `c` of `cs` (`[S]`, or `[1]`) and subpixel, by Newton–Schulz:
+    /// `[S, N, M, M]`.
+    fn inverses(&self, g: &mut Graph, cs: &str) -> String {
+        let Source::Input { gram, .. } = &self.src else { unreachable!("inverses are formed in the graph only from an input matrix") };
+        let m = self.m;
+        let eye: Vec<f32> = (0..m * m).map(|i| if i / m == i % m { 1.0 } else { 0.0 }).collect();
+        let eye = g.weight("eye", &[1, 1, m, m], &eye);
+        let shape = g.ints("shape", &[-1, 1, 1, 1]);
+        let c4 = g.op("Reshape", &[cs, &shape]); // [S, 1, 1, 1]
+        let ci = g.op("Mul", &[&c4, &eye]);
+        let b = g.op("Add", &[gram, &ci]); // [S, N, M, M]
+        let diag = g.op("Mul", &[&b, &eye]);
+        let axes = g.ints("axes", &[2, 3]);
+        let tr = g.node("ReduceSum", &[&diag, &axes], &[Attr::Int("keepdims", 1)]); // [S, N, 1, 1]
+        let mut x = g.op("Div", &[&eye, &tr]);
+        let two_i = g.weight("two_eye", &[1, 1, m, m], &eye_scaled(m, 2.0));
+        for _ in 0..NEWTON_SCHULZ_STEPS {
+            let bx = g.op("MatMul", &[&b, &x]);
+            let r = g.op("Sub", &[&two_i, &bx]);
+            x = g.op("MatMul", &[&x, &r]);
+        }
+        x
+    }
+
+    /// The frame-to-block convolution's weight `[N·C_out, C_in, bh, bw]` from `[N, C_out, C_in]`.
+    fn frame_weight(&self, g: &mut Graph, hint: &str, mats: Mats, cout: usize, cin: usize) -> String {
+        let (n, (bh, bw)) = (self.n, self.block);
+        match mats {
+            Mats::Const(w) => {
+                let mut k = vec![0f32; n * cout * cin * bh * bw];
+                for s in 0..n {
+                    for o in 0..cout {
+                        for i in 0..cin {
+                            k[((s * cout + o) * cin + i) * n + s] = w[(s * cout + o) * cin + i] as f32;
+                        }
+                    }
+                }
+                g.weight(hint, &[n * cout, cin, bh, bw], &k)
+            }
+            Mats::Value(v) => {
+                let mask: Vec<f32> = (0..n * n).map(|i| if i / n == i % n { 1.0 } else { 0.0 }).collect();
+                let mask = g.weight("subpixel_onehot", &[n, 1, 1, n], &mask);
+                let axis3 = g.ints("axis3", &[3]);
+                let v4 = g.op("Unsqueeze", &[&v, &axis3]); // [N, C_out, C_in, 1]
+                let k = g.op("Mul", &[&v4, &mask]); // [N, C_out, C_in, N]
+                let shape = g.ints("shape", &[(n * cout) as i64, cin as i64, bh as i64, bw as i64]);
+                g.op("Reshape", &[&k, &shape])
+            }
+        }
+    }
+
+    /// The grouped 1×1 convolution's weight `[N·C_out, C_in, 1, 1]` from `[N, C_out, C_in]`.
+    fn grouped_weight(&self, g: &mut Graph, hint: &str, mats: Mats, cout: usize, cin: usize) -> String {
+        let n = self.n;
+        match mats {
+            Mats::Const(w) => {
+                let k: Vec<f32> = w.iter().map(|&v| v as f32).collect();
+                g.weight(hint, &[n * cout, cin, 1, 1], &k)
+            }
+            Mats::Value(v) => {
+                let shape = g.ints("shape", &[(n * cout) as i64, cin as i64, 1, 1]);
+                g.op("Reshape", &[&v, &shape])
+            }
+        }
+    }
+
+    /// A per-pixel operator on frames.
+    ///
+    /// # Shapes
+    /// - `x`: `[B, C_in, H, W]`, weight `[N·C_out, C_in, bh, bw]` → `[B, C_out, H, W]`
+    fn frame_op(&self, g: &mut Graph, x: &str, w: &str, cout: usize) -> String {
+        let (bh, bw) = self.block;
+        let blocks = g.node("Conv", &[x, w], &[Attr::Ints("kernel_shape", &[bh as i64, bw as i64]), Attr::Ints("strides", &[bh as i64, bw as i64])]);
+        self.from_blocks(g, &blocks, cout)
+    }
+
+    /// Block layout back to frames.
+    ///
+    /// # Shapes
+    /// - `x`: `[B, N·C, H/bh, W/bw]` (channel `n·C + c`) → `[B, C, H, W]`
+    fn from_blocks(&self, g: &mut Graph, x: &str, c: usize) -> String {
+        let (bh, bw) = self.block;
+        if bh == bw {
+            return g.node("DepthToSpace", &[x], &[Attr::Int("blocksize", bh as i64), Attr::Str("mode", "DCR")]);
+        }
+        // [B, bh·bw·C, H', W'] → [B, bh, bw, C, H', W'] → [B, C, H', bh, W', bw] → [B, C, H, W]
+        let shape = g.node("Shape", &[x], &[]);
+        let (i0, i1, i2, i3, i4) = (g.ints("i", &[0]), g.ints("i", &[1]), g.ints("i", &[2]), g.ints("i", &[3]), g.ints("i", &[4]));
+        let b = g.op("Slice", &[&shape, &i0, &i1]);
+        let hw = g.op("Slice", &[&shape, &i2, &i4]);
+        let mid = g.ints("block_c", &[bh as i64, bw as i64, c as i64]);
+        let s6 = g.node("Concat", &[&b, &mid, &hw], &[Attr::Int("axis", 0)]);
+        let x6 = g.node("Reshape", &[x, &s6], &[]);
+        let xt = g.node("Transpose", &[&x6], &[Attr::Ints("perm", &[0, 3, 4, 1, 5, 2])]);
+        let w_ = g.op("Slice", &[&shape, &i3, &i4]);
+        let bw_ = g.ints("bw", &[bw as i64]);
+        let w_full = g.op("Mul", &[&w_, &bw_]);
+        let keep = g.ints("keep", &[0, 0, -1]);
+        let s4 = g.node("Concat", &[&keep, &w_full], &[Attr::Int("axis", 0)]);
+        g.node("Reshape", &[&xt, &s4], &[])
+    }
+}
+
+/// The data-consistency weights of all stages.
+pub struct DcWeights {
+    a: String,
+    back: Vec<String>,
+}
+
+fn eye_scaled(m: usize, s: f32) -> Vec<f32> {
+    (0..m * m).map(|i| if i / m == i % m { s } else { 0.0 }).collect()
+}
+
+/// `(G + cI)⁻¹` of a symmetric positive (semi-)definite `m × m` matrix `G` (row-major), by
+/// Gauss–Jordan elimination with partial pivoting in f64.
+pub fn spd_inverse(gram: &[f64], m: usize, c: f64) -> Vec<f64> {
+    let mut a: Vec<f64> = (0..m * m).map(|i| gram[i] + if i / m == i % m { c } else { 0.0 }).collect();
+    let mut inv = eye_scaled(m, 1.0).into_iter().map(f64::from).collect::<Vec<f64>>();
+    for k in 0..m {
+        let p = (k..m).max_by(|&i, &j| a[i * m + k].abs().total_cmp(&a[j * m + k].abs())).unwrap_or(k);
+        if p != k {
+            for j in 0..m {
+                a.swap(k * m + j, p * m + j);
+                inv.swap(k * m + j, p * m + j);
+            }
+        }
+        let piv = a[k * m + k];
+        for j in 0..m {
+            a[k * m + j] /= piv;
+            inv[k * m + j] /= piv;
+        }
+        for i in 0..m {
+            if i != k {
+                let f = a[i * m + k];
+                if f != 0.0 {
+                    for j in 0..m {
+                        a[i * m + j] -= f * a[k * m + j];
+                        inv[i * m + j] -= f * inv[k * m + j];
+                    }
+                }
+            }
+        }
+    }
+    inv
+}

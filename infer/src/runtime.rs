@@ -1,0 +1,253 @@
+//! Deployment inference: exported models through ONNX Runtime (`ort`, loaded at run time).
+//!
+//! The shared library is found through `ORT_DYLIB_PATH`, else in the project's `.venv`
+//! (where `scripts/setup.sh` installs the PyPI wheel `onnxruntime==1.31.1`), looked for from
+//! the working directory and from the executable's directory upwards. Without it, opening a
+//! model fails with [`InferError::OrtMissing`], which says how to install it.
+
+use ndarray::{Array4, ArrayView4, ArrayViewD, Ix4};
+use ort::session::builder::GraphOptimizationLevel;
+use ort::session::Session;
+use ort::value::TensorRef;
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use tcsense_models::decoder::{check_measurements, Control, Decoded, Decoder, Step};
+use tcsense_models::net::DETECTION_THRESHOLD;
+use tcsense_sensor::MeasurementMatrix;
+
+use crate::onnx::{OnnxMeta, INPUT, MATRIX_INPUT};
+use crate::{InferError, Result};
+
+/// The ONNX Runtime release the toolkit is built and tested against.
+pub const ORT_VERSION: &str = "1.31.1";
+/// The library's file name in the wheel.
+pub const ORT_LIBRARY: &str = "libonnxruntime.so.1.31.1";
+
+/// Where the ONNX Runtime shared library is: `ORT_DYLIB_PATH`, else a `.venv` of the working
+/// directory or of one of the executable's ancestors.
+pub fn find_library() -> Result<PathBuf> {
+    if let Some(p) = std::env::var_os("ORT_DYLIB_PATH") {
+        let p = PathBuf::from(p);
+        return if p.is_file() { Ok(p) } else { Err(InferError::OrtMissing(format!("ORT_DYLIB_PATH={} is not a file", p.display()))) };
+    }
+    let mut roots: Vec<PathBuf> = std::env::current_dir().into_iter().collect();
+    if let Ok(exe) = std::env::current_exe() {
+        roots.extend(exe.ancestors().skip(1).map(Path::to_path_buf));
+    }
+    for root in roots {
+        let lib = root.join(".venv").join("lib");
+        let Ok(entries) = std::fs::read_dir(&lib) else { continue };
+        let mut pythons: Vec<PathBuf> = entries.flatten().map(|e| e.path()).collect();
+        pythons.sort();
+        for py in pythons {
+            let cand = py.join("site-packages").join("onnxruntime").join("capi").join(ORT_LIBRARY);
+            if cand.is_file() {
+                return Ok(cand);
+            }
+        }
+    }
+    Err(InferError::OrtMissing("neither ORT_DYLIB_PATH nor a .venv with onnxruntime was found".into()))
+}
+
+static ENVIRONMENT: OnceLock<std::result::Result<ort::environment::Environment, String>> = OnceLock::new();
+
+/// The process's ONNX Runtime environment (the library is loaded once).
+fn environment() -> Result<&'static ort::environment::Environment> {
+    let env = ENVIRONMENT.get_or_init(|| {
+        let lib = find_library().map_err(|e| e.to_string())?;
+        let builder = ort::init_from(&lib).map_err(|e| format!("cannot load {}: {e}", lib.display()))?;
+        builder.with_name("tcsense").build().map_err(|e| format!("cannot start ONNX Runtime from {}: {e}", lib.display()))
+    });
+    env.as_ref().map_err(|e| InferError::OrtMissing(e.clone()))
+}
+
+/// The version string of the loaded ONNX Runtime library.
+pub fn runtime_version() -> Result<String> {
+    environment()?;
+    Ok(ort::info().to_string())
+}
+
+/// An exported model opened in ONNX Runtime.
+pub struct OnnxModel {
+    path: PathBuf,
+    session: Session,
+    /// Its metadata (codes, sensor model, frame rule).
+    pub meta: OnnxMeta,
+    /// `A` of the codes in the metadata.
+    pub sensor: MeasurementMatrix,
+    /// `A` as the `sensor_matrix` input, `[N, M, T]` (models exported with it).
+    matrix: Option<ndarray::Array3<f32>>,
+}
+
+impl std::fmt::Debug for OnnxModel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("OnnxModel").field("path", &self.path).field("meta", &self.meta).finish()
+    }
+}
+
+impl OnnxModel {
+    /// Open `path` with `threads` intra-op threads (0: ONNX Runtime's default, one per core).
+    pub fn open(path: &Path, threads: usize) -> Result<Self> {
+        if !path.is_file() {
+            return Err(InferError::File { path: path.to_path_buf(), msg: "no such file; expected an ONNX model written by `tcsense export onnx`".into() });
+        }
+        let env = environment()?;
+        let bad = |e: String| InferError::File { path: path.to_path_buf(), msg: format!("not a loadable ONNX model: {e}") };
+        let mut builder = Session::builder(env).map_err(|e| bad(e.to_string()))?;
+        builder = builder.with_optimization_level(GraphOptimizationLevel::All).map_err(|e| bad(e.to_string()))?;
+        if threads > 0 {
+            builder = builder.with_intra_threads(threads).map_err(|e| bad(e.to_string()))?;
+        }
+        let session = builder.commit_from_file(path).map_err(|e| bad(e.to_string()))?;
+        let meta = {
+            let md = session.metadata().map_err(|e| bad(e.to_string()))?;
+            OnnxMeta::from_props(path, |k| md.custom(k))?
+        };
+        let sensor = meta.matrix()?;
+        let inputs: Vec<&str> = session.inputs().iter().map(|i| i.name()).collect();
+        let want: Vec<&str> = if meta.matrix_input { vec![INPUT, MATRIX_INPUT] } else { vec![INPUT] };
+        if inputs != want {
+            return Err(InferError::File { path: path.to_path_buf(), msg: format!("graph inputs {inputs:?}; its metadata expects {want:?}") });
+        }
+        let outputs: Vec<&str> = session.outputs().iter().map(|o| o.name()).collect();
+        if outputs != meta.outputs() {
+            return Err(InferError::File { path: path.to_path_buf(), msg: format!("graph outputs {outputs:?}; its metadata expects {:?}", meta.outputs()) });
+        }
+        let matrix = meta.matrix_input.then(|| sensor.a().to_owned());
+        Ok(OnnxModel { path: path.to_path_buf(), session, meta, sensor, matrix })
+    }
+
+    /// The model file.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Use `a` as the sensor matrix of a model exported with the matrix as an input (a
+    /// recalibrated sensor); it must have the model's `[N, M, T]`.
+    pub fn set_matrix(&mut self, a: &MeasurementMatrix) -> Result<()> {
+        self.set_matrix_array(a.a())
+    }
+
+    /// [`Self::set_matrix`] from the array `[N, M, T]`.
+    pub fn set_matrix_array(&mut self, a: ndarray::ArrayView3<'_, f32>) -> Result<()> {
+        let Some(m) = &mut self.matrix else {
+            return Err(InferError::File { path: self.path.clone(), msg: "this model has its sensor matrix baked in; export it with --matrix-input to give another".into() });
+        };
+        if a.dim() != m.dim() {
+            return Err(InferError::InvalidParam { field: "sensor matrix", got: format!("{:?}", a.dim()), expected: format!("[N, M, T] = {:?} as the model", m.dim()) });
+        }
+        if let Some(v) = a.iter().find(|v| !v.is_finite()) {
+            return Err(InferError::InvalidParam { field: "sensor matrix", got: format!("a value {v}"), expected: "finite values".into() });
+        }
+        m.assign(&a);
+        Ok(())
+    }
+
+    /// Check measurements `[B, M, H, W]` against the metadata: taps, the frame rule, finite.
+    pub fn check(&self, y: &ArrayView4<'_, f32>, what: &str) -> Result<()> {
+        let (b, m, h, w) = y.dim();
+        let (fh, fw) = self.meta.frame_multiple;
+        if b == 0 || m != self.meta.taps || h == 0 || w == 0 || h % fh != 0 || w % fw != 0 {
+            return Err(InferError::InvalidParam {
+                field: "measurements",
+                got: format!("{what}: [{b}, {m}, {h}, {w}]"),
+                expected: format!(
+                    "[B, M, H, W] with M = {} taps and H, W non-zero multiples of {fh}x{fw} (the frame rule of {})",
+                    self.meta.taps,
+                    self.path.display()
+                ),
+            });
+        }
+        if let Some(v) = y.iter().find(|v| !v.is_finite()) {
+            return Err(InferError::InvalidParam { field: "measurements", got: format!("{what}: a value {v}"), expected: "finite tap values".into() });
+        }
+        Ok(())
+    }
+
+    /// Run the model on `y [B, M, H, W]` (checked first): its outputs in the order of
+    /// [`OnnxMeta::outputs`], each `[B, C, H, W]`.
+    pub fn run(&mut self, y: ArrayView4<'_, f32>) -> Result<Vec<Array4<f32>>> {
+        self.check(&y, "input")?;
+        let fail = |e: ort::Error| InferError::File { path: self.path.clone(), msg: format!("ONNX Runtime: {e}") };
+        let y = y.as_standard_layout();
+        let input = TensorRef::from_array_view(y.view()).map_err(fail)?;
+        let names = self.meta.outputs();
+        let outputs = match &self.matrix {
+            Some(a) => {
+                let a = TensorRef::from_array_view(a.view()).map_err(fail)?;
+                self.session.run(ort::inputs![INPUT => input, MATRIX_INPUT => a])
+            }
+            None => self.session.run(ort::inputs![INPUT => input]),
+        };
+        let path = self.path.clone();
+        let fail = |e: ort::Error| InferError::File { path: path.clone(), msg: format!("ONNX Runtime: {e}") };
+        let outputs = outputs.map_err(fail)?;
+        names
+            .iter()
+            .map(|n| {
+                let v: ArrayViewD<'_, f32> = outputs[*n].try_extract_array::<f32>().map_err(fail)?;
+                v.into_dimensionality::<Ix4>().map(|v| v.to_owned()).map_err(|e| InferError::File { path: path.clone(), msg: format!("output {n}: {e}") })
+            })
+            .collect()
+    }
+}
+
+/// Depth with NaN where the confidence is below [`DETECTION_THRESHOLD`].
+pub fn mask_depth(depth: &mut Array4<f32>, confidence: &Array4<f32>) {
+    depth.zip_mut_with(confidence, |d, &c| {
+        if c < DETECTION_THRESHOLD {
+            *d = f32::NAN;
+        }
+    });
+}
+
+/// An exported model behind the decoder contract (`eval --decoder onnx:model.onnx`).
+pub struct OnnxDecoder {
+    name: String,
+    model: OnnxModel,
+}
+
+impl OnnxDecoder {
+    pub fn new(model: OnnxModel) -> Self {
+        OnnxDecoder { name: format!("onnx:{}", model.meta.decoder), model }
+    }
+}
+
+impl Decoder for OnnxDecoder {
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &MeasurementMatrix, ctl: &Control<'_>) -> tcsense_models::Result<Decoded> {
+        check_measurements(&y, sensor)?;
+        let to_model = |e: InferError| tcsense_models::ModelError::InvalidParam { field: "onnx decoder", got: e.to_string(), expected: "a successful ONNX Runtime run".into() };
+        if self.model.meta.matrix_input {
+            self.model.set_matrix(sensor).map_err(to_model)?;
+        } else if *sensor != self.model.sensor {
+            return Err(tcsense_models::ModelError::InvalidParam {
+                field: "sensor",
+                got: "a measurement matrix other than the model's".into(),
+                expected: format!("the codes and sensor model baked into {} (or a model exported with --matrix-input)", self.model.path().display()),
+            });
+        }
+        let b = y.dim().0;
+        let mut frames: Vec<Vec<Array4<f32>>> = Vec::with_capacity(b);
+        for i in 0..b {
+            ctl.check()?;
+            frames.push(self.model.run(y.slice(ndarray::s![i..i + 1, .., .., ..])).map_err(to_model)?);
+            (ctl.progress)(Step { frame: i, frames: b, done: 1, total: 1 });
+        }
+        let cat = |k: usize| -> tcsense_models::Result<Array4<f32>> {
+            let views: Vec<_> = frames.iter().map(|f| f[k].view()).collect();
+            ndarray::concatenate(ndarray::Axis(0), &views).map_err(|e| tcsense_models::ModelError::InvalidParam { field: "batch", got: e.to_string(), expected: "frames of one shape".into() })
+        };
+        if self.model.meta.decoder == "unet" {
+            let (mut depth, confidence) = (cat(0)?, cat(1)?);
+            mask_depth(&mut depth, &confidence);
+            Ok(Decoded { depth: Some(depth), confidence: Some(confidence), ..Default::default() })
+        } else {
+            Ok(Decoded { cube: Some(cat(0)?), ..Default::default() })
+        }
+    }
+}

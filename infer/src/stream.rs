@@ -1,0 +1,435 @@
+//! Streaming deployment inference: frames from a file or a directory, through an exported
+//! model, to products on disk, with bounded memory whatever the stack length.
+//!
+//! ```text
+//! reader thread ──(2 frames)──▶ inference (ONNX Runtime) ──(2 results)──▶ products + writer thread
+//! ```
+//!
+//! Inputs: one frame `.npy [M, H, W]`, a stack `.npy [F, M, H, W]` (read frame by frame from
+//! disk, any real dtype, C order), or a directory of frames: `.npy [M, H, W]` files and 16-bit
+//! (or 8-bit) grayscale PNGs holding the `M` tap images side by side (`[H, M·W]`, tap `m` in
+//! columns `m·W … (m+1)·W − 1`, as a sensor dumps them), taken in file-name order.
+//!
+//! Outputs in `OUT/` (stacks `[F, …]`, or without `F` for a single `[M, H, W]` frame), each
+//! streamed into a temporary file and renamed at the end, so an error or Ctrl-C leaves none:
+//! `cube.npy [F, T, H, W]`, `depth.npy [F, K, H, W]` (m, NaN where no return),
+//! `confidence.npy` (depth models) or `peaks.npy` (peak amplitudes, cube models),
+//! `lifetime.npy [F, H, W]` (s) and `ply/frame_NNNNN.ply`.
+
+use ndarray::{Array3, Array4, ArrayView3, Axis};
+use std::fs::File;
+use std::io::{BufWriter, Read, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::sync_channel;
+use std::time::Instant;
+
+use tcsense_sensor::npy::{f32_header, parse_header, read_npy, NpyHeader};
+
+use crate::products::{depth_map, lifetime_map, write_ply, PeakOptions};
+use crate::runtime::{mask_depth, OnnxModel};
+use crate::{InferError, Result};
+
+fn file_err(path: &Path, msg: impl ToString) -> InferError {
+    InferError::File { path: path.to_path_buf(), msg: msg.to_string() }
+}
+
+/// Where frames come from.
+pub enum FrameSource {
+    /// A `.npy` file, read frame by frame.
+    Npy { path: PathBuf, file: File, header: NpyHeader, frames: usize, frame: [usize; 3], single: bool },
+    /// A directory of frame files.
+    Dir { files: Vec<PathBuf> },
+}
+
+impl FrameSource {
+    /// Open a `.npy` frame or stack, or a directory of `.npy`/`.png` frames.
+    pub fn open(path: &Path) -> Result<Self> {
+        if path.is_dir() {
+            let mut files: Vec<PathBuf> = std::fs::read_dir(path)
+                .map_err(|e| file_err(path, e))?
+                .flatten()
+                .map(|e| e.path())
+                .filter(|p| p.is_file() && matches!(p.extension().and_then(|e| e.to_str()), Some("npy" | "png")))
+                .collect();
+            files.sort();
+            if files.is_empty() {
+                return Err(file_err(path, "no frames: expected .npy [M, H, W] or 16-bit PNG [H, M·W] files in this directory"));
+            }
+            return Ok(FrameSource::Dir { files });
+        }
+        let mut file = File::open(path).map_err(|e| file_err(path, e))?;
+        let mut head = vec![0u8; 4096];
+        let n = read_up_to(&mut file, &mut head).map_err(|e| file_err(path, e))?;
+        let header = parse_header(&head[..n]).map_err(|e| file_err(path, e))?;
+        let (frames, frame, single) = match header.shape.as_slice() {
+            &[m, h, w] => (1, [m, h, w], true),
+            &[f, m, h, w] => (f, [m, h, w], false),
+            s => return Err(file_err(path, format!("measurements of shape {s:?}; expected [M, H, W] or [F, M, H, W]"))),
+        };
+        if header.fortran && frames > 1 {
+            return Err(file_err(path, "a Fortran-order stack cannot be streamed; save it in C order (numpy.ascontiguousarray)"));
+        }
+        let need = header.data_offset as u64 + (header.count() * header.size) as u64;
+        let have = file.metadata().map_err(|e| file_err(path, e))?.len();
+        if have < need {
+            return Err(file_err(path, format!("npy data truncated: shape {:?} of {} needs {need} bytes, the file has {have}", header.shape, header.descr)));
+        }
+        Ok(FrameSource::Npy { path: path.to_path_buf(), file, header, frames, frame, single })
+    }
+
+    /// Frames in the source.
+    pub fn len(&self) -> usize {
+        match self {
+            FrameSource::Npy { frames, .. } => *frames,
+            FrameSource::Dir { files } => files.len(),
+        }
+    }
+
+    /// Whether it holds no frame.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// A single `[M, H, W]` frame (outputs drop the frame axis).
+    pub fn single(&self) -> bool {
+        matches!(self, FrameSource::Npy { single: true, .. })
+    }
+
+    /// Frame `i`, `[M, H, W]`, and the file it came from; `taps` is the model's `M` (to split
+    /// PNG tap strips).
+    pub fn read(&mut self, i: usize, taps: usize) -> Result<(Array3<f32>, PathBuf)> {
+        match self {
+            FrameSource::Npy { path, file, header, frame, .. } => {
+                let per = frame.iter().product::<usize>();
+                if header.fortran {
+                    let a = read_npy(path)?;
+                    let a = a.into_dimensionality::<ndarray::Ix3>().map_err(|e| file_err(path, e))?;
+                    return Ok((a, path.clone()));
+                }
+                let mut bytes = vec![0u8; per * header.size];
+                file.seek(SeekFrom::Start((header.data_offset + i * per * header.size) as u64)).map_err(|e| file_err(path, e))?;
+                file.read_exact(&mut bytes).map_err(|e| file_err(path, format!("frame {i}: {e}")))?;
+                let mut v = vec![0f32; per];
+                header.decode_into(&bytes, &mut v);
+                let a = Array3::from_shape_vec((frame[0], frame[1], frame[2]), v).map_err(|e| file_err(path, e))?;
+                Ok((a, path.clone()))
+            }
+            FrameSource::Dir { files } => {
+                let p = files[i].clone();
+                let a = if p.extension().and_then(|e| e.to_str()) == Some("png") {
+                    read_png_taps(&p, taps)?
+                } else {
+                    let a = read_npy(&p)?;
+                    let shape = a.shape().to_vec();
+                    a.into_dimensionality::<ndarray::Ix3>().map_err(|_| file_err(&p, format!("a frame of shape {shape:?}; expected [M, H, W]")))?
+                };
+                Ok((a, p))
+            }
+        }
+    }
+}
+
+fn read_up_to(f: &mut File, buf: &mut [u8]) -> std::io::Result<usize> {
+    let mut n = 0;
+    while n < buf.len() {
+        match f.read(&mut buf[n..])? {
+            0 => break,
+            k => n += k,
+        }
+    }
+    Ok(n)
+}
+
+/// A grayscale PNG of `taps` tap images side by side, `[H, M·W]` → `[M, H, W]`.
+pub fn read_png_taps(path: &Path, taps: usize) -> Result<Array3<f32>> {
+    let file = File::open(path).map_err(|e| file_err(path, e))?;
+    let mut decoder = png::Decoder::new(std::io::BufReader::new(file));
+    decoder.set_transformations(png::Transformations::IDENTITY);
+    let mut reader = decoder.read_info().map_err(|e| file_err(path, format!("not a readable PNG: {e}")))?;
+    let (w_all, h) = (reader.info().width as usize, reader.info().height as usize);
+    let (color, depth) = (reader.info().color_type, reader.info().bit_depth);
+    if color != png::ColorType::Grayscale || !matches!(depth, png::BitDepth::Sixteen | png::BitDepth::Eight) {
+        return Err(file_err(path, format!("a {color:?} PNG of {depth:?} bits; expected 8- or 16-bit grayscale tap images")));
+    }
+    if taps == 0 || w_all % taps != 0 {
+        return Err(file_err(path, format!("width {w_all} is not a multiple of the model's M = {taps} taps (tap images side by side)")));
+    }
+    let size = reader.output_buffer_size().ok_or_else(|| file_err(path, "PNG too large"))?;
+    let mut buf = vec![0u8; size];
+    let info = reader.next_frame(&mut buf).map_err(|e| file_err(path, format!("PNG data: {e}")))?;
+    let w = w_all / taps;
+    let line = info.line_size;
+    let mut a = Array3::<f32>::zeros((taps, h, w));
+    for r in 0..h {
+        let row = &buf[r * line..(r + 1) * line];
+        for col in 0..w_all {
+            let v = match depth {
+                png::BitDepth::Sixteen => u16::from_be_bytes([row[2 * col], row[2 * col + 1]]) as f32,
+                _ => row[col] as f32,
+            };
+            a[(col / w, r, col % w)] = v;
+        }
+    }
+    Ok(a)
+}
+
+/// An `f32` `.npy` stack written frame by frame into a temporary file, renamed on
+/// [`NpyStackWriter::finish`]; dropped unfinished, the temporary file is removed.
+pub struct NpyStackWriter {
+    path: PathBuf,
+    tmp: PathBuf,
+    out: Option<BufWriter<File>>,
+    expected: usize,
+    written: usize,
+}
+
+impl NpyStackWriter {
+    /// A writer of an array of `shape` (its values come in C order through `push`).
+    pub fn create(path: &Path, shape: &[usize]) -> Result<Self> {
+        let header = f32_header(shape).map_err(|e| file_err(path, e))?;
+        let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).map_or_else(|| PathBuf::from("."), Path::to_path_buf);
+        let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
+        let tmp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
+        let mut out = BufWriter::new(File::create(&tmp).map_err(|e| file_err(path, e))?);
+        out.write_all(&header).map_err(|e| file_err(path, e))?;
+        Ok(NpyStackWriter { path: path.to_path_buf(), tmp, out: Some(out), expected: shape.iter().product(), written: 0 })
+    }
+
+    /// Append values (C order).
+    pub fn push<'a>(&mut self, values: impl IntoIterator<Item = &'a f32>) -> Result<()> {
+        let Some(out) = self.out.as_mut() else { return Err(file_err(&self.path, "written after finish")) };
+        let mut buf = Vec::new();
+        for v in values {
+            buf.extend_from_slice(&v.to_le_bytes());
+        }
+        self.written += buf.len() / 4;
+        out.write_all(&buf).map_err(|e| file_err(&self.path, e))
+    }
+
+    /// Flush, check the count and rename into place.
+    pub fn finish(mut self) -> Result<()> {
+        let out = self.out.take().ok_or_else(|| file_err(&self.path, "finished twice"))?;
+        if self.written != self.expected {
+            return Err(file_err(&self.path, format!("{} values written, {} expected", self.written, self.expected)));
+        }
+        let file = out.into_inner().map_err(|e| file_err(&self.path, e.into_error()))?;
+        file.sync_all().map_err(|e| file_err(&self.path, e))?;
+        std::fs::rename(&self.tmp, &self.path).map_err(|e| file_err(&self.path, e))
+    }
+}
+
+impl Drop for NpyStackWriter {
+    fn drop(&mut self) {
+        if self.out.is_some() {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+    }
+}
+
+/// What to write.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Products {
+    pub cube: bool,
+    pub depth: bool,
+    pub peaks: bool,
+    pub ply: bool,
+    pub lifetime: bool,
+    /// Returns per pixel from a cube (peak detection).
+    pub returns: usize,
+    /// Camera field of view for point clouds (degrees).
+    pub fov_deg: f64,
+}
+
+impl Products {
+    /// Parse `cube,depth,peaks,ply,lifetime` for a model that gives a cube (`cube_model`) or depth.
+    pub fn parse(list: &str, cube_model: bool) -> Result<Self> {
+        let mut p = Products { cube: false, depth: false, peaks: false, ply: false, lifetime: false, returns: 2, fov_deg: 40.0 };
+        for item in list.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+            match item {
+                "cube" => p.cube = true,
+                "depth" => p.depth = true,
+                "peaks" => p.peaks = true,
+                "ply" => p.ply = true,
+                "lifetime" => p.lifetime = true,
+                other => return Err(InferError::InvalidParam { field: "--products", got: other.into(), expected: "a comma-separated list of cube, depth, peaks, ply, lifetime".into() }),
+            }
+        }
+        if !cube_model && (p.cube || p.peaks || p.lifetime) {
+            return Err(InferError::InvalidParam {
+                field: "--products",
+                got: list.into(),
+                expected: "depth and ply: this model estimates depth directly (cube, peaks and lifetime need a model that reconstructs the cube)".into(),
+            });
+        }
+        if !(p.cube || p.depth || p.peaks || p.ply || p.lifetime) {
+            return Err(InferError::InvalidParam { field: "--products", got: list.into(), expected: "at least one product".into() });
+        }
+        Ok(p)
+    }
+}
+
+/// What a streamed run did.
+#[derive(Debug, Clone)]
+pub struct StreamReport {
+    pub frames: usize,
+    pub seconds: f64,
+    /// Seconds inside ONNX Runtime.
+    pub infer_seconds: f64,
+    pub written: Vec<PathBuf>,
+}
+
+struct Writers {
+    cube: Option<NpyStackWriter>,
+    depth: Option<NpyStackWriter>,
+    second: Option<NpyStackWriter>,
+    lifetime: Option<NpyStackWriter>,
+}
+
+/// Stream every frame of `source` through `model` into `out`, calling `on_frame(done, total)`
+/// after each; stops with [`InferError::Cancelled`] when `cancel` is set (writing nothing).
+pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, products: &Products, cancel: &AtomicBool, on_frame: &(dyn Fn(usize, usize) + Sync)) -> Result<StreamReport> {
+    let frames = source.len();
+    let taps = model.meta.taps;
+    let (first, first_path) = source.read(0, taps)?;
+    let (m, h, w) = first.dim();
+    model.check(&first.view().insert_axis(Axis(0)), &first_path.display().to_string())?;
+    let _ = m;
+    let cube_model = model.meta.decoder != "unet";
+    let (t, k) = (model.meta.bins, if cube_model { products.returns } else { model.meta.returns });
+    std::fs::create_dir_all(out).map_err(|e| file_err(out, e))?;
+    let lead: Vec<usize> = if source.single() { vec![] } else { vec![frames] };
+    let shape = |rest: &[usize]| -> Vec<usize> { lead.iter().chain(rest).copied().collect() };
+    let mut writers = Writers {
+        cube: if products.cube { Some(NpyStackWriter::create(&out.join("cube.npy"), &shape(&[t, h, w]))?) } else { None },
+        depth: if products.depth { Some(NpyStackWriter::create(&out.join("depth.npy"), &shape(&[k, h, w]))?) } else { None },
+        second: match (cube_model, products.peaks || (!cube_model && products.depth)) {
+            (true, true) => Some(NpyStackWriter::create(&out.join("peaks.npy"), &shape(&[k, h, w]))?),
+            (false, true) => Some(NpyStackWriter::create(&out.join("confidence.npy"), &shape(&[k, h, w]))?),
+            _ => None,
+        },
+        lifetime: if products.lifetime { Some(NpyStackWriter::create(&out.join("lifetime.npy"), &shape(&[h, w]))?) } else { None },
+    };
+    if products.ply {
+        std::fs::create_dir_all(out.join("ply")).map_err(|e| file_err(out, e))?;
+    }
+    let bin_s = model.meta.bin_s;
+    let peak_opts = PeakOptions { max_peaks: k, ..Default::default() };
+    let t0 = Instant::now();
+    let mut infer_seconds = 0.0;
+    let result: Result<()> = std::thread::scope(|scope| {
+        let (ftx, frx) = sync_channel::<Result<(usize, Array3<f32>, PathBuf)>>(2);
+        let (otx, orx) = sync_channel::<(usize, Vec<Array4<f32>>)>(2);
+        // reader
+        let reader = scope.spawn(move || {
+            if ftx.send(Ok((0, first, first_path))).is_err() {
+                return;
+            }
+            for i in 1..frames {
+                if cancel.load(Ordering::Relaxed) {
+                    return;
+                }
+                let r = source.read(i, taps).map(|(a, p)| (i, a, p));
+                let stop = r.is_err();
+                if ftx.send(r).is_err() || stop {
+                    return;
+                }
+            }
+        });
+        // products + writer
+        let writer = scope.spawn(move || -> Result<()> {
+            for (i, outs) in orx {
+                write_frame(i, outs, &mut writers, products, cube_model, bin_s, &peak_opts, out)?;
+                on_frame(i + 1, frames);
+            }
+            for wr in [writers.cube, writers.depth, writers.second, writers.lifetime].into_iter().flatten() {
+                wr.finish()?;
+            }
+            Ok(())
+        });
+        let mut status = Ok(());
+        for msg in frx {
+            if cancel.load(Ordering::Relaxed) {
+                status = Err(InferError::Cancelled);
+                break;
+            }
+            let (i, y, path) = match msg {
+                Ok(v) => v,
+                Err(e) => {
+                    status = Err(e);
+                    break;
+                }
+            };
+            if y.dim() != (m, h, w) {
+                status = Err(file_err(&path, format!("frame of shape {:?}; the first frame was [{m}, {h}, {w}]", y.shape())));
+                break;
+            }
+            let ti = Instant::now();
+            let outs = match model.run(y.insert_axis(Axis(0)).view()) {
+                Ok(o) => o,
+                Err(e) => {
+                    status = Err(match e {
+                        InferError::InvalidParam { field, got, expected } => file_err(&path, format!("{field}: got {got}, expected {expected}")),
+                        e => e,
+                    });
+                    break;
+                }
+            };
+            infer_seconds += ti.elapsed().as_secs_f64();
+            if otx.send((i, outs)).is_err() {
+                break;
+            }
+        }
+        drop(otx);
+        let _ = reader.join();
+        let written = writer.join().unwrap_or_else(|_| Err(file_err(out, "the writer thread panicked")));
+        // an early stop drops the writers unfinished (their temporary files removed)
+        status.and(written)
+    });
+    result?;
+    let mut written: Vec<PathBuf> = ["cube.npy", "depth.npy", "peaks.npy", "confidence.npy", "lifetime.npy"].iter().map(|n| out.join(n)).filter(|p| p.exists()).collect();
+    if products.ply {
+        written.push(out.join("ply"));
+    }
+    Ok(StreamReport { frames, seconds: t0.elapsed().as_secs_f64(), infer_seconds, written })
+}
+
+/// The products of frame `i` from the model's outputs (`[1, C, H, W]` each).
+#[allow(clippy::too_many_arguments)]
+fn write_frame(i: usize, outs: Vec<Array4<f32>>, wr: &mut Writers, p: &Products, cube_model: bool, bin_s: f64, peak_opts: &PeakOptions, out: &Path) -> Result<()> {
+    if cube_model {
+        let cube: ArrayView3<'_, f32> = outs[0].index_axis(Axis(0), 0);
+        if let Some(w) = wr.cube.as_mut() {
+            w.push(cube.iter())?;
+        }
+        if p.depth || p.peaks || p.ply {
+            let (depth, amp) = depth_map(&cube, bin_s, peak_opts);
+            if let Some(w) = wr.depth.as_mut() {
+                w.push(depth.iter())?;
+            }
+            if let Some(w) = wr.second.as_mut() {
+                w.push(amp.iter())?;
+            }
+            if p.ply {
+                write_ply(&out.join("ply").join(format!("frame_{i:05}.ply")), &depth.view(), &amp.view(), p.fov_deg)?;
+            }
+        }
+        if let Some(w) = wr.lifetime.as_mut() {
+            let (tau, _) = lifetime_map(&cube, bin_s, 0.1, 0.05);
+            w.push(tau.iter())?;
+        }
+    } else {
+        let mut depth = outs[0].clone();
+        mask_depth(&mut depth, &outs[1]);
+        if let Some(w) = wr.depth.as_mut() {
+            w.push(depth.iter())?;
+        }
+        if let Some(w) = wr.second.as_mut() {
+            w.push(outs[1].iter())?;
+        }
+        if p.ply {
+            write_ply(&out.join("ply").join(format!("frame_{i:05}.ply")), &depth.index_axis(Axis(0), 0), &outs[1].index_axis(Axis(0), 0), p.fov_deg)?;
+        }
+    }
+    Ok(())
+}
