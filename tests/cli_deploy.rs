@@ -1,0 +1,161 @@
+//! End-to-end tests of `tcsense export onnx` and `tcsense infer`: a trained U-Net and
+//! ADMM-Net exported, validated by onnx's full checker and onnxruntime-Python, streamed over
+//! a stack, a directory of .npy and PNG frames; bad input and a missing runtime exit 2.
+
+mod common;
+use common::*;
+use std::path::Path;
+use tcsense_sensor::npy::{read_npy, write_npy};
+
+fn python() -> std::path::PathBuf {
+    let py = Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv/bin/python");
+    assert!(py.exists(), "{} missing: run scripts/setup.sh", py.display());
+    py
+}
+
+fn check_onnx(dir: &Path, args: &[&str]) -> String {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/check_onnx.py");
+    let o = std::process::Command::new(python()).current_dir(dir).arg(script).args(args).output().unwrap();
+    let out = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(o.status.success(), "check_onnx.py {args:?}: {out}{}", String::from_utf8_lossy(&o.stderr));
+    out
+}
+
+fn setup(d: &Path) {
+    ok(d, &["dataset", "lidar", "--count", "8", "--size", "8x8", "--length", "8", "--seed", "2", "-o", "ds"]);
+    ok(d, &["codes", "generate", "--tap-constraint", "--length", "8", "--seed", "1", "-o", "codes.json"]);
+}
+
+#[test]
+fn export_check_and_stream_a_trained_unet() {
+    let d = tempdir();
+    let d = d.path();
+    setup(d);
+    ok(d, &["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--base-width", "4", "--levels", "2", "--epochs", "2", "--seed", "3", "-o", "unet"]);
+    let out = ok(d, &["export", "onnx", "--run", "unet", "-o", "unet.onnx"]);
+    assert!(out.contains("multiples of 2x2") && out.contains("depth, confidence"), "{out}");
+    // a stack of 3 noisy frames
+    ok(d, &["simulate", "--codes", "codes.json", "--cube", "ds/test/x_000.npy", "--noise", "--seed", "1", "-o", "y0.npy"]);
+    let y0 = read_npy(&d.join("y0.npy")).unwrap().index_axis_move(ndarray::Axis(0), 0); // [M, H, W]
+    let frames: Vec<_> = (0..3).map(|i| y0.mapv(|v| v * (1.0 + i as f32))).collect();
+    let views: Vec<_> = frames.iter().map(|f| f.view()).collect();
+    let stack = ndarray::stack(ndarray::Axis(0), &views).unwrap();
+    write_npy(&d.join("stack.npy"), &stack.view()).unwrap();
+    let out = ok(d, &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--products", "depth,ply", "-o", "out"]);
+    assert!(out.contains("3 frames") && out.contains("frames/s"), "{out}");
+    let depth = read_npy(&d.join("out/depth.npy")).unwrap();
+    let conf = read_npy(&d.join("out/confidence.npy")).unwrap();
+    assert_eq!((depth.shape(), conf.shape()), (&[3, 2, 8, 8][..], &[3, 2, 8, 8][..]));
+    assert!(depth.iter().zip(conf.iter()).all(|(d, c)| d.is_nan() == (*c < 0.5)));
+    assert!(d.join("out/ply/frame_00002.ply").exists());
+    // the U-Net is scale invariant: the three frames (y, 2y, 3y) give the same depth
+    let f0 = depth.index_axis(ndarray::Axis(0), 0);
+    let f2 = depth.index_axis(ndarray::Axis(0), 2);
+    assert!(f0.iter().zip(f2.iter()).all(|(a, b)| (a.is_nan() && b.is_nan()) || (a - b).abs() < 1e-3));
+    // burn (reconstruct unet) and ort (infer) agree on the first frame
+    ok(d, &["reconstruct", "unet", "--run", "unet", "--measurements", "y0.npy", "-o", "burn.npy"]);
+    let burn = read_npy(&d.join("burn.npy")).unwrap();
+    assert!(burn.iter().zip(f0.iter()).all(|(a, b)| (a.is_nan() && b.is_nan()) || (a - b).abs() < 1e-4 * 12.0), "burn and ort depth differ");
+    // onnx full checker, shape inference, onnxruntime-Python equal to tcsense infer
+    let out = check_onnx(d, &["unet.onnx", "--measurements", "stack.npy", "--compare", "out"]);
+    assert!(out.contains("checker (full)") && out.contains("ok  depth") && out.contains("ok  confidence"), "{out}");
+
+    // a directory of frames: a .npy and a 16-bit PNG of the same frame (taps side by side)
+    std::fs::create_dir_all(d.join("frames")).unwrap();
+    let f = y0.clone().into_dimensionality::<ndarray::Ix3>().unwrap();
+    assert_eq!(f.dim(), (4, 8, 8));
+    write_npy(&d.join("frames/a.npy"), &f.view()).unwrap();
+    let (m, h, w) = f.dim();
+    let mut pixels = Vec::with_capacity(h * m * w * 2);
+    for r in 0..h {
+        for tap in 0..m {
+            for c in 0..w {
+                pixels.extend_from_slice(&(f[(tap, r, c)].round().clamp(0.0, 65535.0) as u16).to_be_bytes());
+            }
+        }
+    }
+    let file = std::fs::File::create(d.join("frames/b.png")).unwrap();
+    let mut enc = png::Encoder::new(file, (m * w) as u32, h as u32);
+    enc.set_color(png::ColorType::Grayscale);
+    enc.set_depth(png::BitDepth::Sixteen);
+    enc.write_header().unwrap().write_image_data(&pixels).unwrap();
+    ok(d, &["infer", "--model", "unet.onnx", "--measurements", "frames", "-o", "out2"]);
+    let depth = read_npy(&d.join("out2/depth.npy")).unwrap();
+    assert_eq!(depth.shape(), &[2, 2, 8, 8]);
+    let (a, b) = (depth.index_axis(ndarray::Axis(0), 0), depth.index_axis(ndarray::Axis(0), 1));
+    let same = a.iter().zip(b.iter()).filter(|(x, y)| (x.is_nan() && y.is_nan()) || (*x - *y).abs() < 0.05).count();
+    assert!(same >= 120, "the PNG frame (rounded to integers) gives the .npy frame's depth: {same}/128");
+
+    // bad input: products a depth model cannot give, a frame off the frame rule, wrong taps,
+    // a truncated stack, an empty directory, a missing model; nothing is written
+    fails(d, &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--products", "cube", "-o", "bad1"], &["--products", "cube"]);
+    let odd = ndarray::Array3::<f32>::ones((4, 8, 7));
+    write_npy(&d.join("odd.npy"), &odd.view()).unwrap();
+    fails(d, &["infer", "--model", "unet.onnx", "--measurements", "odd.npy", "-o", "bad2"], &["odd.npy", "multiples of 2x2"]);
+    let three = ndarray::Array3::<f32>::ones((3, 8, 8));
+    write_npy(&d.join("three.npy"), &three.view()).unwrap();
+    fails(d, &["infer", "--model", "unet.onnx", "--measurements", "three.npy", "-o", "bad3"], &["three.npy", "M = 4 taps"]);
+    let bytes = std::fs::read(d.join("stack.npy")).unwrap();
+    std::fs::write(d.join("cut.npy"), &bytes[..bytes.len() - 100]).unwrap();
+    fails(d, &["infer", "--model", "unet.onnx", "--measurements", "cut.npy", "-o", "bad4"], &["cut.npy", "truncated"]);
+    std::fs::create_dir_all(d.join("empty")).unwrap();
+    fails(d, &["infer", "--model", "unet.onnx", "--measurements", "empty", "-o", "bad5"], &["empty", "no frames"]);
+    fails(d, &["infer", "--model", "nope.onnx", "--measurements", "stack.npy", "-o", "bad6"], &["nope.onnx"]);
+    for bad in ["bad1", "bad2", "bad3", "bad4", "bad5", "bad6"] {
+        let left: Vec<_> = std::fs::read_dir(d.join(bad)).map(|r| r.flatten().map(|e| e.path()).collect()).unwrap_or_default();
+        assert!(left.is_empty(), "{bad}: {left:?} left behind");
+    }
+}
+
+#[test]
+fn admm_net_export_with_the_matrix_as_input_and_eval_through_ort() {
+    let d = tempdir();
+    let d = d.path();
+    setup(d);
+    ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "2", "--channels", "2", "--epochs", "1", "--seed", "3", "-o", "run"]);
+    ok(d, &["export", "onnx", "--run", "run", "-o", "baked.onnx"]);
+    ok(d, &["export", "onnx", "--run", "run", "--matrix-input", "-o", "input.onnx"]);
+    ok(d, &["sensor", "matrix", "--codes", "codes.json", "-o", "A.npy"]);
+    ok(d, &["simulate", "--codes", "codes.json", "--cube", "ds/test/x_000.npy", "-o", "y.npy"]);
+    ok(d, &["reconstruct", "admm-net", "--run", "run", "--measurements", "y.npy", "-o", "burn.npy"]);
+    let burn = read_npy(&d.join("burn.npy")).unwrap();
+    let scale = burn.iter().fold(0f32, |m, v| m.max(v.abs()));
+    for (model, extra) in [("baked.onnx", vec![]), ("input.onnx", vec!["--sensor-matrix", "A.npy"])] {
+        let out_dir = format!("out-{model}");
+        let mut args = vec!["infer", "--model", model, "--measurements", "y.npy", "--products", "cube,depth,peaks,lifetime", "-o", &out_dir];
+        args.extend(extra.iter().copied());
+        ok(d, &args);
+        let cube = read_npy(&d.join(&out_dir).join("cube.npy")).unwrap();
+        assert_eq!(cube.shape(), burn.shape());
+        let diff = cube.iter().zip(burn.iter()).fold(0f32, |m, (a, b)| m.max((a - b).abs()));
+        assert!(diff <= 1e-4 * scale, "{model}: ort differs from burn by {diff} (scale {scale})");
+        assert_eq!(read_npy(&d.join(&out_dir).join("depth.npy")).unwrap().shape(), &[1, 2, 8, 8]);
+        assert_eq!(read_npy(&d.join(&out_dir).join("lifetime.npy")).unwrap().shape(), &[1, 8, 8]);
+    }
+    let out = check_onnx(d, &["input.onnx", "--measurements", "y.npy", "--sensor-matrix", "A.npy", "--compare", "out-input.onnx"]);
+    assert!(out.contains("ok  cube"), "{out}");
+    // eval through the contract: the exported model next to the run it came from
+    let out = ok(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "admm-net:run", "--decoder", "onnx:baked.onnx", "-o", "rep.json"]);
+    let rep: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("rep.json")).unwrap()).unwrap();
+    let (a, b) = (rep[0]["psnr_db"].as_f64().unwrap(), rep[1]["psnr_db"].as_f64().unwrap());
+    assert!((a - b).abs() < 1e-3, "burn {a} dB vs ort {b} dB: {out}");
+    // a sensor matrix of the wrong shape; a baked model given one
+    let small = ndarray::Array3::<f32>::ones((4, 4, 4));
+    write_npy(&d.join("A4.npy"), &small.view()).unwrap();
+    fails(d, &["infer", "--model", "input.onnx", "--measurements", "y.npy", "--sensor-matrix", "A4.npy", "-o", "bad"], &["A4.npy", "[N, M, T]"]);
+    fails(d, &["infer", "--model", "baked.onnx", "--measurements", "y.npy", "--sensor-matrix", "A.npy", "-o", "bad"], &["A.npy", "--matrix-input"]);
+}
+
+#[test]
+fn a_missing_onnx_runtime_exits_2_with_the_install_hint() {
+    let d = tempdir();
+    let d = d.path();
+    let o = bin().current_dir(d).env("ORT_DYLIB_PATH", d.join("nowhere.so")).args(["infer", "--model", "m.onnx", "--measurements", "y.npy", "-o", "out"]).output().unwrap();
+    std::fs::write(d.join("m.onnx"), b"x").unwrap();
+    let o2 = bin().current_dir(d).env("ORT_DYLIB_PATH", d.join("nowhere.so")).args(["infer", "--model", "m.onnx", "--measurements", "y.npy", "-o", "out"]).output().unwrap();
+    let err = String::from_utf8_lossy(&o2.stderr);
+    assert_eq!(o.status.code(), Some(2));
+    assert_eq!(o2.status.code(), Some(2), "{err}");
+    assert!(err.contains("scripts/setup.sh") && err.contains("ORT_DYLIB_PATH") && !err.contains("panicked"), "{err}");
+    assert!(!d.join("out").exists());
+}

@@ -1,0 +1,155 @@
+//! ONNX export and ONNX Runtime inference against burn: ADMM-Net and the U-Net, random and
+//! trained weights, two frame sizes, the sensor matrix baked in and as an input, square and
+//! non-square blocks, oversampled and heterodyne sensors. Needs ONNX Runtime in `.venv`
+//! (`scripts/setup.sh`, which `scripts/test.sh` runs first).
+
+use ndarray::{Array4, Ix4};
+use rand::{RngExt, SeedableRng};
+use std::path::{Path, PathBuf};
+use tcsense_infer::onnx::{export, ExportOptions};
+use tcsense_infer::runtime::OnnxModel;
+use tcsense_infer::InferError;
+use tcsense_models::net::{to_array, to_tensor, Network};
+use tcsense_models::runs::{self, LoadedRun, ModelConfig, RunSpec, TrainedNet};
+use tcsense_models::{AdmmNetConfig, Device, SensorTensors, UnetConfig};
+use tcsense_sensor::codes::{CodeShape, Constraints};
+use tcsense_sensor::generate::random_codes;
+use tcsense_sensor::npy::read_npy;
+use tcsense_sensor::{Irf, Sampling};
+
+fn fixture() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/admm-net-run-v1")
+}
+
+/// A run with fresh (random) weights: `block`, `L = 8`, 4 taps, under `sampling` and `irf`.
+fn random_run(model: impl Fn(usize, usize) -> ModelConfig, block: (usize, usize), sampling: Sampling, irf: Irf, seed: u64) -> LoadedRun {
+    let shape = CodeShape { bh: block.0, bw: block.1, taps: 4, length: 8, drain: false };
+    let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, seed).unwrap();
+    let probe = RunSpec { model: model(4, 8), sampling, irf };
+    let bins = probe.matrix(&codes).unwrap().bins();
+    let spec = RunSpec { model: model(4, bins), sampling, irf };
+    let sensor = spec.matrix(&codes).unwrap();
+    let device = Device::flex();
+    let net = match &spec.model {
+        ModelConfig::AdmmNet(c) => TrainedNet::AdmmNet(c.init(&device)),
+        ModelConfig::Unet(c) => TrainedNet::Unet(c.init(&device)),
+    };
+    LoadedRun { dir: PathBuf::from("."), spec, codes, sensor, net }
+}
+
+/// burn's prediction of `run` on `y`: the cube, or (depth, confidence).
+fn burn_outputs(run: &LoadedRun, y: &Array4<f32>) -> Vec<Array4<f32>> {
+    let device = Device::flex();
+    let (_, _, h, w) = y.dim();
+    let st = SensorTensors::new(&run.sensor, h, w, &device).unwrap();
+    let yt = to_tensor(&y.view(), &device);
+    match &run.net {
+        TrainedNet::AdmmNet(net) => vec![to_array(net.predict(yt, &st)).unwrap()],
+        TrainedNet::Unet(net) => {
+            let (depth, conf) = net.forward(yt, &st);
+            vec![to_array(depth).unwrap(), to_array(conf).unwrap()]
+        }
+    }
+}
+
+/// ONNX Runtime's outputs of `run` exported with `opts`, on `y`.
+fn ort_outputs(run: &LoadedRun, opts: ExportOptions, y: &Array4<f32>, dir: &Path, name: &str) -> Vec<Array4<f32>> {
+    let path = dir.join(name);
+    std::fs::write(&path, export(run, opts).unwrap()).unwrap();
+    let mut model = OnnxModel::open(&path, 2).unwrap_or_else(|e| panic!("{e} (run scripts/setup.sh to install ONNX Runtime into .venv)"));
+    model.run(y.view()).unwrap()
+}
+
+fn random_y(m: usize, h: usize, w: usize, seed: u64) -> Array4<f32> {
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    Array4::from_shape_fn((2, m, h, w), |_| rng.random_range(0.0..1000.0f32))
+}
+
+/// Max |a − b| over the scale of `b`.
+fn rel_diff(a: &Array4<f32>, b: &Array4<f32>) -> f32 {
+    assert_eq!(a.dim(), b.dim());
+    let scale = b.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-12);
+    a.iter().zip(b.iter()).fold(0f32, |m, (x, y)| m.max((x - y).abs())) / scale
+}
+
+#[test]
+fn admm_net_in_onnx_runtime_equals_burn() {
+    let dir = tempfile::tempdir().unwrap();
+    let admm = |normalize: bool| move |m: usize, t: usize| ModelConfig::AdmmNet(AdmmNetConfig::new(m, t).with_stages(3).with_channels(4).with_normalize(normalize));
+    let physical = Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 };
+    let cases = [
+        ("2x2 ideal", random_run(admm(true), (2, 2), Sampling::Oversample(1), Irf::Ideal, 1)),
+        ("2x2 heterodyne physical", random_run(admm(false), (2, 2), Sampling::Heterodyne(2), physical, 2)),
+        ("1x2 oversampled", random_run(admm(true), (1, 2), Sampling::Oversample(2), physical, 3)),
+    ];
+    for (label, run) in &cases {
+        for (h, w) in [(8, 8), (6, 10)] {
+            let y = random_y(4, h, w, 7);
+            let want = burn_outputs(run, &y);
+            for matrix_input in [false, true] {
+                let got = ort_outputs(run, ExportOptions { matrix_input }, &y, dir.path(), "admm.onnx");
+                let d = rel_diff(&got[0], &want[0]);
+                assert!(d <= 1e-4, "{label}, {h}x{w}, matrix input {matrix_input}: ort differs from burn by {d:e} of the output scale");
+            }
+        }
+    }
+    // trained weights: the fixture run reconstructs its stored xhat through ONNX Runtime
+    let run = runs::load(&fixture(), &Device::flex()).unwrap();
+    let y = read_npy(&fixture().join("y.npy")).unwrap().into_dimensionality::<Ix4>().unwrap();
+    let xhat = read_npy(&fixture().join("xhat.npy")).unwrap().into_dimensionality::<Ix4>().unwrap();
+    for matrix_input in [false, true] {
+        let got = ort_outputs(&run, ExportOptions { matrix_input }, &y, dir.path(), "trained.onnx");
+        let d = rel_diff(&got[0], &xhat);
+        assert!(d <= 1e-4, "trained run, matrix input {matrix_input}: {d:e}");
+    }
+}
+
+#[test]
+fn unet_in_onnx_runtime_equals_burn() {
+    let dir = tempfile::tempdir().unwrap();
+    let unet = |m: usize, t: usize| ModelConfig::Unet(UnetConfig::new(m, t, 12.0).with_base_width(4).with_levels(3).with_returns(2));
+    let run = random_run(unet, (2, 2), Sampling::Oversample(1), Irf::Ideal, 4);
+    for (h, w) in [(8, 8), (12, 16)] {
+        let y = random_y(4, h, w, 9);
+        let want = burn_outputs(&run, &y);
+        for matrix_input in [false, true] {
+            let got = ort_outputs(&run, ExportOptions { matrix_input }, &y, dir.path(), "unet.onnx");
+            for (k, name) in ["depth", "confidence"].iter().enumerate() {
+                let d = rel_diff(&got[k], &want[k]);
+                assert!(d <= 1e-4, "{h}x{w}, matrix input {matrix_input}, {name}: ort differs from burn by {d:e}");
+            }
+            // depth in metres within the range, confidence a probability
+            assert!(got[0].iter().all(|v| (0.0..=12.0).contains(v)) && got[1].iter().all(|v| (0.0..=1.0).contains(v)));
+        }
+    }
+}
+
+#[test]
+fn measurements_that_break_the_metadata_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let unet = |m: usize, t: usize| ModelConfig::Unet(UnetConfig::new(m, t, 12.0).with_base_width(4).with_levels(3));
+    let run = random_run(unet, (2, 2), Sampling::Oversample(1), Irf::Ideal, 5);
+    let path = dir.path().join("u.onnx");
+    std::fs::write(&path, export(&run, ExportOptions::default()).unwrap()).unwrap();
+    let mut model = OnnxModel::open(&path, 1).unwrap();
+    assert_eq!(model.meta.frame_multiple, (4, 4), "lcm of the 2x2 block and the stride 4");
+    assert_eq!(model.meta.codes, run.codes);
+    for (y, needle) in [(random_y(3, 8, 8, 1), "M = 4 taps"), (random_y(4, 8, 6, 1), "multiples of 4x4")] {
+        let e = model.run(y.view()).unwrap_err().to_string();
+        assert!(e.contains(needle) && e.contains("u.onnx"), "{e}");
+    }
+    let mut y = random_y(4, 8, 8, 1);
+    y[(0, 0, 0, 0)] = f32::NAN;
+    assert!(model.run(y.view()).unwrap_err().to_string().contains("finite"));
+    // a baked model takes no other sensor matrix
+    assert!(model.set_matrix(&run.sensor).unwrap_err().to_string().contains("--matrix-input"));
+    // a truncated file and a foreign one
+    let bytes = std::fs::read(&path).unwrap();
+    std::fs::write(dir.path().join("cut.onnx"), &bytes[..bytes.len() / 2]).unwrap();
+    match OnnxModel::open(&dir.path().join("cut.onnx"), 1) {
+        Err(InferError::File { path, msg }) => assert!(path.ends_with("cut.onnx") && msg.contains("ONNX"), "{msg}"),
+        other => panic!("{other:?}"),
+    }
+    std::fs::write(dir.path().join("foreign.onnx"), b"not a model").unwrap();
+    assert!(OnnxModel::open(&dir.path().join("foreign.onnx"), 1).is_err());
+}
