@@ -65,6 +65,15 @@ impl AdmmNetConfig {
         AdmmNetConfig::new(taps, bins).with_stages(5).with_channels(16)
     }
 
+    /// Multiply-adds ×2 per frame of `h × w`: `Aᵀy` and the back-projection (`2·2TM` per
+    /// pixel), and per stage the data-consistency solve through `M` channels (`2·2MT`) and the
+    /// prior's three 3×3 convolutions (`2·9·(T·CN + CN² + CN·T)`).
+    pub fn flops(&self, h: usize, w: usize) -> f64 {
+        let (t, m, cn) = (self.bins as f64, self.taps as f64, self.channels as f64);
+        let per_stage = 4.0 * m * t + 18.0 * (2.0 * t * cn + cn * cn);
+        (h * w) as f64 * (4.0 * t * m + self.stages as f64 * per_stage)
+    }
+
     /// Build the network.
     pub fn init(&self, device: &Device) -> AdmmNet {
         let conv = |i: usize, o: usize| Conv2dConfig::new([i, o], [3, 3]).with_padding(PaddingConfig2d::Same).init(device);

@@ -85,6 +85,10 @@ pub enum BenchCmd {
     },
     /// Dataset generation throughput (samples/s).
     Dataset(super::dataset::BenchDatasetArgs),
+    /// Deployment inference: frames/s of an exported model through ONNX Runtime (1 and 2
+    /// intra-op threads) and of the same network in burn, interleaved, with the FLOP rate.
+    /// Without --run or --model, a fresh network of --decoder on the prototype's codes.
+    Infer(super::deploy::BenchInferArgs),
 }
 
 pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
@@ -108,6 +112,7 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             }
         }
         BenchCmd::Dataset(a) => super::dataset::bench(a)?,
+        BenchCmd::Infer(a) => super::deploy::bench_infer(a)?,
         BenchCmd::Train { size: (h, w), bins, stages, channels, steps, infer_size: (ih, iw), unet_width, unet_levels } => {
             if bins == 0 || bins % 32 != 0 {
                 anyhow::bail!("--bins {bins}: expected a multiple of 32");

@@ -132,3 +132,162 @@ pub fn peak_rss_kb() -> Option<u64> {
     let s = std::fs::read_to_string("/proc/self/status").ok()?;
     s.lines().find(|l| l.starts_with("VmHWM:"))?.split_whitespace().nth(1)?.parse().ok()
 }
+
+#[derive(Args)]
+pub struct BenchInferArgs {
+    /// An exported model (timed through ONNX Runtime only, unless --run gives its network).
+    #[arg(long)]
+    model: Option<PathBuf>,
+    /// A trained run: timed in burn, and exported for ONNX Runtime when --model is not given.
+    #[arg(long)]
+    run: Option<PathBuf>,
+    /// Without --run/--model: a fresh network of this kind (unet or admm-net) on the
+    /// prototype's codes (4 taps, 2x2, L = 32, tap + H 2 + W 2).
+    #[arg(long, default_value = "unet")]
+    decoder: String,
+    /// Fresh ADMM-Net: stages S.
+    #[arg(long, default_value_t = 9)]
+    stages: usize,
+    /// Fresh ADMM-Net: channels CN.
+    #[arg(long, default_value_t = 32)]
+    channels: usize,
+    /// Fresh networks: bins T (L = 32, K = T/32).
+    #[arg(long, default_value_t = 32)]
+    bins: usize,
+    /// Frame size HxW.
+    #[arg(long, default_value = "188x212", value_parser = super::parse_hw)]
+    size: (usize, usize),
+    /// Timed rounds (each round runs every engine once; medians reported).
+    #[arg(long, default_value_t = 7)]
+    reps: usize,
+    /// Keep the exported model here (e.g. for scripts/bench_onnx.py on the same model).
+    #[arg(long)]
+    save_model: Option<PathBuf>,
+}
+
+/// A fresh network on the prototype's codes, as a run.
+fn fresh_run(a: &BenchInferArgs) -> Result<runs::LoadedRun> {
+    use tcsense_sensor::codes::{CodeShape, Constraints};
+    use tcsense_sensor::{generate::random_codes, Irf, Sampling};
+    if a.bins == 0 || a.bins % 32 != 0 {
+        bail!("--bins {}: expected a multiple of 32", a.bins);
+    }
+    let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
+    let codes = random_codes(shape, 607e6, Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1)?;
+    let sampling = Sampling::Oversample(a.bins / 32);
+    let model = match a.decoder.as_str() {
+        "unet" => runs::ModelConfig::Unet(tcsense_models::UnetConfig::new(4, a.bins, 299_792_458.0 * 32.0 / 607e6 / 2.0)),
+        "admm-net" => runs::ModelConfig::AdmmNet(tcsense_models::AdmmNetConfig::new(4, a.bins).with_stages(a.stages).with_channels(a.channels).with_normalize(true)),
+        other => bail!("--decoder {other:?}: expected unet or admm-net"),
+    };
+    let spec = runs::RunSpec { model, sampling, irf: Irf::Ideal };
+    let sensor = spec.matrix(&codes)?;
+    let device = Device::flex();
+    let net = match &spec.model {
+        runs::ModelConfig::AdmmNet(c) => runs::TrainedNet::AdmmNet(c.init(&device)),
+        runs::ModelConfig::Unet(c) => runs::TrainedNet::Unet(c.init(&device)),
+    };
+    Ok(runs::LoadedRun { dir: PathBuf::from("."), spec, codes, sensor, net })
+}
+
+pub fn bench_infer(a: BenchInferArgs) -> Result<()> {
+    use tcsense_kernels::timing::median_by;
+    use tcsense_models::net::{to_tensor, Network};
+    use tcsense_models::SensorTensors;
+    let (h, w) = a.size;
+    let run = match (&a.run, &a.model) {
+        (Some(r), _) => Some(runs::load(r, &Device::flex())?),
+        (None, None) => Some(fresh_run(&a)?),
+        (None, Some(_)) => None,
+    };
+    let tmp = a.save_model.clone().unwrap_or_else(|| tempfile_path("bench-infer.onnx"));
+    let model_path = match (&a.model, &run) {
+        (Some(m), _) => m.clone(),
+        (None, Some(r)) => {
+            export_to(r, ExportOptions::default(), &tmp)?;
+            tmp.clone()
+        }
+        (None, None) => unreachable!("a run exists when no model is given"),
+    };
+    let mut engines: Vec<(String, OnnxModel)> = Vec::new();
+    for threads in [2, 1] {
+        engines.push((format!("ort (Rust), {threads} thread{}", if threads > 1 { "s" } else { "" }), OnnxModel::open(&model_path, threads)?));
+    }
+    let meta = engines[0].1.meta.clone();
+    let (fh, fw) = meta.frame_multiple;
+    if h % fh != 0 || w % fw != 0 {
+        bail!("--size {h}x{w}: the model takes frames that are multiples of {fh}x{fw}");
+    }
+    let flops = match run.as_ref().map(|r| &r.spec.model) {
+        Some(runs::ModelConfig::Unet(c)) => Some(c.flops(h, w)),
+        Some(runs::ModelConfig::AdmmNet(c)) => Some(c.flops(h, w)),
+        None => None,
+    };
+    let mut seed = 1u64;
+    let y = ndarray::Array4::from_shape_fn((1, meta.taps, h, w), |_| {
+        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        ((seed >> 33) % 4096) as f32
+    });
+    let device = Device::flex();
+    let st = match &run {
+        Some(r) => Some(SensorTensors::new(&r.sensor, h, w, &device)?),
+        None => None,
+    };
+    let burn_step = |r: &runs::LoadedRun, st: &SensorTensors| -> f64 {
+        let t0 = std::time::Instant::now();
+        let yt = to_tensor(&y.view(), &device);
+        let out = match &r.net {
+            runs::TrainedNet::AdmmNet(n) => n.predict(yt, st),
+            runs::TrainedNet::Unet(n) => n.predict(yt, st),
+        };
+        let _ = out.into_data();
+        t0.elapsed().as_secs_f64() * 1e3
+    };
+    // warm up every engine, then interleave the rounds
+    for (_, m) in engines.iter_mut() {
+        m.run(y.view())?;
+    }
+    if let (Some(r), Some(st)) = (&run, &st) {
+        burn_step(r, st);
+    }
+    let mut times: Vec<Vec<f64>> = vec![Vec::new(); engines.len() + 1];
+    for _ in 0..a.reps.max(1) {
+        for (i, (_, m)) in engines.iter_mut().enumerate() {
+            let t0 = std::time::Instant::now();
+            m.run(y.view())?;
+            times[i].push(t0.elapsed().as_secs_f64() * 1e3);
+        }
+        if let (Some(r), Some(st)) = (&run, &st) {
+            times[engines.len()].push(burn_step(r, st));
+        }
+    }
+    if a.save_model.is_none() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    println!(
+        "{} at {h}x{w}, T = {}, M = {}, batch 1, median of {} interleaved rounds{}",
+        meta.decoder,
+        meta.bins,
+        meta.taps,
+        a.reps.max(1),
+        flops.map(|f| format!(", {:.2} GFLOP per frame", f / 1e9)).unwrap_or_default()
+    );
+    println!("{:<26} {:>10} {:>10} {:>10}", "engine", "ms/frame", "frames/s", "GFLOP/s");
+    let mut names: Vec<String> = engines.iter().map(|(n, _)| n.clone()).collect();
+    names.push(format!("burn (flex), {} threads", rayon::current_num_threads()));
+    let mut medians = Vec::new();
+    for (name, t) in names.iter().zip(&times) {
+        let Some(ms) = median_by(t, |v| *v) else { continue };
+        medians.push(ms);
+        let rate = flops.map(|f| format!("{:>10.1}", f / ms / 1e6)).unwrap_or_else(|| format!("{:>10}", "-"));
+        println!("{name:<26} {ms:>10.2} {:>10.1} {rate}", 1e3 / ms);
+    }
+    if medians.len() == 3 {
+        println!("ort (2 threads) / ort (1 thread): {:.2}; ort (2 threads) / burn: {:.2} (time ratios)", medians[0] / medians[1], medians[0] / medians[2]);
+    }
+    Ok(())
+}
+
+fn tempfile_path(name: &str) -> PathBuf {
+    std::env::temp_dir().join(format!("tcsense-{}-{name}", std::process::id()))
+}

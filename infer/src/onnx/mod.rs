@@ -126,22 +126,21 @@ fn admm_net(g: &mut Graph, net: &AdmmNet, sensor: &SensorGraph, y: &str) -> Resu
         Some(s) => g.node("Div", &[y, s], &[]),
         None => y.to_string(),
     };
-    let (aty, mut z) = sensor.adjoint_and_pinv(g, &y);
+    let yb = sensor.measurement_blocks(g, &y);
+    let (aty, mut z) = sensor.adjoint_and_pinv(g, &yb);
     let rhos: Vec<f64> = net.stages().iter().map(|s| s.rho() as f64).collect();
     let dc = sensor.dc_weights(g, &rhos);
+    let aaty = sensor.forward_blocks(g, &aty, &dc);
     let mut u: Option<String> = None;
     for (k, st) in net.stages().iter().enumerate() {
-        // v = Aᵀy + ρ(z − u)
-        let zu = match &u {
-            Some(u) => g.node("Sub", &[&z, u], &[]),
+        // x = (AᵀA + ρI)⁻¹(Aᵀy + ρ(z − u))
+        let d = match &u {
+            Some(u) => g.op("Sub", &[&z, u]),
             None => z.clone(),
         };
-        let rho = g.scalar("rho", st.rho());
-        let rzu = g.node("Mul", &[&zu, &rho], &[]);
-        let v = g.node("Add", &[&aty, &rzu], &[]);
-        let x = sensor.data_consistency(g, &v, &dc, k, rhos[k]);
+        let x = sensor.x_update(g, &d, &yb, &aaty, &dc, k, rhos[k]);
         let xu = match &u {
-            Some(u) => g.node("Add", &[&x, u], &[]),
+            Some(u) => g.op("Add", &[&x, u]),
             None => x.clone(),
         };
         let [c1, c2, c3] = st.convs();
@@ -150,12 +149,13 @@ fn admm_net(g: &mut Graph, net: &AdmmNet, sensor: &SensorGraph, y: &str) -> Resu
         let h = conv(g, c2, &h)?;
         let h = relu(g, &h);
         let p = conv(g, c3, &h)?;
-        z = g.node("Add", &[&xu, &p], &[]);
+        z = g.op("Add", &[&xu, &p]);
+        // u + η(x − z)
         let eta = g.scalar("eta", st.eta());
-        let xz = g.node("Sub", &[&x, &z], &[]);
-        let step = g.node("Mul", &[&xz, &eta], &[]);
+        let xz = g.op("Sub", &[&x, &z]);
+        let step = g.op("Mul", &[&xz, &eta]);
         u = Some(match &u {
-            Some(u) => g.node("Add", &[u, &step], &[]),
+            Some(u) => g.op("Add", &[u, &step]),
             None => step,
         });
     }

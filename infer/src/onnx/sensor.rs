@@ -1,14 +1,17 @@
 //! The sensor's block-periodic per-pixel operators as plain ONNX convolutions.
 //!
 //! Pixel `(r, c)` has subpixel type `n = (r mod bh)·bw + (c mod bw)` and its own small matrix
-//! `W_n [C_out, C_in]` (`A_n`, `A_nᵀ`, the back-projection, the data-consistency solve). Such
-//! an operator is a `Conv` with a `bh × bw` kernel and stride (output channel `n·C_out + c`
-//! sees only kernel tap `(n / bw, n mod bw)`, with weight `W_n[c, :]`) that leaves the result
-//! in *block layout* `[B, N·C_out, H/bh, W/bw]`, followed by `DepthToSpace` (mode DCR) back to
-//! frames (square blocks; other blocks use the equivalent `Reshape`/`Transpose`). A second
-//! operator applied in block layout is a grouped 1×1 `Conv` (`group = N`), so the
-//! data-consistency solve `(AᵀA + ρI)⁻¹v = v/ρ − Aᵀ(ρI + AAᵀ)⁻¹A v/ρ` (Woodbury) costs two
-//! convolutions through `M` channels instead of a `T × T` product.
+//! `W_n [C_out, C_in]` (`A_n`, `A_nᵀ`, the back-projection, the data-consistency solve). In
+//! *block layout* `[B, N·C, H/bh, W/bw]` (channel `n·C + c`) such an operator is two plain
+//! convolutions: a `Conv` with a `bh × bw` kernel and stride (output channel `n·C_out + c`
+//! sees only kernel tap `(n / bw, n mod bw)`) goes from frames to blocks, and a
+//! `ConvTranspose` with the same kernel and stride (input channel `n·C_in + k` writes only
+//! subpixel `n`) goes back to frames, with the matrices in either. The data-consistency solve
+//! `(AᵀA + ρI)⁻¹v = v/ρ − Aᵀ(ρI + AAᵀ)⁻¹A v/ρ` (Woodbury) is then a `Conv` with `A_n` to
+//! `N·M` block channels and a `ConvTranspose` with `A_nᵀ(ρI + A_nA_nᵀ)⁻¹/ρ` back: two
+//! convolutions through `M` channels instead of a `T × T` product per pixel. (`DepthToSpace`
+//! would express the same; ONNX Runtime's runs several times slower than the transposed
+//! convolution, and only for square blocks.)
 //!
 //! The matrices come either from the exported run (baked in as initializers, computed in f64)
 //! or from a graph input `sensor_matrix [N, M, T]`, from which the graph itself forms `Aᵀ`,
@@ -96,11 +99,19 @@ impl SensorGraph {
         self.n
     }
 
-    /// `Aᵀy` and the back-projection `Aᵀ(AAᵀ + εI)⁻¹y` with one convolution.
+    /// Measurements in block layout (for [`Self::adjoint_and_pinv`] and [`Self::x_update`]).
     ///
     /// # Shapes
-    /// - `y`: `[B, M, H, W]` → (`[B, T, H, W]`, `[B, T, H, W]`)
-    pub fn adjoint_and_pinv(&self, g: &mut Graph, y: &str) -> (String, String) {
+    /// - `y`: `[B, M, H, W]` → `[B, N·M, H/bh, W/bw]`
+    pub fn measurement_blocks(&self, g: &mut Graph, y: &str) -> String {
+        self.to_blocks(g, y, self.m)
+    }
+
+    /// `Aᵀy` and the back-projection `Aᵀ(AAᵀ + εI)⁻¹y` with one transposed convolution.
+    ///
+    /// # Shapes
+    /// - `yb`: `[B, N·M, H/bh, W/bw]` (from [`Self::measurement_blocks`]) → (`[B, T, H, W]`, `[B, T, H, W]`)
+    pub fn adjoint_and_pinv(&self, g: &mut Graph, yb: &str) -> (String, String) {
         let (n, m, t) = (self.n, self.m, self.t);
         let mats = match &self.src {
             Source::Baked { a, gram, eps } => {
@@ -124,8 +135,8 @@ impl SensorGraph {
                 Mats::Value(g.node("Concat", &[at, &pinv], &[Attr::Int("axis", 1)]))
             }
         };
-        let w = self.frame_weight(g, "adjoint_pinv", mats, 2 * t, m);
-        let both = self.frame_op(g, y, &w, 2 * t);
+        let w = self.back_weight(g, "adjoint_pinv", mats, 2 * t, m);
+        let both = self.from_blocks(g, yb, &w);
         let split = g.ints("split", &[t as i64, t as i64]);
         let mut parts = g.node_multi("Split", &[&both, &split], &[Attr::Int("axis", 1)], 2).into_iter();
         let aty = parts.next().unwrap_or_default();
@@ -153,32 +164,35 @@ impl SensorGraph {
             }
             Source::Input { at, .. } => Mats::Value(at.clone()),
         };
-        let w = self.frame_weight(g, "adjoint", mats, t, m);
-        self.frame_op(g, y, &w, t)
+        let w = self.back_weight(g, "adjoint", mats, t, m);
+        let blocks = self.to_blocks(g, y, m);
+        self.from_blocks(g, &blocks, &w)
     }
 
-    /// Weights of the data-consistency solves for the stages' `ρ`: the frame-to-block `A`
-    /// convolution (shared) and one grouped 1×1 convolution per `ρ` with `A_nᵀ(ρI + A_nA_nᵀ)⁻¹/ρ`.
+    /// Weights of the stages' data-consistency solves: the frame-to-block `A` convolution
+    /// (shared) and, per `ρ`, the block-to-frame transposed convolution of `[y ; w]` with
+    /// `[A_nᵀ/ρ ; −A_nᵀ(ρI + A_nA_nᵀ)⁻¹/ρ]` (see [`Self::x_update`]).
     pub fn dc_weights(&self, g: &mut Graph, rhos: &[f64]) -> DcWeights {
         let (n, m, t) = (self.n, self.m, self.t);
-        let (a_mats, back): (Mats, Vec<Mats>) = match &self.src {
+        let (a_mats, stages): (Mats, Vec<(Mats, Mats)>) = match &self.src {
             Source::Baked { a, gram, .. } => {
-                let back = rhos
+                let stages = rhos
                     .iter()
                     .map(|&rho| {
-                        let mut w = vec![0f64; n * t * m];
+                        let (mut at, mut back) = (vec![0f64; n * t * m], vec![0f64; n * t * m]);
                         for k in 0..n {
                             let inv = spd_inverse(&gram[k * m * m..(k + 1) * m * m], m, rho);
                             for j in 0..t {
                                 for c in 0..m {
-                                    w[(k * t + j) * m + c] = (0..m).map(|r| a[(k * m + r) * t + j] * inv[r * m + c]).sum::<f64>() / rho;
+                                    at[(k * t + j) * m + c] = a[(k * m + c) * t + j] / rho;
+                                    back[(k * t + j) * m + c] = -(0..m).map(|r| a[(k * m + r) * t + j] * inv[r * m + c]).sum::<f64>() / rho;
                                 }
                             }
                         }
-                        Mats::Const(w)
+                        (Mats::Const(at), Mats::Const(back))
                     })
                     .collect();
-                (Mats::Const(a.clone()), back)
+                (Mats::Const(a.clone()), stages)
             }
             Source::Input { a, at, .. } => {
                 let c: Vec<f32> = rhos.iter().map(|&r| r as f32).collect();
@@ -187,37 +201,61 @@ impl SensorGraph {
                 let axis0 = g.ints("axis0", &[0]);
                 let at4 = g.op("Unsqueeze", &[at, &axis0]); // [1, N, T, M]
                 let w = g.op("MatMul", &[&at4, &k]); // [S, N, T, M]
-                let inv_rho: Vec<f32> = rhos.iter().map(|&r| (1.0 / r) as f32).collect();
-                let inv_rho = g.weight("inv_rhos", &[rhos.len(), 1, 1, 1], &inv_rho);
-                let w = g.op("Mul", &[&w, &inv_rho]);
-                let back = (0..rhos.len())
-                    .map(|s| {
+                let neg_inv_rho: Vec<f32> = rhos.iter().map(|&r| (-1.0 / r) as f32).collect();
+                let neg_inv_rho = g.weight("neg_inv_rhos", &[rhos.len(), 1, 1, 1], &neg_inv_rho);
+                let w = g.op("Mul", &[&w, &neg_inv_rho]);
+                let stages = rhos
+                    .iter()
+                    .enumerate()
+                    .map(|(s, &rho)| {
                         let idx = g.ints("stage", &[s as i64]);
                         let ws = g.node("Gather", &[&w, &idx], &[Attr::Int("axis", 0)]); // [1, N, T, M]
-                        Mats::Value(g.op("Squeeze", &[&ws, &axis0]))
+                        let back = Mats::Value(g.op("Squeeze", &[&ws, &axis0]));
+                        let inv = g.scalar("inv_rho", (1.0 / rho) as f32);
+                        (Mats::Value(g.op("Mul", &[at, &inv])), back)
                     })
                     .collect();
-                (Mats::Value(a.clone()), back)
+                (Mats::Value(a.clone()), stages)
             }
         };
         let a = self.frame_weight(g, "dc_a", a_mats, m, t);
-        let back = back.into_iter().map(|mats| self.grouped_weight(g, "dc_back", mats, t, m)).collect();
-        DcWeights { a, back }
+        let ct = stages
+            .into_iter()
+            .map(|(at, back)| {
+                let at = self.back_weight(g, "dc_at", at, t, m);
+                let back = self.back_weight(g, "dc_back", back, t, m);
+                g.node("Concat", &[&at, &back], &[Attr::Int("axis", 0)]) // [2·N·M, T, bh, bw]
+            })
+            .collect();
+        DcWeights { a, ct }
     }
 
-    /// The exact data-consistency solve `(AᵀA + ρI)⁻¹v` of stage `s` (weights from
-    /// [`Self::dc_weights`]).
+    /// `A x` in block layout.
     ///
     /// # Shapes
-    /// - `v`: `[B, T, H, W]` → `[B, T, H, W]`
-    pub fn data_consistency(&self, g: &mut Graph, v: &str, w: &DcWeights, s: usize, rho: f64) -> String {
+    /// - `x`: `[B, T, H, W]` → `[B, N·M, H/bh, W/bw]`
+    pub fn forward_blocks(&self, g: &mut Graph, x: &str, w: &DcWeights) -> String {
         let (bh, bw) = self.block;
-        let av = g.node("Conv", &[v, &w.a], &[Attr::Ints("kernel_shape", &[bh as i64, bw as i64]), Attr::Ints("strides", &[bh as i64, bw as i64])]); // [B, N·M, H', W']
-        let back = g.node("Conv", &[&av, &w.back[s]], &[Attr::Ints("kernel_shape", &[1, 1]), Attr::Int("group", self.n as i64)]); // [B, N·T, H', W']
-        let back = self.from_blocks(g, &back, self.t);
-        let inv = g.scalar("inv_rho", (1.0 / rho) as f32);
-        let scaled = g.op("Mul", &[v, &inv]);
-        g.op("Sub", &[&scaled, &back])
+        g.node("Conv", &[x, &w.a], &[Attr::Ints("kernel_shape", &[bh as i64, bw as i64]), Attr::Ints("strides", &[bh as i64, bw as i64])])
+    }
+
+    /// ADMM's x-update of stage `s`, `x = (AᵀA + ρI)⁻¹(Aᵀy + ρd)`, without forming the
+    /// right-hand side: by Woodbury and linearity,
+    /// `x = d + Aᵀy/ρ − Aᵀ(ρI + AAᵀ)⁻¹(AAᵀy + ρ·Ad)/ρ`, where `AAᵀy` (`aaty`, from
+    /// [`Self::forward_blocks`] of `Aᵀy`) is computed once for all stages. Per stage this is one
+    /// strided convolution (`Ad`), two small operations in block layout, one transposed
+    /// convolution and one full-frame addition.
+    ///
+    /// # Shapes
+    /// - `d`: `[B, T, H, W]`, `yb`, `aaty`: `[B, N·M, H/bh, W/bw]` → `[B, T, H, W]`
+    pub fn x_update(&self, g: &mut Graph, d: &str, yb: &str, aaty: &str, w: &DcWeights, s: usize, rho: f64) -> String {
+        let ad = self.forward_blocks(g, d, w);
+        let r = g.scalar("rho", rho as f32);
+        let rad = g.op("Mul", &[&ad, &r]);
+        let rhs = g.op("Add", &[&rad, aaty]);
+        let cat = g.node("Concat", &[yb, &rhs], &[Attr::Int("axis", 1)]); // [B, 2·N·M, H', W']
+        let back = self.from_blocks(g, &cat, &w.ct[s]); // Aᵀy/ρ − Aᵀ(ρI + AAᵀ)⁻¹(…)/ρ
+        g.op("Add", &[d, &back])
     }
 
     /// `(cI + A_nA_nᵀ)⁻¹` for each `c` of `cs` (`[S]`, or `[1]`) and subpixel, by Newton–Schulz:
@@ -271,62 +309,62 @@ impl SensorGraph {
         }
     }
 
-    /// The grouped 1×1 convolution's weight `[N·C_out, C_in, 1, 1]` from `[N, C_out, C_in]`.
-    fn grouped_weight(&self, g: &mut Graph, hint: &str, mats: Mats, cout: usize, cin: usize) -> String {
-        let n = self.n;
+    /// The block-to-frame transposed convolution's weight `[N·C_in, C_out, bh, bw]` from
+    /// `[N, C_out, C_in]`: input channel `n·C_in + k` of a block writes only its subpixel
+    /// `(n / bw, n mod bw)`, with weight `W_n[:, k]`.
+    fn back_weight(&self, g: &mut Graph, hint: &str, mats: Mats, cout: usize, cin: usize) -> String {
+        let (n, (bh, bw)) = (self.n, self.block);
         match mats {
             Mats::Const(w) => {
-                let k: Vec<f32> = w.iter().map(|&v| v as f32).collect();
-                g.weight(hint, &[n * cout, cin, 1, 1], &k)
+                let mut k = vec![0f32; n * cin * cout * n];
+                for s in 0..n {
+                    for i in 0..cin {
+                        for o in 0..cout {
+                            k[((s * cin + i) * cout + o) * n + s] = w[(s * cout + o) * cin + i] as f32;
+                        }
+                    }
+                }
+                g.weight(hint, &[n * cin, cout, bh, bw], &k)
             }
             Mats::Value(v) => {
-                let shape = g.ints("shape", &[(n * cout) as i64, cin as i64, 1, 1]);
-                g.op("Reshape", &[&v, &shape])
+                let vt = g.node("Transpose", &[&v], &[Attr::Ints("perm", &[0, 2, 1])]); // [N, C_in, C_out]
+                let mask: Vec<f32> = (0..n * n).map(|i| if i / n == i % n { 1.0 } else { 0.0 }).collect();
+                let mask = g.weight("subpixel_onehot", &[n, 1, 1, n], &mask);
+                let axis3 = g.ints("axis3", &[3]);
+                let v4 = g.op("Unsqueeze", &[&vt, &axis3]); // [N, C_in, C_out, 1]
+                let k = g.op("Mul", &[&v4, &mask]); // [N, C_in, C_out, N]
+                let shape = g.ints("shape", &[(n * cin) as i64, cout as i64, bh as i64, bw as i64]);
+                g.op("Reshape", &[&k, &shape])
             }
         }
     }
 
-    /// A per-pixel operator on frames.
-    ///
-    /// # Shapes
-    /// - `x`: `[B, C_in, H, W]`, weight `[N·C_out, C_in, bh, bw]` → `[B, C_out, H, W]`
-    fn frame_op(&self, g: &mut Graph, x: &str, w: &str, cout: usize) -> String {
-        let (bh, bw) = self.block;
-        let blocks = g.node("Conv", &[x, w], &[Attr::Ints("kernel_shape", &[bh as i64, bw as i64]), Attr::Ints("strides", &[bh as i64, bw as i64])]);
-        self.from_blocks(g, &blocks, cout)
+    /// Frames to block layout: `[B, C, H, W]` → `[B, N·C, H/bh, W/bw]` (channel `n·C + c`).
+    fn to_blocks(&self, g: &mut Graph, x: &str, c: usize) -> String {
+        let (n, (bh, bw)) = (self.n, self.block);
+        let mut k = vec![0f32; n * c * c * n];
+        for s in 0..n {
+            for o in 0..c {
+                k[((s * c + o) * c + o) * n + s] = 1.0;
+            }
+        }
+        let w = g.weight("to_blocks", &[n * c, c, bh, bw], &k);
+        g.node("Conv", &[x, &w], &[Attr::Ints("kernel_shape", &[bh as i64, bw as i64]), Attr::Ints("strides", &[bh as i64, bw as i64])])
     }
 
-    /// Block layout back to frames.
-    ///
-    /// # Shapes
-    /// - `x`: `[B, N·C, H/bh, W/bw]` (channel `n·C + c`) → `[B, C, H, W]`
-    fn from_blocks(&self, g: &mut Graph, x: &str, c: usize) -> String {
+    /// Block layout `[B, N·C_in, H', W']` to frames `[B, C_out, H, W]` through the per-subpixel
+    /// matrices (weight from [`Self::back_weight`]): one `ConvTranspose` with stride = kernel =
+    /// the block, which ONNX Runtime runs as a GEMM and a scatter.
+    fn from_blocks(&self, g: &mut Graph, x: &str, w: &str) -> String {
         let (bh, bw) = self.block;
-        if bh == bw {
-            return g.node("DepthToSpace", &[x], &[Attr::Int("blocksize", bh as i64), Attr::Str("mode", "DCR")]);
-        }
-        // [B, bh·bw·C, H', W'] → [B, bh, bw, C, H', W'] → [B, C, H', bh, W', bw] → [B, C, H, W]
-        let shape = g.node("Shape", &[x], &[]);
-        let (i0, i1, i2, i3, i4) = (g.ints("i", &[0]), g.ints("i", &[1]), g.ints("i", &[2]), g.ints("i", &[3]), g.ints("i", &[4]));
-        let b = g.op("Slice", &[&shape, &i0, &i1]);
-        let hw = g.op("Slice", &[&shape, &i2, &i4]);
-        let mid = g.ints("block_c", &[bh as i64, bw as i64, c as i64]);
-        let s6 = g.node("Concat", &[&b, &mid, &hw], &[Attr::Int("axis", 0)]);
-        let x6 = g.node("Reshape", &[x, &s6], &[]);
-        let xt = g.node("Transpose", &[&x6], &[Attr::Ints("perm", &[0, 3, 4, 1, 5, 2])]);
-        let w_ = g.op("Slice", &[&shape, &i3, &i4]);
-        let bw_ = g.ints("bw", &[bw as i64]);
-        let w_full = g.op("Mul", &[&w_, &bw_]);
-        let keep = g.ints("keep", &[0, 0, -1]);
-        let s4 = g.node("Concat", &[&keep, &w_full], &[Attr::Int("axis", 0)]);
-        g.node("Reshape", &[&xt, &s4], &[])
+        g.node("ConvTranspose", &[x, w], &[Attr::Ints("kernel_shape", &[bh as i64, bw as i64]), Attr::Ints("strides", &[bh as i64, bw as i64])])
     }
 }
 
 /// The data-consistency weights of all stages.
 pub struct DcWeights {
     a: String,
-    back: Vec<String>,
+    ct: Vec<String>,
 }
 
 fn eye_scaled(m: usize, s: f32) -> Vec<f32> {
