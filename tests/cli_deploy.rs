@@ -60,6 +60,16 @@ fn export_check_and_stream_a_trained_unet() {
     let out = check_onnx(d, &["unet.onnx", "--measurements", "stack.npy", "--compare", "out"]);
     assert!(out.contains("checker (full)") && out.contains("ok  depth") && out.contains("ok  confidence"), "{out}");
 
+    // the same trained U-Net with the sensor matrix as an input gives the same depth
+    ok(d, &["export", "onnx", "--run", "unet", "--matrix-input", "-o", "unet_m.onnx"]);
+    ok(d, &["sensor", "matrix", "--codes", "unet/codes.json", "-o", "A.npy"]);
+    ok(d, &["infer", "--model", "unet_m.onnx", "--measurements", "stack.npy", "--sensor-matrix", "A.npy", "-o", "out_m"]);
+    let dm = read_npy(&d.join("out_m/confidence.npy")).unwrap();
+    let cb = read_npy(&d.join("out/confidence.npy")).unwrap();
+    assert!(dm.iter().zip(cb.iter()).all(|(a, b)| (a - b).abs() < 1e-4), "matrix input vs baked confidence");
+    let check = check_onnx(d, &["unet_m.onnx", "--measurements", "stack.npy", "--sensor-matrix", "A.npy", "--compare", "out_m"]);
+    assert!(check.contains("ok  depth"), "{check}");
+
     // a directory of frames: a .npy and a 16-bit PNG of the same frame (taps side by side)
     std::fs::create_dir_all(d.join("frames")).unwrap();
     let f = y0.clone().into_dimensionality::<ndarray::Ix3>().unwrap();
