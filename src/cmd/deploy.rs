@@ -160,6 +160,9 @@ pub struct BenchInferArgs {
     /// Timed rounds (each round runs every engine once; medians reported).
     #[arg(long, default_value_t = 7)]
     reps: usize,
+    /// ONNX Runtime intra-op thread counts to time (comma-separated).
+    #[arg(long, default_value = "2,1", value_delimiter = ',')]
+    ort_threads: Vec<usize>,
     /// Keep the exported model here (e.g. for scripts/bench_onnx.py on the same model).
     #[arg(long)]
     save_model: Option<PathBuf>,
@@ -210,7 +213,10 @@ pub fn bench_infer(a: BenchInferArgs) -> Result<()> {
         (None, None) => unreachable!("a run exists when no model is given"),
     };
     let mut engines: Vec<(String, OnnxModel)> = Vec::new();
-    for threads in [2, 1] {
+    if a.ort_threads.is_empty() || a.ort_threads.contains(&0) {
+        bail!("--ort-threads: expected thread counts ≥ 1, e.g. 2,1");
+    }
+    for &threads in &a.ort_threads {
         engines.push((format!("ort (Rust), {threads} thread{}", if threads > 1 { "s" } else { "" }), OnnxModel::open(&model_path, threads)?));
     }
     let meta = engines[0].1.meta.clone();
@@ -274,7 +280,9 @@ pub fn bench_infer(a: BenchInferArgs) -> Result<()> {
     );
     println!("{:<26} {:>10} {:>10} {:>10}", "engine", "ms/frame", "frames/s", "GFLOP/s");
     let mut names: Vec<String> = engines.iter().map(|(n, _)| n.clone()).collect();
-    names.push(format!("burn (flex), {} threads", rayon::current_num_threads()));
+    if run.is_some() {
+        names.push(format!("burn (flex), {} threads", rayon::current_num_threads()));
+    }
     let mut medians = Vec::new();
     for (name, t) in names.iter().zip(&times) {
         let Some(ms) = median_by(t, |v| *v) else { continue };
@@ -282,8 +290,9 @@ pub fn bench_infer(a: BenchInferArgs) -> Result<()> {
         let rate = flops.map(|f| format!("{:>10.1}", f / ms / 1e6)).unwrap_or_else(|| format!("{:>10}", "-"));
         println!("{name:<26} {ms:>10.2} {:>10.1} {rate}", 1e3 / ms);
     }
-    if medians.len() == 3 {
-        println!("ort (2 threads) / ort (1 thread): {:.2}; ort (2 threads) / burn: {:.2} (time ratios)", medians[0] / medians[1], medians[0] / medians[2]);
+    if medians.len() == names.len() && names.len() > 1 {
+        let ratios: Vec<String> = (1..medians.len()).map(|i| format!("{} / {}: {:.2}", names[0], names[i], medians[0] / medians[i])).collect();
+        println!("time ratios: {}", ratios.join("; "));
     }
     Ok(())
 }
