@@ -325,6 +325,14 @@ impl Codes {
         }
     }
 
+    /// A fingerprint of the code bits and their shape (FNV-1a, 16 hex digits): equal codes,
+    /// equal digests, whatever their provenance or clock.
+    pub fn digest(&self) -> String {
+        let CodeShape { bh, bw, taps, length, drain } = self.shape;
+        let head = [bh, bw, taps, length, drain as usize].into_iter().flat_map(|v| (v as u64).to_le_bytes());
+        crate::sidecar::digest(head.chain(self.bits.iter().copied()))
+    }
+
     /// Hamming distance between mask `l` and mask `l+1 mod L` over all channels.
     pub fn hamming_at(&self, l: usize) -> usize {
         let next = (l + 1) % self.length();

@@ -25,6 +25,7 @@ pub mod npy;
 pub mod operator;
 pub mod params;
 pub mod show;
+pub mod sidecar;
 
 pub use codes::{CodeShape, Codes, Constraints, Violation};
 pub use error::{Result, SensorError};

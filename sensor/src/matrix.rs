@@ -33,6 +33,16 @@ pub struct MeasurementMatrix {
 }
 
 impl MeasurementMatrix {
+    /// A fingerprint of `A` (its shape, block and f32 values; FNV-1a, 16 hex digits): the
+    /// codes, IRF and sampling in one number.
+    pub fn digest(&self) -> String {
+        let (n, m, t) = self.a().dim();
+        let (bh, bw) = self.block();
+        let head = [n, m, t, bh, bw].into_iter().flat_map(|v| (v as u64).to_le_bytes());
+        let values: Vec<u8> = self.a().iter().flat_map(|v| v.to_le_bytes()).collect();
+        crate::sidecar::digest(head.chain(values))
+    }
+
     /// Build `A` from codes and a sensor spec (IRF and sampling from the spec).
     ///
     /// # Shapes

@@ -10,6 +10,7 @@ use tcsense_infer::products::{depth_map, lifetime_map, map_png, plot_waveforms, 
 use tcsense_models::decoder::{Control, Decoder, Step, Tval3Decoder};
 use tcsense_models::{runs, Device, ModelError, Tval3Options, TvNorm};
 use tcsense_sensor::npy::{read_npy, write_bytes, write_npy};
+use tcsense_sensor::sidecar::Sidecar;
 use tcsense_sensor::MeasurementMatrix;
 
 use super::dataset::interrupt_flag;
@@ -130,16 +131,16 @@ pub fn reconstruct(cmd: ReconstructCmd) -> Result<ExitCode> {
     match cmd {
         ReconstructCmd::AdmmNet { run, measurements, output } => {
             let mut r = runs::open(&run, &Device::flex())?;
-            decode_file(r.decoder.as_mut(), &r.sensor, &measurements, &output, &DepthProductArgs::default())
+            decode_file(r.decoder.as_mut(), &r.sensor, &r.codes, &measurements, &output, &DepthProductArgs::default())
         }
         ReconstructCmd::Unet { run, measurements, output, products } => {
             let mut r = runs::open(&run, &Device::flex())?;
-            decode_file(r.decoder.as_mut(), &r.sensor, &measurements, &output, &products)
+            decode_file(r.decoder.as_mut(), &r.sensor, &r.codes, &measurements, &output, &products)
         }
         ReconstructCmd::Tval3 { sensor, measurements, tval3: targs, output } => {
             let mut decoder = Tval3Decoder::new(targs.options()?)?;
-            let (_, _, a) = sensor.matrix()?;
-            decode_file(&mut decoder, &a, &measurements, &output, &DepthProductArgs::default())
+            let (codes, _, a) = sensor.matrix()?;
+            decode_file(&mut decoder, &a, &codes, &measurements, &output, &DepthProductArgs::default())
         }
     }
 }
@@ -147,8 +148,11 @@ pub fn reconstruct(cmd: ReconstructCmd) -> Result<ExitCode> {
 /// Decode the tap images in `measurements` (`[M, H, W]` or a batch `[B, M, H, W]`) with any
 /// decoder and write what it gives (same batching) to `output`: the cubes, or the depth maps
 /// with their confidence, with a progress bar.
-fn decode_file(decoder: &mut dyn Decoder, sensor: &MeasurementMatrix, measurements: &Path, output: &Path, products: &DepthProductArgs) -> Result<ExitCode> {
+fn decode_file(decoder: &mut dyn Decoder, sensor: &MeasurementMatrix, codes: &tcsense_sensor::Codes, measurements: &Path, output: &Path, products: &DepthProductArgs) -> Result<ExitCode> {
     let y = read_npy(measurements)?;
+    if let Some(meta) = Sidecar::read_for(measurements)? {
+        meta.check(&Sidecar::path_for(measurements), sensor, Some(codes))?;
+    }
     let (batched, y): (bool, Array4<f32>) = match y.ndim() {
         3 => (false, y.into_dimensionality::<Ix3>()?.insert_axis(Axis(0))),
         4 => (true, y.into_dimensionality::<Ix4>()?),

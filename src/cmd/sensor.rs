@@ -158,7 +158,7 @@ pub fn simulate(a: SimulateArgs) -> Result<ExitCode> {
         adc_bits: a.adc_bits,
     }
     .validate()?;
-    let (_, spec, matrix) = a.sensor.matrix()?;
+    let (codes, spec, matrix) = a.sensor.matrix()?;
     let x = read_cube(&a.cube, true)?;
     let shape = x.shape().to_vec();
     let (t, h, w) = (shape[shape.len() - 3], shape[shape.len() - 2], shape[shape.len() - 1]);
@@ -187,7 +187,14 @@ pub fn simulate(a: SimulateArgs) -> Result<ExitCode> {
             }
         }
     };
+    let units = match (a.noise, a.units) {
+        (false, _) | (true, Units::Input) => "input",
+        (true, Units::Electrons) => "electrons",
+        (true, Units::Adc) => "adc",
+    };
+    let sidecar = tcsense_sensor::sidecar::Sidecar::new(&codes, &matrix, spec.sampling(), a.noise.then_some(noise), a.noise.then_some(a.seed), units);
     write_npy(&a.output, &y.view())?;
-    println!("wrote {}: y {:?}", a.output.display(), y.shape());
+    let meta = sidecar.write_for(&a.output)?;
+    println!("wrote {}: y {:?} (sensor in {})", a.output.display(), y.shape(), meta.display());
     Ok(ExitCode::SUCCESS)
 }
