@@ -146,3 +146,18 @@ fn broken_run_directories_exit_2_naming_the_file() {
     fails(d, &["reconstruct", "admm-net", "--run", "foreign", "--measurements", &y, "-o", "x.npy"], &["config.json", "not a run config"]);
     assert!(!d.join("x.npy").exists(), "no output from a broken run");
 }
+
+#[test]
+fn same_seed_same_weights_bytes() {
+    let d = tempdir();
+    let d = d.path();
+    setup(d);
+    for run in ["a", "b", "c"] {
+        let seed = if run == "c" { "4" } else { "3" };
+        ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "2", "--seed", seed, "-o", run]);
+    }
+    let read = |p: &str| std::fs::read(d.join(p)).unwrap();
+    assert_eq!(read("a/model.bpk"), read("b/model.bpk"), "same seed, same weights file");
+    assert_eq!(read("a/checkpoint/model.bpk"), read("b/checkpoint/model.bpk"));
+    assert_ne!(read("a/model.bpk"), read("c/model.bpk"), "another seed, other weights");
+}

@@ -5,7 +5,7 @@
 //! atomic checkpoint after every epoch. A run is a pure function of its config, so a resumed
 //! run continues exactly where its checkpoint was taken.
 
-use burn::module::{Module, ModuleVisitor, Param};
+use burn::module::{Module, ModuleMapper, ModuleVisitor, Param, ParamId};
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Device, Tensor, TensorData};
 use ndarray::{Array4, Axis};
@@ -226,11 +226,21 @@ pub(crate) fn seeded_init<M: Module>(device: &Device, seed: u64, init: impl Fn(&
             drop(param.val());
         }
     }
+    /// Parameter ids numbered in visiting order: burn draws them at random, and they are
+    /// stored in the weights and optimiser files, so same seed, same bytes needs them fixed.
+    struct Renumber(u64);
+    impl ModuleMapper for Renumber {
+        fn map_float<const D: usize>(&mut self, mut param: Param<Tensor<D>>) -> Param<Tensor<D>> {
+            self.0 += 1;
+            param.id = ParamId::from(self.0);
+            param
+        }
+    }
     let _guard = SEEDED_INIT.lock().unwrap_or_else(|e| e.into_inner());
     device.seed(seed);
     let model = init(device);
     model.visit(&mut Touch);
-    model
+    model.map(&mut Renumber(0))
 }
 
 /// Measure each item of `x` with its own noise model (`None`: noise-free), item `i`'s noise
