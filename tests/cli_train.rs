@@ -161,3 +161,39 @@ fn same_seed_same_weights_bytes() {
     assert_eq!(read("a/checkpoint/model.bpk"), read("b/checkpoint/model.bpk"));
     assert_ne!(read("a/model.bpk"), read("c/model.bpk"), "another seed, other weights");
 }
+
+#[test]
+fn a_second_training_into_the_same_run_is_refused() {
+    let d = tempdir();
+    let d = d.path();
+    setup(d);
+    // the first one runs long enough for the second to meet it
+    let mut first = bin()
+        .current_dir(d)
+        .args(["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "100000", "-o", "run"])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let lock = d.join("run/.lock");
+    for _ in 0..200 {
+        if lock.exists() {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    assert!(lock.exists(), "the first training holds run/.lock");
+    fails(d, &["train", "admm-net", "--epochs", "3", "--resume", "-o", "run"], &["run", "another training", &first.id().to_string()]);
+    // killed (SIGKILL) after its first checkpoint: its lock is stale and the next training takes it over
+    for _ in 0..600 {
+        if d.join("run/checkpoint/state.json").exists() {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    first.kill().unwrap();
+    first.wait().unwrap();
+    assert!(lock.exists(), "a killed process leaves its lock behind");
+    ok(d, &["train", "admm-net", "--epochs", "1", "--resume", "-o", "run"]);
+    assert!(!lock.exists(), "the lock is released at the end");
+}

@@ -31,7 +31,7 @@ use crate::augment::DepthLabels;
 use crate::config::Loss;
 use crate::data::{load_cubes, load_depth};
 use crate::loss::{depth_loss, loss_fn};
-use crate::run_dir::{latest_checkpoint, load_checkpoint, read_json, read_rows, save_checkpoint, write_json, write_rows, EpochMetrics, RunState, METRICS_FILE};
+use crate::run_dir::{latest_checkpoint, load_checkpoint, read_json, read_rows, save_checkpoint, write_json, write_rows, EpochMetrics, RunLock, RunState, METRICS_FILE};
 use crate::{file_err, Result, TrainError};
 
 /// Stream of the validation noise seeds, apart from the training steps' `(seed, step)`.
@@ -142,6 +142,7 @@ fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, p
     let sensor = SensorTensors::new(&a, th, tw, &device)?;
 
     std::fs::create_dir_all(run).map_err(|e| file_err(run, e))?;
+    let _lock = RunLock::acquire(run)?;
     let (mut model, mut optim, mut state, mut rows) = if resume {
         let saved = TrainConfig::load(&run.join(CONFIG_FILE))?;
         if saved.run.model != cfg.run.model || saved.seed != cfg.seed || saved.batch_size != cfg.batch_size {

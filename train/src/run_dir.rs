@@ -172,3 +172,63 @@ mod tests {
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }
+
+/// The lock file of a run directory that a training process holds.
+pub const LOCK_FILE: &str = ".lock";
+
+/// A run directory held by this process: created exclusively (`RUN/.lock` with the pid), so
+/// a second training into the same directory is refused instead of interleaving; removed on
+/// drop. A lock left by a process that no longer runs (killed) is taken over.
+#[derive(Debug)]
+pub struct RunLock {
+    path: PathBuf,
+}
+
+impl RunLock {
+    /// Take the lock of `run` (which must exist).
+    pub fn acquire(run: &Path) -> Result<Self> {
+        use std::io::Write;
+        let path = run.join(LOCK_FILE);
+        for _ in 0..2 {
+            match std::fs::OpenOptions::new().write(true).create_new(true).open(&path) {
+                Ok(mut f) => {
+                    writeln!(f, "{}", std::process::id()).map_err(|e| file_err(&path, e))?;
+                    return Ok(RunLock { path });
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                    let holder = std::fs::read_to_string(&path).ok().and_then(|s| s.trim().parse::<u32>().ok());
+                    match holder {
+                        Some(pid) if process_alive(pid) => {
+                            return Err(file_err(run, format!("another training (process {pid}) is writing this run directory; wait for it or stop it (its lock is {})", path.display())));
+                        }
+                        // the holder is gone (killed): take the lock over
+                        _ => {
+                            let _ = std::fs::remove_file(&path);
+                        }
+                    }
+                }
+                Err(e) => return Err(file_err(&path, e)),
+            }
+        }
+        Err(file_err(&path, "cannot take the run directory's lock"))
+    }
+}
+
+impl Drop for RunLock {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.path);
+    }
+}
+
+/// Whether process `pid` runs (Linux: `/proc/PID`; elsewhere assume it does).
+fn process_alive(pid: u32) -> bool {
+    if pid == std::process::id() {
+        return true;
+    }
+    let proc_dir = Path::new("/proc");
+    if proc_dir.is_dir() {
+        proc_dir.join(pid.to_string()).exists()
+    } else {
+        true
+    }
+}
