@@ -198,6 +198,14 @@ pub fn generate(gen: &Generator, grid: &TimeGrid, count: usize, seed: u64, dir: 
     if opts.shard_size == 0 {
         return Err(invalid("shard_size", 0, "at least 1"));
     }
+    // a shard is held in memory (and copied once to stack it) while the threads make items
+    let item_bytes: f64 = gen.fields(&grid).values().map(|s| 4.0 * s.iter().product::<usize>() as f64).sum();
+    let in_flight = opts.shard_size.min(count) + 2 * rayon::current_num_threads();
+    tcsense_sensor::mem::check_fits(
+        &format!("{count} items of {:.1} MiB in shards of {}", item_bytes / (1u64 << 20) as f64, opts.shard_size.min(count)),
+        2.0 * item_bytes * in_flight as f64,
+        "use a smaller --size, fewer bins (--length, --heterodyne/--oversample) or a smaller --shard-size",
+    )?;
     let counts = split_counts(count, gen.proportions());
     let tmp = prepare_output(dir, opts.force)?;
     let result = (|| -> Result<Manifest> {

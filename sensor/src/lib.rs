@@ -20,6 +20,7 @@ pub mod export;
 pub mod generate;
 pub mod matrix;
 pub mod measure;
+pub mod mem;
 pub mod noise;
 pub mod npy;
 pub mod operator;
