@@ -319,18 +319,28 @@ pub struct Dataset {
     pub manifest: Manifest,
 }
 
+impl Manifest {
+    /// Parse and check the text of a `manifest.json`; the error is a message without the
+    /// file name.
+    pub fn parse(text: &str) -> std::result::Result<Manifest, String> {
+        let manifest: Manifest = serde_json::from_str(text).map_err(|e| format!("malformed manifest: {e}"))?;
+        if manifest.format != "tcsense-dataset" || manifest.version != 1 {
+            return Err(format!("format {:?} version {}, expected \"tcsense-dataset\" version 1", manifest.format, manifest.version));
+        }
+        manifest.grid.validate().map_err(|e| format!("field 'grid': {e}"))?;
+        if manifest.grid.bins() != manifest.bins {
+            return Err(format!("field 'bins' is {}, but the grid gives T = L·K = {}", manifest.bins, manifest.grid.bins()));
+        }
+        Ok(manifest)
+    }
+}
+
 impl Dataset {
     /// Open `DIR/manifest.json`; errors name the file and field.
     pub fn open(dir: &Path) -> Result<Self> {
         let path = dir.join("manifest.json");
         let text = std::fs::read_to_string(&path).map_err(|e| tcsense_sensor::SensorError::io(&path, e))?;
-        let manifest: Manifest = serde_json::from_str(&text).map_err(|e| file_err(&path, format!("malformed manifest: {e}")))?;
-        if manifest.format != "tcsense-dataset" || manifest.version != 1 {
-            return Err(file_err(&path, format!("format {:?} version {}, expected \"tcsense-dataset\" version 1", manifest.format, manifest.version)));
-        }
-        if manifest.grid.bins() != manifest.bins {
-            return Err(file_err(&path, format!("field 'bins' is {}, but the grid gives T = L·K = {}", manifest.bins, manifest.grid.bins())));
-        }
+        let manifest = Manifest::parse(&text).map_err(|msg| file_err(&path, msg))?;
         Ok(Dataset { dir: dir.to_path_buf(), manifest })
     }
 

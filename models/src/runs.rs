@@ -71,6 +71,47 @@ impl ModelConfig {
         }
     }
 
+    /// Check the hyper-parameters against sane bounds (a config with absurd numbers would
+    /// otherwise ask for terabytes when the network is built).
+    pub fn validate(&self) -> Result<()> {
+        let bad = |field: &'static str, got: String, expected: &str| Err(ModelError::InvalidParam { field, got, expected: expected.into() });
+        let (taps, bins) = (self.taps(), self.bins());
+        if !(1..=64).contains(&taps) {
+            return bad("model.taps", taps.to_string(), "1..=64 taps");
+        }
+        if !(1..=16384).contains(&bins) {
+            return bad("model.bins", bins.to_string(), "1..=16384 bins");
+        }
+        match self {
+            ModelConfig::AdmmNet(c) => {
+                if !(1..=64).contains(&c.stages) {
+                    return bad("model.stages", c.stages.to_string(), "1..=64 stages");
+                }
+                if !(1..=1024).contains(&c.channels) {
+                    return bad("model.channels", c.channels.to_string(), "1..=1024 channels");
+                }
+                if !(c.rho_init.is_finite() && c.rho_init > 0.0 && c.eta_init.is_finite()) {
+                    return bad("model.rho_init", format!("{}, eta_init {}", c.rho_init, c.eta_init), "rho_init > 0 and a finite eta_init");
+                }
+            }
+            ModelConfig::Unet(c) => {
+                if !(1..=4).contains(&c.returns) {
+                    return bad("model.returns", c.returns.to_string(), "1..=4 returns");
+                }
+                if !(1..=256).contains(&c.base_width) {
+                    return bad("model.base_width", c.base_width.to_string(), "1..=256 channels");
+                }
+                if !(1..=6).contains(&c.levels) {
+                    return bad("model.levels", c.levels.to_string(), "1..=6 levels");
+                }
+                if !(c.range_m.is_finite() && c.range_m > 0.0) {
+                    return bad("model.range_m", c.range_m.to_string(), "a positive range in metres");
+                }
+            }
+        }
+        Ok(())
+    }
+
     /// Bins `T` of the cube it reconstructs.
     pub fn bins(&self) -> usize {
         match self {
@@ -170,6 +211,7 @@ pub struct LoadedRun {
 pub fn load(dir: &Path, device: &Device) -> Result<LoadedRun> {
     let cfg_path = dir.join(CONFIG_FILE);
     let spec: RunSpec = serde_json::from_value(read_config_json(&cfg_path)?).map_err(|e| file_err(&cfg_path, format!("not a run config: {e}")))?;
+    spec.model.validate().map_err(|e| file_err(&cfg_path, e))?;
     let codes = Codes::load(&dir.join(CODES_FILE))?;
     let sensor = spec.matrix(&codes)?;
     if sensor.taps() != spec.model.taps() || sensor.bins() != spec.model.bins() {

@@ -74,6 +74,7 @@ impl TrainConfig {
     /// Check the settings before any work starts.
     pub fn validate(&self) -> Result<()> {
         let bad = |field: &'static str, got: String, expected: &str| Err(TrainError::InvalidParam { field, got, expected: expected.into() });
+        self.run.model.validate()?;
         if self.epochs == 0 {
             return bad("epochs", "0".into(), "at least 1");
         }
