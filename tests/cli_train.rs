@@ -140,6 +140,9 @@ fn broken_run_directories_exit_2_naming_the_file() {
     let run = copy("foreign");
     std::fs::write(run.join("config.json"), "{\"decoder\": \"admm-net\", \"model\": {\"taps\": 2, \"bins\": 8, \"stages\": 2, \"channels\": 4, \"rho_init\": 0.1, \"eta_init\": 1.0}, \"sampling\": {\"mode\": \"oversample\", \"k\": 1}, \"irf\": {\"kind\": \"ideal\"}}").unwrap();
     fails(d, &["reconstruct", "admm-net", "--run", "foreign", "--measurements", &y, "-o", "x.npy"], &["config.json", "M = 2"]);
+    // absurd numbers are refused before the network is built (not a terabyte allocation)
+    std::fs::write(run.join("config.json"), "{\"decoder\": \"admm-net\", \"model\": {\"taps\": 4, \"bins\": 8, \"stages\": 2, \"channels\": 1000000000000, \"rho_init\": 0.1, \"eta_init\": 1.0}, \"sampling\": {\"mode\": \"oversample\", \"k\": 1}, \"irf\": {\"kind\": \"ideal\"}}").unwrap();
+    fails(d, &["reconstruct", "admm-net", "--run", "foreign", "--measurements", &y, "-o", "x.npy"], &["config.json", "model.channels"]);
     std::fs::write(run.join("config.json"), "not json").unwrap();
     fails(d, &["reconstruct", "admm-net", "--run", "foreign", "--measurements", &y, "-o", "x.npy"], &["config.json", "malformed JSON"]);
     std::fs::write(run.join("config.json"), "{\"decoder\": \"magic\", \"model\": {}}").unwrap();
