@@ -111,7 +111,13 @@ fn export_check_and_stream_a_trained_unet() {
     std::fs::create_dir_all(d.join("empty")).unwrap();
     fails(d, &["infer", "--model", "unet.onnx", "--measurements", "empty", "-o", "bad5"], &["empty", "no frames"]);
     fails(d, &["infer", "--model", "nope.onnx", "--measurements", "stack.npy", "-o", "bad6"], &["nope.onnx"]);
-    for bad in ["bad1", "bad2", "bad3", "bad4", "bad5", "bad6"] {
+    // a frame of another size in the middle of a stream: the error names it and the frames
+    // already decoded are not left behind as a partial output
+    std::fs::create_dir_all(d.join("mixed")).unwrap();
+    write_npy(&d.join("mixed/a.npy"), &f.view()).unwrap();
+    write_npy(&d.join("mixed/b.npy"), &ndarray::Array3::<f32>::ones((4, 8, 4)).view()).unwrap();
+    fails(d, &["infer", "--model", "unet.onnx", "--measurements", "mixed", "-o", "bad7"], &["b.npy", "first frame"]);
+    for bad in ["bad1", "bad2", "bad3", "bad4", "bad5", "bad6", "bad7"] {
         let left: Vec<_> = std::fs::read_dir(d.join(bad)).map(|r| r.flatten().map(|e| e.path()).collect()).unwrap_or_default();
         assert!(left.is_empty(), "{bad}: {left:?} left behind");
     }

@@ -210,12 +210,18 @@ impl NpyStackWriter {
     /// Flush, check the count and rename into place.
     pub fn finish(mut self) -> Result<()> {
         let out = self.out.take().ok_or_else(|| file_err(&self.path, "finished twice"))?;
-        if self.written != self.expected {
-            return Err(file_err(&self.path, format!("{} values written, {} expected", self.written, self.expected)));
+        let result = (|| {
+            if self.written != self.expected {
+                return Err(file_err(&self.path, format!("{} values written, {} expected", self.written, self.expected)));
+            }
+            let file = out.into_inner().map_err(|e| file_err(&self.path, e.into_error()))?;
+            file.sync_all().map_err(|e| file_err(&self.path, e))?;
+            std::fs::rename(&self.tmp, &self.path).map_err(|e| file_err(&self.path, e))
+        })();
+        if result.is_err() {
+            let _ = std::fs::remove_file(&self.tmp);
         }
-        let file = out.into_inner().map_err(|e| file_err(&self.path, e.into_error()))?;
-        file.sync_all().map_err(|e| file_err(&self.path, e))?;
-        std::fs::rename(&self.tmp, &self.path).map_err(|e| file_err(&self.path, e))
+        result
     }
 }
 
@@ -338,12 +344,18 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
         });
         // products + writer
         let writer = scope.spawn(move || -> Result<()> {
+            let mut done = 0;
             for (i, outs) in orx {
                 write_frame(i, outs, &mut writers, products, cube_model, bin_s, &peak_opts, out)?;
+                done += 1;
                 on_frame(i + 1, frames);
             }
-            for wr in [writers.cube, writers.depth, writers.second, writers.lifetime].into_iter().flatten() {
-                wr.finish()?;
+            // only a complete stream is renamed into place; otherwise the writers are dropped
+            // and their temporary files removed
+            if done == frames {
+                for wr in [writers.cube, writers.depth, writers.second, writers.lifetime].into_iter().flatten() {
+                    wr.finish()?;
+                }
             }
             Ok(())
         });
