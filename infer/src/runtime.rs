@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 use tcsense_models::decoder::{check_measurements, Control, Decoded, Decoder, Step};
-use tcsense_models::net::DETECTION_THRESHOLD;
+use tcsense_models::net::mask_depth;
 use tcsense_sensor::MeasurementMatrix;
 
 use crate::onnx::{OnnxMeta, INPUT, MATRIX_INPUT};
@@ -191,15 +191,6 @@ impl OnnxModel {
             })
             .collect()
     }
-}
-
-/// Depth with NaN where the confidence is below [`DETECTION_THRESHOLD`].
-pub fn mask_depth(depth: &mut Array4<f32>, confidence: &Array4<f32>) {
-    depth.zip_mut_with(confidence, |d, &c| {
-        if c < DETECTION_THRESHOLD {
-            *d = f32::NAN;
-        }
-    });
 }
 
 /// An exported model behind the decoder contract (`eval --decoder onnx:model.onnx`).

@@ -27,7 +27,8 @@ use std::time::Instant;
 use tcsense_sensor::npy::{f32_header, parse_header, read_npy, NpyHeader};
 
 use crate::products::{depth_map, lifetime_map, write_ply, PeakOptions};
-use crate::runtime::{mask_depth, OnnxModel};
+use crate::runtime::OnnxModel;
+use tcsense_models::net::mask_depth;
 use crate::{InferError, Result};
 
 fn file_err(path: &Path, msg: impl ToString) -> InferError {
@@ -300,7 +301,6 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
     let (first, first_path) = source.read(0, taps)?;
     let (m, h, w) = first.dim();
     model.check(&first.view().insert_axis(Axis(0)), &first_path.display().to_string())?;
-    let _ = m;
     let cube_model = model.meta.decoder != "unet";
     let (t, k) = (model.meta.bins, if cube_model { products.returns } else { model.meta.returns });
     std::fs::create_dir_all(out).map_err(|e| file_err(out, e))?;

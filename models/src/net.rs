@@ -71,12 +71,20 @@ pub fn split_depth(out: &Array4<f32>) -> (Array4<f32>, Array4<f32>) {
     let k = out.dim().1 / 2;
     let mut depth = out.slice(ndarray::s![.., ..k, .., ..]).to_owned();
     let confidence = out.slice(ndarray::s![.., k.., .., ..]).mapv(|l| 1.0 / (1.0 + (-l).exp()));
-    depth.zip_mut_with(&confidence, |d, &c| {
+    mask_depth(&mut depth, &confidence);
+    (depth, confidence)
+}
+
+/// Set the depth to NaN where the confidence is below [`DETECTION_THRESHOLD`].
+///
+/// # Shapes
+/// - `depth`, `confidence`: `[B, K, H, W]`
+pub fn mask_depth(depth: &mut Array4<f32>, confidence: &Array4<f32>) {
+    depth.zip_mut_with(confidence, |d, &c| {
         if c < DETECTION_THRESHOLD {
             *d = f32::NAN;
         }
     });
-    (depth, confidence)
 }
 
 /// A [`Network`] for inference behind the [`Decoder`] contract.

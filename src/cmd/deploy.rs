@@ -93,22 +93,22 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
     let mut products = Products::parse(&list, cube_model)?;
     products.returns = a.returns;
     products.fov_deg = a.fov;
-    if let Some(p) = &a.sensor_matrix {
-        let arr = read_npy(p)?;
-        let shape = arr.shape().to_vec();
-        let arr = arr.into_dimensionality::<ndarray::Ix3>().map_err(|_| anyhow::anyhow!("{}: shape {shape:?}, expected [N, M, T]", p.display()))?;
-        model.set_matrix_array(arr.view()).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
-    }
+    // a recalibrated sensor matrix, read once: given to the model and checked against the sidecar
+    let recalibrated = match &a.sensor_matrix {
+        Some(p) => {
+            let arr = read_npy(p)?;
+            let shape = arr.shape().to_vec();
+            let arr = arr.into_dimensionality::<ndarray::Ix3>().map_err(|_| anyhow::anyhow!("{}: shape {shape:?}, expected [N, M, T]", p.display()))?;
+            model.set_matrix_array(arr.view()).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
+            Some(tcsense_sensor::MeasurementMatrix::from_array(arr, &model.meta.spec()?)?)
+        }
+        None => None,
+    };
     if let Some(meta) = tcsense_sensor::sidecar::Sidecar::read_for(&a.measurements)? {
         let path = tcsense_sensor::sidecar::Sidecar::path_for(&a.measurements);
-        match &a.sensor_matrix {
+        match &recalibrated {
             // a recalibrated matrix: the measurements must carry its digest
-            Some(p) => {
-                let arr = read_npy(p)?.into_dimensionality::<ndarray::Ix3>().map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
-                let spec = tcsense_sensor::SensorParams { sampling: model.meta.sampling, irf: model.meta.irf, ..tcsense_sensor::SensorParams::from_codes(&model.meta.codes) }.validate()?;
-                let a_cal = tcsense_sensor::MeasurementMatrix::from_array(arr, &spec)?;
-                meta.check(&path, &a_cal, None)?;
-            }
+            Some(a_cal) => meta.check(&path, a_cal, None)?,
             None => meta.check(&path, &model.sensor, Some(&model.meta.codes))?,
         }
     }

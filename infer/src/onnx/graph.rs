@@ -28,28 +28,26 @@ pub enum Attr<'a> {
 impl Attr<'_> {
     fn proto(&self) -> AttributeProto {
         let mut a = AttributeProto::new();
-        match self {
+        let (name, ty) = match self {
             Attr::Int(n, v) => {
-                a.name = n.to_string();
-                a.type_ = AttributeType::INT.into();
                 a.i = *v;
+                (n, AttributeType::INT)
             }
             Attr::Ints(n, v) => {
-                a.name = n.to_string();
-                a.type_ = AttributeType::INTS.into();
                 a.ints = v.to_vec();
+                (n, AttributeType::INTS)
             }
             Attr::Float(n, v) => {
-                a.name = n.to_string();
-                a.type_ = AttributeType::FLOAT.into();
                 a.f = *v;
+                (n, AttributeType::FLOAT)
             }
             Attr::Str(n, v) => {
-                a.name = n.to_string();
-                a.type_ = AttributeType::STRING.into();
                 a.s = v.as_bytes().to_vec();
+                (n, AttributeType::STRING)
             }
-        }
+        };
+        a.name = name.to_string();
+        a.type_ = ty.into();
         a
     }
 }
@@ -101,14 +99,8 @@ impl Graph {
     /// A float32 initializer `[dims]` (row-major data).
     pub fn weight(&mut self, hint: &str, dims: &[usize], data: &[f32]) -> String {
         debug_assert_eq!(dims.iter().product::<usize>(), data.len(), "{hint}");
-        let name = self.fresh(hint);
-        let mut t = TensorProto::new();
-        t.name = name.clone();
-        t.data_type = DataType::FLOAT as i32;
-        t.dims = dims.iter().map(|&d| d as i64).collect();
-        t.raw_data = data.iter().flat_map(|v| v.to_le_bytes()).collect();
-        self.graph.initializer.push(t);
-        name
+        let dims: Vec<i64> = dims.iter().map(|&d| d as i64).collect();
+        self.initializer(hint, DataType::FLOAT, dims, data.iter().flat_map(|v| v.to_le_bytes()).collect())
     }
 
     /// A float32 scalar initializer (shape `[]`, broadcasts).
@@ -118,12 +110,16 @@ impl Graph {
 
     /// An int64 initializer `[dims]`.
     pub fn ints(&mut self, hint: &str, data: &[i64]) -> String {
+        self.initializer(hint, DataType::INT64, vec![data.len() as i64], data.iter().flat_map(|v| v.to_le_bytes()).collect())
+    }
+
+    fn initializer(&mut self, hint: &str, ty: DataType, dims: Vec<i64>, raw: Vec<u8>) -> String {
         let name = self.fresh(hint);
         let mut t = TensorProto::new();
         t.name = name.clone();
-        t.data_type = DataType::INT64 as i32;
-        t.dims = vec![data.len() as i64];
-        t.raw_data = data.iter().flat_map(|v| v.to_le_bytes()).collect();
+        t.data_type = ty as i32;
+        t.dims = dims;
+        t.raw_data = raw;
         self.graph.initializer.push(t);
         name
     }
@@ -143,22 +139,20 @@ impl Graph {
     /// One node with `n` outputs.
     pub fn node_multi(&mut self, op: &str, inputs: &[&str], attrs: &[Attr<'_>], n: usize) -> Vec<String> {
         let outs: Vec<String> = (0..n).map(|_| self.fresh(&op.to_lowercase())).collect();
-        let mut node = NodeProto::new();
-        node.op_type = op.to_string();
-        node.name = format!("{op}_{}", self.graph.node.len());
-        node.input = inputs.iter().map(|s| s.to_string()).collect();
-        node.output = outs.clone();
-        node.attribute = attrs.iter().map(Attr::proto).collect();
-        self.graph.node.push(node);
+        self.push_node(op, inputs, attrs, outs.clone());
         outs
     }
 
     fn node_named(&mut self, op: &str, inputs: &[&str], attrs: &[Attr<'_>], out: &str) {
+        self.push_node(op, inputs, attrs, vec![out.to_string()]);
+    }
+
+    fn push_node(&mut self, op: &str, inputs: &[&str], attrs: &[Attr<'_>], outputs: Vec<String>) {
         let mut node = NodeProto::new();
         node.op_type = op.to_string();
         node.name = format!("{op}_{}", self.graph.node.len());
         node.input = inputs.iter().map(|s| s.to_string()).collect();
-        node.output = vec![out.to_string()];
+        node.output = outputs;
         node.attribute = attrs.iter().map(Attr::proto).collect();
         self.graph.node.push(node);
     }

@@ -5,7 +5,7 @@
 use std::path::Path;
 
 use tcsense_models::runs::{LoadedRun, ModelConfig};
-use tcsense_sensor::{Codes, Irf, MeasurementMatrix, Sampling, SensorParams};
+use tcsense_sensor::{Codes, Irf, MeasurementMatrix, Sampling, SensorParams, SensorSpec};
 
 use super::ExportOptions;
 use crate::{InferError, Result};
@@ -171,10 +171,14 @@ impl OnnxMeta {
         Ok(meta)
     }
 
+    /// The sensor spec of the model's codes, sampling and IRF.
+    pub fn spec(&self) -> Result<SensorSpec> {
+        Ok(SensorParams { sampling: self.sampling, irf: self.irf, ..SensorParams::from_codes(&self.codes) }.validate()?)
+    }
+
     /// The measurement matrix of the model's codes and sensor model.
     pub fn matrix(&self) -> Result<MeasurementMatrix> {
-        let spec = SensorParams { sampling: self.sampling, irf: self.irf, ..SensorParams::from_codes(&self.codes) }.validate()?;
-        Ok(MeasurementMatrix::synthesize(&self.codes, &spec)?)
+        Ok(MeasurementMatrix::synthesize(&self.codes, &self.spec()?)?)
     }
 }
 

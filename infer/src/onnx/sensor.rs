@@ -235,8 +235,14 @@ impl SensorGraph {
     /// # Shapes
     /// - `x`: `[B, T, H, W]` → `[B, N·M, H/bh, W/bw]`
     pub fn forward_blocks(&self, g: &mut Graph, x: &str, w: &DcWeights) -> String {
+        self.forward_conv(g, x, &w.a)
+    }
+
+    /// The frame-to-block convolution (kernel and stride the block) with weight `w` from
+    /// [`Self::frame_weight`].
+    fn forward_conv(&self, g: &mut Graph, x: &str, w: &str) -> String {
         let (bh, bw) = self.block;
-        g.node("Conv", &[x, &w.a], &[Attr::Ints("kernel_shape", &[bh as i64, bw as i64]), Attr::Ints("strides", &[bh as i64, bw as i64])])
+        g.node("Conv", &[x, w], &[Attr::Ints("kernel_shape", &[bh as i64, bw as i64]), Attr::Ints("strides", &[bh as i64, bw as i64])])
     }
 
     /// ADMM's x-update of stage `s`, `x = (AᵀA + ρI)⁻¹(Aᵀy + ρd)`, without forming the
@@ -263,8 +269,7 @@ impl SensorGraph {
     fn inverses(&self, g: &mut Graph, cs: &str) -> String {
         let Source::Input { gram, .. } = &self.src else { unreachable!("inverses are formed in the graph only from an input matrix") };
         let m = self.m;
-        let eye: Vec<f32> = (0..m * m).map(|i| if i / m == i % m { 1.0 } else { 0.0 }).collect();
-        let eye = g.weight("eye", &[1, 1, m, m], &eye);
+        let eye = g.weight("eye", &[1, 1, m, m], &eye_scaled(m, 1.0));
         let shape = g.ints("shape", &[-1, 1, 1, 1]);
         let c4 = g.op("Reshape", &[cs, &shape]); // [S, 1, 1, 1]
         let ci = g.op("Mul", &[&c4, &eye]);
@@ -298,8 +303,7 @@ impl SensorGraph {
                 g.weight(hint, &[n * cout, cin, bh, bw], &k)
             }
             Mats::Value(v) => {
-                let mask: Vec<f32> = (0..n * n).map(|i| if i / n == i % n { 1.0 } else { 0.0 }).collect();
-                let mask = g.weight("subpixel_onehot", &[n, 1, 1, n], &mask);
+                let mask = g.weight("subpixel_onehot", &[n, 1, 1, n], &eye_scaled(n, 1.0));
                 let axis3 = g.ints("axis3", &[3]);
                 let v4 = g.op("Unsqueeze", &[&v, &axis3]); // [N, C_out, C_in, 1]
                 let k = g.op("Mul", &[&v4, &mask]); // [N, C_out, C_in, N]
@@ -311,45 +315,33 @@ impl SensorGraph {
 
     /// The block-to-frame transposed convolution's weight `[N·C_in, C_out, bh, bw]` from
     /// `[N, C_out, C_in]`: input channel `n·C_in + k` of a block writes only its subpixel
-    /// `(n / bw, n mod bw)`, with weight `W_n[:, k]`.
+    /// `(n / bw, n mod bw)`, with weight `W_n[:, k]`. It is the frame-to-block weight of the
+    /// transposed matrices `W_nᵀ`.
     fn back_weight(&self, g: &mut Graph, hint: &str, mats: Mats, cout: usize, cin: usize) -> String {
-        let (n, (bh, bw)) = (self.n, self.block);
-        match mats {
+        let n = self.n;
+        let transposed = match mats {
             Mats::Const(w) => {
-                let mut k = vec![0f32; n * cin * cout * n];
+                let mut wt = vec![0f64; w.len()];
                 for s in 0..n {
-                    for i in 0..cin {
-                        for o in 0..cout {
-                            k[((s * cin + i) * cout + o) * n + s] = w[(s * cout + o) * cin + i] as f32;
+                    for o in 0..cout {
+                        for i in 0..cin {
+                            wt[(s * cin + i) * cout + o] = w[(s * cout + o) * cin + i];
                         }
                     }
                 }
-                g.weight(hint, &[n * cin, cout, bh, bw], &k)
+                Mats::Const(wt)
             }
-            Mats::Value(v) => {
-                let vt = g.node("Transpose", &[&v], &[Attr::Ints("perm", &[0, 2, 1])]); // [N, C_in, C_out]
-                let mask: Vec<f32> = (0..n * n).map(|i| if i / n == i % n { 1.0 } else { 0.0 }).collect();
-                let mask = g.weight("subpixel_onehot", &[n, 1, 1, n], &mask);
-                let axis3 = g.ints("axis3", &[3]);
-                let v4 = g.op("Unsqueeze", &[&vt, &axis3]); // [N, C_in, C_out, 1]
-                let k = g.op("Mul", &[&v4, &mask]); // [N, C_in, C_out, N]
-                let shape = g.ints("shape", &[(n * cin) as i64, cout as i64, bh as i64, bw as i64]);
-                g.op("Reshape", &[&k, &shape])
-            }
-        }
+            Mats::Value(v) => Mats::Value(g.node("Transpose", &[&v], &[Attr::Ints("perm", &[0, 2, 1])])),
+        };
+        self.frame_weight(g, hint, transposed, cin, cout)
     }
 
-    /// Frames to block layout: `[B, C, H, W]` → `[B, N·C, H/bh, W/bw]` (channel `n·C + c`).
+    /// Frames to block layout: `[B, C, H, W]` → `[B, N·C, H/bh, W/bw]` (channel `n·C + c`),
+    /// the frame-to-block convolution with `W_n = I`.
     fn to_blocks(&self, g: &mut Graph, x: &str, c: usize) -> String {
-        let (n, (bh, bw)) = (self.n, self.block);
-        let mut k = vec![0f32; n * c * c * n];
-        for s in 0..n {
-            for o in 0..c {
-                k[((s * c + o) * c + o) * n + s] = 1.0;
-            }
-        }
-        let w = g.weight("to_blocks", &[n * c, c, bh, bw], &k);
-        g.node("Conv", &[x, &w], &[Attr::Ints("kernel_shape", &[bh as i64, bw as i64]), Attr::Ints("strides", &[bh as i64, bw as i64])])
+        let eye: Vec<f64> = (0..self.n).flat_map(|_| eye_scaled(c, 1.0)).map(f64::from).collect();
+        let w = self.frame_weight(g, "to_blocks", Mats::Const(eye), c, c);
+        self.forward_conv(g, x, &w)
     }
 
     /// Block layout `[B, N·C_in, H', W']` to frames `[B, C_out, H, W]` through the per-subpixel
@@ -375,7 +367,7 @@ fn eye_scaled(m: usize, s: f32) -> Vec<f32> {
 /// Gauss–Jordan elimination with partial pivoting in f64.
 pub fn spd_inverse(gram: &[f64], m: usize, c: f64) -> Vec<f64> {
     let mut a: Vec<f64> = (0..m * m).map(|i| gram[i] + if i / m == i % m { c } else { 0.0 }).collect();
-    let mut inv = eye_scaled(m, 1.0).into_iter().map(f64::from).collect::<Vec<f64>>();
+    let mut inv: Vec<f64> = eye_scaled(m, 1.0).into_iter().map(f64::from).collect();
     for k in 0..m {
         let p = (k..m).max_by(|&i, &j| a[i * m + k].abs().total_cmp(&a[j * m + k].abs())).unwrap_or(k);
         if p != k {
