@@ -21,16 +21,11 @@ fn check_onnx(dir: &Path, args: &[&str]) -> String {
     out
 }
 
-fn setup(d: &Path) {
-    ok(d, &["dataset", "lidar", "--count", "8", "--size", "8x8", "--length", "8", "--seed", "2", "-o", "ds"]);
-    ok(d, &["codes", "generate", "--tap-constraint", "--length", "8", "--seed", "1", "-o", "codes.json"]);
-}
-
 #[test]
 fn export_check_and_stream_a_trained_unet() {
     let d = tempdir();
     let d = d.path();
-    setup(d);
+    tiny_lidar_and_codes(d);
     ok(d, &["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--base-width", "4", "--levels", "2", "--epochs", "2", "--seed", "3", "-o", "unet"]);
     let out = ok(d, &["export", "onnx", "--run", "unet", "-o", "unet.onnx"]);
     assert!(out.contains("multiples of 2x2") && out.contains("depth, confidence"), "{out}");
@@ -127,7 +122,7 @@ fn export_check_and_stream_a_trained_unet() {
 fn admm_net_export_with_the_matrix_as_input_and_eval_through_ort() {
     let d = tempdir();
     let d = d.path();
-    setup(d);
+    tiny_lidar_and_codes(d);
     ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "2", "--channels", "2", "--epochs", "1", "--seed", "3", "-o", "run"]);
     ok(d, &["export", "onnx", "--run", "run", "-o", "baked.onnx"]);
     ok(d, &["export", "onnx", "--run", "run", "--matrix-input", "-o", "input.onnx"]);
@@ -174,4 +169,21 @@ fn a_missing_onnx_runtime_exits_2_with_the_install_hint() {
     assert_eq!(o2.status.code(), Some(2), "{err}");
     assert!(err.contains("scripts/setup.sh") && err.contains("ORT_DYLIB_PATH") && !err.contains("panicked"), "{err}");
     assert!(!d.join("out").exists());
+}
+
+#[test]
+fn export_and_bench_infer_bad_inputs_exit_2() {
+    let d = tempdir();
+    let d = d.path();
+    fails(d, &["export", "onnx", "--run", "nowhere", "-o", "m.onnx"], &["nowhere", "config.json"]);
+    let fx = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/admm-net-run-v1");
+    std::fs::create_dir_all(d.join("broken")).unwrap();
+    for f in ["config.json", "codes.json"] {
+        std::fs::copy(fx.join(f), d.join("broken").join(f)).unwrap();
+    }
+    fails(d, &["export", "onnx", "--run", "broken", "-o", "m.onnx"], &["model.bpk", "no trained weights"]);
+    assert!(!d.join("m.onnx").exists());
+    fails(d, &["bench", "infer", "--decoder", "magic", "--size", "8x8"], &["--decoder", "unet or admm-net"]);
+    fails(d, &["bench", "infer", "--decoder", "unet", "--size", "8x8", "--ort-threads", "0"], &["--ort-threads"]);
+    fails(d, &["bench", "infer", "--decoder", "unet", "--size", "6x6", "--reps", "1"], &["--size 6x6", "multiples of 4x4"]);
 }

@@ -4,16 +4,11 @@ mod common;
 use common::*;
 use tcsense_sensor::npy::read_npy;
 
-fn setup(d: &std::path::Path) {
-    ok(d, &["dataset", "lidar", "--count", "8", "--size", "8x8", "--length", "8", "--seed", "2", "-o", "ds"]);
-    ok(d, &["codes", "generate", "--tap-constraint", "--length", "8", "--seed", "1", "-o", "codes.json"]);
-}
-
 #[test]
 fn train_resume_reconstruct_and_eval() {
     let d = tempdir();
     let d = d.path();
-    setup(d);
+    tiny_lidar_and_codes(d);
     let out = ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "2", "--seed", "3", "-o", "run"]);
     assert!(out.contains("epoch    2"), "{out}");
     for f in ["config.json", "codes.json", "metrics.csv", "model.bpk", "checkpoint/model.bpk", "checkpoint/optim.bpk", "checkpoint/state.json"] {
@@ -51,7 +46,7 @@ fn train_resume_reconstruct_and_eval() {
 fn bad_inputs_exit_2() {
     let d = tempdir();
     let d = d.path();
-    setup(d);
+    tiny_lidar_and_codes(d);
     fails(d, &["train", "admm-net", "--dataset", "ds", "-o", "run"], &["--codes"]);
     ok(d, &["codes", "generate", "--tap-constraint", "--taps", "2", "--length", "8", "-o", "c2.json"]);
     ok(d, &["codes", "generate", "--tap-constraint", "--length", "16", "-o", "c16.json"]);
@@ -86,7 +81,7 @@ fn reconstruct_with_a_run_from_an_earlier_build() {
 fn train_reconstruct_and_eval_the_unet() {
     let d = tempdir();
     let d = d.path();
-    setup(d);
+    tiny_lidar_and_codes(d);
     let out = ok(d, &["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--base-width", "4", "--levels", "2", "--epochs", "2", "--seed", "3", "-o", "unet"]);
     assert!(out.contains("U-Net") && out.contains("depth_rmse_m"), "{out}");
     let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("unet/config.json")).unwrap()).unwrap();
@@ -154,7 +149,7 @@ fn broken_run_directories_exit_2_naming_the_file() {
 fn same_seed_same_weights_bytes() {
     let d = tempdir();
     let d = d.path();
-    setup(d);
+    tiny_lidar_and_codes(d);
     for run in ["a", "b", "c"] {
         let seed = if run == "c" { "4" } else { "3" };
         ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "2", "--seed", seed, "-o", run]);
@@ -169,7 +164,7 @@ fn same_seed_same_weights_bytes() {
 fn a_second_training_into_the_same_run_is_refused() {
     let d = tempdir();
     let d = d.path();
-    setup(d);
+    tiny_lidar_and_codes(d);
     // the first one runs long enough for the second to meet it
     let mut first = bin()
         .current_dir(d)

@@ -36,3 +36,10 @@ pub fn tempdir() -> tempfile::TempDir {
 pub fn p(dir: &Path, name: &str) -> PathBuf {
     dir.join(name)
 }
+
+/// A tiny LiDAR dataset `ds` (8 items, 8×8, L = 8) and tap-constrained codes `codes.json`
+/// (L = 8) in `dir`: what the training and deployment tests start from.
+pub fn tiny_lidar_and_codes(dir: &Path) {
+    ok(dir, &["dataset", "lidar", "--count", "8", "--size", "8x8", "--length", "8", "--seed", "2", "-o", "ds"]);
+    ok(dir, &["codes", "generate", "--tap-constraint", "--length", "8", "--seed", "1", "-o", "codes.json"]);
+}
