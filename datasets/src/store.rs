@@ -323,7 +323,9 @@ impl Manifest {
     /// Parse and check the text of a `manifest.json`; the error is a message without the
     /// file name.
     pub fn parse(text: &str) -> std::result::Result<Manifest, String> {
-        let manifest: Manifest = serde_json::from_str(text).map_err(|e| format!("malformed manifest: {e}"))?;
+        let v: serde_json::Value = serde_json::from_str(text).map_err(|e| format!("malformed manifest: {e}"))?;
+        let manifest: Manifest = serde_json::from_value(v.clone()).map_err(|e| format!("malformed manifest: {e}"))?;
+        tcsense_sensor::json::reject_unknown_keys(&v, &tcsense_sensor::json::keys_of(&manifest))?;
         if manifest.format != "tcsense-dataset" || manifest.version != 1 {
             return Err(format!("format {:?} version {}, expected \"tcsense-dataset\" version 1", manifest.format, manifest.version));
         }
@@ -331,17 +333,92 @@ impl Manifest {
         if manifest.grid.bins() != manifest.bins {
             return Err(format!("field 'bins' is {}, but the grid gives T = L·K = {}", manifest.bins, manifest.grid.bins()));
         }
+        manifest.check_layout()?;
         Ok(manifest)
     }
 }
 
+impl Manifest {
+    /// The frame size, the field shapes and the splits agree with each other, and every shard
+    /// path stays inside the dataset directory.
+    fn check_layout(&self) -> std::result::Result<(), String> {
+        let [h, w] = self.size;
+        if h == 0 || w == 0 {
+            return Err(format!("field 'size' is {:?}, expected a non-empty frame [H, W]", self.size));
+        }
+        if let Some(x) = self.fields.get("x") {
+            if x != &[self.bins, h, w] {
+                return Err(format!("field 'fields.x' is {x:?}, expected [bins, H, W] = {:?}", [self.bins, h, w]));
+            }
+        }
+        for (name, shape) in &self.fields {
+            shape
+                .iter()
+                .try_fold(4usize, |acc, &d| acc.checked_mul(d))
+                .filter(|&b| b > 0 && b <= 1 << 40)
+                .ok_or_else(|| format!("field 'fields.{name}' is {shape:?}, expected a non-empty item shape"))?;
+        }
+        for split in &self.splits {
+            let sum: usize = split.shards.iter().map(|s| s.count).sum();
+            if sum != split.count {
+                return Err(format!("split {:?}: 'count' is {}, but its shards hold {sum} items", split.name, split.count));
+            }
+            for shard in &split.shards {
+                if !shard.files.keys().eq(self.fields.keys()) {
+                    let got: Vec<&String> = shard.files.keys().collect();
+                    let want: Vec<&String> = self.fields.keys().collect();
+                    return Err(format!("split {:?}: a shard has files for {got:?}, expected one per field {want:?}", split.name));
+                }
+                for rel in shard.files.values() {
+                    let inside = Path::new(rel).components().all(|c| matches!(c, std::path::Component::Normal(_)));
+                    if !inside || rel.is_empty() {
+                        return Err(format!("split {:?}: shard path {rel:?}, expected a relative path inside the dataset directory", split.name));
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
 impl Dataset {
-    /// Open `DIR/manifest.json`; errors name the file and field.
+    /// Open `DIR/manifest.json` and check that every shard it lists is there with the shape the
+    /// manifest gives (headers only); errors name the file and field.
     pub fn open(dir: &Path) -> Result<Self> {
         let path = dir.join("manifest.json");
         let text = std::fs::read_to_string(&path).map_err(|e| tcsense_sensor::SensorError::io(&path, e))?;
         let manifest = Manifest::parse(&text).map_err(|msg| file_err(&path, msg))?;
-        Ok(Dataset { dir: dir.to_path_buf(), manifest })
+        let ds = Dataset { dir: dir.to_path_buf(), manifest };
+        ds.check_shards()?;
+        Ok(ds)
+    }
+
+    /// Every shard file exists, holds a `.npy` header of shape `[count, …item shape]` and is
+    /// long enough for its data.
+    fn check_shards(&self) -> Result<()> {
+        use std::io::Read;
+        for split in &self.manifest.splits {
+            for shard in &split.shards {
+                for (field, rel) in &shard.files {
+                    let path = self.dir.join(rel);
+                    let file = std::fs::File::open(&path).map_err(|e| tcsense_sensor::SensorError::io(&path, e))?;
+                    let len = file.metadata().map_err(|e| tcsense_sensor::SensorError::io(&path, e))?.len();
+                    let mut head = Vec::new();
+                    file.take(1 << 17).read_to_end(&mut head).map_err(|e| tcsense_sensor::SensorError::io(&path, e))?;
+                    let h = tcsense_sensor::npy::parse_header(&head).map_err(|msg| file_err(&path, msg))?;
+                    let mut want = vec![shard.count];
+                    want.extend_from_slice(&self.manifest.fields[field]);
+                    if h.shape != want {
+                        return Err(file_err(&path, format!("shape {:?}, expected {want:?} from the manifest", h.shape)));
+                    }
+                    let need = h.data_offset as u64 + (h.count() * h.size) as u64;
+                    if len < need {
+                        return Err(file_err(&path, format!("npy data truncated: {len} bytes, expected {need} for shape {:?}", h.shape)));
+                    }
+                }
+            }
+        }
+        Ok(())
     }
 
     /// The split called `name`.

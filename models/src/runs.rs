@@ -207,10 +207,20 @@ pub struct LoadedRun {
     pub net: TrainedNet,
 }
 
+/// The fields of a run's `config.json` that only training reads (`tcsense_train::TrainConfig`
+/// owns them; its tests keep this list equal to its fields). Inference refuses a config with
+/// a field that is neither these nor the [`RunSpec`]'s.
+pub const TRAINING_KEYS: &[&str] =
+    &["epochs", "batch_size", "learning_rate", "loss", "seed", "noise", "dataset", "max_train_items", "max_val_items", "augment"];
+
 /// Load a run directory on `device`: its config, codes, sensor model and latest weights.
 pub fn load(dir: &Path, device: &Device) -> Result<LoadedRun> {
     let cfg_path = dir.join(CONFIG_FILE);
-    let spec: RunSpec = serde_json::from_value(read_config_json(&cfg_path)?).map_err(|e| file_err(&cfg_path, format!("not a run config: {e}")))?;
+    let v = read_config_json(&cfg_path)?;
+    let spec: RunSpec = serde_json::from_value(v.clone()).map_err(|e| file_err(&cfg_path, format!("not a run config: {e}")))?;
+    let mut known = tcsense_sensor::json::keys_of(&spec);
+    known.extend(TRAINING_KEYS.iter().map(|k| k.to_string()));
+    tcsense_sensor::json::reject_unknown_keys(&v, &known).map_err(|e| file_err(&cfg_path, e))?;
     spec.model.validate().map_err(|e| file_err(&cfg_path, e))?;
     let codes = Codes::load(&dir.join(CODES_FILE))?;
     let sensor = spec.matrix(&codes)?;

@@ -430,8 +430,17 @@ impl Codes {
         Ok(codes)
     }
 
-    /// Load from a JSON file; errors name the file.
+    /// Load from a JSON file and refuse codes that break their declared constraints (no
+    /// sensor would take them); errors name the file.
     pub fn load(path: &Path) -> Result<Self> {
+        let codes = Codes::load_unchecked(path)?;
+        codes.ensure_feasible().map_err(|e| SensorError::file(path, e.to_string()))?;
+        Ok(codes)
+    }
+
+    /// Load from a JSON file without checking the declared constraints (for `codes check`,
+    /// which reports the violations); errors name the file.
+    pub fn load_unchecked(path: &Path) -> Result<Self> {
         let text = std::fs::read_to_string(path).map_err(|e| SensorError::io(path, e))?;
         Codes::from_json(&text).map_err(|msg| SensorError::file(path, msg))
     }

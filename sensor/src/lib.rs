@@ -18,6 +18,7 @@ pub mod codes;
 pub mod error;
 pub mod export;
 pub mod generate;
+pub mod json;
 pub mod matrix;
 pub mod measure;
 pub mod mem;

@@ -88,10 +88,10 @@ impl MeasurementMatrix {
     /// Load a measured `A [N, M, T]` from `.npy`; errors name the file.
     pub fn load(path: &Path, spec: &SensorSpec) -> Result<Self> {
         let a = npy::read_npy(path)?;
-        let a = a.into_dimensionality::<Ix3>().map_err(|_| {
-            SensorError::file(path, "measurement matrix must have rank 3 [N, M, T]".to_string())
-        });
-        let a = a?;
+        let shape = a.shape().to_vec();
+        let a = a
+            .into_dimensionality::<Ix3>()
+            .map_err(|_| SensorError::file(path, format!("measurement matrix of shape {shape:?}, expected rank 3 [N, M, T]")))?;
         MeasurementMatrix::from_array(a, spec).map_err(|e| e.in_file(path))
     }
 

@@ -73,6 +73,9 @@ pub fn read_npy(path: &Path) -> Result<ArrayD<f32>> {
 /// Parse `.npy` bytes; the error is a message without the file name.
 pub fn parse_npy(bytes: &[u8]) -> std::result::Result<ArrayD<f32>, String> {
     let h = parse_header(bytes)?;
+    if h.shape.contains(&0) {
+        return Err(format!("shape {:?} has an axis of length 0, expected a non-empty array", h.shape));
+    }
     let count = h.count();
     let data = &bytes[h.data_offset..];
     if data.len() < count * h.size {
@@ -196,6 +199,13 @@ fn dict_value<'a>(header: &'a str, key: &str) -> Option<&'a str> {
 }
 
 fn parse_descr(d: &str) -> std::result::Result<(bool, char, usize), String> {
+    const EXPECTED: &str = "expected float32/float64, an integer type or bool";
+    if d.starts_with('[') || d.starts_with('(') {
+        return Err(format!("unsupported structured dtype (record fields), {EXPECTED}"));
+    }
+    if d.ends_with('O') {
+        return Err(format!("unsupported dtype {d:?} (Python objects, a pickle), {EXPECTED}"));
+    }
     let mut chars = d.chars();
     let order = chars.next().ok_or("empty dtype")?;
     let little = match order {

@@ -237,6 +237,10 @@ pub fn bench_infer(a: BenchInferArgs) -> Result<()> {
     if h % fh != 0 || w % fw != 0 {
         bail!("--size {h}x{w}: the model takes frames that are multiples of {fh}x{fw}");
     }
+    // a frame's working set: the input, the cube and a network's widest activations (32
+    // channels or T, a few alive at once), in f32
+    let per_pixel = (meta.taps + 8 * meta.bins.max(32)) as f64 * 4.0;
+    tcsense_sensor::mem::check_fits(&format!("a {h}x{w} frame"), per_pixel * (h * w) as f64, "use a smaller --size")?;
     let flops = match run.as_ref().map(|r| &r.spec.model) {
         Some(runs::ModelConfig::Unet(c)) => Some(c.flops(h, w)),
         Some(runs::ModelConfig::AdmmNet(c)) => Some(c.flops(h, w)),

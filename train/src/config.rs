@@ -66,9 +66,14 @@ impl TrainConfig {
 
     /// Read a config file (a run's `config.json` or one given to `train --config`); configs
     /// written before the `decoder` field are ADMM-Net configs.
+    /// Unknown fields and invalid settings are refused with the file named.
     pub fn load(path: &Path) -> Result<Self> {
+        let in_file = |msg: String| TrainError::File { path: path.to_path_buf(), msg };
         let v = tcsense_models::runs::read_config_json(path)?;
-        serde_json::from_value(v).map_err(|e| TrainError::File { path: path.to_path_buf(), msg: format!("malformed training config: {e}") })
+        let cfg: TrainConfig = serde_json::from_value(v.clone()).map_err(|e| in_file(format!("malformed training config: {e}")))?;
+        tcsense_sensor::json::reject_unknown_keys(&v, &tcsense_sensor::json::keys_of(&cfg)).map_err(in_file)?;
+        cfg.validate().map_err(|e| in_file(e.to_string()))?;
+        Ok(cfg)
     }
 
     /// Check the settings before any work starts.
@@ -100,5 +105,26 @@ impl TrainConfig {
             n.validate()?;
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tcsense_models::runs::TRAINING_KEYS;
+    use tcsense_models::AdmmNetConfig;
+
+    /// Inference checks a run's config against `RunSpec`'s fields and `TRAINING_KEYS`: the
+    /// list must stay equal to what `TrainConfig` adds.
+    #[test]
+    fn training_keys_are_the_fields_training_adds() {
+        let cfg = TrainConfig::new(ModelConfig::AdmmNet(AdmmNetConfig::new(4, 8)), Path::new("ds"), Loss::Rmse, Sampling::Oversample(1));
+        let all = tcsense_sensor::json::keys_of(&cfg);
+        let spec = tcsense_sensor::json::keys_of(&cfg.run);
+        let mut extra: Vec<&str> = all.iter().filter(|k| !spec.contains(k)).map(String::as_str).collect();
+        let mut expected = TRAINING_KEYS.to_vec();
+        extra.sort_unstable();
+        expected.sort_unstable();
+        assert_eq!(extra, expected);
     }
 }

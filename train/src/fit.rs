@@ -148,9 +148,15 @@ fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, p
         if saved.run.model != cfg.run.model || saved.seed != cfg.seed || saved.batch_size != cfg.batch_size {
             return Err(file_err(&run.join(CONFIG_FILE), "the run was started with a different model, seed or batch size; resume with the saved config"));
         }
-        let (model, optim, state) = load_checkpoint(&latest_checkpoint(run), init(&device), AdamConfig::new().init())?;
-        let rows = read_rows(&run.join(METRICS_FILE), state.epoch)?;
-        (model, optim, state, rows)
+        match latest_checkpoint(run)? {
+            Some(ckpt) => {
+                let (model, optim, state) = load_checkpoint(&ckpt, init(&device), AdamConfig::new().init())?;
+                let rows = read_rows(&run.join(METRICS_FILE), state.epoch)?;
+                (model, optim, state, rows)
+            }
+            // killed before its first checkpoint: start over, as the run would have
+            None => (seeded_init(&device, cfg.seed, &init), AdamConfig::new().init(), RunState::default(), Vec::new()),
+        }
     } else {
         if run.join(crate::run_dir::CHECKPOINT_DIR).exists() {
             return Err(file_err(run, "a run already exists here; pass --resume to continue it or choose another directory"));
@@ -205,8 +211,10 @@ fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, p
         state.seconds += t0.elapsed().as_secs_f64();
         let m = EpochMetrics { epoch: epoch + 1, step: state.step, train_loss: loss_sum / steps_per_epoch as f64, val, seconds: state.seconds };
         rows.push(m.clone());
-        save_checkpoint(run, &model, &optim, &state)?;
+        // the epoch's row first: a kill before the checkpoint lands leaves a row past the
+        // checkpoint, which a resume drops and logs again (the other order would lose it)
         write_rows(&run.join(METRICS_FILE), &rows)?;
+        save_checkpoint(run, &model, &optim, &state)?;
         progress.epoch(&m);
         out.push(m);
     }
@@ -302,5 +310,6 @@ pub(crate) fn step<M: Network>(model: M, optim: &mut ModuleOptimizer, cfg: &Trai
 
 /// Read `state.json` of a run's checkpoint (for tests and tools).
 pub fn run_state(run: &Path) -> Result<RunState> {
-    read_json(&latest_checkpoint(run).join(crate::run_dir::STATE_FILE))
+    let ckpt = latest_checkpoint(run)?.ok_or_else(|| file_err(&run.join(crate::run_dir::CHECKPOINT_DIR).join(crate::run_dir::STATE_FILE), "no checkpoint yet"))?;
+    read_json(&ckpt.join(crate::run_dir::STATE_FILE))
 }

@@ -71,13 +71,19 @@ pub fn read_json<T: for<'de> Deserialize<'de>>(path: &Path) -> Result<T> {
 }
 
 /// The checkpoint to resume from: `checkpoint/`, or `checkpoint.old/` when a kill came while
-/// the new one was being moved into place.
-pub fn latest_checkpoint(run: &Path) -> PathBuf {
+/// the new one was being moved into place; `None` when the run has none yet (killed in its
+/// first epoch); an error naming `checkpoint/state.json` when one is there but incomplete.
+pub fn latest_checkpoint(run: &Path) -> Result<Option<PathBuf>> {
     let ckpt = run.join(CHECKPOINT_DIR);
+    let old = run.join(CHECKPOINT_OLD);
     if ckpt.join(STATE_FILE).exists() {
-        ckpt
+        Ok(Some(ckpt))
+    } else if old.join(STATE_FILE).exists() {
+        Ok(Some(old))
+    } else if ckpt.exists() || old.exists() {
+        Err(file_err(&ckpt.join(STATE_FILE), "incomplete checkpoint: the progress state is missing"))
     } else {
-        run.join(CHECKPOINT_OLD)
+        Ok(None)
     }
 }
 
@@ -98,18 +104,40 @@ pub fn save_checkpoint<M: Module>(run: &Path, model: &M, optim: &ModuleOptimizer
     model.clone().save_file(tmp.join(WEIGHTS_STEM)).map_err(|e| file_err(&tmp.join(WEIGHTS_FILE), e))?;
     optim.save(tmp.join("optim")).map_err(|e| file_err(&tmp.join("optim.bpk"), e))?;
     write_json(&tmp.join(STATE_FILE), state)?;
+    failpoint("checkpoint-written");
     let (ckpt, old) = (run.join(CHECKPOINT_DIR), run.join(CHECKPOINT_OLD));
-    let _ = std::fs::remove_dir_all(&old);
-    if ckpt.exists() {
+    if ckpt.join(STATE_FILE).exists() {
+        // the complete checkpoint becomes the old one; a kill from here on leaves it to resume from
+        let _ = std::fs::remove_dir_all(&old);
         std::fs::rename(&ckpt, &old).map_err(|e| file_err(&ckpt, e))?;
+        failpoint("checkpoint-renamed");
+    } else {
+        // an earlier kill between the renames: checkpoint.old/ is the complete one, keep it
+        let _ = std::fs::remove_dir_all(&ckpt);
     }
     std::fs::rename(&tmp, &ckpt).map_err(|e| file_err(&ckpt, e))?;
+    failpoint("checkpoint-placed");
     let _ = std::fs::remove_dir_all(&old);
     // latest weights at the top of the run directory, replaced atomically
     let weights = run.join(WEIGHTS_FILE);
     model.clone().save_file(run.join("model-new")).map_err(|e| file_err(&weights, e))?;
+    failpoint("weights-written");
     std::fs::rename(run.join("model-new.bpk"), &weights).map_err(|e| file_err(&weights, e))?;
     Ok(())
+}
+
+/// A test hook for the kill-and-resume test: with `TCSENSE_FAILPOINT=NAME@N` in the
+/// environment the process dies (abort: no destructor, no cleanup, like SIGKILL) the N-th
+/// time it reaches the point `NAME` of a checkpoint write. Without the variable it does
+/// nothing.
+fn failpoint(name: &str) {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    static HITS: AtomicUsize = AtomicUsize::new(0);
+    let Ok(spec) = std::env::var("TCSENSE_FAILPOINT") else { return };
+    let Some((point, n)) = spec.split_once('@') else { return };
+    if point == name && n.parse::<usize>().ok() == Some(HITS.fetch_add(1, Ordering::SeqCst) + 1) {
+        std::process::abort();
+    }
 }
 
 /// Write `metrics.csv` (the validation columns of the first row name the header).
