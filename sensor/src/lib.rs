@@ -26,6 +26,7 @@ pub mod noise;
 pub mod npy;
 pub mod operator;
 pub mod params;
+pub mod project;
 pub mod show;
 pub mod sidecar;
 
