@@ -131,3 +131,45 @@ fn import_and_select_bad_inputs_exit_2() {
     fails(d, &["codes", "select", "--dataset", "nowhere", "--candidates", "2", "-o", "best.json"], &["nowhere", "manifest.json"]);
     assert!(!d.join("c.json").exists() && !d.join("best.json").exists());
 }
+
+/// `codes project`: logits that favour a feasible code give exactly that code; random logits
+/// give codes that pass `codes check` and export; bad logits exit 2.
+#[test]
+fn project_logits_onto_the_constraints() {
+    let d = tempdir();
+    let d = d.path();
+    let flags = ["--taps", "4", "--block", "2x2", "--length", "16", "--tap-constraint", "--hamming", "2", "--window", "2"];
+    let mut gen = vec!["codes", "generate", "--seed", "4", "-o", "target.json"];
+    gen.extend(flags);
+    ok(d, &gen);
+    let target = tcsense_sensor::Codes::load(&d.join("target.json")).unwrap();
+    let mut logits = ndarray::Array3::<f32>::from_shape_fn((4, 4, 16), |(n, c, l)| ((n * 5 + c * 3 + l * 7) % 13) as f32 * 0.1);
+    for n in 0..4 {
+        for l in 0..16 {
+            let m = (0..4).find(|&m| target.get(n, m, l)).unwrap();
+            logits[(n, m, l)] += 5.0;
+        }
+    }
+    write_npy(&d.join("logits.npy"), &logits.view()).unwrap();
+    let mut cmd = vec!["codes", "project", "--logits", "logits.npy", "-o", "p.json"];
+    cmd.extend(flags);
+    let out = ok(d, &cmd);
+    assert!(out.contains("Argmax"), "{out}");
+    let p = tcsense_sensor::Codes::load(&d.join("p.json")).unwrap();
+    assert_eq!(p.digest(), target.digest());
+    // random logits: an exact projection that passes the checker and exports
+    let noise = ndarray::Array3::<f32>::from_shape_fn((4, 4, 16), |(n, c, l)| (((n * 31 + c * 17 + l * 11) % 23) as f32 - 11.0) * 0.2);
+    write_npy(&d.join("noise.npy"), &noise.view()).unwrap();
+    let mut cmd = vec!["codes", "project", "--logits", "noise.npy", "-o", "q.json"];
+    cmd.extend(flags);
+    let out = ok(d, &cmd);
+    assert!(out.contains("Exact"), "{out}");
+    ok(d, &["codes", "check", "q.json"]);
+    ok(d, &["codes", "export", "q.json", "-o", "mem"]);
+    // logits of the wrong shape: C = 5 without a drain
+    write_npy(&d.join("c5.npy"), &ndarray::Array3::<f32>::zeros((4, 5, 16)).view()).unwrap();
+    let mut cmd = vec!["codes", "project", "--logits", "c5.npy", "-o", "r.json"];
+    cmd.extend(flags);
+    fails(d, &cmd, &["c5.npy", "[N, C, L] = [4, 4, 16]"]);
+    assert!(!d.join("r.json").exists());
+}

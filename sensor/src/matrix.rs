@@ -220,47 +220,91 @@ fn ideal(codes: &Codes, k: usize) -> Array3<f32> {
 /// Physical IRF on the fine grid. Shape `[N, M, L·K]`.
 fn physical(codes: &Codes, k: usize, dt: f64, fwhm: f64, tau: f64) -> Array3<f32> {
     let (n_sub, taps, len) = (codes.subpixels(), codes.taps(), codes.length());
-    let t = len * k;
-    let sigma = fwhm / (2.0 * (2.0 * std::f64::consts::LN_2).sqrt());
-    let finest = [sigma, tau].into_iter().filter(|&v| v > 0.0).fold(f64::INFINITY, f64::min);
-    let mut s = if finest.is_finite() { (dt / (finest / 8.0)).ceil() as usize } else { 1 };
-    s = s.clamp(1, MAX_SUPERSAMPLE);
-    while s > 1 && t * s > (1 << 20) {
-        s /= 2;
-    }
-    let p = t * s;
-    let delta = dt / s as f64;
-    let kernel = laser_kernel(sigma, delta, p);
-    let decay = if tau > 0.0 { (-delta / tau).exp() } else { 0.0 };
-
-    let mut a = Array3::<f32>::zeros((n_sub, taps, t));
-    let channels: Vec<(usize, Vec<f32>)> = (0..n_sub * taps)
-        .into_par_iter()
-        .map(|c| {
-            let (n, m) = (c / taps, c % taps);
-            // Gate on the super grid: mask l covers super-samples [l·K·S, (l+1)·K·S).
-            let g: Vec<f64> = (0..p).map(|q| codes.get(n, m, q / (k * s)) as u8 as f64).collect();
-            let geff = first_order_cyclic(&g, decay);
-            let mut row = vec![0f32; t];
-            for (j, out) in row.iter_mut().enumerate() {
-                let mut acc = 0.0;
-                for q in j * s..(j + 1) * s {
-                    for &(d, w) in &kernel {
-                        let idx = (q as isize + d).rem_euclid(p as isize) as usize;
-                        acc += w * geff[idx];
-                    }
-                }
-                *out = (acc / s as f64) as f32;
-            }
-            (c, row)
-        })
-        .collect();
+    let irf = PhysicalIrf::new(len, k, dt, fwhm, tau);
+    let mut a = Array3::<f32>::zeros((n_sub, taps, len * k));
+    let channels: Vec<(usize, Vec<f32>)> = (0..n_sub * taps).into_par_iter().map(|c| (c, irf.row(codes.channel(c)))).collect();
     for (c, row) in channels {
         a.index_axis_mut(Axis(0), c / taps)
             .index_axis_mut(Axis(0), c % taps)
             .assign(&ndarray::ArrayView1::from(&row[..]));
     }
     a
+}
+
+/// The physical IRF of one channel on a super-sampled cyclic grid.
+struct PhysicalIrf {
+    k: usize,
+    /// Super-samples per fine bin.
+    s: usize,
+    kernel: Vec<(isize, f64)>,
+    decay: f64,
+    t: usize,
+}
+
+impl PhysicalIrf {
+    fn new(len: usize, k: usize, dt: f64, fwhm: f64, tau: f64) -> Self {
+        let t = len * k;
+        let sigma = fwhm / (2.0 * (2.0 * std::f64::consts::LN_2).sqrt());
+        let finest = [sigma, tau].into_iter().filter(|&v| v > 0.0).fold(f64::INFINITY, f64::min);
+        let mut s = if finest.is_finite() { (dt / (finest / 8.0)).ceil() as usize } else { 1 };
+        s = s.clamp(1, MAX_SUPERSAMPLE);
+        while s > 1 && t * s > (1 << 20) {
+            s /= 2;
+        }
+        let delta = dt / s as f64;
+        let kernel = laser_kernel(sigma, delta, t * s);
+        let decay = if tau > 0.0 { (-delta / tau).exp() } else { 0.0 };
+        PhysicalIrf { k, s, kernel, decay, t }
+    }
+
+    /// `A`'s row `[T]` of a channel with gate bits `g [L]` (0 or 1; linear in them).
+    fn row(&self, g: &[u8]) -> Vec<f32> {
+        let (k, s, t) = (self.k, self.s, self.t);
+        let p = t * s;
+        // Gate on the super grid: mask l covers super-samples [l·K·S, (l+1)·K·S).
+        let g: Vec<f64> = (0..p).map(|q| g[q / (k * s)] as f64).collect();
+        let geff = first_order_cyclic(&g, self.decay);
+        let mut row = vec![0f32; t];
+        for (j, out) in row.iter_mut().enumerate() {
+            let mut acc = 0.0;
+            for q in j * s..(j + 1) * s {
+                for &(d, w) in &self.kernel {
+                    let idx = (q as isize + d).rem_euclid(p as isize) as usize;
+                    acc += w * geff[idx];
+                }
+            }
+            *out = (acc / s as f64) as f32;
+        }
+        row
+    }
+}
+
+impl MeasurementMatrix {
+    /// The code basis `G [L, T]` of a sensor: `A` is linear in the code bits, the same map
+    /// for every channel, so `A[n][m][·] = Σ_l g[n][m][l] · G[l][·]` — row `l` is the row of a
+    /// channel open during mask `l` only (through the spec's IRF, oversampling or heterodyne
+    /// sum). Learned codes train through this map (`tcsense_models::codes`).
+    ///
+    /// # Shapes
+    /// - returns `G`: `[L, T]`, `T = L·K`.
+    pub fn code_basis(spec: &SensorSpec) -> Array2<f32> {
+        let (len, k) = (spec.shape().length, spec.sampling().k());
+        let t = len * k;
+        let unit = |l: usize| -> Vec<u8> { (0..len).map(|i| u8::from(i == l)).collect() };
+        let fine = Array3::from_shape_vec((1, len, t), match spec.irf() {
+            Irf::Ideal => (0..len).flat_map(|l| (0..t).map(move |j| if j / k == l { 1.0 } else { 0.0 })).collect(),
+            Irf::Physical { laser_fwhm_s, tap_tau_s } => {
+                let irf = PhysicalIrf::new(len, k, spec.bin_width_s(), laser_fwhm_s, tap_tau_s);
+                (0..len).flat_map(|l| irf.row(&unit(l))).collect()
+            }
+        })
+        .expect("L·T values");
+        let a = match spec.sampling() {
+            Sampling::Oversample(_) => fine,
+            Sampling::Heterodyne(_) => heterodyne_sum(&fine.view(), k),
+        };
+        a.index_axis_move(Axis(0), 0)
+    }
 }
 
 /// Cyclic steady state of `y[p] = a·y[p−1] + (1−a)·(g[p] + g[p−1])/2`: the first-order
@@ -341,6 +385,30 @@ mod tests {
 
     fn spec(c: &Codes, sampling: Sampling, irf: Irf) -> SensorSpec {
         SensorParams { sampling, irf, ..SensorParams::from_codes(c) }.validate().unwrap()
+    }
+
+    /// `A` is the code bits times the code basis, for every IRF and sampling.
+    #[test]
+    fn matrix_is_bits_times_the_code_basis() {
+        let c = codes();
+        let phys = Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 };
+        for (sampling, irf) in [
+            (Sampling::Oversample(1), Irf::Ideal),
+            (Sampling::Oversample(2), Irf::Ideal),
+            (Sampling::Oversample(2), phys),
+            (Sampling::Heterodyne(4), Irf::Ideal),
+            (Sampling::Heterodyne(4), phys),
+        ] {
+            let sp = spec(&c, sampling, irf);
+            let a = MeasurementMatrix::synthesize(&c, &sp).unwrap();
+            let g = MeasurementMatrix::code_basis(&sp);
+            assert_eq!(g.dim(), (16, 16 * sampling.k()));
+            let peak = a.a().iter().fold(0f32, |m, v| m.max(v.abs()));
+            for ((n, m, j), &v) in a.a().indexed_iter() {
+                let from_basis: f32 = (0..16).map(|l| c.get(n, m, l) as u8 as f32 * g[(l, j)]).sum();
+                assert!((v - from_basis).abs() <= 1e-5 * peak, "{sampling:?} {irf:?} [{n}, {m}, {j}]: {v} vs {from_basis}");
+            }
+        }
     }
 
     #[test]

@@ -37,6 +37,9 @@ pub enum CodesCmd {
     },
     /// Generate random candidates and keep the one with the lowest TVAL3 MSE on a dataset.
     Select(super::design::SelectArgs),
+    /// Project code logits (e.g. learned elsewhere) exactly onto the constraints: the feasible
+    /// codes of highest total log-probability.
+    Project(ProjectArgs),
     /// Draw codes as a PNG (rows = channels grouped by subpixel, columns = masks).
     Show {
         /// Codes JSON file.
@@ -100,6 +103,19 @@ pub struct GenerateArgs {
     output: PathBuf,
 }
 
+#[derive(Args)]
+pub struct ProjectArgs {
+    /// Logits .npy [N, C, L]: with --tap-constraint a score per tap (C = M, +1 for the drain,
+    /// last), e.g. log-probabilities; without it a log-odds per bit (C = M).
+    #[arg(long)]
+    logits: PathBuf,
+    #[command(flatten)]
+    design: DesignArgs,
+    /// Output codes JSON.
+    #[arg(short, long)]
+    output: PathBuf,
+}
+
 pub fn run(cmd: CodesCmd) -> Result<ExitCode> {
     match cmd {
         CodesCmd::Generate(a) => {
@@ -150,6 +166,39 @@ pub fn run(cmd: CodesCmd) -> Result<ExitCode> {
             println!("wrote {}", output.display());
         }
         CodesCmd::Select(a) => return super::design::select_cmd(a),
+        CodesCmd::Project(a) => {
+            let d = &a.design;
+            let logits = tcsense_sensor::npy::read_npy(&a.logits)?;
+            let shape = logits.shape().to_vec();
+            let logits = logits.into_dimensionality::<ndarray::Ix3>().map_err(|_| {
+                tcsense_sensor::SensorError::file(&a.logits, format!("logits of shape {shape:?}, expected rank 3 [N, C, L]"))
+            })?;
+            let t0 = std::time::Instant::now();
+            let p = tcsense_sensor::project::project(d.shape(), d.clock_hz(), d.constraints(), &logits.view())
+                .map_err(|e| e.in_file(&a.logits))?;
+            let seconds = t0.elapsed().as_secs_f64();
+            let mut codes = p.codes;
+            codes.provenance = serde_json::json!({
+                "method": "projection",
+                "logits": a.logits.display().to_string(),
+                "solver": p.method,
+                "score": p.score,
+                "argmax_score": p.argmax_score,
+            });
+            codes.save(&a.output)?;
+            println!(
+                "wrote {}: {} taps, block {}x{}, L = {}, constraints {}; {:?} projection in {seconds:.2} s, score {:.4} (the unconstrained argmax: {:.4})",
+                a.output.display(),
+                codes.taps(),
+                d.block.0,
+                d.block.1,
+                codes.length(),
+                codes.constraints.label(),
+                p.method,
+                p.score,
+                p.argmax_score
+            );
+        }
         CodesCmd::Show { codes, output } => {
             let g = Codes::load(&codes)?;
             show::save_png(&g, &output)?;
