@@ -98,3 +98,29 @@ fn killed_runs_resume_to_the_uninterrupted_weights() {
     resume(d, "sigkill");
     assert_same_as_straight(d, "sigkill");
 }
+
+/// Deep sensing survives kills too: in the relaxed phase (its checkpoint carries the code
+/// logits and their optimiser), right after the projection, and in the fine-tuning phase.
+#[test]
+fn killed_learned_code_runs_resume_to_the_same_codes_and_weights() {
+    let t = tempdir();
+    let d = t.path();
+    ok(d, &["dataset", "lidar", "--count", "8", "--size", "8x8", "--length", "8", "--seed", "2", "-o", "ds"]);
+    ok(d, &["codes", "generate", "--tap-constraint", "--hamming", "2", "--window", "2", "--length", "8", "--seed", "1", "-o", "codes.json"]);
+    let cmd = |run: &str, resume: bool| {
+        let mut c = train_cmd(d, run, resume);
+        c.args(["--learn-codes", "--relaxed-epochs", "2", "--codes-lr", "0.5"]);
+        c
+    };
+    let o = cmd("straight", false).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for (run, point) in [("relaxed", "checkpoint-written@2"), ("projected", "checkpoint-written@3"), ("finetune", "checkpoint-renamed@2")] {
+        let o = cmd(run, false).env("TCSENSE_FAILPOINT", point).output().unwrap();
+        assert_eq!(o.status.code(), None, "{run}: killed at {point}");
+        let o = cmd(run, true).output().unwrap();
+        assert!(o.status.success(), "{run}: resume failed: {}", String::from_utf8_lossy(&o.stderr));
+        for f in ["codes.json", "model.bpk", "relaxed/model.bpk", "relaxed/checkpoint/code_logits.bpk"] {
+            assert!(std::fs::read(d.join(run).join(f)).unwrap() == std::fs::read(d.join("straight").join(f)).unwrap(), "{run}: {f} differs from the uninterrupted run's");
+        }
+    }
+}

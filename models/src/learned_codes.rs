@@ -115,6 +115,44 @@ pub fn matrix(bits: Tensor<3>, basis: Tensor<2>) -> Tensor<3> {
     bits.reshape([n * m, l]).matmul(basis).reshape([n, m, t])
 }
 
+/// `y = A x` per pixel in plain tensor operations (differentiable in `A` and `x`; the fused
+/// kernels of `tcsense-kernels` take `A` as data): subpixel `n = (h mod bh)·bw + (w mod bw)`.
+///
+/// # Shapes
+/// - `a`: `[N, M, T]`, `x`: `[B, T, H, W]` → `[B, M, H, W]`
+pub fn forward(a: Tensor<3>, x: Tensor<4>, block: (usize, usize)) -> Tensor<4> {
+    let (bh, bw) = block;
+    let [b, t, h, w] = x.dims();
+    let m = a.dims()[1];
+    let (hb, wb) = (h / bh, w / bw);
+    let xb: Tensor<3> = x.reshape([b, t, hb, bh, wb, bw]).permute([3, 5, 0, 2, 4, 1]).reshape([bh * bw, b * hb * wb, t]);
+    let y = xb.matmul(a.swap_dims(1, 2)); // [N, B·P, M]
+    y.reshape([bh, bw, b, hb, wb, m]).permute([2, 5, 3, 0, 4, 1]).reshape([b, m, h, w])
+}
+
+/// The hard codes of logits `[N, C, L]`: the best choice per subpixel and mask (the drain
+/// turns every tap off), or every bit whose logit is positive; no constraints declared (they
+/// may break them: that is what the projection is for).
+pub fn hard_codes(theta: &Array3<f32>, relax: &CodeRelaxation, like: &Codes) -> tcsense_sensor::Result<Codes> {
+    let mut codes = Codes::zeros(like.shape(), like.clock_hz, Constraints::default())?;
+    let (n_sub, c, len) = theta.dim();
+    for n in 0..n_sub {
+        for l in 0..len {
+            if relax.tap {
+                let best = (0..c).fold(0, |b, k| if theta[(n, k, l)] > theta[(n, b, l)] { k } else { b });
+                if best < relax.taps {
+                    codes.set(n, best, l, true);
+                }
+            } else {
+                for m in 0..relax.taps {
+                    codes.set(n, m, l, theta[(n, m, l)] > 0.0);
+                }
+            }
+        }
+    }
+    Ok(codes)
+}
+
 /// The code basis `G [L, T]` as a tensor.
 pub fn basis_tensor(g: &ndarray::Array2<f32>, device: &Device) -> Tensor<2> {
     let (l, t) = g.dim();
@@ -193,6 +231,28 @@ mod tests {
                     assert!((a - b).abs() <= 1e-5 * peak, "{} {sampling:?} {irf:?}: {a} vs {b}", constraints.label());
                 }
             }
+        }
+    }
+
+    /// The tensor forward model equals the sensor's per-pixel operator, and the hard codes of
+    /// logits made from codes are those codes.
+    #[test]
+    fn tensor_forward_equals_the_sensor_and_hard_codes_round_trip() {
+        let device = Device::flex();
+        let shape = CodeShape { bh: 2, bw: 3, taps: 3, length: 8, drain: true };
+        let constraints = Constraints { tap: true, hamming: None, window: Some(2) };
+        let codes = random_codes(shape, 607e6, constraints, 4).unwrap();
+        let relax = CodeRelaxation::of(&codes, &constraints);
+        let logits = CodeLogits::from_codes(&codes, &relax, 2.0, &device);
+        assert_eq!(hard_codes(&logits.to_array(), &relax, &codes).unwrap().digest(), codes.digest());
+        let spec = SensorParams { sampling: Sampling::Oversample(2), ..SensorParams::from_codes(&codes) }.validate().unwrap();
+        let a = MeasurementMatrix::synthesize(&codes, &spec).unwrap();
+        let x = ndarray::Array4::from_shape_fn((2, 16, 4, 6), |(b, t, h, w)| ((b * 5 + t * 3 + h * 7 + w * 11) % 17) as f32);
+        let want = a.plan(4, 6).unwrap().forward_batch(&x.view()).unwrap();
+        let a_t = Tensor::<3>::from_data(TensorData::new(a.a().iter().copied().collect::<Vec<f32>>(), [6, 3, 16]), &device);
+        let got = to_vec(forward(a_t, crate::net::to_tensor(&x.view(), &device), (2, 3)));
+        for (u, v) in want.iter().zip(&got) {
+            assert!((u - v).abs() <= 1e-4 * u.abs().max(1.0), "{u} vs {v}");
         }
     }
 

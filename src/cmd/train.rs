@@ -9,7 +9,8 @@ use tcsense_datasets::store::Kind;
 use tcsense_datasets::Dataset;
 use tcsense_models::runs::{ModelConfig, CODES_FILE, CONFIG_FILE};
 use tcsense_models::{AdmmNetConfig, UnetConfig};
-use tcsense_sensor::Codes;
+use tcsense_sensor::{Codes, Constraints};
+use tcsense_train::deep_sensing::{LearnCodes, START_CODES_FILE};
 use tcsense_train::{train, Augmentation, EpochMetrics, Loss, Progress, TrainConfig, TrainError};
 
 use super::dataset::interrupt_flag;
@@ -119,6 +120,30 @@ pub struct TrainArgs {
     /// Continue the run in the output directory from its last checkpoint.
     #[arg(long)]
     resume: bool,
+    /// Start from the weights of a trained run of the same network (fine-tuning on new codes,
+    /// another IRF or a recalibrated sensor).
+    #[arg(long, value_name = "RUN")]
+    init_from: Option<PathBuf>,
+    /// Deep sensing: learn the codes with the decoder, starting from --codes; after the relaxed
+    /// epochs they are projected exactly onto the constraints (those of --codes, or the flags
+    /// below) and the decoder is fine-tuned on them. RUN/codes.json is the result.
+    #[arg(long)]
+    learn_codes: bool,
+    /// Learned codes: the tap constraint.
+    #[arg(long, requires = "learn_codes")]
+    tap_constraint: bool,
+    /// Learned codes: at most H bits change between adjacent masks.
+    #[arg(long, value_name = "H", requires = "learn_codes")]
+    hamming: Option<usize>,
+    /// Learned codes: every run of 1s and 0s lasts at least W masks.
+    #[arg(long, value_name = "W", requires = "learn_codes")]
+    window: Option<usize>,
+    /// Learned codes: epochs of joint training on relaxed codes (default: two thirds).
+    #[arg(long, requires = "learn_codes")]
+    relaxed_epochs: Option<usize>,
+    /// Learned codes: Adam learning rate of the code logits.
+    #[arg(long, requires = "learn_codes")]
+    codes_lr: Option<f64>,
     /// Run directory.
     #[arg(short, long)]
     output: PathBuf,
@@ -257,9 +282,26 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     }
     let codes = match (&a.codes, a.resume) {
         (Some(p), _) => Codes::load(p)?,
+        // a learned-codes run before its projection has only its starting codes
+        (None, true) if !run_dir.join(CODES_FILE).exists() && run_dir.join(START_CODES_FILE).exists() => Codes::load(&run_dir.join(START_CODES_FILE))?,
         (None, true) => Codes::load(&run_dir.join(CODES_FILE))?,
         (None, false) => bail!("--codes is required"),
     };
+    if let Some(r) = &a.init_from {
+        cfg.init_from = Some(r.display().to_string());
+    }
+    if a.learn_codes && !a.resume {
+        let flags = a.tap_constraint || a.hamming.is_some() || a.window.is_some();
+        let constraints = if flags { Constraints { tap: a.tap_constraint, hamming: a.hamming, window: a.window } } else { codes.constraints };
+        let mut lc = LearnCodes::new(constraints, cfg.epochs);
+        if let Some(v) = a.relaxed_epochs {
+            lc.relaxed_epochs = v;
+        }
+        if let Some(v) = a.codes_lr {
+            lc.codes_lr = v;
+        }
+        cfg.learn_codes = Some(lc);
+    }
     if codes.taps() != cfg.run.model.taps() {
         bail!("the codes have {} taps but the model expects M = {}", codes.taps(), cfg.run.model.taps());
     }
@@ -282,6 +324,18 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
             Some(g) => format!("shifts {}, flips {}, crop {}, brightness {:?}, signal {:?} of full well", g.time_shift, g.flips, g.crop.map_or("none".into(), |[h, w]| format!("{h}x{w}")), g.brightness, g.signal_fraction),
         }
     );
+    if let Some(lc) = &cfg.learn_codes {
+        println!(
+            "learning the codes: {} relaxed epochs (τ {} → {}, codes lr {}, penalty weight {}), then {} epochs on the codes projected onto {}",
+            lc.relaxed_epochs,
+            lc.tau_start,
+            lc.tau_end,
+            lc.codes_lr,
+            lc.penalty_weight,
+            cfg.epochs.saturating_sub(lc.relaxed_epochs),
+            lc.constraints.label()
+        );
+    }
     let res = train(&cfg, &codes, run_dir, a.resume, &Bar { pb: pb.clone() }, &cancel);
     pb.finish_and_clear();
     match res {

@@ -44,6 +44,12 @@ pub struct TrainConfig {
     /// Training-time augmentation (`None`, and in configs written before it existed: off).
     #[serde(default)]
     pub augment: Option<Augmentation>,
+    /// Deep sensing: learn the codes with the decoder (`None`: the codes are fixed).
+    #[serde(default)]
+    pub learn_codes: Option<crate::deep_sensing::LearnCodes>,
+    /// Start from the weights of this run (fine-tuning on new codes or a recalibrated sensor).
+    #[serde(default)]
+    pub init_from: Option<String>,
 }
 
 impl TrainConfig {
@@ -61,6 +67,8 @@ impl TrainConfig {
             max_train_items: None,
             max_val_items: None,
             augment: None,
+            learn_codes: None,
+            init_from: None,
         }
     }
 
@@ -103,6 +111,9 @@ impl TrainConfig {
         }
         if let Some(n) = &self.noise {
             n.validate()?;
+        }
+        if let Some(lc) = &self.learn_codes {
+            lc.validate(self.epochs)?;
         }
         Ok(())
     }

@@ -27,6 +27,7 @@ use tcsense_sensor::noise::derive_seed;
 use tcsense_sensor::{Codes, FramePlan, MeasurementMatrix, NoiseParams};
 
 use crate::config::TrainConfig;
+use crate::deep_sensing::{LearnCodes, Learner};
 use crate::augment::DepthLabels;
 use crate::config::Loss;
 use crate::data::{load_cubes, load_depth};
@@ -93,17 +94,67 @@ pub fn validate(decoder: &mut dyn Decoder, plan: &FramePlan, sensor: &Measuremen
 /// Train (or resume) a run in `run`.
 pub fn train(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, progress: &dyn Progress, cancel: &AtomicBool) -> Result<Vec<EpochMetrics>> {
     match &cfg.run.model {
-        ModelConfig::AdmmNet(m) => fit(cfg, codes, run, resume, progress, cancel, |device| m.init(device)),
-        ModelConfig::Unet(m) => fit(cfg, codes, run, resume, progress, cancel, |device| m.init(device)),
+        ModelConfig::AdmmNet(m) => train_with(cfg, codes, run, resume, progress, cancel, |device| m.init(device)),
+        ModelConfig::Unet(m) => train_with(cfg, codes, run, resume, progress, cancel, |device| m.init(device)),
     }
 }
 
-/// The loop for one network type; `init` builds the untrained network on a device.
-fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, progress: &dyn Progress, cancel: &AtomicBool, init: impl Fn(&Device) -> M) -> Result<Vec<EpochMetrics>> {
+/// A fixed-codes run, or the three phases of deep sensing (see [`crate::deep_sensing`]).
+fn train_with<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, progress: &dyn Progress, cancel: &AtomicBool, init: impl Fn(&Device) -> M) -> Result<Vec<EpochMetrics>> {
+    let start = match &cfg.init_from {
+        Some(dir) if !resume || latest_checkpoint(run)?.is_none() => Some(tcsense_models::runs::load_network(Path::new(dir), init(&Device::flex().autodiff()))?),
+        _ => None,
+    };
+    let Some(lc) = &cfg.learn_codes else {
+        return Ok(fit(cfg, codes, run, resume, progress, cancel, &init, cfg.epochs, start, None)?.0);
+    };
+    lc.validate(cfg.epochs)?;
+    let relaxed = run.join(crate::deep_sensing::RELAXED_DIR);
+    // the codes the relaxed phase starts from, kept for its resumption
+    let start_file = run.join(crate::deep_sensing::START_CODES_FILE);
+    let codes = &if resume && start_file.exists() { Codes::load(&start_file)? } else { codes.clone() };
+    let projection_file = relaxed.join(crate::deep_sensing::PROJECTION_FILE);
+    let (net, projected) = if projection_file.exists() {
+        if !resume {
+            return Err(file_err(run, "a run already exists here; pass --resume to continue it or choose another directory"));
+        }
+        let net = tcsense_models::runs::load_network(&relaxed, init(&Device::flex().autodiff()))?;
+        (net, Codes::load(&relaxed.join("projected_codes.json"))?)
+    } else {
+        std::fs::create_dir_all(run).map_err(|e| file_err(run, e))?;
+        let _lock = RunLock::acquire(run)?;
+        if !start_file.exists() {
+            codes.save(&start_file)?;
+        }
+        write_json(&run.join(CONFIG_FILE), cfg)?;
+        let (_, net, learner) = fit(cfg, codes, &relaxed, resume, progress, cancel, &init, lc.relaxed_epochs, start, Some(lc))?;
+        let learner = learner.expect("a relaxed run has a code learner");
+        let p = crate::deep_sensing::project_and_record(&learner, codes, cfg, &relaxed)?;
+        p.save(&run.join(CODES_FILE))?;
+        (net, p)
+    };
+    Ok(fit(cfg, &projected, run, resume, progress, cancel, &init, cfg.epochs - lc.relaxed_epochs, Some(net), None)?.0)
+}
+
+/// The loop for one network type; `init` builds the untrained network on a device, `start`
+/// (if given) replaces it when the run starts, and `learn` trains codes with it.
+#[allow(clippy::too_many_arguments)]
+fn fit<M: Network>(
+    cfg: &TrainConfig,
+    codes: &Codes,
+    run: &Path,
+    resume: bool,
+    progress: &dyn Progress,
+    cancel: &AtomicBool,
+    init: &impl Fn(&Device) -> M,
+    epochs: usize,
+    start: Option<M>,
+    learn: Option<&LearnCodes>,
+) -> Result<(Vec<EpochMetrics>, M, Option<Learner>)> {
     cfg.validate()?;
     codes.ensure_feasible()?;
     let ds = Dataset::open(Path::new(&cfg.dataset))?;
-    let a = cfg.run.matrix(codes)?;
+    let mut a = cfg.run.matrix(codes)?;
     let model_cfg = &cfg.run.model;
     if a.bins() != ds.manifest.bins || a.taps() != model_cfg.taps() || a.bins() != model_cfg.bins() {
         return Err(TrainError::InvalidParam {
@@ -127,7 +178,7 @@ fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, p
         return Err(file_err(&ds.dir, "the train split is empty"));
     }
     let (_, _, h, w) = train_x.dim();
-    let plan = a.plan(h, w)?;
+    let mut plan = a.plan(h, w)?;
     // the frame the network trains on: the crop of the augmentation, else the whole frame
     let (th, tw) = match &cfg.augment {
         Some(aug) => {
@@ -136,10 +187,11 @@ fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, p
         }
         None => (h, w),
     };
-    let train_plan = a.plan(th, tw)?;
+    let mut train_plan = a.plan(th, tw)?;
     let device = Device::flex().autodiff();
     let infer_device = Device::flex();
-    let sensor = SensorTensors::new(&a, th, tw, &device)?;
+    let mut sensor = SensorTensors::new(&a, th, tw, &device)?;
+    let mut learner = learn.map(|lc| Learner::new(lc, codes, &cfg.run, &device)).transpose()?;
 
     std::fs::create_dir_all(run).map_err(|e| file_err(run, e))?;
     let _lock = RunLock::acquire(run)?;
@@ -151,25 +203,40 @@ fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, p
         match latest_checkpoint(run)? {
             Some(ckpt) => {
                 let (model, optim, state) = load_checkpoint(&ckpt, init(&device), AdamConfig::new().init())?;
+                if let Some(l) = learner.as_mut() {
+                    l.load(&ckpt)?;
+                }
                 let rows = read_rows(&run.join(METRICS_FILE), state.epoch)?;
                 (model, optim, state, rows)
             }
             // killed before its first checkpoint: start over, as the run would have
-            None => (seeded_init(&device, cfg.seed, &init), AdamConfig::new().init(), RunState::default(), Vec::new()),
+            None => (start.unwrap_or_else(|| seeded_init(&device, cfg.seed, init)), AdamConfig::new().init(), RunState::default(), Vec::new()),
         }
     } else {
         if run.join(crate::run_dir::CHECKPOINT_DIR).exists() {
             return Err(file_err(run, "a run already exists here; pass --resume to continue it or choose another directory"));
         }
-        (seeded_init(&device, cfg.seed, &init), AdamConfig::new().init(), RunState::default(), Vec::new())
+        (start.unwrap_or_else(|| seeded_init(&device, cfg.seed, init)), AdamConfig::new().init(), RunState::default(), Vec::new())
     };
     write_json(&run.join(CONFIG_FILE), cfg)?;
-    codes.save(&run.join(CODES_FILE))?;
+    let mut codes_log = match &learner {
+        Some(l) => {
+            (a, plan, train_plan, sensor) = sensing_for(cfg, &l.hard, (h, w), (th, tw), &device)?;
+            l.hard.save(&run.join(CODES_FILE))?;
+            crate::deep_sensing::read_log(&run.join(crate::deep_sensing::CODES_LOG), state.epoch)
+        }
+        None => {
+            codes.save(&run.join(CODES_FILE))?;
+            Vec::new()
+        }
+    };
 
     let n = train_x.dim().0;
     let steps_per_epoch = n.div_ceil(cfg.batch_size);
     let mut out = Vec::new();
-    for epoch in state.epoch..cfg.epochs {
+    let total_steps = (epochs * steps_per_epoch).max(1) as f64;
+    let first_step = state.step - (state.epoch * steps_per_epoch) as u64;
+    for epoch in state.epoch..epochs {
         let t0 = Instant::now();
         let mut order: Vec<usize> = (0..n).collect();
         order.shuffle(&mut StdRng::seed_from_u64(derive_seed(cfg.seed, epoch as u64)));
@@ -181,6 +248,12 @@ fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, p
             let xb = train_x.select(Axis(0), idx); // [B, T, H, W]
             let db = train_d.as_ref().map(|d| d.select(Axis(0), idx)); // [B, K, H, W]
             state.step += 1;
+            if let Some(l) = learner.as_mut() {
+                l.schedule((state.step - first_step) as f64 / total_steps);
+                if l.refresh()? {
+                    (a, plan, train_plan, sensor) = sensing_for(cfg, &l.hard, (h, w), (th, tw), &device)?;
+                }
+            }
             let noise_seed = derive_seed(cfg.seed, state.step);
             let (xb, db, yb, scales) = match (&cfg.augment, &cfg.noise) {
                 (None, _) => {
@@ -201,7 +274,10 @@ fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, p
                 None => Target::Cube { x: &xb, scales: scales.as_deref() },
             };
             let l;
-            (model, l) = step(model, &mut optim, cfg, &sensor, &yb, target, &device);
+            (model, l) = match learner.as_mut() {
+                Some(learner) => step_learned(model, &mut optim, learner, cfg, &sensor, &xb, &yb, target, &device),
+                None => step(model, &mut optim, cfg, &sensor, &yb, target, &device),
+            };
             loss_sum += l;
             progress.step(epoch, bi + 1, steps_per_epoch, l);
         }
@@ -214,11 +290,46 @@ fn fit<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, p
         // the epoch's row first: a kill before the checkpoint lands leaves a row past the
         // checkpoint, which a resume drops and logs again (the other order would lose it)
         write_rows(&run.join(METRICS_FILE), &rows)?;
-        save_checkpoint(run, &model, &optim, &state)?;
+        match &learner {
+            Some(l) => {
+                codes_log.push(crate::deep_sensing::log_line(epoch + 1, state.step, l));
+                crate::deep_sensing::write_log(&run.join(crate::deep_sensing::CODES_LOG), &codes_log)?;
+                save_checkpoint(run, &model, &optim, &state, &|dir| l.save(dir))?;
+                l.hard.save(&run.join(CODES_FILE))?;
+            }
+            None => save_checkpoint(run, &model, &optim, &state, &|_| Ok(()))?,
+        }
         progress.epoch(&m);
         out.push(m);
     }
-    Ok(out)
+    Ok((out, model, learner))
+}
+
+/// The sensor of `codes` for validation (whole frames `hw`) and training (frames `thw`).
+fn sensing_for(cfg: &TrainConfig, codes: &Codes, hw: (usize, usize), thw: (usize, usize), device: &Device) -> Result<(MeasurementMatrix, FramePlan, FramePlan, SensorTensors)> {
+    let a = cfg.run.matrix(codes)?;
+    let plan = a.plan(hw.0, hw.1)?;
+    let train_plan = a.plan(thw.0, thw.1)?;
+    let sensor = SensorTensors::new(&a, thw.0, thw.1, device)?;
+    Ok((a, plan, train_plan, sensor))
+}
+
+/// One Adam step of the network and the code logits on a batch whose measurements carry the
+/// codes' gradient; returns the updated network and the batch loss.
+///
+/// # Shapes
+/// - `x`: `[B, T, H, W]` (what was measured), `y`: `[B, M, H, W]`
+#[allow(clippy::too_many_arguments)]
+fn step_learned<M: Network>(model: M, optim: &mut ModuleOptimizer, learner: &mut Learner, cfg: &TrainConfig, sensor: &SensorTensors, x: &Array4<f32>, y: &Array4<f32>, target: Target<'_>, device: &Device) -> (M, f64) {
+    let (yt, penalty) = learner.measurements(x, y, device);
+    let pred = model.predict(yt, sensor);
+    let loss = objective(cfg.loss, pred, target, device) + penalty;
+    let l: f32 = loss.clone().into_scalar();
+    let mut grads = loss.backward();
+    let net_grads = GradientsParams::from_module(&mut grads, &model);
+    let code_grads = GradientsParams::from_module(&mut grads, &learner.logits);
+    learner.step(code_grads);
+    (optim.step(cfg.learning_rate, model, net_grads), l as f64)
 }
 
 /// The device's random generator is global: seeding it and drawing the initial weights happen

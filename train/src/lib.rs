@@ -23,6 +23,7 @@ pub mod augment;
 pub mod bench;
 pub mod config;
 pub mod data;
+pub mod deep_sensing;
 pub mod fit;
 pub mod loss;
 pub mod run_dir;

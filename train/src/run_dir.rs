@@ -97,12 +97,15 @@ pub fn load_checkpoint<M: Module>(dir: &Path, model: M, optim: ModuleOptimizer) 
 
 /// Write a checkpoint (weights, optimiser, progress) and the latest weights, each replaced
 /// atomically: a kill at any point leaves a complete checkpoint behind.
-pub fn save_checkpoint<M: Module>(run: &Path, model: &M, optim: &ModuleOptimizer, state: &RunState) -> Result<()> {
+/// `extra` writes more files into the checkpoint (e.g. learned code logits) before it is
+/// moved into place.
+pub fn save_checkpoint<M: Module>(run: &Path, model: &M, optim: &ModuleOptimizer, state: &RunState, extra: &dyn Fn(&Path) -> Result<()>) -> Result<()> {
     let tmp = run.join(CHECKPOINT_TMP);
     let _ = std::fs::remove_dir_all(&tmp);
     std::fs::create_dir_all(&tmp).map_err(|e| file_err(&tmp, e))?;
     model.clone().save_file(tmp.join(WEIGHTS_STEM)).map_err(|e| file_err(&tmp.join(WEIGHTS_FILE), e))?;
     optim.save(tmp.join("optim")).map_err(|e| file_err(&tmp.join("optim.bpk"), e))?;
+    extra(&tmp)?;
     write_json(&tmp.join(STATE_FILE), state)?;
     failpoint("checkpoint-written");
     let (ckpt, old) = (run.join(CHECKPOINT_DIR), run.join(CHECKPOINT_OLD));

@@ -1,0 +1,78 @@
+//! Deep sensing end to end: `train … --learn-codes` (relaxed → projection → fine-tuning) and
+//! `train … --init-from RUN` (a decoder fine-tuned on new codes).
+
+mod common;
+use common::*;
+use tcsense_sensor::npy::read_npy;
+use tcsense_sensor::Codes;
+
+#[test]
+fn learned_codes_are_exact_exportable_and_decode() {
+    let d = tempdir();
+    let d = d.path();
+    ok(d, &["dataset", "lidar", "--count", "8", "--size", "8x8", "--length", "8", "--seed", "2", "-o", "ds"]);
+    ok(d, &["codes", "generate", "--tap-constraint", "--hamming", "2", "--window", "2", "--length", "8", "--seed", "1", "-o", "start.json"]);
+    let out = ok(
+        d,
+        &["train", "admm-net", "--dataset", "ds", "--codes", "start.json", "--stages", "1", "--channels", "2", "--epochs", "6", "--relaxed-epochs", "4", "--codes-lr", "0.5", "--learn-codes", "-o", "run"],
+    );
+    assert!(out.contains("4 relaxed epochs") && out.contains("tap+H2+W2"), "{out}");
+    // the learned codes meet the constraints exactly and say where they come from
+    let learned = Codes::load(&d.join("run/codes.json")).unwrap();
+    let start = Codes::load(&d.join("start.json")).unwrap();
+    assert_eq!(learned.constraints, start.constraints);
+    assert_ne!(learned.digest(), start.digest(), "the codes did not move");
+    assert_eq!(learned.provenance["method"], "learned");
+    assert_eq!(learned.provenance["start_codes"], start.digest().as_str());
+    let solver = learned.provenance["projection"]["solver"].as_str().unwrap().to_string();
+    assert!(solver == "argmax" || solver == "exact", "{solver}");
+    ok(d, &["codes", "check", "run/codes.json"]);
+    ok(d, &["codes", "export", "run/codes.json", "-o", "mem"]);
+    // the relaxed phase logs its distance to feasibility per epoch; fine-tuning logs its own
+    let log = std::fs::read_to_string(d.join("run/relaxed/codes_log.csv")).unwrap();
+    assert_eq!(log.lines().count(), 5, "{log}");
+    assert!(log.starts_with("epoch,step,tau,penalty_weight,tap_violations,hamming_violations,window_violations\n"));
+    let last_tau: f64 = log.lines().last().unwrap().split(',').nth(2).unwrap().parse().unwrap();
+    assert!((last_tau - 0.1).abs() < 1e-9, "the temperature ends at tau_end: {last_tau}");
+    assert_eq!(std::fs::read_to_string(d.join("run/metrics.csv")).unwrap().lines().count(), 3);
+    // the run decodes measurements of its learned codes
+    ok(d, &["simulate", "--codes", "run/codes.json", "--cube", "ds/test/x_000.npy", "-o", "y.npy"]);
+    ok(d, &["reconstruct", "admm-net", "--run", "run", "--measurements", "y.npy", "-o", "x.npy"]);
+    assert_eq!(read_npy(&d.join("x.npy")).unwrap().shape(), &[1, 8, 8, 8]);
+    // a finished run resumes to nothing; measurements of the start codes are refused by their sidecar
+    let out = ok(d, &["train", "admm-net", "--epochs", "6", "--resume", "-o", "run"]);
+    assert!(out.contains("already trained"), "{out}");
+    ok(d, &["simulate", "--codes", "start.json", "--cube", "ds/test/x_000.npy", "-o", "y0.npy"]);
+    fails(d, &["reconstruct", "admm-net", "--run", "run", "--measurements", "y0.npy", "-o", "x0.npy"], &["y0.meta.json", "codes"]);
+
+    // the U-Net learns codes too
+    ok(d, &["train", "unet", "--dataset", "ds", "--codes", "start.json", "--base-width", "2", "--levels", "2", "--epochs", "3", "--relaxed-epochs", "2", "--learn-codes", "-o", "unet"]);
+    ok(d, &["codes", "check", "unet/codes.json"]);
+    // bad settings
+    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "start.json", "--epochs", "3", "--relaxed-epochs", "4", "--learn-codes", "-o", "bad"], &["relaxed_epochs", "got 4"]);
+    let o = run(d, &["train", "admm-net", "--dataset", "ds", "--codes", "start.json", "--hamming", "2", "-o", "bad2"]);
+    assert_eq!(o.status.code(), Some(2), "--hamming needs --learn-codes");
+    assert!(!d.join("bad").join("model.bpk").exists() && !d.join("bad2").exists());
+}
+
+#[test]
+fn init_from_starts_from_a_trained_decoder() {
+    let d = tempdir();
+    let d = d.path();
+    tiny_lidar_and_codes(d);
+    ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "2", "--seed", "3", "-o", "a"]);
+    // a vanishing learning rate: b's weights stay a's, so b decodes as a does (a fresh seed would not)
+    ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "1", "--seed", "9", "--lr", "1e-12", "--init-from", "a", "-o", "b"]);
+    ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "1", "--seed", "9", "--lr", "1e-12", "-o", "c"]);
+    ok(d, &["simulate", "--codes", "codes.json", "--cube", "ds/test/x_000.npy", "-o", "y.npy"]);
+    for r in ["a", "b", "c"] {
+        ok(d, &["reconstruct", "admm-net", "--run", r, "--measurements", "y.npy", "-o", &format!("x{r}.npy")]);
+    }
+    let (xa, xb, xc) = (read_npy(&d.join("xa.npy")).unwrap(), read_npy(&d.join("xb.npy")).unwrap(), read_npy(&d.join("xc.npy")).unwrap());
+    let diff = |u: &ndarray::ArrayD<f32>, v: &ndarray::ArrayD<f32>| u.iter().zip(v).map(|(p, q)| (p - q).abs()).fold(0f32, f32::max);
+    let peak = xa.iter().fold(0f32, |m, v| m.max(v.abs()));
+    assert!(diff(&xa, &xb) < 1e-4 * peak, "b differs from a by {}", diff(&xa, &xb));
+    assert!(diff(&xa, &xc) > 1e-3 * peak, "a fresh run decodes like a");
+    // another network's weights are refused, naming them
+    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "2", "--channels", "2", "--epochs", "1", "--init-from", "a", "-o", "e"], &["a/model.bpk"]);
+}

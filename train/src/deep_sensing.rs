@@ -1,0 +1,238 @@
+//! Deep sensing: exposure codes learned jointly with the decoder (the paper's §III-B-2,
+//! DESIGN §6), then projected exactly onto the hardware constraints.
+//!
+//! Schedule (`tcsense train … --learn-codes`):
+//! 1. *relaxed* (`relaxed_epochs`, in `RUN/relaxed/`, itself a run directory): code logits
+//!    `θ` ([`CodeLogits`]) and the decoder train together. Each step the measurements are
+//!    simulated exactly by the sensor crate with the hard (argmax) codes of `θ` — noise,
+//!    clipping and quantisation included — and carry the gradient of `A(θ)·x` with the
+//!    straight-through relaxed bits (`y = y_sensor + A(θ)x − stop(A(θ)x)`). The decoder's
+//!    own operators (`Aᵀ`, the data-consistency solve) are those of the current hard codes,
+//!    as constants: the fused kernels stay as they are, and the decoder always sees real codes.
+//!    The temperature falls geometrically from `tau_start` to `tau_end`, and the Hamming and
+//!    window penalties rise linearly from 0 to `penalty_weight`. `RUN/relaxed/codes_log.csv`
+//!    logs per epoch how far the hard codes are from feasible.
+//! 2. *projection*: [`tcsense_sensor::project::project`] of `θ` onto the constraints
+//!    (`RUN/relaxed/projection.json`: solver, score, and what the projection changed).
+//! 3. *fine-tuning* (`epochs − relaxed_epochs`, in `RUN/`): the decoder, from the relaxed
+//!    phase's weights, on the projected codes, which become `RUN/codes.json` (provenance
+//!    `learned`).
+
+use burn::module::{Module, ParamId};
+use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
+use burn::tensor::{Device, Tensor};
+use ndarray::Array4;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+use tcsense_models::learned_codes::{basis_tensor, forward, hamming_penalty, hard_codes, matrix, window_penalty, CodeLogits, CodeRelaxation};
+use tcsense_models::net::to_tensor;
+use tcsense_models::runs::RunSpec;
+use tcsense_sensor::params::SensorParams;
+use tcsense_sensor::{Codes, Constraints, MeasurementMatrix};
+
+use crate::{file_err, Result, TrainError};
+
+/// The settings of deep sensing (saved in the run's `config.json` as `learn_codes`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LearnCodes {
+    /// The constraints the learned codes must meet exactly.
+    pub constraints: Constraints,
+    /// Epochs of joint training on relaxed codes; the rest of `epochs` fine-tune the decoder.
+    pub relaxed_epochs: usize,
+    /// Softmax (sigmoid) temperature at the first and the last relaxed step.
+    pub tau_start: f64,
+    pub tau_end: f64,
+    /// Adam learning rate of the logits.
+    pub codes_lr: f64,
+    /// Weight of the Hamming + window penalties at the end of the relaxed phase.
+    pub penalty_weight: f64,
+    /// Initial logits: ±margin around the starting codes.
+    pub init_margin: f32,
+}
+
+impl LearnCodes {
+    /// Defaults for `epochs` in all: two thirds relaxed.
+    pub fn new(constraints: Constraints, epochs: usize) -> Self {
+        LearnCodes { constraints, relaxed_epochs: (2 * epochs).div_ceil(3).max(1), tau_start: 1.0, tau_end: 0.1, codes_lr: 1e-2, penalty_weight: 1e-2, init_margin: 1.0 }
+    }
+
+    pub fn validate(&self, epochs: usize) -> Result<()> {
+        let bad = |field: &'static str, got: String, expected: &str| Err(TrainError::InvalidParam { field, got, expected: expected.into() });
+        if self.relaxed_epochs == 0 || self.relaxed_epochs > epochs {
+            return bad("learn_codes.relaxed_epochs", self.relaxed_epochs.to_string(), "1 to the run's epochs");
+        }
+        if !(self.tau_start > 0.0 && self.tau_end > 0.0 && self.tau_start.is_finite() && self.tau_end.is_finite()) {
+            return bad("learn_codes.tau", format!("{} → {}", self.tau_start, self.tau_end), "positive temperatures");
+        }
+        if !(self.codes_lr > 0.0 && self.codes_lr.is_finite()) {
+            return bad("learn_codes.codes_lr", self.codes_lr.to_string(), "a positive learning rate");
+        }
+        if !(self.penalty_weight >= 0.0 && self.penalty_weight.is_finite() && self.init_margin.is_finite()) {
+            return bad("learn_codes.penalty_weight", self.penalty_weight.to_string(), "a non-negative weight and a finite margin");
+        }
+        Ok(())
+    }
+}
+
+/// The logits' parameter id: fixed, so same seed, same bytes (the network's are 1, 2, …).
+const LOGITS_ID: u64 = 1 << 40;
+/// Files of the code learner inside a checkpoint.
+pub(crate) const LOGITS_FILE: &str = "code_logits";
+pub(crate) const CODE_OPTIM_FILE: &str = "code_optim";
+
+/// The code side of a relaxed run: logits, their optimiser, the basis and the current hard
+/// codes.
+pub(crate) struct Learner {
+    pub lc: LearnCodes,
+    relax: CodeRelaxation,
+    pub logits: CodeLogits,
+    optim: ModuleOptimizer,
+    basis: Tensor<2>,
+    block: (usize, usize),
+    /// The hard codes of the logits (no constraints declared).
+    pub hard: Codes,
+    pub tau: f64,
+    pub weight: f64,
+}
+
+impl Learner {
+    /// Logits at `start` (± the margin) on `device` (an autodiff device).
+    pub fn new(lc: &LearnCodes, start: &Codes, spec: &RunSpec, device: &Device) -> Result<Self> {
+        let relax = CodeRelaxation { taps: start.taps(), tap: lc.constraints.tap, drain: start.drain() };
+        let sensor = SensorParams { sampling: spec.sampling, irf: spec.irf, ..SensorParams::from_codes(start) }.validate()?;
+        let basis = basis_tensor(&MeasurementMatrix::code_basis(&sensor), device);
+        let mut logits = CodeLogits::from_codes(start, &relax, lc.init_margin, device);
+        logits.theta.id = ParamId::from(LOGITS_ID);
+        let hard = hard_codes(&logits.to_array(), &relax, start)?;
+        Ok(Learner { lc: lc.clone(), relax, logits, optim: AdamConfig::new().init(), basis, block: start.block(), hard, tau: lc.tau_start, weight: 0.0 })
+    }
+
+    /// Temperature and penalty weight at `frac` ∈ [0, 1] of the relaxed phase.
+    pub fn schedule(&mut self, frac: f64) {
+        let f = frac.clamp(0.0, 1.0);
+        self.tau = self.lc.tau_start * (self.lc.tau_end / self.lc.tau_start).powf(f);
+        self.weight = self.lc.penalty_weight * f;
+    }
+
+    /// Recompute the hard codes; whether they changed.
+    pub fn refresh(&mut self) -> Result<bool> {
+        let hard = hard_codes(&self.logits.to_array(), &self.relax, &self.hard)?;
+        let changed = hard.digest() != self.hard.digest();
+        self.hard = hard;
+        Ok(changed)
+    }
+
+    /// The measurements with the code gradient, and the penalty.
+    ///
+    /// # Shapes
+    /// - `x`: `[B, T, H, W]`, `y`: `[B, M, H, W]` (simulated by the sensor with the hard
+    ///   codes) → `[B, M, H, W]`, `[1]`
+    pub fn measurements(&self, x: &Array4<f32>, y: &Array4<f32>, device: &Device) -> (Tensor<4>, Tensor<1>) {
+        let bits = self.logits.bits(&self.relax, self.tau, true);
+        let lin = forward(matrix(bits, self.basis.clone()), to_tensor(&x.view(), device), self.block);
+        // the sensor scales each item to its exposure: the gradient follows that gain
+        let y = to_tensor(&y.view(), device);
+        let total = |t: Tensor<4>| t.sum_dim(1).sum_dim(2).sum_dim(3); // [B, 1, 1, 1]
+        let gain = (total(y.clone()) / total(lin.clone().detach()).clamp_min(1e-12)).detach();
+        let lin = lin * gain;
+        let y = y + lin.clone() - lin.detach();
+        let soft = self.logits.bits(&self.relax, self.tau, false);
+        let mut penalty = soft.clone().sum().mul_scalar(0.0);
+        if let Some(h) = self.lc.constraints.hamming {
+            penalty = penalty + hamming_penalty(soft.clone(), h);
+        }
+        if let Some(w) = self.lc.constraints.window {
+            penalty = penalty + window_penalty(soft, w);
+        }
+        (y, penalty.mul_scalar(self.weight))
+    }
+
+    /// One Adam step of the logits.
+    pub fn step(&mut self, grads: GradientsParams) {
+        let logits = std::mem::replace(&mut self.logits, CodeLogits::from_array(&ndarray::Array3::zeros((1, 1, 1)), &self.basis.device()));
+        self.logits = self.optim.step(self.lc.codes_lr, logits, grads);
+    }
+
+    /// Violations of the hard codes under the target constraints: (tap, Hamming, window).
+    pub fn distance(&self) -> (usize, usize, usize) {
+        use tcsense_sensor::codes::ConstraintKind as K;
+        let v = self.hard.violations_of(&self.lc.constraints);
+        let count = |k: K| v.iter().filter(|x| x.kind == k).count();
+        (count(K::Tap), count(K::Hamming), count(K::Window))
+    }
+
+    /// Write the logits and their optimiser into a checkpoint directory.
+    pub fn save(&self, dir: &Path) -> Result<()> {
+        self.logits.clone().save_file(dir.join(LOGITS_FILE)).map_err(|e| file_err(&dir.join(format!("{LOGITS_FILE}.bpk")), e))?;
+        self.optim.save(dir.join(CODE_OPTIM_FILE)).map_err(|e| file_err(&dir.join(format!("{CODE_OPTIM_FILE}.bpk")), e))?;
+        Ok(())
+    }
+
+    /// Read them back from a checkpoint directory.
+    pub fn load(&mut self, dir: &Path) -> Result<()> {
+        let logits = self.logits.clone().try_load_file(dir.join(LOGITS_FILE)).map_err(|e| file_err(&dir.join(format!("{LOGITS_FILE}.bpk")), e))?;
+        self.logits = logits;
+        let optim = std::mem::replace(&mut self.optim, AdamConfig::new().init());
+        self.optim = optim.load(dir.join(CODE_OPTIM_FILE)).map_err(|e| file_err(&dir.join(format!("{CODE_OPTIM_FILE}.bpk")), e))?;
+        self.refresh()?;
+        Ok(())
+    }
+}
+
+/// The relaxed phase's run directory inside the run.
+pub const RELAXED_DIR: &str = "relaxed";
+/// What the projection did (`RUN/relaxed/projection.json`); its presence marks the relaxed
+/// phase done.
+pub const PROJECTION_FILE: &str = "projection.json";
+/// The codes a learned-codes run started from.
+pub const START_CODES_FILE: &str = "start_codes.json";
+/// Per-epoch distance of the relaxed codes to feasibility.
+pub const CODES_LOG: &str = "codes_log.csv";
+const LOG_HEADER: &str = "epoch,step,tau,penalty_weight,tap_violations,hamming_violations,window_violations";
+
+/// A row of `codes_log.csv`.
+pub(crate) fn log_line(epoch: usize, step: u64, l: &Learner) -> String {
+    let (t, h, w) = l.distance();
+    format!("{epoch},{step},{:.6e},{:.6e},{t},{h},{w}", l.tau, l.weight)
+}
+
+/// The rows of `codes_log.csv` up to epoch `upto` (none if it is missing).
+pub(crate) fn read_log(path: &Path, upto: usize) -> Vec<String> {
+    let Ok(text) = std::fs::read_to_string(path) else { return Vec::new() };
+    text.lines().skip(1).filter(|l| l.split(',').next().and_then(|e| e.parse::<usize>().ok()).is_some_and(|e| e <= upto)).map(str::to_string).collect()
+}
+
+pub(crate) fn write_log(path: &Path, rows: &[String]) -> Result<()> {
+    let text = std::iter::once(LOG_HEADER.to_string()).chain(rows.iter().cloned()).collect::<Vec<_>>().join("\n") + "\n";
+    Ok(tcsense_sensor::npy::write_bytes(path, text.as_bytes())?)
+}
+
+/// Project the learned logits onto the constraints, record what it did in
+/// `RELAXED/projection.json`, and return the codes (provenance `learned`).
+pub(crate) fn project_and_record(l: &Learner, start: &Codes, cfg: &crate::TrainConfig, relaxed: &Path) -> Result<Codes> {
+    let theta = l.logits.to_array();
+    let p = tcsense_sensor::project::project(start.shape(), start.clock_hz, l.lc.constraints, &theta.view())?;
+    let (tap, hamming, window) = l.distance();
+    let changed = (0..start.subpixels() * start.taps()).map(|c| p.codes.channel(c).iter().zip(l.hard.channel(c)).filter(|(a, b)| a != b).count()).sum::<usize>();
+    let record = serde_json::json!({
+        "solver": p.method,
+        "score": p.score,
+        "argmax_score": p.argmax_score,
+        "relaxed_violations": {"tap": tap, "hamming": hamming, "window": window},
+        "bits_changed": changed,
+        "bits": start.subpixels() * start.taps() * start.length(),
+    });
+    let mut codes = p.codes;
+    codes.provenance = serde_json::json!({
+        "method": "learned",
+        "decoder": cfg.run.model.name(),
+        "seed": cfg.seed,
+        "start_codes": start.digest(),
+        "schedule": l.lc,
+        "projection": record,
+    });
+    codes.save(&relaxed.join("projected_codes.json"))?;
+    let text = serde_json::to_string_pretty(&record).map_err(|e| file_err(&relaxed.join(PROJECTION_FILE), e))? + "\n";
+    tcsense_sensor::npy::write_bytes(&relaxed.join(PROJECTION_FILE), text.as_bytes())?;
+    Ok(codes)
+}
