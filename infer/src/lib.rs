@@ -18,8 +18,8 @@
 //!
 //! Errors are [`InferError`]; this crate never depends on the training crate.
 
-pub mod chart;
 pub mod error;
+pub mod figures;
 pub mod eval;
 pub mod metrics;
 pub mod onnx;

@@ -17,7 +17,6 @@ use std::path::Path;
 use tcsense_datasets::grid::C;
 use tcsense_datasets::lidar::Camera;
 use tcsense_sensor::npy::atomic_write;
-use tcsense_sensor::show::Canvas;
 use crate::Result;
 
 /// A detected peak.
@@ -231,62 +230,30 @@ pub fn write_ply(path: &Path, depth: &ArrayView3<'_, f32>, amp: &ArrayView3<'_, 
     Ok(n)
 }
 
-/// A colour-mapped PNG of a map (NaN black), with the scale from `lo` to `hi`.
-pub fn map_png(path: &Path, map: &ndarray::ArrayView2<'_, f32>, scale: usize) -> Result<()> {
-    let (h, w) = map.dim();
-    let finite: Vec<f32> = map.iter().copied().filter(|v| v.is_finite()).collect();
-    let lo = finite.iter().copied().fold(f32::INFINITY, f32::min);
-    let hi = finite.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-    let span = if hi > lo { hi - lo } else { 1.0 };
-    let mut cv = Canvas::new(w * scale, h * scale, [0, 0, 0]);
-    for ((r, c), &v) in map.indexed_iter() {
-        if v.is_finite() {
-            cv.rect(c * scale, r * scale, scale, scale, tcsense_datasets::montage::colormap((v - lo) / span));
-        }
-    }
-    Ok(cv.save_png(path)?)
-}
-
-/// Plot waveforms: one panel per pixel, one coloured line per cube (e.g. truth, TVAL3,
-/// ADMM-Net), like the paper's Figs. 18 and 20; also returns the values as CSV text.
+/// Plot waveforms: one panel per pixel, one line per cube (e.g. truth, TVAL3, ADMM-Net),
+/// like the paper's Figs. 18 and 20 ([`crate::figures::waveforms`]); also returns the
+/// values as CSV text.
+///
+/// # Shapes
+/// - `cubes`: `(name, [T, H, W])`
 pub fn plot_waveforms(path: &Path, cubes: &[(&str, ArrayView3<'_, f32>)], pixels: &[(usize, usize)]) -> Result<String> {
-    const COLOURS: [[u8; 3]; 6] = [[0, 0, 0], [31, 119, 180], [214, 39, 40], [44, 160, 44], [255, 127, 14], [148, 103, 189]];
-    let (pw, ph, pad) = (360usize, 200usize, 12usize);
-    let mut cv = Canvas::new(pad + pixels.len() * (pw + pad), ph + 2 * pad, [255, 255, 255]);
     let mut csv = String::from("pixel_row,pixel_col,bin");
     for (name, _) in cubes {
         csv.push(',');
         csv.push_str(name);
     }
     csv.push('\n');
-    for (pi, &(r, c)) in pixels.iter().enumerate() {
-        let x0 = pad + pi * (pw + pad);
-        cv.rect(x0, pad, pw, ph, [248, 248, 248]);
-        cv.rect(x0, pad + ph - 1, pw, 1, [0, 0, 0]);
-        cv.rect(x0, pad, 1, ph, [0, 0, 0]);
+    for &(r, c) in pixels {
         let t = cubes.first().map_or(0, |c| c.1.dim().0);
-        let peak = cubes.iter().flat_map(|(_, x)| (0..x.dim().0).map(move |j| x[(j, r, c)])).fold(1e-12f32, f32::max);
-        for (ci, (_, x)) in cubes.iter().enumerate() {
-            let col = COLOURS[ci % COLOURS.len()];
-            let tt = x.dim().0;
-            let pt = |j: usize| {
-                let px = x0 + 2 + j * (pw - 4) / tt.max(2).saturating_sub(1);
-                let py = pad + ph - 2 - ((x[(j, r, c)].max(0.0) / peak) * (ph as f32 - 4.0)) as usize;
-                (px as i64, py as i64)
-            };
-            for j in 1..tt {
-                cv.line(pt(j - 1), pt(j), col);
-            }
-        }
         for j in 0..t {
             csv.push_str(&format!("{r},{c},{j}"));
             for (_, x) in cubes {
-                csv.push_str(&format!(",{}", if j < x.dim().0 { x[(j, r, c)] } else { f32::NAN }));
+                csv.push_str(&format!(",{}", x.get((j, r, c)).copied().unwrap_or(f32::NAN)));
             }
             csv.push('\n');
         }
     }
-    cv.save_png(path)?;
+    crate::figures::waveforms(path, cubes, pixels, None)?;
     Ok(csv)
 }
 

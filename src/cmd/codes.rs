@@ -5,7 +5,7 @@ use clap::{Args, Subcommand};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use tcsense_sensor::codes::{CodeShape, Codes, Constraints, DEFAULT_CLOCK_HZ};
-use tcsense_sensor::{export, generate, show};
+use tcsense_sensor::{export, generate};
 
 #[derive(Subcommand)]
 pub enum CodesCmd {
@@ -200,8 +200,9 @@ pub fn run(cmd: CodesCmd) -> Result<ExitCode> {
             );
         }
         CodesCmd::Show { codes, output } => {
-            let g = Codes::load(&codes)?;
-            show::save_png(&g, &output)?;
+            let g = Codes::load_unchecked(&codes)?;
+            let name = codes.file_name().map_or_else(|| codes.display().to_string(), |n| n.to_string_lossy().into_owned());
+            tcsense_infer::figures::codes(&output, &name, &g)?;
             println!("wrote {}", output.display());
         }
     }

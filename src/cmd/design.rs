@@ -7,7 +7,7 @@ use ndarray::{Array3, Axis, Ix4};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use tcsense_datasets::Dataset;
-use tcsense_infer::chart::line_chart;
+use tcsense_infer::figures::{log_chart, Series};
 use tcsense_infer::selection::{evaluate, select, table1_settings, EvalSetup};
 use tcsense_sensor::codes::{CodeShape, Constraints};
 use tcsense_sensor::generate::random_codes;
@@ -235,7 +235,13 @@ pub fn sweep(cmd: SweepCmd) -> Result<ExitCode> {
     std::fs::create_dir_all(&a.output).map_err(|e| anyhow::anyhow!("{}: {e}", a.output.display()))?;
     write_bytes(&a.output.join("sweep.csv"), csv.as_bytes())?;
     write_bytes(&a.output.join("summary.csv"), summary.as_bytes())?;
-    line_chart(&a.output.join("sweep.png"), &series, true)?;
+    let (title, x_label) = match which {
+        Which::Taps => ("TVAL3 MSE against the number of taps (2×2 block; paper Fig. 13a)", "taps M"),
+        Which::Block => ("TVAL3 MSE against the block size (4 taps; paper Fig. 13b)", "block side (pixels)"),
+        Which::Constraints => ("TVAL3 MSE of the constraint settings of the paper's Table 1", "setting (row of summary.csv)"),
+    };
+    let series: Vec<Series> = series.into_iter().map(|(label, points)| Series { label, points }).collect();
+    log_chart(&a.output.join("sweep.png"), title, x_label, "MSE of the best of the candidates", &series)?;
     print!("{summary}");
     println!("wrote {}/sweep.csv, summary.csv, sweep.png", a.output.display());
     Ok(ExitCode::SUCCESS)

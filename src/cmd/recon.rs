@@ -6,7 +6,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use ndarray::{Array4, ArrayD, Axis, Ix3, Ix4};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
-use tcsense_infer::products::{depth_map, lifetime_map, map_png, plot_waveforms, write_ply, PeakOptions};
+use tcsense_infer::figures;
+use tcsense_infer::products::{depth_map, lifetime_map, plot_waveforms, write_ply, PeakOptions};
 use tcsense_models::decoder::{Control, Decoder, Step, Tval3Decoder};
 use tcsense_models::{runs, Device, ModelError, Tval3Options, TvNorm};
 use tcsense_sensor::npy::{read_npy, write_bytes, write_npy};
@@ -198,8 +199,7 @@ fn decode_file(decoder: &mut dyn Decoder, sensor: &MeasurementMatrix, codes: &tc
         println!("wrote {}: {n} points", p.display());
     }
     if let Some(p) = &products.png {
-        let (_, h, w) = first_d.dim();
-        map_png(p, &first_d.index_axis(Axis(0), 0), (256 / h.max(w)).max(1))?;
+        figures::map(p, "Range of the first return (U-Net)", &first_d.index_axis(Axis(0), 0), "range (m)")?;
         println!("wrote {}", p.display());
     }
     Ok(ExitCode::SUCCESS)
@@ -243,9 +243,10 @@ impl BinArgs {
     }
 }
 
+/// A cube `[T, H, W]`, or the first of a batch `[B, T, H, W]`.
 fn read_cube3(path: &Path) -> Result<ndarray::Array3<f32>> {
-    let a = tcsense_sensor::npy::read_cube(path, false)?;
-    Ok(a.into_dimensionality::<Ix3>()?)
+    let (_, mut cubes) = read_cubes(path)?;
+    Ok(cubes.swap_remove(0))
 }
 
 /// A cube `[T, H, W]`, or a batch `[B, T, H, W]` as `B` cubes (`batched` = true).
@@ -327,8 +328,7 @@ pub fn depth(a: DepthArgs) -> Result<ExitCode> {
         println!("wrote {}: {n} points", p.display());
     }
     if let Some(p) = &a.products.png {
-        let (_, h, w) = d.dim();
-        map_png(p, &d.index_axis(Axis(0), 0), (256 / h.max(w)).max(1))?;
+        figures::map(p, "Range of the first return (peak detection)", &d.index_axis(Axis(0), 0), "range (m)")?;
         println!("wrote {}", p.display());
     }
     Ok(ExitCode::SUCCESS)
@@ -374,8 +374,7 @@ pub fn lifetime(a: LifetimeArgs) -> Result<ExitCode> {
         println!("wrote {}", p.display());
     }
     if let Some(p) = &a.png {
-        let (h, w) = tau.dim();
-        map_png(p, &tau.view(), (256 / h.max(w)).max(1))?;
+        figures::map(p, "Fluorescence lifetime", &tau.mapv(|t| t * 1e9).view(), "lifetime τ (ns)")?;
         println!("wrote {}", p.display());
     }
     Ok(ExitCode::SUCCESS)
@@ -386,7 +385,7 @@ pub enum PlotCmd {
     /// Waveforms at chosen pixels for one or more cubes (like the paper's Figs. 18 and 20);
     /// writes the PNG and a CSV of the values next to it.
     Waveforms {
-        /// Cubes .npy [T, H, W] (e.g. truth, TVAL3, ADMM-Net), drawn black, blue, red, …
+        /// Cubes .npy [T, H, W] or the first of a batch [B, T, H, W] (e.g. truth, TVAL3, ADMM-Net), drawn black, blue, red, …
         #[arg(long, num_args = 1.., required = true)]
         cube: Vec<PathBuf>,
         /// Pixels as ROW,COL.

@@ -53,7 +53,7 @@ pub struct LearnCodes {
 impl LearnCodes {
     /// Defaults for `epochs` in all: two thirds relaxed.
     pub fn new(constraints: Constraints, epochs: usize) -> Self {
-        LearnCodes { constraints, relaxed_epochs: (2 * epochs).div_ceil(3).max(1), tau_start: 1.0, tau_end: 0.1, codes_lr: 1e-2, penalty_weight: 1e-2, init_margin: 1.0 }
+        LearnCodes { constraints, relaxed_epochs: (2 * epochs).div_ceil(3).max(1), tau_start: 1.0, tau_end: 0.1, codes_lr: 5e-2, penalty_weight: 1e-2, init_margin: 0.1 }
     }
 
     pub fn validate(&self, epochs: usize) -> Result<()> {

@@ -1,0 +1,387 @@
+//! Figures a person can read without the source: a title, axes with labelled ticks and
+//! units, a legend, and a colour bar with units on every map.
+//!
+//! Drawn with `plotters` into an RGB buffer with the bundled DejaVu Sans (`infer/assets/`, its
+//! licence beside it: no system font is needed) and written as PNG atomically.
+
+use plotters::coord::Shift;
+use plotters::prelude::*;
+use plotters::style::FontStyle;
+use std::path::Path;
+use std::sync::Once;
+use tcsense_sensor::npy::atomic_write;
+use tcsense_sensor::Codes;
+
+use crate::{InferError, Result};
+
+const FONT: &str = "sans-serif";
+static REGISTER: Once = Once::new();
+
+fn register_font() {
+    REGISTER.call_once(|| {
+        // the bundled font is a valid TrueType file; a failure would show as missing text
+        let _ = plotters::style::register_font(FONT, FontStyle::Normal, include_bytes!("../assets/DejaVuSans.ttf"));
+    });
+}
+
+/// Line colours: black first (the truth), then the tab10 palette.
+pub const PALETTE: [RGBColor; 8] = [
+    RGBColor(0, 0, 0),
+    RGBColor(31, 119, 180),
+    RGBColor(214, 39, 40),
+    RGBColor(44, 160, 44),
+    RGBColor(255, 127, 14),
+    RGBColor(148, 103, 189),
+    RGBColor(140, 86, 75),
+    RGBColor(23, 190, 207),
+];
+/// Tap colours of code figures (tab10).
+const TAPS: [RGBColor; 8] = [
+    RGBColor(31, 119, 180),
+    RGBColor(255, 127, 14),
+    RGBColor(44, 160, 44),
+    RGBColor(148, 103, 189),
+    RGBColor(140, 86, 75),
+    RGBColor(227, 119, 194),
+    RGBColor(127, 127, 127),
+    RGBColor(23, 190, 207),
+];
+
+/// Draw into a `w × h` RGB buffer with `draw`, then write it to `path` as PNG, atomically.
+fn render(path: &Path, (w, h): (u32, u32), draw: impl FnOnce(&DrawingArea<BitMapBackend<'_>, Shift>) -> std::result::Result<(), String>) -> Result<()> {
+    register_font();
+    let mut buf = vec![255u8; (w * h * 3) as usize];
+    {
+        let root = BitMapBackend::with_buffer(&mut buf, (w, h)).into_drawing_area();
+        draw(&root).map_err(|e| InferError::File { path: path.to_path_buf(), msg: format!("cannot draw the figure: {e}") })?;
+        root.present().map_err(|e| InferError::File { path: path.to_path_buf(), msg: format!("cannot draw the figure: {e}") })?;
+    }
+    atomic_write(path, |out| {
+        let mut enc = png::Encoder::new(out, w, h);
+        enc.set_color(png::ColorType::Rgb);
+        enc.set_depth(png::BitDepth::Eight);
+        let mut writer = enc.write_header().map_err(std::io::Error::other)?;
+        writer.write_image_data(&buf).map_err(std::io::Error::other)?;
+        writer.finish().map_err(std::io::Error::other)
+    })?;
+    Ok(())
+}
+
+fn err<E: std::fmt::Debug>(e: E) -> String {
+    format!("{e:?}")
+}
+
+/// One line of a chart.
+#[derive(Debug, Clone)]
+pub struct Series {
+    pub label: String,
+    pub points: Vec<(f64, f64)>,
+}
+
+/// A line chart with a legend.
+pub fn line_chart(path: &Path, title: &str, x_label: &str, y_label: &str, series: &[Series]) -> Result<()> {
+    let pts = series.iter().flat_map(|s| s.points.iter()).filter(|(x, y)| x.is_finite() && y.is_finite());
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
+    for &(x, y) in pts {
+        (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
+    }
+    if !x0.is_finite() {
+        (x0, x1, y0, y1) = (0.0, 1.0, 0.0, 1.0);
+    }
+    if x1 <= x0 {
+        x1 = x0 + 1.0;
+    }
+    let pad = if y1 > y0 { 0.05 * (y1 - y0) } else { 0.5 * y0.abs().max(1.0) };
+    render(path, (900, 520), |root| {
+        let mut chart = ChartBuilder::on(root)
+            .caption(title, (FONT, 22))
+            .margin(12)
+            .x_label_area_size(48)
+            .y_label_area_size(80)
+            .build_cartesian_2d(x0..x1, (y0 - pad)..(y1 + pad))
+            .map_err(err)?;
+        chart.configure_mesh().x_desc(x_label).y_desc(y_label).label_style((FONT, 15)).axis_desc_style((FONT, 17)).draw().map_err(err)?;
+        for (i, s) in series.iter().enumerate() {
+            let c = PALETTE[i % PALETTE.len()];
+            let pts: Vec<(f64, f64)> = s.points.iter().copied().filter(|(x, y)| x.is_finite() && y.is_finite()).collect();
+            chart
+                .draw_series(LineSeries::new(pts, c.stroke_width(2)))
+                .map_err(err)?
+                .label(s.label.clone())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+        }
+        chart.configure_series_labels().label_font((FONT, 15)).background_style(WHITE.mix(0.85)).border_style(BLACK).position(SeriesLabelPosition::UpperRight).draw().map_err(err)?;
+        Ok(())
+    })
+}
+
+/// A line chart with a logarithmic y axis (values ≤ 0 are left out).
+pub fn log_chart(path: &Path, title: &str, x_label: &str, y_label: &str, series: &[Series]) -> Result<()> {
+    let pts = series.iter().flat_map(|s| s.points.iter()).filter(|(x, y)| x.is_finite() && y.is_finite() && *y > 0.0);
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
+    for &(x, y) in pts {
+        (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
+    }
+    if !x0.is_finite() {
+        (x0, x1, y0, y1) = (0.0, 1.0, 1.0, 10.0);
+    }
+    if x1 <= x0 {
+        x1 = x0 + 1.0;
+    }
+    let (y0, y1) = (10f64.powf(y0.log10().floor()), 10f64.powf(y1.log10().ceil().max(y0.log10().floor() + 1.0)));
+    render(path, (900, 520), |root| {
+        let mut chart = ChartBuilder::on(root)
+            .caption(title, (FONT, 22))
+            .margin(12)
+            .x_label_area_size(48)
+            .y_label_area_size(90)
+            .build_cartesian_2d(x0..x1, (y0..y1).log_scale())
+            .map_err(err)?;
+        chart.configure_mesh().x_desc(x_label).y_desc(y_label).y_label_formatter(&|v| format!("{v:.0e}")).label_style((FONT, 15)).axis_desc_style((FONT, 17)).draw().map_err(err)?;
+        for (i, s) in series.iter().enumerate() {
+            let c = PALETTE[(i + 1) % PALETTE.len()];
+            let pts: Vec<(f64, f64)> = s.points.iter().copied().filter(|(x, y)| x.is_finite() && y.is_finite() && *y > 0.0).collect();
+            chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, c.filled()))).map_err(err)?;
+            chart
+                .draw_series(LineSeries::new(pts, c.stroke_width(2)))
+                .map_err(err)?
+                .label(s.label.clone())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+        }
+        chart.configure_series_labels().label_font((FONT, 15)).background_style(WHITE.mix(0.85)).border_style(BLACK).position(SeriesLabelPosition::UpperRight).draw().map_err(err)?;
+        Ok(())
+    })
+}
+
+/// Waveforms at pixels, one panel per pixel and one line per cube (the first black: the
+/// truth), like the paper's Figs. 18 and 20.
+///
+/// # Shapes
+/// - `cubes`: `(name, [T, H, W])`; `pixels`: `(row, column)`
+pub fn waveforms(path: &Path, cubes: &[(&str, ndarray::ArrayView3<'_, f32>)], pixels: &[(usize, usize)], bin_ns: Option<f64>) -> Result<()> {
+    let panels = pixels.len().max(1);
+    let x_label = match bin_ns {
+        Some(b) => format!("time (ns, bins of {b:.3} ns)"),
+        None => "time bin".to_string(),
+    };
+    let scale = bin_ns.unwrap_or(1.0);
+    render(path, ((420 * panels) as u32 + 40, 460), |root| {
+        let (title_area, body) = root.split_vertically(40);
+        title_area.titled("Waveforms at chosen pixels", (FONT, 22)).map_err(err)?;
+        for (area, &(r, c)) in body.split_evenly((1, panels)).iter().zip(pixels) {
+            let t = cubes.first().map_or(1, |x| x.1.dim().0);
+            let peak = cubes.iter().flat_map(|(_, x)| (0..x.dim().0).map(move |j| x[(j, r, c)])).fold(1e-12f32, f32::max) as f64;
+            let low = cubes.iter().flat_map(|(_, x)| (0..x.dim().0).map(move |j| x[(j, r, c)])).fold(0f32, f32::min) as f64;
+            let mut chart = ChartBuilder::on(area)
+                .caption(format!("pixel (row {r}, column {c})"), (FONT, 16))
+                .margin(8)
+                .x_label_area_size(44)
+                .y_label_area_size(70)
+                .build_cartesian_2d(0.0..(t as f64 - 1.0).max(1.0) * scale, low..peak * 1.08)
+                .map_err(err)?;
+            chart.configure_mesh().x_desc(x_label.as_str()).y_desc("intensity (a.u.)").label_style((FONT, 13)).axis_desc_style((FONT, 14)).draw().map_err(err)?;
+            for (i, (name, x)) in cubes.iter().enumerate() {
+                let colour = PALETTE[i % PALETTE.len()];
+                let pts: Vec<(f64, f64)> = (0..x.dim().0).map(|j| (j as f64 * scale, x[(j, r, c)] as f64)).collect();
+                chart
+                    .draw_series(LineSeries::new(pts, colour.stroke_width(2)))
+                    .map_err(err)?
+                    .label(name.to_string())
+                    .legend(move |(px, py)| PathElement::new(vec![(px, py), (px + 20, py)], colour.stroke_width(2)));
+            }
+            chart.configure_series_labels().label_font((FONT, 13)).background_style(WHITE.mix(0.85)).border_style(BLACK).position(SeriesLabelPosition::UpperRight).draw().map_err(err)?;
+        }
+        Ok(())
+    })
+}
+
+/// The viridis colour map at `t` ∈ [0, 1].
+pub fn viridis(t: f64) -> RGBColor {
+    const STOPS: [(f64, f64, f64); 6] = [(68.0, 1.0, 84.0), (65.0, 68.0, 135.0), (42.0, 120.0, 142.0), (34.0, 168.0, 132.0), (122.0, 209.0, 81.0), (253.0, 231.0, 37.0)];
+    let t = if t.is_finite() { t.clamp(0.0, 1.0) } else { 0.0 } * (STOPS.len() - 1) as f64;
+    let i = (t.floor() as usize).min(STOPS.len() - 2);
+    let f = t - i as f64;
+    let (a, b) = (STOPS[i], STOPS[i + 1]);
+    let mix = |u: f64, v: f64| (u + (v - u) * f).round() as u8;
+    RGBColor(mix(a.0, b.0), mix(a.1, b.1), mix(a.2, b.2))
+}
+
+/// A map `[H, W]` in viridis with a colour bar labelled `unit` (NaN grey, "no value" in the
+/// legend); pixel axes with row 0 at the top.
+pub fn map(path: &Path, title: &str, values: &ndarray::ArrayView2<'_, f32>, unit: &str) -> Result<()> {
+    let (h, w) = values.dim();
+    let finite = values.iter().copied().filter(|v| v.is_finite());
+    let (lo, hi) = finite.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| (a.min(v as f64), b.max(v as f64)));
+    let (lo, hi) = if lo.is_finite() { (lo, if hi > lo { hi } else { lo + 1.0 }) } else { (0.0, 1.0) };
+    let any_nan = values.iter().any(|v| !v.is_finite());
+    let side = 560u32;
+    let (pw, ph) = if w >= h { (side, (side as usize * h / w.max(1)).max(120) as u32) } else { ((side as usize * w / h.max(1)).max(120) as u32, side) };
+    render(path, (pw + 260, ph + 130), |root| {
+        let (left, right) = root.split_horizontally(pw + 110);
+        let mut chart = ChartBuilder::on(&left)
+            .caption(title, (FONT, 20))
+            .margin(10)
+            .x_label_area_size(42)
+            .y_label_area_size(56)
+            .build_cartesian_2d(0.0..w as f64, h as f64..0.0)
+            .map_err(err)?;
+        chart
+            .configure_mesh()
+            .disable_mesh()
+            .x_desc("column (pixel)")
+            .y_desc("row (pixel)")
+            .x_label_formatter(&|v| format!("{v:.0}"))
+            .y_label_formatter(&|v| format!("{v:.0}"))
+            .label_style((FONT, 14))
+            .axis_desc_style((FONT, 15))
+            .draw()
+            .map_err(err)?;
+        let grey = RGBColor(160, 160, 160);
+        chart
+            .draw_series(values.indexed_iter().map(|((r, c), &v)| {
+                let colour = if v.is_finite() { viridis((v as f64 - lo) / (hi - lo)) } else { grey };
+                Rectangle::new([(c as f64, r as f64), (c as f64 + 1.0, r as f64 + 1.0)], colour.filled())
+            }))
+            .map_err(err)?;
+        if any_nan {
+            chart.draw_series(std::iter::empty::<Rectangle<(f64, f64)>>()).map_err(err)?.label("no value").legend(move |(x, y)| Rectangle::new([(x, y - 6), (x + 14, y + 6)], grey.filled()));
+            chart.configure_series_labels().label_font((FONT, 14)).background_style(WHITE.mix(0.9)).border_style(BLACK).position(SeriesLabelPosition::LowerRight).draw().map_err(err)?;
+        }
+        // the colour bar
+        let mut bar = ChartBuilder::on(&right)
+            .margin_top(40)
+            .margin_bottom(52)
+            .margin_left(10)
+            .set_label_area_size(LabelAreaPosition::Right, 110)
+            .build_cartesian_2d(0.0..1.0, lo..hi)
+            .map_err(err)?;
+        bar.configure_mesh().disable_mesh().disable_x_axis().y_desc(unit).label_style((FONT, 14)).axis_desc_style((FONT, 15)).draw().map_err(err)?;
+        let steps = 128;
+        bar.draw_series((0..steps).map(|i| {
+            let (a, b) = (lo + (hi - lo) * i as f64 / steps as f64, lo + (hi - lo) * (i + 1) as f64 / steps as f64);
+            Rectangle::new([(0.0, a), (1.0, b)], viridis((i as f64 + 0.5) / steps as f64).filled())
+        }))
+        .map_err(err)?;
+        Ok(())
+    })
+}
+
+/// Codes like the paper's Fig. 12: one row per channel (subpixel `n`, tap `m`), one column per
+/// mask, a cell in the tap's colour when on; below, the bits changed at each transition
+/// `l → l+1` against the Hamming limit; violated masks marked red on top.
+pub fn codes(path: &Path, name: &str, codes: &Codes) -> Result<()> {
+    let (n_sub, taps, len) = (codes.subpixels(), codes.taps(), codes.length());
+    let rows = n_sub * taps;
+    let (bh, bw) = codes.block();
+    let method = codes.provenance.get("method").and_then(|v| v.as_str()).unwrap_or("");
+    let title = format!(
+        "{name}: {taps} taps, {bh}×{bw} block, L = {len}, constraints {}{}",
+        codes.constraints.label(),
+        if method.is_empty() { String::new() } else { format!(" ({method})") }
+    );
+    let tc_ns = 1e9 / codes.clock_hz;
+    let bad: Vec<usize> = codes.violations().iter().map(|v| v.mask).collect();
+    let height = (rows * 18 + 260).clamp(420, 1400) as u32;
+    render(path, (1000, height), |root| {
+        let (top, bottom) = root.split_vertically(height - 190);
+        let mut chart = ChartBuilder::on(&top)
+            .caption(&title, (FONT, 20))
+            .margin(10)
+            .x_label_area_size(40)
+            .y_label_area_size(90)
+            .build_cartesian_2d(0.0..len as f64, rows as f64..0.0)
+            .map_err(err)?;
+        chart
+            .configure_mesh()
+            .disable_mesh()
+            .x_desc(format!("mask l (T_c = {tc_ns:.2} ns each)"))
+            .y_desc("subpixel n, tap m")
+            .x_label_formatter(&|v| format!("{v:.0}"))
+            .y_label_formatter(&|_| String::new())
+            .label_style((FONT, 13))
+            .axis_desc_style((FONT, 15))
+            .draw()
+            .map_err(err)?;
+        // row labels at the rows' centres
+        if rows <= 64 {
+            for c in 0..rows {
+                let (px, py) = chart.backend_coord(&(0.0, c as f64 + 0.5));
+                top.draw(&Text::new(format!("n{} m{}", c / taps, c % taps), (px - 52, py - 6), (FONT, 12))).map_err(err)?;
+            }
+        }
+        let shade = [RGBColor(244, 244, 244), RGBColor(228, 228, 228)];
+        chart
+            .draw_series((0..rows).map(|c| Rectangle::new([(0.0, c as f64 + 0.02), (len as f64, c as f64 + 0.98)], shade[(c / taps) % 2].filled())))
+            .map_err(err)?;
+        chart
+            .draw_series((0..rows).flat_map(|c| {
+                let (n, m) = (c / taps, c % taps);
+                (0..len).filter(move |&l| codes.get(n, m, l)).map(move |l| Rectangle::new([(l as f64 + 0.05, c as f64 + 0.1), (l as f64 + 0.95, c as f64 + 0.9)], TAPS[m % 8].filled()))
+            }))
+            .map_err(err)?;
+        for m in 0..taps {
+            chart.draw_series(std::iter::empty::<Rectangle<(f64, f64)>>()).map_err(err)?.label(format!("tap {m}")).legend(move |(x, y)| Rectangle::new([(x, y - 6), (x + 14, y + 6)], TAPS[m % 8].filled()));
+        }
+        if !bad.is_empty() {
+            chart.draw_series(bad.iter().map(|&l| Rectangle::new([(l as f64, 0.0), (l as f64 + 1.0, 0.3)], RED.filled()))).map_err(err)?.label("violation").legend(|(x, y)| Rectangle::new([(x, y - 6), (x + 14, y + 6)], RED.filled()));
+        }
+        chart.configure_series_labels().label_font((FONT, 13)).background_style(WHITE.mix(0.9)).border_style(BLACK).position(SeriesLabelPosition::UpperRight).draw().map_err(err)?;
+
+        let hd: Vec<usize> = (0..len).map(|l| codes.hamming_at(l)).collect();
+        let limit = codes.constraints.hamming;
+        let ymax = hd.iter().copied().max().unwrap_or(0).max(limit.unwrap_or(0)).max(1) as f64 + 0.5;
+        let mut strip = ChartBuilder::on(&bottom).margin(10).x_label_area_size(40).y_label_area_size(90).build_cartesian_2d(0.0..len as f64, 0.0..ymax).map_err(err)?;
+        strip
+            .configure_mesh()
+            .disable_x_mesh()
+            .x_desc("transition l → l+1")
+            .y_desc("bits changed")
+            .x_label_formatter(&|v| format!("{v:.0}"))
+            .y_label_formatter(&|v| if (v - v.round()).abs() < 1e-9 { format!("{v:.0}") } else { String::new() })
+            .label_style((FONT, 13))
+            .axis_desc_style((FONT, 15))
+            .draw()
+            .map_err(err)?;
+        strip.draw_series(hd.iter().enumerate().map(|(l, &d)| Rectangle::new([(l as f64 + 0.2, 0.0), (l as f64 + 0.8, d as f64)], RGBColor(80, 80, 80).filled()))).map_err(err)?.label("Hamming distance").legend(|(x, y)| Rectangle::new([(x, y - 6), (x + 14, y + 6)], RGBColor(80, 80, 80).filled()));
+        if let Some(hl) = limit {
+            strip.draw_series(LineSeries::new(vec![(0.0, hl as f64), (len as f64, hl as f64)], RED.stroke_width(2))).map_err(err)?.label(format!("limit H = {hl}")).legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], RED.stroke_width(2)));
+        }
+        strip.configure_series_labels().label_font((FONT, 13)).background_style(WHITE.mix(0.9)).border_style(BLACK).position(SeriesLabelPosition::UpperRight).draw().map_err(err)?;
+        Ok(())
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn png_size(path: &Path) -> (u32, u32) {
+        let dec = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
+        let reader = dec.read_info().unwrap();
+        let info = reader.info();
+        (info.width, info.height)
+    }
+
+    /// Every figure renders, with text: the font draws dark pixels in the caption band.
+    #[test]
+    fn figures_render_with_text() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("lines.png");
+        line_chart(&p, "Training loss", "epoch", "loss", &[Series { label: "train".into(), points: vec![(1.0, 0.5), (2.0, 0.3), (3.0, 0.2)] }]).unwrap();
+        assert_eq!(png_size(&p), (900, 520));
+        let m = ndarray::Array2::from_shape_fn((8, 12), |(r, c)| if r == 3 && c == 4 { f32::NAN } else { (r * 12 + c) as f32 });
+        let p = dir.path().join("map.png");
+        map(&p, "Range of return 1", &m.view(), "range (m)").unwrap();
+        let shape = tcsense_sensor::codes::CodeShape { bh: 2, bw: 2, taps: 4, length: 16, drain: false };
+        let c = tcsense_sensor::generate::random_codes(shape, 607e6, tcsense_sensor::Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1).unwrap();
+        let p = dir.path().join("codes.png");
+        codes(&p, "codes.json", &c).unwrap();
+        // caption text: dark pixels in the top band of the image
+        let dec = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&p).unwrap()));
+        let mut reader = dec.read_info().unwrap();
+        let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+        let info = reader.next_frame(&mut buf).unwrap();
+        let band = &buf[..(info.width as usize * 3 * 30)];
+        assert!(band.chunks(3).filter(|px| px.iter().all(|&v| v < 100)).count() > 50, "no caption text drawn");
+    }
+}
