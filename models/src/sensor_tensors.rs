@@ -41,6 +41,9 @@ pub struct SensorTensors {
     /// The same operators for the fused frame-layout kernels of `tcsense_kernels::pixel`: `A`,
     /// `Aᵀ`, the back-projection `Aᵀ(AAᵀ + εI)⁻¹` and the data-consistency solve.
     pub fused: FusedSensor,
+    /// Whether `a`/`at` carry a graph to learnable codes ([`Self::with_matrix`]): the operators
+    /// then run in block layout from burn ops, differentiable in `A`.
+    pub differentiable: bool,
 }
 
 /// The per-pixel operators of [`SensorTensors`] for [`pixel_linear`] and [`pixel_dc`].
@@ -109,6 +112,7 @@ impl SensorTensors {
             height,
             width,
             block: a.block(),
+            differentiable: false,
         })
     }
 
@@ -149,10 +153,30 @@ impl SensorTensors {
     }
 
     /// `(sI + AAᵀ)⁻¹ v` in block layout: `[B, N, M, P]` → `[B, N, M, P]`; `s` is `[1]`.
+    ///
+    /// With a differentiable `A`, one Newton step `X = X₀(2I − (sI + AAᵀ)X₀)` around the exact
+    /// inverse `X₀` (the eigendecomposition, a constant) keeps the value (`(sI + AAᵀ)X₀ = I`)
+    /// and gives the exact derivative `dX = −X₀ d(AAᵀ) X₀`.
     fn solve_aat(&self, v: Tensor<4>, s: Tensor<1>) -> Tensor<4> {
-        let inv = (self.lambda.clone() + s.reshape([1, 1, 1, 1])).recip(); // [1, N, 1, M]
+        let s4 = s.reshape([1, 1, 1, 1]);
+        let inv = (self.lambda.clone() + s4.clone()).recip(); // [1, N, 1, M]
         let k = (self.q.clone() * inv).matmul(self.qt.clone()); // [1, N, M, M]
-        k.matmul(v)
+        let x0 = k.clone().matmul(v);
+        if !self.differentiable {
+            return x0;
+        }
+        let m_x0 = x0.clone() * s4 + self.a_blocks(self.at_blocks(x0.clone()));
+        x0.mul_scalar(2.0) - k.matmul(m_x0)
+    }
+
+    /// The same sensor with `A [N, M, T]` taken from `a` (e.g. learnable codes' `A(θ)`, equal
+    /// in value to the matrix this was built from): every operator then follows `a`'s graph.
+    pub fn with_matrix(mut self, a: Tensor<3>) -> Self {
+        let a: Tensor<4> = a.unsqueeze_dim(0);
+        self.at = a.clone().swap_dims(2, 3);
+        self.a = a;
+        self.differentiable = true;
+        self
     }
 
     /// `A x`.
@@ -160,6 +184,9 @@ impl SensorTensors {
     /// # Shapes
     /// - `x`: `[B, T, H, W]` → `[B, M, H, W]`
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
+        if self.differentiable {
+            return self.from_blocks(self.a_blocks(self.to_blocks(x)));
+        }
         pixel_linear(x, self.fused.a.clone())
     }
 
@@ -168,6 +195,9 @@ impl SensorTensors {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
     pub fn adjoint(&self, y: Tensor<4>) -> Tensor<4> {
+        if self.differentiable {
+            return self.from_blocks(self.at_blocks(self.to_blocks(y)));
+        }
         pixel_linear(y, self.fused.at.clone())
     }
 
@@ -176,6 +206,9 @@ impl SensorTensors {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
     pub fn pinv(&self, y: Tensor<4>) -> Tensor<4> {
+        if self.differentiable {
+            return self.pinv_blocks(y);
+        }
         pixel_linear(y, self.fused.pinv.clone())
     }
 
@@ -205,6 +238,9 @@ impl SensorTensors {
     /// # Shapes
     /// - `v`: `[B, T, H, W]`, `rho`: `[1]` → `[B, T, H, W]`
     pub fn data_consistency(&self, v: Tensor<4>, rho: Tensor<1>) -> Tensor<4> {
+        if self.differentiable {
+            return self.from_blocks(self.data_consistency_blocks(self.to_blocks(v), rho));
+        }
         pixel_dc(v, rho, self.fused.dc.clone())
     }
 }
@@ -215,6 +251,55 @@ mod tests {
     use tcsense_sensor::codes::{CodeShape, Constraints};
     use tcsense_sensor::generate::random_codes;
     use tcsense_sensor::SensorParams;
+
+    /// With `A` as a graph tensor the operators keep their values, and the gradient of the
+    /// data-consistency solve in `A` matches central differences (the inverse's derivative
+    /// comes from one Newton step around the constant eigendecomposition).
+    #[test]
+    fn differentiable_operators_keep_values_and_differentiate_in_a() {
+        let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 8, drain: false };
+        let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 3).unwrap();
+        let spec = SensorParams { irf: tcsense_sensor::Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }, ..SensorParams::from_codes(&codes) }.validate().unwrap();
+        let a = MeasurementMatrix::synthesize(&codes, &spec).unwrap();
+        let device = Device::flex().autodiff();
+        let st = SensorTensors::new(&a, 2, 4, &device).unwrap();
+        let av: Vec<f32> = a.a().iter().copied().collect();
+        let a_tensor = |vals: Vec<f32>| Tensor::<3>::from_data(TensorData::new(vals, [4, 4, 8]), &device);
+        let v = Tensor::<4>::from_data(TensorData::new((0..64).map(|i| ((i * 37 % 23) as f32) / 10.0 - 1.0).collect::<Vec<f32>>(), [1, 8, 2, 4]), &device);
+        let y = Tensor::<4>::from_data(TensorData::new((0..32).map(|i| ((i * 13 % 17) as f32) / 5.0).collect::<Vec<f32>>(), [1, 4, 2, 4]), &device);
+        let rho = || Tensor::<1>::from_floats([0.37f32], &device);
+        let vec = |t: Tensor<4>| t.into_data().try_into_vec::<f32>().unwrap();
+        let close = |p: Vec<f32>, q: Vec<f32>, what: &str| {
+            let peak = p.iter().fold(1e-6f32, |m, v| m.max(v.abs()));
+            for (u, w) in p.iter().zip(&q) {
+                assert!((u - w).abs() <= 1e-4 * peak, "{what}: {u} vs {w}");
+            }
+        };
+        let diff = st.clone().with_matrix(a_tensor(av.clone()));
+        close(vec(diff.forward(v.clone())), vec(st.forward(v.clone())), "A x");
+        close(vec(diff.adjoint(y.clone())), vec(st.adjoint(y.clone())), "Aᵀ y");
+        close(vec(diff.pinv(y.clone())), vec(st.pinv(y.clone())), "back-projection");
+        close(vec(diff.data_consistency(v.clone(), rho())), vec(st.data_consistency(v.clone(), rho())), "data consistency");
+        // gradient in A against central differences
+        let loss = |vals: Vec<f32>, grad: bool| {
+            let a = a_tensor(vals);
+            let a = if grad { a.require_grad() } else { a };
+            let out = st.clone().with_matrix(a.clone()).data_consistency(v.clone(), rho()) * v.clone();
+            (a, out.sum())
+        };
+        let (a_req, total) = loss(av.clone(), true);
+        let grads = total.backward();
+        let g = a_req.grad(&grads).expect("gradient").into_data().try_into_vec::<f32>().unwrap();
+        for idx in [0usize, 9, 37, 70, 101, 127] {
+            let eps = 1e-3f32;
+            let (mut up, mut down) = (av.clone(), av.clone());
+            up[idx] += eps;
+            down[idx] -= eps;
+            let f = |x: Vec<f32>| loss(x, false).1.into_scalar::<f32>() as f64;
+            let fd = (f(up) - f(down)) / (2.0 * eps as f64);
+            assert!((g[idx] as f64 - fd).abs() <= 2e-2 * fd.abs().max(0.1), "dA[{idx}]: autodiff {} vs finite differences {fd}", g[idx]);
+        }
+    }
 
     #[test]
     fn data_consistency_equals_a_direct_solve() {

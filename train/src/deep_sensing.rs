@@ -7,8 +7,11 @@
 //!    simulated exactly by the sensor crate with the hard (argmax) codes of `θ` — noise,
 //!    clipping and quantisation included — and carry the gradient of `A(θ)·x` with the
 //!    straight-through relaxed bits (`y = y_sensor + A(θ)x − stop(A(θ)x)`). The decoder's
-//!    own operators (`Aᵀ`, the data-consistency solve) are those of the current hard codes,
-//!    as constants: the fused kernels stay as they are, and the decoder always sees real codes.
+//!    own operators (`Aᵀ`, the back-projection, the data-consistency solve) are built on
+//!    `A(θ)` too ([`tcsense_models::SensorTensors::with_matrix`]: equal in value to the hard
+//!    codes' operators, differentiable in `A`), so the gradient sees what a code change does
+//!    to the measurements and to the decoder. This phase runs on burn's block-layout ops; the
+//!    fused kernels serve the fine-tuning.
 //!    The temperature falls geometrically from `tau_start` to `tau_end`, and the Hamming and
 //!    window penalties rise linearly from 0 to `penalty_weight`. `RUN/relaxed/codes_log.csv`
 //!    logs per epoch how far the hard codes are from feasible.
@@ -122,14 +125,16 @@ impl Learner {
         Ok(changed)
     }
 
-    /// The measurements with the code gradient, and the penalty.
+    /// The measurements with the code gradient, `A(θ)` (for the decoder's operators) and the
+    /// penalty.
     ///
     /// # Shapes
     /// - `x`: `[B, T, H, W]`, `y`: `[B, M, H, W]` (simulated by the sensor with the hard
-    ///   codes) → `[B, M, H, W]`, `[1]`
-    pub fn measurements(&self, x: &Array4<f32>, y: &Array4<f32>, device: &Device) -> (Tensor<4>, Tensor<1>) {
+    ///   codes) → `[B, M, H, W]`, `[N, M, T]`, `[1]`
+    pub fn measurements(&self, x: &Array4<f32>, y: &Array4<f32>, device: &Device) -> (Tensor<4>, Tensor<3>, Tensor<1>) {
         let bits = self.logits.bits(&self.relax, self.tau, true);
-        let lin = forward(matrix(bits, self.basis.clone()), to_tensor(&x.view(), device), self.block);
+        let a = matrix(bits, self.basis.clone()); // [N, M, T], the hard codes' A in value
+        let lin = forward(a.clone(), to_tensor(&x.view(), device), self.block);
         // the sensor scales each item to its exposure: the gradient follows that gain
         let y = to_tensor(&y.view(), device);
         let total = |t: Tensor<4>| t.sum_dim(1).sum_dim(2).sum_dim(3); // [B, 1, 1, 1]
@@ -144,7 +149,7 @@ impl Learner {
         if let Some(w) = self.lc.constraints.window {
             penalty = penalty + window_penalty(soft, w);
         }
-        (y, penalty.mul_scalar(self.weight))
+        (y, a, penalty.mul_scalar(self.weight))
     }
 
     /// One Adam step of the logits.

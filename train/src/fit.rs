@@ -321,8 +321,8 @@ fn sensing_for(cfg: &TrainConfig, codes: &Codes, hw: (usize, usize), thw: (usize
 /// - `x`: `[B, T, H, W]` (what was measured), `y`: `[B, M, H, W]`
 #[allow(clippy::too_many_arguments)]
 fn step_learned<M: Network>(model: M, optim: &mut ModuleOptimizer, learner: &mut Learner, cfg: &TrainConfig, sensor: &SensorTensors, x: &Array4<f32>, y: &Array4<f32>, target: Target<'_>, device: &Device) -> (M, f64) {
-    let (yt, penalty) = learner.measurements(x, y, device);
-    let pred = model.predict(yt, sensor);
+    let (yt, a, penalty) = learner.measurements(x, y, device);
+    let pred = model.predict(yt, &sensor.clone().with_matrix(a));
     let loss = objective(cfg.loss, pred, target, device) + penalty;
     let l: f32 = loss.clone().into_scalar();
     let mut grads = loss.backward();
