@@ -73,6 +73,21 @@ fn init_from_starts_from_a_trained_decoder() {
     let peak = xa.iter().fold(0f32, |m, v| m.max(v.abs()));
     assert!(diff(&xa, &xb) < 1e-4 * peak, "b differs from a by {}", diff(&xa, &xb));
     assert!(diff(&xa, &xc) > 1e-3 * peak, "a fresh run decodes like a");
+    // a recalibrated sensor: a measured matrix (here the physical IRF's) replaces the synthetic
+    // one; the run keeps it and decodes with it
+    ok(d, &["sensor", "matrix", "--codes", "codes.json", "--irf", "physical", "-o", "measured.npy"]);
+    ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "1", "--init-from", "a", "--irf", "measured.npy", "-o", "m"]);
+    assert_eq!(std::fs::read(d.join("m/sensor_matrix.npy")).unwrap(), std::fs::read(d.join("measured.npy")).unwrap());
+    let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("m/config.json")).unwrap()).unwrap();
+    assert_eq!((cfg["measured"].as_bool(), cfg["init_from"].as_str()), (Some(true), Some("a")));
+    ok(d, &["simulate", "--codes", "codes.json", "--irf", "physical", "--cube", "ds/test/x_000.npy", "-o", "yp.npy"]);
+    ok(d, &["reconstruct", "admm-net", "--run", "m", "--measurements", "yp.npy", "-o", "xm.npy"]);
+    ok(d, &["export", "onnx", "--run", "m", "-o", "m.onnx"]);
+    // a matrix of another shape, or learning codes through a measured matrix, is refused
+    ok(d, &["sensor", "matrix", "--codes", "codes.json", "--oversample", "2", "-o", "k2.npy"]);
+    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "--irf", "k2.npy", "-o", "m2"], &["k2.npy", "[4, 4, 8]"]);
+    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "3", "--learn-codes", "--irf", "measured.npy", "-o", "m3"], &["learn_codes", "measured"]);
+    assert!(!d.join("m2").exists() && !d.join("m3").exists());
     // another network's weights are refused, naming them
     fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "2", "--channels", "2", "--epochs", "1", "--init-from", "a", "-o", "e"], &["a/model.bpk"]);
 }

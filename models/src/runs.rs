@@ -129,13 +129,31 @@ pub struct RunSpec {
     pub model: ModelConfig,
     pub sampling: Sampling,
     pub irf: Irf,
+    /// The sensor is a measured (recalibrated) matrix kept in the run as
+    /// [`SENSOR_MATRIX_FILE`], not one synthesised from the codes and the IRF (`false` in runs
+    /// written before it existed).
+    #[serde(default)]
+    pub measured: bool,
 }
+
+/// A run's measured sensor matrix `[N, M, T]` (when [`RunSpec::measured`]).
+pub const SENSOR_MATRIX_FILE: &str = "sensor_matrix.npy";
 
 impl RunSpec {
     /// The measurement matrix of `codes` under this run's sampling and IRF.
     pub fn matrix(&self, codes: &Codes) -> Result<MeasurementMatrix> {
         let spec = SensorParams { sampling: self.sampling, irf: self.irf, ..SensorParams::from_codes(codes) }.validate()?;
         Ok(MeasurementMatrix::synthesize(codes, &spec)?)
+    }
+
+    /// The run's sensor: the measured matrix in the run directory `dir` when it has one (its
+    /// shape checked against the codes and sampling), else [`Self::matrix`].
+    pub fn matrix_in(&self, dir: &Path, codes: &Codes) -> Result<MeasurementMatrix> {
+        if !self.measured {
+            return self.matrix(codes);
+        }
+        let spec = SensorParams { sampling: self.sampling, irf: self.irf, ..SensorParams::from_codes(codes) }.validate()?;
+        Ok(MeasurementMatrix::load(&dir.join(SENSOR_MATRIX_FILE), &spec)?)
     }
 }
 
@@ -223,7 +241,7 @@ pub fn load(dir: &Path, device: &Device) -> Result<LoadedRun> {
     tcsense_sensor::json::reject_unknown_keys(&v, &known).map_err(|e| file_err(&cfg_path, e))?;
     spec.model.validate().map_err(|e| file_err(&cfg_path, e))?;
     let codes = Codes::load(&dir.join(CODES_FILE))?;
-    let sensor = spec.matrix(&codes)?;
+    let sensor = spec.matrix_in(dir, &codes)?;
     if sensor.taps() != spec.model.taps() || sensor.bins() != spec.model.bins() {
         return Err(file_err(
             &cfg_path,

@@ -196,7 +196,7 @@ fn fresh_run(a: &BenchInferArgs) -> Result<runs::LoadedRun> {
         "admm-net" => runs::ModelConfig::AdmmNet(tcsense_models::AdmmNetConfig::new(4, a.bins).with_stages(a.stages).with_channels(a.channels).with_normalize(true)),
         other => bail!("--decoder {other:?}: expected unet or admm-net"),
     };
-    let spec = runs::RunSpec { model, sampling, irf: Irf::Ideal };
+    let spec = runs::RunSpec { model, sampling, irf: Irf::Ideal, measured: false };
     let sensor = spec.matrix(&codes)?;
     let device = Device::flex();
     let net = match &spec.model {

@@ -7,7 +7,10 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use tcsense_datasets::store::Kind;
 use tcsense_datasets::Dataset;
-use tcsense_models::runs::{ModelConfig, CODES_FILE, CONFIG_FILE};
+use tcsense_models::runs::{ModelConfig, CODES_FILE, CONFIG_FILE, SENSOR_MATRIX_FILE};
+use tcsense_sensor::npy::write_npy;
+use tcsense_sensor::params::SensorParams;
+use tcsense_sensor::MeasurementMatrix;
 use tcsense_models::{AdmmNetConfig, UnetConfig};
 use tcsense_sensor::{Codes, Constraints};
 use tcsense_train::deep_sensing::{LearnCodes, START_CODES_FILE};
@@ -98,7 +101,9 @@ pub struct TrainArgs {
     /// Train on noise-free measurements.
     #[arg(long)]
     no_noise: bool,
-    /// Instrument response: ideal or physical.
+    /// Instrument response: ideal, physical, or a measured (recalibrated) sensor matrix
+    /// A.npy [N, M, T], which the run keeps as sensor_matrix.npy and uses in training and
+    /// inference.
     #[arg(long)]
     irf: Option<String>,
     /// Use at most N training items.
@@ -268,8 +273,19 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     if a.no_noise {
         cfg.noise = None;
     }
+    // a measured matrix replaces the synthetic sensor (a recalibrated instrument)
+    let mut measured: Option<PathBuf> = None;
     if let Some(irf) = &a.irf {
-        cfg.run.irf = super::sensor::parse_irf(irf)?;
+        if std::path::Path::new(irf).extension().is_some_and(|e| e == "npy") {
+            if a.resume {
+                bail!("--irf {irf}: a run's sensor does not change on --resume; start a new run from it with --init-from");
+            }
+            measured = Some(PathBuf::from(irf));
+            cfg.run.measured = true;
+        } else {
+            cfg.run.irf = super::sensor::parse_irf(irf)?;
+            cfg.run.measured = false;
+        }
     }
     if a.max_train.is_some() {
         cfg.max_train_items = a.max_train;
@@ -324,6 +340,16 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
             Some(g) => format!("shifts {}, flips {}, crop {}, brightness {:?}, signal {:?} of full well", g.time_shift, g.flips, g.crop.map_or("none".into(), |[h, w]| format!("{h}x{w}")), g.brightness, g.signal_fraction),
         }
     );
+    if let Some(src) = &measured {
+        // the settings and the matrix are checked before the run takes a copy
+        cfg.validate()?;
+        let spec = SensorParams { sampling: cfg.run.sampling, irf: cfg.run.irf, ..SensorParams::from_codes(&codes) }.validate()?;
+        let matrix = MeasurementMatrix::load(src, &spec)?;
+        if run_dir.join("checkpoint").exists() || run_dir.join("relaxed").exists() {
+            bail!("{}: a run already exists here; pass --resume to continue it or choose another directory", run_dir.display());
+        }
+        write_npy(&run_dir.join(SENSOR_MATRIX_FILE), &matrix.a().view())?;
+    }
     if let Some(lc) = &cfg.learn_codes {
         println!(
             "learning the codes: {} relaxed epochs (τ {} → {}, codes lr {}, penalty weight {}), then {} epochs on the codes projected onto {}",

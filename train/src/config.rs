@@ -56,7 +56,7 @@ impl TrainConfig {
     /// Defaults of the paper's Table 3 for a model config.
     pub fn new(model: ModelConfig, dataset: &Path, loss: Loss, sampling: Sampling) -> Self {
         TrainConfig {
-            run: RunSpec { model, sampling, irf: Irf::Ideal },
+            run: RunSpec { model, sampling, irf: Irf::Ideal, measured: false },
             epochs: 10,
             batch_size: 2,
             learning_rate: 1e-3,
@@ -114,6 +114,9 @@ impl TrainConfig {
         }
         if let Some(lc) = &self.learn_codes {
             lc.validate(self.epochs)?;
+            if self.run.measured {
+                return bad("learn_codes", "a measured sensor matrix".into(), "a synthetic sensor (codes are learned through the IRF model; fine-tune on a measured matrix afterwards with --init-from)");
+            }
         }
         Ok(())
     }

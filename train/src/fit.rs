@@ -101,6 +101,7 @@ pub fn train(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, progres
 
 /// A fixed-codes run, or the three phases of deep sensing (see [`crate::deep_sensing`]).
 fn train_with<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, progress: &dyn Progress, cancel: &AtomicBool, init: impl Fn(&Device) -> M) -> Result<Vec<EpochMetrics>> {
+    cfg.validate()?;
     let start = match &cfg.init_from {
         Some(dir) if !resume || latest_checkpoint(run)?.is_none() => Some(tcsense_models::runs::load_network(Path::new(dir), init(&Device::flex().autodiff()))?),
         _ => None,
@@ -154,7 +155,7 @@ fn fit<M: Network>(
     cfg.validate()?;
     codes.ensure_feasible()?;
     let ds = Dataset::open(Path::new(&cfg.dataset))?;
-    let mut a = cfg.run.matrix(codes)?;
+    let mut a = cfg.run.matrix_in(run, codes)?;
     let model_cfg = &cfg.run.model;
     if a.bins() != ds.manifest.bins || a.taps() != model_cfg.taps() || a.bins() != model_cfg.bins() {
         return Err(TrainError::InvalidParam {
