@@ -25,9 +25,9 @@ fn fixture() -> PathBuf {
 fn random_run(model: impl Fn(usize, usize) -> ModelConfig, block: (usize, usize), sampling: Sampling, irf: Irf, seed: u64) -> LoadedRun {
     let shape = CodeShape { bh: block.0, bw: block.1, taps: 4, length: 8, drain: false };
     let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, seed).unwrap();
-    let probe = RunSpec { model: model(4, 8), sampling, irf };
+    let probe = RunSpec { model: model(4, 8), sampling, irf, measured: false };
     let bins = probe.matrix(&codes).unwrap().bins();
-    let spec = RunSpec { model: model(4, bins), sampling, irf };
+    let spec = RunSpec { model: model(4, bins), sampling, irf, measured: false };
     let sensor = spec.matrix(&codes).unwrap();
     let device = Device::flex();
     let net = match &spec.model {
