@@ -21,6 +21,11 @@ fn train_resume_reconstruct_and_eval() {
     let csv = std::fs::read_to_string(d.join("run/metrics.csv")).unwrap();
     assert_eq!(csv.lines().count(), 4, "{csv}");
     assert!(csv.lines().nth(3).unwrap().starts_with("3,9,"), "{csv}");
+    // training curves
+    ok(d, &["plot", "training", "--run", "run", "-o", "curves.png"]);
+    assert!(std::fs::metadata(d.join("curves.png")).unwrap().len() > 10_000);
+    fails(d, &["plot", "training", "--run", "nowhere", "-o", "c2.png"], &["nowhere/metrics.csv"]);
+    assert!(!d.join("c2.png").exists());
     // a second fresh run into the same directory is refused
     fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "-o", "run"], &["--resume"]);
 

@@ -195,6 +195,43 @@ pub fn waveforms(path: &Path, cubes: &[(&str, ndarray::ArrayView3<'_, f32>)], pi
     })
 }
 
+/// Training curves side by side: the training loss and a validation metric against the
+/// epoch, one line per run.
+pub fn training_curves(path: &Path, loss: &[Series], val: &[Series], val_label: &str) -> Result<()> {
+    let bounds = |series: &[Series]| {
+        let mut b = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
+        for &(x, y) in series.iter().flat_map(|s| s.points.iter()).filter(|(x, y)| x.is_finite() && y.is_finite()) {
+            b = (b.0.min(x), b.1.max(x), b.2.min(y), b.3.max(y));
+        }
+        if !b.0.is_finite() {
+            b = (0.0, 1.0, 0.0, 1.0);
+        }
+        let pad = if b.3 > b.2 { 0.05 * (b.3 - b.2) } else { 0.5 * b.2.abs().max(1e-9) };
+        (b.0, if b.1 > b.0 { b.1 } else { b.0 + 1.0 }, b.2 - pad, b.3 + pad)
+    };
+    render(path, (1200, 500), |root| {
+        let (title_area, body) = root.split_vertically(40);
+        title_area.titled("Training curves", (FONT, 22)).map_err(err)?;
+        let panels = body.split_evenly((1, 2));
+        for (area, (series, y_label)) in panels.iter().zip([(loss, "training loss (batch mean)"), (val, val_label)]) {
+            let (x0, x1, y0, y1) = bounds(series);
+            let mut chart = ChartBuilder::on(area).margin(10).x_label_area_size(44).y_label_area_size(80).build_cartesian_2d(x0..x1, y0..y1).map_err(err)?;
+            chart.configure_mesh().x_desc("epoch").y_desc(y_label).label_style((FONT, 14)).axis_desc_style((FONT, 15)).draw().map_err(err)?;
+            for (i, s) in series.iter().enumerate() {
+                let c = PALETTE[(i + 1) % PALETTE.len()];
+                chart.draw_series(s.points.iter().map(|&p| Circle::new(p, 3, c.filled()))).map_err(err)?;
+                chart
+                    .draw_series(LineSeries::new(s.points.clone(), c.stroke_width(2)))
+                    .map_err(err)?
+                    .label(s.label.clone())
+                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+            }
+            chart.configure_series_labels().label_font((FONT, 14)).background_style(WHITE.mix(0.85)).border_style(BLACK).position(SeriesLabelPosition::UpperRight).draw().map_err(err)?;
+        }
+        Ok(())
+    })
+}
+
 /// The viridis colour map at `t` ∈ [0, 1].
 pub fn viridis(t: f64) -> RGBColor {
     const STOPS: [(f64, f64, f64); 6] = [(68.0, 1.0, 84.0), (65.0, 68.0, 135.0), (42.0, 120.0, 142.0), (34.0, 168.0, 132.0), (122.0, 209.0, 81.0), (253.0, 231.0, 37.0)];

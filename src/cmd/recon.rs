@@ -382,6 +382,17 @@ pub fn lifetime(a: LifetimeArgs) -> Result<ExitCode> {
 
 #[derive(Subcommand)]
 pub enum PlotCmd {
+    /// Training curves of one or more runs (RUN/metrics.csv): the training loss and the first
+    /// validation metric (MSE for cube networks, range RMSE for depth networks) against the
+    /// epoch; a learned-codes run's relaxed phase is the run RUN/relaxed.
+    Training {
+        /// Run directories (from `tcsense train`).
+        #[arg(long, num_args = 1.., required = true)]
+        run: Vec<PathBuf>,
+        /// Output PNG.
+        #[arg(short, long)]
+        output: PathBuf,
+    },
     /// Waveforms at chosen pixels for one or more cubes (like the paper's Figs. 18 and 20);
     /// writes the PNG and a CSV of the values next to it.
     Waveforms {
@@ -399,6 +410,33 @@ pub enum PlotCmd {
 
 pub fn plot(cmd: PlotCmd) -> Result<ExitCode> {
     match cmd {
+        PlotCmd::Training { run, output } => {
+            let (mut loss, mut val) = (Vec::new(), Vec::new());
+            let mut val_name = String::new();
+            for r in &run {
+                let path = r.join(tcsense_train::run_dir::METRICS_FILE);
+                if !path.exists() {
+                    bail!("{}: no metrics; train the run for at least one epoch", path.display());
+                }
+                let rows = tcsense_train::run_dir::read_rows(&path, usize::MAX)?;
+                let first = rows.first().and_then(|m| m.val.first()).map(|(n, _)| n.clone()).with_context(|| format!("{}: no epoch logged yet", path.display()))?;
+                if !val_name.is_empty() && first != val_name {
+                    bail!("{}: validates {first}, but {} validates {val_name}; plot runs of one kind together", path.display(), run[0].display());
+                }
+                val_name = first;
+                let label = r.display().to_string();
+                loss.push(figures::Series { label: label.clone(), points: rows.iter().map(|m| (m.epoch as f64, m.train_loss)).collect() });
+                val.push(figures::Series { label, points: rows.iter().map(|m| (m.epoch as f64, m.get(&val_name))).collect() });
+            }
+            let label = match val_name.as_str() {
+                "val_mse" => "validation MSE".to_string(),
+                "val_psnr_db" => "validation PSNR (dB)".to_string(),
+                "val_depth_rmse_m" => "validation range RMSE of the returns (m)".to_string(),
+                n => n.replace('_', " "),
+            };
+            figures::training_curves(&output, &loss, &val, &label)?;
+            println!("wrote {}", output.display());
+        }
         PlotCmd::Waveforms { cube, pixel, output } => {
             let cubes: Vec<ndarray::Array3<f32>> = cube.iter().map(|p| read_cube3(p)).collect::<Result<_>>()?;
             let (_, h, w) = cubes[0].dim();
