@@ -64,13 +64,22 @@ def npy():
         f.write(b"\x93NUMPY\x01\x00" + len(hdr).to_bytes(2, "little") + hdr + b"\x00" * 64)
 
 
-def codes():
-    base = json.load(open(os.path.join(FIXTURE, "codes.json")))
+def variants(kind, base_file):
+    """A writer of `kind/NAME`: a deep copy of the JSON in `base_file` changed by `edit`."""
+    base = json.load(open(base_file))
 
     def variant(name, edit):
         c = json.loads(json.dumps(base))
         edit(c)
-        json.dump(c, open(path("codes", name), "w"), indent=1)
+        json.dump(c, open(path(kind, name), "w"), indent=1)
+
+    return variant
+
+
+def codes():
+    base_file = os.path.join(FIXTURE, "codes.json")
+    variant = variants("codes", base_file)
+    base = json.load(open(base_file))
 
     open(path("codes", "empty.json"), "w").close()
     open(path("codes", "garbage.json"), "w").write("taps = 4\nblock = 2x2\n")
@@ -94,12 +103,7 @@ def codes():
 
 
 def config():
-    base = json.load(open(os.path.join(FIXTURE, "config.json")))
-
-    def variant(name, edit):
-        c = json.loads(json.dumps(base))
-        edit(c)
-        json.dump(c, open(path("config", name), "w"), indent=1)
+    variant = variants("config", os.path.join(FIXTURE, "config.json"))
 
     open(path("config", "empty.json"), "w").close()
     open(path("config", "garbage.json"), "w").write("epochs: 3\n")
@@ -112,12 +116,7 @@ def config():
 
 
 def manifest():
-    base = json.load(open(os.path.join(ROOT, "fuzz", "seeds", "manifest.json")))
-
-    def variant(name, edit):
-        m = json.loads(json.dumps(base))
-        edit(m)
-        json.dump(m, open(path("manifest", name), "w"), indent=1)
+    variant = variants("manifest", os.path.join(ROOT, "fuzz", "seeds", "manifest.json"))
 
     open(path("manifest", "empty.json"), "w").close()
     open(path("manifest", "garbage.json"), "w").write("<dataset/>\n")

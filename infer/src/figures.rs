@@ -71,6 +71,31 @@ fn err<E: std::fmt::Debug>(e: E) -> String {
     format!("{e:?}")
 }
 
+/// The legend of a chart: labels in `size` points on a white box at `position`.
+fn legend<'a, CT: plotters::coord::CoordTranslate>(chart: &mut ChartContext<'a, BitMapBackend<'a>, CT>, size: u32, position: SeriesLabelPosition) -> std::result::Result<(), String> {
+    chart.configure_series_labels().label_font((FONT, size)).background_style(WHITE.mix(0.9)).border_style(BLACK).position(position).draw().map_err(err)
+}
+
+/// The extent `(x0, x1, y0, y1)` of the points of `series` that `keep` accepts (`x1 > x0`),
+/// `empty` where there are none.
+fn extent(series: &[Series], keep: impl Fn(f64, f64) -> bool, empty: (f64, f64, f64, f64)) -> (f64, f64, f64, f64) {
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
+    for &(x, y) in series.iter().flat_map(|s| s.points.iter()).filter(|&&(x, y)| x.is_finite() && y.is_finite() && keep(x, y)) {
+        (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
+    }
+    if !x0.is_finite() {
+        (x0, x1, y0, y1) = empty;
+    }
+    (x0, if x1 > x0 { x1 } else { x0 + 1.0 }, y0, y1)
+}
+
+/// A linear y range around `[y0, y1]` with 5 % room, or ±half of `max(|y0|, floor)` when
+/// the values are constant.
+fn padded(y0: f64, y1: f64, floor: f64) -> (f64, f64) {
+    let pad = if y1 > y0 { 0.05 * (y1 - y0) } else { 0.5 * y0.abs().max(floor) };
+    (y0 - pad, y1 + pad)
+}
+
 /// One line of a chart.
 #[derive(Debug, Clone)]
 pub struct Series {
@@ -80,25 +105,15 @@ pub struct Series {
 
 /// A line chart with a legend.
 pub fn line_chart(path: &Path, title: &str, x_label: &str, y_label: &str, series: &[Series]) -> Result<()> {
-    let pts = series.iter().flat_map(|s| s.points.iter()).filter(|(x, y)| x.is_finite() && y.is_finite());
-    let (mut x0, mut x1, mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
-    for &(x, y) in pts {
-        (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
-    }
-    if !x0.is_finite() {
-        (x0, x1, y0, y1) = (0.0, 1.0, 0.0, 1.0);
-    }
-    if x1 <= x0 {
-        x1 = x0 + 1.0;
-    }
-    let pad = if y1 > y0 { 0.05 * (y1 - y0) } else { 0.5 * y0.abs().max(1.0) };
+    let (x0, x1, y0, y1) = extent(series, |_, _| true, (0.0, 1.0, 0.0, 1.0));
+    let (y0, y1) = padded(y0, y1, 1.0);
     render(path, (900, 520), |root| {
         let mut chart = ChartBuilder::on(root)
             .caption(title, (FONT, 22))
             .margin(12)
             .x_label_area_size(48)
             .y_label_area_size(80)
-            .build_cartesian_2d(x0..x1, (y0 - pad)..(y1 + pad))
+            .build_cartesian_2d(x0..x1, y0..y1)
             .map_err(err)?;
         chart.configure_mesh().x_desc(x_label).y_desc(y_label).label_style((FONT, 15)).axis_desc_style((FONT, 17)).draw().map_err(err)?;
         for (i, s) in series.iter().enumerate() {
@@ -110,24 +125,14 @@ pub fn line_chart(path: &Path, title: &str, x_label: &str, y_label: &str, series
                 .label(s.label.clone())
                 .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
         }
-        chart.configure_series_labels().label_font((FONT, 15)).background_style(WHITE.mix(0.85)).border_style(BLACK).position(SeriesLabelPosition::UpperRight).draw().map_err(err)?;
+        legend(&mut chart, 15, SeriesLabelPosition::UpperRight)?;
         Ok(())
     })
 }
 
 /// A line chart with a logarithmic y axis (values ≤ 0 are left out).
 pub fn log_chart(path: &Path, title: &str, x_label: &str, y_label: &str, series: &[Series]) -> Result<()> {
-    let pts = series.iter().flat_map(|s| s.points.iter()).filter(|(x, y)| x.is_finite() && y.is_finite() && *y > 0.0);
-    let (mut x0, mut x1, mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
-    for &(x, y) in pts {
-        (x0, x1, y0, y1) = (x0.min(x), x1.max(x), y0.min(y), y1.max(y));
-    }
-    if !x0.is_finite() {
-        (x0, x1, y0, y1) = (0.0, 1.0, 1.0, 10.0);
-    }
-    if x1 <= x0 {
-        x1 = x0 + 1.0;
-    }
+    let (x0, x1, y0, y1) = extent(series, |_, y| y > 0.0, (0.0, 1.0, 1.0, 10.0));
     let (y0, y1) = (10f64.powf(y0.log10().floor()), 10f64.powf(y1.log10().ceil().max(y0.log10().floor() + 1.0)));
     render(path, (900, 520), |root| {
         let mut chart = ChartBuilder::on(root)
@@ -148,7 +153,7 @@ pub fn log_chart(path: &Path, title: &str, x_label: &str, y_label: &str, series:
                 .label(s.label.clone())
                 .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
         }
-        chart.configure_series_labels().label_font((FONT, 15)).background_style(WHITE.mix(0.85)).border_style(BLACK).position(SeriesLabelPosition::UpperRight).draw().map_err(err)?;
+        legend(&mut chart, 15, SeriesLabelPosition::UpperRight)?;
         Ok(())
     })
 }
@@ -189,7 +194,7 @@ pub fn waveforms(path: &Path, cubes: &[(&str, ndarray::ArrayView3<'_, f32>)], pi
                     .label(name.to_string())
                     .legend(move |(px, py)| PathElement::new(vec![(px, py), (px + 20, py)], colour.stroke_width(2)));
             }
-            chart.configure_series_labels().label_font((FONT, 13)).background_style(WHITE.mix(0.85)).border_style(BLACK).position(SeriesLabelPosition::UpperRight).draw().map_err(err)?;
+            legend(&mut chart, 13, SeriesLabelPosition::UpperRight)?;
         }
         Ok(())
     })
@@ -199,15 +204,9 @@ pub fn waveforms(path: &Path, cubes: &[(&str, ndarray::ArrayView3<'_, f32>)], pi
 /// epoch, one line per run.
 pub fn training_curves(path: &Path, loss: &[Series], val: &[Series], val_label: &str) -> Result<()> {
     let bounds = |series: &[Series]| {
-        let mut b = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
-        for &(x, y) in series.iter().flat_map(|s| s.points.iter()).filter(|(x, y)| x.is_finite() && y.is_finite()) {
-            b = (b.0.min(x), b.1.max(x), b.2.min(y), b.3.max(y));
-        }
-        if !b.0.is_finite() {
-            b = (0.0, 1.0, 0.0, 1.0);
-        }
-        let pad = if b.3 > b.2 { 0.05 * (b.3 - b.2) } else { 0.5 * b.2.abs().max(1e-9) };
-        (b.0, if b.1 > b.0 { b.1 } else { b.0 + 1.0 }, b.2 - pad, b.3 + pad)
+        let (x0, x1, y0, y1) = extent(series, |_, _| true, (0.0, 1.0, 0.0, 1.0));
+        let (y0, y1) = padded(y0, y1, 1e-9);
+        (x0, x1, y0, y1)
     };
     render(path, (1200, 500), |root| {
         let (title_area, body) = root.split_vertically(40);
@@ -216,7 +215,11 @@ pub fn training_curves(path: &Path, loss: &[Series], val: &[Series], val_label: 
         for (area, (series, y_label)) in panels.iter().zip([(loss, "training loss (batch mean)"), (val, val_label)]) {
             let (x0, x1, y0, y1) = bounds(series);
             let mut chart = ChartBuilder::on(area).margin(10).x_label_area_size(44).y_label_area_size(80).build_cartesian_2d(x0..x1, y0..y1).map_err(err)?;
-            chart.configure_mesh().x_desc("epoch").y_desc(y_label).label_style((FONT, 14)).axis_desc_style((FONT, 15)).draw().map_err(err)?;
+            chart
+                .configure_mesh()
+                .x_desc("epoch")
+                .x_label_formatter(&|v| if (v - v.round()).abs() < 1e-9 { format!("{v:.0}") } else { String::new() })
+                .y_desc(y_label).label_style((FONT, 14)).axis_desc_style((FONT, 15)).draw().map_err(err)?;
             for (i, s) in series.iter().enumerate() {
                 let c = PALETTE[(i + 1) % PALETTE.len()];
                 chart.draw_series(s.points.iter().map(|&p| Circle::new(p, 3, c.filled()))).map_err(err)?;
@@ -226,7 +229,7 @@ pub fn training_curves(path: &Path, loss: &[Series], val: &[Series], val_label: 
                     .label(s.label.clone())
                     .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
             }
-            chart.configure_series_labels().label_font((FONT, 14)).background_style(WHITE.mix(0.85)).border_style(BLACK).position(SeriesLabelPosition::UpperRight).draw().map_err(err)?;
+            legend(&mut chart, 14, SeriesLabelPosition::UpperRight)?;
         }
         Ok(())
     })
@@ -282,7 +285,7 @@ pub fn map(path: &Path, title: &str, values: &ndarray::ArrayView2<'_, f32>, unit
             .map_err(err)?;
         if any_nan {
             chart.draw_series(std::iter::empty::<Rectangle<(f64, f64)>>()).map_err(err)?.label("no value").legend(move |(x, y)| Rectangle::new([(x, y - 6), (x + 14, y + 6)], grey.filled()));
-            chart.configure_series_labels().label_font((FONT, 14)).background_style(WHITE.mix(0.9)).border_style(BLACK).position(SeriesLabelPosition::LowerRight).draw().map_err(err)?;
+            legend(&mut chart, 14, SeriesLabelPosition::LowerRight)?;
         }
         // the colour bar
         let mut bar = ChartBuilder::on(&right)
@@ -362,7 +365,7 @@ pub fn codes(path: &Path, name: &str, codes: &Codes) -> Result<()> {
         if !bad.is_empty() {
             chart.draw_series(bad.iter().map(|&l| Rectangle::new([(l as f64, 0.0), (l as f64 + 1.0, 0.3)], RED.filled()))).map_err(err)?.label("violation").legend(|(x, y)| Rectangle::new([(x, y - 6), (x + 14, y + 6)], RED.filled()));
         }
-        chart.configure_series_labels().label_font((FONT, 13)).background_style(WHITE.mix(0.9)).border_style(BLACK).position(SeriesLabelPosition::UpperRight).draw().map_err(err)?;
+        legend(&mut chart, 13, SeriesLabelPosition::UpperRight)?;
 
         let hd: Vec<usize> = (0..len).map(|l| codes.hamming_at(l)).collect();
         let limit = codes.constraints.hamming;
@@ -383,7 +386,7 @@ pub fn codes(path: &Path, name: &str, codes: &Codes) -> Result<()> {
         if let Some(hl) = limit {
             strip.draw_series(LineSeries::new(vec![(0.0, hl as f64), (len as f64, hl as f64)], RED.stroke_width(2))).map_err(err)?.label(format!("limit H = {hl}")).legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], RED.stroke_width(2)));
         }
-        strip.configure_series_labels().label_font((FONT, 13)).background_style(WHITE.mix(0.9)).border_style(BLACK).position(SeriesLabelPosition::UpperRight).draw().map_err(err)?;
+        legend(&mut strip, 13, SeriesLabelPosition::UpperRight)?;
         Ok(())
     })
 }

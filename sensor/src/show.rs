@@ -1,23 +1,9 @@
-//! A picture of a code set, like the paper's Fig. 12: one row per channel (grouped by
-//! subpixel, taps in order), one column per mask; a cell is filled with its tap's colour
-//! when on. A strip below shows the Hamming distance of each transition `l → l+1` (bar
-//! height ∝ bits changed), and masks involved in a violation are marked red on top.
+//! A plain RGB canvas written as PNG (the dataset montage of `dataset show`). Figures with
+//! text — titles, axes, legends, colour bars — are drawn by `tcsense_infer::figures`.
 
-use crate::codes::Codes;
 use crate::error::{Result, SensorError};
 use crate::npy::atomic_write;
 use std::path::Path;
-
-const TAP_COLOURS: [[u8; 3]; 8] = [
-    [31, 119, 180],
-    [255, 127, 14],
-    [44, 160, 44],
-    [148, 103, 189],
-    [140, 86, 75],
-    [227, 119, 194],
-    [127, 127, 127],
-    [23, 190, 207],
-];
 
 /// An RGB image in memory.
 pub struct Canvas {
@@ -86,50 +72,4 @@ impl Canvas {
             e => e,
         })
     }
-}
-
-/// Render codes to a canvas (`cell` pixels per bit).
-pub fn render(codes: &Codes, cell: usize) -> Canvas {
-    let (n_sub, taps, len) = (codes.subpixels(), codes.taps(), codes.length());
-    let gap = cell.max(2) / 2;
-    let margin = cell;
-    let strip = 4 * cell;
-    let grid_h = n_sub * taps * cell + (n_sub - 1) * gap;
-    let width = 2 * margin + len * cell;
-    let height = margin + cell / 2 + gap + grid_h + gap + strip + margin;
-    let mut cv = Canvas::new(width, height, [255, 255, 255]);
-    // violation markers
-    let bad: Vec<usize> = codes.violations().iter().map(|v| v.mask).collect();
-    for &l in &bad {
-        cv.rect(margin + l * cell, margin, cell, cell / 2, [214, 39, 40]);
-    }
-    let top = margin + cell / 2 + gap;
-    for n in 0..n_sub {
-        for m in 0..taps {
-            let y = top + (n * taps + m) * cell + n * gap;
-            // light background row
-            cv.rect(margin, y, len * cell, cell, if m % 2 == 0 { [242, 242, 242] } else { [232, 232, 232] });
-            for l in 0..len {
-                if codes.get(n, m, l) {
-                    cv.rect(margin + l * cell, y + 1, cell.saturating_sub(1).max(1), cell.saturating_sub(2).max(1), TAP_COLOURS[m % 8]);
-                }
-            }
-        }
-    }
-    // Hamming strip
-    let base = top + grid_h + gap;
-    let max_h = (0..len).map(|l| codes.hamming_at(l)).max().unwrap_or(0).max(1);
-    cv.rect(margin, base + strip - 1, len * cell, 1, [0, 0, 0]);
-    for l in 0..len {
-        let hd = codes.hamming_at(l);
-        let bar = hd * (strip - 2) / max_h;
-        cv.rect(margin + l * cell + cell / 2, base + strip - 1 - bar, cell.max(2) / 2, bar, [60, 60, 60]);
-    }
-    cv
-}
-
-/// Render codes to a PNG file.
-pub fn save_png(codes: &Codes, path: &Path) -> Result<()> {
-    let cell = if codes.length() > 128 { 4 } else { 10 };
-    render(codes, cell).save_png(path)
 }

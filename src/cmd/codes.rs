@@ -116,6 +116,12 @@ pub struct ProjectArgs {
     output: PathBuf,
 }
 
+/// `4 taps, block 2x2, L = 32, constraints tap+H2+W2`.
+fn summary(codes: &Codes) -> String {
+    let (bh, bw) = codes.block();
+    format!("{} taps, block {bh}x{bw}, L = {}, constraints {}", codes.taps(), codes.length(), codes.constraints.label())
+}
+
 pub fn run(cmd: CodesCmd) -> Result<ExitCode> {
     match cmd {
         CodesCmd::Generate(a) => {
@@ -123,16 +129,7 @@ pub fn run(cmd: CodesCmd) -> Result<ExitCode> {
             let codes = generate::random_codes(d.shape(), d.clock_hz(), d.constraints(), a.seed)?;
             codes.save(&a.output)?;
             let hd: Vec<usize> = (0..codes.length()).map(|l| codes.hamming_at(l)).collect();
-            println!(
-                "wrote {}: {} taps, block {}x{}, L = {}, constraints {}, max Hamming distance {}",
-                a.output.display(),
-                codes.taps(),
-                d.block.0,
-                d.block.1,
-                codes.length(),
-                codes.constraints.label(),
-                hd.iter().max().unwrap_or(&0)
-            );
+            println!("wrote {}: {}, max Hamming distance {}", a.output.display(), summary(&codes), hd.iter().max().unwrap_or(&0));
         }
         CodesCmd::Check { codes, json } => {
             let g = Codes::load_unchecked(&codes)?;
@@ -187,13 +184,9 @@ pub fn run(cmd: CodesCmd) -> Result<ExitCode> {
             });
             codes.save(&a.output)?;
             println!(
-                "wrote {}: {} taps, block {}x{}, L = {}, constraints {}; {:?} projection in {seconds:.2} s, score {:.4} (the unconstrained argmax: {:.4})",
+                "wrote {}: {}; {:?} projection in {seconds:.2} s, score {:.4} (the unconstrained argmax: {:.4})",
                 a.output.display(),
-                codes.taps(),
-                d.block.0,
-                d.block.1,
-                codes.length(),
-                codes.constraints.label(),
+                summary(&codes),
                 p.method,
                 p.score,
                 p.argmax_score

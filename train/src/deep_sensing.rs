@@ -154,8 +154,7 @@ impl Learner {
 
     /// One Adam step of the logits.
     pub fn step(&mut self, grads: GradientsParams) {
-        let logits = std::mem::replace(&mut self.logits, CodeLogits::from_array(&ndarray::Array3::zeros((1, 1, 1)), &self.basis.device()));
-        self.logits = self.optim.step(self.lc.codes_lr, logits, grads);
+        self.logits = self.optim.step(self.lc.codes_lr, self.logits.clone(), grads);
     }
 
     /// Violations of the hard codes under the target constraints: (tap, Hamming, window).

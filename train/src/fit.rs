@@ -236,7 +236,6 @@ fn fit<M: Network>(
     let steps_per_epoch = n.div_ceil(cfg.batch_size);
     let mut out = Vec::new();
     let total_steps = (epochs * steps_per_epoch).max(1) as f64;
-    let first_step = state.step - (state.epoch * steps_per_epoch) as u64;
     for epoch in state.epoch..epochs {
         let t0 = Instant::now();
         let mut order: Vec<usize> = (0..n).collect();
@@ -250,7 +249,7 @@ fn fit<M: Network>(
             let db = train_d.as_ref().map(|d| d.select(Axis(0), idx)); // [B, K, H, W]
             state.step += 1;
             if let Some(l) = learner.as_mut() {
-                l.schedule((state.step - first_step) as f64 / total_steps);
+                l.schedule(state.step as f64 / total_steps);
                 if l.refresh()? {
                     (a, plan, train_plan, sensor) = sensing_for(cfg, &l.hard, (h, w), (th, tw), &device)?;
                 }
