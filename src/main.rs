@@ -54,6 +54,10 @@ enum Command {
     /// Design sweeps of the paper's Fig. 13 and Table 1 (TVAL3 MSE over a dataset).
     #[command(subcommand)]
     Sweep(cmd::design::SweepCmd),
+    /// The main job end to end on built-in defaults: datasets, code design (selection and
+    /// deep sensing), code-memory export, TVAL3, ADMM-Net and U-Net training, ONNX export,
+    /// ONNX Runtime, and DIR/report.html with figures. Rerunning into DIR resumes.
+    Demo(cmd::demo::DemoArgs),
     /// Throughput benchmarks (prints figures).
     #[command(subcommand)]
     Bench(cmd::bench::BenchCmd),
@@ -81,6 +85,7 @@ fn main() -> ExitCode {
         Command::Eval(a) => cmd::eval::run(a),
         Command::Export(c) => cmd::deploy::export(c),
         Command::Infer(a) => cmd::deploy::infer(a, cli.threads),
+        Command::Demo(a) => cmd::demo::run(a),
         Command::Bench(c) => cmd::bench::run(c),
     };
     match result {

@@ -249,50 +249,88 @@ pub fn viridis(t: f64) -> RGBColor {
 /// A map `[H, W]` in viridis with a colour bar labelled `unit` (NaN grey, "no value" in the
 /// legend); pixel axes with row 0 at the top.
 pub fn map(path: &Path, title: &str, values: &ndarray::ArrayView2<'_, f32>, unit: &str) -> Result<()> {
-    let (h, w) = values.dim();
-    let finite = values.iter().copied().filter(|v| v.is_finite());
+    maps(path, title, &[("", values.view())], unit, None)
+}
+
+/// The finite extent of `panels` (`hi > lo`), or `(0, 1)` when nothing is finite.
+fn value_range(panels: &[(&str, ndarray::ArrayView2<'_, f32>)]) -> (f64, f64) {
+    let finite = panels.iter().flat_map(|(_, v)| v.iter().copied()).filter(|v| v.is_finite());
     let (lo, hi) = finite.fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| (a.min(v as f64), b.max(v as f64)));
-    let (lo, hi) = if lo.is_finite() { (lo, if hi > lo { hi } else { lo + 1.0 }) } else { (0.0, 1.0) };
-    let any_nan = values.iter().any(|v| !v.is_finite());
-    let side = 560u32;
-    let (pw, ph) = if w >= h { (side, (side as usize * h / w.max(1)).max(120) as u32) } else { ((side as usize * w / h.max(1)).max(120) as u32, side) };
-    render(path, (pw + 260, ph + 130), |root| {
-        let (left, right) = root.split_horizontally(pw + 110);
-        let mut chart = ChartBuilder::on(&left)
-            .caption(title, (FONT, 20))
-            .margin(10)
-            .x_label_area_size(42)
-            .y_label_area_size(56)
-            .build_cartesian_2d(0.0..w as f64, h as f64..0.0)
-            .map_err(err)?;
-        chart
-            .configure_mesh()
-            .disable_mesh()
-            .x_desc("column (pixel)")
-            .y_desc("row (pixel)")
-            .x_label_formatter(&|v| format!("{v:.0}"))
-            .y_label_formatter(&|v| format!("{v:.0}"))
-            .label_style((FONT, 14))
-            .axis_desc_style((FONT, 15))
-            .draw()
-            .map_err(err)?;
+    if lo.is_finite() {
+        (lo, if hi > lo { hi } else { lo + 1.0 })
+    } else {
+        (0.0, 1.0)
+    }
+}
+
+/// Maps side by side on one colour scale (`range`, else the panels' finite extent) with one
+/// colour bar labelled `unit`; each panel titled, with pixel axes (row 0 at the top); NaN
+/// grey with a "no value" legend entry. At most four panels per row.
+///
+/// # Shapes
+/// - `panels`: `(title, [H, W])`, all the same size
+pub fn maps(path: &Path, title: &str, panels: &[(&str, ndarray::ArrayView2<'_, f32>)], unit: &str, range: Option<(f64, f64)>) -> Result<()> {
+    let Some((_, first)) = panels.first() else {
+        return Err(InferError::File { path: path.to_path_buf(), msg: "no maps to draw".into() });
+    };
+    let (h, w) = first.dim();
+    let (lo, hi) = range.filter(|(a, b)| b > a && a.is_finite() && b.is_finite()).unwrap_or_else(|| value_range(panels));
+    let any_nan = panels.iter().any(|(_, v)| v.iter().any(|x| !x.is_finite()));
+    let cols = panels.len().min(4);
+    let rows = panels.len().div_ceil(cols);
+    let side = if panels.len() == 1 { 560 } else { 340usize };
+    let (pw, ph) = if w >= h { (side, (side * h / w.max(1)).max(100)) } else { ((side * w / h.max(1)).max(100), side) };
+    let (cell_w, cell_h) = (pw + 80, ph + 90);
+    let top = if panels.len() == 1 { 0 } else { 44 };
+    let (fw, fh) = ((cell_w * cols + 200) as u32, (cell_h * rows + top + 20) as u32);
+    render(path, (fw, fh), |root| {
+        let (title_area, body) = root.split_vertically(top as u32);
+        if top > 0 {
+            title_area.titled(title, (FONT, 22)).map_err(err)?;
+        }
+        let (grid, right) = body.split_horizontally((cell_w * cols) as u32);
+        let cells = grid.split_evenly((rows, cols));
         let grey = RGBColor(160, 160, 160);
-        chart
-            .draw_series(values.indexed_iter().map(|((r, c), &v)| {
-                let colour = if v.is_finite() { viridis((v as f64 - lo) / (hi - lo)) } else { grey };
-                Rectangle::new([(c as f64, r as f64), (c as f64 + 1.0, r as f64 + 1.0)], colour.filled())
-            }))
-            .map_err(err)?;
-        if any_nan {
-            chart.draw_series(std::iter::empty::<Rectangle<(f64, f64)>>()).map_err(err)?.label("no value").legend(move |(x, y)| Rectangle::new([(x, y - 6), (x + 14, y + 6)], grey.filled()));
-            legend(&mut chart, 14, SeriesLabelPosition::LowerRight)?;
+        for (area, (name, values)) in cells.iter().zip(panels) {
+            let caption = if panels.len() == 1 { title.to_string() } else { name.to_string() };
+            let mut chart = ChartBuilder::on(area)
+                .caption(caption, (FONT, if panels.len() == 1 { 20 } else { 16 }))
+                .margin(8)
+                .x_label_area_size(40)
+                .y_label_area_size(50)
+                .build_cartesian_2d(0.0..w as f64, h as f64..0.0)
+                .map_err(err)?;
+            chart
+                .configure_mesh()
+                .disable_mesh()
+                .x_desc("column (pixel)")
+                .y_desc("row (pixel)")
+                .x_labels(5)
+                .y_labels(5)
+                .x_label_formatter(&|v| format!("{v:.0}"))
+                .y_label_formatter(&|v| format!("{v:.0}"))
+                .label_style((FONT, 13))
+                .axis_desc_style((FONT, 14))
+                .draw()
+                .map_err(err)?;
+            chart
+                .draw_series(values.indexed_iter().map(|((r, c), &v)| {
+                    let colour = if v.is_finite() { viridis((v as f64 - lo) / (hi - lo)) } else { grey };
+                    Rectangle::new([(c as f64, r as f64), (c as f64 + 1.0, r as f64 + 1.0)], colour.filled())
+                }))
+                .map_err(err)?;
+            if any_nan && values.iter().any(|x| !x.is_finite()) {
+                chart.draw_series(std::iter::empty::<Rectangle<(f64, f64)>>()).map_err(err)?.label("no value").legend(move |(x, y)| Rectangle::new([(x, y - 6), (x + 14, y + 6)], grey.filled()));
+                legend(&mut chart, 13, SeriesLabelPosition::LowerRight)?;
+            }
         }
         // the colour bar
         let mut bar = ChartBuilder::on(&right)
             .margin_top(40)
             .margin_bottom(52)
             .margin_left(10)
-            .set_label_area_size(LabelAreaPosition::Right, 110)
+            .margin_right(24)
+            .set_label_area_size(LabelAreaPosition::Right, 100)
             .build_cartesian_2d(0.0..1.0, lo..hi)
             .map_err(err)?;
         bar.configure_mesh().disable_mesh().disable_x_axis().y_desc(unit).label_style((FONT, 14)).axis_desc_style((FONT, 15)).draw().map_err(err)?;
@@ -302,6 +340,96 @@ pub fn map(path: &Path, title: &str, values: &ndarray::ArrayView2<'_, f32>, unit
             Rectangle::new([(0.0, a), (1.0, b)], viridis((i as f64 + 0.5) / steps as f64).filled())
         }))
         .map_err(err)?;
+        Ok(())
+    })
+}
+
+/// Point clouds rendered in perspective, one panel per cloud (like the paper's Fig. 17):
+/// camera coordinates in metres (x right, y up, z away from the camera), points coloured by
+/// their return (first surface, behind a diffusive sheet).
+///
+/// # Shapes
+/// - `clouds`: `(title, points)`, a point `[x, y, z, return]`
+pub fn point_clouds(path: &Path, title: &str, clouds: &[(&str, Vec<[f32; 4]>)]) -> Result<()> {
+    let panels = clouds.len().max(1);
+    let all = clouds.iter().flat_map(|(_, p)| p.iter()).filter(|p| p.iter().all(|v| v.is_finite()));
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
+    for p in all {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k] as f64);
+            hi[k] = hi[k].max(p[k] as f64);
+        }
+    }
+    for k in 0..3 {
+        if !lo[k].is_finite() {
+            (lo[k], hi[k]) = (0.0, 1.0);
+        } else if hi[k] <= lo[k] {
+            hi[k] = lo[k] + 1.0;
+        }
+    }
+    render(path, ((560 * panels) as u32, 560), |root| {
+        let (title_area, body) = root.split_vertically(40);
+        title_area.titled(title, (FONT, 22)).map_err(err)?;
+        for (area, (name, points)) in body.split_evenly((1, panels)).iter().zip(clouds) {
+            // plotters' 3-D axes: x across, y up, z into the picture
+            let mut chart = ChartBuilder::on(area).caption(*name, (FONT, 16)).margin(20).build_cartesian_3d(lo[0]..hi[0], lo[1]..hi[1], lo[2]..hi[2]).map_err(err)?;
+            chart.with_projection(|mut pb| {
+                pb.yaw = 0.6;
+                pb.pitch = 0.25;
+                pb.scale = 0.8;
+                pb.into_matrix()
+            });
+            chart.configure_axes().light_grid_style(BLACK.mix(0.1)).max_light_lines(3).label_style((FONT, 12)).draw().map_err(err)?;
+            let label = |x: f64, y: f64, z: f64, s: &str| Text::new(s.to_string(), (x, y, z), (FONT, 14));
+            chart
+                .draw_series([label(hi[0], lo[1], lo[2], "x (m)"), label(lo[0], hi[1], lo[2], "y (m)"), label(lo[0], lo[1], hi[2], "z (m, depth)")])
+                .map_err(err)?;
+            for ret in 0..2usize {
+                let c = PALETTE[ret + 1];
+                let pts = points.iter().filter(|p| p[3] as usize == ret && p.iter().all(|v| v.is_finite()));
+                chart
+                    .draw_series(pts.map(|p| Circle::new((p[0] as f64, p[1] as f64, p[2] as f64), 1, c.filled())))
+                    .map_err(err)?
+                    .label(if ret == 0 { "return 1 (first surface)" } else { "return 2 (behind the sheet)" })
+                    .legend(move |(x, y)| Circle::new((x + 7, y), 4, c.filled()));
+            }
+            chart.configure_series_labels().label_font((FONT, 13)).background_style(WHITE.mix(0.9)).border_style(BLACK).position(SeriesLabelPosition::UpperRight).draw().map_err(err)?;
+        }
+        Ok(())
+    })
+}
+
+/// A phasor plot: the per-pixel phasors `(g, s)` of each decoder as a point cloud, with the
+/// universal semicircle where single exponentials lie and the lifetimes marked on it at the
+/// first harmonic `ω = 2π / period_s`. Drawn over `g ∈ [0.4, 1]`, where lifetimes up to
+/// about a sixth of the period lie (phasors outside are left out).
+pub fn phasor(path: &Path, title: &str, series: &[(&str, Vec<(f64, f64)>)], period_s: f64) -> Result<()> {
+    render(path, (760, 520), |root| {
+        let mut chart = ChartBuilder::on(root).caption(title, (FONT, 20)).margin(12).x_label_area_size(46).y_label_area_size(60).build_cartesian_2d(0.4..1.08, -0.02..0.52).map_err(err)?;
+        chart.configure_mesh().x_desc("g (cosine component)").y_desc("s (sine component)").label_style((FONT, 14)).axis_desc_style((FONT, 15)).draw().map_err(err)?;
+        let circle: Vec<(f64, f64)> = (0..=100).map(|i| {
+            let a = std::f64::consts::PI * i as f64 / 180.0;
+            (0.5 + 0.5 * a.cos(), 0.5 * a.sin())
+        }).collect();
+        chart.draw_series(LineSeries::new(circle, BLACK.stroke_width(1))).map_err(err)?.label("single exponentials").legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK));
+        // lifetimes on the circle: g = 1/(1+(ωτ)²), s = ωτ/(1+(ωτ)²)
+        let omega = 2.0 * std::f64::consts::PI / period_s;
+        for tau_ns in [0.5, 1.0, 2.0, 4.0, 8.0] {
+            let wt = omega * tau_ns * 1e-9;
+            let (g, s) = (1.0 / (1.0 + wt * wt), wt / (1.0 + wt * wt));
+            chart.draw_series([Circle::new((g, s), 3, BLACK.filled())]).map_err(err)?;
+            chart.draw_series([Text::new(format!("{tau_ns} ns"), (g + 0.01, s + 0.03), (FONT, 12))]).map_err(err)?;
+        }
+        for (i, (name, pts)) in series.iter().enumerate() {
+            let c = PALETTE[(i + 1) % PALETTE.len()];
+            chart
+                .draw_series(pts.iter().filter(|(g, s)| (0.4..1.08).contains(g) && (-0.02..0.52).contains(s)).map(|&p| Circle::new(p, 2, c.mix(0.6).filled())))
+                .map_err(err)?
+                .label(name.to_string())
+                .legend(move |(x, y)| Circle::new((x + 7, y), 4, c.filled()));
+        }
+        legend(&mut chart, 13, SeriesLabelPosition::UpperRight)?;
         Ok(())
     })
 }

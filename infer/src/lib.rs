@@ -10,7 +10,9 @@
 //! - [`metrics`]: MSE, PSNR, depth RMSE/MAE per bounce with detection rate, lifetime MAE.
 //! - [`selection`]: code selection — the TVAL3 MSE of a code set over a dataset, the best of
 //!   random candidates, and the constraint settings of the paper's Table 1.
-//! - [`chart`]: line charts (PNG) for the design sweeps.
+//! - [`figures`]: the figures (plotters, bundled font): charts, maps with colour bars, codes,
+//!   waveforms, point clouds, phasors; [`report`]: the HTML report of `tcsense demo`.
+//! - [`timing`]: time per frame of exported models (ONNX Runtime) and their runs (burn).
 //! - [`onnx`]: export of trained runs to ONNX (hand-built graphs, opset 17) with their codes
 //!   and sensor model in the metadata.
 //! - [`runtime`]: exported models through ONNX Runtime (`ort`, the library loaded at run
@@ -27,5 +29,7 @@ pub mod products;
 pub mod runtime;
 pub mod selection;
 pub mod stream;
+pub mod timing;
+pub mod report;
 
 pub use error::{InferError, Result};

@@ -201,6 +201,73 @@ pub fn lifetime_map(x: &ArrayView3<'_, f32>, bin_width_s: f64, min_rel: f32, min
     (tau, ph)
 }
 
+/// Phasors `[2, H, W]` (g, s; NaN below `min_intensity` of the brightest pixel's total) at the
+/// cycle's first harmonic, as a phasor analysis of a measurement uses them: each waveform's
+/// constant background (its minimum) removed, and the phase referenced to the frame's onset
+/// — rotated by `−ω·t₀`, `t₀` the centre of the peak bin of the frame's summed decay (what a
+/// calibration with a reference sample does for the instrument's delay) — so single
+/// exponentials fall on the universal semicircle wherever the decay starts in the cycle.
+///
+/// # Shapes
+/// - `x`: `[T, H, W]` → `[2, H, W]`
+pub fn referenced_phasors(x: &ArrayView3<'_, f32>, min_intensity: f32) -> Array3<f32> {
+    let (t, h, w) = x.dim();
+    let omega = 2.0 * std::f64::consts::PI / t as f64; // per bin
+    let total = x.sum_axis(Axis(1)).sum_axis(Axis(1)); // [T]
+    let peak = total.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).map_or(0, |(j, _)| j);
+    let t0 = peak as f64 + 0.5;
+    let mut sums = Array2::<f64>::zeros((h, w));
+    let mut out = Array3::<f32>::from_elem((2, h, w), f32::NAN);
+    for r in 0..h {
+        for c in 0..w {
+            let wave = x.slice(ndarray::s![.., r, c]);
+            let bg = wave.iter().fold(f32::INFINITY, |m, &v| m.min(v));
+            let (mut sum, mut g, mut s) = (0f64, 0f64, 0f64);
+            for (j, &v) in wave.iter().enumerate() {
+                let v = (v - bg) as f64;
+                let phase = omega * (j as f64 + 0.5 - t0);
+                sum += v;
+                g += v * phase.cos();
+                s += v * phase.sin();
+            }
+            sums[(r, c)] = sum;
+            if sum > 0.0 {
+                out[(0, r, c)] = (g / sum) as f32;
+                out[(1, r, c)] = (s / sum) as f32;
+            }
+        }
+    }
+    let max = sums.iter().fold(0f64, |m, &v| m.max(v));
+    for ((r, c), &sum) in sums.indexed_iter() {
+        if sum <= min_intensity as f64 * max {
+            out[(0, r, c)] = f32::NAN;
+            out[(1, r, c)] = f32::NAN;
+        }
+    }
+    out
+}
+
+/// The points `[x, y, z, return]` (camera coordinates in metres, return index from 0) of a
+/// range map `[K, H, W]` seen through a pinhole camera with horizontal field of view
+/// `fov_deg`; NaN ranges give no point.
+pub fn point_cloud(depth: &ArrayView3<'_, f32>, fov_deg: f64) -> Vec<[f32; 4]> {
+    let (k, h, w) = depth.dim();
+    let cam = Camera { height: h, width: w, fov_deg };
+    let mut pts = Vec::new();
+    for b in 0..k {
+        for r in 0..h {
+            for c in 0..w {
+                let d = depth[(b, r, c)];
+                if d.is_finite() {
+                    let ray = cam.ray(r, c);
+                    pts.push([(ray[0] * d as f64) as f32, (ray[1] * d as f64) as f32, (ray[2] * d as f64) as f32, b as f32]);
+                }
+            }
+        }
+    }
+    pts
+}
+
 /// Write a point cloud (ASCII PLY: x y z in metres, bounce index, amplitude) from a range map
 /// `[K, H, W]` seen through a pinhole camera with horizontal field of view `fov_deg`.
 pub fn write_ply(path: &Path, depth: &ArrayView3<'_, f32>, amp: &ArrayView3<'_, f32>, fov_deg: f64) -> Result<usize> {
@@ -261,6 +328,31 @@ pub fn plot_waveforms(path: &Path, cubes: &[(&str, ArrayView3<'_, f32>)], pixels
 mod tests {
     use super::*;
     use ndarray::Array1;
+
+    /// A delayed single exponential on a constant background lands on the universal
+    /// semicircle at its lifetime, wherever its onset is in the cycle; a dim pixel is NaN.
+    #[test]
+    fn referenced_phasors_put_exponentials_on_the_semicircle() {
+        let t = 256;
+        for (onset, tau_bins) in [(3usize, 10.0f64), (140, 25.0), (250, 6.0)] {
+            let mut x = ndarray::Array3::<f32>::zeros((t, 1, 2));
+            for j in 0..t {
+                // periodic decay starting at `onset` (wraps around the cycle), background 0.05
+                let age = (j + t - onset) % t;
+                x[(j, 0, 0)] = (0.05 + (-(age as f64) / tau_bins).exp()) as f32;
+                x[(j, 0, 1)] = 1e-6 * x[(j, 0, 0)];
+            }
+            let p = referenced_phasors(&x.view(), 0.02);
+            let (g, s) = (p[(0, 0, 0)] as f64, p[(1, 0, 0)] as f64);
+            // on the circle (g − ½)² + s² = ¼, at the phase of a sampled exponential
+            // Σ qᵏ e^{iωk} = 1/(1 − q e^{iω}), q = e^{−1/τ}: s/g = q sin ω / (1 − q cos ω) ≈ ωτ
+            let (w, q) = (2.0 * std::f64::consts::PI / t as f64, (-1.0 / tau_bins).exp());
+            let want = q * w.sin() / (1.0 - q * w.cos());
+            assert!(((g - 0.5).powi(2) + s * s - 0.25).abs() < 0.01, "onset {onset}: ({g}, {s}) off the circle");
+            assert!((s / g - want).abs() < 0.01 * want, "onset {onset}: s/g {} want {want}", s / g);
+            assert!(p[(0, 0, 1)].is_nan());
+        }
+    }
 
     #[test]
     fn parabolic_refinement_recovers_a_sub_bin_offset() {

@@ -207,9 +207,6 @@ fn fresh_run(a: &BenchInferArgs) -> Result<runs::LoadedRun> {
 }
 
 pub fn bench_infer(a: BenchInferArgs) -> Result<()> {
-    use tcsense_kernels::timing::median_by;
-    use tcsense_models::net::{to_tensor, Network};
-    use tcsense_models::SensorTensors;
     let (h, w) = a.size;
     let run = match (&a.run, &a.model) {
         (Some(r), _) => Some(runs::load(r, &Device::flex())?),
@@ -225,90 +222,26 @@ pub fn bench_infer(a: BenchInferArgs) -> Result<()> {
         }
         (None, None) => unreachable!("a run exists when no model is given"),
     };
-    let mut engines: Vec<(String, OnnxModel)> = Vec::new();
-    if a.ort_threads.is_empty() || a.ort_threads.contains(&0) {
-        bail!("--ort-threads: expected thread counts ≥ 1, e.g. 2,1");
-    }
-    for &threads in &a.ort_threads {
-        engines.push((format!("ort (Rust), {threads} thread{}", if threads > 1 { "s" } else { "" }), OnnxModel::open(&model_path, threads)?));
-    }
-    let meta = engines[0].1.meta.clone();
-    let (fh, fw) = meta.frame_multiple;
-    if h % fh != 0 || w % fw != 0 {
-        bail!("--size {h}x{w}: the model takes frames that are multiples of {fh}x{fw}");
-    }
-    // a frame's working set: the input, the cube and a network's widest activations (32
-    // channels or T, a few alive at once), in f32
-    let per_pixel = (meta.taps + 8 * meta.bins.max(32)) as f64 * 4.0;
-    tcsense_sensor::mem::check_fits(&format!("a {h}x{w} frame"), per_pixel * (h * w) as f64, "use a smaller --size")?;
-    let flops = match run.as_ref().map(|r| &r.spec.model) {
-        Some(runs::ModelConfig::Unet(c)) => Some(c.flops(h, w)),
-        Some(runs::ModelConfig::AdmmNet(c)) => Some(c.flops(h, w)),
-        None => None,
-    };
-    let mut seed = 1u64;
-    let y = ndarray::Array4::from_shape_fn((1, meta.taps, h, w), |_| {
-        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-        ((seed >> 33) % 4096) as f32
-    });
-    let device = Device::flex();
-    let st = match &run {
-        Some(r) => Some(SensorTensors::new(&r.sensor, h, w, &device)?),
-        None => None,
-    };
-    let burn_step = |r: &runs::LoadedRun, st: &SensorTensors| -> f64 {
-        let t0 = std::time::Instant::now();
-        let yt = to_tensor(&y.view(), &device);
-        let out = match &r.net {
-            runs::TrainedNet::AdmmNet(n) => n.predict(yt, st),
-            runs::TrainedNet::Unet(n) => n.predict(yt, st),
-        };
-        let _ = out.into_data();
-        t0.elapsed().as_secs_f64() * 1e3
-    };
-    // warm up every engine, then interleave the rounds
-    for (_, m) in engines.iter_mut() {
-        m.run(y.view())?;
-    }
-    if let (Some(r), Some(st)) = (&run, &st) {
-        burn_step(r, st);
-    }
-    let mut times: Vec<Vec<f64>> = vec![Vec::new(); engines.len() + 1];
-    for _ in 0..a.reps.max(1) {
-        for (i, (_, m)) in engines.iter_mut().enumerate() {
-            let t0 = std::time::Instant::now();
-            m.run(y.view())?;
-            times[i].push(t0.elapsed().as_secs_f64() * 1e3);
-        }
-        if let (Some(r), Some(st)) = (&run, &st) {
-            times[engines.len()].push(burn_step(r, st));
-        }
-    }
+    let timing = tcsense_infer::timing::time_decoder(run.as_ref(), &model_path, (h, w), &a.ort_threads, a.reps);
     if a.save_model.is_none() {
         let _ = std::fs::remove_file(&tmp);
     }
+    let t = timing?;
     println!(
         "{} at {h}x{w}, T = {}, M = {}, batch 1, median of {} interleaved rounds{}",
-        meta.decoder,
-        meta.bins,
-        meta.taps,
-        a.reps.max(1),
-        flops.map(|f| format!(", {:.2} GFLOP per frame", f / 1e9)).unwrap_or_default()
+        t.decoder,
+        t.bins,
+        t.taps,
+        t.rounds,
+        t.gflop_per_frame.map(|f| format!(", {f:.2} GFLOP per frame")).unwrap_or_default()
     );
     println!("{:<26} {:>10} {:>10} {:>10}", "engine", "ms/frame", "frames/s", "GFLOP/s");
-    let mut names: Vec<String> = engines.iter().map(|(n, _)| n.clone()).collect();
-    if run.is_some() {
-        names.push(format!("burn (flex), {} threads", rayon::current_num_threads()));
+    for e in &t.engines {
+        let rate = t.gflop_per_frame.map(|f| format!("{:>10.1}", f / e.ms_per_frame * 1e3)).unwrap_or_else(|| format!("{:>10}", "-"));
+        println!("{:<26} {:>10.2} {:>10.1} {rate}", e.engine, e.ms_per_frame, e.frames_per_s);
     }
-    let mut medians = Vec::new();
-    for (name, t) in names.iter().zip(&times) {
-        let Some(ms) = median_by(t, |v| *v) else { continue };
-        medians.push(ms);
-        let rate = flops.map(|f| format!("{:>10.1}", f / ms / 1e6)).unwrap_or_else(|| format!("{:>10}", "-"));
-        println!("{name:<26} {ms:>10.2} {:>10.1} {rate}", 1e3 / ms);
-    }
-    if medians.len() == names.len() && names.len() > 1 {
-        let ratios: Vec<String> = (1..medians.len()).map(|i| format!("{} / {}: {:.2}", names[0], names[i], medians[0] / medians[i])).collect();
+    if t.engines.len() > 1 {
+        let ratios: Vec<String> = t.engines[1..].iter().map(|e| format!("{} / {}: {:.2}", t.engines[0].engine, e.engine, t.engines[0].ms_per_frame / e.ms_per_frame)).collect();
         println!("time ratios: {}", ratios.join("; "));
     }
     Ok(())

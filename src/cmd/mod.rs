@@ -3,6 +3,7 @@
 pub mod bench;
 pub mod codes;
 pub mod dataset;
+pub mod demo;
 pub mod deploy;
 pub mod design;
 pub mod eval;

@@ -5,7 +5,6 @@ use clap::{Args, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use std::process::ExitCode;
-use tcsense_datasets::store::Kind;
 use tcsense_datasets::Dataset;
 use tcsense_models::runs::{ModelConfig, CODES_FILE, CONFIG_FILE, SENSOR_MATRIX_FILE};
 use tcsense_sensor::npy::write_npy;
@@ -160,8 +159,17 @@ pub enum LossArg {
     RmseMae,
 }
 
-struct Bar {
-    pb: ProgressBar,
+/// Training progress: a bar over the steps of an epoch, a line per epoch.
+pub(crate) struct Bar {
+    pub pb: ProgressBar,
+}
+
+impl Bar {
+    pub fn new() -> Self {
+        let pb = ProgressBar::new(1);
+        pb.set_style(ProgressStyle::with_template("[{bar:30}] {pos}/{len} steps {per_sec} eta {eta} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
+        Bar { pb }
+    }
 }
 
 impl Progress for Bar {
@@ -229,10 +237,7 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
                 ModelConfig::Unet(UnetConfig::new(m, t, range_m).with_returns(n.returns).with_base_width(n.base_width).with_levels(n.levels))
             }
         };
-        let loss = if ds.manifest.kind == Kind::Flim { Loss::Rmse } else { Loss::RmseMae };
-        let mut cfg = TrainConfig::new(model, ds_path, loss, ds.manifest.grid.sampling);
-        cfg.augment = Some(Augmentation::default());
-        cfg
+        TrainConfig::for_dataset(model, ds_path, &ds)
     };
     if a.no_augment {
         cfg.augment = None;

@@ -72,6 +72,16 @@ impl TrainConfig {
         }
     }
 
+    /// A new run of `model` on the dataset at `path`: the loss of its kind (RMSE + MAE for
+    /// LiDAR cubes, RMSE for FLIm; depth networks use their own), its sampling, and the
+    /// default augmentation.
+    pub fn for_dataset(model: ModelConfig, path: &Path, ds: &tcsense_datasets::Dataset) -> Self {
+        let loss = if ds.manifest.kind == tcsense_datasets::store::Kind::Flim { Loss::Rmse } else { Loss::RmseMae };
+        let mut cfg = TrainConfig::new(model, path, loss, ds.manifest.grid.sampling);
+        cfg.augment = Some(Augmentation::default());
+        cfg
+    }
+
     /// Read a config file (a run's `config.json` or one given to `train --config`); configs
     /// written before the `decoder` field are ADMM-Net configs.
     /// Unknown fields and invalid settings are refused with the file named.

@@ -1,0 +1,125 @@
+//! `tcsense demo --quick` at a tiny size: the report, every figure and table it references
+//! exist and are non-empty, every number of its tables equals the one in the run's JSON
+//! results, the learned codes are exported and feasible, and a rerun resumes.
+
+mod common;
+use common::*;
+use serde_json::Value;
+use std::path::Path;
+
+const ARGS: [&str; 10] = ["demo", "--quick", "--size", "16x16", "--scenes", "40", "--budget-minutes", "0.2", "--timing-size", "16x16"];
+
+/// The values of `<tag attr="…"` in order.
+fn attributes<'a>(html: &'a str, tag: &str, attr: &str) -> Vec<&'a str> {
+    let key = format!("<{tag} {attr}=\"");
+    html.match_indices(&key).filter_map(|(i, _)| html[i + key.len()..].split('"').next()).collect()
+}
+
+/// Cells with a source: `(file, pointer, text)`.
+fn sourced_cells(html: &str) -> Vec<(String, String, String)> {
+    let mut out = Vec::new();
+    for (i, _) in html.match_indices("<td data-src=\"") {
+        let rest = &html[i + "<td data-src=\"".len()..];
+        let (file, rest) = rest.split_once("\" data-ptr=\"").expect("data-ptr after data-src");
+        let (ptr, rest) = rest.split_once("\">").expect("end of the cell's tag");
+        let (text, _) = rest.split_once("</td>").expect("end of the cell");
+        out.push((file.to_string(), ptr.to_string(), text.to_string()));
+    }
+    out
+}
+
+/// `text` is `v` printed with the digits shown: within half a unit of its last digit.
+fn shows(text: &str, v: Option<f64>) -> bool {
+    match v.filter(|v| v.is_finite()) {
+        None => text == "–",
+        Some(v) => {
+            let Ok(t) = text.parse::<f64>() else { return false };
+            let (mantissa, exp) = match text.split_once('e') {
+                Some((m, e)) => (m, e.parse::<i32>().unwrap_or(0)),
+                None => (text, 0),
+            };
+            let decimals = mantissa.split_once('.').map_or(0, |(_, d)| d.len()) as i32;
+            (t - v).abs() <= 0.5001 * 10f64.powi(exp - decimals)
+        }
+    }
+}
+
+fn json(path: &Path) -> Value {
+    serde_json::from_slice(&std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))).unwrap()
+}
+
+#[test]
+fn quick_demo_writes_a_complete_report_that_matches_its_results() {
+    let d = tempdir();
+    let d = d.path();
+    let mut args = ARGS.to_vec();
+    args.extend(["-o", "demo"]);
+    let out = ok(d, &args);
+    assert!(out.contains("[11/12] timing") && out.contains("wrote demo/report.html"), "{out}");
+    let demo = d.join("demo");
+    let html = std::fs::read_to_string(demo.join("report.html")).unwrap();
+
+    // every figure exists, is a PNG and is not empty; the ones the issue names are there
+    let images = attributes(&html, "img", "src");
+    assert!(images.len() >= 15, "{images:?}");
+    for src in &images {
+        let bytes = std::fs::read(demo.join(src)).unwrap_or_else(|e| panic!("{src}: {e}"));
+        assert!(bytes.len() > 5000 && bytes.starts_with(b"\x89PNG\r\n\x1a\n"), "{src}: {} bytes", bytes.len());
+    }
+    for name in ["codes-random", "codes-selected", "codes-learned", "taps", "waveforms-lidar", "depth", "depth-error", "point-cloud", "lifetime", "phasor", "waveforms-flim", "training-lidar", "training-unet", "training-flim"] {
+        assert!(images.contains(&format!("figures/{name}.png").as_str()), "no {name} in {images:?}");
+    }
+
+    // every number of every table is the one in the results it names
+    let cells = sourced_cells(&html);
+    let mut files = std::collections::BTreeMap::new();
+    for (file, ptr, text) in &cells {
+        let v = files.entry(file.clone()).or_insert_with(|| json(&demo.join(file)));
+        assert!(shows(text, v.pointer(ptr).and_then(Value::as_f64)), "{file}#{ptr}: table shows {text:?}, results hold {:?}", v.pointer(ptr));
+    }
+    let lidar = json(&demo.join("results/lidar.json"));
+    let flim = json(&demo.join("results/flim.json"));
+    let timing = json(&demo.join("results/timing.json"));
+    // LiDAR: TVAL3, ADMM-Net (burn, ONNX), U-Net (burn, ONNX) with the selected codes; TVAL3 and
+    // ADMM-Net (burn, ONNX) with the learned codes; FLIm: TVAL3, ADMM-Net (burn, ONNX)
+    let rows = lidar["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 8);
+    assert_eq!(flim["rows"].as_array().unwrap().len(), 3);
+    for (file, n) in [("results/lidar.json", 8 * 7), ("results/flim.json", 3 * 4), ("results/timing.json", 9 * 2)] {
+        assert_eq!(cells.iter().filter(|c| c.0 == file).count(), n, "cells from {file}");
+    }
+    assert_eq!(timing["decoders"].as_array().unwrap().len(), 3);
+    // burn and ONNX Runtime give the same reconstructions of the same measurements
+    for (burn, onnx) in [(1, 2), (6, 7)] {
+        let (a, b) = (rows[burn]["mse"].as_f64().unwrap(), rows[onnx]["mse"].as_f64().unwrap());
+        assert!((a - b).abs() <= 1e-3 * a.abs(), "rows {burn}/{onnx}: burn MSE {a}, ONNX {b}");
+    }
+    let (a, b) = (rows[3]["range_rmse_m"][0].as_f64().unwrap(), rows[4]["range_rmse_m"][0].as_f64().unwrap());
+    assert!((a - b).abs() <= 1e-3 * a.abs().max(1e-3), "U-Net burn range RMSE {a}, ONNX {b}");
+    assert!(rows[3]["mse"].is_null(), "the U-Net has no cube");
+
+    // the codes: learned ones exported and feasible; the plan sized the trainings
+    ok(&demo, &["codes", "check", "codes/learned.json"]);
+    let regs = json(&demo.join("code-memory/learned/registers.json"));
+    assert_eq!(regs["ECLEN"], 3);
+    assert!(demo.join("code-memory/selected/codes.bin").exists());
+    let plan = json(&demo.join("plan.json"));
+    assert_eq!(plan["trainings"].as_array().unwrap().len(), 4);
+    for t in plan["trainings"].as_array().unwrap() {
+        // one row per epoch (a learned-codes run: relaxed epochs, then fine-tuning)
+        let run = demo.join("runs").join(t["name"].as_str().unwrap());
+        let rows = |p: &Path| std::fs::read_to_string(p).map_or(0, |m| m.lines().count() as u64 - 1);
+        assert_eq!(rows(&run.join("metrics.csv")) + rows(&run.join("relaxed/metrics.csv")), t["epochs"].as_u64().unwrap(), "{t}");
+    }
+
+    // a rerun resumes: nothing is trained or evaluated again, the tables are the same
+    let again = ok(d, &args);
+    assert!(again.contains("(resuming)") && !again.contains("epoch "), "{again}");
+    let html2 = std::fs::read_to_string(demo.join("report.html")).unwrap();
+    assert_eq!(sourced_cells(&html2), cells);
+    // other settings into the same directory are refused
+    let mut other = ARGS.to_vec();
+    other[7] = "0.5";
+    other.extend(["-o", "demo"]);
+    fails(d, &other, &["other settings", "demo"]);
+}
