@@ -182,18 +182,45 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             let opts = tcsense_models::Tval3Options { maxit, tol: 1e-12, maxcnt: usize::MAX, ..Default::default() };
             println!("TVAL3 {h}x{w}x{bins}, 4 taps 2x2, maxit {maxit}, {} threads", rayon::current_num_threads());
             let never = std::sync::atomic::AtomicBool::new(false);
-            let mut times = Vec::new();
+            // this machine's memory bandwidth: a parallel copy of 256 MiB, median of 5
+            let (src, mut dst) = (vec![1f32; 1 << 26], vec![0f32; 1 << 26]);
+            let copy_gbs = {
+                use rayon::prelude::*;
+                let ms = median_ms(|| -> Result<()> {
+                    dst.par_chunks_mut(1 << 16).zip(src.par_chunks(1 << 16)).for_each(|(d, s)| d.copy_from_slice(s));
+                    Ok(())
+                }, 5)?;
+                2.0 * (src.len() * 4) as f64 / ms / 1e6
+            };
+            drop((src, dst));
+            let cube_mb = (bins * h * w * 4) as f64 / 1e6;
+            println!("memory bandwidth (parallel copy, read + write): {copy_gbs:.1} GB/s; one pass over the cube = {cube_mb:.1} MB");
+            type Solve = fn(&MeasurementMatrix, &tcsense_sensor::FramePlan, &ndarray::ArrayView3<'_, f32>, &tcsense_models::Tval3Options, &(dyn Fn(usize, usize) + Sync), &std::sync::atomic::AtomicBool) -> tcsense_models::Result<(ndarray::Array3<f32>, tcsense_models::Tval3Report)>;
+            let solvers: [(&str, Solve); 2] = [("reference", tcsense_models::tval3::tval3_reference), ("fused", tcsense_models::tval3)];
+            let mut times = vec![Vec::new(); solvers.len()];
             for i in 0..frames.max(1) {
                 let x = gen.sample(&grid, 1, i as u64).x;
                 let y = plan.forward(&x.view())?;
-                let t0 = Instant::now();
-                let (xh, rep) = tcsense_models::tval3(&a, &plan, &y.view(), &opts, &|_, _| {}, &never)?;
-                let dt = t0.elapsed().as_secs_f64();
-                let mse = tcsense_infer::metrics::mse(xh.as_slice().unwrap_or(&[]), x.as_slice().unwrap_or(&[]));
-                println!("frame {i}: {:.3} s, {} iterations ({:.2} ms/iteration, {} backtracks, {} fallbacks), MSE {mse:.3e}", dt, rep.iterations, dt * 1e3 / rep.iterations.max(1) as f64, rep.backtracks, rep.fallbacks);
-                times.push(dt);
+                // interleaved: both solvers on each frame
+                for (k, (name, solve)) in solvers.iter().enumerate() {
+                    let t0 = Instant::now();
+                    let (xh, rep) = solve(&a, &plan, &y.view(), &opts, &|_, _| {}, &never)?;
+                    let dt = t0.elapsed().as_secs_f64();
+                    let mse = tcsense_infer::metrics::mse(xh.as_slice().unwrap_or(&[]), x.as_slice().unwrap_or(&[]));
+                    let passes = dt * copy_gbs * 1e3 / cube_mb / rep.iterations.max(1) as f64;
+                    println!(
+                        "frame {i} {name:<9}: {:.3} s, {} iterations ({:.2} ms/iteration ≈ {passes:.0} cube passes at copy bandwidth, {} backtracks, {} fallbacks), MSE {mse:.3e}",
+                        dt,
+                        rep.iterations,
+                        dt * 1e3 / rep.iterations.max(1) as f64,
+                        rep.backtracks,
+                        rep.fallbacks
+                    );
+                    times[k].push(dt);
+                }
             }
-            println!("median {:.3} s per frame", median_by(&times, |t| *t).unwrap_or(f64::NAN));
+            let med: Vec<f64> = times.iter().map(|t| median_by(t, |v| *v).unwrap_or(f64::NAN)).collect();
+            println!("median per frame: reference {:.3} s, fused {:.3} s ({:.2}x)", med[0], med[1], med[0] / med[1]);
         }
     }
     Ok(ExitCode::SUCCESS)

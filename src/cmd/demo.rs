@@ -44,8 +44,11 @@ use tcsense_train::{train, TrainConfig, TrainError};
 use super::dataset::interrupt_flag;
 
 /// Share of the budget given to the four trainings (the rest: data, code selection, TVAL3,
-/// evaluation, export, timing, figures).
-const TRAINING_SHARE: f64 = 0.7;
+/// evaluation, export, timing, figures: about 50 s of the default demo on two cores).
+const TRAINING_SHARE: f64 = 0.8;
+/// Time per training step beyond the timed forward/backward/Adam step (ms): simulating the
+/// batch's measurements, augmentation, validation, checkpoints (measured on the default demo).
+const STEP_OVERHEAD_MS: f64 = 2.0;
 /// Horizontal field of view of the rendered point clouds (the generator's default).
 const FOV_DEG: f64 = 40.0;
 /// Speed of light (m/s).
@@ -313,6 +316,15 @@ pub fn run(a: DemoArgs) -> Result<ExitCode> {
     let flim_json = dir.join("results/flim.json");
     steps.run("evaluation on the test splits (same noisy measurements for every decoder): TVAL3, burn and ONNX Runtime", || {
         let settings = |items| EvalSettings { split: "test".into(), items: Some(items), noise: Some(eval_noise), seed };
+        let pb = indicatif::ProgressBar::new(0);
+        pb.set_style(indicatif::ProgressStyle::with_template("  {msg} [{bar:30}] {pos}/{len}").unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()).progress_chars("=> "));
+        let on_item = |label: &str, done: usize, of: usize| {
+            if done == 1 {
+                pb.set_length(of as u64);
+                pb.set_message(label.split_once('|').map_or(label, |(_, spec)| spec).rsplit('/').next().unwrap_or(label).to_string());
+            }
+            pb.set_position(done as u64);
+        };
         if !lidar_json.exists() {
             let a_sel = sensor(&selected, &lidar)?;
             let a_learned = sensor(&learned, &lidar)?;
@@ -324,20 +336,21 @@ pub fn run(a: DemoArgs) -> Result<ExitCode> {
                 named(&run_of("unet", "unet-lidar"), "Aᵀ + U-Net")?,
                 named(&onnx("unet-lidar"), "Aᵀ + U-Net")?,
             ];
-            let r = evaluate(&lidar, &a_sel, &mut dec, &settings(plan.lidar_eval_items), &|_, _, _| {}, &cancel)?;
+            let r = evaluate(&lidar, &a_sel, &mut dec, &settings(plan.lidar_eval_items), &on_item, &cancel)?;
             rows.extend(r.iter().zip(&dec).map(|(r, d)| lidar_row(r, "selected", engine(&d.label))));
             let mut dec = vec![named("tval3", "TVAL3")?, named(&run_of("admm-net", "learned-lidar"), "ADMM-Net")?, named(&onnx("learned-lidar"), "ADMM-Net")?];
-            let r = evaluate(&lidar, &a_learned, &mut dec, &settings(plan.lidar_eval_items), &|_, _, _| {}, &cancel)?;
+            let r = evaluate(&lidar, &a_learned, &mut dec, &settings(plan.lidar_eval_items), &on_item, &cancel)?;
             rows.extend(r.iter().zip(&dec).map(|(r, d)| lidar_row(r, "learned", engine(&d.label))));
             write_json(&lidar_json, &json!({ "split": "test", "items": plan.lidar_eval_items, "noise": eval_noise, "noise_seed": seed, "frame": [h, w], "rows": rows }))?;
         }
         if !flim_json.exists() {
             let a_sel = sensor(&selected, &flim)?;
             let mut dec = vec![named("tval3", "TVAL3")?, named(&run_of("admm-net", "admm-flim"), "ADMM-Net")?, named(&onnx("admm-flim"), "ADMM-Net")?];
-            let r = evaluate(&flim, &a_sel, &mut dec, &settings(plan.flim_eval_items), &|_, _, _| {}, &cancel)?;
+            let r = evaluate(&flim, &a_sel, &mut dec, &settings(plan.flim_eval_items), &on_item, &cancel)?;
             let rows: Vec<Value> = r.iter().zip(&dec).map(|(r, d)| flim_row(r, "selected", engine(&d.label))).collect();
             write_json(&flim_json, &json!({ "split": "test", "items": plan.flim_eval_items, "noise": eval_noise, "noise_seed": seed, "frame": [h, w], "rows": rows }))?;
         }
+        pb.finish_and_clear();
         Ok(())
     })?;
 
@@ -427,7 +440,7 @@ fn make_plan(r: &Request, lidar: &Dataset, flim: &Dataset) -> Result<Plan> {
         let a = sensor(&codes, ds)?;
         let step = tcsense_train::bench::bench_step(&a, &model_of(name, ds), ch, cw, 3)?.step_ms;
         // learning the codes adds the operators' rebuild from A(θ) and the logits' step
-        let step = if name.starts_with("learned") { step * 1.3 } else { step };
+        let step = if name.starts_with("learned") { step * 1.3 } else { step } + STEP_OVERHEAD_MS;
         let train_items = ds.manifest.splits.iter().find(|s| s.name == "train").map_or(0, |s| s.count);
         let steps_per_epoch = train_items.div_ceil(2).max(1);
         let fit = (share * budget_s / (step / 1e3 * steps_per_epoch as f64)).floor() as usize;
@@ -730,6 +743,29 @@ fn training_figure(path: &Path, runs: &[(&str, PathBuf)]) -> Result<()> {
     Ok(())
 }
 
+/// One sentence per metric (JSON pointer into a row, label, format, unit): which row of
+/// `results` has the lowest value and what TVAL3 gets, read from the results themselves so
+/// the text follows whatever the run measured.
+fn findings(results: &Value, metrics: &[(&str, &str, Format, &str)]) -> String {
+    let rows = results["rows"].as_array().cloned().unwrap_or_default();
+    let name = |r: &Value| format!("{} ({} codes, {})", r["decoder"].as_str().unwrap_or(""), r["codes"].as_str().unwrap_or("selected"), r["engine"].as_str().unwrap_or(""));
+    let mut out = Vec::new();
+    for &(ptr, label, format, unit) in metrics {
+        let val = |r: &Value| r.pointer(&format!("/{ptr}")).and_then(Value::as_f64).filter(|v| v.is_finite());
+        let show = |v: f64| format!("{}{unit}", format.show(Some(v)));
+        let best = rows.iter().filter_map(|r| val(r).map(|v| (r, v))).min_by(|a, b| a.1.total_cmp(&b.1));
+        let tval3 = rows.iter().find(|r| r["decoder"] == "TVAL3").and_then(val);
+        if let Some((r, v)) = best {
+            let vs = match tval3 {
+                Some(t) if r["decoder"] != "TVAL3" => format!(" against TVAL3's {}", show(t)),
+                _ => String::new(),
+            };
+            out.push(format!("Lowest {label}: {}, {}{vs}.", name(r), show(v)));
+        }
+    }
+    out.join(" ")
+}
+
 fn read_json(path: &Path) -> Result<Value> {
     serde_json::from_slice(&std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?).with_context(|| format!("{}: not JSON", path.display()))
 }
@@ -837,6 +873,7 @@ fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Value], total_
             Cell::from_json(src, &lj, &p("ms_per_frame"), Format::Fixed(1)),
         ]);
     }
+    let findings_lidar = findings(&lj, &[("mse", "MSE", Format::Sci(3), ""), ("range_rmse_m/0", "range RMSE of return 1", Format::Fixed(3), " m"), ("range_rmse_m/1", "range RMSE of return 2", Format::Fixed(3), " m")]);
     sections.push(Section {
         id: "lidar".into(),
         title: "LiDAR with multipath".into(),
@@ -846,6 +883,7 @@ fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Value], total_
                 headers: ["decoder", "codes", "engine", "MSE", "PSNR (dB)", "range RMSE return 1 (m)", "range RMSE return 2 (m)", "detected return 1 (%)", "detected return 2 (%)", "time per frame (ms)"].map(String::from).to_vec(),
                 rows,
             }),
+            Block::Text(findings_lidar),
             fig("waveforms-lidar.png", "Waveforms at three pixels of one test frame (the first with a diffusive sheet) against the truth (as in the paper's Fig. 18): a pixel with a return behind the diffusive sheet where there is one, the centre, the farthest first return."),
             fig("depth.png", "Range of the first and second return, truth and each decoder (TVAL3 and ADMM-Net by peak detection in the cube, the U-Net directly); one colour scale over the unambiguous range."),
             fig("depth-error.png", "Absolute range error of each decoder and return."),
@@ -868,6 +906,7 @@ fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Value], total_
             Cell::from_json(src, &fj, &p("ms_per_frame"), Format::Fixed(1)),
         ]);
     }
+    let findings_flim = findings(&fj, &[("mse", "MSE", Format::Sci(3), ""), ("lifetime_mae_ns", "lifetime MAE", Format::Fixed(3), " ns")]);
     sections.push(Section {
         id: "flim".into(),
         title: "Fluorescence lifetime imaging".into(),
@@ -877,6 +916,7 @@ fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Value], total_
                 headers: ["decoder", "engine", "MSE", "PSNR (dB)", "lifetime MAE (ns)", "time per frame (ms)"].map(String::from).to_vec(),
                 rows,
             }),
+            Block::Text(findings_flim),
             fig("waveforms-flim.png", "Decays at three pixels of FLIm test frame 0 (shortest and longest true lifetime, centre) against the truth (as in the paper's Fig. 20)."),
             fig("lifetime.png", "Lifetime map: the generator's lifetimes, the exponential fit to the true cube (the products' own error) and the fits to each decoder's cube."),
             fig("phasor.png", "Phasor plot of every pixel (first harmonic, background removed, phase referenced to the frame's decay onset at the peak of its summed decay): single exponentials lie on the semicircle, mixtures of lifetimes inside it."),
