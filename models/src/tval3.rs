@@ -266,11 +266,6 @@ fn dist2(a: &[f32], b: &[f32]) -> f64 {
     a.par_chunks(8192).zip(b.par_chunks(8192)).map(|(x, y)| dist2_chunk(x, y)).sum()
 }
 
-/// `(‖a − b‖², ‖b‖²)` in one pass.
-fn dist2_and_norm2(a: &[f32], b: &[f32]) -> (f64, f64) {
-    a.par_chunks(CH).zip(b.par_chunks(CH)).map(|(x, y)| (dist2_chunk(x, y), dot_chunk(y, y))).reduce(|| (0.0, 0.0), |p, q| (p.0 + q.0, p.1 + q.1))
-}
-
 fn norm2(a: &[f32]) -> f64 {
     dot(a, a)
 }
@@ -315,10 +310,35 @@ impl Op<'_> {
     }
 }
 
+impl Op<'_> {
+    /// `out = s·Aᵀv − c` in one pass after the adjoint (the scale folded into the subtraction).
+    fn adjoint_minus(&self, v: &[f32], c: &[f32], out: &mut [f32]) -> Result<()> {
+        let y = ArrayView3::from_shape((self.m, self.h, self.w), v).map_err(|e| shape_err(e, "v"))?;
+        let mut x = ndarray::ArrayViewMut3::from_shape((self.t, self.h, self.w), &mut *out).map_err(|e| shape_err(e, "Aᵀv"))?;
+        self.plan.adjoint_into(&y, &mut x)?;
+        let s = self.scale;
+        out.par_chunks_mut(CH).zip(c.par_chunks(CH)).for_each(|(o, c)| {
+            for (o, &c) in o.iter_mut().zip(c) {
+                *o = s * *o - c;
+            }
+        });
+        Ok(())
+    }
+}
+
 fn shape_err(e: ndarray::ShapeError, what: &str) -> ModelError {
     ModelError::InvalidParam { field: "buffer", got: what.into(), expected: e.to_string() }
 }
 
+
+/// Sums of the fused direction pass.
+#[derive(Debug, Clone, Copy, Default)]
+struct Sums {
+    d_norm2: f64,
+    ss: f64,
+    sy: f64,
+    up_norm2: f64,
+}
 
 /// The objective along a step, `f(α)` for the point `up + α·(u − up)`, from sums taken at
 /// its two ends (`[at up, cross term, at u]` for the quadratic terms, `[at up, at u]` for
@@ -429,6 +449,90 @@ impl Solver<'_> {
             .sum();
     }
 
+    /// [`Solver::shrink`] and [`Solver::update_v`] in one pass: `w = shrink(Du − σ/β, 1/β)`,
+    /// `V = Du − w`, `lam1`, `lam2 = ‖V‖²`, `lam4 = σᵀV`; then `g2 = DᵀV`.
+    fn shrink_v(&mut self, beta: f64) {
+        let inv = (1.0 / beta) as f32;
+        let tv = self.tv;
+        let [wt, wy, wx] = &mut self.wv;
+        let [vt, vy, vx] = &mut self.v;
+        let [dt, dy, dx] = &self.du;
+        let [st, sy, sx] = &self.sigma;
+        let (l1, l2, l4) = wt
+            .par_chunks_mut(CH)
+            .zip(wy.par_chunks_mut(CH))
+            .zip(wx.par_chunks_mut(CH))
+            .zip(vt.par_chunks_mut(CH).zip(vy.par_chunks_mut(CH)).zip(vx.par_chunks_mut(CH)))
+            .enumerate()
+            .map(|(ci, (((ot, oy), ox), ((pt, py), px)))| {
+                let base = ci * CH;
+                let len = ot.len();
+                let (dt, dy, dx) = (&dt[base..base + len], &dy[base..base + len], &dx[base..base + len]);
+                let (st, sy, sx) = (&st[base..base + len], &sy[base..base + len], &sx[base..base + len]);
+                let (mut a1, mut a2, mut a4) = ([0f32; 8], [0f32; 8], [0f32; 8]);
+                for k in 0..len {
+                    let (w0, w1, w2, l1) = match tv {
+                        TvNorm::Anisotropic => {
+                            let sh = |v: f32| v.signum() * (v.abs() - inv).max(0.0);
+                            let (a, b, c) = (sh(dt[k] - st[k] * inv), sh(dy[k] - sy[k] * inv), sh(dx[k] - sx[k] * inv));
+                            (a, b, c, a.abs() + b.abs() + c.abs())
+                        }
+                        TvNorm::Isotropic => {
+                            let (vt, vy, vx) = (dt[k] - st[k] * inv, dy[k] - sy[k] * inv, dx[k] - sx[k] * inv);
+                            let nrm = (vt * vt + vy * vy + vx * vx).sqrt();
+                            let f = if nrm > 0.0 { (nrm - inv).max(0.0) / nrm } else { 0.0 };
+                            (f * vt, f * vy, f * vx, f * nrm)
+                        }
+                    };
+                    ot[k] = w0;
+                    oy[k] = w1;
+                    ox[k] = w2;
+                    let (v0, v1, v2) = (dt[k] - w0, dy[k] - w1, dx[k] - w2);
+                    pt[k] = v0;
+                    py[k] = v1;
+                    px[k] = v2;
+                    a1[k % 8] += l1;
+                    a2[k % 8] += v0 * v0 + v1 * v1 + v2 * v2;
+                    a4[k % 8] += v0 * st[k] + v1 * sy[k] + v2 * sx[k];
+                }
+                let sum = |x: [f32; 8]| x.iter().map(|&v| v as f64).sum::<f64>();
+                (sum(a1), sum(a2), sum(a4))
+            })
+            .reduce(|| (0.0, 0.0, 0.0), |x, y| (x.0 + y.0, x.1 + y.1, x.2 + y.2));
+        self.lam1 = l1;
+        self.lam2 = l2;
+        self.lam4 = l4;
+        self.grad.adjoint(&self.v[0], &self.v[1], &self.v[2], &mut self.g2);
+    }
+
+    /// The fused path's direction pass: `d = g2 + (μ/β) g − DtsAtd` with `‖d‖²`, and in the
+    /// same sweep what the next iteration's Barzilai–Borwein step and the stopping test need:
+    /// `‖u − up‖²`, `(u − up)ᵀ((g2 − g2p) + (μ/β)(g − gp))` and `‖up‖²`.
+    fn direction_and_sums(&mut self, mdb: f32) -> Sums {
+        let (u, up, g, gp, g2, g2p, q) = (&self.u, &self.up, &self.g, &self.gp, &self.g2, &self.g2p, &self.dtsatd);
+        self.d
+            .par_chunks_mut(CH)
+            .enumerate()
+            .map(|(ci, d)| {
+                let base = ci * CH;
+                let r = base..base + d.len();
+                let (u, up, g, gp, g2, g2p, q) = (&u[r.clone()], &up[r.clone()], &g[r.clone()], &gp[r.clone()], &g2[r.clone()], &g2p[r.clone()], &q[r]);
+                let (mut dd, mut ss, mut sy, mut pp) = ([0f32; 8], [0f32; 8], [0f32; 8], [0f32; 8]);
+                for i in 0..d.len() {
+                    let di = g2[i] + mdb * g[i] - q[i];
+                    d[i] = di;
+                    let du = u[i] - up[i];
+                    dd[i % 8] += di * di;
+                    ss[i % 8] += du * du;
+                    sy[i % 8] += du * ((g2[i] - g2p[i]) + mdb * (g[i] - gp[i]));
+                    pp[i % 8] += up[i] * up[i];
+                }
+                let sum = |x: [f32; 8]| x.iter().map(|&v| v as f64).sum::<f64>();
+                Sums { d_norm2: sum(dd), ss: sum(ss), sy: sum(sy), up_norm2: sum(pp) }
+            })
+            .reduce(Sums::default, |a, b| Sums { d_norm2: a.d_norm2 + b.d_norm2, ss: a.ss + b.ss, sy: a.sy + b.sy, up_norm2: a.up_norm2 + b.up_norm2 })
+    }
+
     /// `V = Du − w`, `g2 = DᵀV`, `lam2 = ‖V‖²`, `lam4 = σᵀV`.
     fn update_v(&mut self) {
         let (mut lam2, mut lam4) = (0f64, 0f64);
@@ -478,8 +582,7 @@ impl Solver<'_> {
         self.grad.apply(&self.u, dt, dy, dx);
         self.op.forward(&self.u, &mut self.au)?;
         self.resid.par_iter_mut().zip(self.au.par_iter()).zip(self.b.par_iter()).for_each(|((r, &a), &b)| *r = a - b);
-        self.op.adjoint(&self.au, &mut self.g)?;
-        self.g.par_iter_mut().zip(self.atb.par_iter()).for_each(|(g, &a)| *g -= a);
+        self.op.adjoint_minus(&self.au, &self.atb, &mut self.g)?;
         // Vt = Du − w at the trial point: ‖Vt‖², Vtᵀ Vp (Vp = self.v at up), σᵀVt
         let (mut r2, mut q2, mut s4) = (0f64, 0f64, 0f64);
         for k in 0..3 {
@@ -717,12 +820,15 @@ fn solve(
     let mut gam = opts.gam;
     let mut have_prev = false;
     let mut rcd_u = s.u.clone();
+    let mut sums = Sums::default();
     for ii in 1..=opts.maxit {
         if cancel.load(Ordering::Relaxed) {
             return Err(ModelError::Cancelled);
         }
         // step length: BB after the first iteration, exact steepest descent otherwise
-        let tau = if have_prev {
+        let tau = if have_prev && fused {
+            (sums.ss / sums.sy.max(f64::EPSILON)).abs()
+        } else if have_prev {
             let (ss, sy) = s
                 .u
                 .par_chunks(CH)
@@ -819,8 +925,12 @@ fn solve(
         }
         if alpha != 0.0 {
             // w-step at the accepted u
-            s.shrink(beta);
-            s.update_v();
+            if fused {
+                s.shrink_v(beta);
+            } else {
+                s.shrink(beta);
+                s.update_v();
+            }
             f = s.f(beta, mu);
         }
         // reference value of the nonmonotone search
@@ -828,12 +938,14 @@ fn solve(
         q = gam * qp + 1.0;
         c = (gam * qp * c + f) / q;
         let (nrm_uup, nrm_up) = if fused {
-            let (a, b) = dist2_and_norm2(&s.u, &s.up);
-            (a.sqrt(), b.sqrt().max(f64::MIN_POSITIVE))
+            sums = s.direction_and_sums(mdb as f32);
+            d_norm2 = sums.d_norm2;
+            (sums.ss.sqrt(), sums.up_norm2.sqrt().max(f64::MIN_POSITIVE))
         } else {
-            (dist2(&s.u, &s.up).sqrt(), norm2(&s.up).sqrt().max(f64::MIN_POSITIVE))
+            let n = (dist2(&s.u, &s.up).sqrt(), norm2(&s.up).sqrt().max(f64::MIN_POSITIVE));
+            d_norm2 = s.direction(mdb as f32);
+            n
         };
-        d_norm2 = s.direction(mdb as f32);
         have_prev = true;
         report.iterations = ii;
         progress(ii, opts.maxit);
