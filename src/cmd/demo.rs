@@ -594,11 +594,12 @@ fn read3(path: &Path) -> Result<Array3<f32>> {
     Ok(read_npy(path)?.into_dimensionality::<Ix3>().with_context(|| format!("{}: expected a rank-3 array", path.display()))?)
 }
 
-/// Up to three pixels worth looking at: `first` where it exists, the centre, and `last`.
+/// Three distinct pixels worth looking at: `first` where it exists, the centre, `last`, and
+/// the quarter points where those coincide.
 fn pick_pixels(h: usize, w: usize, first: Option<(usize, usize)>, last: Option<(usize, usize)>) -> Vec<(usize, usize)> {
     let mut v: Vec<(usize, usize)> = Vec::new();
-    for p in [first, Some((h / 2, w / 2)), last].into_iter().flatten() {
-        if !v.contains(&p) {
+    for p in [first, Some((h / 2, w / 2)), last, Some((h / 4, w / 4)), Some((3 * h / 4, 3 * w / 4))].into_iter().flatten() {
+        if !v.contains(&p) && v.len() < 3 {
             v.push(p);
         }
     }
@@ -804,9 +805,16 @@ fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Value], total_
                 r.lidar_scenes, r.size[0], r.size[1], r.flim_scenes, plan.candidates, r.budget_minutes, if r.quick { " (--quick)" } else { "" }
             )),
             Block::Table(Table { caption: "Trainings (epochs sized to the budget from a measured step time; batch 2, Adam, lr 10⁻³, augmentation on)".into(), headers: vec!["network".into(), "run directory".into(), "epochs".into(), "steps".into(), "ms per step (planned)".into(), "training time (s)".into(), "last validation".into()], rows: training_rows }),
-            Block::Table(Table { caption: "Steps of this run of the demo and their wall time (a resumed run times only what it did)".into(), headers: vec!["step".into(), "seconds".into()], rows: step_rows }),
         ],
     });
+    let run_log = Section {
+        id: "run".into(),
+        title: "This run".into(),
+        blocks: vec![
+            Block::Table(Table { caption: "Steps of this run of the demo and their wall time (a resumed run times only what it did)".into(), headers: vec!["step".into(), "seconds".into()], rows: step_rows }),
+            Block::Text(format!("Everything this report shows is in {}: plan.json (the settings and the epochs sized to the budget), results/*.json (every number of the tables), runs/ (the training runs: config.json, metrics.csv, checkpoints, model.bpk, codes.json), onnx/, code-memory/, codes/, the datasets lidar/ and flim/, frames/ (the tap images and reconstructions of the frames shown, .npy) and figures/.", dir.display())),
+        ],
+    };
 
     // codes
     let sel = read_json(&dir.join("results/selection.json"))?;
@@ -884,7 +892,7 @@ fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Value], total_
                 rows,
             }),
             Block::Text(findings_lidar),
-            fig("waveforms-lidar.png", "Waveforms at three pixels of one test frame (the first with a diffusive sheet) against the truth (as in the paper's Fig. 18): a pixel with a return behind the diffusive sheet where there is one, the centre, the farthest first return."),
+            fig("waveforms-lidar.png", "Waveforms at three pixels of one test frame (the first with a diffusive sheet) against the truth (as in the paper's Fig. 18): the pixel nearest the centre with a return behind the sheet, the centre, the farthest first return (quarter points where these coincide)."),
             fig("depth.png", "Range of the first and second return, truth and each decoder (TVAL3 and ADMM-Net by peak detection in the cube, the U-Net directly); one colour scale over the unambiguous range."),
             fig("depth-error.png", "Absolute range error of each decoder and return."),
             fig("point-cloud.png", "The same frame as point clouds (pinhole camera, 40° field of view; as in the paper's Fig. 17)."),
@@ -968,6 +976,11 @@ fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Value], total_
             )),
         ],
     });
+    sections.push(run_log);
+    // results first: what was done, the two applications, then how (codes, tap images,
+    // training), deployment and the run's log
+    let order = ["overview", "lidar", "flim", "codes", "taps", "training", "deployment", "run"];
+    sections.sort_by_key(|s| order.iter().position(|o| *o == s.id).unwrap_or(order.len()));
     let version = env!("CARGO_PKG_VERSION");
     Ok(Report {
         title: "tcsense demo report".into(),
@@ -982,8 +995,9 @@ mod tests {
 
     #[test]
     fn pixels_are_distinct_and_in_the_frame() {
-        assert_eq!(pick_pixels(8, 8, Some((4, 4)), Some((1, 2))), vec![(4, 4), (1, 2)]);
-        assert_eq!(pick_pixels(8, 8, None, Some((7, 7))), vec![(4, 4), (7, 7)]);
+        assert_eq!(pick_pixels(8, 8, Some((4, 4)), Some((1, 2))), vec![(4, 4), (1, 2), (2, 2)]);
+        assert_eq!(pick_pixels(8, 8, None, Some((7, 7))), vec![(4, 4), (7, 7), (2, 2)]);
+        assert_eq!(pick_pixels(8, 8, Some((0, 1)), Some((7, 7))), vec![(0, 1), (4, 4), (7, 7)]);
         assert_eq!(engine("TVAL3|tval3"), ("TVAL3", "Rust (TVAL3)"));
         assert_eq!(engine("ADMM-Net|onnx:m.onnx"), ("ADMM-Net", "ONNX Runtime"));
         assert_eq!(engine("ADMM-Net|admm-net:r"), ("ADMM-Net", "burn (flex)"));
