@@ -207,6 +207,9 @@ fn fresh_run(a: &BenchInferArgs) -> Result<runs::LoadedRun> {
 }
 
 pub fn bench_infer(a: BenchInferArgs) -> Result<()> {
+    if a.ort_threads.is_empty() || a.ort_threads.contains(&0) {
+        bail!("--ort-threads: expected thread counts ≥ 1, e.g. 2,1");
+    }
     let (h, w) = a.size;
     let run = match (&a.run, &a.model) {
         (Some(r), _) => Some(runs::load(r, &Device::flex())?),
@@ -222,7 +225,10 @@ pub fn bench_infer(a: BenchInferArgs) -> Result<()> {
         }
         (None, None) => unreachable!("a run exists when no model is given"),
     };
-    let timing = tcsense_infer::timing::time_decoder(run.as_ref(), &model_path, (h, w), &a.ort_threads, a.reps);
+    let timing = tcsense_infer::timing::time_decoder(run.as_ref(), &model_path, (h, w), &a.ort_threads, a.reps).map_err(|e| match e {
+        tcsense_infer::InferError::InvalidParam { field: "frame size", got, expected } => anyhow::anyhow!("--size {got}: the model takes frames that are {expected}"),
+        e => e.into(),
+    });
     if a.save_model.is_none() {
         let _ = std::fs::remove_file(&tmp);
     }
