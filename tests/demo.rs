@@ -122,4 +122,8 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
     other[7] = "0.5";
     other.extend(["-o", "demo"]);
     fails(d, &other, &["other settings", "demo"]);
+    // bad flags are refused before anything is written
+    fails(d, &["demo", "--size", "12x12", "-o", "bad"], &["--size 12x12", "multiples of 8"]);
+    fails(d, &["demo", "--budget-minutes", "0", "-o", "bad"], &["--budget-minutes 0", "positive"]);
+    assert!(!d.join("bad").exists());
 }

@@ -247,44 +247,31 @@ pub fn referenced_phasors(x: &ArrayView3<'_, f32>, min_intensity: f32) -> Array3
     out
 }
 
+/// Each finite range of `depth` `[K, H, W]` as `(return, row, column, [x, y, z])`, camera
+/// coordinates in metres through a pinhole camera with horizontal field of view `fov_deg`.
+fn camera_points<'a>(depth: &'a ArrayView3<'_, f32>, fov_deg: f64) -> impl Iterator<Item = (usize, usize, usize, [f64; 3])> + 'a {
+    let (k, h, w) = depth.dim();
+    let cam = Camera { height: h, width: w, fov_deg };
+    (0..k).flat_map(move |b| (0..h).flat_map(move |r| (0..w).map(move |c| (b, r, c)))).filter_map(move |(b, r, c)| {
+        let d = depth[(b, r, c)];
+        d.is_finite().then(|| {
+            let ray = cam.ray(r, c);
+            (b, r, c, [ray[0] * d as f64, ray[1] * d as f64, ray[2] * d as f64])
+        })
+    })
+}
+
 /// The points `[x, y, z, return]` (camera coordinates in metres, return index from 0) of a
 /// range map `[K, H, W]` seen through a pinhole camera with horizontal field of view
 /// `fov_deg`; NaN ranges give no point.
 pub fn point_cloud(depth: &ArrayView3<'_, f32>, fov_deg: f64) -> Vec<[f32; 4]> {
-    let (k, h, w) = depth.dim();
-    let cam = Camera { height: h, width: w, fov_deg };
-    let mut pts = Vec::new();
-    for b in 0..k {
-        for r in 0..h {
-            for c in 0..w {
-                let d = depth[(b, r, c)];
-                if d.is_finite() {
-                    let ray = cam.ray(r, c);
-                    pts.push([(ray[0] * d as f64) as f32, (ray[1] * d as f64) as f32, (ray[2] * d as f64) as f32, b as f32]);
-                }
-            }
-        }
-    }
-    pts
+    camera_points(depth, fov_deg).map(|(b, _, _, p)| [p[0] as f32, p[1] as f32, p[2] as f32, b as f32]).collect()
 }
 
 /// Write a point cloud (ASCII PLY: x y z in metres, bounce index, amplitude) from a range map
 /// `[K, H, W]` seen through a pinhole camera with horizontal field of view `fov_deg`.
 pub fn write_ply(path: &Path, depth: &ArrayView3<'_, f32>, amp: &ArrayView3<'_, f32>, fov_deg: f64) -> Result<usize> {
-    let (k, h, w) = depth.dim();
-    let cam = Camera { height: h, width: w, fov_deg };
-    let mut pts = Vec::new();
-    for b in 0..k {
-        for r in 0..h {
-            for c in 0..w {
-                let d = depth[(b, r, c)];
-                if d.is_finite() {
-                    let ray = cam.ray(r, c);
-                    pts.push((ray[0] * d as f64, ray[1] * d as f64, ray[2] * d as f64, b, amp[(b, r, c)]));
-                }
-            }
-        }
-    }
+    let pts: Vec<(f64, f64, f64, usize, f32)> = camera_points(depth, fov_deg).map(|(b, r, c, p)| (p[0], p[1], p[2], b, amp[(b, r, c)])).collect();
     let n = pts.len();
     atomic_write(path, |wr| {
         writeln!(wr, "ply\nformat ascii 1.0\ncomment tcsense point cloud: x y z (m), bounce, amplitude")?;

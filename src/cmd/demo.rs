@@ -23,7 +23,7 @@ use tcsense_datasets::store::{self, Generator, WriteOptions, DEFAULT_SHARD};
 use tcsense_datasets::flim::FlimParams;
 use tcsense_datasets::lidar::LidarParams;
 use tcsense_datasets::{Dataset, TimeGrid};
-use tcsense_infer::eval::{evaluate, open_decoder, EvalRow, EvalSettings, NamedDecoder};
+use tcsense_infer::eval::{evaluate, open_decoder, EvalRow, EvalSettings};
 use tcsense_infer::figures::{self, Series};
 use tcsense_infer::onnx::{export_to, ExportOptions};
 use tcsense_infer::products::{depth_map, lifetime_map, point_cloud, referenced_phasors, PeakOptions};
@@ -321,33 +321,26 @@ pub fn run(a: DemoArgs) -> Result<ExitCode> {
         let on_item = |label: &str, done: usize, of: usize| {
             if done == 1 {
                 pb.set_length(of as u64);
-                pb.set_message(label.split_once('|').map_or(label, |(_, spec)| spec).rsplit('/').next().unwrap_or(label).to_string());
+                pb.set_message(label.rsplit('/').next().unwrap_or(label).to_string());
             }
             pb.set_position(done as u64);
         };
+        // decoders as (table name, decoder spec), evaluated on one sensor; a row per decoder
+        let rows_of = |ds: &Dataset, a: &MeasurementMatrix, decoders: &[(&str, String)], items, row: &dyn Fn(&EvalRow, &str, &str) -> Value| -> Result<Vec<Value>> {
+            let mut dec = decoders.iter().map(|(_, spec)| open_decoder(spec, &Tval3Options::default())).collect::<std::result::Result<Vec<_>, _>>()?;
+            let r = evaluate(ds, a, &mut dec, &settings(items), &on_item, &cancel)?;
+            Ok(r.iter().zip(decoders).map(|(r, (name, spec))| row(r, name, engine(spec))).collect())
+        };
+        let cube_decoders = |run: &str| vec![("TVAL3", "tval3".to_string()), ("ADMM-Net", run_of("admm-net", run)), ("ADMM-Net", onnx(run))];
         if !lidar_json.exists() {
-            let a_sel = sensor(&selected, &lidar)?;
-            let a_learned = sensor(&learned, &lidar)?;
-            let mut rows = Vec::new();
-            let mut dec = vec![
-                named("tval3", "TVAL3")?,
-                named(&run_of("admm-net", "admm-lidar"), "ADMM-Net")?,
-                named(&onnx("admm-lidar"), "ADMM-Net")?,
-                named(&run_of("unet", "unet-lidar"), "Aᵀ + U-Net")?,
-                named(&onnx("unet-lidar"), "Aᵀ + U-Net")?,
-            ];
-            let r = evaluate(&lidar, &a_sel, &mut dec, &settings(plan.lidar_eval_items), &on_item, &cancel)?;
-            rows.extend(r.iter().zip(&dec).map(|(r, d)| lidar_row(r, "selected", engine(&d.label))));
-            let mut dec = vec![named("tval3", "TVAL3")?, named(&run_of("admm-net", "learned-lidar"), "ADMM-Net")?, named(&onnx("learned-lidar"), "ADMM-Net")?];
-            let r = evaluate(&lidar, &a_learned, &mut dec, &settings(plan.lidar_eval_items), &on_item, &cancel)?;
-            rows.extend(r.iter().zip(&dec).map(|(r, d)| lidar_row(r, "learned", engine(&d.label))));
+            let mut selected_set = cube_decoders("admm-lidar");
+            selected_set.extend([("Aᵀ + U-Net", run_of("unet", "unet-lidar")), ("Aᵀ + U-Net", onnx("unet-lidar"))]);
+            let mut rows = rows_of(&lidar, &sensor(&selected, &lidar)?, &selected_set, plan.lidar_eval_items, &|r, n, e| lidar_row(r, "selected", n, e))?;
+            rows.extend(rows_of(&lidar, &sensor(&learned, &lidar)?, &cube_decoders("learned-lidar"), plan.lidar_eval_items, &|r, n, e| lidar_row(r, "learned", n, e))?);
             write_json(&lidar_json, &json!({ "split": "test", "items": plan.lidar_eval_items, "noise": eval_noise, "noise_seed": seed, "frame": [h, w], "rows": rows }))?;
         }
         if !flim_json.exists() {
-            let a_sel = sensor(&selected, &flim)?;
-            let mut dec = vec![named("tval3", "TVAL3")?, named(&run_of("admm-net", "admm-flim"), "ADMM-Net")?, named(&onnx("admm-flim"), "ADMM-Net")?];
-            let r = evaluate(&flim, &a_sel, &mut dec, &settings(plan.flim_eval_items), &on_item, &cancel)?;
-            let rows: Vec<Value> = r.iter().zip(&dec).map(|(r, d)| flim_row(r, "selected", engine(&d.label))).collect();
+            let rows = rows_of(&flim, &sensor(&selected, &flim)?, &cube_decoders("admm-flim"), plan.flim_eval_items, &|r, n, e| flim_row(r, "selected", n, e))?;
             write_json(&flim_json, &json!({ "split": "test", "items": plan.flim_eval_items, "noise": eval_noise, "noise_seed": seed, "frame": [h, w], "rows": rows }))?;
         }
         pb.finish_and_clear();
@@ -466,18 +459,22 @@ fn make_plan(r: &Request, lidar: &Dataset, flim: &Dataset) -> Result<Plan> {
 /// Train (or resume) one run of the plan.
 fn train_one(t: &TrainPlan, plan: &Plan, ds: &Dataset, ds_dir: &Path, codes: &Codes, run: &Path, cancel: &AtomicBool) -> Result<()> {
     let resume = run.join(CONFIG_FILE).exists();
-    let mut cfg = TrainConfig::for_dataset(model_of(&t.name, ds), ds_dir, ds);
-    cfg.run.irf = physical_irf();
-    cfg.epochs = t.epochs;
-    cfg.seed = plan.request.seed;
-    cfg.max_val_items = Some(plan.val_items);
-    if let Some(c) = plan.crop {
-        cfg.augment = cfg.augment.map(|g| tcsense_train::Augmentation { crop: Some(c), ..g });
-    }
-    if t.name.starts_with("learned") {
-        cfg.learn_codes = Some(LearnCodes::new(codes.constraints, t.epochs));
-    }
-    let cfg = if resume { TrainConfig::load(&run.join(CONFIG_FILE))? } else { cfg };
+    let cfg = if resume {
+        TrainConfig::load(&run.join(CONFIG_FILE))?
+    } else {
+        let mut cfg = TrainConfig::for_dataset(model_of(&t.name, ds), ds_dir, ds);
+        cfg.run.irf = physical_irf();
+        cfg.epochs = t.epochs;
+        cfg.seed = plan.request.seed;
+        cfg.max_val_items = Some(plan.val_items);
+        if let Some(c) = plan.crop {
+            cfg.augment = cfg.augment.map(|g| tcsense_train::Augmentation { crop: Some(c), ..g });
+        }
+        if t.name.starts_with("learned") {
+            cfg.learn_codes = Some(LearnCodes::new(codes.constraints, t.epochs));
+        }
+        cfg
+    };
     let start = if resume && t.name.starts_with("learned") && !run.join(CODES_FILE).exists() { Codes::load(&run.join(tcsense_train::deep_sensing::START_CODES_FILE))? } else if resume { Codes::load(&run.join(CODES_FILE))? } else { codes.clone() };
     let bar = super::train::Bar::new();
     let res = train(&cfg, &start, run, resume, &bar, cancel);
@@ -489,27 +486,18 @@ fn train_one(t: &TrainPlan, plan: &Plan, ds: &Dataset, ds_dir: &Path, codes: &Co
     }
 }
 
-/// A decoder opened by name, labelled for the tables.
-fn named(spec: &str, label: &str) -> Result<NamedDecoder> {
-    let mut d = open_decoder(spec, &Tval3Options::default())?;
-    d.label = format!("{label}|{spec}");
-    Ok(d)
-}
-
-/// The decoder and engine of a label made by [`named`].
-fn engine(label: &str) -> (&str, &'static str) {
-    let (name, spec) = label.split_once('|').unwrap_or((label, ""));
-    let e = if spec.starts_with("onnx:") {
+/// The engine that runs a decoder given by its spec (`tval3`, `KIND:RUN`, `onnx:MODEL`).
+fn engine(spec: &str) -> &'static str {
+    if spec.starts_with("onnx:") {
         "ONNX Runtime"
     } else if spec == "tval3" {
         "Rust (TVAL3)"
     } else {
         "burn (flex)"
-    };
-    (name, e)
+    }
 }
 
-fn lidar_row(r: &EvalRow, codes: &str, (decoder, engine): (&str, &str)) -> Value {
+fn lidar_row(r: &EvalRow, codes: &str, decoder: &str, engine: &str) -> Value {
     json!({
         "decoder": decoder,
         "codes": codes,
@@ -524,7 +512,7 @@ fn lidar_row(r: &EvalRow, codes: &str, (decoder, engine): (&str, &str)) -> Value
     })
 }
 
-fn flim_row(r: &EvalRow, codes: &str, (decoder, engine): (&str, &str)) -> Value {
+fn flim_row(r: &EvalRow, codes: &str, decoder: &str, engine: &str) -> Value {
     json!({
         "decoder": decoder,
         "codes": codes,
@@ -568,8 +556,10 @@ fn decode_frames(dir: &Path, lidar: &Dataset, flim: &Dataset, selected: &Codes, 
         // the evaluation's noise for this item
         let y = measure_batch(&a.plan(fh, fw)?, &x.view(), Some(noise), derive_seed(seed, index as u64))?;
         write_npy(&y_path, &y.index_axis(Axis(0), 0).to_owned().view())?;
-        if !frames.join(format!("{}-x.npy", tag.split('-').next().unwrap_or(tag))).exists() {
-            write_npy(&frames.join(format!("{}-x.npy", tag.split('-').next().unwrap_or(tag))), &x.index_axis(Axis(0), 0).to_owned().view())?;
+        // the truth, once per dataset (`lidar-learned` shares `lidar`'s)
+        let x_path = frames.join(format!("{}-x.npy", tag.split('-').next().unwrap_or(tag)));
+        if !x_path.exists() {
+            write_npy(&x_path, &x.index_axis(Axis(0), 0).to_owned().view())?;
         }
         for (name, spec) in decoders {
             let out_cube = frames.join(format!("{tag}-{name}.npy"));
@@ -744,6 +734,20 @@ fn training_figure(path: &Path, runs: &[(&str, PathBuf)]) -> Result<()> {
     Ok(())
 }
 
+/// A table row per entry of `results["rows"]` (the parsed `file`): the `text` fields as they
+/// are, then each `(pointer into the row, format)` as a sourced number.
+fn result_rows(file: &str, results: &Value, text: &[&str], numbers: &[(&str, Format)]) -> Vec<Vec<Cell>> {
+    let rows = results["rows"].as_array().map_or(0, |r| r.len());
+    (0..rows)
+        .map(|i| {
+            let row = &results["rows"][i];
+            let mut cells: Vec<Cell> = text.iter().map(|k| Cell::text(row[*k].as_str().unwrap_or(""))).collect();
+            cells.extend(numbers.iter().map(|&(k, f)| Cell::from_json(file, results, &format!("/rows/{i}/{k}"), f)));
+            cells
+        })
+        .collect()
+}
+
 /// One sentence per metric (JSON pointer into a row, label, format, unit): which row of
 /// `results` has the lowest value and what TVAL3 gets, read from the results themselves so
 /// the text follows whatever the run measured.
@@ -865,22 +869,15 @@ fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Value], total_
     // LiDAR
     let lj = read_json(&dir.join("results/lidar.json"))?;
     let src = "results/lidar.json";
-    let mut rows = Vec::new();
-    for (i, row) in lj["rows"].as_array().cloned().unwrap_or_default().iter().enumerate() {
-        let p = |k: &str| format!("/rows/{i}/{k}");
-        rows.push(vec![
-            Cell::text(row["decoder"].as_str().unwrap_or("")),
-            Cell::text(row["codes"].as_str().unwrap_or("")),
-            Cell::text(row["engine"].as_str().unwrap_or("")),
-            Cell::from_json(src, &lj, &p("mse"), Format::Sci(3)),
-            Cell::from_json(src, &lj, &p("psnr_db"), Format::Fixed(2)),
-            Cell::from_json(src, &lj, &p("range_rmse_m/0"), Format::Fixed(3)),
-            Cell::from_json(src, &lj, &p("range_rmse_m/1"), Format::Fixed(3)),
-            Cell::from_json(src, &lj, &p("detection_pct/0"), Format::Fixed(1)),
-            Cell::from_json(src, &lj, &p("detection_pct/1"), Format::Fixed(1)),
-            Cell::from_json(src, &lj, &p("ms_per_frame"), Format::Fixed(1)),
-        ]);
-    }
+    let rows = result_rows(src, &lj, &["decoder", "codes", "engine"], &[
+        ("mse", Format::Sci(3)),
+        ("psnr_db", Format::Fixed(2)),
+        ("range_rmse_m/0", Format::Fixed(3)),
+        ("range_rmse_m/1", Format::Fixed(3)),
+        ("detection_pct/0", Format::Fixed(1)),
+        ("detection_pct/1", Format::Fixed(1)),
+        ("ms_per_frame", Format::Fixed(1)),
+    ]);
     let findings_lidar = findings(&lj, &[("mse", "MSE", Format::Sci(3), ""), ("range_rmse_m/0", "range RMSE of return 1", Format::Fixed(3), " m"), ("range_rmse_m/1", "range RMSE of return 2", Format::Fixed(3), " m")]);
     sections.push(Section {
         id: "lidar".into(),
@@ -902,18 +899,7 @@ fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Value], total_
     // FLIm
     let fj = read_json(&dir.join("results/flim.json"))?;
     let src = "results/flim.json";
-    let mut rows = Vec::new();
-    for (i, row) in fj["rows"].as_array().cloned().unwrap_or_default().iter().enumerate() {
-        let p = |k: &str| format!("/rows/{i}/{k}");
-        rows.push(vec![
-            Cell::text(row["decoder"].as_str().unwrap_or("")),
-            Cell::text(row["engine"].as_str().unwrap_or("")),
-            Cell::from_json(src, &fj, &p("mse"), Format::Sci(3)),
-            Cell::from_json(src, &fj, &p("psnr_db"), Format::Fixed(2)),
-            Cell::from_json(src, &fj, &p("lifetime_mae_ns"), Format::Fixed(3)),
-            Cell::from_json(src, &fj, &p("ms_per_frame"), Format::Fixed(1)),
-        ]);
-    }
+    let rows = result_rows(src, &fj, &["decoder", "engine"], &[("mse", Format::Sci(3)), ("psnr_db", Format::Fixed(2)), ("lifetime_mae_ns", Format::Fixed(3)), ("ms_per_frame", Format::Fixed(1))]);
     let findings_flim = findings(&fj, &[("mse", "MSE", Format::Sci(3), ""), ("lifetime_mae_ns", "lifetime MAE", Format::Fixed(3), " ns")]);
     sections.push(Section {
         id: "flim".into(),
@@ -998,8 +984,8 @@ mod tests {
         assert_eq!(pick_pixels(8, 8, Some((4, 4)), Some((1, 2))), vec![(4, 4), (1, 2), (2, 2)]);
         assert_eq!(pick_pixels(8, 8, None, Some((7, 7))), vec![(4, 4), (7, 7), (2, 2)]);
         assert_eq!(pick_pixels(8, 8, Some((0, 1)), Some((7, 7))), vec![(0, 1), (4, 4), (7, 7)]);
-        assert_eq!(engine("TVAL3|tval3"), ("TVAL3", "Rust (TVAL3)"));
-        assert_eq!(engine("ADMM-Net|onnx:m.onnx"), ("ADMM-Net", "ONNX Runtime"));
-        assert_eq!(engine("ADMM-Net|admm-net:r"), ("ADMM-Net", "burn (flex)"));
+        assert_eq!(engine("tval3"), "Rust (TVAL3)");
+        assert_eq!(engine("onnx:m.onnx"), "ONNX Runtime");
+        assert_eq!(engine("admm-net:r"), "burn (flex)");
     }
 }
