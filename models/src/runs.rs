@@ -229,7 +229,7 @@ pub struct LoadedRun {
 /// owns them; its tests keep this list equal to its fields). Inference refuses a config with
 /// a field that is neither these nor the [`RunSpec`]'s.
 pub const TRAINING_KEYS: &[&str] =
-    &["epochs", "batch_size", "learning_rate", "loss", "seed", "noise", "dataset", "max_train_items", "max_val_items", "augment", "learn_codes", "init_from"];
+    &["epochs", "batch_size", "learning_rate", "lr_schedule", "loss", "seed", "noise", "dataset", "max_train_items", "max_val_items", "augment", "learn_codes", "init_from"];
 
 /// Load a run directory on `device`: its config, codes, sensor model and latest weights.
 pub fn load(dir: &Path, device: &Device) -> Result<LoadedRun> {

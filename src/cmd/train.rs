@@ -13,7 +13,7 @@ use tcsense_sensor::MeasurementMatrix;
 use tcsense_models::{AdmmNetConfig, UnetConfig};
 use tcsense_sensor::{Codes, Constraints};
 use tcsense_train::deep_sensing::{LearnCodes, START_CODES_FILE};
-use tcsense_train::{train, Augmentation, EpochMetrics, Loss, Progress, TrainConfig, TrainError};
+use tcsense_train::{train, Augmentation, EpochMetrics, Loss, LrSchedule, Progress, TrainConfig, TrainError};
 
 use super::dataset::interrupt_flag;
 
@@ -88,9 +88,13 @@ pub struct TrainArgs {
     /// Epochs.
     #[arg(long)]
     epochs: Option<usize>,
-    /// Learning rate.
+    /// Learning rate (the peak of the schedule).
     #[arg(long)]
     lr: Option<f64>,
+    /// Learning-rate schedule: `cosine` (new runs: half a cosine down to 1 % over the run
+    /// after 50 warm-up steps) or `constant` (the paper's).
+    #[arg(long, value_enum)]
+    lr_schedule: Option<ScheduleArg>,
     /// Batch size.
     #[arg(long)]
     batch_size: Option<usize>,
@@ -157,6 +161,12 @@ pub struct TrainArgs {
 pub enum LossArg {
     Rmse,
     RmseMae,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+pub enum ScheduleArg {
+    Constant,
+    Cosine,
 }
 
 /// Training progress: a bar over the steps of an epoch, a line per epoch.
@@ -266,6 +276,12 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     if let Some(v) = a.lr {
         cfg.learning_rate = v;
     }
+    if let Some(v) = a.lr_schedule {
+        cfg.lr_schedule = match v {
+            ScheduleArg::Constant => LrSchedule::Constant,
+            ScheduleArg::Cosine => LrSchedule::COSINE,
+        };
+    }
     if let Some(v) = a.batch_size {
         cfg.batch_size = v;
     }
@@ -334,10 +350,14 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
         ModelConfig::Unet(m) => format!("Aᵀ + U-Net K = {}, base width {}, {} levels, M = {}, T = {}, range {:.2} m, {:.2} GFLOP per 188x212 frame", m.returns, m.base_width, m.levels, m.taps, m.bins, m.range_m, m.flops(188, 212) / 1e9),
     };
     println!(
-        "{network}; {} epochs, batch {}, lr {}, loss {:?}, noise {}, augmentation {}",
+        "{network}; {} epochs, batch {}, lr {} ({}), loss {:?}, noise {}, augmentation {}",
         cfg.epochs,
         cfg.batch_size,
         cfg.learning_rate,
+        match cfg.lr_schedule {
+            LrSchedule::Constant => "constant".to_string(),
+            LrSchedule::Cosine { final_fraction, warmup_steps } => format!("cosine to {final_fraction}×, {warmup_steps} warm-up steps"),
+        },
         cfg.loss,
         if cfg.noise.is_some() { "shot + read" } else { "off" },
         match &cfg.augment {

@@ -248,6 +248,8 @@ fn fit<M: Network>(
             let xb = train_x.select(Axis(0), idx); // [B, T, H, W]
             let db = train_d.as_ref().map(|d| d.select(Axis(0), idx)); // [B, K, H, W]
             state.step += 1;
+            // the schedule spans this phase's steps (each phase of deep sensing has its own)
+            let lr = cfg.lr_schedule.rate(cfg.learning_rate, (epoch * steps_per_epoch + bi + 1) as u64, total_steps as u64);
             if let Some(l) = learner.as_mut() {
                 l.schedule(state.step as f64 / total_steps);
                 if l.refresh()? {
@@ -275,8 +277,8 @@ fn fit<M: Network>(
             };
             let l;
             (model, l) = match learner.as_mut() {
-                Some(learner) => step_learned(model, &mut optim, learner, cfg, &sensor, &xb, &yb, target, &device),
-                None => step(model, &mut optim, cfg, &sensor, &yb, target, &device),
+                Some(learner) => step_learned(model, &mut optim, learner, cfg, lr, &sensor, &xb, &yb, target, &device),
+                None => step(model, &mut optim, cfg, lr, &sensor, &yb, target, &device),
             };
             loss_sum += l;
             progress.step(epoch, bi + 1, steps_per_epoch, l);
@@ -320,7 +322,7 @@ fn sensing_for(cfg: &TrainConfig, codes: &Codes, hw: (usize, usize), thw: (usize
 /// # Shapes
 /// - `x`: `[B, T, H, W]` (what was measured), `y`: `[B, M, H, W]`
 #[allow(clippy::too_many_arguments)]
-fn step_learned<M: Network>(model: M, optim: &mut ModuleOptimizer, learner: &mut Learner, cfg: &TrainConfig, sensor: &SensorTensors, x: &Array4<f32>, y: &Array4<f32>, target: Target<'_>, device: &Device) -> (M, f64) {
+fn step_learned<M: Network>(model: M, optim: &mut ModuleOptimizer, learner: &mut Learner, cfg: &TrainConfig, lr: f64, sensor: &SensorTensors, x: &Array4<f32>, y: &Array4<f32>, target: Target<'_>, device: &Device) -> (M, f64) {
     let (yt, a, penalty) = learner.measurements(x, y, device);
     let pred = model.predict(yt, &sensor.clone().with_matrix(a));
     let loss = objective(cfg.loss, pred, target, device) + penalty;
@@ -329,7 +331,7 @@ fn step_learned<M: Network>(model: M, optim: &mut ModuleOptimizer, learner: &mut
     let net_grads = GradientsParams::from_module(&mut grads, &model);
     let code_grads = GradientsParams::from_module(&mut grads, &learner.logits);
     learner.step(code_grads);
-    (optim.step(cfg.learning_rate, model, net_grads), l as f64)
+    (optim.step(lr, model, net_grads), l as f64)
 }
 
 /// The device's random generator is global: seeding it and drawing the initial weights happen
@@ -411,12 +413,13 @@ pub(crate) fn objective(loss: Loss, pred: Tensor<4>, target: Target<'_>, device:
 ///
 /// # Shapes
 /// - `y`: `[B, M, H, W]`; the target as in [`Target`]
-pub(crate) fn step<M: Network>(model: M, optim: &mut ModuleOptimizer, cfg: &TrainConfig, sensor: &SensorTensors, y: &Array4<f32>, target: Target<'_>, device: &Device) -> (M, f64) {
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn step<M: Network>(model: M, optim: &mut ModuleOptimizer, cfg: &TrainConfig, lr: f64, sensor: &SensorTensors, y: &Array4<f32>, target: Target<'_>, device: &Device) -> (M, f64) {
     let pred = model.predict(to_tensor(&y.view(), device), sensor);
     let loss = objective(cfg.loss, pred, target, device);
     let l: f32 = loss.clone().into_scalar();
     let grads = GradientsParams::from_grads(loss.backward(), &model);
-    (optim.step(cfg.learning_rate, model, grads), l as f64)
+    (optim.step(lr, model, grads), l as f64)
 }
 
 /// Read `state.json` of a run's checkpoint (for tests and tools).

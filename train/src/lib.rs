@@ -29,7 +29,7 @@ pub mod loss;
 pub mod run_dir;
 
 pub use augment::Augmentation;
-pub use config::{Loss, TrainConfig};
+pub use config::{Loss, LrSchedule, TrainConfig};
 pub use fit::{train, Progress, Quiet};
 pub use run_dir::{EpochMetrics, RunState};
 
