@@ -226,9 +226,10 @@ pub fn woodbury_matrices(q: &[f32], lambda: &[f32], m: usize, s: f32) -> Vec<f32
 }
 
 /// Run `f` compiled for the best vector extension this CPU has (AVX-512 or AVX2+FMA on x86-64,
-/// chosen at run time), so its multiply-add loops vectorise beyond the baseline SSE2.
+/// chosen at run time), so its multiply-add loops vectorise beyond the baseline SSE2. Code
+/// reached from `f` must be inlined into it (`#[inline(always)]`) to be compiled that way.
 #[inline(always)]
-fn simd<R>(f: impl FnOnce() -> R) -> R {
+pub fn simd<R>(f: impl FnOnce() -> R) -> R {
     pulp::Arch::new().dispatch(f)
 }
 

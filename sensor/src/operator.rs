@@ -82,6 +82,12 @@ impl FramePlan {
         self.t
     }
 
+    /// The `W` coefficients `A[n(r, col)][m][j]` of frame row `r`, tap `m`, bin `j`, one per
+    /// column: what a solver working on its own layout needs to apply `A` row by row.
+    pub fn row_coefficients(&self, r: usize, j: usize, m: usize) -> &[f32] {
+        &self.coef[(((r % self.bh) * self.t + j) * self.m + m) * self.w..][..self.w]
+    }
+
     fn check(&self, what: &str, got: &[usize], lead: usize) -> Result<()> {
         if got != [lead, self.h, self.w] {
             let name = if lead == self.t { "[T, H, W]" } else { "[M, H, W]" };

@@ -196,7 +196,7 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             let cube_mb = (bins * h * w * 4) as f64 / 1e6;
             println!("memory bandwidth (parallel copy, read + write): {copy_gbs:.1} GB/s; one pass over the cube = {cube_mb:.1} MB");
             type Solve = fn(&MeasurementMatrix, &tcsense_sensor::FramePlan, &ndarray::ArrayView3<'_, f32>, &tcsense_models::Tval3Options, &(dyn Fn(usize, usize) + Sync), &std::sync::atomic::AtomicBool) -> tcsense_models::Result<(ndarray::Array3<f32>, tcsense_models::Tval3Report)>;
-            let solvers: [(&str, Solve); 2] = [("reference", tcsense_models::tval3::tval3_reference), ("fused", tcsense_models::tval3)];
+            let solvers: [(&str, Solve); 2] = [("reference", tcsense_models::tval3::tval3_reference), ("optimised", tcsense_models::tval3)];
             let mut times = vec![Vec::new(); solvers.len()];
             for i in 0..frames.max(1) {
                 let x = gen.sample(&grid, 1, i as u64).x;
@@ -220,7 +220,7 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
                 }
             }
             let med: Vec<f64> = times.iter().map(|t| median_by(t, |v| *v).unwrap_or(f64::NAN)).collect();
-            println!("median per frame: reference {:.3} s, fused {:.3} s ({:.2}x)", med[0], med[1], med[0] / med[1]);
+            println!("median per frame: reference {:.3} s, optimised {:.3} s ({:.2}x)", med[0], med[1], med[0] / med[1]);
         }
     }
     Ok(ExitCode::SUCCESS)
