@@ -4,11 +4,11 @@
 # paper's generator in one thing, and on a real depth scene (Middlebury 2014 "Motorcycle",
 # from the scikit-image wheel). Every decoder sees the same noisy measurements of a set.
 #
-#   scripts/ood.sh [OUT]          (default OUT = ood-out; about 20 minutes on two cores;
+#   scripts/ood.sh [OUT]          (default OUT = ood-out; about 45 minutes on two cores;
 #                                  the README's tables come from these defaults)
 #
 # Sizes and budgets can be set from the environment: SIZE (32x32), LIDAR_COUNT (600),
-# FLIM_COUNT (400), LIDAR_EPOCHS (12), UNET_EPOCHS (60), FLIM_EPOCHS (6), ITEMS (test items
+# FLIM_COUNT (400), LIDAR_EPOCHS (40), UNET_EPOCHS (150), FLIM_EPOCHS (16), ITEMS (test items
 # per set, 10).
 # The test sets are generated with their own seeds (120 items; their test splits are used).
 # "One thing each" is as close as the flags get to the paper's generator: the LiDAR sets fix
@@ -20,9 +20,9 @@ OUT=${1:-ood-out}
 SIZE=${SIZE:-32x32}
 LIDAR_COUNT=${LIDAR_COUNT:-600}
 FLIM_COUNT=${FLIM_COUNT:-400}
-LIDAR_EPOCHS=${LIDAR_EPOCHS:-12}
-UNET_EPOCHS=${UNET_EPOCHS:-60}
-FLIM_EPOCHS=${FLIM_EPOCHS:-6}
+LIDAR_EPOCHS=${LIDAR_EPOCHS:-40}
+UNET_EPOCHS=${UNET_EPOCHS:-150}
+FLIM_EPOCHS=${FLIM_EPOCHS:-16}
 ITEMS=${ITEMS:-10}
 SKIMAGE=scikit-image==0.26.0
 
