@@ -5,6 +5,7 @@
 use crate::metrics::mse;
 use crate::{InferError, Result};
 use ndarray::Array3;
+use rayon::prelude::*;
 use serde::Serialize;
 use std::sync::atomic::AtomicBool;
 use tcsense_models::{tval3, Tval3Options};
@@ -45,8 +46,47 @@ pub struct Candidate {
     pub mse: f64,
 }
 
-/// Generate `n` candidates (seeds `seed, seed+1, …`), evaluate each, return them all and the
-/// best code set. `on_candidate` is called after each evaluation.
+/// Generate and evaluate the code sets of `seeds`; returns them with their MSE in seed order,
+/// calling `on_candidate` after each (in seed order).
+///
+/// The candidates are independent solves: they run in parallel, as many at a time as the
+/// thread pool has threads, on the same pool as each solve's own bands, so the cores stay busy
+/// on small frames without oversubscription. Each solve adds its sums in a fixed order, so the
+/// results do not depend on the scheduling.
+#[allow(clippy::too_many_arguments)]
+pub fn evaluate_candidates(
+    shape: CodeShape,
+    clock_hz: f64,
+    constraints: Constraints,
+    seeds: &[u64],
+    setup: &EvalSetup,
+    cubes: &[Array3<f32>],
+    on_candidate: &mut dyn FnMut(&Candidate),
+    cancel: &AtomicBool,
+) -> Result<Vec<(Candidate, Codes)>> {
+    let mut out = Vec::with_capacity(seeds.len());
+    for group in seeds.chunks(rayon::current_num_threads().max(1)) {
+        let done: Vec<Result<(Codes, f64)>> = group
+            .par_iter()
+            .map(|&s| {
+                let codes = random_codes(shape, clock_hz, constraints, s)?;
+                let m = evaluate(&codes, setup, cubes, cancel)?;
+                Ok((codes, m))
+            })
+            .collect();
+        for (&s, r) in group.iter().zip(done) {
+            let (codes, m) = r?;
+            let c = Candidate { seed: s, mse: m };
+            on_candidate(&c);
+            out.push((c, codes));
+        }
+    }
+    Ok(out)
+}
+
+/// Generate `n` candidates (seeds `seed, seed+1, …`), evaluate each ([`evaluate_candidates`]),
+/// return them all and the best code set. `on_candidate` is called after each evaluation.
+#[allow(clippy::too_many_arguments)]
 pub fn select(
     shape: CodeShape,
     clock_hz: f64,
@@ -58,18 +98,14 @@ pub fn select(
     on_candidate: &mut dyn FnMut(&Candidate),
     cancel: &AtomicBool,
 ) -> Result<(Codes, Vec<Candidate>)> {
+    let seeds: Vec<u64> = (0..n.max(1) as u64).map(|i| seed.wrapping_add(i)).collect();
     let mut all = Vec::with_capacity(n);
     let mut best: Option<(f64, Codes)> = None;
-    for i in 0..n.max(1) as u64 {
-        let s = seed.wrapping_add(i);
-        let codes = random_codes(shape, clock_hz, constraints, s)?;
-        let m = evaluate(&codes, setup, cubes, cancel)?;
-        let c = Candidate { seed: s, mse: m };
-        on_candidate(&c);
-        all.push(c);
-        if best.as_ref().is_none_or(|(b, _)| m < *b) {
-            best = Some((m, codes));
+    for (c, codes) in evaluate_candidates(shape, clock_hz, constraints, &seeds, setup, cubes, on_candidate, cancel)? {
+        if best.as_ref().is_none_or(|(b, _)| c.mse < *b) {
+            best = Some((c.mse, codes));
         }
+        all.push(c);
     }
     let (m, mut codes) = best.ok_or(InferError::InvalidParam { field: "candidates", got: "0".into(), expected: "at least 1".into() })?;
     codes.provenance = serde_json::json!({

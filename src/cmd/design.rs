@@ -8,9 +8,8 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use tcsense_datasets::Dataset;
 use tcsense_infer::figures::{log_chart, Series};
-use tcsense_infer::selection::{evaluate, select, table1_settings, EvalSetup};
+use tcsense_infer::selection::{evaluate_candidates, select, table1_settings, Candidate, EvalSetup};
 use tcsense_sensor::codes::{CodeShape, Constraints};
-use tcsense_sensor::generate::random_codes;
 use tcsense_sensor::npy::write_bytes;
 use tcsense_sensor::SensorParams;
 
@@ -209,15 +208,14 @@ pub fn sweep(cmd: SweepCmd) -> Result<ExitCode> {
     let mut series: Vec<(String, Vec<(f64, f64)>)> = Vec::new();
     for (name, c, x, sh) in &points {
         let mut mses = Vec::new();
-        for k in 0..a.candidates as u64 {
-            let seed = a.seed.wrapping_add(k);
-            let codes = random_codes(*sh, l.clock_hz, *c, seed)?;
-            let m = evaluate(&codes, &l.setup, &l.cubes, &cancel)?;
-            csv.push_str(&format!("{name},{x},{seed},{m:.6e}\n"));
-            pb.set_message(format!("{name} @ {x}: {m:.3e}"));
+        let seeds: Vec<u64> = (0..a.candidates as u64).map(|k| a.seed.wrapping_add(k)).collect();
+        let mut on = |cand: &Candidate| {
+            csv.push_str(&format!("{name},{x},{},{:.6e}\n", cand.seed, cand.mse));
+            pb.set_message(format!("{name} @ {x}: {:.3e}", cand.mse));
             pb.inc(1);
-            mses.push(m);
-        }
+            mses.push(cand.mse);
+        };
+        evaluate_candidates(*sh, l.clock_hz, *c, &seeds, &l.setup, &l.cubes, &mut on, &cancel)?;
         let best = mses.iter().copied().fold(f64::INFINITY, f64::min);
         let mean = mses.iter().sum::<f64>() / mses.len() as f64;
         summary.push_str(&format!("{name},{x},{best:.6e},{mean:.6e}\n"));

@@ -982,6 +982,31 @@ mod tests {
         assert!(checked > 0, "no run backtracked: the closed-form line search was not exercised");
     }
 
+    /// Same input, same bytes, whatever the number of threads: every sweep adds its bands'
+    /// sums in band order (a parallel reduction would add them in the order the threads
+    /// finish, and one flipped Armijo decision changes the whole path).
+    #[test]
+    fn the_result_does_not_depend_on_the_thread_count() {
+        let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 8, drain: false };
+        let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 5).unwrap();
+        let a = MeasurementMatrix::synthesize(&codes, &SensorParams::from_codes(&codes).validate().unwrap()).unwrap();
+        let (t, h, w) = (a.bins(), 28, 12);
+        let plan = a.plan(h, w).unwrap();
+        let x = Array3::from_shape_fn((t, h, w), |(j, r, c)| if j == (r / 3 + c / 5) % t { 1.0 } else { 0.05 });
+        let y = plan.forward(&x.view()).unwrap();
+        let opts = Tval3Options { maxit: 80, ..Default::default() };
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| tval3(&a, &plan, &y.view(), &opts, &|_, _| {}, &AtomicBool::new(false)).unwrap())
+        };
+        let (x1, r1) = run(1);
+        for threads in [2, 3] {
+            let (xn, rn) = run(threads);
+            assert_eq!((rn.iterations, rn.backtracks, rn.outer), (r1.iterations, r1.backtracks, r1.outer));
+            assert!(x1.iter().zip(xn.iter()).all(|(p, q)| p.to_bits() == q.to_bits()), "{threads} threads: other bytes than 1 thread");
+        }
+    }
+
     #[test]
     fn full_sampling_recovers_a_piecewise_constant_cube() {
         // 1x1 block, M = 8 taps, L = 8: A is an 8x8 code matrix per pixel (full sampling).

@@ -66,6 +66,9 @@ pub(super) struct Tiled<'a> {
     pub lam3: f64,
     pub lam4: f64,
     pub lam5: f64,
+    /// Per-task sums of the last sweep, added in task order (same bytes on every run, whatever
+    /// the scheduling).
+    partials: Vec<[f64; 8]>,
 }
 
 /// `Σ v` of one row segment in eight lanes (vectorises), in `f64`.
@@ -102,6 +105,11 @@ impl Scratch {
 #[inline(always)]
 fn shrink1(z: f32, k: f32) -> f32 {
     z.signum() * (z.abs() - k).max(0.0)
+}
+
+/// The sums of every task, added in task order.
+fn ordered_sum(partials: &[[f64; 8]]) -> [f64; 8] {
+    partials.iter().fold([0.0; 8], |a, p| std::array::from_fn(|k| a[k] + p[k]))
 }
 
 /// `Σ v²` of a slice in eight lanes, in `f64`.
@@ -178,6 +186,7 @@ impl<'a> Tiled<'a> {
             lam3: 0.0,
             lam4: 0.0,
             lam5: 0.0,
+            partials: Vec::new(),
         };
         let (plane, mw) = (t * w, m * w);
         let mut atb = std::mem::take(&mut st.atb);
@@ -236,9 +245,10 @@ impl<'a> Tiled<'a> {
         let plane = t * w;
         let mut u = std::mem::take(&mut self.u);
         let mut resid = std::mem::take(&mut self.resid);
+        let mut partials = std::mem::take(&mut self.partials);
         let this = &*self;
         let (up, d, wv, sg) = (&this.up, &this.d, &this.wv, &this.sigma);
-        let sums = u
+        u
             .par_chunks_mut(rows * plane)
             .zip(resid.par_chunks_mut(rows * m * w))
             .enumerate()
@@ -259,7 +269,7 @@ impl<'a> Tiled<'a> {
                             }
                         }
                         uc.copy_from_slice(&ut[..nr * plane]);
-                        let mut acc = [0f64; 6];
+                        let mut acc = [0f64; 8];
                         for rr in 0..nr {
                             let r = r0 + rr;
                             let rn = (r + 1) % h;
@@ -306,7 +316,9 @@ impl<'a> Tiled<'a> {
                     })
                 },
             )
-            .reduce(|| [0f64; 6], |a, b| std::array::from_fn(|k| a[k] + b[k]));
+            .collect_into_vec(&mut partials);
+        let sums = ordered_sum(&partials);
+        self.partials = partials;
         self.u = u;
         self.resid = resid;
         Trial {
@@ -356,9 +368,10 @@ impl<'a> Tiled<'a> {
         let band = rows * plane;
         let [mut w0, mut w1, mut w2] = std::mem::take(&mut self.wv);
         let (mut g2, mut g, mut d) = (std::mem::take(&mut self.g2), std::mem::take(&mut self.g), std::mem::take(&mut self.d));
+        let mut partials = std::mem::take(&mut self.partials);
         let this = &*self;
         let (u, up, sg, gp, g2p, q, resid) = (&this.u, &this.up, &this.sigma, &this.gp, &this.g2p, &this.q, &this.resid);
-        let out = w0
+        w0
             .par_chunks_mut(band)
             .zip(w1.par_chunks_mut(band))
             .zip(w2.par_chunks_mut(band))
@@ -371,7 +384,7 @@ impl<'a> Tiled<'a> {
                         let r0 = bi * rows;
                         let nr = o0.len() / plane;
                         let vs = (nr + 1) * plane; // one component of V on the band and the halo row above
-                        let mut acc = [0f64; 7];
+                        let mut acc = [0f64; 8];
                         // V = Du − w on rows r0 − 1 … r0 + nr − 1 (local row rr = 0 is the halo)
                         for rr in 0..=nr {
                             let r = (r0 + h + rr - 1) % h;
@@ -467,7 +480,9 @@ impl<'a> Tiled<'a> {
                     })
                 },
             )
-            .reduce(|| [0f64; 7], |a, b| std::array::from_fn(|k| a[k] + b[k]));
+            .collect_into_vec(&mut partials);
+        let out = ordered_sum(&partials);
+        self.partials = partials;
         self.wv = [w0, w1, w2];
         self.g2 = g2;
         self.g = g;
@@ -485,8 +500,9 @@ impl<'a> Tiled<'a> {
         let plane = t * w;
         let band = rows * plane;
         let [mut s0, mut s1, mut s2] = std::mem::take(&mut self.sigma);
+        let mut partials = std::mem::take(&mut self.partials);
         let (u, wv) = (&self.u, &self.wv);
-        let l4 = s0
+        s0
             .par_chunks_mut(band)
             .zip(s1.par_chunks_mut(band))
             .zip(s2.par_chunks_mut(band))
@@ -496,7 +512,7 @@ impl<'a> Tiled<'a> {
                 |sc, (bi, ((o0, o1), o2))| {
                     simd(|| {
                         let r0 = bi * rows;
-                        let mut l4 = 0f64;
+                        let mut l4 = [0f64; 8];
                         for rr in 0..o0.len() / plane {
                             let r = r0 + rr;
                             let rn = (r + 1) % h;
@@ -520,25 +536,29 @@ impl<'a> Tiled<'a> {
                                     a2[c] -= beta * v2;
                                     e[c] = a0[c] * v0 + a1[c] * v1 + a2[c] * v2;
                                 }
-                                l4 += lane_sum(e);
+                                l4[0] += lane_sum(e);
                             }
                         }
                         l4
                     })
                 },
             )
-            .sum();
+            .collect_into_vec(&mut partials);
+        let l4 = ordered_sum(&partials)[0];
+        self.partials = partials;
         self.sigma = [s0, s1, s2];
         l4
     }
 
     /// The exact steepest-descent step along `d`: `dᵀd / (‖Dd‖² + (μ/β)‖s·Ad‖²)`.
-    pub fn steepest_tau(&self, mdb: f64) -> f64 {
+    pub fn steepest_tau(&mut self, mdb: f64) -> f64 {
         let (t, h, w, m, rows) = (self.t, self.h, self.w, self.m, self.rows);
         let (wt, wy, wx) = (self.wt, self.wy, self.wx);
         let plane = t * w;
-        let d = &self.d;
-        let [ddd, ad2, dn] = d
+        let mut partials = std::mem::take(&mut self.partials);
+        let this = &*self;
+        let d = &this.d;
+        d
             .par_chunks(rows * plane)
             .enumerate()
             .map_init(
@@ -546,7 +566,7 @@ impl<'a> Tiled<'a> {
                 |(sc, ad), (bi, dc)| {
                     simd(|| {
                         let r0 = bi * rows;
-                        let mut acc = [0f64; 3];
+                        let mut acc = [0f64; 8];
                         for rr in 0..dc.len() / plane {
                             let r = r0 + rr;
                             let rn = (r + 1) % h;
@@ -566,14 +586,16 @@ impl<'a> Tiled<'a> {
                                 acc[0] += lane_sum(e0);
                                 acc[2] += lane_sum(e1);
                             }
-                            self.forward_row(r, &d[r * plane..(r + 1) * plane], ad);
+                            this.forward_row(r, &d[r * plane..(r + 1) * plane], ad);
                             acc[1] += ad.iter().map(|&v| (v * v) as f64).sum::<f64>();
                         }
                         acc
                     })
                 },
             )
-            .reduce(|| [0f64; 3], |a, b| std::array::from_fn(|k| a[k] + b[k]));
+            .collect_into_vec(&mut partials);
+        let [ddd, ad2, dn, ..] = ordered_sum(&partials);
+        self.partials = partials;
         let den = ddd + mdb * ad2;
         if den > 0.0 {
             (dn / den).abs()
@@ -584,6 +606,7 @@ impl<'a> Tiled<'a> {
 
     /// `d = g2 + (μ/β) g − q`; returns `‖d‖²`.
     pub fn direction(&mut self, mdb: f32) -> f64 {
+        let mut partials = std::mem::take(&mut self.partials);
         self.d
             .par_chunks_mut(8192)
             .zip(self.g2.par_chunks(8192))
@@ -593,9 +616,14 @@ impl<'a> Tiled<'a> {
                 for i in 0..d.len() {
                     d[i] = g2[i] + mdb * g[i] - q[i];
                 }
-                lane_sum_sq(d)
+                let mut acc = [0f64; 8];
+                acc[0] = lane_sum_sq(d);
+                acc
             })
-            .sum()
+            .collect_into_vec(&mut partials);
+        let dd = ordered_sum(&partials)[0];
+        self.partials = partials;
+        dd
     }
 
     /// `u` in the layout `[T, H, W]`, times `k`.
