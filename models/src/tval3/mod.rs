@@ -562,8 +562,6 @@ pub fn tval3(
         // the current point becomes the previous one (every swapped-in buffer is rewritten
         // before it is read)
         std::mem::swap(&mut s.up, &mut s.u);
-        std::mem::swap(&mut s.gp, &mut s.g);
-        std::mem::swap(&mut s.g2p, &mut s.g2);
         std::mem::swap(&mut s.resid_p, &mut s.resid);
         // one projected gradient step, and the objective along it in closed form
         let trial = s.trial(tau as f32);
@@ -625,15 +623,12 @@ pub fn tval3(
             s.delta.iter_mut().zip(&s.resid).for_each(|(dl, &r)| *dl -= m32 * r);
             s.resid_sums();
             // continuation
-            let beta0 = beta;
             beta = (beta * opts.rate_ctn).min(betaf);
             mu = (mu * opts.rate_ctn).min(muf);
             mdb = mu / beta;
             f = f_of(&s, beta, mu);
-            // (Dᵀσ + Aᵀδ)/β at the new multipliers equals −(β0/β)·d at the old ones
-            let r = -(beta0 / beta) as f32;
-            s.q.par_iter_mut().zip(s.d.par_iter()).for_each(|(q, &d)| *q = r * d);
-            s.direction(mdb as f32);
+            // the direction at the new multipliers and penalties
+            d_norm2 = s.redirect(beta, mdb as f32);
             have_prev = false;
             gam = opts.gam;
             q = 1.0;

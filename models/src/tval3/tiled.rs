@@ -15,11 +15,17 @@
 //!   `Du` and `D up` are recomputed from `u` and `up`, never stored;
 //! - **accept sweep** ([`Tiled::accept`]) at the accepted `u`: the w-step
 //!   `w = shrink(Du − σ/β, 1/β)` with `Σ‖w‖`, `‖V‖²`, `σᵀV` for `V = Du − w` (kept only on the
-//!   band), `g2 = DᵀV`, `g = s·Aᵀ(s·Au − b)`, the direction `d = g2 + (μ/β) g − q` and the
-//!   next Barzilai–Borwein sums with the stopping test's norms.
+//!   band), the next direction and the next Barzilai–Borwein sums with the stopping test's
+//!   norms.
 //!
-//! That is about 8 reads and 1 write of the cube in the trial sweep and 9 reads and 6 writes in
-//! the accept sweep, against about 75 passes of the straightforward solver.
+//! The direction is kept in the form `d = Dᵀ(V − σ/β) + s·Aᵀ((μ/β)(Au − b) − δ/β)`: the
+//! multiplier terms `(Dᵀσ + Aᵀδ)/β` of TVAL3 are folded into the band's own terms, so neither
+//! they nor the two gradients are stored; with the multipliers fixed between outer updates the
+//! Barzilai–Borwein sums use the change of `d` itself. That is about 8 reads and 1 write of the
+//! cube in the trial sweep and 6 reads and 4 writes in the accept sweep, against about 75
+//! passes of the straightforward solver. Every band runs under the kernels' SIMD dispatch (its
+//! closure inlined, so AVX-512 or AVX2 code is generated for it), and the bands' sums are added
+//! in band order.
 
 use super::{Sums, Trial, TvNorm};
 use rayon::prelude::*;
@@ -48,13 +54,10 @@ pub(super) struct Tiled<'a> {
     pub atb: Vec<f32>,
     pub u: Vec<f32>,
     pub up: Vec<f32>,
+    /// The direction at `u`: `d = Dᵀ(Du − w − σ/β) + s·Aᵀ((μ/β)(Au − b) − δ/β)`.
     pub d: Vec<f32>,
-    pub g: Vec<f32>,
-    pub gp: Vec<f32>,
-    pub g2: Vec<f32>,
-    pub g2p: Vec<f32>,
-    /// `(Dᵀσ + Aᵀδ)/β`.
-    pub q: Vec<f32>,
+    /// The next direction, written by the accept sweep while it reads `d`.
+    dn: Vec<f32>,
     pub wv: [Vec<f32>; 3],
     pub sigma: [Vec<f32>; 3],
     /// `Au − b` `[H, M, W]`.
@@ -112,20 +115,6 @@ fn ordered_sum(partials: &[[f64; 8]]) -> [f64; 8] {
     partials.iter().fold([0.0; 8], |a, p| std::array::from_fn(|k| a[k] + p[k]))
 }
 
-/// `Σ v²` of a slice in eight lanes, in `f64`.
-#[inline(always)]
-fn lane_sum_sq(v: &[f32]) -> f64 {
-    let mut acc = [0f32; 8];
-    let chunks = v.chunks_exact(8);
-    let tail: f32 = chunks.remainder().iter().map(|x| x * x).sum();
-    for ch in chunks {
-        for k in 0..8 {
-            acc[k] += ch[k] * ch[k];
-        }
-    }
-    acc.iter().map(|&a| a as f64).sum::<f64>() + tail as f64
-}
-
 /// `out[c] = wx·(cur[c+1] − cur[c])`, periodic.
 #[inline(always)]
 fn diff_x(cur: &[f32], wx: f32, out: &mut [f32]) {
@@ -171,11 +160,7 @@ impl<'a> Tiled<'a> {
             u: z(),
             up: z(),
             d: z(),
-            g: z(),
-            gp: z(),
-            g2: z(),
-            g2p: z(),
-            q: z(),
+            dn: z(),
             wv: [z(), z(), z()],
             sigma: [z(), z(), z()],
             resid: zm(),
@@ -255,7 +240,7 @@ impl<'a> Tiled<'a> {
             .map_init(
                 || (vec![0f32; (rows + 1) * plane], Scratch::new(w)),
                 |(ut, sc), (bi, (uc, rc))| {
-                    simd(|| {
+                    simd(#[inline(always)] || {
                         let r0 = bi * rows;
                         let nr = uc.len() / plane;
                         // u on the band's rows and the halo row below
@@ -351,8 +336,8 @@ impl<'a> Tiled<'a> {
         self.lam5 = self.resid.iter().zip(&self.delta).map(|(&r, &d)| (r * d) as f64).sum();
     }
 
-    /// Accept sweep at `u` (with `Au − b` in `resid`): the w-step, `g2`, `g`, the direction `d`
-    /// with `mdb = μ/β`; sets `lam1`, `lam2`, `lam4` and returns the direction's sums.
+    /// Accept sweep at `u` (with `Au − b` in `resid`): the w-step and the next direction
+    /// ([`Tiled::band_direction`]); sets `lam1`, `lam2`, `lam4` and returns the direction's sums.
     pub fn accept(&mut self, beta: f64, mdb: f32) -> Sums {
         match self.tv {
             TvNorm::Anisotropic => self.accept_tv::<false>(beta, mdb),
@@ -367,25 +352,24 @@ impl<'a> Tiled<'a> {
         let plane = t * w;
         let band = rows * plane;
         let [mut w0, mut w1, mut w2] = std::mem::take(&mut self.wv);
-        let (mut g2, mut g, mut d) = (std::mem::take(&mut self.g2), std::mem::take(&mut self.g), std::mem::take(&mut self.d));
+        let mut dn = std::mem::take(&mut self.dn);
         let mut partials = std::mem::take(&mut self.partials);
         let this = &*self;
-        let (u, up, sg, gp, g2p, q, resid) = (&this.u, &this.up, &this.sigma, &this.gp, &this.g2p, &this.q, &this.resid);
-        w0
-            .par_chunks_mut(band)
+        let (u, sg) = (&this.u, &this.sigma);
+        w0.par_chunks_mut(band)
             .zip(w1.par_chunks_mut(band))
             .zip(w2.par_chunks_mut(band))
-            .zip(g2.par_chunks_mut(band).zip(g.par_chunks_mut(band)).zip(d.par_chunks_mut(band)))
+            .zip(dn.par_chunks_mut(band))
             .enumerate()
             .map_init(
-                || (vec![0f32; 3 * (rows + 1) * plane], vec![0f32; 3 * w], Scratch::new(w)),
-                |(v, wseg, sc), (bi, (((o0, o1), o2), ((og2, og), od)))| {
-                    simd(|| {
+                || (vec![0f32; 3 * (rows + 1) * plane], vec![0f32; 3 * w], vec![0f32; m * w], Scratch::new(w)),
+                |(v, wseg, rm, sc), (bi, (((o0, o1), o2), od))| {
+                    simd(#[inline(always)] || {
                         let r0 = bi * rows;
                         let nr = o0.len() / plane;
                         let vs = (nr + 1) * plane; // one component of V on the band and the halo row above
                         let mut acc = [0f64; 8];
-                        // V = Du − w on rows r0 − 1 … r0 + nr − 1 (local row rr = 0 is the halo)
+                        // w-step and V − σ/β on rows r0 − 1 … r0 + nr − 1 (local row rr = 0 is the halo)
                         for rr in 0..=nr {
                             let r = (r0 + h + rr - 1) % h;
                             let rn = (r + 1) % h;
@@ -417,9 +401,10 @@ impl<'a> Tiled<'a> {
                                         (a, b, e, a.abs() + b.abs() + e.abs())
                                     };
                                     let (p0, p1, p2) = (d0 - a, d1 - b, d2 - e);
-                                    v0[c] = p0;
-                                    v1[c] = p1;
-                                    v2[c] = p2;
+                                    // V − σ/β = z − w
+                                    v0[c] = z0 - a;
+                                    v1[c] = z1 - b;
+                                    v2[c] = z2 - e;
                                     ws0[c] = a;
                                     ws1[c] = b;
                                     ws2[c] = e;
@@ -438,44 +423,11 @@ impl<'a> Tiled<'a> {
                                 }
                             }
                         }
-                        // g2 = DᵀV, g = s·Aᵀ(s·Au − b), d = g2 + (μ/β) g − q, and the sums
-                        let (va, rest) = v.split_at(vs);
-                        let (vb, vc) = rest.split_at(vs);
-                        for rr in 1..=nr {
-                            let r = r0 + rr - 1;
-                            let lo = (rr - 1) * plane;
-                            this.adjoint_row(r, &resid[r * m * w..][..m * w], &mut og[lo..lo + plane]);
-                            for j in 0..t {
-                                let jp = (j + t - 1) % t;
-                                let k0 = (rr * t + j) * w;
-                                let (vt, vt_prev) = (&va[k0..k0 + w], &va[(rr * t + jp) * w..][..w]);
-                                let (vy, vy_above) = (&vb[k0..k0 + w], &vb[((rr - 1) * t + j) * w..][..w]);
-                                let vx = &vc[k0..k0 + w];
-                                let o = &mut og2[lo + j * w..lo + (j + 1) * w];
-                                o[0] = wt * (vt_prev[0] - vt[0]) + wy * (vy_above[0] - vy[0]) + wx * (vx[w - 1] - vx[0]);
-                                for c in 1..w {
-                                    o[c] = wt * (vt_prev[c] - vt[c]) + wy * (vy_above[c] - vy[c]) + wx * (vx[c - 1] - vx[c]);
-                                }
-                                let gi = (r * t + j) * w;
-                                let (gg, gr) = (&og[lo + j * w..lo + (j + 1) * w], &og2[lo + j * w..lo + (j + 1) * w]);
-                                let dseg = &mut od[lo + j * w..lo + (j + 1) * w];
-                                let (uc, pc, gpc, g2pc, qc) = (&u[gi..gi + w], &up[gi..gi + w], &gp[gi..gi + w], &g2p[gi..gi + w], &q[gi..gi + w]);
-                                let (e0, e1, e2, e3) = (&mut sc.e0[..w], &mut sc.e1[..w], &mut sc.e2[..w], &mut sc.e3[..w]);
-                                for c in 0..w {
-                                    let di = gr[c] + mdb * gg[c] - qc[c];
-                                    dseg[c] = di;
-                                    let du = uc[c] - pc[c];
-                                    e0[c] = di * di;
-                                    e1[c] = du * du;
-                                    e2[c] = du * ((gr[c] - g2pc[c]) + mdb * (gg[c] - gpc[c]));
-                                    e3[c] = pc[c] * pc[c];
-                                }
-                                acc[3] += lane_sum(e0);
-                                acc[4] += lane_sum(e1);
-                                acc[5] += lane_sum(e2);
-                                acc[6] += lane_sum(e3);
-                            }
-                        }
+                        let [a3, a4, a5, a6] = this.band_direction(r0, nr, v, vs, od, rm, sc, mdb, inv);
+                        acc[3] = a3;
+                        acc[4] = a4;
+                        acc[5] = a5;
+                        acc[6] = a6;
                         acc
                     })
                 },
@@ -484,13 +436,117 @@ impl<'a> Tiled<'a> {
         let out = ordered_sum(&partials);
         self.partials = partials;
         self.wv = [w0, w1, w2];
-        self.g2 = g2;
-        self.g = g;
-        self.d = d;
+        self.dn = std::mem::replace(&mut self.d, dn);
         self.lam1 = out[0];
         self.lam2 = out[1];
         self.lam4 = out[2];
         Sums { d_norm2: out[3], ss: out[4], sy: out[5], up_norm2: out[6] }
+    }
+
+    /// The direction at `u` with `w` kept (after the multiplier update and continuation):
+    /// `d = Dᵀ(Du − w − σ/β) + s·Aᵀ(mdb·(Au − b) − δ/β)`; returns `‖d‖²`.
+    pub fn redirect(&mut self, beta: f64, mdb: f32) -> f64 {
+        let (t, h, w, m, rows) = (self.t, self.h, self.w, self.m, self.rows);
+        let (wt, wy, wx) = (self.wt, self.wy, self.wx);
+        let inv = (1.0 / beta) as f32;
+        let plane = t * w;
+        let mut dn = std::mem::take(&mut self.dn);
+        let mut partials = std::mem::take(&mut self.partials);
+        let this = &*self;
+        let (u, sg, wv) = (&this.u, &this.sigma, &this.wv);
+        dn.par_chunks_mut(rows * plane)
+            .enumerate()
+            .map_init(
+                || (vec![0f32; 3 * (rows + 1) * plane], vec![0f32; m * w], Scratch::new(w)),
+                |(v, rm, sc), (bi, od)| {
+                    simd(#[inline(always)] || {
+                        let r0 = bi * rows;
+                        let nr = od.len() / plane;
+                        let vs = (nr + 1) * plane;
+                        for rr in 0..=nr {
+                            let r = (r0 + h + rr - 1) % h;
+                            let rn = (r + 1) % h;
+                            for j in 0..t {
+                                let gi = (r * t + j) * w;
+                                let cur = &u[gi..gi + w];
+                                let nt = &u[(r * t + (j + 1) % t) * w..][..w];
+                                let bl = &u[(rn * t + j) * w..][..w];
+                                diff_x(cur, wx, &mut sc.dx);
+                                let dx = &sc.dx[..w];
+                                let lo = (rr * t + j) * w;
+                                let (va, rest) = v.split_at_mut(vs);
+                                let (vb, vc) = rest.split_at_mut(vs);
+                                for c in 0..w {
+                                    va[lo + c] = wt * (nt[c] - cur[c]) - wv[0][gi + c] - sg[0][gi + c] * inv;
+                                    vb[lo + c] = wy * (bl[c] - cur[c]) - wv[1][gi + c] - sg[1][gi + c] * inv;
+                                    vc[lo + c] = dx[c] - wv[2][gi + c] - sg[2][gi + c] * inv;
+                                }
+                            }
+                        }
+                        let mut acc = [0f64; 8];
+                        acc[0] = this.band_direction(r0, nr, v, vs, od, rm, sc, mdb, inv)[0];
+                        acc
+                    })
+                },
+            )
+            .collect_into_vec(&mut partials);
+        let dd = ordered_sum(&partials)[0];
+        self.partials = partials;
+        self.dn = std::mem::replace(&mut self.d, dn);
+        dd
+    }
+
+    /// The direction on a band from `v = V − σ/β` (3 components of `vs` values each, local row
+    /// 0 the halo row above): `dn = Dᵀv + s·Aᵀ(mdb·(Au − b) − δ/β)` for the band's `nr` rows
+    /// from `r0`, and `[‖dn‖², ‖u − up‖², (u − up)ᵀ(dn − d), ‖up‖²]` over them (`d` the previous
+    /// direction: with the multipliers fixed, `dn − d` is the change of the gradient).
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn band_direction(&self, r0: usize, nr: usize, v: &[f32], vs: usize, dn: &mut [f32], rm: &mut [f32], sc: &mut Scratch, mdb: f32, inv_beta: f32) -> [f64; 4] {
+        let (t, w, m) = (self.t, self.w, self.m);
+        let (wt, wy, wx) = (self.wt, self.wy, self.wx);
+        let plane = t * w;
+        let (u, up, d, resid, delta) = (&self.u, &self.up, &self.d, &self.resid, &self.delta);
+        let (va, rest) = v.split_at(vs);
+        let (vb, vc) = rest.split_at(vs);
+        let mut acc = [0f64; 4];
+        for rr in 1..=nr {
+            let r = r0 + rr - 1;
+            let lo = (rr - 1) * plane;
+            let off = r * m * w;
+            for ((o, &x), &dl) in rm.iter_mut().zip(&resid[off..off + m * w]).zip(&delta[off..off + m * w]) {
+                *o = mdb * x - inv_beta * dl;
+            }
+            self.adjoint_row(r, rm, &mut dn[lo..lo + plane]);
+            for j in 0..t {
+                let jp = (j + t - 1) % t;
+                let k0 = (rr * t + j) * w;
+                let (vt, vt_prev) = (&va[k0..k0 + w], &va[(rr * t + jp) * w..][..w]);
+                let (vy, vy_above) = (&vb[k0..k0 + w], &vb[((rr - 1) * t + j) * w..][..w]);
+                let vx = &vc[k0..k0 + w];
+                let o = &mut dn[lo + j * w..lo + (j + 1) * w];
+                o[0] += wt * (vt_prev[0] - vt[0]) + wy * (vy_above[0] - vy[0]) + wx * (vx[w - 1] - vx[0]);
+                for c in 1..w {
+                    o[c] += wt * (vt_prev[c] - vt[c]) + wy * (vy_above[c] - vy[c]) + wx * (vx[c - 1] - vx[c]);
+                }
+                let gi = (r * t + j) * w;
+                let (uc, pc, dc) = (&u[gi..gi + w], &up[gi..gi + w], &d[gi..gi + w]);
+                let (e0, e1, e2, e3) = (&mut sc.e0[..w], &mut sc.e1[..w], &mut sc.e2[..w], &mut sc.e3[..w]);
+                for c in 0..w {
+                    let di = o[c];
+                    let du = uc[c] - pc[c];
+                    e0[c] = di * di;
+                    e1[c] = du * du;
+                    e2[c] = du * (di - dc[c]);
+                    e3[c] = pc[c] * pc[c];
+                }
+                acc[0] += lane_sum(e0);
+                acc[1] += lane_sum(e1);
+                acc[2] += lane_sum(e2);
+                acc[3] += lane_sum(e3);
+            }
+        }
+        acc
     }
 
     /// Multiplier update at `u`: `σ ← σ − β(Du − w)`; returns the new `σᵀ(Du − w)` (`lam4`).
@@ -510,7 +566,7 @@ impl<'a> Tiled<'a> {
             .map_init(
                 || Scratch::new(w),
                 |sc, (bi, ((o0, o1), o2))| {
-                    simd(|| {
+                    simd(#[inline(always)] || {
                         let r0 = bi * rows;
                         let mut l4 = [0f64; 8];
                         for rr in 0..o0.len() / plane {
@@ -564,7 +620,7 @@ impl<'a> Tiled<'a> {
             .map_init(
                 || (Scratch::new(w), vec![0f32; m * w]),
                 |(sc, ad), (bi, dc)| {
-                    simd(|| {
+                    simd(#[inline(always)] || {
                         let r0 = bi * rows;
                         let mut acc = [0f64; 8];
                         for rr in 0..dc.len() / plane {
@@ -602,28 +658,6 @@ impl<'a> Tiled<'a> {
         } else {
             0.0
         }
-    }
-
-    /// `d = g2 + (μ/β) g − q`; returns `‖d‖²`.
-    pub fn direction(&mut self, mdb: f32) -> f64 {
-        let mut partials = std::mem::take(&mut self.partials);
-        self.d
-            .par_chunks_mut(8192)
-            .zip(self.g2.par_chunks(8192))
-            .zip(self.g.par_chunks(8192))
-            .zip(self.q.par_chunks(8192))
-            .map(|(((d, g2), g), q)| {
-                for i in 0..d.len() {
-                    d[i] = g2[i] + mdb * g[i] - q[i];
-                }
-                let mut acc = [0f64; 8];
-                acc[0] = lane_sum_sq(d);
-                acc
-            })
-            .collect_into_vec(&mut partials);
-        let dd = ordered_sum(&partials)[0];
-        self.partials = partials;
-        dd
     }
 
     /// `u` in the layout `[T, H, W]`, times `k`.
