@@ -289,12 +289,20 @@ impl<'a> Tiled<'a> {
                             this.forward_row(r, &ut[rr * plane..(rr + 1) * plane], ro);
                             let off = r * m * w;
                             let (b, rp, dl) = (&this.b[off..off + m * w], &this.resid_p[off..off + m * w], &this.delta[off..off + m * w]);
-                            for (k, o) in ro.iter_mut().enumerate() {
-                                let v = *o - b[k];
-                                *o = v;
-                                acc[3] += (v * v) as f64;
-                                acc[4] += (v * rp[k]) as f64;
-                                acc[5] += (v * dl[k]) as f64;
+                            for mm in 0..m {
+                                let k0 = mm * w;
+                                let (e0, e1, e2) = (&mut sc.e0[..w], &mut sc.e1[..w], &mut sc.e2[..w]);
+                                let o = &mut ro[k0..k0 + w];
+                                for c in 0..w {
+                                    let v = o[c] - b[k0 + c];
+                                    o[c] = v;
+                                    e0[c] = v * v;
+                                    e1[c] = v * rp[k0 + c];
+                                    e2[c] = v * dl[k0 + c];
+                                }
+                                acc[3] += lane_sum(e0);
+                                acc[4] += lane_sum(e1);
+                                acc[5] += lane_sum(e2);
                             }
                         }
                         acc
