@@ -89,19 +89,46 @@ fn lane_sum(v: &[f32]) -> f64 {
 }
 
 /// Per-task scratch of one row segment: x-differences and the per-column terms of the sums.
-struct Scratch {
-    dx: Vec<f32>,
-    dx2: Vec<f32>,
-    e0: Vec<f32>,
-    e1: Vec<f32>,
-    e2: Vec<f32>,
-    e3: Vec<f32>,
+struct Scratch<'s> {
+    dx: &'s mut [f32],
+    dx2: &'s mut [f32],
+    e0: &'s mut [f32],
+    e1: &'s mut [f32],
+    e2: &'s mut [f32],
+    e3: &'s mut [f32],
 }
 
-impl Scratch {
-    fn new(w: usize) -> Self {
-        Scratch { dx: vec![0.0; w], dx2: vec![0.0; w], e0: vec![0.0; w], e1: vec![0.0; w], e2: vec![0.0; w], e3: vec![0.0; w] }
-    }
+thread_local! {
+    /// Each worker thread's scratch, kept between sweeps: after the first sweep no band
+    /// allocates or touches fresh pages.
+    static SCRATCH: std::cell::RefCell<Vec<f32>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// Run `f` with this thread's scratch split into buffers of the lengths `sizes` and a
+/// [`Scratch`] of row segments of `w` values. The buffers hold whatever the last band left:
+/// every band writes a value before reading it. (A band never calls into the thread pool, so
+/// the scratch is never borrowed twice.)
+#[inline(always)]
+fn with_scratch<const N: usize, R>(sizes: &[usize; N], w: usize, f: impl FnOnce([&mut [f32]; N], &mut Scratch<'_>) -> R) -> R {
+    SCRATCH.with(|cell| {
+        let mut buf = cell.borrow_mut();
+        let total = sizes.iter().sum::<usize>() + 6 * w;
+        if buf.len() < total {
+            buf.resize(total, 0.0);
+        }
+        let mut rest: &mut [f32] = &mut buf[..total];
+        let parts: [&mut [f32]; N] = std::array::from_fn(|k| {
+            let (head, tail) = std::mem::take(&mut rest).split_at_mut(sizes[k]);
+            rest = tail;
+            head
+        });
+        let (dx, rest) = rest.split_at_mut(w);
+        let (dx2, rest) = rest.split_at_mut(w);
+        let (e0, rest) = rest.split_at_mut(w);
+        let (e1, rest) = rest.split_at_mut(w);
+        let (e2, e3) = rest.split_at_mut(w);
+        f(parts, &mut Scratch { dx, dx2, e0, e1, e2, e3 })
+    })
 }
 
 /// Soft threshold `sign(z)·max(|z| − k, 0)`.
@@ -237,9 +264,8 @@ impl<'a> Tiled<'a> {
             .par_chunks_mut(rows * plane)
             .zip(resid.par_chunks_mut(rows * m * w))
             .enumerate()
-            .map_init(
-                || (vec![0f32; (rows + 1) * plane], Scratch::new(w)),
-                |(ut, sc), (bi, (uc, rc))| {
+            .map(|(bi, (uc, rc))| {
+                with_scratch(&[(rows + 1) * plane], w, |[ut], sc| {
                     simd(#[inline(always)] || {
                         let r0 = bi * rows;
                         let nr = uc.len() / plane;
@@ -307,8 +333,8 @@ impl<'a> Tiled<'a> {
                         }
                         acc
                     })
-                },
-            )
+                })
+            })
             .collect_into_vec(&mut partials);
         let sums = ordered_sum(&partials);
         self.partials = partials;
@@ -369,9 +395,8 @@ impl<'a> Tiled<'a> {
             .zip(w2.par_chunks_mut(band))
             .zip(dn.par_chunks_mut(band))
             .enumerate()
-            .map_init(
-                || (vec![0f32; 3 * (rows + 1) * plane], vec![0f32; 3 * w], vec![0f32; m * w], Scratch::new(w)),
-                |(v, wseg, rm, sc), (bi, (((o0, o1), o2), od))| {
+            .map(|(bi, (((o0, o1), o2), od))| {
+                with_scratch(&[3 * (rows + 1) * plane, 3 * w, m * w], w, |[v, wseg, rm], sc| {
                     simd(#[inline(always)] || {
                         let r0 = bi * rows;
                         let nr = o0.len() / plane;
@@ -438,8 +463,8 @@ impl<'a> Tiled<'a> {
                         acc[6] = a6;
                         acc
                     })
-                },
-            )
+                })
+            })
             .collect_into_vec(&mut partials);
         let out = ordered_sum(&partials);
         self.partials = partials;
@@ -464,9 +489,8 @@ impl<'a> Tiled<'a> {
         let (u, sg, wv) = (&this.u, &this.sigma, &this.wv);
         dn.par_chunks_mut(rows * plane)
             .enumerate()
-            .map_init(
-                || (vec![0f32; 3 * (rows + 1) * plane], vec![0f32; m * w], Scratch::new(w)),
-                |(v, rm, sc), (bi, od)| {
+            .map(|(bi, od)| {
+                with_scratch(&[3 * (rows + 1) * plane, m * w], w, |[v, rm], sc| {
                     simd(#[inline(always)] || {
                         let r0 = bi * rows;
                         let nr = od.len() / plane;
@@ -495,8 +519,8 @@ impl<'a> Tiled<'a> {
                         acc[0] = this.band_direction(r0, nr, v, vs, od, rm, sc, mdb, inv)[0];
                         acc
                     })
-                },
-            )
+                })
+            })
             .collect_into_vec(&mut partials);
         let dd = ordered_sum(&partials)[0];
         self.partials = partials;
@@ -510,7 +534,7 @@ impl<'a> Tiled<'a> {
     /// direction: with the multipliers fixed, `dn − d` is the change of the gradient).
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
-    fn band_direction(&self, r0: usize, nr: usize, v: &[f32], vs: usize, dn: &mut [f32], rm: &mut [f32], sc: &mut Scratch, mdb: f32, inv_beta: f32) -> [f64; 4] {
+    fn band_direction(&self, r0: usize, nr: usize, v: &[f32], vs: usize, dn: &mut [f32], rm: &mut [f32], sc: &mut Scratch<'_>, mdb: f32, inv_beta: f32) -> [f64; 4] {
         let (t, w, m) = (self.t, self.w, self.m);
         let (wt, wy, wx) = (self.wt, self.wy, self.wx);
         let plane = t * w;
@@ -571,9 +595,8 @@ impl<'a> Tiled<'a> {
             .zip(s1.par_chunks_mut(band))
             .zip(s2.par_chunks_mut(band))
             .enumerate()
-            .map_init(
-                || Scratch::new(w),
-                |sc, (bi, ((o0, o1), o2))| {
+            .map(|(bi, ((o0, o1), o2))| {
+                with_scratch(&[], w, |[], sc| {
                     simd(#[inline(always)] || {
                         let r0 = bi * rows;
                         let mut l4 = [0f64; 8];
@@ -605,8 +628,8 @@ impl<'a> Tiled<'a> {
                         }
                         l4
                     })
-                },
-            )
+                })
+            })
             .collect_into_vec(&mut partials);
         let l4 = ordered_sum(&partials)[0];
         self.partials = partials;
@@ -625,9 +648,8 @@ impl<'a> Tiled<'a> {
         d
             .par_chunks(rows * plane)
             .enumerate()
-            .map_init(
-                || (Scratch::new(w), vec![0f32; m * w]),
-                |(sc, ad), (bi, dc)| {
+            .map(|(bi, dc)| {
+                with_scratch(&[m * w], w, |[ad], sc| {
                     simd(#[inline(always)] || {
                         let r0 = bi * rows;
                         let mut acc = [0f64; 8];
@@ -655,8 +677,8 @@ impl<'a> Tiled<'a> {
                         }
                         acc
                     })
-                },
-            )
+                })
+            })
             .collect_into_vec(&mut partials);
         let [ddd, ad2, dn, ..] = ordered_sum(&partials);
         self.partials = partials;
