@@ -22,7 +22,7 @@
 //! multiplier terms `(Dᵀσ + Aᵀδ)/β` of TVAL3 are folded into the band's own terms, so neither
 //! they nor the two gradients are stored; with the multipliers fixed between outer updates the
 //! Barzilai–Borwein sums use the change of `d` itself. That is about 8 reads and 1 write of the
-//! cube in the trial sweep and 6 reads and 4 writes in the accept sweep, against about 75
+//! cube in the trial sweep and 6 reads and 4 writes in the accept sweep, against about 100
 //! passes of the straightforward solver. Every band runs under the kernels' SIMD dispatch (its
 //! closure inlined, so AVX-512 or AVX2 code is generated for it), and the bands' sums are added
 //! in band order.
