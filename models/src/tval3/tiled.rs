@@ -90,7 +90,9 @@ fn lane_sum(v: &[f32]) -> f64 {
 
 /// Per-task scratch of one row segment: x-differences and the per-column terms of the sums.
 struct Scratch<'s> {
+    dt: &'s mut [f32],
     dx: &'s mut [f32],
+    dt2: &'s mut [f32],
     dx2: &'s mut [f32],
     e0: &'s mut [f32],
     e1: &'s mut [f32],
@@ -105,14 +107,14 @@ thread_local! {
 }
 
 /// Run `f` with this thread's scratch split into buffers of the lengths `sizes` and a
-/// [`Scratch`] of row segments of `w` values. The buffers hold whatever the last band left:
+/// [`Scratch`] of row chunks of `w` values. The buffers hold whatever the last band left:
 /// every band writes a value before reading it. (A band never calls into the thread pool, so
 /// the scratch is never borrowed twice.)
 #[inline(always)]
 fn with_scratch<const N: usize, R>(sizes: &[usize; N], w: usize, f: impl FnOnce([&mut [f32]; N], &mut Scratch<'_>) -> R) -> R {
     SCRATCH.with(|cell| {
         let mut buf = cell.borrow_mut();
-        let total = sizes.iter().sum::<usize>() + 6 * w;
+        let total = sizes.iter().sum::<usize>() + 8 * w;
         if buf.len() < total {
             buf.resize(total, 0.0);
         }
@@ -122,12 +124,14 @@ fn with_scratch<const N: usize, R>(sizes: &[usize; N], w: usize, f: impl FnOnce(
             rest = tail;
             head
         });
+        let (dt, rest) = rest.split_at_mut(w);
         let (dx, rest) = rest.split_at_mut(w);
+        let (dt2, rest) = rest.split_at_mut(w);
         let (dx2, rest) = rest.split_at_mut(w);
         let (e0, rest) = rest.split_at_mut(w);
         let (e1, rest) = rest.split_at_mut(w);
         let (e2, e3) = rest.split_at_mut(w);
-        f(parts, &mut Scratch { dx, dx2, e0, e1, e2, e3 })
+        f(parts, &mut Scratch { dt, dx, dt2, dx2, e0, e1, e2, e3 })
     })
 }
 
@@ -140,6 +144,58 @@ fn shrink1(z: f32, k: f32) -> f32 {
 /// The sums of every task, added in task order.
 fn ordered_sum(partials: &[[f64; 8]]) -> [f64; 8] {
     partials.iter().fold([0.0; 8], |a, p| std::array::from_fn(|k| a[k] + p[k]))
+}
+
+/// The t and x forward differences of the values `k0..k1` (whole planes) of one frame row
+/// `cur [T, W]` (periodic in both), into `dt[..k1 − k0]`, `dx[..k1 − k0]`:
+/// `dt[j, c] = wt·(cur[j+1, c] − cur[j, c])`, `dx[j, c] = wx·(cur[j, c+1] − cur[j, c])`.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn diffs_tx(cur: &[f32], w: usize, k0: usize, k1: usize, wt: f32, wx: f32, dt: &mut [f32], dx: &mut [f32]) {
+    let plane = cur.len();
+    let n = k1 - k0;
+    let inner = (plane - w).min(k1).max(k0) - k0; // values whose next plane is in the row
+    let (c, nx) = (&cur[k0..k1], &cur[k0 + w..k0 + w + inner]);
+    for k in 0..inner {
+        dt[k] = wt * (nx[k] - c[k]);
+    }
+    for k in inner..n {
+        dt[k] = wt * (cur[k0 + k + w - plane] - c[k]);
+    }
+    for (seg, out) in c.chunks_exact(w).zip(dx[..n].chunks_exact_mut(w)) {
+        diff_x(seg, wx, out);
+    }
+}
+
+/// The t and x parts of `Dᵀ` on the values `k0..k1` (whole planes) of one frame row:
+/// `out[j, c] = wt·(vt[j−1, c] − vt[j, c]) + wx·(vx[j, c−1] − vx[j, c])` (periodic), into
+/// `out[..k1 − k0]`.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn adjoint_diffs_tx(vt: &[f32], vx: &[f32], w: usize, k0: usize, k1: usize, wt: f32, wx: f32, out: &mut [f32]) {
+    let plane = vt.len();
+    let n = k1 - k0;
+    let wrap = if k0 == 0 { w } else { 0 }; // the first plane's previous plane is the last one
+    for k in 0..wrap {
+        out[k] = wt * (vt[plane - w + k] - vt[k]);
+    }
+    let (c, pv) = (&vt[k0 + wrap..k1], &vt[k0 + wrap - w..k1 - w]);
+    for ((o, &a), &b) in out[wrap..n].iter_mut().zip(pv).zip(c) {
+        *o = wt * (a - b);
+    }
+    for (seg, o) in vx[k0..k1].chunks_exact(w).zip(out[..n].chunks_exact_mut(w)) {
+        o[0] += wx * (seg[w - 1] - seg[0]);
+        for c in 1..w {
+            o[c] += wx * (seg[c - 1] - seg[c]);
+        }
+    }
+}
+
+/// Values per chunk of a frame row: whole planes, at least 512 values (one plane of a wide
+/// frame, several of a narrow one), so the loops run long and their terms stay in L1.
+#[inline(always)]
+fn chunk_len(w: usize) -> usize {
+    (512 / w).max(1) * w
 }
 
 /// `out[c] = wx·(cur[c+1] − cur[c])`, periodic.
@@ -260,12 +316,13 @@ impl<'a> Tiled<'a> {
         let mut partials = std::mem::take(&mut self.partials);
         let this = &*self;
         let (up, d, wv, sg) = (&this.up, &this.d, &this.wv, &this.sigma);
+        let chunk = chunk_len(w);
         u
             .par_chunks_mut(rows * plane)
             .zip(resid.par_chunks_mut(rows * m * w))
             .enumerate()
             .map(|(bi, (uc, rc))| {
-                with_scratch(&[(rows + 1) * plane], w, |[ut], sc| {
+                with_scratch(&[(rows + 1) * plane], chunk, |[ut], sc| {
                     simd(#[inline(always)] || {
                         let r0 = bi * rows;
                         let nr = uc.len() / plane;
@@ -284,27 +341,26 @@ impl<'a> Tiled<'a> {
                         for rr in 0..nr {
                             let r = r0 + rr;
                             let rn = (r + 1) % h;
-                            for j in 0..t {
-                                let jn = (j + 1) % t;
-                                let cur = &ut[(rr * t + j) * w..][..w];
-                                let nt = &ut[(rr * t + jn) * w..][..w];
-                                let bl = &ut[((rr + 1) * t + j) * w..][..w];
-                                let gi = (r * t + j) * w;
-                                let pc = &up[gi..gi + w];
-                                let pn = &up[(r * t + jn) * w..][..w];
-                                let pb = &up[(rn * t + j) * w..][..w];
-                                diff_x(cur, wx, &mut sc.dx);
-                                diff_x(pc, wx, &mut sc.dx2);
-                                let (w0, w1, w2) = (&wv[0][gi..gi + w], &wv[1][gi..gi + w], &wv[2][gi..gi + w]);
-                                let (s0, s1, s2) = (&sg[0][gi..gi + w], &sg[1][gi..gi + w], &sg[2][gi..gi + w]);
-                                let (dxt, dxp) = (&sc.dx[..w], &sc.dx2[..w]);
-                                let (e0, e1, e2) = (&mut sc.e0[..w], &mut sc.e1[..w], &mut sc.e2[..w]);
-                                for c in 0..w {
-                                    let (a0, a1, a2) = (wt * (nt[c] - cur[c]) - w0[c], wy * (bl[c] - cur[c]) - w1[c], dxt[c] - w2[c]);
-                                    let (p0, p1, p2) = (wt * (pn[c] - pc[c]) - w0[c], wy * (pb[c] - pc[c]) - w1[c], dxp[c] - w2[c]);
-                                    e0[c] = a0 * a0 + a1 * a1 + a2 * a2;
-                                    e1[c] = a0 * p0 + a1 * p1 + a2 * p2;
-                                    e2[c] = a0 * s0[c] + a1 * s1[c] + a2 * s2[c];
+                            let (cur, bl) = (&ut[rr * plane..(rr + 1) * plane], &ut[(rr + 1) * plane..(rr + 2) * plane]);
+                            let gi = r * plane;
+                            let (pc, pb) = (&up[gi..gi + plane], &up[rn * plane..(rn + 1) * plane]);
+                            for k0 in (0..plane).step_by(chunk) {
+                                let k1 = (k0 + chunk).min(plane);
+                                let n = k1 - k0;
+                                diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
+                                diffs_tx(pc, w, k0, k1, wt, wx, sc.dt2, sc.dx2);
+                                let g = gi + k0;
+                                let (w0, w1, w2) = (&wv[0][g..g + n], &wv[1][g..g + n], &wv[2][g..g + n]);
+                                let (s0, s1, s2) = (&sg[0][g..g + n], &sg[1][g..g + n], &sg[2][g..g + n]);
+                                let (cu, bu, pcu, pbu) = (&cur[k0..k1], &bl[k0..k1], &pc[k0..k1], &pb[k0..k1]);
+                                let (dtt, dxt, dtp, dxp) = (&sc.dt[..n], &sc.dx[..n], &sc.dt2[..n], &sc.dx2[..n]);
+                                let (e0, e1, e2) = (&mut sc.e0[..n], &mut sc.e1[..n], &mut sc.e2[..n]);
+                                for k in 0..n {
+                                    let (a0, a1, a2) = (dtt[k] - w0[k], wy * (bu[k] - cu[k]) - w1[k], dxt[k] - w2[k]);
+                                    let (p0, p1, p2) = (dtp[k] - w0[k], wy * (pbu[k] - pcu[k]) - w1[k], dxp[k] - w2[k]);
+                                    e0[k] = a0 * a0 + a1 * a1 + a2 * a2;
+                                    e1[k] = a0 * p0 + a1 * p1 + a2 * p2;
+                                    e2[k] = a0 * s0[k] + a1 * s1[k] + a2 * s2[k];
                                 }
                                 acc[0] += lane_sum(e0);
                                 acc[1] += lane_sum(e1);
@@ -390,41 +446,51 @@ impl<'a> Tiled<'a> {
         let mut partials = std::mem::take(&mut self.partials);
         let this = &*self;
         let (u, sg) = (&this.u, &this.sigma);
+        let chunk = chunk_len(w);
         w0.par_chunks_mut(band)
             .zip(w1.par_chunks_mut(band))
             .zip(w2.par_chunks_mut(band))
             .zip(dn.par_chunks_mut(band))
             .enumerate()
             .map(|(bi, (((o0, o1), o2), od))| {
-                with_scratch(&[3 * (rows + 1) * plane, 3 * w, m * w], w, |[v, wseg, rm], sc| {
+                with_scratch(&[3 * (rows + 1) * plane, 3 * chunk, m * w], chunk, |[v, wseg, rm], sc| {
                     simd(#[inline(always)] || {
                         let r0 = bi * rows;
                         let nr = o0.len() / plane;
                         let vs = (nr + 1) * plane; // one component of V on the band and the halo row above
                         let mut acc = [0f64; 8];
-                        // w-step and V − σ/β on rows r0 − 1 … r0 + nr − 1 (local row rr = 0 is the halo)
+                        // w-step and V − σ/β on rows r0 − 1 … r0 + nr − 1 (local row rr = 0 is the halo),
+                        // a chunk of planes at a time
                         for rr in 0..=nr {
                             let r = (r0 + h + rr - 1) % h;
                             let rn = (r + 1) % h;
-                            for j in 0..t {
-                                let jn = (j + 1) % t;
-                                let gi = (r * t + j) * w;
-                                let cur = &u[gi..gi + w];
-                                let nt = &u[(r * t + jn) * w..][..w];
-                                let bl = &u[(rn * t + j) * w..][..w];
-                                diff_x(cur, wx, &mut sc.dx);
-                                let dx = &sc.dx[..w];
-                                let (s0, s1, s2) = (&sg[0][gi..gi + w], &sg[1][gi..gi + w], &sg[2][gi..gi + w]);
-                                let lo = (rr * t + j) * w;
+                            let gi = r * plane;
+                            let (cur, bl) = (&u[gi..gi + plane], &u[rn * plane..(rn + 1) * plane]);
+                            for k0 in (0..plane).step_by(chunk) {
+                                let k1 = (k0 + chunk).min(plane);
+                                let n = k1 - k0;
+                                diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
+                                let (dtt, dx) = (&sc.dt[..n], &sc.dx[..n]);
+                                let g = gi + k0;
+                                let (s0, s1, s2) = (&sg[0][g..g + n], &sg[1][g..g + n], &sg[2][g..g + n]);
+                                let (cu, bu) = (&cur[k0..k1], &bl[k0..k1]);
+                                let lo = rr * plane + k0;
                                 let (va, rest) = v.split_at_mut(vs);
                                 let (vb, vc) = rest.split_at_mut(vs);
-                                let (v0, v1, v2) = (&mut va[lo..lo + w], &mut vb[lo..lo + w], &mut vc[lo..lo + w]);
-                                let (ws0, rest) = wseg.split_at_mut(w);
-                                let (ws1, ws2) = rest.split_at_mut(w);
-                                let (e0, e1, e2) = (&mut sc.e0[..w], &mut sc.e1[..w], &mut sc.e2[..w]);
-                                for c in 0..w {
-                                    let (d0, d1, d2) = (wt * (nt[c] - cur[c]), wy * (bl[c] - cur[c]), dx[c]);
-                                    let (z0, z1, z2) = (d0 - s0[c] * inv, d1 - s1[c] * inv, d2 - s2[c] * inv);
+                                let (v0, v1, v2) = (&mut va[lo..lo + n], &mut vb[lo..lo + n], &mut vc[lo..lo + n]);
+                                // the band's own rows write w in place, the halo row into scratch
+                                let (ws0, ws1, ws2): (&mut [f32], &mut [f32], &mut [f32]) = if rr >= 1 {
+                                    let k = (rr - 1) * plane + k0;
+                                    (&mut o0[k..k + n], &mut o1[k..k + n], &mut o2[k..k + n])
+                                } else {
+                                    let (a, rest) = wseg.split_at_mut(chunk);
+                                    let (b, c) = rest.split_at_mut(chunk);
+                                    (&mut a[..n], &mut b[..n], &mut c[..n])
+                                };
+                                let (e0, e1, e2) = (&mut sc.e0[..n], &mut sc.e1[..n], &mut sc.e2[..n]);
+                                for k in 0..n {
+                                    let (d0, d1, d2) = (dtt[k], wy * (bu[k] - cu[k]), dx[k]);
+                                    let (z0, z1, z2) = (d0 - s0[k] * inv, d1 - s1[k] * inv, d2 - s2[k] * inv);
                                     let (a, b, e, n1) = if ISO {
                                         let nrm = (z0 * z0 + z1 * z1 + z2 * z2).sqrt();
                                         let f = if nrm > 0.0 { (nrm - inv).max(0.0) / nrm } else { 0.0 };
@@ -435,21 +501,17 @@ impl<'a> Tiled<'a> {
                                     };
                                     let (p0, p1, p2) = (d0 - a, d1 - b, d2 - e);
                                     // V − σ/β = z − w
-                                    v0[c] = z0 - a;
-                                    v1[c] = z1 - b;
-                                    v2[c] = z2 - e;
-                                    ws0[c] = a;
-                                    ws1[c] = b;
-                                    ws2[c] = e;
-                                    e0[c] = n1;
-                                    e1[c] = p0 * p0 + p1 * p1 + p2 * p2;
-                                    e2[c] = p0 * s0[c] + p1 * s1[c] + p2 * s2[c];
+                                    v0[k] = z0 - a;
+                                    v1[k] = z1 - b;
+                                    v2[k] = z2 - e;
+                                    ws0[k] = a;
+                                    ws1[k] = b;
+                                    ws2[k] = e;
+                                    e0[k] = n1;
+                                    e1[k] = p0 * p0 + p1 * p1 + p2 * p2;
+                                    e2[k] = p0 * s0[k] + p1 * s1[k] + p2 * s2[k];
                                 }
                                 if rr >= 1 {
-                                    let k = ((rr - 1) * t + j) * w;
-                                    o0[k..k + w].copy_from_slice(ws0);
-                                    o1[k..k + w].copy_from_slice(ws1);
-                                    o2[k..k + w].copy_from_slice(ws2);
                                     acc[0] += lane_sum(e0);
                                     acc[1] += lane_sum(e1);
                                     acc[2] += lane_sum(e2);
@@ -490,7 +552,7 @@ impl<'a> Tiled<'a> {
         dn.par_chunks_mut(rows * plane)
             .enumerate()
             .map(|(bi, od)| {
-                with_scratch(&[3 * (rows + 1) * plane, m * w], w, |[v, rm], sc| {
+                with_scratch(&[3 * (rows + 1) * plane, m * w], chunk_len(w), |[v, rm], sc| {
                     simd(#[inline(always)] || {
                         let r0 = bi * rows;
                         let nr = od.len() / plane;
@@ -550,27 +612,29 @@ impl<'a> Tiled<'a> {
                 *o = mdb * x - inv_beta * dl;
             }
             self.adjoint_row(r, rm, &mut dn[lo..lo + plane]);
-            for j in 0..t {
-                let jp = (j + t - 1) % t;
-                let k0 = (rr * t + j) * w;
-                let (vt, vt_prev) = (&va[k0..k0 + w], &va[(rr * t + jp) * w..][..w]);
-                let (vy, vy_above) = (&vb[k0..k0 + w], &vb[((rr - 1) * t + j) * w..][..w]);
-                let vx = &vc[k0..k0 + w];
-                let o = &mut dn[lo + j * w..lo + (j + 1) * w];
-                o[0] += wt * (vt_prev[0] - vt[0]) + wy * (vy_above[0] - vy[0]) + wx * (vx[w - 1] - vx[0]);
-                for c in 1..w {
-                    o[c] += wt * (vt_prev[c] - vt[c]) + wy * (vy_above[c] - vy[c]) + wx * (vx[c - 1] - vx[c]);
-                }
-                let gi = (r * t + j) * w;
-                let (uc, pc, dc) = (&u[gi..gi + w], &up[gi..gi + w], &d[gi..gi + w]);
-                let (e0, e1, e2, e3) = (&mut sc.e0[..w], &mut sc.e1[..w], &mut sc.e2[..w], &mut sc.e3[..w]);
-                for c in 0..w {
-                    let di = o[c];
-                    let du = uc[c] - pc[c];
-                    e0[c] = di * di;
-                    e1[c] = du * du;
-                    e2[c] = du * (di - dc[c]);
-                    e3[c] = pc[c] * pc[c];
+            // Dᵀv of the row, a chunk of planes at a time: t and x parts, then the y part with the
+            // row above, and the sums
+            let rk = rr * plane;
+            let (vt, vy, vy_above, vx) = (&va[rk..rk + plane], &vb[rk..rk + plane], &vb[rk - plane..rk], &vc[rk..rk + plane]);
+            let chunk = chunk_len(w);
+            for k0 in (0..plane).step_by(chunk) {
+                let k1 = (k0 + chunk).min(plane);
+                let n = k1 - k0;
+                adjoint_diffs_tx(vt, vx, w, k0, k1, wt, wx, sc.dt);
+                let g = r * plane + k0;
+                let (uc, pc, dc) = (&u[g..g + n], &up[g..g + n], &d[g..g + n]);
+                let (vyc, vya) = (&vy[k0..k1], &vy_above[k0..k1]);
+                let o = &mut dn[lo + k0..lo + k1];
+                let tx = &sc.dt[..n];
+                let (e0, e1, e2, e3) = (&mut sc.e0[..n], &mut sc.e1[..n], &mut sc.e2[..n], &mut sc.e3[..n]);
+                for k in 0..n {
+                    let di = o[k] + tx[k] + wy * (vya[k] - vyc[k]);
+                    o[k] = di;
+                    let du = uc[k] - pc[k];
+                    e0[k] = di * di;
+                    e1[k] = du * du;
+                    e2[k] = du * (di - dc[k]);
+                    e3[k] = pc[k] * pc[k];
                 }
                 acc[0] += lane_sum(e0);
                 acc[1] += lane_sum(e1);
