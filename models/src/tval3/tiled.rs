@@ -322,26 +322,28 @@ impl<'a> Tiled<'a> {
             .zip(resid.par_chunks_mut(rows * m * w))
             .enumerate()
             .map(|(bi, (uc, rc))| {
-                with_scratch(&[(rows + 1) * plane], chunk, |[ut], sc| {
+                with_scratch(&[plane], chunk, |[halo], sc| {
                     simd(#[inline(always)] || {
                         let r0 = bi * rows;
                         let nr = uc.len() / plane;
-                        // u on the band's rows and the halo row below
+                        // u on the band's rows (in place) and the halo row below (scratch)
                         for rr in 0..=nr {
                             let src = ((r0 + rr) % h) * plane;
-                            let (o, p, dd) = (&mut ut[rr * plane..(rr + 1) * plane], &up[src..src + plane], &d[src..src + plane]);
+                            let o = if rr < nr { &mut uc[rr * plane..(rr + 1) * plane] } else { &mut halo[..] };
+                            let (p, dd) = (&up[src..src + plane], &d[src..src + plane]);
                             if nonneg {
                                 o.iter_mut().zip(p).zip(dd).for_each(|((o, &p), &d)| *o = (p - tau * d).max(0.0));
                             } else {
                                 o.iter_mut().zip(p).zip(dd).for_each(|((o, &p), &d)| *o = p - tau * d);
                             }
                         }
-                        uc.copy_from_slice(&ut[..nr * plane]);
+                        let (uc, halo) = (&*uc, &*halo);
+                        let row = |rr: usize| if rr < nr { &uc[rr * plane..(rr + 1) * plane] } else { halo };
                         let mut acc = [0f64; 8];
                         for rr in 0..nr {
                             let r = r0 + rr;
                             let rn = (r + 1) % h;
-                            let (cur, bl) = (&ut[rr * plane..(rr + 1) * plane], &ut[(rr + 1) * plane..(rr + 2) * plane]);
+                            let (cur, bl) = (row(rr), row(rr + 1));
                             let gi = r * plane;
                             let (pc, pb) = (&up[gi..gi + plane], &up[rn * plane..(rn + 1) * plane]);
                             for k0 in (0..plane).step_by(chunk) {
@@ -368,7 +370,7 @@ impl<'a> Tiled<'a> {
                             }
                             // A u − b of this row
                             let ro = &mut rc[rr * m * w..(rr + 1) * m * w];
-                            this.forward_row(r, &ut[rr * plane..(rr + 1) * plane], ro);
+                            this.forward_row(r, cur, ro);
                             let off = r * m * w;
                             let (b, rp, dl) = (&this.b[off..off + m * w], &this.resid_p[off..off + m * w], &this.delta[off..off + m * w]);
                             for mm in 0..m {
