@@ -944,7 +944,7 @@ mod tests {
         // bands, the short band and the periodic wrap are all exercised. Rounding differs between
         // the two solvers (sums in other orders, affine updates): on some frames an Armijo test
         // lands within rounding of its threshold and the two take different (equally valid)
-        // paths — 20 rows do that in 2 of the 8 cases here, 8, 24 and 28 rows in none.
+        // paths (20-row frames did in 2 of the 8 cases with the first banded solver).
         let (h, w) = (28, 12);
         let mut checked = 0;
         for (sampling, irf) in [(Sampling::Oversample(2), Irf::Ideal), (Sampling::Heterodyne(4), Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 })] {
