@@ -455,7 +455,7 @@ impl<'a> Tiled<'a> {
             .zip(dn.par_chunks_mut(band))
             .enumerate()
             .map(|(bi, (((o0, o1), o2), od))| {
-                with_scratch(&[3 * (rows + 1) * plane, 3 * chunk, m * w], chunk, |[v, wseg, rm], sc| {
+                with_scratch(&[3 * (rows + 1) * plane, m * w], chunk, |[v, rm], sc| {
                     simd(#[inline(always)] || {
                         let r0 = bi * rows;
                         let nr = o0.len() / plane;
@@ -468,6 +468,33 @@ impl<'a> Tiled<'a> {
                             let rn = (r + 1) % h;
                             let gi = r * plane;
                             let (cur, bl) = (&u[gi..gi + plane], &u[rn * plane..(rn + 1) * plane]);
+                            if rr == 0 {
+                                // the halo row: the direction needs only the y component of V − σ/β
+                                let vb = &mut v[vs..2 * vs];
+                                for k0 in (0..plane).step_by(chunk) {
+                                    let k1 = (k0 + chunk).min(plane);
+                                    let n = k1 - k0;
+                                    let g = gi + k0;
+                                    let (cu, bu, s1) = (&cur[k0..k1], &bl[k0..k1], &sg[1][g..g + n]);
+                                    let v1 = &mut vb[k0..k1];
+                                    if ISO {
+                                        diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
+                                        let (dtt, dx, s0, s2) = (&sc.dt[..n], &sc.dx[..n], &sg[0][g..g + n], &sg[2][g..g + n]);
+                                        for k in 0..n {
+                                            let (z0, z1, z2) = (dtt[k] - s0[k] * inv, wy * (bu[k] - cu[k]) - s1[k] * inv, dx[k] - s2[k] * inv);
+                                            let nrm = (z0 * z0 + z1 * z1 + z2 * z2).sqrt();
+                                            let f = if nrm > 0.0 { (nrm - inv).max(0.0) / nrm } else { 0.0 };
+                                            v1[k] = z1 - f * z1;
+                                        }
+                                    } else {
+                                        for k in 0..n {
+                                            let z1 = wy * (bu[k] - cu[k]) - s1[k] * inv;
+                                            v1[k] = z1 - shrink1(z1, inv);
+                                        }
+                                    }
+                                }
+                                continue;
+                            }
                             for k0 in (0..plane).step_by(chunk) {
                                 let k1 = (k0 + chunk).min(plane);
                                 let n = k1 - k0;
@@ -480,15 +507,9 @@ impl<'a> Tiled<'a> {
                                 let (va, rest) = v.split_at_mut(vs);
                                 let (vb, vc) = rest.split_at_mut(vs);
                                 let (v0, v1, v2) = (&mut va[lo..lo + n], &mut vb[lo..lo + n], &mut vc[lo..lo + n]);
-                                // the band's own rows write w in place, the halo row into scratch
-                                let (ws0, ws1, ws2): (&mut [f32], &mut [f32], &mut [f32]) = if rr >= 1 {
-                                    let k = (rr - 1) * plane + k0;
-                                    (&mut o0[k..k + n], &mut o1[k..k + n], &mut o2[k..k + n])
-                                } else {
-                                    let (a, rest) = wseg.split_at_mut(chunk);
-                                    let (b, c) = rest.split_at_mut(chunk);
-                                    (&mut a[..n], &mut b[..n], &mut c[..n])
-                                };
+                                // w of the band's own rows, in place
+                                let k = (rr - 1) * plane + k0;
+                                let (ws0, ws1, ws2) = (&mut o0[k..k + n], &mut o1[k..k + n], &mut o2[k..k + n]);
                                 let (e0, e1, e2) = (&mut sc.e0[..n], &mut sc.e1[..n], &mut sc.e2[..n]);
                                 for k in 0..n {
                                     let (d0, d1, d2) = (dtt[k], wy * (bu[k] - cu[k]), dx[k]);
@@ -513,11 +534,9 @@ impl<'a> Tiled<'a> {
                                     e1[k] = p0 * p0 + p1 * p1 + p2 * p2;
                                     e2[k] = p0 * s0[k] + p1 * s1[k] + p2 * s2[k];
                                 }
-                                if rr >= 1 {
-                                    acc[0] += lane_sum(e0);
-                                    acc[1] += lane_sum(e1);
-                                    acc[2] += lane_sum(e2);
-                                }
+                                acc[0] += lane_sum(e0);
+                                acc[1] += lane_sum(e1);
+                                acc[2] += lane_sum(e2);
                             }
                         }
                         let [a3, a4, a5, a6] = this.band_direction(r0, nr, v, vs, od, rm, sc, mdb, inv);
