@@ -570,10 +570,11 @@ impl<'a> Tiled<'a> {
         let mut partials = std::mem::take(&mut self.partials);
         let this = &*self;
         let (u, sg, wv) = (&this.u, &this.sigma, &this.wv);
+        let chunk = chunk_len(w);
         dn.par_chunks_mut(rows * plane)
             .enumerate()
             .map(|(bi, od)| {
-                with_scratch(&[3 * (rows + 1) * plane, m * w], chunk_len(w), |[v, rm], sc| {
+                with_scratch(&[3 * (rows + 1) * plane, m * w], chunk, |[v, rm], sc| {
                     simd(#[inline(always)] || {
                         let r0 = bi * rows;
                         let nr = od.len() / plane;
@@ -581,20 +582,22 @@ impl<'a> Tiled<'a> {
                         for rr in 0..=nr {
                             let r = (r0 + h + rr - 1) % h;
                             let rn = (r + 1) % h;
-                            for j in 0..t {
-                                let gi = (r * t + j) * w;
-                                let cur = &u[gi..gi + w];
-                                let nt = &u[(r * t + (j + 1) % t) * w..][..w];
-                                let bl = &u[(rn * t + j) * w..][..w];
-                                diff_x(cur, wx, &mut sc.dx);
-                                let dx = &sc.dx[..w];
-                                let lo = (rr * t + j) * w;
+                            let gi = r * plane;
+                            let (cur, bl) = (&u[gi..gi + plane], &u[rn * plane..(rn + 1) * plane]);
+                            for k0 in (0..plane).step_by(chunk) {
+                                let k1 = (k0 + chunk).min(plane);
+                                let n = k1 - k0;
+                                diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
+                                let (dtt, dx) = (&sc.dt[..n], &sc.dx[..n]);
+                                let g = gi + k0;
+                                let (cu, bu) = (&cur[k0..k1], &bl[k0..k1]);
+                                let lo = rr * plane + k0;
                                 let (va, rest) = v.split_at_mut(vs);
                                 let (vb, vc) = rest.split_at_mut(vs);
-                                for c in 0..w {
-                                    va[lo + c] = wt * (nt[c] - cur[c]) - wv[0][gi + c] - sg[0][gi + c] * inv;
-                                    vb[lo + c] = wy * (bl[c] - cur[c]) - wv[1][gi + c] - sg[1][gi + c] * inv;
-                                    vc[lo + c] = dx[c] - wv[2][gi + c] - sg[2][gi + c] * inv;
+                                for k in 0..n {
+                                    va[lo + k] = dtt[k] - wv[0][g + k] - sg[0][g + k] * inv;
+                                    vb[lo + k] = wy * (bu[k] - cu[k]) - wv[1][g + k] - sg[1][g + k] * inv;
+                                    vc[lo + k] = dx[k] - wv[2][g + k] - sg[2][g + k] * inv;
                                 }
                             }
                         }
@@ -675,33 +678,35 @@ impl<'a> Tiled<'a> {
         let [mut s0, mut s1, mut s2] = std::mem::take(&mut self.sigma);
         let mut partials = std::mem::take(&mut self.partials);
         let (u, wv) = (&self.u, &self.wv);
+        let chunk = chunk_len(w);
         s0
             .par_chunks_mut(band)
             .zip(s1.par_chunks_mut(band))
             .zip(s2.par_chunks_mut(band))
             .enumerate()
             .map(|(bi, ((o0, o1), o2))| {
-                with_scratch(&[], w, |[], sc| {
+                with_scratch(&[], chunk, |[], sc| {
                     simd(#[inline(always)] || {
                         let r0 = bi * rows;
                         let mut l4 = [0f64; 8];
                         for rr in 0..o0.len() / plane {
                             let r = r0 + rr;
                             let rn = (r + 1) % h;
-                            for j in 0..t {
-                                let gi = (r * t + j) * w;
-                                let cur = &u[gi..gi + w];
-                                let nt = &u[(r * t + (j + 1) % t) * w..][..w];
-                                let bl = &u[(rn * t + j) * w..][..w];
-                                diff_x(cur, wx, &mut sc.dx);
-                                let dx = &sc.dx[..w];
-                                let lo = (rr * t + j) * w;
-                                let (a0, a1, a2) = (&mut o0[lo..lo + w], &mut o1[lo..lo + w], &mut o2[lo..lo + w]);
-                                let (w0, w1, w2) = (&wv[0][gi..gi + w], &wv[1][gi..gi + w], &wv[2][gi..gi + w]);
-                                let e = &mut sc.e0[..w];
-                                for c in 0..w {
-                                    let v0 = wt * (nt[c] - cur[c]) - w0[c];
-                                    let v1 = wy * (bl[c] - cur[c]) - w1[c];
+                            let gi = r * plane;
+                            let (cur, bl) = (&u[gi..gi + plane], &u[rn * plane..(rn + 1) * plane]);
+                            for k0 in (0..plane).step_by(chunk) {
+                                let k1 = (k0 + chunk).min(plane);
+                                let n = k1 - k0;
+                                diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
+                                let (dtt, dx) = (&sc.dt[..n], &sc.dx[..n]);
+                                let (cu, bu) = (&cur[k0..k1], &bl[k0..k1]);
+                                let (lo, g) = (rr * plane + k0, gi + k0);
+                                let (a0, a1, a2) = (&mut o0[lo..lo + n], &mut o1[lo..lo + n], &mut o2[lo..lo + n]);
+                                let (w0, w1, w2) = (&wv[0][g..g + n], &wv[1][g..g + n], &wv[2][g..g + n]);
+                                let e = &mut sc.e0[..n];
+                                for c in 0..n {
+                                    let v0 = dtt[c] - w0[c];
+                                    let v1 = wy * (bu[c] - cu[c]) - w1[c];
                                     let v2 = dx[c] - w2[c];
                                     a0[c] -= beta * v0;
                                     a1[c] -= beta * v1;
@@ -730,29 +735,31 @@ impl<'a> Tiled<'a> {
         let mut partials = std::mem::take(&mut self.partials);
         let this = &*self;
         let d = &this.d;
+        let chunk = chunk_len(w);
         d
             .par_chunks(rows * plane)
             .enumerate()
             .map(|(bi, dc)| {
-                with_scratch(&[m * w], w, |[ad], sc| {
+                with_scratch(&[m * w], chunk, |[ad], sc| {
                     simd(#[inline(always)] || {
                         let r0 = bi * rows;
                         let mut acc = [0f64; 8];
                         for rr in 0..dc.len() / plane {
                             let r = r0 + rr;
                             let rn = (r + 1) % h;
-                            for j in 0..t {
-                                let gi = (r * t + j) * w;
-                                let cur = &d[gi..gi + w];
-                                let nt = &d[(r * t + (j + 1) % t) * w..][..w];
-                                let bl = &d[(rn * t + j) * w..][..w];
-                                diff_x(cur, wx, &mut sc.dx);
-                                let dx = &sc.dx[..w];
-                                let (e0, e1) = (&mut sc.e0[..w], &mut sc.e1[..w]);
-                                for c in 0..w {
-                                    let (a0, a1) = (wt * (nt[c] - cur[c]), wy * (bl[c] - cur[c]));
-                                    e0[c] = a0 * a0 + a1 * a1 + dx[c] * dx[c];
-                                    e1[c] = cur[c] * cur[c];
+                            let gi = r * plane;
+                            let (cur, bl) = (&d[gi..gi + plane], &d[rn * plane..(rn + 1) * plane]);
+                            for k0 in (0..plane).step_by(chunk) {
+                                let k1 = (k0 + chunk).min(plane);
+                                let n = k1 - k0;
+                                diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
+                                let (dtt, dx) = (&sc.dt[..n], &sc.dx[..n]);
+                                let (cu, bu) = (&cur[k0..k1], &bl[k0..k1]);
+                                let (e0, e1) = (&mut sc.e0[..n], &mut sc.e1[..n]);
+                                for c in 0..n {
+                                    let a1 = wy * (bu[c] - cu[c]);
+                                    e0[c] = dtt[c] * dtt[c] + a1 * a1 + dx[c] * dx[c];
+                                    e1[c] = cu[c] * cu[c];
                                 }
                                 acc[0] += lane_sum(e0);
                                 acc[2] += lane_sum(e1);
