@@ -59,7 +59,12 @@ fn bad_inputs_exit_2() {
     fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "0", "-o", "run0"], &["epochs"]);
     fails(d, &["train", "admm-net", "--resume", "-o", "nothing"], &["no run to resume"]);
     fails(d, &["reconstruct", "admm-net", "--run", "nothing", "--measurements", "y.npy", "-o", "x.npy"], &["nothing", "config.json"]);
+    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--lr-schedule", "linear", "-o", "runlr"], &["--lr-schedule", "linear"]);
+    assert!(!d.join("runlr").exists());
     ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "1", "-o", "run"]);
+    // new runs decay the learning rate along a cosine; the config records it
+    let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("run/config.json")).unwrap()).unwrap();
+    assert_eq!((cfg["lr_schedule"]["kind"].as_str(), cfg["lr_schedule"]["final_fraction"].as_f64()), (Some("cosine"), Some(0.01)));
     ok(d, &["codes", "generate", "--tap-constraint", "--length", "8", "--seed", "9", "-o", "other.json"]);
     fails(d, &["eval", "--dataset", "ds", "--codes", "other.json", "--decoder", "admm-net:run"], &["other codes"]);
     fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "magic"], &["unknown decoder"]);
