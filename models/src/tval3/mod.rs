@@ -946,7 +946,7 @@ mod tests {
         // lands within rounding of its threshold and the two take different (equally valid)
         // paths (20-row frames did in 2 of the 8 cases with the first banded solver).
         let (h, w) = (28, 12);
-        let mut checked = 0;
+        let (mut checked, mut updated) = (0, 0);
         for (sampling, irf) in [(Sampling::Oversample(2), Irf::Ideal), (Sampling::Heterodyne(4), Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 })] {
             let spec = SensorParams { sampling, irf, ..SensorParams::from_codes(&codes) }.validate().unwrap();
             let a = MeasurementMatrix::synthesize(&codes, &spec).unwrap();
@@ -971,10 +971,13 @@ mod tests {
                     // measured: 1e-5 to 5.6e-4 (rounding: sums in other orders, carried through 60 BB steps)
                     assert!(diff <= 1e-3 * norm, "{what}: relative difference {}", diff / norm);
                     checked += (rr.backtracks > 0) as usize;
+                    updated += (rr.outer > 1) as usize;
                 }
             }
         }
         assert!(checked > 0, "no run backtracked: the closed-form line search was not exercised");
+        // a multiplier update stores the w that the accept sweeps leave implicit
+        assert!(updated > 0, "no run updated its multipliers");
     }
 
     /// Same input, same bytes, whatever the number of threads: every sweep adds its bands'

@@ -18,11 +18,15 @@
 //!   band), the next direction and the next Barzilai–Borwein sums with the stopping test's
 //!   norms.
 //!
+//! `w` itself is not stored: the accepted `u` becomes the next step's `up`, so the trial sweep
+//! recomputes `w = shrink(D up − σ/β, 1/β)` from values it reads anyway (bit for bit the accept
+//! sweep's). Only a multiplier update, which changes `σ`, stores it ([`Tiled::update_sigma`]).
+//!
 //! The direction is kept in the form `d = Dᵀ(V − σ/β) + s·Aᵀ((μ/β)(Au − b) − δ/β)`: the
 //! multiplier terms `(Dᵀσ + Aᵀδ)/β` of TVAL3 are folded into the band's own terms, so neither
 //! they nor the two gradients are stored; with the multipliers fixed between outer updates the
-//! Barzilai–Borwein sums use the change of `d` itself. That is about 8 reads and 1 write of the
-//! cube in the trial sweep and 6 reads and 4 writes in the accept sweep, against about 100
+//! Barzilai–Borwein sums use the change of `d` itself. That is about 5 reads and 1 write of the
+//! cube in the trial sweep and 6 reads and 1 write in the accept sweep, against about 100
 //! passes of the straightforward solver. Every band runs under the kernels' SIMD dispatch (its
 //! closure inlined, so AVX-512 or AVX2 code is generated for it), and the bands' sums are added
 //! in band order.
@@ -58,7 +62,13 @@ pub(super) struct Tiled<'a> {
     pub d: Vec<f32>,
     /// The next direction, written by the accept sweep while it reads `d`.
     dn: Vec<f32>,
+    /// `w` when it is stored (`w_inv` is `None`): only from a multiplier update to the next
+    /// accept sweep.
     pub wv: [Vec<f32>; 3],
+    /// `Some(1/β)` when `w` is implicit: `w = shrink(D p − σ/β, 1/β)` at the point `p` of the
+    /// last accept sweep (`u` until the next step swaps it into `up`), recomputed where it is
+    /// needed instead of stored (three cube writes and three reads fewer per iteration).
+    w_inv: Option<f32>,
     pub sigma: [Vec<f32>; 3],
     /// `Au − b` `[H, M, W]`.
     pub resid: Vec<f32>,
@@ -139,6 +149,20 @@ fn with_scratch<const N: usize, R>(sizes: &[usize; N], w: usize, f: impl FnOnce(
 #[inline(always)]
 fn shrink1(z: f32, k: f32) -> f32 {
     z.signum() * (z.abs() - k).max(0.0)
+}
+
+/// The w-step of one value: `w = shrink(z, k)` for `z = Du − σ/β`, `k = 1/β` (component-wise
+/// for the anisotropic TV, on the vector for the isotropic one), and its norm term.
+#[inline(always)]
+fn w_step<const ISO: bool>(z0: f32, z1: f32, z2: f32, k: f32) -> (f32, f32, f32, f32) {
+    if ISO {
+        let nrm = (z0 * z0 + z1 * z1 + z2 * z2).sqrt();
+        let f = if nrm > 0.0 { (nrm - k).max(0.0) / nrm } else { 0.0 };
+        (f * z0, f * z1, f * z2, f * nrm)
+    } else {
+        let (a, b, e) = (shrink1(z0, k), shrink1(z1, k), shrink1(z2, k));
+        (a, b, e, a.abs() + b.abs() + e.abs())
+    }
 }
 
 /// The sums of every task, added in task order.
@@ -245,6 +269,7 @@ impl<'a> Tiled<'a> {
             d: z(),
             dn: z(),
             wv: [z(), z(), z()],
+            w_inv: None,
             sigma: [z(), z(), z()],
             resid: zm(),
             resid_p: zm(),
@@ -308,6 +333,16 @@ impl<'a> Tiled<'a> {
     /// Trial sweep: `u = P(up − τ d)` and `Au − b` (into `u`, `resid`), and the objective along
     /// the step from `up` as a [`Trial`] (`lam*` hold the values at `up`).
     pub fn trial(&mut self, tau: f32) -> Trial {
+        match (self.w_inv, self.tv) {
+            (None, _) => self.trial_w::<false, false>(tau, 0.0),
+            (Some(k), TvNorm::Anisotropic) => self.trial_w::<true, false>(tau, k),
+            (Some(k), TvNorm::Isotropic) => self.trial_w::<true, true>(tau, k),
+        }
+    }
+
+    /// [`Tiled::trial`] with `w` read from `wv` (`IMPLICIT` false) or recomputed from `D up`
+    /// and `σ` with threshold `inv` (`ISO`: the isotropic shrinkage).
+    fn trial_w<const IMPLICIT: bool, const ISO: bool>(&mut self, tau: f32, inv: f32) -> Trial {
         let (t, h, w, m, rows) = (self.t, self.h, self.w, self.m, self.rows);
         let (wt, wy, wx, nonneg) = (self.wt, self.wy, self.wx, self.nonneg);
         let plane = t * w;
@@ -358,8 +393,15 @@ impl<'a> Tiled<'a> {
                                 let (dtt, dxt, dtp, dxp) = (&sc.dt[..n], &sc.dx[..n], &sc.dt2[..n], &sc.dx2[..n]);
                                 let (e0, e1, e2) = (&mut sc.e0[..n], &mut sc.e1[..n], &mut sc.e2[..n]);
                                 for k in 0..n {
-                                    let (a0, a1, a2) = (dtt[k] - w0[k], wy * (bu[k] - cu[k]) - w1[k], dxt[k] - w2[k]);
-                                    let (p0, p1, p2) = (dtp[k] - w0[k], wy * (pbu[k] - pcu[k]) - w1[k], dxp[k] - w2[k]);
+                                    let (q0, q1, q2) = (dtp[k], wy * (pbu[k] - pcu[k]), dxp[k]);
+                                    let (w0, w1, w2) = if IMPLICIT {
+                                        let (a, b, e, _) = w_step::<ISO>(q0 - s0[k] * inv, q1 - s1[k] * inv, q2 - s2[k] * inv, inv);
+                                        (a, b, e)
+                                    } else {
+                                        (w0[k], w1[k], w2[k])
+                                    };
+                                    let (a0, a1, a2) = (dtt[k] - w0, wy * (bu[k] - cu[k]) - w1, dxt[k] - w2);
+                                    let (p0, p1, p2) = (q0 - w0, q1 - w1, q2 - w2);
                                     e0[k] = a0 * a0 + a1 * a1 + a2 * a2;
                                     e1[k] = a0 * p0 + a1 * p1 + a2 * p2;
                                     e2[k] = a0 * s0[k] + a1 * s1[k] + a2 * s2[k];
@@ -443,22 +485,18 @@ impl<'a> Tiled<'a> {
         let inv = (1.0 / beta) as f32;
         let plane = t * w;
         let band = rows * plane;
-        let [mut w0, mut w1, mut w2] = std::mem::take(&mut self.wv);
         let mut dn = std::mem::take(&mut self.dn);
         let mut partials = std::mem::take(&mut self.partials);
         let this = &*self;
         let (u, sg) = (&this.u, &this.sigma);
         let chunk = chunk_len(w);
-        w0.par_chunks_mut(band)
-            .zip(w1.par_chunks_mut(band))
-            .zip(w2.par_chunks_mut(band))
-            .zip(dn.par_chunks_mut(band))
+        dn.par_chunks_mut(band)
             .enumerate()
-            .map(|(bi, (((o0, o1), o2), od))| {
+            .map(|(bi, od)| {
                 with_scratch(&[3 * (rows + 1) * plane, m * w], chunk, |[v, rm], sc| {
                     simd(#[inline(always)] || {
                         let r0 = bi * rows;
-                        let nr = o0.len() / plane;
+                        let nr = od.len() / plane;
                         let vs = (nr + 1) * plane; // one component of V on the band and the halo row above
                         let mut acc = [0f64; 8];
                         // w-step and V − σ/β on rows r0 − 1 … r0 + nr − 1 (local row rr = 0 is the halo),
@@ -481,10 +519,9 @@ impl<'a> Tiled<'a> {
                                         diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
                                         let (dtt, dx, s0, s2) = (&sc.dt[..n], &sc.dx[..n], &sg[0][g..g + n], &sg[2][g..g + n]);
                                         for k in 0..n {
-                                            let (z0, z1, z2) = (dtt[k] - s0[k] * inv, wy * (bu[k] - cu[k]) - s1[k] * inv, dx[k] - s2[k] * inv);
-                                            let nrm = (z0 * z0 + z1 * z1 + z2 * z2).sqrt();
-                                            let f = if nrm > 0.0 { (nrm - inv).max(0.0) / nrm } else { 0.0 };
-                                            v1[k] = z1 - f * z1;
+                                            let z1 = wy * (bu[k] - cu[k]) - s1[k] * inv;
+                                            let (_, b, _, _) = w_step::<true>(dtt[k] - s0[k] * inv, z1, dx[k] - s2[k] * inv, inv);
+                                            v1[k] = z1 - b;
                                         }
                                     } else {
                                         for k in 0..n {
@@ -507,29 +544,16 @@ impl<'a> Tiled<'a> {
                                 let (va, rest) = v.split_at_mut(vs);
                                 let (vb, vc) = rest.split_at_mut(vs);
                                 let (v0, v1, v2) = (&mut va[lo..lo + n], &mut vb[lo..lo + n], &mut vc[lo..lo + n]);
-                                // w of the band's own rows, in place
-                                let k = (rr - 1) * plane + k0;
-                                let (ws0, ws1, ws2) = (&mut o0[k..k + n], &mut o1[k..k + n], &mut o2[k..k + n]);
                                 let (e0, e1, e2) = (&mut sc.e0[..n], &mut sc.e1[..n], &mut sc.e2[..n]);
                                 for k in 0..n {
                                     let (d0, d1, d2) = (dtt[k], wy * (bu[k] - cu[k]), dx[k]);
                                     let (z0, z1, z2) = (d0 - s0[k] * inv, d1 - s1[k] * inv, d2 - s2[k] * inv);
-                                    let (a, b, e, n1) = if ISO {
-                                        let nrm = (z0 * z0 + z1 * z1 + z2 * z2).sqrt();
-                                        let f = if nrm > 0.0 { (nrm - inv).max(0.0) / nrm } else { 0.0 };
-                                        (f * z0, f * z1, f * z2, f * nrm)
-                                    } else {
-                                        let (a, b, e) = (shrink1(z0, inv), shrink1(z1, inv), shrink1(z2, inv));
-                                        (a, b, e, a.abs() + b.abs() + e.abs())
-                                    };
+                                    let (a, b, e, n1) = w_step::<ISO>(z0, z1, z2, inv);
                                     let (p0, p1, p2) = (d0 - a, d1 - b, d2 - e);
                                     // V − σ/β = z − w
                                     v0[k] = z0 - a;
                                     v1[k] = z1 - b;
                                     v2[k] = z2 - e;
-                                    ws0[k] = a;
-                                    ws1[k] = b;
-                                    ws2[k] = e;
                                     e0[k] = n1;
                                     e1[k] = p0 * p0 + p1 * p1 + p2 * p2;
                                     e2[k] = p0 * s0[k] + p1 * s1[k] + p2 * s2[k];
@@ -551,7 +575,7 @@ impl<'a> Tiled<'a> {
             .collect_into_vec(&mut partials);
         let out = ordered_sum(&partials);
         self.partials = partials;
-        self.wv = [w0, w1, w2];
+        self.w_inv = Some(inv);
         self.dn = std::mem::replace(&mut self.d, dn);
         self.lam1 = out[0];
         self.lam2 = out[1];
@@ -560,8 +584,10 @@ impl<'a> Tiled<'a> {
     }
 
     /// The direction at `u` with `w` kept (after the multiplier update and continuation):
-    /// `d = Dᵀ(Du − w − σ/β) + s·Aᵀ(mdb·(Au − b) − δ/β)`; returns `‖d‖²`.
+    /// `d = Dᵀ(Du − w − σ/β) + s·Aᵀ(mdb·(Au − b) − δ/β)`; returns `‖d‖²`. Runs after
+    /// [`Tiled::update_sigma`], which stores `w`.
     pub fn redirect(&mut self, beta: f64, mdb: f32) -> f64 {
+        assert!(self.w_inv.is_none(), "redirect reads the stored w: call update_sigma first");
         let (t, h, w, m, rows) = (self.t, self.h, self.w, self.m, self.rows);
         let (wt, wy, wx) = (self.wt, self.wy, self.wx);
         let inv = (1.0 / beta) as f32;
@@ -669,22 +695,34 @@ impl<'a> Tiled<'a> {
         acc
     }
 
-    /// Multiplier update at `u`: `σ ← σ − β(Du − w)`; returns the new `σᵀ(Du − w)` (`lam4`).
+    /// Multiplier update at `u` (the point of the last accept sweep): `σ ← σ − β(Du − w)`;
+    /// returns the new `σᵀ(Du − w)` (`lam4`). An implicit `w` is stored first (it was shrunk
+    /// with the old `σ`, which the next steps can no longer recompute it from).
     pub fn update_sigma(&mut self, beta: f32) -> f64 {
+        match (self.w_inv, self.tv) {
+            (None, _) => self.update_sigma_w::<false, false>(beta, 0.0),
+            (Some(k), TvNorm::Anisotropic) => self.update_sigma_w::<true, false>(beta, k),
+            (Some(k), TvNorm::Isotropic) => self.update_sigma_w::<true, true>(beta, k),
+        }
+    }
+
+    fn update_sigma_w<const IMPLICIT: bool, const ISO: bool>(&mut self, beta: f32, inv: f32) -> f64 {
         let (t, h, w, rows) = (self.t, self.h, self.w, self.rows);
         let (wt, wy, wx) = (self.wt, self.wy, self.wx);
         let plane = t * w;
         let band = rows * plane;
         let [mut s0, mut s1, mut s2] = std::mem::take(&mut self.sigma);
+        let [mut w0, mut w1, mut w2] = std::mem::take(&mut self.wv);
         let mut partials = std::mem::take(&mut self.partials);
-        let (u, wv) = (&self.u, &self.wv);
+        let u = &self.u;
         let chunk = chunk_len(w);
         s0
             .par_chunks_mut(band)
             .zip(s1.par_chunks_mut(band))
             .zip(s2.par_chunks_mut(band))
+            .zip(w0.par_chunks_mut(band).zip(w1.par_chunks_mut(band)).zip(w2.par_chunks_mut(band)))
             .enumerate()
-            .map(|(bi, ((o0, o1), o2))| {
+            .map(|(bi, (((o0, o1), o2), ((ws0, ws1), ws2)))| {
                 with_scratch(&[], chunk, |[], sc| {
                     simd(#[inline(always)] || {
                         let r0 = bi * rows;
@@ -700,14 +738,21 @@ impl<'a> Tiled<'a> {
                                 diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
                                 let (dtt, dx) = (&sc.dt[..n], &sc.dx[..n]);
                                 let (cu, bu) = (&cur[k0..k1], &bl[k0..k1]);
-                                let (lo, g) = (rr * plane + k0, gi + k0);
+                                let lo = rr * plane + k0;
                                 let (a0, a1, a2) = (&mut o0[lo..lo + n], &mut o1[lo..lo + n], &mut o2[lo..lo + n]);
-                                let (w0, w1, w2) = (&wv[0][g..g + n], &wv[1][g..g + n], &wv[2][g..g + n]);
+                                let (w0, w1, w2) = (&mut ws0[lo..lo + n], &mut ws1[lo..lo + n], &mut ws2[lo..lo + n]);
                                 let e = &mut sc.e0[..n];
                                 for c in 0..n {
-                                    let v0 = dtt[c] - w0[c];
-                                    let v1 = wy * (bu[c] - cu[c]) - w1[c];
-                                    let v2 = dx[c] - w2[c];
+                                    let (d0, d1, d2) = (dtt[c], wy * (bu[c] - cu[c]), dx[c]);
+                                    if IMPLICIT {
+                                        let (a, b, e, _) = w_step::<ISO>(d0 - a0[c] * inv, d1 - a1[c] * inv, d2 - a2[c] * inv, inv);
+                                        w0[c] = a;
+                                        w1[c] = b;
+                                        w2[c] = e;
+                                    }
+                                    let v0 = d0 - w0[c];
+                                    let v1 = d1 - w1[c];
+                                    let v2 = d2 - w2[c];
                                     a0[c] -= beta * v0;
                                     a1[c] -= beta * v1;
                                     a2[c] -= beta * v2;
@@ -724,6 +769,8 @@ impl<'a> Tiled<'a> {
         let l4 = ordered_sum(&partials)[0];
         self.partials = partials;
         self.sigma = [s0, s1, s2];
+        self.wv = [w0, w1, w2];
+        self.w_inv = None;
         l4
     }
 
