@@ -980,6 +980,32 @@ mod tests {
         assert!(updated > 0, "no run updated its multipliers");
     }
 
+    /// An Armijo constant no step can satisfy sends every iteration to the steepest-descent
+    /// fallback (five backtracks, then the exact steepest step, always taken): both solvers
+    /// take it on every iteration and reach the same cube.
+    #[test]
+    fn fallback_steps_equal_the_reference() {
+        let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 8, drain: false };
+        let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 5).unwrap();
+        let spec = SensorParams::from_codes(&codes).validate().unwrap();
+        let a = MeasurementMatrix::synthesize(&codes, &spec).unwrap();
+        let plan = a.plan(20, 12).unwrap();
+        let t = a.bins();
+        let x = Array3::from_shape_fn((t, 20, 12), |(j, r, c)| if j == (r / 4 + c / 3) % t { 1.0 } else { 0.05 });
+        let y = plan.forward(&x.view()).unwrap();
+        for tv_norm in [TvNorm::Anisotropic, TvNorm::Isotropic] {
+            let opts = Tval3Options { maxit: 12, c: 1e6, tv_norm, ..Default::default() };
+            let never = AtomicBool::new(false);
+            let (xf, rf) = tval3(&a, &plan, &y.view(), &opts, &|_, _| {}, &never).unwrap();
+            let (xr, rr) = tval3_reference(&a, &plan, &y.view(), &opts, &|_, _| {}, &never).unwrap();
+            assert_eq!(rr.fallbacks, rr.iterations, "{tv_norm:?}: {rr:?}");
+            assert_eq!((rf.iterations, rf.outer, rf.backtracks, rf.fallbacks), (rr.iterations, rr.outer, rr.backtracks, rr.fallbacks), "{tv_norm:?}");
+            let diff = (&xf - &xr).mapv(|v| v * v).sum().sqrt();
+            let norm = xr.mapv(|v| v * v).sum().sqrt();
+            assert!(diff <= 1e-4 * norm, "{tv_norm:?}: relative difference {}", diff / norm);
+        }
+    }
+
     /// Same input, same bytes, whatever the number of threads: every sweep adds its bands'
     /// sums in band order (a parallel reduction would add them in the order the threads
     /// finish, and one flipped Armijo decision changes the whole path).
