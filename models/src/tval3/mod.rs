@@ -551,7 +551,8 @@ pub fn tval3(
     let mut c = f;
     let mut gam = opts.gam;
     let mut have_prev = false;
-    let mut rcd_u = s.u.clone();
+    let mut rcd_u = tiled::pooled(s.u.len());
+    rcd_u.copy_from_slice(&s.u);
     for ii in 1..=opts.maxit {
         if cancel.load(Ordering::Relaxed) {
             return Err(ModelError::Cancelled);
@@ -635,6 +636,7 @@ pub fn tval3(
             c = f;
         }
     }
+    tiled::unpool([rcd_u]);
     report.residual = if b_norm > 0.0 { norm2(&s.resid).sqrt() / b_norm } else { 0.0 };
     let out = Array3::from_shape_vec((plan.bins(), plan.height(), plan.width()), s.u_thw(1.0 / scl)).map_err(|e| shape_err(e, "x̂"))?;
     Ok((out, report))
