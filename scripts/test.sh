@@ -1,7 +1,11 @@
 #!/usr/bin/env bash
 # The whole test suite: unit tests, doctests and end-to-end tests of the binary on tiny problems.
-# ONNX Runtime (for the export/inference tests) is installed into .venv first.
+# ONNX Runtime (for the export/inference tests) is installed into .venv first. Then the GPU
+# path (cargo feature `gpu`, burn's wgpu backend) against the CPU path, on Mesa's software
+# Vulkan driver where no GPU driver is installed (the tests skip where there is no adapter).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh
 cargo test --workspace --locked "$@"
+scripts/setup_vulkan.sh
+cargo test --locked -p tcsense-train --features gpu --test gpu "$@"

@@ -68,6 +68,14 @@ fn bad_inputs_exit_2() {
     ok(d, &["codes", "generate", "--tap-constraint", "--length", "8", "--seed", "9", "-o", "other.json"]);
     fails(d, &["eval", "--dataset", "ds", "--codes", "other.json", "--decoder", "admm-net:run"], &["other codes"]);
     fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "magic"], &["unknown decoder"]);
+    // a build without the GPU backend says how to get one, and writes nothing
+    if !cfg!(feature = "gpu") {
+        fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--device", "gpu", "-o", "rungpu"], &["--device", "--features gpu"]);
+        assert!(!d.join("rungpu").exists());
+        fails(d, &["reconstruct", "admm-net", "--run", "run", "--measurements", "y.npy", "--device", "gpu", "-o", "xg.npy"], &["--features gpu"]);
+        fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "admm-net:run", "--device", "gpu"], &["--features gpu"]);
+    }
+    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--device", "tpu", "-o", "runtpu"], &["--device", "tpu"]);
 }
 
 #[test]

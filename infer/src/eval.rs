@@ -131,13 +131,13 @@ pub struct NamedDecoder {
 }
 
 /// Open a decoder by name: `tval3` (with `tval3` options) or `KIND:RUN`, a training run
-/// directory of a learned decoder of that kind (`admm-net:RUN`, `unet:RUN`), on the CPU, or
+/// directory of a learned decoder of that kind (`admm-net:RUN`, `unet:RUN`), on `device`, or
 /// `onnx:MODEL.onnx`, an exported model through ONNX Runtime.
-pub fn open_decoder(name: &str, tval3: &Tval3Options) -> Result<NamedDecoder> {
+pub fn open_decoder(name: &str, tval3: &Tval3Options, device: &Device) -> Result<NamedDecoder> {
     match name.split_once(':') {
         None if name == "tval3" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(Tval3Decoder::new(*tval3)?), codes: None }),
         Some((kind, dir)) if kind == "admm-net" || kind == "unet" => {
-            let run = runs::open(Path::new(dir), &Device::flex())?;
+            let run = runs::open(Path::new(dir), device)?;
             if run.spec.model.name() != kind {
                 return Err(InferError::File { path: run.dir.join(runs::CONFIG_FILE), msg: format!("a {} run, not {kind}; name it {}:{dir}", run.spec.model.name(), run.spec.model.name()) });
             }

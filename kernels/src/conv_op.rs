@@ -8,8 +8,9 @@
 //!                                      └──▶ Autodiff<Flex, C>   (training: kernels + Backward)
 //! ```
 //!
-//! The workspace builds burn with the flex backend only, so every device is `Flex` or
-//! `Autodiff<Flex>`. Tensors of another float type than `f32` fall back to burn's own conv.
+//! On another device than `Flex` or `Autodiff<Flex>` (the GPU build) it is burn's own `conv2d`
+//! ([`crate::runs_kernels`]). Tensors of another float type than `f32` fall back to burn's own
+//! conv too.
 
 use burn::backend::autodiff::checkpoint::{base::Checkpointer, strategy::CheckpointStrategy};
 use burn::backend::autodiff::grads::Gradients;
@@ -27,6 +28,9 @@ use crate::conv::Conv3x3;
 /// # Shapes
 /// - `x`: `[B, C_in, H, W]`, `weight`: `[C_out, C_in, 3, 3]`, `bias`: `[C_out]` → `[B, C_out, H, W]`
 pub fn conv3x3(x: Tensor<4>, weight: Tensor<4>, bias: Tensor<1>) -> Tensor<4> {
+    if !crate::runs_kernels(&x.device()) {
+        return burn::tensor::module::conv2d(x, weight, Some(bias), options());
+    }
     let out = <Dispatch as Conv3x3Backend>::conv3x3(x.into_dispatch(), weight.into_dispatch(), bias.into_dispatch());
     Tensor::from_dispatch(out)
 }

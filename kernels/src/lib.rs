@@ -20,6 +20,12 @@
 //! is also only here: `gemm` picks AVX2/AVX-512 at run time, and the per-pixel loops are
 //! compiled for the best extension this CPU has through `pulp::Arch::dispatch`.
 //!
+//! The kernels run on the CPU `flex` device (with or without autodiff). On any other device
+//! (burn's wgpu backend, cargo feature `gpu` of the workspace) [`conv_op::conv3x3`],
+//! [`resample::max_pool2`] and [`resample::upsample2`] run burn's composed ops instead, and
+//! `tcsense_models::SensorTensors` its block-layout version of the pixel operators: see
+//! [`runs_kernels`].
+//!
 //! ```
 //! use burn::tensor::{Device, Tensor};
 //! use tcsense_kernels::conv_op::conv3x3;
@@ -37,3 +43,12 @@ pub mod conv_op;
 pub mod pixel;
 pub mod resample;
 pub mod timing;
+
+use burn::tensor::Device;
+
+/// Whether the custom kernels of this crate run on `device`: the CPU `flex` device, with or
+/// without autodiff. Elsewhere the ops fall back to burn's composed ones, which every backend
+/// has (the kernels are registered for `Flex` and `Autodiff<Flex>` only).
+pub fn runs_kernels(device: &Device) -> bool {
+    device.clone().without_autodiff() == Device::flex()
+}

@@ -25,6 +25,9 @@ use crate::conv_op::with_f32;
 /// # Shapes
 /// - `x`: `[B, C, H, W]` → `[B, C, H/2, W/2]`
 pub fn max_pool2(x: Tensor<4>) -> Tensor<4> {
+    if !crate::runs_kernels(&x.device()) {
+        return burn::tensor::module::max_pool2d(x, burn::tensor::ops::MaxPoolOptions::new([2, 2]));
+    }
     Tensor::from_dispatch(<Dispatch as ResampleBackend>::max_pool2(x.into_dispatch()))
 }
 
@@ -33,6 +36,10 @@ pub fn max_pool2(x: Tensor<4>) -> Tensor<4> {
 /// # Shapes
 /// - `x`: `[B, C, H, W]` → `[B, C, 2H, 2W]`
 pub fn upsample2(x: Tensor<4>) -> Tensor<4> {
+    if !crate::runs_kernels(&x.device()) {
+        let [b, c, h, w] = x.dims();
+        return x.reshape([b, c, h, 1, w, 1]).repeat_dim(3, 2).repeat_dim(5, 2).reshape([b, c, 2 * h, 2 * w]);
+    }
     Tensor::from_dispatch(<Dispatch as ResampleBackend>::upsample2(x.into_dispatch()))
 }
 

@@ -25,6 +25,7 @@
 pub mod admm;
 pub mod bench;
 pub mod decoder;
+pub mod device;
 pub mod learned_codes;
 pub mod metrics;
 pub mod net;

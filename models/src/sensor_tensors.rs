@@ -44,6 +44,9 @@ pub struct SensorTensors {
     /// Whether `a`/`at` carry a graph to learnable codes ([`Self::with_matrix`]): the operators
     /// then run in block layout from burn ops, differentiable in `A`.
     pub differentiable: bool,
+    /// Whether the device has no fused kernels (anything but the CPU `flex` device, e.g. the
+    /// wgpu GPU backend): the operators then run in block layout from burn ops too.
+    pub composed: bool,
 }
 
 /// The per-pixel operators of [`SensorTensors`] for [`pixel_linear`] and [`pixel_dc`].
@@ -113,6 +116,7 @@ impl SensorTensors {
             width,
             block: a.block(),
             differentiable: false,
+            composed: !tcsense_kernels::runs_kernels(device),
         })
     }
 
@@ -184,7 +188,7 @@ impl SensorTensors {
     /// # Shapes
     /// - `x`: `[B, T, H, W]` → `[B, M, H, W]`
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        if self.differentiable {
+        if self.differentiable || self.composed {
             return self.from_blocks(self.a_blocks(self.to_blocks(x)));
         }
         pixel_linear(x, self.fused.a.clone())
@@ -195,7 +199,7 @@ impl SensorTensors {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
     pub fn adjoint(&self, y: Tensor<4>) -> Tensor<4> {
-        if self.differentiable {
+        if self.differentiable || self.composed {
             return self.from_blocks(self.at_blocks(self.to_blocks(y)));
         }
         pixel_linear(y, self.fused.at.clone())
@@ -206,7 +210,7 @@ impl SensorTensors {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
     pub fn pinv(&self, y: Tensor<4>) -> Tensor<4> {
-        if self.differentiable {
+        if self.differentiable || self.composed {
             return self.pinv_blocks(y);
         }
         pixel_linear(y, self.fused.pinv.clone())
@@ -238,7 +242,7 @@ impl SensorTensors {
     /// # Shapes
     /// - `v`: `[B, T, H, W]`, `rho`: `[1]` → `[B, T, H, W]`
     pub fn data_consistency(&self, v: Tensor<4>, rho: Tensor<1>) -> Tensor<4> {
-        if self.differentiable {
+        if self.differentiable || self.composed {
             return self.from_blocks(self.data_consistency_blocks(self.to_blocks(v), rho));
         }
         pixel_dc(v, rho, self.fused.dc.clone())

@@ -327,7 +327,7 @@ pub fn run(a: DemoArgs) -> Result<ExitCode> {
         };
         // decoders as (table name, decoder spec), evaluated on one sensor; a row per decoder
         let rows_of = |ds: &Dataset, a: &MeasurementMatrix, decoders: &[(&str, String)], items, row: &dyn Fn(&EvalRow, &str, &str) -> Value| -> Result<Vec<Value>> {
-            let mut dec = decoders.iter().map(|(_, spec)| open_decoder(spec, &Tval3Options::default())).collect::<std::result::Result<Vec<_>, _>>()?;
+            let mut dec = decoders.iter().map(|(_, spec)| open_decoder(spec, &Tval3Options::default(), &Device::flex())).collect::<std::result::Result<Vec<_>, _>>()?;
             let r = evaluate(ds, a, &mut dec, &settings(items), &on_item, &cancel)?;
             Ok(r.iter().zip(decoders).map(|(r, (name, spec))| row(r, name, engine(spec))).collect())
         };
@@ -567,7 +567,7 @@ fn decode_frames(dir: &Path, lidar: &Dataset, flim: &Dataset, selected: &Codes, 
             if out_cube.exists() || out_depth.exists() {
                 continue;
             }
-            let mut d = open_decoder(&spec, &Tval3Options::default())?;
+            let mut d = open_decoder(&spec, &Tval3Options::default(), &Device::flex())?;
             let out = d.decoder.decode(y.view(), &a, &ctl).map_err(|e| anyhow::anyhow!("{spec}: {e}"))?;
             if let Some(c) = out.cube {
                 write_npy(&out_cube, &c.index_axis(Axis(0), 0).to_owned().view())?;

@@ -32,6 +32,8 @@ pub struct EvalArgs {
     decoder: Vec<String>,
     #[command(flatten)]
     tval3: Tval3Args,
+    #[command(flatten)]
+    device: super::DeviceArgs,
     /// Add shot and read noise to the simulated measurements (full well 20 000 e⁻, σ = 40 e⁻).
     #[arg(long)]
     noise: bool,
@@ -67,8 +69,9 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     }
     let opts = a.tval3.options()?;
     let mut decoders = Vec::new();
+    let device = if a.decoder.iter().any(|d| d.starts_with("admm-net:") || d.starts_with("unet:")) { a.device.device()? } else { tcsense_models::Device::flex() };
     for name in &a.decoder {
-        let d = open_decoder(name, &opts)?;
+        let d = open_decoder(name, &opts, &device)?;
         if let (Some(run_codes), Some((_, run))) = (&d.codes, name.split_once(':')) {
             if run_codes.shape() != codes.shape() || (0..codes.subpixels() * codes.taps()).any(|c| run_codes.channel(c) != codes.channel(c)) {
                 bail!("{run}: the run was trained with other codes than {}; evaluate it with its own {run}/codes.json", a.sensor.codes.display());

@@ -19,3 +19,34 @@ pub fn parse_hw(s: &str) -> Result<(usize, usize), String> {
     let p = |v: &str| v.trim().parse::<usize>().map_err(|_| format!("{s:?} is not of the form HxW (e.g. 2x2)"));
     Ok((p(a)?, p(b)?))
 }
+
+/// `--device`: where a learned decoder trains or runs.
+#[derive(clap::Args, Debug, Clone, Copy, Default)]
+pub struct DeviceArgs {
+    /// Device of the learned decoders: cpu (burn flex with tcsense's kernels) or gpu (burn's
+    /// wgpu backend: Vulkan, Metal or DX12; builds with `--features gpu` only).
+    #[arg(long, value_enum, default_value_t = DeviceArg::Cpu)]
+    pub device: DeviceArg,
+}
+
+#[derive(clap::ValueEnum, Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum DeviceArg {
+    #[default]
+    Cpu,
+    Gpu,
+}
+
+impl DeviceArgs {
+    /// The burn device, checked to work; the GPU's adapter is named on stderr.
+    pub fn device(&self) -> anyhow::Result<tcsense_models::Device> {
+        use tcsense_models::device::{describe, device, Processor};
+        let d = device(match self.device {
+            DeviceArg::Cpu => Processor::Cpu,
+            DeviceArg::Gpu => Processor::Gpu,
+        })?;
+        if self.device == DeviceArg::Gpu {
+            eprintln!("device: {}", describe(&d));
+        }
+        Ok(d)
+    }
+}

@@ -9,7 +9,7 @@ use std::process::ExitCode;
 use tcsense_infer::figures;
 use tcsense_infer::products::{depth_map, lifetime_map, plot_waveforms, write_ply, PeakOptions};
 use tcsense_models::decoder::{Control, Decoder, Step, Tval3Decoder};
-use tcsense_models::{runs, Device, ModelError, Tval3Options, TvNorm};
+use tcsense_models::{runs, ModelError, Tval3Options, TvNorm};
 use tcsense_sensor::npy::{read_npy, write_bytes, write_npy};
 use tcsense_sensor::sidecar::Sidecar;
 use tcsense_sensor::MeasurementMatrix;
@@ -113,6 +113,8 @@ pub enum ReconstructCmd {
         output: PathBuf,
         #[command(flatten)]
         products: DepthProductArgs,
+        #[command(flatten)]
+        device: super::DeviceArgs,
     },
     /// ADMM-Net from a trained run directory.
     AdmmNet {
@@ -125,17 +127,19 @@ pub enum ReconstructCmd {
         /// Output cube .npy.
         #[arg(short, long)]
         output: PathBuf,
+        #[command(flatten)]
+        device: super::DeviceArgs,
     },
 }
 
 pub fn reconstruct(cmd: ReconstructCmd) -> Result<ExitCode> {
     match cmd {
-        ReconstructCmd::AdmmNet { run, measurements, output } => {
-            let mut r = runs::open(&run, &Device::flex())?;
+        ReconstructCmd::AdmmNet { run, measurements, output, device } => {
+            let mut r = runs::open(&run, &device.device()?)?;
             decode_file(r.decoder.as_mut(), &r.sensor, &r.codes, &measurements, &output, &DepthProductArgs::default())
         }
-        ReconstructCmd::Unet { run, measurements, output, products } => {
-            let mut r = runs::open(&run, &Device::flex())?;
+        ReconstructCmd::Unet { run, measurements, output, products, device } => {
+            let mut r = runs::open(&run, &device.device()?)?;
             decode_file(r.decoder.as_mut(), &r.sensor, &r.codes, &measurements, &output, &products)
         }
         ReconstructCmd::Tval3 { sensor, measurements, tval3: targs, output } => {

@@ -13,7 +13,7 @@ use tcsense_sensor::MeasurementMatrix;
 use tcsense_models::{AdmmNetConfig, UnetConfig};
 use tcsense_sensor::{Codes, Constraints};
 use tcsense_train::deep_sensing::{LearnCodes, START_CODES_FILE};
-use tcsense_train::{train, Augmentation, EpochMetrics, Loss, LrSchedule, Progress, TrainConfig, TrainError};
+use tcsense_train::{Augmentation, EpochMetrics, Loss, LrSchedule, Progress, TrainConfig, TrainError};
 
 use super::dataset::interrupt_flag;
 
@@ -79,6 +79,8 @@ pub struct TrainArgs {
     /// Dataset directory.
     #[arg(long)]
     dataset: Option<PathBuf>,
+    #[command(flatten)]
+    device: super::DeviceArgs,
     /// Codes JSON file.
     #[arg(long)]
     codes: Option<PathBuf>,
@@ -217,6 +219,8 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
         TrainCmd::Unet { common, net } => (common, NetArgs::Unet(net)),
     };
     let run_dir = &a.output;
+    // the device first: a missing GPU backend or adapter writes nothing
+    let device = a.device.device()?;
     // base config: the saved one on --resume, a given file, or built from the dataset
     let saved = run_dir.join(CONFIG_FILE);
     let mut cfg = if a.resume {
@@ -387,7 +391,7 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
             lc.constraints.label()
         );
     }
-    let res = train(&cfg, &codes, run_dir, a.resume, &Bar { pb: pb.clone() }, &cancel);
+    let res = tcsense_train::train_on(&cfg, &codes, run_dir, a.resume, &device, &Bar { pb: pb.clone() }, &cancel);
     pb.finish_and_clear();
     match res {
         Ok(rows) => {

@@ -91,23 +91,32 @@ pub fn validate(decoder: &mut dyn Decoder, plan: &FramePlan, sensor: &Measuremen
     })
 }
 
-/// Train (or resume) a run in `run`.
+/// Train (or resume) a run in `run` on the CPU.
 pub fn train(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, progress: &dyn Progress, cancel: &AtomicBool) -> Result<Vec<EpochMetrics>> {
+    train_on(cfg, codes, run, resume, &Device::flex(), progress, cancel)
+}
+
+/// Train (or resume) a run in `run` on `device` (without autodiff: the loop adds it; see
+/// `tcsense_models::device`). The run directory is the same on every device: a run started on
+/// one resumes on another.
+pub fn train_on(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, device: &Device, progress: &dyn Progress, cancel: &AtomicBool) -> Result<Vec<EpochMetrics>> {
+    let device = &device.clone().without_autodiff();
     match &cfg.run.model {
-        ModelConfig::AdmmNet(m) => train_with(cfg, codes, run, resume, progress, cancel, |device| m.init(device)),
-        ModelConfig::Unet(m) => train_with(cfg, codes, run, resume, progress, cancel, |device| m.init(device)),
+        ModelConfig::AdmmNet(m) => train_with(cfg, codes, run, resume, device, progress, cancel, |device| m.init(device)),
+        ModelConfig::Unet(m) => train_with(cfg, codes, run, resume, device, progress, cancel, |device| m.init(device)),
     }
 }
 
 /// A fixed-codes run, or the three phases of deep sensing (see [`crate::deep_sensing`]).
-fn train_with<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, progress: &dyn Progress, cancel: &AtomicBool, init: impl Fn(&Device) -> M) -> Result<Vec<EpochMetrics>> {
+#[allow(clippy::too_many_arguments)]
+fn train_with<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, device: &Device, progress: &dyn Progress, cancel: &AtomicBool, init: impl Fn(&Device) -> M) -> Result<Vec<EpochMetrics>> {
     cfg.validate()?;
     let start = match &cfg.init_from {
-        Some(dir) if !resume || latest_checkpoint(run)?.is_none() => Some(tcsense_models::runs::load_network(Path::new(dir), init(&Device::flex().autodiff()))?),
+        Some(dir) if !resume || latest_checkpoint(run)?.is_none() => Some(tcsense_models::runs::load_network(Path::new(dir), init(&device.clone().autodiff()))?),
         _ => None,
     };
     let Some(lc) = &cfg.learn_codes else {
-        return Ok(fit(cfg, codes, run, resume, progress, cancel, &init, cfg.epochs, start, None)?.0);
+        return Ok(fit(cfg, codes, run, resume, device, progress, cancel, &init, cfg.epochs, start, None)?.0);
     };
     lc.validate(cfg.epochs)?;
     let relaxed = run.join(crate::deep_sensing::RELAXED_DIR);
@@ -119,7 +128,7 @@ fn train_with<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: 
         if !resume {
             return Err(file_err(run, "a run already exists here; pass --resume to continue it or choose another directory"));
         }
-        let net = tcsense_models::runs::load_network(&relaxed, init(&Device::flex().autodiff()))?;
+        let net = tcsense_models::runs::load_network(&relaxed, init(&device.clone().autodiff()))?;
         (net, Codes::load(&relaxed.join("projected_codes.json"))?)
     } else {
         std::fs::create_dir_all(run).map_err(|e| file_err(run, e))?;
@@ -128,13 +137,13 @@ fn train_with<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: 
             codes.save(&start_file)?;
         }
         write_json(&run.join(CONFIG_FILE), cfg)?;
-        let (_, net, learner) = fit(cfg, codes, &relaxed, resume, progress, cancel, &init, lc.relaxed_epochs, start, Some(lc))?;
+        let (_, net, learner) = fit(cfg, codes, &relaxed, resume, device, progress, cancel, &init, lc.relaxed_epochs, start, Some(lc))?;
         let learner = learner.expect("a relaxed run has a code learner");
         let p = crate::deep_sensing::project_and_record(&learner, codes, cfg, &relaxed)?;
         p.save(&run.join(CODES_FILE))?;
         (net, p)
     };
-    Ok(fit(cfg, &projected, run, resume, progress, cancel, &init, cfg.epochs - lc.relaxed_epochs, Some(net), None)?.0)
+    Ok(fit(cfg, &projected, run, resume, device, progress, cancel, &init, cfg.epochs - lc.relaxed_epochs, Some(net), None)?.0)
 }
 
 /// The loop for one network type; `init` builds the untrained network on a device, `start`
@@ -145,6 +154,7 @@ fn fit<M: Network>(
     codes: &Codes,
     run: &Path,
     resume: bool,
+    on: &Device,
     progress: &dyn Progress,
     cancel: &AtomicBool,
     init: &impl Fn(&Device) -> M,
@@ -189,8 +199,8 @@ fn fit<M: Network>(
         None => (h, w),
     };
     let mut train_plan = a.plan(th, tw)?;
-    let device = Device::flex().autodiff();
-    let infer_device = Device::flex();
+    let infer_device = on.clone();
+    let device = on.clone().autodiff();
     let mut sensor = SensorTensors::new(&a, th, tw, &device)?;
     let mut learner = learn.map(|lc| Learner::new(lc, codes, &cfg.run, &device)).transpose()?;
 
@@ -359,10 +369,14 @@ pub(crate) fn seeded_init<M: Module>(device: &Device, seed: u64, init: impl Fn(&
         }
     }
     let _guard = SEEDED_INIT.lock().unwrap_or_else(|e| e.into_inner());
-    device.seed(seed);
-    let model = init(device);
+    // drawn on the CPU whatever the device, so a seed gives the same weights on every device
+    let host = if device.is_autodiff() { Device::flex().autodiff() } else { Device::flex() };
+    host.seed(seed);
+    let model = init(&host);
     model.visit(&mut Touch);
-    model.map(&mut Renumber(0))
+    let model = model.map(&mut Renumber(0));
+    // `fork` keeps the parameters leaves of the autodiff graph (`to_device` would not)
+    if host == *device { model } else { model.fork(device) }
 }
 
 /// Measure each item of `x` with its own noise model (`None`: noise-free), item `i`'s noise

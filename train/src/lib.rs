@@ -30,7 +30,7 @@ pub mod run_dir;
 
 pub use augment::Augmentation;
 pub use config::{Loss, LrSchedule, TrainConfig};
-pub use fit::{train, Progress, Quiet};
+pub use fit::{train, train_on, Progress, Quiet};
 pub use run_dir::{EpochMetrics, RunState};
 
 use std::path::{Path, PathBuf};
