@@ -2,7 +2,8 @@
 //! problems (8×8, T = 8): a training step of ADMM-Net and of the U-Net on the GPU equals the
 //! CPU's, and a run written on one device loads and continues on the other with the same
 //! outputs. CI runs this on Mesa's software Vulkan driver; without any Vulkan/Metal/DX12
-//! adapter every test says so and passes without checking anything.
+//! adapter every test says so and passes without checking anything (unless
+//! `TCSENSE_REQUIRE_GPU` is set).
 #![cfg(feature = "gpu")]
 
 use ndarray::Array4;
@@ -26,10 +27,13 @@ fn tmp() -> PathBuf {
     d
 }
 
-/// The wgpu device, or `None` (with a message) where the machine has no adapter.
+/// The wgpu device, or `None` (with a message) where the machine has no adapter — a failure
+/// instead when `TCSENSE_REQUIRE_GPU` is set (`scripts/test.sh` sets it where a Vulkan driver
+/// is installed, so CI cannot skip these tests by accident).
 fn gpu() -> Option<Device> {
     match device(Processor::Gpu) {
         Ok(d) => Some(d),
+        Err(e) if std::env::var_os("TCSENSE_REQUIRE_GPU").is_some() => panic!("TCSENSE_REQUIRE_GPU is set but the GPU does not work: {e}"),
         Err(e) => {
             eprintln!("skipping the GPU test: {e}");
             None
