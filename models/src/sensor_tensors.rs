@@ -183,12 +183,18 @@ impl SensorTensors {
         self
     }
 
+    /// Whether the operators run in block layout from burn ops (differentiable in `A`, or on a
+    /// device without the fused kernels) rather than through the fused kernels.
+    fn in_blocks(&self) -> bool {
+        self.differentiable || self.composed
+    }
+
     /// `A x`.
     ///
     /// # Shapes
     /// - `x`: `[B, T, H, W]` → `[B, M, H, W]`
     pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        if self.differentiable || self.composed {
+        if self.in_blocks() {
             return self.from_blocks(self.a_blocks(self.to_blocks(x)));
         }
         pixel_linear(x, self.fused.a.clone())
@@ -199,7 +205,7 @@ impl SensorTensors {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
     pub fn adjoint(&self, y: Tensor<4>) -> Tensor<4> {
-        if self.differentiable || self.composed {
+        if self.in_blocks() {
             return self.from_blocks(self.at_blocks(self.to_blocks(y)));
         }
         pixel_linear(y, self.fused.at.clone())
@@ -210,7 +216,7 @@ impl SensorTensors {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
     pub fn pinv(&self, y: Tensor<4>) -> Tensor<4> {
-        if self.differentiable || self.composed {
+        if self.in_blocks() {
             return self.pinv_blocks(y);
         }
         pixel_linear(y, self.fused.pinv.clone())
@@ -242,7 +248,7 @@ impl SensorTensors {
     /// # Shapes
     /// - `v`: `[B, T, H, W]`, `rho`: `[1]` → `[B, T, H, W]`
     pub fn data_consistency(&self, v: Tensor<4>, rho: Tensor<1>) -> Tensor<4> {
-        if self.differentiable || self.composed {
+        if self.in_blocks() {
             return self.from_blocks(self.data_consistency_blocks(self.to_blocks(v), rho));
         }
         pixel_dc(v, rho, self.fused.dc.clone())
