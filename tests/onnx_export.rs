@@ -11,7 +11,7 @@ use tcsense_infer::runtime::OnnxModel;
 use tcsense_infer::InferError;
 use tcsense_models::net::{to_array, to_tensor, Network};
 use tcsense_models::runs::{self, LoadedRun, ModelConfig, RunSpec, TrainedNet};
-use tcsense_models::{AdmmNetConfig, Device, SensorTensors, UnetConfig};
+use tcsense_models::{AdmmNetConfig, Device, Prior, SensorTensors, UnetConfig};
 use tcsense_sensor::codes::{CodeShape, Constraints};
 use tcsense_sensor::generate::random_codes;
 use tcsense_sensor::npy::read_npy;
@@ -75,12 +75,15 @@ fn rel_diff(a: &Array4<f32>, b: &Array4<f32>) -> f32 {
 #[test]
 fn admm_net_in_onnx_runtime_equals_burn() {
     let dir = tempfile::tempdir().unwrap();
-    let admm = |normalize: bool| move |m: usize, t: usize| ModelConfig::AdmmNet(AdmmNetConfig::new(m, t).with_stages(3).with_channels(4).with_normalize(normalize));
+    let admm = |normalize: bool, prior: Prior| move |m: usize, t: usize| ModelConfig::AdmmNet(AdmmNetConfig::new(m, t).with_stages(3).with_channels(4).with_normalize(normalize).with_prior(prior));
     let physical = Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 };
     let cases = [
-        ("2x2 ideal", random_run(admm(true), (2, 2), Sampling::Oversample(1), Irf::Ideal, 1)),
-        ("2x2 heterodyne physical", random_run(admm(false), (2, 2), Sampling::Heterodyne(2), physical, 2)),
-        ("1x2 oversampled", random_run(admm(true), (1, 2), Sampling::Oversample(2), physical, 3)),
+        ("2x2 ideal", random_run(admm(true, Prior::Bins), (2, 2), Sampling::Oversample(1), Irf::Ideal, 1)),
+        ("2x2 heterodyne physical", random_run(admm(false, Prior::Bins), (2, 2), Sampling::Heterodyne(2), physical, 2)),
+        ("1x2 oversampled", random_run(admm(true, Prior::Bins), (1, 2), Sampling::Oversample(2), physical, 3)),
+        // the delay prior: 8 bins (dilation 4 wraps half the cycle) and 16
+        ("2x2 ideal, delay prior", random_run(admm(true, Prior::Delay), (2, 2), Sampling::Oversample(1), Irf::Ideal, 4)),
+        ("1x2 heterodyne physical, delay prior", random_run(admm(false, Prior::Delay), (1, 2), Sampling::Heterodyne(2), physical, 5)),
     ];
     for (label, run) in &cases {
         for (h, w) in [(8, 8), (6, 10)] {

@@ -12,7 +12,15 @@
 //! solution of `Ax = y`), `u_0 = 0`; the output is `z_S`. The data-consistency step uses
 //! `(ρI + AᵀA)⁻¹ = (I − Aᵀ(ρI_M + AAᵀ)⁻¹A)/ρ`, where `AAᵀ = QΛQᵀ` is decomposed once per
 //! subpixel type, so `(ρI_M + AAᵀ)⁻¹ = Q diag(1/(ρ+λ)) Qᵀ` stays differentiable in `ρ`.
-//! Time is the channel axis of the convolutions.
+//! The prior comes in two kinds ([`Prior`]). The paper's (`bins`) makes time the channel
+//! axis of 3×3 convolutions over the frame: cheap, but each bin has its own weights, so a
+//! network trained on decays that start at one delay has learned that delay. The
+//! delay-equivariant prior (`delay`) convolves over `(t, y, x)` with `CN` channels per bin:
+//! kernels 3×3×3, circular in `t` (the codes loop, so a delay is a cyclic shift of the cube),
+//! dilated 1, 2, 4 in `t` in its three layers (receptive field ±7 bins per stage). Every bin
+//! shares the weights, so delaying the cube by whole bins delays the prior's output the same:
+//! `P(roll(x, s)) = roll(P(x), s)`. Each layer is run as a 3×3 convolution over the frame on
+//! `[B·T, 3·C_in, H, W]`: the bins `t − d`, `t`, `t + d` stacked as channels.
 
 use burn::config::Config;
 use burn::module::{Module, Param};
@@ -49,7 +57,23 @@ pub struct AdmmNetConfig {
     /// existed).
     #[config(default = false)]
     pub normalize: bool,
+    /// The prior's kind (`bins` in runs written before it existed).
+    #[config(default = "Prior::Bins")]
+    pub prior: Prior,
 }
+
+/// What the prior's convolutions run over (see the module documentation).
+#[derive(Config, Debug, PartialEq, Eq, Copy)]
+pub enum Prior {
+    /// 3×3 convolutions over the frame, the `T` bins as channels: `T → CN → CN → T` (the paper's).
+    Bins,
+    /// 3×3×3 convolutions over `(t, y, x)`, circular in `t` with dilations [`DELAY_DILATIONS`]:
+    /// `1 → CN → CN → 1` channels per bin; equivariant to delays of whole bins.
+    Delay,
+}
+
+/// Dilations in `t` of the delay-equivariant prior's three layers.
+pub const DELAY_DILATIONS: [usize; 3] = [1, 2, 4];
 
 impl AdmmNetConfig {
     /// The paper's LiDAR setting (Table 3): `S = 9`, `CN = 128`.
@@ -67,26 +91,37 @@ impl AdmmNetConfig {
 
     /// Multiply-adds ×2 per frame of `h × w`: `Aᵀy` and the back-projection (`2·2TM` per
     /// pixel), and per stage the data-consistency solve through `M` channels (`2·2MT`) and the
-    /// prior's three 3×3 convolutions (`2·9·(T·CN + CN² + CN·T)`).
+    /// prior's three convolutions: `2·9·(T·CN + CN² + CN·T)` over the frame with bins as
+    /// channels, `2·T·27·(CN + CN² + CN)` for the delay prior.
     pub fn flops(&self, h: usize, w: usize) -> f64 {
         let (t, m, cn) = (self.bins as f64, self.taps as f64, self.channels as f64);
-        let per_stage = 4.0 * m * t + 18.0 * (2.0 * t * cn + cn * cn);
+        let prior = match self.prior {
+            Prior::Bins => 18.0 * (2.0 * t * cn + cn * cn),
+            Prior::Delay => 54.0 * t * (2.0 * cn + cn * cn),
+        };
+        let per_stage = 4.0 * m * t + prior;
         (h * w) as f64 * (4.0 * t * m + self.stages as f64 * per_stage)
     }
 
     /// Build the network.
     pub fn init(&self, device: &Device) -> AdmmNet {
         let conv = |i: usize, o: usize| Conv2dConfig::new([i, o], [3, 3]).with_padding(PaddingConfig2d::Same).init(device);
+        // channels in and out of the prior: the bins (bins prior) or one per bin (delay prior,
+        // whose layers see three bins of their input each)
+        let (outer, taps) = match self.prior {
+            Prior::Bins => (self.bins, 1),
+            Prior::Delay => (1, 3),
+        };
         let stages = (0..self.stages)
             .map(|_| Stage {
-                conv1: conv(self.bins, self.channels),
-                conv2: conv(self.channels, self.channels),
-                conv3: conv(self.channels, self.bins),
+                conv1: conv(taps * outer, self.channels),
+                conv2: conv(taps * self.channels, self.channels),
+                conv3: conv(taps * self.channels, outer),
                 log_rho: Param::from_tensor(Tensor::from_floats([self.rho_init.ln() as f32], device)),
                 eta: Param::from_tensor(Tensor::from_floats([self.eta_init as f32], device)),
             })
             .collect();
-        AdmmNet { stages, normalize: self.normalize }
+        AdmmNet { stages, normalize: self.normalize, delay: self.prior == Prior::Delay }
     }
 }
 
@@ -101,9 +136,35 @@ pub struct Stage {
 }
 
 impl Stage {
-    /// The prior's three 3×3 convolutions `T→CN→CN→T` (weights `[out, in, 3, 3]`).
+    /// The prior's three 3×3 convolutions (weights `[out, in, 3, 3]`): `T→CN→CN→T` for the
+    /// bins prior; for the delay prior `3→CN`, `3·CN→CN`, `3·CN→1`, input channel `j·C_in + c`
+    /// being channel `c` at bin `t + (j − 1)·d` (see [`delay_taps`]).
     pub fn convs(&self) -> [&Conv2d; 3] {
         [&self.conv1, &self.conv2, &self.conv3]
+    }
+
+    /// The prior's residual `P(x)`.
+    ///
+    /// # Shapes
+    /// - `x`: `[B, T, H, W]` → `[B, T, H, W]`
+    fn prior(&self, x: Tensor<4>, delay: bool) -> Tensor<4> {
+        if !delay {
+            let h = relu(conv(&self.conv1, x));
+            let h = relu(conv(&self.conv2, h));
+            return conv(&self.conv3, h);
+        }
+        let [b, t, hh, ww] = x.dims();
+        let layer = |c: &Conv2d, h: Tensor<5>, d: usize| {
+            let taps = delay_taps(h, d); // [B, T, 3C, H, W]
+            let [_, _, c3, _, _] = taps.dims();
+            let out = conv(c, taps.reshape([b * t, c3, hh, ww])); // [B·T, C', H, W]
+            let co = out.dims()[1];
+            out.reshape([b, t, co, hh, ww])
+        };
+        let [d1, d2, d3] = DELAY_DILATIONS;
+        let h = relu(layer(&self.conv1, x.reshape([b, t, 1, hh, ww]), d1));
+        let h = relu(layer(&self.conv2, h, d2));
+        layer(&self.conv3, h, d3).reshape([b, t, hh, ww])
     }
 
     /// `ρ_k = exp(log ρ_k)`.
@@ -122,6 +183,20 @@ impl Stage {
 pub struct AdmmNet {
     stages: Vec<Stage>,
     normalize: bool,
+    /// The delay-equivariant prior ([`Prior::Delay`]).
+    delay: bool,
+}
+
+/// The bins `t − d`, `t`, `t + d` of every bin, circularly, stacked as channels: channel
+/// `j·C + c` of bin `t` is channel `c` of bin `(t + (j − 1)·d) mod T`.
+///
+/// # Shapes
+/// - `h`: `[B, T, C, H, W]` → `[B, T, 3C, H, W]`
+pub fn delay_taps(h: Tensor<5>, d: usize) -> Tensor<5> {
+    let t = h.dims()[1] as i64;
+    let d = d as i64 % t;
+    // roll_dim(s): out[t] = in[t − s]
+    Tensor::cat(vec![h.clone().roll_dim(d, 1), h.clone(), h.roll_dim(-d, 1)], 2)
 }
 
 impl AdmmNet {
@@ -151,9 +226,7 @@ impl AdmmNet {
             let v = aty.clone() + (z.clone() - u.clone()) * rho.clone().reshape([1, 1, 1, 1]);
             let x = sensor.data_consistency(v, rho);
             let xu = x.clone() + u.clone();
-            let h = relu(conv(&st.conv1, xu.clone()));
-            let h = relu(conv(&st.conv2, h));
-            z = xu + conv(&st.conv3, h);
+            z = xu.clone() + st.prior(xu, self.delay);
             u = u + (x - z.clone()) * st.eta.val().reshape([1, 1, 1, 1]);
         }
         z
@@ -167,6 +240,15 @@ impl AdmmNet {
     /// Whether the input is normalised per frame (see [`AdmmNetConfig::normalize`]).
     pub fn normalize(&self) -> bool {
         self.normalize
+    }
+
+    /// The prior's kind.
+    pub fn prior(&self) -> Prior {
+        if self.delay {
+            Prior::Delay
+        } else {
+            Prior::Bins
+        }
     }
 
     /// Learned `ρ` per stage.
@@ -207,6 +289,48 @@ mod tests {
                 assert!(rel < 1e-5, "10·y gives 10·x̂ within {rel}");
             } else {
                 assert!(rel > 1e-4, "the biases of the prior break equivariance without the normalisation ({rel})");
+            }
+        }
+    }
+
+    #[test]
+    fn delay_taps_stack_the_neighbouring_bins_circularly() {
+        let device = Device::flex();
+        let (t, c, d) = (6, 2, 2);
+        // value of channel c at bin t: 10·t + c
+        let v: Vec<f32> = (0..t).flat_map(|ti| (0..c).map(move |ci| (10 * ti + ci) as f32)).collect();
+        let h = Tensor::<1>::from_floats(v.as_slice(), &device).reshape([1, t, c, 1, 1]);
+        let taps: Vec<f32> = delay_taps(h, d).into_data().try_into_vec::<f32>().unwrap();
+        for ti in 0..t {
+            for j in 0..3 {
+                for ci in 0..c {
+                    let src = (ti + t + j * d - d) % t;
+                    assert_eq!(taps[ti * 3 * c + j * c + ci], (10 * src + ci) as f32, "bin {ti}, tap {j}, channel {ci}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_delay_prior_commutes_with_delays_and_the_bins_prior_does_not() {
+        let device = Device::flex();
+        let x = Tensor::<4>::random([2, 16, 6, 5], Distribution::Uniform(0.0, 1.0), &device);
+        for prior in [Prior::Delay, Prior::Bins] {
+            let net = AdmmNetConfig::new(4, 16).with_stages(1).with_channels(4).with_prior(prior).init(&device);
+            let delay = net.prior() == Prior::Delay;
+            assert_eq!(delay, prior == Prior::Delay);
+            let p = |x: Tensor<4>| net.stages()[0].prior(x, delay);
+            let base = p(x.clone());
+            let scale = base.clone().abs().max().into_scalar::<f32>();
+            assert!(scale > 1e-3, "the prior is not zero ({scale})");
+            for s in [1i64, 5, -3] {
+                let rolled = p(x.clone().roll_dim(s, 1));
+                let err = (rolled - base.clone().roll_dim(s, 1)).abs().max().into_scalar::<f32>() / scale;
+                if prior == Prior::Delay {
+                    assert!(err < 1e-5, "P(roll(x, {s})) = roll(P(x), {s}) within {err}");
+                } else {
+                    assert!(err > 1e-2, "the bins prior has per-bin weights ({err})");
+                }
             }
         }
     }

@@ -34,7 +34,7 @@ pub mod sensor_tensors;
 pub mod tval3;
 pub mod unet;
 
-pub use admm::{AdmmNet, AdmmNetConfig};
+pub use admm::{AdmmNet, AdmmNetConfig, Prior};
 /// The burn device type (CPU `Device::flex()` by default).
 pub use burn::tensor::Device;
 pub use decoder::{Control, Decoded, Decoder};

@@ -90,6 +90,9 @@ impl ModelConfig {
                 if !(1..=1024).contains(&c.channels) {
                     return bad("model.channels", c.channels.to_string(), "1..=1024 channels");
                 }
+                if c.prior == crate::admm::Prior::Delay && bins < 8 {
+                    return bad("model.bins", bins.to_string(), "at least 8 bins for the delay prior (its dilations reach 4 bins)");
+                }
                 if !(c.rho_init.is_finite() && c.rho_init > 0.0 && c.eta_init.is_finite()) {
                     return bad("model.rho_init", format!("{}, eta_init {}", c.rho_init, c.eta_init), "rho_init > 0 and a finite eta_init");
                 }
@@ -162,9 +165,9 @@ fn file_err(path: &Path, msg: impl ToString) -> ModelError {
 }
 
 /// Bring a config written by an earlier build up to date: add `"decoder": "admm-net"` where
-/// that field is missing (all such runs are ADMM-Net runs), and `"normalize": false` to
-/// ADMM-Net models written before the input normalisation existed; other configs are
-/// returned unchanged.
+/// that field is missing (all such runs are ADMM-Net runs), `"normalize": false` to
+/// ADMM-Net models written before the input normalisation existed and `"prior": "Bins"` to
+/// those written before the delay prior; other configs are returned unchanged.
 pub fn upgrade_config(mut v: serde_json::Value) -> serde_json::Value {
     if let Some(obj) = v.as_object_mut() {
         if obj.contains_key("model") && !obj.contains_key("decoder") {
@@ -173,6 +176,7 @@ pub fn upgrade_config(mut v: serde_json::Value) -> serde_json::Value {
         if obj.get("decoder").and_then(|d| d.as_str()) == Some("admm-net") {
             if let Some(model) = obj.get_mut("model").and_then(|m| m.as_object_mut()) {
                 model.entry("normalize").or_insert(serde_json::Value::Bool(false));
+                model.entry("prior").or_insert(serde_json::Value::String("Bins".into()));
             }
         }
     }

@@ -10,7 +10,7 @@ use tcsense_models::runs::{ModelConfig, CODES_FILE, CONFIG_FILE, SENSOR_MATRIX_F
 use tcsense_sensor::npy::write_npy;
 use tcsense_sensor::params::SensorParams;
 use tcsense_sensor::MeasurementMatrix;
-use tcsense_models::{AdmmNetConfig, UnetConfig};
+use tcsense_models::{AdmmNetConfig, Prior, UnetConfig};
 use tcsense_sensor::{Codes, Constraints};
 use tcsense_train::deep_sensing::{LearnCodes, START_CODES_FILE};
 use tcsense_train::{Augmentation, EpochMetrics, Loss, LrSchedule, Progress, TrainConfig, TrainError};
@@ -55,9 +55,21 @@ pub struct AdmmArgs {
     /// Unrolled stages (overrides the preset).
     #[arg(long)]
     stages: Option<usize>,
-    /// CNN channels (overrides the preset).
+    /// CNN channels (overrides the preset; per bin for `--prior delay`).
     #[arg(long)]
     channels: Option<usize>,
+    /// The prior's convolutions: `bins` — over the frame with the bins as channels (the
+    /// paper's); `delay` — over time and the frame, circular in time, so the network treats
+    /// every delay (onset, cable length, trigger) alike; its channels default to 4 per bin
+    /// (8 with the paper's presets). New runs only.
+    #[arg(long, value_enum)]
+    prior: Option<PriorArg>,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum PriorArg {
+    Bins,
+    Delay,
 }
 
 /// U-Net size.
@@ -269,6 +281,23 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
             }
             if let Some(v) = n.channels {
                 m.channels = v;
+            }
+            if let Some(v) = n.prior {
+                let prior = match v {
+                    PriorArg::Bins => Prior::Bins,
+                    PriorArg::Delay => Prior::Delay,
+                };
+                if a.resume && prior != m.prior {
+                    bail!("{}: --prior cannot change on --resume (this run's prior is {:?})", run_dir.display(), m.prior);
+                }
+                if prior == Prior::Delay && n.channels.is_none() && !a.resume {
+                    // its convolutions run at every bin: a few channels per bin
+                    m.channels = match n.preset {
+                        Preset::Cpu => 4,
+                        Preset::Lidar | Preset::Flim => 8,
+                    };
+                }
+                m.prior = prior;
             }
         }
         (ModelConfig::Unet(_), NetArgs::Unet(_)) => {}

@@ -25,7 +25,8 @@ use protobuf::Message;
 use std::path::Path;
 
 use tcsense_models::runs::{LoadedRun, TrainedNet};
-use tcsense_models::{AdmmNet, Unet};
+use tcsense_models::admm::{Stage, DELAY_DILATIONS};
+use tcsense_models::{AdmmNet, Prior, Unet};
 
 use crate::{InferError, Result};
 use graph::{Attr, Dim, Graph};
@@ -87,23 +88,83 @@ pub fn export_to(run: &LoadedRun, opts: ExportOptions, path: &Path) -> Result<us
     Ok(bytes.len())
 }
 
-/// A burn `Conv2d` (3×3 "same" or 1×1) as an ONNX `Conv`.
-fn conv(g: &mut Graph, layer: &Conv2d, x: &str) -> Result<String> {
-    let dims = layer.weight.dims();
-    let values = |t: burn::tensor::TensorData| -> Result<Vec<f32>> {
-        t.try_into_vec::<f32>().map_err(|e| InferError::InvalidParam { field: "weights", got: format!("{e:?}"), expected: "f32 weights".into() })
-    };
-    let w = values(layer.weight.val().into_data())?;
-    let wn = g.weight("conv_w", &dims, &w);
-    let pad = (dims[2] / 2) as i64;
-    let attrs = [Attr::Ints("kernel_shape", &[dims[2] as i64, dims[3] as i64]), Attr::Ints("pads", &[pad, pad, pad, pad])];
+fn values(t: burn::tensor::TensorData) -> Result<Vec<f32>> {
+    t.try_into_vec::<f32>().map_err(|e| InferError::InvalidParam { field: "weights", got: format!("{e:?}"), expected: "f32 weights".into() })
+}
+
+/// An ONNX `Conv` of `x` with weights `[dims]` and `layer`'s bias (if any).
+fn conv_node(g: &mut Graph, layer: &Conv2d, x: &str, dims: &[usize], w: &[f32], attrs: &[Attr<'_>]) -> Result<String> {
+    let wn = g.weight("conv_w", dims, w);
     match &layer.bias {
         Some(b) => {
             let bv = values(b.val().into_data())?;
             let bn = g.weight("conv_b", &[bv.len()], &bv);
-            Ok(g.node("Conv", &[x, &wn, &bn], &attrs))
+            Ok(g.node("Conv", &[x, &wn, &bn], attrs))
         }
-        None => Ok(g.node("Conv", &[x, &wn], &attrs)),
+        None => Ok(g.node("Conv", &[x, &wn], attrs)),
+    }
+}
+
+/// A burn `Conv2d` (3×3 "same" or 1×1) as an ONNX `Conv`.
+fn conv(g: &mut Graph, layer: &Conv2d, x: &str) -> Result<String> {
+    let dims = layer.weight.dims();
+    let w = values(layer.weight.val().into_data())?;
+    let pad = (dims[2] / 2) as i64;
+    conv_node(g, layer, x, &dims, &w, &[Attr::Ints("kernel_shape", &[dims[2] as i64, dims[3] as i64]), Attr::Ints("pads", &[pad, pad, pad, pad])])
+}
+
+/// One layer of the delay prior ([`Prior::Delay`]) on `x [B, C_in, T, H, W]` → `[B, C_out, T, H, W]`:
+/// the cube padded circularly in `t` by `d` bins on each side (`Slice` + `Concat`), then a
+/// 3×3×3 `Conv` dilated `d` in `t`. Its weight `[C_out, C_in, 3, 3, 3]` is the burn layer's
+/// `[C_out, 3·C_in, 3, 3]`, input channel `j·C_in + c` being channel `c` at bin `t + (j − 1)·d`.
+fn delay_conv(g: &mut Graph, layer: &Conv2d, x: &str, d: usize) -> Result<String> {
+    let [co, ci3, kh, kw] = layer.weight.dims();
+    let ci = ci3 / 3;
+    let w2 = values(layer.weight.val().into_data())?;
+    let mut w3 = vec![0f32; w2.len()];
+    let k = kh * kw;
+    for o in 0..co {
+        for j in 0..3 {
+            for c in 0..ci {
+                let src = ((o * ci3) + j * ci + c) * k;
+                let dst = ((o * ci + c) * 3 + j) * k;
+                w3[dst..dst + k].copy_from_slice(&w2[src..src + k]);
+            }
+        }
+    }
+    let d = d as i64;
+    let axis = g.ints("axis_t", &[2]);
+    let (last_start, last_end) = (g.ints("wrap_start", &[-d]), g.ints("wrap_end", &[i64::MAX]));
+    let (first_start, first_end) = (g.ints("wrap_start", &[0]), g.ints("wrap_end", &[d]));
+    let tail = g.op("Slice", &[x, &last_start, &last_end, &axis]);
+    let head = g.op("Slice", &[x, &first_start, &first_end, &axis]);
+    let padded = g.node("Concat", &[&tail, x, &head], &[Attr::Int("axis", 2)]);
+    let attrs = [Attr::Ints("kernel_shape", &[3, kh as i64, kw as i64]), Attr::Ints("dilations", &[d, 1, 1]), Attr::Ints("pads", &[0, 1, 1, 0, 1, 1])];
+    conv_node(g, layer, &padded, &[co, ci, 3, kh, kw], &w3, &attrs)
+}
+
+/// The prior's residual `P(x)` of an ADMM-Net stage on `x [B, T, H, W]` → `[B, T, H, W]`.
+fn prior(g: &mut Graph, st: &Stage, kind: Prior, x: &str) -> Result<String> {
+    let [c1, c2, c3] = st.convs();
+    match kind {
+        Prior::Bins => {
+            let h = conv(g, c1, x)?;
+            let h = relu(g, &h);
+            let h = conv(g, c2, &h)?;
+            let h = relu(g, &h);
+            conv(g, c3, &h)
+        }
+        Prior::Delay => {
+            let [d1, d2, d3] = DELAY_DILATIONS;
+            let axis = g.ints("axis_c", &[1]);
+            let h = g.op("Unsqueeze", &[x, &axis]); // [B, 1, T, H, W]
+            let h = delay_conv(g, c1, &h, d1)?;
+            let h = relu(g, &h);
+            let h = delay_conv(g, c2, &h, d2)?;
+            let h = relu(g, &h);
+            let p = delay_conv(g, c3, &h, d3)?;
+            Ok(g.op("Squeeze", &[&p, &axis]))
+        }
     }
 }
 
@@ -143,12 +204,7 @@ fn admm_net(g: &mut Graph, net: &AdmmNet, sensor: &SensorGraph, y: &str) -> Resu
             Some(u) => g.op("Add", &[&x, u]),
             None => x.clone(),
         };
-        let [c1, c2, c3] = st.convs();
-        let h = conv(g, c1, &xu)?;
-        let h = relu(g, &h);
-        let h = conv(g, c2, &h)?;
-        let h = relu(g, &h);
-        let p = conv(g, c3, &h)?;
+        let p = prior(g, st, net.prior(), &xu)?;
         z = g.op("Add", &[&xu, &p]);
         // u + η(x − z)
         let eta = g.scalar("eta", st.eta());
