@@ -213,3 +213,22 @@ fn a_second_training_into_the_same_run_is_refused() {
     ok(d, &["train", "admm-net", "--epochs", "1", "--resume", "-o", "run"]);
     assert!(!lock.exists(), "the lock is released at the end");
 }
+
+#[test]
+fn a_delay_prior_run_records_its_prior_and_keeps_it() {
+    let d = tempdir();
+    let d = d.path();
+    tiny_lidar_and_codes(d);
+    ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--prior", "delay", "--stages", "1", "--epochs", "1", "--seed", "3", "-o", "run"]);
+    let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("run/config.json")).unwrap()).unwrap();
+    // a few channels per bin by default
+    assert_eq!((cfg["model"]["prior"].as_str(), cfg["model"]["channels"].as_u64()), (Some("Delay"), Some(4)), "{cfg}");
+    fails(d, &["train", "admm-net", "--prior", "bins", "--epochs", "2", "--resume", "-o", "run"], &["--prior", "Delay"]);
+    assert_eq!(std::fs::read_to_string(d.join("run/metrics.csv")).unwrap().lines().count(), 2, "the refused resume trained nothing");
+    ok(d, &["train", "admm-net", "--epochs", "2", "--resume", "-o", "run"]);
+    ok(d, &["simulate", "--codes", "codes.json", "--cube", "ds/test/x_000.npy", "-o", "y.npy"]);
+    ok(d, &["reconstruct", "admm-net", "--run", "run", "--measurements", "y.npy", "-o", "xhat.npy"]);
+    let xh = read_npy(&d.join("xhat.npy")).unwrap();
+    assert!(xh.shape() == [1, 8, 8, 8] && xh.iter().all(|v| v.is_finite()));
+    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--prior", "time", "-o", "run2"], &["--prior", "time"]);
+}
