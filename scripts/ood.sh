@@ -1,15 +1,16 @@
 #!/usr/bin/env bash
 # Out-of-distribution benchmark: ADMM-Net (and, for LiDAR, the Aᵀ + U-Net) trained on the
-# paper's fixed generators and on the randomised ones (with augmentation), next to TVAL3, on test sets that each differ from the
+# paper's fixed generators and on the randomised ones (with augmentation), and ADMM-Net with the
+# delay-equivariant prior (--prior delay) on the randomised ones, next to TVAL3, on test sets that each differ from the
 # paper's generator in one thing, and on a real depth scene (Middlebury 2014 "Motorcycle",
 # from the scikit-image wheel). Every decoder sees the same noisy measurements of a set.
 #
-#   scripts/ood.sh [OUT]          (default OUT = ood-out; about 45 minutes on two cores;
+#   scripts/ood.sh [OUT]          (default OUT = ood-out; about 75 minutes on two cores;
 #                                  the README's tables come from these defaults)
 #
 # Sizes and budgets can be set from the environment: SIZE (32x32), LIDAR_COUNT (600),
-# FLIM_COUNT (400), LIDAR_EPOCHS (40), UNET_EPOCHS (150), FLIM_EPOCHS (16), ITEMS (test items
-# per set, 10).
+# FLIM_COUNT (400), LIDAR_EPOCHS (40), UNET_EPOCHS (150), FLIM_EPOCHS (16), FLIM_DELAY_EPOCHS (8:
+# the delay prior's step costs about 7x the bins prior's at T = 256), ITEMS (test items per set, 10).
 # The test sets are generated with their own seeds (120 items; their test splits are used).
 # "One thing each" is as close as the flags get to the paper's generator: the LiDAR sets fix
 # the randomised generator's knobs to the paper's ranges but for the one under test.
@@ -23,6 +24,7 @@ FLIM_COUNT=${FLIM_COUNT:-400}
 LIDAR_EPOCHS=${LIDAR_EPOCHS:-40}
 UNET_EPOCHS=${UNET_EPOCHS:-150}
 FLIM_EPOCHS=${FLIM_EPOCHS:-16}
+FLIM_DELAY_EPOCHS=${FLIM_DELAY_EPOCHS:-8}
 ITEMS=${ITEMS:-10}
 SKIMAGE=scikit-image==0.26.0
 
@@ -55,6 +57,7 @@ $B dataset import --depth "$OUT/range.npy" --albedo "$OUT/albedo.npy" --force -o
 T="$B train admm-net --codes $OUT/codes.json --preset cpu --seed 3"
 [ -f "$OUT/run-lidar-paper/model.bpk" ] || $T --dataset "$OUT/lidar-paper" --epochs "$LIDAR_EPOCHS" --no-augment -o "$OUT/run-lidar-paper"
 [ -f "$OUT/run-lidar-random/model.bpk" ] || $T --dataset "$OUT/lidar-random" --epochs "$LIDAR_EPOCHS" -o "$OUT/run-lidar-random"
+[ -f "$OUT/run-lidar-delay/model.bpk" ] || $T --dataset "$OUT/lidar-random" --epochs "$LIDAR_EPOCHS" --prior delay -o "$OUT/run-lidar-delay"
 U="$B train unet --codes $OUT/codes.json --seed 3"
 [ -f "$OUT/unet-lidar-paper/model.bpk" ] || $U --dataset "$OUT/lidar-paper" --epochs "$UNET_EPOCHS" --no-augment -o "$OUT/unet-lidar-paper"
 [ -f "$OUT/unet-lidar-random/model.bpk" ] || $U --dataset "$OUT/lidar-random" --epochs "$UNET_EPOCHS" -o "$OUT/unet-lidar-random"
@@ -74,6 +77,7 @@ $F --onset-ns 2 --lifetimes 3 --tau-ns 0.5,3.5 --irf-fwhm-ns 0 --background 0.05
 
 [ -f "$OUT/run-flim-paper/model.bpk" ] || $T --dataset "$OUT/flim-paper" --epochs "$FLIM_EPOCHS" --no-augment -o "$OUT/run-flim-paper"
 [ -f "$OUT/run-flim-random/model.bpk" ] || $T --dataset "$OUT/flim-random" --epochs "$FLIM_EPOCHS" -o "$OUT/run-flim-random"
+[ -f "$OUT/run-flim-delay/model.bpk" ] || $T --dataset "$OUT/flim-random" --epochs "$FLIM_DELAY_EPOCHS" --prior delay -o "$OUT/run-flim-delay"
 
 # --- evaluation: every decoder on the same noisy measurements of each set ----------------
 echo "set,decoder,items,mse,psnr_db,bounce1_rmse_m,bounce1_mae_m,bounce1_detection,bounce2_rmse_m,bounce2_mae_m,bounce2_detection,lifetime_mae_s,seconds_per_frame" > "$OUT/ood.csv"
@@ -84,7 +88,7 @@ evaluate() { # NAME DATASET SPLIT KIND [extra eval flags]
   [ "$kind" = flim ] && grid="--heterodyne 8"
   [ "$kind" = lidar ] && unets=(--decoder "unet:$OUT/unet-lidar-paper" --decoder "unet:$OUT/unet-lidar-random")
   $B eval --dataset "$ds" --split "$split" --items "$ITEMS" --codes "$OUT/codes.json" $grid --noise --seed 5 \
-    --decoder tval3 --decoder "admm-net:$OUT/run-$kind-paper" --decoder "admm-net:$OUT/run-$kind-random" "${unets[@]}" "$@" -o "$OUT/eval-$name.json" | tail -n 6
+    --decoder tval3 --decoder "admm-net:$OUT/run-$kind-paper" --decoder "admm-net:$OUT/run-$kind-random" --decoder "admm-net:$OUT/run-$kind-delay" "${unets[@]}" "$@" -o "$OUT/eval-$name.json" | tail -n 7
   tail -n +2 "$OUT/eval-$name.csv" | sed "s|^|$name,|; s|$OUT/run-$kind-||; s|$OUT/unet-$kind-||" >> "$OUT/ood.csv"
 }
 for s in standard far near textures dense-sheet; do evaluate "lidar-$s" "$OUT/lidar-test-$s" test lidar; done

@@ -218,7 +218,13 @@ fn a_second_training_into_the_same_run_is_refused() {
 fn a_delay_prior_run_records_its_prior_and_keeps_it() {
     let d = tempdir();
     let d = d.path();
-    tiny_lidar_and_codes(d);
+    // 16 bins: more than the prior's largest dilation; 8 are refused
+    ok(d, &["dataset", "lidar", "--count", "8", "--size", "8x8", "--length", "16", "--seed", "2", "-o", "ds"]);
+    ok(d, &["codes", "generate", "--tap-constraint", "--length", "16", "--seed", "1", "-o", "codes.json"]);
+    std::fs::create_dir(d.join("short")).unwrap();
+    tiny_lidar_and_codes(&d.join("short"));
+    fails(&d.join("short"), &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--prior", "delay", "-o", "run"], &["model.bins", "more than 9 bins"]);
+    assert!(!d.join("short/run").exists());
     ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--prior", "delay", "--stages", "1", "--epochs", "1", "--seed", "3", "-o", "run"]);
     let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("run/config.json")).unwrap()).unwrap();
     // a few channels per bin by default
@@ -229,6 +235,6 @@ fn a_delay_prior_run_records_its_prior_and_keeps_it() {
     ok(d, &["simulate", "--codes", "codes.json", "--cube", "ds/test/x_000.npy", "-o", "y.npy"]);
     ok(d, &["reconstruct", "admm-net", "--run", "run", "--measurements", "y.npy", "-o", "xhat.npy"]);
     let xh = read_npy(&d.join("xhat.npy")).unwrap();
-    assert!(xh.shape() == [1, 8, 8, 8] && xh.iter().all(|v| v.is_finite()));
+    assert!(xh.shape() == [1, 16, 8, 8] && xh.iter().all(|v| v.is_finite()));
     fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--prior", "time", "-o", "run2"], &["--prior", "time"]);
 }

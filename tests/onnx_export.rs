@@ -81,8 +81,8 @@ fn admm_net_in_onnx_runtime_equals_burn() {
         ("2x2 ideal", random_run(admm(true, Prior::Bins), (2, 2), Sampling::Oversample(1), Irf::Ideal, 1)),
         ("2x2 heterodyne physical", random_run(admm(false, Prior::Bins), (2, 2), Sampling::Heterodyne(2), physical, 2)),
         ("1x2 oversampled", random_run(admm(true, Prior::Bins), (1, 2), Sampling::Oversample(2), physical, 3)),
-        // the delay prior: 8 bins (dilation 4 wraps half the cycle) and 16
-        ("2x2 ideal, delay prior", random_run(admm(true, Prior::Delay), (2, 2), Sampling::Oversample(1), Irf::Ideal, 4)),
+        // the delay prior (16 bins: its dilation 9 wraps around the cycle)
+        ("2x2 oversampled, delay prior", random_run(admm(true, Prior::Delay), (2, 2), Sampling::Oversample(2), Irf::Ideal, 4)),
         ("1x2 heterodyne physical, delay prior", random_run(admm(false, Prior::Delay), (1, 2), Sampling::Heterodyne(2), physical, 5)),
     ];
     for (label, run) in &cases {

@@ -90,8 +90,9 @@ impl ModelConfig {
                 if !(1..=1024).contains(&c.channels) {
                     return bad("model.channels", c.channels.to_string(), "1..=1024 channels");
                 }
-                if c.prior == crate::admm::Prior::Delay && bins < 8 {
-                    return bad("model.bins", bins.to_string(), "at least 8 bins for the delay prior (its dilations reach 4 bins)");
+                let reach = crate::admm::DELAY_DILATIONS[2];
+                if c.prior == crate::admm::Prior::Delay && bins <= reach {
+                    return bad("model.bins", bins.to_string(), &format!("more than {reach} bins for the delay prior (its largest dilation)"));
                 }
                 if !(c.rho_init.is_finite() && c.rho_init > 0.0 && c.eta_init.is_finite()) {
                     return bad("model.rho_init", format!("{}, eta_init {}", c.rho_init, c.eta_init), "rho_init > 0 and a finite eta_init");
