@@ -31,7 +31,7 @@ use tcsense_infer::report::{Block, Cell, Format, Report, Section, Table};
 use tcsense_infer::selection::{select, EvalSetup};
 use tcsense_models::decoder::Control;
 use tcsense_models::runs::{self, ModelConfig, CODES_FILE, CONFIG_FILE};
-use tcsense_models::{AdmmNetConfig, Device, Tval3Options, UnetConfig};
+use tcsense_models::{AdmmNetConfig, Device, Prior, Tval3Options, UnetConfig};
 use tcsense_sensor::codes::{CodeShape, Codes, Constraints, DEFAULT_CLOCK_HZ};
 use tcsense_sensor::measure::measure_batch;
 use tcsense_sensor::noise::derive_seed;
@@ -131,7 +131,7 @@ const TRAININGS: [(&str, &str, f64); 4] = [
     ("admm-lidar", "ADMM-Net on LiDAR, selected codes", 0.25),
     ("learned-lidar", "ADMM-Net on LiDAR, codes learned with it (deep sensing)", 0.25),
     ("unet-lidar", "Aᵀ + U-Net depth decoder on LiDAR, selected codes", 0.2),
-    ("admm-flim", "ADMM-Net on FLIm (heterodyne K = 8), selected codes", 0.3),
+    ("admm-flim", "ADMM-Net with the delay prior on FLIm (heterodyne K = 8), selected codes", 0.3),
 ];
 
 impl Request {
@@ -414,6 +414,9 @@ fn model_of(name: &str, ds: &Dataset) -> ModelConfig {
     if name.starts_with("unet") {
         let range_m = C * ds.manifest.bin_width_s * t as f64 / 2.0;
         ModelConfig::Unet(UnetConfig::new(m, t, range_m))
+    } else if name.ends_with("flim") {
+        // onsets anywhere in the cycle: the delay-equivariant prior, 4 channels per bin
+        ModelConfig::AdmmNet(AdmmNetConfig::cpu(m, t).with_prior(Prior::Delay).with_channels(4).with_normalize(true))
     } else {
         ModelConfig::AdmmNet(AdmmNetConfig::cpu(m, t).with_normalize(true))
     }
