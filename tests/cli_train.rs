@@ -237,4 +237,9 @@ fn a_delay_prior_run_records_its_prior_and_keeps_it() {
     let xh = read_npy(&d.join("xhat.npy")).unwrap();
     assert!(xh.shape() == [1, 16, 8, 8] && xh.iter().all(|v| v.is_finite()));
     fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--prior", "time", "-o", "run2"], &["--prior", "time"]);
+    // a saved delay-prior config keeps its channels when --prior delay is given again
+    ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--prior", "delay", "--channels", "2", "--stages", "1", "--epochs", "1", "-o", "run3"]);
+    ok(d, &["train", "admm-net", "--config", "run3/config.json", "--codes", "codes.json", "--prior", "delay", "-o", "run4"]);
+    let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("run4/config.json")).unwrap()).unwrap();
+    assert_eq!((cfg["model"]["prior"].as_str(), cfg["model"]["channels"].as_u64()), (Some("Delay"), Some(2)), "{cfg}");
 }

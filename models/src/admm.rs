@@ -149,8 +149,8 @@ impl Stage {
     ///
     /// # Shapes
     /// - `x`: `[B, T, H, W]` → `[B, T, H, W]`
-    fn prior(&self, x: Tensor<4>, delay: bool) -> Tensor<4> {
-        if !delay {
+    fn prior(&self, x: Tensor<4>, kind: Prior) -> Tensor<4> {
+        if kind == Prior::Bins {
             let h = relu(conv(&self.conv1, x));
             let h = relu(conv(&self.conv2, h));
             return conv(&self.conv3, h);
@@ -228,7 +228,7 @@ impl AdmmNet {
             let v = aty.clone() + (z.clone() - u.clone()) * rho.clone().reshape([1, 1, 1, 1]);
             let x = sensor.data_consistency(v, rho);
             let xu = x.clone() + u.clone();
-            z = xu.clone() + st.prior(xu, self.delay);
+            z = xu.clone() + st.prior(xu, self.prior());
             u = u + (x - z.clone()) * st.eta.val().reshape([1, 1, 1, 1]);
         }
         z
@@ -319,9 +319,8 @@ mod tests {
         let x = Tensor::<4>::random([2, 16, 6, 5], Distribution::Uniform(0.0, 1.0), &device);
         for prior in [Prior::Delay, Prior::Bins] {
             let net = AdmmNetConfig::new(4, 16).with_stages(1).with_channels(4).with_prior(prior).init(&device);
-            let delay = net.prior() == Prior::Delay;
-            assert_eq!(delay, prior == Prior::Delay);
-            let p = |x: Tensor<4>| net.stages()[0].prior(x, delay);
+            assert_eq!(net.prior(), prior);
+            let p = |x: Tensor<4>| net.stages()[0].prior(x, prior);
             let base = p(x.clone());
             let scale = base.clone().abs().max().into_scalar::<f32>();
             assert!(scale > 1e-3, "the prior is not zero ({scale})");

@@ -290,8 +290,9 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
                 if a.resume && prior != m.prior {
                     bail!("{}: --prior cannot change on --resume (this run's prior is {:?})", run_dir.display(), m.prior);
                 }
-                if prior == Prior::Delay && n.channels.is_none() && !a.resume {
-                    // its convolutions run at every bin: a few channels per bin
+                if prior == Prior::Delay && m.prior != Prior::Delay && n.channels.is_none() {
+                    // its convolutions run at every bin: a few channels per bin (a config that
+                    // already has the delay prior keeps its channels)
                     m.channels = match n.preset {
                         Preset::Cpu => 4,
                         Preset::Lidar | Preset::Flim => 8,
