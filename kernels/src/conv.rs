@@ -50,8 +50,52 @@ const MIN_TASKS: usize = 4;
 /// to the same cache sets.
 const PAD: usize = 16;
 
+/// Where the source channels of one correlation item are read from. The im2col copies read
+/// their planes through this, so a gathered input (the delay taps) is never materialised.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Source {
+    /// Item `i` is the contiguous `[c_src, H, W]` block `i` of the input.
+    Items,
+    /// Item `i = b·T + t` stacks three groups of `group` channels of a `[B·T, group, H, W]`
+    /// input: its channel `j·group + c` is channel `c` of frame `b·T + (t + off[j]) mod T`.
+    Delay { bins: usize, group: usize, off: [isize; 3] },
+}
+
+impl Source {
+    /// Offset in the input of the plane of source channel `ci` of `item` (`c_src` channels an item).
+    #[inline]
+    fn plane(self, item: usize, ci: usize, c_src: usize, hw: usize) -> usize {
+        match self {
+            Source::Items => (item * c_src + ci) * hw,
+            Source::Delay { bins, group, off } => {
+                let (b, t) = (item / bins, item % bins);
+                let (j, c) = (ci / group, ci % group);
+                let tt = (t as isize + off[j]).rem_euclid(bins as isize) as usize;
+                ((b * bins + tt) * group + c) * hw
+            }
+        }
+    }
+
+    /// Elements of the input that `items` items of `c_src` channels read from.
+    fn input_len(self, items: usize, c_src: usize, hw: usize) -> usize {
+        match self {
+            Source::Items => items * c_src * hw,
+            Source::Delay { group, .. } => items * group * hw,
+        }
+    }
+}
+
+/// Nanoseconds spent inside GEMM calls since the process started, summed over threads.
+static GEMM_NANOS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+
+/// Seconds of thread time spent inside this crate's GEMM calls so far (summed over threads):
+/// `bench train` reads it before and after a step to tell the share of the step outside GEMM.
+pub fn gemm_seconds() -> f64 {
+    GEMM_NANOS.load(std::sync::atomic::Ordering::Relaxed) as f64 * 1e-9
+}
+
 impl Conv3x3 {
-    fn hw(&self) -> usize {
+    pub(crate) fn hw(&self) -> usize {
         self.height * self.width
     }
     /// Elements of the input `[B, C_in, H, W]`.
@@ -82,7 +126,7 @@ impl Conv3x3 {
             return;
         }
         let kernel = Kernel::new(self.c_out, self.c_in, |co, ci, t| w[(co * self.c_in + ci) * 9 + t], bias);
-        correlate(self.plane(self.c_in, self.c_out), x, &kernel, y);
+        correlate(self.plane(self.c_in, self.c_out), Source::Items, x, &kernel, y);
     }
 
     /// Gradient with respect to the input: `dx = conv(g, W̃)`.
@@ -98,7 +142,7 @@ impl Conv3x3 {
         }
         // W̃[ci, co, t] = W[co, ci, 8 − t]
         let kernel = Kernel::new(self.c_in, self.c_out, |ci, co, t| w[(co * self.c_in + ci) * 9 + 8 - t], None);
-        correlate(self.plane(self.c_out, self.c_in), g, &kernel, dx);
+        correlate(self.plane(self.c_out, self.c_in), Source::Items, g, &kernel, dx);
     }
 
     /// Gradient with respect to the kernel: `dW = Σ_b g_b · col(x_b)ᵀ`.
@@ -107,10 +151,17 @@ impl Conv3x3 {
     /// - `x`: `[B, C_in, H, W]`, `g`: `[B, C_out, H, W]` → `dw`: `[C_out, C_in, 3, 3]`
     pub fn backward_w(&self, x: &[f32], g: &[f32], dw: &mut [f32]) {
         assert_eq!(x.len(), self.x_len(), "conv3x3 backward_w: x");
+        self.backward_w_from(Source::Items, x, g, dw);
+    }
+
+    /// [`Conv3x3::backward_w`] for an input whose items are gathered through `src` (`self.c_in`
+    /// is the channels of a gathered item).
+    pub(crate) fn backward_w_from(&self, src: Source, x: &[f32], g: &[f32], dw: &mut [f32]) {
+        assert_eq!(x.len(), src.input_len(self.batch, self.c_in, self.hw()), "conv3x3 backward_w: x");
         assert_eq!(g.len(), self.y_len(), "conv3x3 backward_w: g");
         assert_eq!(dw.len(), self.w_len(), "conv3x3 backward_w: dw");
         dw.fill(0.0);
-        if self.x_len() == 0 || self.y_len() == 0 {
+        if self.y_len() == 0 || self.c_in == 0 {
             return;
         }
         let p = self.plane(self.c_in, self.c_out);
@@ -126,7 +177,7 @@ impl Conv3x3 {
                     let n = (y1 - y0) * p.w;
                     let ld = p.ld(y0, y1);
                     with_scratch(k3 * ld, |col| {
-                        shifts(&x[b * self.c_in * hw..(b + 1) * self.c_in * hw], p, y0, y1, ld, col);
+                        shifts(x, src, b, p, y0, y1, ld, col);
                         let gb = &g[b * self.c_out * hw..(b + 1) * self.c_out * hw];
                         for ky in 0..3 {
                             // dW_kyᵀ [3C_in, C_out] += col_ky [3C_in, n] · g_bᵀ [n, C_out]
@@ -174,7 +225,7 @@ impl Conv3x3 {
         }
     }
 
-    fn plane(&self, c_src: usize, c_dst: usize) -> Plane {
+    pub(crate) fn plane(&self, c_src: usize, c_dst: usize) -> Plane {
         let k = c_src * 3 + 1;
         let (h, w) = (self.height.max(1), self.width.max(1));
         let max_rows = (BAND_ELEMS / (k * w)).saturating_sub(2).clamp(1, h);
@@ -187,7 +238,7 @@ impl Conv3x3 {
 
 /// The geometry of one correlation pass: `c_src` channels in, `c_dst` out, bands of `rows` rows.
 #[derive(Clone, Copy, Debug)]
-struct Plane {
+pub(crate) struct Plane {
     batch: usize,
     c_src: usize,
     c_dst: usize,
@@ -211,7 +262,7 @@ impl Plane {
 
 /// A kernel rearranged for the three-shift GEMMs: `k[ky][c_dst][c_src·3 + kx]`, plus the bias
 /// as one more column of the `ky = 0` block (row stride `3·c_src + 1` throughout).
-struct Kernel {
+pub(crate) struct Kernel {
     k: Vec<f32>,
     c_dst: usize,
     c_src: usize,
@@ -219,7 +270,7 @@ struct Kernel {
 
 impl Kernel {
     /// `w(d, s, t)` is the weight from source channel `s` to destination `d` at tap `t = 3·ky + kx`.
-    fn new(c_dst: usize, c_src: usize, w: impl Fn(usize, usize, usize) -> f32, bias: Option<&[f32]>) -> Self {
+    pub(crate) fn new(c_dst: usize, c_src: usize, w: impl Fn(usize, usize, usize) -> f32, bias: Option<&[f32]>) -> Self {
         let ks = 3 * c_src + 1;
         let mut k = vec![0.0f32; 3 * c_dst * ks];
         for ky in 0..3 {
@@ -243,11 +294,11 @@ impl Kernel {
 ///
 /// # Shapes
 /// - `input`: `[B, c_src, H, W]`, `out`: `[B, c_dst, H, W]`
-fn correlate(p: Plane, input: &[f32], kernel: &Kernel, out: &mut [f32]) {
+pub(crate) fn correlate(p: Plane, src: Source, input: &[f32], kernel: &Kernel, out: &mut [f32]) {
     let hw = p.h * p.w;
     let (k3, ks) = (p.c_src * 3, p.c_src * 3 + 1);
     assert!(kernel.c_src == p.c_src && kernel.c_dst == p.c_dst);
-    assert_eq!(input.len(), p.batch * p.c_src * hw);
+    assert_eq!(input.len(), src.input_len(p.batch, p.c_src, hw));
     assert_eq!(out.len(), p.batch * p.c_dst * hw);
     let out = SharedOut { ptr: out.as_mut_ptr(), len: out.len() };
     (0..p.batch * p.bands()).into_par_iter().for_each(|task| {
@@ -255,7 +306,7 @@ fn correlate(p: Plane, input: &[f32], kernel: &Kernel, out: &mut [f32]) {
         let n = (y1 - y0) * p.w;
         let ld = p.ld(y0, y1);
         with_scratch(ks * ld, |col| {
-            shifts(&input[b * p.c_src * hw..(b + 1) * p.c_src * hw], p, y0, y1, ld, &mut col[..k3 * ld]);
+            shifts(input, src, b, p, y0, y1, ld, &mut col[..k3 * ld]);
             col[k3 * ld..k3 * ld + n].fill(1.0); // the bias row, read by the ky = 0 product only
             // out_b[:, band] [c_dst, n] (+)= K_ky [c_dst, 3c_src (+1)] · col_ky [3c_src (+1), n].
             // The tasks' views are disjoint: each covers its own band of rows of its own item.
@@ -290,19 +341,20 @@ fn with_scratch<R>(len: usize, f: impl FnOnce(&mut [f32]) -> R) -> R {
     })
 }
 
-/// The three column shifts of rows `y0 − 1 ..= y1` of one item (zero outside the frame):
-/// `col[(c·3 + kx)·ld + (y − y0 + 1)·W + x] = x[c, y, x + kx − 1]`. The im2col matrix of
-/// kernel row `ky` is then the strided view starting at column `ky·W` — three copies of the
-/// input instead of nine.
+/// The three column shifts of rows `y0 − 1 ..= y1` of item `item` (zero outside the frame):
+/// `col[(c·3 + kx)·ld + (y − y0 + 1)·W + x] = x_item[c, y, x + kx − 1]`, where channel `c` of
+/// the item is the plane `src` points at. The im2col matrix of kernel row `ky` is then the
+/// strided view starting at column `ky·W` — three copies of the input instead of nine.
 ///
 /// # Shapes
-/// - `x`: `[c_src, H, W]` → `col`: `[c_src·3, ld]`
-fn shifts(x: &[f32], p: Plane, y0: usize, y1: usize, ld: usize, col: &mut [f32]) {
+/// - `x`: the whole input (`src` finds the item's `[c_src, H, W]` planes) → `col`: `[c_src·3, ld]`
+fn shifts(x: &[f32], src: Source, item: usize, p: Plane, y0: usize, y1: usize, ld: usize, col: &mut [f32]) {
     let (h, w) = (p.h, p.w);
     debug_assert_eq!(col.len(), p.c_src * 3 * ld);
     for (r, dst) in col.chunks_exact_mut(ld).enumerate() {
         let (ci, kx) = (r / 3, r % 3);
-        let plane = &x[ci * h * w..(ci + 1) * h * w];
+        let at = src.plane(item, ci, p.c_src, h * w);
+        let plane = &x[at..at + h * w];
         for (k, d) in dst[..(y1 - y0 + 2) * w].chunks_exact_mut(w).enumerate() {
             let sy = (y0 + k) as isize - 1;
             if sy < 0 || sy >= h as isize {
@@ -385,6 +437,7 @@ fn sgemm(dst: Dst<'_>, (lhs, lv): (&[f32], Mat), (rhs, rv): (&[f32], Mat), accum
     assert!(dv.m == lv.m && dv.n == rv.n && lv.n == rv.m, "sgemm: shapes {dv:?} = {lv:?} · {rv:?}");
     lv.check(lhs.len(), "lhs");
     rv.check(rhs.len(), "rhs");
+    let t0 = std::time::Instant::now();
     // SAFETY: the three views were checked to lie inside their buffers. The destination is
     // either a slice borrowed mutably (so it aliases nothing) or a shared output whose tasks
     // write disjoint views while the caller holds the only other borrow of it.
@@ -411,6 +464,7 @@ fn sgemm(dst: Dst<'_>, (lhs, lv): (&[f32], Mat), (rhs, rv): (&[f32], Mat), accum
             gemm::Parallelism::None,
         );
     }
+    GEMM_NANOS.fetch_add(t0.elapsed().as_nanos() as u64, std::sync::atomic::Ordering::Relaxed);
 }
 
 #[cfg(test)]

@@ -5,6 +5,10 @@
 //!   gradient and weight gradient — with three column-shifted copies per band of rows.
 //! - [`conv_op`]: [`conv_op::conv3x3`], that convolution as a burn op (`Flex` and
 //!   `Autodiff<Flex>`), used by ADMM-Net's prior and by any network with 3×3 convs.
+//! - [`delay`]: the delay-tap convolution of ADMM-Net's delay-equivariant prior — a 3×3
+//!   convolution over the frame of the bins `t − d`, `t`, `t + d` (circular in `t`) — whose
+//!   im2col reads the three bins straight from the input; [`delay_op::delay_conv3x3`] is it as
+//!   a burn op.
 //! - [`pixel`]: the block-periodic per-pixel sensor operators in frame layout —
 //!   `y(r, c) = P_{n(r,c)} x(r, c)` ([`pixel::pixel_linear`]: `A`, `Aᵀ`, the back-projection)
 //!   and ADMM-Net's exact data-consistency solve `x = (AᵀA + ρI)⁻¹ v` through Woodbury
@@ -22,6 +26,7 @@
 //!
 //! The kernels run on the CPU `flex` device (with or without autodiff). On any other device
 //! (burn's wgpu backend, cargo feature `gpu` of the workspace) [`conv_op::conv3x3`],
+//! [`delay_op::delay_conv3x3`] (as roll + concatenate + conv),
 //! [`resample::max_pool2`] and [`resample::upsample2`] run burn's composed ops instead, and
 //! `tcsense_models::SensorTensors` its block-layout version of the pixel operators: see
 //! [`runs_kernels`].
@@ -40,6 +45,8 @@
 
 pub mod conv;
 pub mod conv_op;
+pub mod delay;
+pub mod delay_op;
 pub mod pixel;
 pub mod resample;
 pub mod timing;

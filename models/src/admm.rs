@@ -20,8 +20,9 @@
 //! dilated 1, 3, 9 in `t` in its three layers (every offset of ±13 bins reached exactly once
 //! per stage; 1, 3, 9 measured 0.4 dB better than 1, 2, 4 on randomised FLIm). Every bin
 //! shares the weights, so delaying the cube by whole bins delays the prior's output the same:
-//! `P(roll(x, s)) = roll(P(x), s)`. Each layer is run as a 3×3 convolution over the frame on
-//! `[B·T, 3·C_in, H, W]`: the bins `t − d`, `t`, `t + d` stacked as channels.
+//! `P(roll(x, s)) = roll(P(x), s)`. Each layer is a 3×3 convolution over the frame of the bins
+//! `t − d`, `t`, `t + d` as `3·C_in` channels (`tcsense_kernels::delay_op::delay_conv3x3`: on
+//! the CPU its im2col reads the three bins in place; elsewhere roll + concatenate + conv).
 
 use burn::config::Config;
 use burn::module::{Module, Param};
@@ -30,6 +31,7 @@ use burn::nn::PaddingConfig2d;
 use burn::tensor::{activation::relu, Device, Tensor};
 
 use tcsense_kernels::conv_op::conv3x3_layer as conv;
+use tcsense_kernels::delay_op::delay_conv3x3_layer;
 
 use crate::net::{Network, Prediction};
 use crate::sensor_tensors::SensorTensors;
@@ -156,13 +158,8 @@ impl Stage {
             return conv(&self.conv3, h);
         }
         let [b, t, hh, ww] = x.dims();
-        let layer = |c: &Conv2d, h: Tensor<5>, d: usize| {
-            let taps = delay_taps(h, d); // [B, T, 3C, H, W]
-            let [_, _, c3, _, _] = taps.dims();
-            let out = conv(c, taps.reshape([b * t, c3, hh, ww])); // [B·T, C', H, W]
-            let co = out.dims()[1];
-            out.reshape([b, t, co, hh, ww])
-        };
+        // [B, T, C, H, W] → [B, T, C', H, W]: the bins t − d, t, t + d read in place on the CPU
+        let layer = |c: &Conv2d, h: Tensor<5>, d: usize| delay_conv3x3_layer(c, h, d);
         let [d1, d2, d3] = DELAY_DILATIONS;
         let h = relu(layer(&self.conv1, x.reshape([b, t, 1, hh, ww]), d1));
         let h = relu(layer(&self.conv2, h, d2));
@@ -189,17 +186,7 @@ pub struct AdmmNet {
     delay: bool,
 }
 
-/// The bins `t − d`, `t`, `t + d` of every bin, circularly, stacked as channels: channel
-/// `j·C + c` of bin `t` is channel `c` of bin `(t + (j − 1)·d) mod T`.
-///
-/// # Shapes
-/// - `h`: `[B, T, C, H, W]` → `[B, T, 3C, H, W]`
-pub fn delay_taps(h: Tensor<5>, d: usize) -> Tensor<5> {
-    let t = h.dims()[1] as i64;
-    let d = d as i64 % t;
-    // roll_dim(s): out[t] = in[t − s]
-    Tensor::cat(vec![h.clone().roll_dim(d, 1), h.clone(), h.roll_dim(-d, 1)], 2)
-}
+pub use tcsense_kernels::delay_op::delay_taps;
 
 impl AdmmNet {
     /// Reconstruct cubes from measurements.

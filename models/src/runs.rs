@@ -55,6 +55,14 @@ impl ModelConfig {
         }
     }
 
+    /// Floating-point operations of the forward pass on one `h × w` frame.
+    pub fn flops(&self, h: usize, w: usize) -> f64 {
+        match self {
+            ModelConfig::AdmmNet(c) => c.flops(h, w),
+            ModelConfig::Unet(c) => c.flops(h, w),
+        }
+    }
+
     /// Taps `M` the network takes.
     pub fn taps(&self) -> usize {
         match self {

@@ -37,32 +37,44 @@ pub enum BenchCmd {
         #[arg(long, default_value_t = 3)]
         frames: usize,
     },
-    /// ADMM-Net: time per training step (batch 2) and inference time per frame.
+    /// Training step of every network (ADMM-Net with the bins and the delay prior, the Aᵀ +
+    /// U-Net) at each --bins: time, GFLOP per step, GFLOP/s and the share of the step outside
+    /// GEMM; with --infer-size, inference time per frame too.
     Train {
         /// Training frame size HxW.
         #[arg(long, default_value = "64x64", value_parser = super::parse_hw)]
         size: (usize, usize),
-        /// Bins T (L = 32, K = T/32).
-        #[arg(long, default_value_t = 32)]
-        bins: usize,
+        /// Bins T, one or more (L = 32, K = T/32).
+        #[arg(long, default_value = "32,256", value_delimiter = ',')]
+        bins: Vec<usize>,
         /// Stages S.
         #[arg(long, default_value_t = 9)]
         stages: usize,
-        /// Channels CN.
+        /// Channels CN of the bins prior.
         #[arg(long, default_value_t = 32)]
         channels: usize,
-        /// Timed steps.
+        /// Channels per bin of the delay prior.
+        #[arg(long, default_value_t = 4)]
+        delay_channels: usize,
+        /// Timed steps (median reported, after one warm-up step).
         #[arg(long, default_value_t = 5)]
         steps: usize,
-        /// Inference frame size HxW.
-        #[arg(long, default_value = "188x212", value_parser = super::parse_hw)]
-        infer_size: (usize, usize),
+        /// Also time inference of one frame of this size HxW (batch 1).
+        #[arg(long, value_parser = super::parse_hw)]
+        infer_size: Option<(usize, usize)>,
         /// U-Net base width.
         #[arg(long, default_value_t = 8)]
         unet_width: usize,
         /// U-Net levels.
         #[arg(long, default_value_t = 3)]
         unet_levels: usize,
+        /// Only the networks whose label contains this (e.g. "delay", "U-Net").
+        #[arg(long)]
+        only: Option<String>,
+        /// How the delay prior's layers run on the CPU: the delay-tap kernels (in place), or
+        /// composed (roll + concatenate + 3×3 conv, as before the kernels and on the GPU).
+        #[arg(long, value_enum, default_value = "kernel")]
+        delay_path: DelayPath,
     },
     /// ADMM-Net's kernels (3×3 conv forward and gradients, data consistency, back-projection)
     /// against burn-flex's generic paths.
@@ -91,6 +103,15 @@ pub enum BenchCmd {
     Infer(super::deploy::BenchInferArgs),
 }
 
+/// How the delay prior's layers run (`bench train --delay-path`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum DelayPath {
+    /// The delay-tap kernels.
+    Kernel,
+    /// Roll + concatenate + 3×3 conv.
+    Composed,
+}
+
 pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
     match cmd {
         BenchCmd::Forward { size: (h, w), reps } => {
@@ -113,33 +134,71 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
         }
         BenchCmd::Dataset(a) => super::dataset::bench(a)?,
         BenchCmd::Infer(a) => super::deploy::bench_infer(a)?,
-        BenchCmd::Train { size: (h, w), bins, stages, channels, steps, infer_size: (ih, iw), unet_width, unet_levels } => {
-            if bins == 0 || bins % 32 != 0 {
-                anyhow::bail!("--bins {bins}: expected a multiple of 32");
+        BenchCmd::Train { size: (h, w), bins, stages, channels, delay_channels, steps, infer_size, unet_width, unet_levels, only, delay_path } => {
+            tcsense_kernels::delay_op::use_composed(delay_path == DelayPath::Composed);
+            if bins.is_empty() || bins.iter().any(|&t| t == 0 || t % 32 != 0) {
+                let list: Vec<String> = bins.iter().map(|t| t.to_string()).collect();
+                anyhow::bail!("--bins {}: expected one or more multiples of 32", list.join(","));
             }
-            let k = bins / 32;
-            let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
-            let codes = random_codes(shape, 607e6, Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1)?;
-            let spec = SensorParams { sampling: Sampling::Oversample(k), ..SensorParams::from_codes(&codes) }.validate()?;
-            let a = MeasurementMatrix::synthesize(&codes, &spec)?;
-            let cfg = ModelConfig::AdmmNet(tcsense_models::AdmmNetConfig::new(4, bins).with_stages(stages).with_channels(channels));
-            let r = tcsense_train::bench::bench_step(&a, &cfg, h, w, steps)?;
-            println!("ADMM-Net S = {stages}, CN = {channels}, T = {bins}, {} threads", rayon::current_num_threads());
-            println!("training step (batch 2, {h}x{w}): {:.1} ms (forward {:.1} ms, backward {:.1} ms, Adam {:.1} ms)", r.step_ms, r.forward_ms, r.backward_ms, r.optim_ms);
-            let f = tcsense_train::bench::bench_forward(&a, &cfg, ih, iw, 3)?;
-            println!("inference forward ({ih}x{iw}, batch 1): {f:.1} ms per frame; {} parameters", tcsense_train::bench::parameters(&cfg));
             if unet_width == 0 || !(1..=6).contains(&unet_levels) {
                 anyhow::bail!("--unet-width {unet_width}, --unet-levels {unet_levels}: expected a width ≥ 1 and 1–6 levels");
             }
-            let range_m = 299_792_458.0 * spec.cycle_s() / 2.0;
-            let unet = tcsense_models::UnetConfig::new(4, bins, range_m).with_base_width(unet_width).with_levels(unet_levels);
-            let flops = unet.flops(ih, iw);
-            let cfg = ModelConfig::Unet(unet);
-            let r = tcsense_train::bench::bench_step(&a, &cfg, h, w, steps)?;
-            println!("Aᵀ + U-Net K = 2, base width {unet_width}, {unet_levels} levels, T = {bins}");
-            println!("training step (batch 2, {h}x{w}): {:.1} ms (forward {:.1} ms, backward {:.1} ms, Adam {:.1} ms)", r.step_ms, r.forward_ms, r.backward_ms, r.optim_ms);
-            let f = tcsense_train::bench::bench_forward(&a, &cfg, ih, iw, 3)?;
-            println!("inference forward ({ih}x{iw}, batch 1): {f:.1} ms per frame, {:.2} GFLOP per frame ({:.1} GFLOP/s); {} parameters", flops / 1e9, flops / f / 1e6, tcsense_train::bench::parameters(&cfg));
+            if h == 0 || w == 0 || h % 2 != 0 || w % 2 != 0 || stages == 0 || channels == 0 || delay_channels == 0 {
+                anyhow::bail!("--size {h}x{w}, --stages {stages}, --channels {channels}, --delay-channels {delay_channels}: expected non-zero sizes and an even frame (2x2 blocks)");
+            }
+            use tcsense_models::admm::Prior;
+            println!(
+                "training step: batch {}, {h}x{w}, 4 taps 2x2, Adam, {} threads, delay path {delay_path:?}; GFLOP = 3 x forward; non-GEMM = share of the step's core time not in GEMM calls",
+                tcsense_train::bench::BENCH_BATCH,
+                rayon::current_num_threads()
+            );
+            println!("{:<36} {:>5} {:>10} {:>10} {:>10} {:>10} {:>8} {:>8}", "network", "T", "step ms", "fwd ms", "bwd ms", "GFLOP", "GFLOP/s", "non-GEMM");
+            let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
+            let codes = random_codes(shape, 607e6, Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1)?;
+            let mut inference = Vec::new();
+            for &t in &bins {
+                let spec = SensorParams { sampling: Sampling::Oversample(t / 32), ..SensorParams::from_codes(&codes) }.validate()?;
+                let a = MeasurementMatrix::synthesize(&codes, &spec)?;
+                let admm = |prior: Prior, cn: usize| tcsense_models::AdmmNetConfig::new(4, t).with_stages(stages).with_channels(cn).with_prior(prior);
+                let range_m = 299_792_458.0 * spec.cycle_s() / 2.0;
+                let nets = [
+                    (format!("ADMM-Net bins prior S={stages} CN={channels}"), ModelConfig::AdmmNet(admm(Prior::Bins, channels))),
+                    (format!("ADMM-Net delay prior S={stages} C={delay_channels}/bin"), ModelConfig::AdmmNet(admm(Prior::Delay, delay_channels))),
+                    (
+                        format!("Aᵀ + U-Net K=2 width {unet_width}, {unet_levels} levels"),
+                        ModelConfig::Unet(tcsense_models::UnetConfig::new(4, t, range_m).with_base_width(unet_width).with_levels(unet_levels)),
+                    ),
+                ];
+                for (label, cfg) in nets.iter().filter(|(l, _)| only.as_ref().is_none_or(|o| l.contains(o.as_str()))) {
+                    let r = tcsense_train::bench::bench_step(&a, cfg, h, w, steps)?;
+                    println!(
+                        "{label:<36} {t:>5} {:>10.1} {:>10.1} {:>10.1} {:>10.2} {:>8.1} {:>7.0}%",
+                        r.step_ms,
+                        r.forward_ms,
+                        r.backward_ms,
+                        r.flop / 1e9,
+                        r.gflops(),
+                        100.0 * r.outside_gemm()
+                    );
+                    if let Some((ih, iw)) = infer_size {
+                        let f = tcsense_train::bench::bench_forward(&a, cfg, ih, iw, 2)?;
+                        let flop = cfg.flops(ih, iw);
+                        inference.push(format!(
+                            "{label:<36} {t:>5} {f:>10.1} {:>10.2} {:>8.1} {:>10}",
+                            flop / 1e9,
+                            flop / f / 1e6,
+                            tcsense_train::bench::parameters(cfg)
+                        ));
+                    }
+                }
+            }
+            if let Some((ih, iw)) = infer_size {
+                println!("\ninference in burn ({ih}x{iw}, batch 1, median of 2 after a warm-up):");
+                println!("{:<36} {:>5} {:>10} {:>10} {:>8} {:>10}", "network", "T", "ms/frame", "GFLOP", "GFLOP/s", "params");
+                for l in inference {
+                    println!("{l}");
+                }
+            }
         }
         BenchCmd::Kernels { size: (h, w), batch, channels, bins, reps } => {
             if bins == 0 || bins % 32 != 0 {

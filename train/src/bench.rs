@@ -19,21 +19,45 @@ use crate::config::Loss;
 use crate::fit::{objective, Target};
 use crate::{Result, TrainError};
 
-/// Timings of one training step (medians, ms).
+/// Timings of one training step (the median step, ms).
 #[derive(Debug, Clone, Copy)]
 pub struct StepTiming {
     pub step_ms: f64,
     pub forward_ms: f64,
     pub backward_ms: f64,
     pub optim_ms: f64,
+    /// Thread time inside the kernels' GEMM calls during that step, summed over threads (ms).
+    pub gemm_ms: f64,
+    /// Worker threads the step ran on.
+    pub threads: usize,
+    /// Floating-point operations of the step: 3× the forward pass of the batch (forward, input
+    /// gradient, weight gradient of every layer).
+    pub flop: f64,
 }
+
+impl StepTiming {
+    /// GFLOP/s of the step.
+    pub fn gflops(&self) -> f64 {
+        self.flop / self.step_ms / 1e6
+    }
+
+    /// Share of the machine's core time during the step not spent in GEMM (idle cores included).
+    pub fn outside_gemm(&self) -> f64 {
+        (1.0 - self.gemm_ms / (self.step_ms * self.threads as f64)).clamp(0.0, 1.0)
+    }
+}
+
+/// Batch of a timed training step.
+pub const BENCH_BATCH: usize = 2;
 
 /// Median time of a training step (batch 2, synthetic cubes) at `h × w`.
 pub fn bench_step(a: &MeasurementMatrix, model: &ModelConfig, h: usize, w: usize, steps: usize) -> Result<StepTiming> {
-    match model {
+    let mut t = match model {
         ModelConfig::AdmmNet(c) => time_steps(a, |d| c.init(d), h, w, steps),
         ModelConfig::Unet(c) => time_steps(a, |d| c.init(d), h, w, steps),
-    }
+    }?;
+    t.flop = 3.0 * BENCH_BATCH as f64 * model.flops(h, w);
+    Ok(t)
 }
 
 fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h: usize, w: usize, steps: usize) -> Result<StepTiming> {
@@ -42,12 +66,13 @@ fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h:
     let plan = a.plan(h, w)?;
     let mut model = crate::fit::seeded_init(&device, 1, init);
     let mut optim = AdamConfig::new().init();
-    let x = Array4::from_shape_fn((2, a.bins(), h, w), |(b, j, r, c)| if (j + r / 8 + c / 8 + b) % 11 == 0 { 1.0 } else { 0.0 });
+    let x = Array4::from_shape_fn((BENCH_BATCH, a.bins(), h, w), |(b, j, r, c)| if (j + r / 8 + c / 8 + b) % 11 == 0 { 1.0 } else { 0.0 });
     let y = measure_batch(&plan, &x.view(), None, 0)?;
     // labels for depth networks: a return at a few metres in every other pixel
-    let depth = Array4::from_shape_fn((2, 2, h, w), |(b, k, r, c)| if (r + c + b) % 2 == 0 { 2.0 + k as f32 + (r % 7) as f32 * 0.1 } else { f32::NAN });
-    let mut times: Vec<[f64; 3]> = Vec::new();
+    let depth = Array4::from_shape_fn((BENCH_BATCH, 2, h, w), |(b, k, r, c)| if (r + c + b) % 2 == 0 { 2.0 + k as f32 + (r % 7) as f32 * 0.1 } else { f32::NAN });
+    let mut times: Vec<[f64; 4]> = Vec::new();
     for _ in 0..steps.max(1) + 1 {
+        let g0 = tcsense_kernels::conv::gemm_seconds();
         let t0 = Instant::now();
         let pred = model.predict(to_tensor(&y.view(), &device), &sensor);
         let target = match M::PREDICTION {
@@ -61,11 +86,20 @@ fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h:
         let t2 = Instant::now();
         model = optim.step(1e-3, model, grads);
         let t3 = Instant::now();
-        times.push([(t1 - t0).as_secs_f64(), (t2 - t1).as_secs_f64(), (t3 - t2).as_secs_f64()]);
+        let gemm = tcsense_kernels::conv::gemm_seconds() - g0;
+        times.push([(t1 - t0).as_secs_f64(), (t2 - t1).as_secs_f64(), (t3 - t2).as_secs_f64(), gemm]);
     }
     times.remove(0); // warm-up
     let m = median_by(&times, |t| t[0] + t[1] + t[2]).ok_or(TrainError::InvalidParam { field: "steps", got: "0".into(), expected: "at least 1".into() })?;
-    Ok(StepTiming { step_ms: (m[0] + m[1] + m[2]) * 1e3, forward_ms: m[0] * 1e3, backward_ms: m[1] * 1e3, optim_ms: m[2] * 1e3 })
+    Ok(StepTiming {
+        step_ms: (m[0] + m[1] + m[2]) * 1e3,
+        forward_ms: m[0] * 1e3,
+        backward_ms: m[1] * 1e3,
+        optim_ms: m[2] * 1e3,
+        gemm_ms: m[3] * 1e3,
+        threads: rayon::current_num_threads(),
+        flop: 0.0,
+    })
 }
 
 /// Median inference time (ms) of one `h × w` frame on the CPU without autodiff, through the
