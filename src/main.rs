@@ -64,6 +64,7 @@ enum Command {
 }
 
 fn main() -> ExitCode {
+    tcsense_kernels::keep_freed_memory();
     let cli = Cli::parse();
     if let Some(n) = cli.threads {
         if let Err(e) = rayon::ThreadPoolBuilder::new().num_threads(n.max(1)).build_global() {

@@ -348,6 +348,7 @@ fn with_scratch<R>(len: usize, f: impl FnOnce(&mut [f32]) -> R) -> R {
 ///
 /// # Shapes
 /// - `x`: the whole input (`src` finds the item's `[c_src, H, W]` planes) → `col`: `[c_src·3, ld]`
+#[allow(clippy::too_many_arguments)] // the band geometry, spelled out as the callers have it
 fn shifts(x: &[f32], src: Source, item: usize, p: Plane, y0: usize, y1: usize, ld: usize, col: &mut [f32]) {
     let (h, w) = (p.h, p.w);
     debug_assert_eq!(col.len(), p.c_src * 3 * ld);

@@ -2,7 +2,6 @@
 //! kernels or composed from roll + concatenate + 3×3 conv (the path before the kernels, and
 //! the GPU's). Its own test binary: the path is a process-wide switch.
 
-use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
 use tcsense_datasets::flim::FlimParams;
 use tcsense_datasets::store::{generate, Generator, WriteOptions};
