@@ -43,9 +43,9 @@ pub struct Conv3x3 {
 }
 
 /// Target size of one band's shifted-copy buffer, in `f32` (1 MiB: half the L2 of one core here).
-const BAND_ELEMS: usize = 1 << 18;
+pub(crate) const BAND_ELEMS: usize = 1 << 18;
 /// Tasks to split a pass into at least (so two or more cores share even a small batch).
-const MIN_TASKS: usize = 4;
+pub(crate) const MIN_TASKS: usize = 4;
 /// Padding of each shifted row, in elements, so that rows a power of two apart do not all map
 /// to the same cache sets.
 const PAD: usize = 16;
@@ -64,7 +64,7 @@ pub(crate) enum Source {
 impl Source {
     /// Offset in the input of the plane of source channel `ci` of `item` (`c_src` channels an item).
     #[inline]
-    fn plane(self, item: usize, ci: usize, c_src: usize, hw: usize) -> usize {
+    pub(crate) fn plane(self, item: usize, ci: usize, c_src: usize, hw: usize) -> usize {
         match self {
             Source::Items => (item * c_src + ci) * hw,
             Source::Delay { bins, group, off } => {
@@ -77,7 +77,7 @@ impl Source {
     }
 
     /// Elements of the input that `items` items of `c_src` channels read from.
-    fn input_len(self, items: usize, c_src: usize, hw: usize) -> usize {
+    pub(crate) fn input_len(self, items: usize, c_src: usize, hw: usize) -> usize {
         match self {
             Source::Items => items * c_src * hw,
             Source::Delay { group, .. } => items * group * hw,
@@ -85,13 +85,15 @@ impl Source {
     }
 }
 
-/// Nanoseconds spent inside GEMM calls since the process started, summed over threads.
-static GEMM_NANOS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+/// Nanoseconds spent inside the convolutions' multiply-add loops since the process started
+/// (GEMM calls here, the direct loops of `crate::direct`), summed over threads.
+pub(crate) static CONV_NANOS: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
 
-/// Seconds of thread time spent inside this crate's GEMM calls so far (summed over threads):
-/// `bench train` reads it before and after a step to tell the share of the step outside GEMM.
-pub fn gemm_seconds() -> f64 {
-    GEMM_NANOS.load(std::sync::atomic::Ordering::Relaxed) as f64 * 1e-9
+/// Seconds of thread time spent inside the convolutions' multiply-add loops so far (GEMM
+/// calls and the direct loops, summed over threads): `bench train` reads it before and after
+/// a step to tell the share of the step outside them.
+pub fn conv_seconds() -> f64 {
+    CONV_NANOS.load(std::sync::atomic::Ordering::Relaxed) as f64 * 1e-9
 }
 
 impl Conv3x3 {
@@ -239,11 +241,11 @@ impl Conv3x3 {
 /// The geometry of one correlation pass: `c_src` channels in, `c_dst` out, bands of `rows` rows.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Plane {
-    batch: usize,
-    c_src: usize,
-    c_dst: usize,
-    h: usize,
-    w: usize,
+    pub(crate) batch: usize,
+    pub(crate) c_src: usize,
+    pub(crate) c_dst: usize,
+    pub(crate) h: usize,
+    pub(crate) w: usize,
     rows: usize,
 }
 
@@ -263,9 +265,9 @@ impl Plane {
 /// A kernel rearranged for the three-shift GEMMs: `k[ky][c_dst][c_src·3 + kx]`, plus the bias
 /// as one more column of the `ky = 0` block (row stride `3·c_src + 1` throughout).
 pub(crate) struct Kernel {
-    k: Vec<f32>,
-    c_dst: usize,
-    c_src: usize,
+    pub(crate) k: Vec<f32>,
+    pub(crate) c_dst: usize,
+    pub(crate) c_src: usize,
 }
 
 impl Kernel {
@@ -300,6 +302,9 @@ pub(crate) fn correlate(p: Plane, src: Source, input: &[f32], kernel: &Kernel, o
     assert!(kernel.c_src == p.c_src && kernel.c_dst == p.c_dst);
     assert_eq!(input.len(), src.input_len(p.batch, p.c_src, hw));
     assert_eq!(out.len(), p.batch * p.c_dst * hw);
+    if crate::direct::suits(p) {
+        return crate::direct::correlate(p, src, input, kernel, out);
+    }
     let out = SharedOut { ptr: out.as_mut_ptr(), len: out.len() };
     (0..p.batch * p.bands()).into_par_iter().for_each(|task| {
         let (b, (y0, y1)) = (task / p.bands(), p.band(task % p.bands()));
@@ -331,7 +336,7 @@ thread_local! {
 
 /// Run `f` on this thread's scratch buffer of at least `len` elements. `f` must not call back
 /// into rayon (it would be re-entered on this thread while the buffer is borrowed).
-fn with_scratch<R>(len: usize, f: impl FnOnce(&mut [f32]) -> R) -> R {
+pub(crate) fn with_scratch<R>(len: usize, f: impl FnOnce(&mut [f32]) -> R) -> R {
     SCRATCH.with(|s| {
         let mut s = s.borrow_mut();
         if s.len() < len {
@@ -465,7 +470,7 @@ fn sgemm(dst: Dst<'_>, (lhs, lv): (&[f32], Mat), (rhs, rv): (&[f32], Mat), accum
             gemm::Parallelism::None,
         );
     }
-    GEMM_NANOS.fetch_add(t0.elapsed().as_nanos() as u64, std::sync::atomic::Ordering::Relaxed);
+    CONV_NANOS.fetch_add(t0.elapsed().as_nanos() as u64, std::sync::atomic::Ordering::Relaxed);
 }
 
 #[cfg(test)]
@@ -520,7 +525,7 @@ mod tests {
         }
     }
 
-    const SIZES: [Conv3x3; 6] = [
+    const SIZES: [Conv3x3; 8] = [
         Conv3x3 { batch: 2, c_in: 3, c_out: 5, height: 7, width: 6 },
         Conv3x3 { batch: 1, c_in: 4, c_out: 4, height: 1, width: 9 },
         Conv3x3 { batch: 1, c_in: 2, c_out: 3, height: 8, width: 1 },
@@ -528,6 +533,9 @@ mod tests {
         Conv3x3 { batch: 2, c_in: 2, c_out: 3, height: 70, width: 100 },
         // 3·32 + 1 rows × 100 columns: 2 bands of 10 rows
         Conv3x3 { batch: 2, c_in: 32, c_out: 3, height: 20, width: 100 },
+        // frames wide enough for the direct loops (crate::direct), a partial last chunk
+        Conv3x3 { batch: 2, c_in: 3, c_out: 5, height: 4, width: 150 },
+        Conv3x3 { batch: 1, c_in: 8, c_out: 8, height: 3, width: 130 },
     ];
 
     #[test]

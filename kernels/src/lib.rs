@@ -47,6 +47,7 @@ pub mod conv;
 pub mod conv_op;
 pub mod delay;
 pub mod delay_op;
+mod direct;
 pub mod pixel;
 pub mod resample;
 pub mod timing;

@@ -25,8 +25,9 @@ fn reference(x: Tensor<5>, k: Tensor<4>, bias: Tensor<1>, d: usize) -> Tensor<5>
 }
 
 /// Sizes `(B, T, C_in, C_out, H, W)` and the dilations they run with: T from 4 (where 9 wraps
-/// to 1) to 256, one-row and one-column frames, and a frame of several bands.
-const CASES: [((usize, usize, usize, usize, usize, usize), usize); 8] = [
+/// to 1) to 256, one-row and one-column frames, a frame of several bands, and one wide enough
+/// for the direct loops (the others run the im2col GEMM).
+const CASES: [((usize, usize, usize, usize, usize, usize), usize); 9] = [
     ((2, 4, 1, 3, 5, 6), 1),
     ((1, 4, 2, 2, 3, 4), 9),
     ((1, 8, 3, 2, 1, 7), 3),
@@ -35,6 +36,8 @@ const CASES: [((usize, usize, usize, usize, usize, usize), usize); 8] = [
     ((1, 13, 2, 3, 9, 8), 9),
     ((1, 256, 1, 4, 4, 4), 9),
     ((1, 6, 8, 8, 40, 60), 3),
+    // wide enough for the direct loops
+    ((1, 12, 4, 4, 5, 150), 9),
 ];
 
 #[test]

@@ -39,7 +39,7 @@ pub enum BenchCmd {
     },
     /// Training step of every network (ADMM-Net with the bins and the delay prior, the Aᵀ +
     /// U-Net) at each --bins: time, GFLOP per step, GFLOP/s and the share of the step outside
-    /// GEMM; with --infer-size, inference time per frame too.
+    /// the convolutions' multiply-add loops; with --infer-size, inference time per frame too.
     Train {
         /// Training frame size HxW.
         #[arg(long, default_value = "64x64", value_parser = super::parse_hw)]
@@ -148,11 +148,11 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             }
             use tcsense_models::admm::Prior;
             println!(
-                "training step: batch {}, {h}x{w}, 4 taps 2x2, Adam, {} threads, delay path {delay_path:?}; GFLOP = 3 x forward; non-GEMM = share of the step's core time not in GEMM calls",
+                "training step: batch {}, {h}x{w}, 4 taps 2x2, Adam, {} threads, delay path {delay_path:?}; GFLOP = 3 x forward; non-conv = share of the step's core time outside the convolutions' multiply-add loops (GEMM or direct)",
                 tcsense_train::bench::BENCH_BATCH,
                 rayon::current_num_threads()
             );
-            println!("{:<36} {:>5} {:>10} {:>10} {:>10} {:>10} {:>8} {:>8}", "network", "T", "step ms", "fwd ms", "bwd ms", "GFLOP", "GFLOP/s", "non-GEMM");
+            println!("{:<36} {:>5} {:>10} {:>10} {:>10} {:>10} {:>8} {:>8}", "network", "T", "step ms", "fwd ms", "bwd ms", "GFLOP", "GFLOP/s", "non-conv");
             let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
             let codes = random_codes(shape, 607e6, Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1)?;
             let mut inference = Vec::new();
@@ -178,7 +178,7 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
                         r.backward_ms,
                         r.flop / 1e9,
                         r.gflops(),
-                        100.0 * r.outside_gemm()
+                        100.0 * r.outside_conv()
                     );
                     if let Some((ih, iw)) = infer_size {
                         let f = tcsense_train::bench::bench_forward(&a, cfg, ih, iw, 2)?;

@@ -26,8 +26,9 @@ pub struct StepTiming {
     pub forward_ms: f64,
     pub backward_ms: f64,
     pub optim_ms: f64,
-    /// Thread time inside the kernels' GEMM calls during that step, summed over threads (ms).
-    pub gemm_ms: f64,
+    /// Thread time inside the convolutions' multiply-add loops (GEMM calls, direct loops)
+    /// during that step, summed over threads (ms).
+    pub conv_ms: f64,
     /// Worker threads the step ran on.
     pub threads: usize,
     /// Floating-point operations of the step: 3× the forward pass of the batch (forward, input
@@ -41,9 +42,10 @@ impl StepTiming {
         self.flop / self.step_ms / 1e6
     }
 
-    /// Share of the machine's core time during the step not spent in GEMM (idle cores included).
-    pub fn outside_gemm(&self) -> f64 {
-        (1.0 - self.gemm_ms / (self.step_ms * self.threads as f64)).clamp(0.0, 1.0)
+    /// Share of the machine's core time during the step not spent in the convolutions'
+    /// multiply-add loops (idle cores included).
+    pub fn outside_conv(&self) -> f64 {
+        (1.0 - self.conv_ms / (self.step_ms * self.threads as f64)).clamp(0.0, 1.0)
     }
 }
 
@@ -72,7 +74,7 @@ fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h:
     let depth = Array4::from_shape_fn((BENCH_BATCH, 2, h, w), |(b, k, r, c)| if (r + c + b) % 2 == 0 { 2.0 + k as f32 + (r % 7) as f32 * 0.1 } else { f32::NAN });
     let mut times: Vec<[f64; 4]> = Vec::new();
     for _ in 0..steps.max(1) + 1 {
-        let g0 = tcsense_kernels::conv::gemm_seconds();
+        let g0 = tcsense_kernels::conv::conv_seconds();
         let t0 = Instant::now();
         let pred = model.predict(to_tensor(&y.view(), &device), &sensor);
         let target = match M::PREDICTION {
@@ -86,8 +88,8 @@ fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h:
         let t2 = Instant::now();
         model = optim.step(1e-3, model, grads);
         let t3 = Instant::now();
-        let gemm = tcsense_kernels::conv::gemm_seconds() - g0;
-        times.push([(t1 - t0).as_secs_f64(), (t2 - t1).as_secs_f64(), (t3 - t2).as_secs_f64(), gemm]);
+        let conv = tcsense_kernels::conv::conv_seconds() - g0;
+        times.push([(t1 - t0).as_secs_f64(), (t2 - t1).as_secs_f64(), (t3 - t2).as_secs_f64(), conv]);
     }
     times.remove(0); // warm-up
     let m = median_by(&times, |t| t[0] + t[1] + t[2]).ok_or(TrainError::InvalidParam { field: "steps", got: "0".into(), expected: "at least 1".into() })?;
@@ -96,7 +98,7 @@ fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h:
         forward_ms: m[0] * 1e3,
         backward_ms: m[1] * 1e3,
         optim_ms: m[2] * 1e3,
-        gemm_ms: m[3] * 1e3,
+        conv_ms: m[3] * 1e3,
         threads: rayon::current_num_threads(),
         flop: 0.0,
     })
