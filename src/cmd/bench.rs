@@ -38,7 +38,7 @@ pub enum BenchCmd {
         frames: usize,
     },
     /// Training step of every network (ADMM-Net with the bins and the delay prior, the Aᵀ +
-    /// U-Net) at each --bins: time, GFLOP per step, GFLOP/s and the share of the step outside
+    /// U-Net, ADMM-Net learning its codes) at each --bins: time, GFLOP per step, GFLOP/s and the share of the step outside
     /// the convolutions' multiply-add loops; with --infer-size, inference time per frame too.
     Train {
         /// Training frame size HxW.
@@ -138,7 +138,7 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             tcsense_kernels::delay_op::use_composed(delay_path == DelayPath::Composed);
             if bins.is_empty() || bins.iter().any(|&t| t == 0 || t % 32 != 0) {
                 let list: Vec<String> = bins.iter().map(|t| t.to_string()).collect();
-                anyhow::bail!("--bins {}: expected one or more multiples of 32", list.join(","));
+                anyhow::bail!("--bins {}: expected each a multiple of 32", list.join(","));
             }
             if unet_width == 0 || !(1..=6).contains(&unet_levels) {
                 anyhow::bail!("--unet-width {unet_width}, --unet-levels {unet_levels}: expected a width ≥ 1 and 1–6 levels");
@@ -169,8 +169,15 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
                         ModelConfig::Unet(tcsense_models::UnetConfig::new(4, t, range_m).with_base_width(unet_width).with_levels(unet_levels)),
                     ),
                 ];
-                for (label, cfg) in nets.iter().filter(|(l, _)| only.as_ref().is_none_or(|o| l.contains(o.as_str()))) {
-                    let r = tcsense_train::bench::bench_step(&a, cfg, h, w, steps)?;
+                let learned = format!("ADMM-Net bins prior, learned codes");
+                let rows = nets.iter().map(|(l, c)| (l.clone(), c.clone(), false)).chain(std::iter::once((learned, nets[0].1.clone(), true)));
+                for (label, cfg, learn) in rows.filter(|(l, _, _)| only.as_ref().is_none_or(|o| l.contains(o.as_str()))) {
+                    let (label, cfg) = (&label, &cfg);
+                    let r = if learn {
+                        tcsense_train::bench::bench_step_learned(&codes, Sampling::Oversample(t / 32), cfg, h, w, steps)?
+                    } else {
+                        tcsense_train::bench::bench_step(&a, cfg, h, w, steps)?
+                    };
                     println!(
                         "{label:<36} {t:>5} {:>10.1} {:>10.1} {:>10.1} {:>10.2} {:>8.1} {:>7.0}%",
                         r.step_ms,
@@ -180,7 +187,7 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
                         r.gflops(),
                         100.0 * r.outside_conv()
                     );
-                    if let Some((ih, iw)) = infer_size {
+                    if let (Some((ih, iw)), false) = (infer_size, learn) {
                         let f = tcsense_train::bench::bench_forward(&a, cfg, ih, iw, 2)?;
                         let flop = cfg.flops(ih, iw);
                         inference.push(format!(
