@@ -17,12 +17,14 @@
 //!   backward, one pass over the output each.
 //! - [`timing`]: the median timer every `tcsense bench` figure comes from.
 //!
-//! This is the only crate of the workspace with `unsafe` code, in two places, each with a
-//! `SAFETY` note: the calls into `gemm::gemm` (an `unsafe fn`; every view is bounds-checked
-//! before it) in [`conv`], and the disjoint parallel writes into output planes through
-//! `conv::SharedOut` (used by [`conv`]'s bands and by [`pixel`]'s `par_bands`). SIMD dispatch
-//! is also only here: `gemm` picks AVX2/AVX-512 at run time, and the per-pixel loops are
-//! compiled for the best extension this CPU has through `pulp::Arch::dispatch`.
+//! This is the only crate of the workspace with `unsafe` code, in three kinds of places, each
+//! with a `SAFETY` note: the calls into `gemm::gemm` (an `unsafe fn`; every view is
+//! bounds-checked before it) in [`conv`]; the disjoint parallel writes into output planes
+//! through `conv::SharedOut` (used by [`conv`]'s bands, the direct loops' bands and
+//! [`pixel`]'s `par_bands`); and glibc's `mallopt` in [`keep_freed_memory`]. SIMD dispatch is
+//! also only here: `gemm` picks AVX2/AVX-512 at run time, and the per-pixel loops and the
+//! direct convolution loops are compiled for the best extension this CPU has through
+//! `pulp::Arch::dispatch`.
 //!
 //! The kernels run on the CPU `flex` device (with or without autodiff). On any other device
 //! (burn's wgpu backend, cargo feature `gpu` of the workspace) [`conv_op::conv3x3`],
