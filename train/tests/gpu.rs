@@ -44,11 +44,12 @@ fn gpu() -> Option<Device> {
 /// A tiny LiDAR dataset, codes, and a config of one optimiser step per epoch (2 training
 /// items, batch 2).
 fn setup(dir: &Path, model: ModelConfig) -> (TrainConfig, Codes) {
+    let t = model.bins(); // L = T (no oversampling)
     let gen = Generator::Lidar(LidarParams { height: 8, width: 8, ..Default::default() });
-    let grid = TimeGrid { length: 8, ..TimeGrid::default() };
+    let grid = TimeGrid { length: t, ..TimeGrid::default() };
     let cancel = AtomicBool::new(false);
     generate(&gen, &grid, 8, 1, &dir.join("ds"), &WriteOptions { shard_size: 8, force: false, progress: &|| {}, cancel: &cancel }).unwrap();
-    let codes = random_codes(CodeShape { bh: 2, bw: 2, taps: 4, length: 8, drain: false }, 607e6, Constraints { tap: true, ..Default::default() }, 2).unwrap();
+    let codes = random_codes(CodeShape { bh: 2, bw: 2, taps: 4, length: t, drain: false }, 607e6, Constraints { tap: true, ..Default::default() }, 2).unwrap();
     let mut cfg = TrainConfig::new(model, &dir.join("ds"), Loss::RmseMae, Sampling::Oversample(1));
     cfg.epochs = 1;
     cfg.batch_size = 2;
@@ -114,6 +115,13 @@ fn same_on_both(model: ModelConfig) {
 #[test]
 fn admm_net_trains_and_runs_the_same_on_the_gpu() {
     same_on_both(ModelConfig::AdmmNet(AdmmNetConfig::new(4, 8).with_stages(2).with_channels(4)));
+}
+
+/// The delay prior: the CPU's delay-tap kernels against the GPU's roll + concatenate + conv2d
+/// (16 bins: more than the largest dilation, 9).
+#[test]
+fn the_delay_prior_trains_and_runs_the_same_on_the_gpu() {
+    same_on_both(ModelConfig::AdmmNet(AdmmNetConfig::new(4, 16).with_stages(2).with_channels(3).with_prior(tcsense_models::admm::Prior::Delay)));
 }
 
 #[test]
