@@ -161,19 +161,20 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
                 let a = MeasurementMatrix::synthesize(&codes, &spec)?;
                 let admm = |prior: Prior, cn: usize| tcsense_models::AdmmNetConfig::new(4, t).with_stages(stages).with_channels(cn).with_prior(prior);
                 let range_m = 299_792_458.0 * spec.cycle_s() / 2.0;
+                let bins_prior = ModelConfig::AdmmNet(admm(Prior::Bins, channels));
+                // (label, network, whether it learns its codes)
                 let nets = [
-                    (format!("ADMM-Net bins prior S={stages} CN={channels}"), ModelConfig::AdmmNet(admm(Prior::Bins, channels))),
-                    (format!("ADMM-Net delay prior S={stages} C={delay_channels}/bin"), ModelConfig::AdmmNet(admm(Prior::Delay, delay_channels))),
+                    (format!("ADMM-Net bins prior S={stages} CN={channels}"), bins_prior.clone(), false),
+                    (format!("ADMM-Net delay prior S={stages} C={delay_channels}/bin"), ModelConfig::AdmmNet(admm(Prior::Delay, delay_channels)), false),
                     (
                         format!("Aᵀ + U-Net K=2 width {unet_width}, {unet_levels} levels"),
                         ModelConfig::Unet(tcsense_models::UnetConfig::new(4, t, range_m).with_base_width(unet_width).with_levels(unet_levels)),
+                        false,
                     ),
+                    ("ADMM-Net bins prior, learned codes".to_string(), bins_prior, true),
                 ];
-                let learned = format!("ADMM-Net bins prior, learned codes");
-                let rows = nets.iter().map(|(l, c)| (l.clone(), c.clone(), false)).chain(std::iter::once((learned, nets[0].1.clone(), true)));
-                for (label, cfg, learn) in rows.filter(|(l, _, _)| only.as_ref().is_none_or(|o| l.contains(o.as_str()))) {
-                    let (label, cfg) = (&label, &cfg);
-                    let r = if learn {
+                for (label, cfg, learn) in nets.iter().filter(|(l, _, _)| only.as_ref().is_none_or(|o| l.contains(o.as_str()))) {
+                    let r = if *learn {
                         tcsense_train::bench::bench_step_learned(&codes, Sampling::Oversample(t / 32), cfg, h, w, steps)?
                     } else {
                         tcsense_train::bench::bench_step(&a, cfg, h, w, steps)?
@@ -187,7 +188,7 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
                         r.gflops(),
                         100.0 * r.outside_conv()
                     );
-                    if let (Some((ih, iw)), false) = (infer_size, learn) {
+                    if let (Some((ih, iw)), false) = (infer_size, *learn) {
                         let f = tcsense_train::bench::bench_forward(&a, cfg, ih, iw, 2)?;
                         let flop = cfg.flops(ih, iw);
                         inference.push(format!(

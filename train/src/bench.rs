@@ -55,15 +55,36 @@ pub const BENCH_BATCH: usize = 2;
 
 /// Median time of a training step (batch 2, synthetic cubes) at `h × w`.
 pub fn bench_step(a: &MeasurementMatrix, model: &ModelConfig, h: usize, w: usize, steps: usize) -> Result<StepTiming> {
+    timed(a, model, h, w, steps, None)
+}
+
+/// Median time of a deep-sensing training step (batch 2, synthetic cubes) at `h × w`: the
+/// network and the code logits together, the gradient reaching the codes through the
+/// measurements and the decoder's operators on `A(θ)` (the relaxed phase of `--learn-codes`,
+/// tap + Hamming 2 + window 2 penalties on).
+pub fn bench_step_learned(codes: &Codes, sampling: Sampling, model: &ModelConfig, h: usize, w: usize, steps: usize) -> Result<StepTiming> {
+    let spec = RunSpec { model: model.clone(), sampling, irf: Irf::Ideal, measured: false };
+    let a = spec.matrix(codes)?;
+    let lc = LearnCodes::new(Constraints { tap: true, hamming: Some(2), window: Some(2) }, 2);
+    let mut learner = Learner::new(&lc, codes, &spec, &Device::flex().autodiff())?;
+    learner.schedule(0.5);
+    timed(&a, model, h, w, steps, Some(learner))
+}
+
+/// [`time_steps`] for the network of `model`, with the step's floating-point operations.
+fn timed(a: &MeasurementMatrix, model: &ModelConfig, h: usize, w: usize, steps: usize, learner: Option<Learner>) -> Result<StepTiming> {
     let mut t = match model {
-        ModelConfig::AdmmNet(c) => time_steps(a, |d| c.init(d), h, w, steps),
-        ModelConfig::Unet(c) => time_steps(a, |d| c.init(d), h, w, steps),
+        ModelConfig::AdmmNet(c) => time_steps(a, |d| c.init(d), h, w, steps, learner),
+        ModelConfig::Unet(c) => time_steps(a, |d| c.init(d), h, w, steps, learner),
     }?;
     t.flop = 3.0 * BENCH_BATCH as f64 * model.flops(h, w);
     Ok(t)
 }
 
-fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h: usize, w: usize, steps: usize) -> Result<StepTiming> {
+/// Time `steps` Adam steps after a warm-up one and return the median; with a `learner`, each
+/// step also learns the codes (measurements and sensor operators from `A(θ)`, the penalty added
+/// to the loss, the logits stepped by their own Adam).
+fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h: usize, w: usize, steps: usize, mut learner: Option<Learner>) -> Result<StepTiming> {
     let device = Device::flex().autodiff();
     let sensor = SensorTensors::new(a, h, w, &device)?;
     let plan = a.plan(h, w)?;
@@ -73,83 +94,30 @@ fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h:
     let y = measure_batch(&plan, &x.view(), None, 0)?;
     // labels for depth networks: a return at a few metres in every other pixel
     let depth = Array4::from_shape_fn((BENCH_BATCH, 2, h, w), |(b, k, r, c)| if (r + c + b) % 2 == 0 { 2.0 + k as f32 + (r % 7) as f32 * 0.1 } else { f32::NAN });
+    let target = match M::PREDICTION {
+        Prediction::Cube => Target::Cube { x: &x, scales: None },
+        Prediction::Depth => Target::Depth { depth: &depth, range_m: 10.0 },
+    };
     let mut times: Vec<[f64; 4]> = Vec::new();
     for _ in 0..steps.max(1) + 1 {
         let g0 = tcsense_kernels::conv::conv_seconds();
         let t0 = Instant::now();
-        let pred = model.predict(to_tensor(&y.view(), &device), &sensor);
-        let target = match M::PREDICTION {
-            Prediction::Cube => Target::Cube { x: &x, scales: None },
-            Prediction::Depth => Target::Depth { depth: &depth, range_m: 10.0 },
+        let loss = match &learner {
+            None => objective(Loss::RmseMae, model.predict(to_tensor(&y.view(), &device), &sensor), target, &device),
+            Some(l) => {
+                let (yt, a_theta, penalty) = l.measurements(&x, &y, &device);
+                objective(Loss::RmseMae, model.predict(yt, &sensor.clone().with_matrix(a_theta)), target, &device) + penalty
+            }
         };
-        let loss = objective(Loss::RmseMae, pred, target, &device);
-        let _: f32 = loss.clone().into_scalar();
-        let t1 = Instant::now();
-        let grads = burn::optim::GradientsParams::from_grads(loss.backward(), &model);
-        let t2 = Instant::now();
-        model = optim.step(1e-3, model, grads);
-        let t3 = Instant::now();
-        let conv = tcsense_kernels::conv::conv_seconds() - g0;
-        times.push([(t1 - t0).as_secs_f64(), (t2 - t1).as_secs_f64(), (t3 - t2).as_secs_f64(), conv]);
-    }
-    times.remove(0); // warm-up
-    let m = median_by(&times, |t| t[0] + t[1] + t[2]).ok_or(TrainError::InvalidParam { field: "steps", got: "0".into(), expected: "at least 1".into() })?;
-    Ok(StepTiming {
-        step_ms: (m[0] + m[1] + m[2]) * 1e3,
-        forward_ms: m[0] * 1e3,
-        backward_ms: m[1] * 1e3,
-        optim_ms: m[2] * 1e3,
-        conv_ms: m[3] * 1e3,
-        threads: rayon::current_num_threads(),
-        flop: 0.0,
-    })
-}
-
-/// Median time of a deep-sensing training step (batch 2, synthetic cubes) at `h × w`: the
-/// network and the code logits together, the gradient reaching the codes through the
-/// measurements and the decoder's operators on `A(θ)` (the relaxed phase of `--learn-codes`,
-/// tap + Hamming 2 + window 2 penalties on).
-pub fn bench_step_learned(codes: &Codes, sampling: Sampling, model: &ModelConfig, h: usize, w: usize, steps: usize) -> Result<StepTiming> {
-    let mut t = match model {
-        ModelConfig::AdmmNet(c) => time_learned_steps(codes, sampling, model, |d| c.init(d), h, w, steps),
-        ModelConfig::Unet(c) => time_learned_steps(codes, sampling, model, |d| c.init(d), h, w, steps),
-    }?;
-    t.flop = 3.0 * BENCH_BATCH as f64 * model.flops(h, w);
-    Ok(t)
-}
-
-fn time_learned_steps<M: Network>(codes: &Codes, sampling: Sampling, model_cfg: &ModelConfig, init: impl Fn(&Device) -> M, h: usize, w: usize, steps: usize) -> Result<StepTiming> {
-    let device = Device::flex().autodiff();
-    let spec = RunSpec { model: model_cfg.clone(), sampling, irf: Irf::Ideal, measured: false };
-    let a = spec.matrix(codes)?;
-    let sensor = SensorTensors::new(&a, h, w, &device)?;
-    let plan = a.plan(h, w)?;
-    let lc = LearnCodes::new(Constraints { tap: true, hamming: Some(2), window: Some(2) }, 2);
-    let mut learner = Learner::new(&lc, codes, &spec, &device)?;
-    learner.schedule(0.5);
-    let mut model = crate::fit::seeded_init(&device, 1, init);
-    let mut optim = AdamConfig::new().init();
-    let x = Array4::from_shape_fn((BENCH_BATCH, a.bins(), h, w), |(b, j, r, c)| if (j + r / 8 + c / 8 + b) % 11 == 0 { 1.0 } else { 0.0 });
-    let y = measure_batch(&plan, &x.view(), None, 0)?;
-    let depth = Array4::from_shape_fn((BENCH_BATCH, 2, h, w), |(b, k, r, c)| if (r + c + b) % 2 == 0 { 2.0 + k as f32 + (r % 7) as f32 * 0.1 } else { f32::NAN });
-    let mut times: Vec<[f64; 4]> = Vec::new();
-    for _ in 0..steps.max(1) + 1 {
-        let g0 = tcsense_kernels::conv::conv_seconds();
-        let t0 = Instant::now();
-        let (yt, a_theta, penalty) = learner.measurements(&x, &y, &device);
-        let pred = model.predict(yt, &sensor.clone().with_matrix(a_theta));
-        let target = match M::PREDICTION {
-            Prediction::Cube => Target::Cube { x: &x, scales: None },
-            Prediction::Depth => Target::Depth { depth: &depth, range_m: 10.0 },
-        };
-        let loss = objective(Loss::RmseMae, pred, target, &device) + penalty;
         let _: f32 = loss.clone().into_scalar();
         let t1 = Instant::now();
         let mut grads = loss.backward();
         let net_grads = burn::optim::GradientsParams::from_module(&mut grads, &model);
-        let code_grads = burn::optim::GradientsParams::from_module(&mut grads, &learner.logits);
+        let code_grads = learner.as_ref().map(|l| burn::optim::GradientsParams::from_module(&mut grads, &l.logits));
         let t2 = Instant::now();
-        learner.step(code_grads);
+        if let (Some(l), Some(g)) = (learner.as_mut(), code_grads) {
+            l.step(g);
+        }
         model = optim.step(1e-3, model, net_grads);
         let t3 = Instant::now();
         let conv = tcsense_kernels::conv::conv_seconds() - g0;
