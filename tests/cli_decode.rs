@@ -131,6 +131,8 @@ fn bench_bad_inputs_exit_2() {
     fails(d, &["bench", "tval3", "--bins", "30"], &["--bins 30", "multiple of 32"]);
     fails(d, &["bench", "train", "--bins", "30"], &["--bins 30", "multiple of 32"]);
     fails(d, &["bench", "train", "--bins", "32,40"], &["--bins 32,40", "multiple of 32"]);
+    fails(d, &["bench", "train", "--delay-path", "fast"], &["--delay-path", "kernel", "composed"]);
+    fails(d, &["bench", "train", "--size", "7x8"], &["--size 7x8", "even"]);
     fails(d, &["bench", "dataset", "--size", "0x8"], &["size"]);
     fails(d, &["bench", "kernels", "--size", "5x5"], &["5x5", "even"]);
     fails(d, &["bench", "kernels", "--bins", "20"], &["--bins 20", "multiple of 32"]);

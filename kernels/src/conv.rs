@@ -45,7 +45,7 @@ pub struct Conv3x3 {
 /// Target size of one band's shifted-copy buffer, in `f32` (1 MiB: half the L2 of one core here).
 pub(crate) const BAND_ELEMS: usize = 1 << 18;
 /// Tasks to split a pass into at least (so two or more cores share even a small batch).
-pub(crate) const MIN_TASKS: usize = 4;
+const MIN_TASKS: usize = 4;
 /// Padding of each shifted row, in elements, so that rows a power of two apart do not all map
 /// to the same cache sets.
 const PAD: usize = 16;
@@ -242,14 +242,11 @@ impl Conv3x3 {
         }
     }
 
+    /// The pass from `c_src` to `c_dst` channels, in bands whose shifted copies fit [`BAND_ELEMS`].
     pub(crate) fn plane(&self, c_src: usize, c_dst: usize) -> Plane {
         let k = c_src * 3 + 1;
-        let (h, w) = (self.height.max(1), self.width.max(1));
-        let max_rows = (BAND_ELEMS / (k * w)).saturating_sub(2).clamp(1, h);
-        // equal bands, and at least MIN_TASKS tasks when the frame allows bands of 8 rows
-        let min_bands = MIN_TASKS.div_ceil(self.batch.max(1));
-        let bands = h.div_ceil(max_rows).max(min_bands.min(h / 8).max(1));
-        Plane { batch: self.batch, c_src, c_dst, h: self.height, w: self.width, rows: h.div_ceil(bands) }
+        let plane = Plane { batch: self.batch, c_src, c_dst, h: self.height, w: self.width, rows: 1 };
+        plane.banded((BAND_ELEMS / (k * self.width.max(1))).saturating_sub(2))
     }
 }
 
@@ -265,10 +262,20 @@ pub(crate) struct Plane {
 }
 
 impl Plane {
-    fn bands(&self) -> usize {
+    /// The same pass in equal bands of at most `max_rows` rows, and at least [`MIN_TASKS`] tasks
+    /// when the frame allows bands of 8 rows.
+    pub(crate) fn banded(self, max_rows: usize) -> Plane {
+        let h = self.h.max(1);
+        let min_bands = MIN_TASKS.div_ceil(self.batch.max(1));
+        let bands = h.div_ceil(max_rows.clamp(1, h)).max(min_bands.min(h / 8).max(1));
+        Plane { rows: h.div_ceil(bands), ..self }
+    }
+    /// Bands of one item.
+    pub(crate) fn bands(&self) -> usize {
         self.h.div_ceil(self.rows)
     }
-    fn band(&self, j: usize) -> (usize, usize) {
+    /// Rows `y0..y1` of band `j`.
+    pub(crate) fn band(&self, j: usize) -> (usize, usize) {
         (j * self.rows, ((j + 1) * self.rows).min(self.h))
     }
     /// Row stride of the shifted copies of band `y0..y1`: its rows plus one above and below.
@@ -489,10 +496,11 @@ fn sgemm(dst: Dst<'_>, (lhs, lv): (&[f32], Mat), (rhs, rv): (&[f32], Mat), accum
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
-    fn lcg(n: usize, seed: u64) -> Vec<f32> {
+    /// Deterministic values in [−1, 1) (a linear congruential sequence).
+    pub(crate) fn lcg(n: usize, seed: u64) -> Vec<f32> {
         let mut s = seed;
         (0..n)
             .map(|_| {
@@ -532,7 +540,8 @@ mod tests {
         y
     }
 
-    fn close(a: &[f32], b: &[f64], tol: f64, what: &str) {
+    /// `a` equals the reference `b` within `tol` of `b`'s largest magnitude (at least 1).
+    pub(crate) fn close(a: &[f32], b: &[f64], tol: f64, what: &str) {
         assert_eq!(a.len(), b.len(), "{what}: length");
         let scale = b.iter().fold(1.0f64, |m, v| m.max(v.abs()));
         for (i, (&p, &q)) in a.iter().zip(b).enumerate() {

@@ -135,16 +135,7 @@ impl DelayConv3x3 {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn lcg(n: usize, seed: u64) -> Vec<f32> {
-        let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-        (0..n)
-            .map(|_| {
-                s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-                ((s >> 33) as f64 / (1u64 << 31) as f64 * 2.0 - 1.0) as f32
-            })
-            .collect()
-    }
+    use crate::conv::tests::{close, lcg};
 
     /// The definition, in f64: `y[b, t, o, r, c] = bias[o] + Σ_{j, ci, ky, kx} W · x[b, t + (j−1)d, ci, r + ky − 1, c + kx − 1]`.
     fn direct(d: &DelayConv3x3, x: &[f32], w: &[f32], bias: &[f32]) -> Vec<f64> {
@@ -195,11 +186,7 @@ mod tests {
             let (x, w, bias) = (lcg(d.x_len(), 1 + i as u64), lcg(d.w_len(), 10 + i as u64), lcg(d.c_out, 20));
             let mut y = vec![f32::NAN; d.y_len()];
             d.forward(&x, &w, Some(&bias), &mut y);
-            let want = direct(d, &x, &w, &bias);
-            let scale = want.iter().fold(1.0f64, |m, v| m.max(v.abs()));
-            for (k, (&p, &q)) in y.iter().zip(&want).enumerate() {
-                assert!((p as f64 - q).abs() <= 1e-5 * scale, "{d:?} y[{k}]: {p} vs {q}");
-            }
+            close(&y, &direct(d, &x, &w, &bias), 1e-5, &format!("{d:?} y"));
         }
     }
 

@@ -22,7 +22,7 @@
 
 use rayon::prelude::*;
 
-use crate::conv::{with_scratch, Kernel, Plane, SharedOut, Source, BAND_ELEMS, MIN_TASKS};
+use crate::conv::{with_scratch, Kernel, Plane, SharedOut, Source, BAND_ELEMS};
 
 /// Passes with at most this many output channels, from at most [`MAX_SRC`] input channels, run
 /// here instead of the im2col GEMM (with more input channels the GEMM's long inner dimension
@@ -69,15 +69,12 @@ pub(crate) fn correlate(p: Plane, src: Source, input: &[f32], kernel: &Kernel, o
         }
     }
     let bias: Vec<f32> = (0..c_dst).map(|d| kernel.k[d * ks + 3 * c_src]).collect();
-    let rows = (BAND_ELEMS / (c_src.max(1) * w.max(1))).clamp(1, h);
-    let min_bands = MIN_TASKS.div_ceil(p.batch).min(h.div_ceil(8)).max(1);
-    let bands = h.div_ceil(rows).max(min_bands);
-    let rows = h.div_ceil(bands);
-    let bands = h.div_ceil(rows);
+    // bands of about BAND_ELEMS input values per task (there is no im2col buffer to size)
+    let p = p.banded(BAND_ELEMS / (c_src.max(1) * w.max(1)));
+    let bands = p.bands();
     let base = SharedOut { ptr: out.as_mut_ptr(), len: out.len() };
     (0..p.batch * bands).into_par_iter().for_each(|task| {
-        let (item, band) = (task / bands, task % bands);
-        let (y0, y1) = (band * rows, ((band + 1) * rows).min(h));
+        let (item, (y0, y1)) = (task / bands, p.band(task % bands));
         // SAFETY: each task writes rows y0..y1 of every output plane of its own item: views that
         // no other task touches (the bands partition the rows, each (item, band) is one task),
         // inside `out`, which stays borrowed mutably for the whole loop.
