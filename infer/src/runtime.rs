@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 use tcsense_models::decoder::{check_measurements, Control, Decoded, Decoder, Step};
-use tcsense_models::net::mask_depth;
+use tcsense_models::net::{mask_depth, mask_lifetime};
 use tcsense_sensor::MeasurementMatrix;
 
 use crate::onnx::{OnnxMeta, INPUT, MATRIX_INPUT};
@@ -237,6 +237,10 @@ impl Decoder for OnnxDecoder {
             let (mut depth, confidence) = (cat(0)?, cat(1)?);
             mask_depth(&mut depth, &confidence);
             Ok(Decoded { depth: Some(depth), confidence: Some(confidence), ..Default::default() })
+        } else if self.model.meta.decoder == "lifetime" {
+            let (mut lifetime, confidence) = (cat(0)?, cat(1)?);
+            mask_lifetime(&mut lifetime, &confidence);
+            Ok(Decoded { lifetime: Some(lifetime), confidence: Some(confidence), intensity: Some(cat(2)?), ..Default::default() })
         } else {
             Ok(Decoded { cube: Some(cat(0)?), ..Default::default() })
         }

@@ -63,6 +63,7 @@ pub fn time_decoder(run: Option<&LoadedRun>, model: &Path, (h, w): (usize, usize
     let flops = run.map(|r| match &r.spec.model {
         ModelConfig::Unet(c) => c.flops(h, w),
         ModelConfig::AdmmNet(c) => c.flops(h, w),
+        ModelConfig::Lifetime(c) => c.flops(h, w),
     });
     let mut seed = 1u64;
     let y = Array4::from_shape_fn((1, meta.taps, h, w), |_| {
@@ -77,6 +78,7 @@ pub fn time_decoder(run: Option<&LoadedRun>, model: &Path, (h, w): (usize, usize
         let out = match &r.net {
             TrainedNet::AdmmNet(n) => n.predict(yt, st),
             TrainedNet::Unet(n) => n.predict(yt, st),
+            TrainedNet::Lifetime(n) => n.predict(yt, st),
         };
         let _ = out.into_data();
         t0.elapsed().as_secs_f64() * 1e3

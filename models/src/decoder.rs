@@ -41,8 +41,15 @@ pub struct Decoded {
     /// Range of the `K` returns in metres, in arrival order, `[B, K, H, W]`; NaN where none
     /// (decoders that estimate depth directly).
     pub depth: Option<Array4<f32>>,
-    /// Confidence of each return in `[0, 1]`, `[B, K, H, W]`, next to `depth`.
+    /// Confidence in `[0, 1]`: of each return, `[B, K, H, W]`, next to `depth`; that the pixel
+    /// holds a fluorophore, `[B, 1, H, W]`, next to `lifetime`.
     pub confidence: Option<Array4<f32>>,
+    /// Lifetimes `[B, 4, H, W]`: the amplitude-weighted mean `τ_m`, the components `τ₁ ≤ τ₂`
+    /// (s) and the amplitude fraction `α₁` of `τ₁`; NaN where the confidence is below one half
+    /// (decoders that estimate lifetimes directly).
+    pub lifetime: Option<Array4<f32>>,
+    /// Intensity `[B, 1, H, W]`: the photo-charge of all taps, next to `lifetime`.
+    pub intensity: Option<Array4<f32>>,
 }
 
 /// Where a decoder is in a batch, for progress display.

@@ -27,6 +27,7 @@ pub mod bench;
 pub mod decoder;
 pub mod device;
 pub mod learned_codes;
+pub mod lifetime;
 pub mod metrics;
 pub mod net;
 pub mod runs;
@@ -38,6 +39,7 @@ pub use admm::{AdmmNet, AdmmNetConfig, Prior};
 /// The burn device type (CPU `Device::flex()` by default).
 pub use burn::tensor::Device;
 pub use decoder::{Control, Decoded, Decoder};
+pub use lifetime::{LifetimeNet, LifetimeNetConfig};
 pub use sensor_tensors::SensorTensors;
 pub use tval3::{tval3, TvNorm, Tval3Options, Tval3Report};
 pub use unet::{Unet, UnetConfig};

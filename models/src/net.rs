@@ -23,6 +23,9 @@ pub enum Prediction {
     /// Depth of `K` returns in metres then confidence logits, `[B, 2K, H, W]` (trained
     /// against the range ground truth).
     Depth,
+    /// Lifetimes and a confidence logit, `[B, 5, H, W]`: `τ_m`, `τ₁`, `τ₂` (ns), `α₁`, logit
+    /// (trained against the lifetime ground truth; [`crate::lifetime`]).
+    Lifetime,
 }
 
 /// A return counts as detected where its confidence is at least this.
@@ -73,6 +76,36 @@ pub fn split_depth(out: &Array4<f32>) -> (Array4<f32>, Array4<f32>) {
     let confidence = out.slice(ndarray::s![.., k.., .., ..]).mapv(|l| 1.0 / (1.0 + (-l).exp()));
     mask_depth(&mut depth, &confidence);
     (depth, confidence)
+}
+
+/// Lifetimes in seconds (NaN where the confidence is below [`DETECTION_THRESHOLD`]) and the
+/// confidence from a lifetime network's output.
+///
+/// # Shapes
+/// - `out`: `[B, 5, H, W]` (`τ_m`, `τ₁`, `τ₂` in ns, `α₁`, confidence logit) → `([B, 4, H, W], [B, 1, H, W])`
+pub fn split_lifetime(out: &Array4<f32>) -> (Array4<f32>, Array4<f32>) {
+    let mut lifetime = out.slice(ndarray::s![.., ..4, .., ..]).to_owned();
+    lifetime.slice_mut(ndarray::s![.., ..3, .., ..]).mapv_inplace(|t| t * 1e-9);
+    let confidence = out.slice(ndarray::s![.., 4..5, .., ..]).mapv(|l| 1.0 / (1.0 + (-l).exp()));
+    mask_lifetime(&mut lifetime, &confidence);
+    (lifetime, confidence)
+}
+
+/// Set every lifetime channel to NaN where the confidence is below [`DETECTION_THRESHOLD`].
+///
+/// # Shapes
+/// - `lifetime`: `[B, C, H, W]`, `confidence`: `[B, 1, H, W]`
+pub fn mask_lifetime(lifetime: &mut Array4<f32>, confidence: &Array4<f32>) {
+    for (mut l, c) in lifetime.outer_iter_mut().zip(confidence.outer_iter()) {
+        let c = c.index_axis(Axis(0), 0);
+        for mut ch in l.outer_iter_mut() {
+            ch.zip_mut_with(&c, |v, &p| {
+                if p < DETECTION_THRESHOLD {
+                    *v = f32::NAN;
+                }
+            });
+        }
+    }
 }
 
 /// Set the depth to NaN where the confidence is below [`DETECTION_THRESHOLD`].
@@ -142,6 +175,10 @@ impl<M: Network> Decoder for NetDecoder<M> {
             Prediction::Depth => {
                 let (depth, confidence) = split_depth(&out);
                 Ok(Decoded { depth: Some(depth), confidence: Some(confidence), ..Default::default() })
+            }
+            Prediction::Lifetime => {
+                let (lifetime, confidence) = split_lifetime(&out);
+                Ok(Decoded { lifetime: Some(lifetime), confidence: Some(confidence), intensity: Some(y.sum_axis(Axis(1)).insert_axis(Axis(1))), ..Default::default() })
             }
         }
     }

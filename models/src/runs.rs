@@ -22,6 +22,7 @@ use tcsense_sensor::{Codes, Irf, MeasurementMatrix, Sampling, SensorParams};
 
 use crate::admm::{AdmmNet, AdmmNetConfig};
 use crate::decoder::Decoder;
+use crate::lifetime::{LifetimeNet, LifetimeNetConfig};
 use crate::unet::{Unet, UnetConfig};
 use crate::net::NetDecoder;
 use crate::{ModelError, Result};
@@ -44,6 +45,8 @@ pub enum ModelConfig {
     AdmmNet(AdmmNetConfig),
     /// Aᵀ + U-Net ([`crate::unet`]).
     Unet(UnetConfig),
+    /// The lifetime decoder ([`crate::lifetime`]).
+    Lifetime(LifetimeNetConfig),
 }
 
 impl ModelConfig {
@@ -52,6 +55,7 @@ impl ModelConfig {
         match self {
             ModelConfig::AdmmNet(_) => "admm-net",
             ModelConfig::Unet(_) => "unet",
+            ModelConfig::Lifetime(_) => "lifetime",
         }
     }
 
@@ -60,6 +64,7 @@ impl ModelConfig {
         match self {
             ModelConfig::AdmmNet(c) => c.flops(h, w),
             ModelConfig::Unet(c) => c.flops(h, w),
+            ModelConfig::Lifetime(c) => c.flops(h, w),
         }
     }
 
@@ -68,13 +73,14 @@ impl ModelConfig {
         match self {
             ModelConfig::AdmmNet(c) => c.taps,
             ModelConfig::Unet(c) => c.taps,
+            ModelConfig::Lifetime(c) => c.taps,
         }
     }
 
     /// Returns `K` per pixel a depth network estimates (1 for networks of cubes).
     pub fn returns(&self) -> usize {
         match self {
-            ModelConfig::AdmmNet(_) => 1,
+            ModelConfig::AdmmNet(_) | ModelConfig::Lifetime(_) => 1,
             ModelConfig::Unet(c) => c.returns,
         }
     }
@@ -120,6 +126,21 @@ impl ModelConfig {
                     return bad("model.range_m", c.range_m.to_string(), "a positive range in metres");
                 }
             }
+            ModelConfig::Lifetime(c) => {
+                if !(1..=bins / 2).contains(&c.harmonics) {
+                    return bad("model.harmonics", c.harmonics.to_string(), &format!("1..={} harmonics (half the {bins} bins)", bins / 2));
+                }
+                if !(1..=256).contains(&c.base_width) {
+                    return bad("model.base_width", c.base_width.to_string(), "1..=256 channels");
+                }
+                if !(1..=6).contains(&c.levels) {
+                    return bad("model.levels", c.levels.to_string(), "1..=6 levels");
+                }
+                let [lo, hi] = c.tau_range_ns;
+                if !(lo.is_finite() && hi.is_finite() && lo > 0.0 && lo < hi) {
+                    return bad("model.tau_range_ns", format!("{:?}", c.tau_range_ns), "0 < lo < hi (ns)");
+                }
+            }
         }
         Ok(())
     }
@@ -129,6 +150,7 @@ impl ModelConfig {
         match self {
             ModelConfig::AdmmNet(c) => c.bins,
             ModelConfig::Unet(c) => c.bins,
+            ModelConfig::Lifetime(c) => c.bins,
         }
     }
 }
@@ -225,6 +247,7 @@ pub fn load_network<M: Module>(dir: &Path, model: M) -> Result<M> {
 pub enum TrainedNet {
     AdmmNet(AdmmNet),
     Unet(Unet),
+    Lifetime(LifetimeNet),
 }
 
 /// A run directory loaded with its network as a concrete module (for exporters; [`open`]
@@ -264,6 +287,7 @@ pub fn load(dir: &Path, device: &Device) -> Result<LoadedRun> {
     let net = match &spec.model {
         ModelConfig::AdmmNet(c) => TrainedNet::AdmmNet(load_network(dir, c.init(device))?),
         ModelConfig::Unet(c) => TrainedNet::Unet(load_network(dir, c.init(device))?),
+        ModelConfig::Lifetime(c) => TrainedNet::Lifetime(load_network(dir, c.init(device))?),
     };
     Ok(LoadedRun { dir: dir.to_path_buf(), spec, codes, sensor, net })
 }
@@ -276,6 +300,7 @@ pub fn open(dir: &Path, device: &Device) -> Result<Run> {
     let decoder: Box<dyn Decoder> = match net {
         TrainedNet::AdmmNet(net) => Box::new(NetDecoder::new(name, net, device.clone())),
         TrainedNet::Unet(net) => Box::new(NetDecoder::new(name, net, device.clone())),
+        TrainedNet::Lifetime(net) => Box::new(NetDecoder::new(name, net, device.clone())),
     };
     Ok(Run { dir, spec, codes, sensor, decoder })
 }

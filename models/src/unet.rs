@@ -85,8 +85,7 @@ impl UnetConfig {
 
     /// Build the network.
     pub fn init(&self, device: &Device) -> Unet {
-        let conv = |i: usize, o: usize| Conv2dConfig::new([i, o], [3, 3]).with_padding(PaddingConfig2d::Same).init(device);
-        let block = |i: usize, o: usize| Block { conv1: conv(i, o), conv2: conv(o, o) };
+        let block = |i: usize, o: usize| Block::new(i, o, device);
         let down = (0..self.levels).map(|l| block(if l == 0 { self.bins } else { self.width(l - 1) }, self.width(l))).collect();
         let up = (0..self.levels.saturating_sub(1)).map(|l| block(self.width(l + 1) + self.width(l), self.width(l))).collect();
         let head = Conv2dConfig::new([self.width(0), 2 * self.returns], [1, 1]).init(device);
@@ -97,21 +96,19 @@ impl UnetConfig {
     pub fn flops(&self, h: usize, w: usize) -> f64 {
         let s = self.stride();
         let (h, w) = (h.div_ceil(s) * s, w.div_ceil(s) * s);
-        let mut f = 2.0 * (self.taps * self.bins * h * w) as f64; // Aᵀ
-        for l in 0..self.levels {
-            let px = ((h >> l) * (w >> l)) as f64;
-            let (i, o) = (if l == 0 { self.bins } else { self.width(l - 1) }, self.width(l));
-            f += 2.0 * 9.0 * px * (i * o + o * o) as f64;
-            if l + 1 < self.levels {
-                let i = self.width(l + 1) + self.width(l);
-                f += 2.0 * 9.0 * px * (i * o + o * o) as f64;
-            }
-        }
+        let f = 2.0 * (self.taps * self.bins * h * w) as f64 // Aᵀ
+            + trunk_flops(self.bins, self.levels, |l| self.width(l), h, w);
         f + 2.0 * (h * w * self.width(0) * 2 * self.returns) as f64
     }
 }
 
 impl Block {
+    /// Two 3×3 conv + ReLU from `i` to `o` channels.
+    pub(crate) fn new(i: usize, o: usize, device: &Device) -> Block {
+        let conv = |i: usize, o: usize| Conv2dConfig::new([i, o], [3, 3]).with_padding(PaddingConfig2d::Same).init(device);
+        Block { conv1: conv(i, o), conv2: conv(o, o) }
+    }
+
     /// The two 3×3 convolutions (weights `[out, in, 3, 3]`).
     pub fn convs(&self) -> [&Conv2d; 2] {
         [&self.conv1, &self.conv2]
@@ -120,6 +117,70 @@ impl Block {
     fn forward(&self, x: Tensor<4>) -> Tensor<4> {
         relu(conv(&self.conv2, relu(conv(&self.conv1, x))))
     }
+}
+
+/// The encoder–decoder of a U-Net with `down.len()` levels on frames of any size: padded with
+/// zeros to a multiple of `2^(levels−1)`, cropped back.
+///
+/// # Shapes
+/// - `x`: `[B, C, H, W]` → `[B, w₀, H, W]` (`w₀` the first level's width)
+pub(crate) fn trunk(down: &[Block], up: &[Block], x: Tensor<4>) -> Tensor<4> {
+    let levels = down.len();
+    let [_, _, h, w] = x.dims();
+    let s = 1usize << levels.saturating_sub(1);
+    let (ph, pw) = (h.div_ceil(s) * s - h, w.div_ceil(s) * s - w);
+    let mut z = if ph + pw > 0 { x.pad((0, pw, 0, ph), PadMode::Constant(0.0)) } else { x };
+    let mut skips = Vec::with_capacity(levels);
+    for (l, block) in down.iter().enumerate() {
+        z = block.forward(z);
+        if l + 1 < levels {
+            skips.push(z.clone());
+            z = max_pool2(z);
+        }
+    }
+    for (block, skip) in up.iter().zip(skips).rev() {
+        z = block.forward(Tensor::cat(vec![upsample2(z), skip], 1));
+    }
+    if ph + pw > 0 {
+        z.narrow(2, 0, h).narrow(3, 0, w)
+    } else {
+        z
+    }
+}
+
+/// The 1×1 convolution `head` as one batched matrix product `W [O, C] · z [C, H·W]` + bias
+/// (burn-flex's generic conv, forward and backward, was 7.5 % of a U-Net training step; the
+/// weights stay the `Conv2d`'s, so runs and exports are unchanged).
+///
+/// # Shapes
+/// - `z`: `[B, C, H, W]` → `[B, O, H, W]`
+pub(crate) fn conv1x1(head: &Conv2d, z: Tensor<4>) -> Tensor<4> {
+    let [b, c, h, w] = z.dims();
+    let o = head.weight.dims()[0];
+    let wgt = head.weight.val().reshape([1, o, c]).expand([b, o, c]); // [B, O, C]
+    let mut out = wgt.matmul(z.reshape([b, c, h * w])); // [B, O, H·W]
+    if let Some(bias) = &head.bias {
+        out = out + bias.val().reshape([1, o, 1]);
+    }
+    out.reshape([b, o, h, w])
+}
+
+/// FLOPs of a U-Net trunk from `c_in` channels with widths `width(l)` on an `h × w` frame
+/// (padded to its stride).
+pub(crate) fn trunk_flops(c_in: usize, levels: usize, width: impl Fn(usize) -> usize, h: usize, w: usize) -> f64 {
+    let s = 1usize << levels.saturating_sub(1);
+    let (h, w) = (h.div_ceil(s) * s, w.div_ceil(s) * s);
+    let mut f = 0.0;
+    for l in 0..levels {
+        let px = ((h >> l) * (w >> l)) as f64;
+        let (i, o) = (if l == 0 { c_in } else { width(l - 1) }, width(l));
+        f += 2.0 * 9.0 * px * (i * o + o * o) as f64;
+        if l + 1 < levels {
+            let i = width(l + 1) + width(l);
+            f += 2.0 * 9.0 * px * (i * o + o * o) as f64;
+        }
+    }
+    f
 }
 
 impl Unet {
@@ -140,27 +201,7 @@ impl Unet {
     /// - `y`: `[B, M, H, W]` → `[B, 2K, H, W]`
     pub fn logits(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
         let x = Self::normalise(sensor.adjoint(y)); // [B, T, H, W]
-        let [_, _, h, w] = x.dims();
-        let s = 1usize << self.levels.saturating_sub(1);
-        let (ph, pw) = (h.div_ceil(s) * s - h, w.div_ceil(s) * s - w);
-        let mut z = if ph + pw > 0 { x.pad((0, pw, 0, ph), PadMode::Constant(0.0)) } else { x };
-        let mut skips = Vec::with_capacity(self.levels);
-        for (l, block) in self.down.iter().enumerate() {
-            z = block.forward(z);
-            if l + 1 < self.levels {
-                skips.push(z.clone());
-                z = max_pool2(z);
-            }
-        }
-        for (block, skip) in self.up.iter().zip(skips).rev() {
-            z = block.forward(Tensor::cat(vec![upsample2(z), skip], 1));
-        }
-        let out = self.head_1x1(z); // [B, 2K, H', W']
-        if ph + pw > 0 {
-            out.narrow(2, 0, h).narrow(3, 0, w)
-        } else {
-            out
-        }
+        self.head_1x1(trunk(&self.down, &self.up, x))
     }
 
     /// Depth (m) and confidence in `[0, 1]`.
@@ -183,21 +224,12 @@ impl Unet {
         &self.up
     }
 
-    /// The 1×1 head as one batched matrix product `W [O, C] · z [C, H·W]` + bias (burn-flex's
-    /// generic conv, forward and backward, was 7.5 % of a U-Net training step; the weights stay
-    /// the `Conv2d`'s, so runs and exports are unchanged).
+    /// The 1×1 head ([`conv1x1`]).
     ///
     /// # Shapes
-    /// - `z`: `[B, C, H, W]` → `[B, O, H, W]`
+    /// - `z`: `[B, C, H, W]` → `[B, 2K, H, W]`
     fn head_1x1(&self, z: Tensor<4>) -> Tensor<4> {
-        let [b, c, h, w] = z.dims();
-        let o = self.head.weight.dims()[0];
-        let wgt = self.head.weight.val().reshape([1, o, c]).expand([b, o, c]); // [B, O, C]
-        let mut out = wgt.matmul(z.reshape([b, c, h * w])); // [B, O, H·W]
-        if let Some(bias) = &self.head.bias {
-            out = out + bias.val().reshape([1, o, 1]);
-        }
-        out.reshape([b, o, h, w])
+        conv1x1(&self.head, z)
     }
 
     /// The 1×1 head to `2K` channels.

@@ -154,7 +154,7 @@ pub struct BenchInferArgs {
     /// A trained run: timed in burn, and exported for ONNX Runtime when --model is not given.
     #[arg(long)]
     run: Option<PathBuf>,
-    /// Without --run/--model: a fresh network of this kind (unet or admm-net) on the
+    /// Without --run/--model: a fresh network of this kind (unet, admm-net or lifetime) on the
     /// prototype's codes (4 taps, 2x2, L = 32, tap + H 2 + W 2).
     #[arg(long, default_value = "unet")]
     decoder: String,
@@ -194,7 +194,8 @@ fn fresh_run(a: &BenchInferArgs) -> Result<runs::LoadedRun> {
     let model = match a.decoder.as_str() {
         "unet" => runs::ModelConfig::Unet(tcsense_models::UnetConfig::new(4, a.bins, 299_792_458.0 * 32.0 / 607e6 / 2.0)),
         "admm-net" => runs::ModelConfig::AdmmNet(tcsense_models::AdmmNetConfig::new(4, a.bins).with_stages(a.stages).with_channels(a.channels).with_normalize(true)),
-        other => bail!("--decoder {other:?}: expected unet or admm-net"),
+        "lifetime" => runs::ModelConfig::Lifetime(tcsense_models::LifetimeNetConfig::new(4, a.bins)),
+        other => bail!("--decoder {other:?}: expected unet, admm-net or lifetime"),
     };
     let spec = runs::RunSpec { model, sampling, irf: Irf::Ideal, measured: false };
     let sensor = spec.matrix(&codes)?;
@@ -202,6 +203,7 @@ fn fresh_run(a: &BenchInferArgs) -> Result<runs::LoadedRun> {
     let net = match &spec.model {
         runs::ModelConfig::AdmmNet(c) => runs::TrainedNet::AdmmNet(c.init(&device)),
         runs::ModelConfig::Unet(c) => runs::TrainedNet::Unet(c.init(&device)),
+        runs::ModelConfig::Lifetime(c) => runs::TrainedNet::Lifetime(c.init(&device)),
     };
     Ok(runs::LoadedRun { dir: PathBuf::from("."), spec, codes, sensor, net })
 }

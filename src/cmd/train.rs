@@ -10,7 +10,7 @@ use tcsense_models::runs::{ModelConfig, CODES_FILE, CONFIG_FILE, SENSOR_MATRIX_F
 use tcsense_sensor::npy::write_npy;
 use tcsense_sensor::params::SensorParams;
 use tcsense_sensor::MeasurementMatrix;
-use tcsense_models::{AdmmNetConfig, Prior, UnetConfig};
+use tcsense_models::{AdmmNetConfig, LifetimeNetConfig, Prior, UnetConfig};
 use tcsense_sensor::{Codes, Constraints};
 use tcsense_train::deep_sensing::{LearnCodes, START_CODES_FILE};
 use tcsense_train::{Augmentation, EpochMetrics, Loss, LrSchedule, Progress, TrainConfig, TrainError};
@@ -44,6 +44,28 @@ pub enum TrainCmd {
         #[command(flatten)]
         net: UnetArgs,
     },
+    /// Train the lifetime decoder on a FLIm dataset (its lifetime ground truth): tap images to
+    /// the mean lifetime, two components and their fraction, and a confidence per pixel.
+    Lifetime {
+        #[command(flatten)]
+        common: TrainArgs,
+        #[command(flatten)]
+        net: LifetimeArgs,
+    },
+}
+
+/// Lifetime-decoder size.
+#[derive(Args)]
+pub struct LifetimeArgs {
+    /// Harmonics of the cycle the time axis is pooled to (input channels 2K + 2).
+    #[arg(long, default_value_t = 16)]
+    harmonics: usize,
+    /// Channels of the U-Net's first level (doubled per level).
+    #[arg(long, default_value_t = 16)]
+    base_width: usize,
+    /// Resolutions (frames are padded inside the model to a multiple of 2^(levels−1)).
+    #[arg(long, default_value_t = 3)]
+    levels: usize,
 }
 
 /// ADMM-Net size.
@@ -212,6 +234,8 @@ impl Progress for Bar {
             .map(|(n, v)| match n.trim_start_matches("val_") {
                 "psnr_db" => format!("  PSNR {v:.2} dB"),
                 "detection" => format!("  detection {:.1} %", v * 100.0),
+                "coverage" => format!("  coverage {:.1} %", v * 100.0),
+                "lifetime_mae_ns" => format!("  lifetime MAE {v:.3} ns"),
                 n => format!("  {} {v:.4e}", n.replace('_', " ")),
             })
             .collect();
@@ -223,12 +247,14 @@ impl Progress for Bar {
 enum NetArgs {
     Admm(AdmmArgs),
     Unet(UnetArgs),
+    Lifetime(LifetimeArgs),
 }
 
 pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     let (a, net) = match cmd {
         TrainCmd::AdmmNet { common, net } => (common, NetArgs::Admm(net)),
         TrainCmd::Unet { common, net } => (common, NetArgs::Unet(net)),
+        TrainCmd::Lifetime { common, net } => (common, NetArgs::Lifetime(net)),
     };
     let run_dir = &a.output;
     // the device first: a missing GPU backend or adapter writes nothing
@@ -262,6 +288,7 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
                 let range_m = tcsense_datasets::grid::C * ds.manifest.bin_width_s * t as f64 / 2.0;
                 ModelConfig::Unet(UnetConfig::new(m, t, range_m).with_returns(n.returns).with_base_width(n.base_width).with_levels(n.levels))
             }
+            NetArgs::Lifetime(n) => ModelConfig::Lifetime(LifetimeNetConfig::new(m, t).with_harmonics(n.harmonics).with_base_width(n.base_width).with_levels(n.levels)),
         };
         TrainConfig::for_dataset(model, ds_path, &ds)
     };
@@ -301,7 +328,7 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
                 m.prior = prior;
             }
         }
-        (ModelConfig::Unet(_), NetArgs::Unet(_)) => {}
+        (ModelConfig::Unet(_), NetArgs::Unet(_)) | (ModelConfig::Lifetime(_), NetArgs::Lifetime(_)) => {}
         (model, _) => bail!("{}: this is a {} run; train it with `tcsense train {}`", run_dir.display(), model.name(), model.name()),
     }
     if let Some(v) = a.epochs {
@@ -381,6 +408,7 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     pb.set_style(ProgressStyle::with_template("[{bar:30}] {pos}/{len} steps {per_sec} eta {eta} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
     let network = match &cfg.run.model {
         ModelConfig::AdmmNet(m) => format!("ADMM-Net S = {}, CN = {}, M = {}, T = {}", m.stages, m.channels, m.taps, m.bins),
+        ModelConfig::Lifetime(m) => format!("lifetime decoder: {} harmonics, U-Net base width {}, {} levels, M = {}, T = {}, {:.2} GFLOP per 188x212 frame", m.harmonics, m.base_width, m.levels, m.taps, m.bins, m.flops(188, 212) / 1e9),
         ModelConfig::Unet(m) => format!("Aᵀ + U-Net K = {}, base width {}, {} levels, M = {}, T = {}, range {:.2} m, {:.2} GFLOP per 188x212 frame", m.returns, m.base_width, m.levels, m.taps, m.bins, m.range_m, m.flops(188, 212) / 1e9),
     };
     println!(

@@ -65,6 +65,9 @@ pub struct Augmented {
     /// cropped, and shifted by the time shift's range `k·c·Δt/2` (cyclically, re-sorted into
     /// arrival order).
     pub depth: Option<Array4<f32>>,
+    /// Per-pixel label maps `[B, C, H', W']` (lifetimes), flipped and cropped with the cube
+    /// (a delay or a brightness does not change them).
+    pub maps: Option<Array4<f32>>,
     /// One noise model per item (from `base` with this item's levels).
     pub noise: Vec<NoiseParams>,
     /// The brightness factor of each item.
@@ -121,18 +124,20 @@ impl Augmentation {
         self.crop.map_or((h, w), |[ch, cw]| (ch, cw))
     }
 
-    /// Augment batch `x` (and its depth labels) for optimiser step `step`; `base` is the run's
-    /// noise model (its ADC setting is kept).
+    /// Augment batch `x` (and its depth labels or label maps) for optimiser step `step`; `base`
+    /// is the run's noise model (its ADC setting is kept).
     ///
     /// # Shapes
     /// - `x`: `[B, T, H, W]` → `[B, T, H', W']` (`H' × W'` the crop, else `H × W`); labels
-    ///   `[B, K, H, W]` → `[B, K, H', W']`
-    pub fn apply(&self, x: &ArrayView4<'_, f32>, labels: Option<DepthLabels<'_>>, base: &NoiseParams, block: (usize, usize), seed: u64, step: u64) -> Augmented {
+    ///   `[B, K, H, W]` → `[B, K, H', W']`; maps `[B, C, H, W]` → `[B, C, H', W']`
+    #[allow(clippy::too_many_arguments)]
+    pub fn apply(&self, x: &ArrayView4<'_, f32>, labels: Option<DepthLabels<'_>>, maps: Option<ArrayView4<'_, f32>>, base: &NoiseParams, block: (usize, usize), seed: u64, step: u64) -> Augmented {
         let mut rng = StdRng::seed_from_u64(derive_seed(seed ^ AUGMENT_STREAM, step));
         let (b, t, h, w) = x.dim();
         let (ch, cw) = self.frame(h, w);
         let mut out = Array4::<f32>::zeros((b, t, ch, cw));
         let mut depth_out = labels.map(|l| Array4::<f32>::from_elem((b, l.depth.dim().1, ch, cw), f32::NAN));
+        let mut maps_out = maps.map(|m| Array4::<f32>::zeros((b, m.dim().1, ch, cw)));
         let mut noise = Vec::with_capacity(b);
         let mut gains = Vec::with_capacity(b);
         for (i, mut dst) in out.outer_iter_mut().enumerate() {
@@ -156,6 +161,9 @@ impl Augmentation {
                     px.iter_mut().zip(v).for_each(|(p, v)| *p = v);
                 }
             }
+            if let (Some(m), Some(mo)) = (maps, maps_out.as_mut()) {
+                mo.index_axis_mut(Axis(0), i).assign(&window(m.index_axis(Axis(0), i), area, flip_r, flip_c));
+            }
             for j in 0..t {
                 // roll: bin j of the source lands in bin j + shift
                 dst.index_axis_mut(Axis(0), (j + shift) % t).zip_mut_with(&window_x.index_axis(Axis(0), j), |d, &v| *d = v * gain);
@@ -167,7 +175,7 @@ impl Augmentation {
                 adc_bits: base.adc_bits,
             });
         }
-        Augmented { x: out, depth: depth_out, noise, gains }
+        Augmented { x: out, depth: depth_out, maps: maps_out, noise, gains }
     }
 }
 
@@ -185,12 +193,12 @@ mod tests {
         let x = cube();
         let base = NoiseParams::default();
         let off = Augmentation { time_shift: false, flips: false, crop: None, brightness: [1.0, 1.0], full_well_e: [2e4, 2e4], read_noise_e: [40.0, 40.0], signal_fraction: [0.8, 0.8] };
-        let same = off.apply(&x.view(), None, &base, (2, 2), 1, 1);
+        let same = off.apply(&x.view(), None, None, &base, (2, 2), 1, 1);
         assert_eq!(same.x, x, "everything off is the identity");
         assert!(same.noise.iter().all(|n| n.full_well_e == 2e4 && n.read_noise_e == 40.0 && n.signal_fraction == 0.8 && n.adc_bits == base.adc_bits));
 
         // a time shift is a roll of every pixel's waveform by the same number of bins
-        let shifted = Augmentation { time_shift: true, ..off }.apply(&x.view(), None, &base, (2, 2), 1, 2).x;
+        let shifted = Augmentation { time_shift: true, ..off }.apply(&x.view(), None, None, &base, (2, 2), 1, 2).x;
         for b in 0..2 {
             let k = (0..8).find(|&k| shifted[(b, k, 0, 0)] == x[(b, 0, 0, 0)]).expect("a roll of the waveform");
             for j in 0..8 {
@@ -206,7 +214,11 @@ mod tests {
         let cropped = Augmentation { flips: true, crop: Some([2, 4]), ..off };
         cropped.validate(4, 6, (2, 2)).unwrap();
         for step in 0..8 {
-            let a = cropped.apply(&x.view(), None, &base, (2, 2), 3, step).x;
+            let out = cropped.apply(&x.view(), None, Some(x.slice(s![.., 0..2, .., ..])), &base, (2, 2), 3, step);
+            let a = out.x;
+            // label maps move with the pixels
+            let maps = out.maps.expect("maps in, maps out");
+            assert_eq!(maps, a.slice(s![.., 0..2, .., ..]));
             assert_eq!(a.dim(), (2, 8, 2, 4));
             for b in 0..2 {
                 let v = a[(b, 0, 0, 0)] as usize - b * 1000;
@@ -217,7 +229,7 @@ mod tests {
             }
         }
         for step in 0..8 {
-            let a = Augmentation { crop: Some([2, 4]), ..off }.apply(&x.view(), None, &base, (2, 2), 3, step).x;
+            let a = Augmentation { crop: Some([2, 4]), ..off }.apply(&x.view(), None, None, &base, (2, 2), 3, step).x;
             let v = a[(0, 0, 0, 0)] as usize;
             assert!((v / 10 % 10) % 2 == 0 && (v % 10) % 2 == 0, "crop origin ({}, {}) on the 2x2 block grid", v / 10 % 10, v % 10);
         }
@@ -227,19 +239,19 @@ mod tests {
 
         // brightness and noise levels are drawn in their ranges, seeded by (seed, step)
         let d = Augmentation::default();
-        let a1 = d.apply(&x.view(), None, &base, (2, 2), 7, 3);
+        let a1 = d.apply(&x.view(), None, None, &base, (2, 2), 7, 3);
         for (i, g) in a1.gains.iter().enumerate() {
             let ratio = a1.x.index_axis(Axis(0), i).iter().map(|v| v.abs()).sum::<f32>() / x.index_axis(Axis(0), i).iter().map(|v| v.abs()).sum::<f32>();
             assert!((ratio / g - 1.0).abs() < 1e-4, "item {i}: scaled by {ratio}, gain {g}");
         }
-        let a2 = d.apply(&x.view(), None, &base, (2, 2), 7, 3);
-        let a3 = d.apply(&x.view(), None, &base, (2, 2), 7, 4);
+        let a2 = d.apply(&x.view(), None, None, &base, (2, 2), 7, 3);
+        let a3 = d.apply(&x.view(), None, None, &base, (2, 2), 7, 4);
         assert_eq!(a1.x, a2.x);
         assert_ne!(a1.x, a3.x);
         for n in a1.noise.iter().chain(&a3.noise) {
             assert!((1e4..=4e4).contains(&n.full_well_e) && (10.0..=60.0).contains(&n.read_noise_e) && (0.05..=0.9).contains(&n.signal_fraction));
         }
-        let gains: Vec<f32> = (0..200).map(|s| d.apply(&x.view(), None, &base, (2, 2), 7, s).x.iter().map(|v| v.abs()).sum::<f32>() / x.iter().map(|v| v.abs()).sum::<f32>()).collect();
+        let gains: Vec<f32> = (0..200).map(|s| d.apply(&x.view(), None, None, &base, (2, 2), 7, s).x.iter().map(|v| v.abs()).sum::<f32>() / x.iter().map(|v| v.abs()).sum::<f32>()).collect();
         assert!(gains.iter().any(|&g| g < 0.05) && gains.iter().any(|&g| g > 0.5), "brightness over two decades");
     }
 }

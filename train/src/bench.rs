@@ -76,6 +76,7 @@ fn timed(a: &MeasurementMatrix, model: &ModelConfig, h: usize, w: usize, steps: 
     let mut t = match model {
         ModelConfig::AdmmNet(c) => time_steps(a, |d| c.init(d), h, w, steps, learner),
         ModelConfig::Unet(c) => time_steps(a, |d| c.init(d), h, w, steps, learner),
+        ModelConfig::Lifetime(c) => time_steps(a, |d| c.init(d), h, w, steps, learner),
     }?;
     t.flop = 3.0 * BENCH_BATCH as f64 * model.flops(h, w);
     Ok(t)
@@ -94,9 +95,17 @@ fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h:
     let y = measure_batch(&plan, &x.view(), None, 0)?;
     // labels for depth networks: a return at a few metres in every other pixel
     let depth = Array4::from_shape_fn((BENCH_BATCH, 2, h, w), |(b, k, r, c)| if (r + c + b) % 2 == 0 { 2.0 + k as f32 + (r % 7) as f32 * 0.1 } else { f32::NAN });
+    // labels for lifetime networks: 1–3 ns where a fluorophore is, background elsewhere
+    let lifetimes = Array4::from_shape_fn((BENCH_BATCH, 5, h, w), |(_, k, r, c)| match (k, (r + c) % 3) {
+        (4, s) => (s != 0) as u8 as f32,
+        (_, 0) => f32::NAN,
+        (3, _) => 0.5,
+        (k, s) => (k + s) as f32,
+    });
     let target = match M::PREDICTION {
         Prediction::Cube => Target::Cube { x: &x, scales: None },
         Prediction::Depth => Target::Depth { depth: &depth, range_m: 10.0 },
+        Prediction::Lifetime => Target::Lifetime { labels: &lifetimes },
     };
     let mut times: Vec<[f64; 4]> = Vec::new();
     for _ in 0..steps.max(1) + 1 {
@@ -143,6 +152,7 @@ pub fn bench_forward(a: &MeasurementMatrix, model: &ModelConfig, h: usize, w: us
     let mut decoder: Box<dyn Decoder> = match model {
         ModelConfig::AdmmNet(c) => Box::new(NetDecoder::new(model.name(), crate::fit::seeded_init(&device, 1, |d| c.init(d)), device.clone())),
         ModelConfig::Unet(c) => Box::new(NetDecoder::new(model.name(), crate::fit::seeded_init(&device, 1, |d| c.init(d)), device.clone())),
+        ModelConfig::Lifetime(c) => Box::new(NetDecoder::new(model.name(), crate::fit::seeded_init(&device, 1, |d| c.init(d)), device.clone())),
     };
     let y = Array4::from_shape_fn((1, a.taps(), h, w), |(_, m, r, c)| ((m + r + c) % 7) as f32 * 0.1);
     let never = AtomicBool::new(false);
@@ -155,5 +165,6 @@ pub fn parameters(model: &ModelConfig) -> usize {
     match model {
         ModelConfig::AdmmNet(c) => c.init(&device).num_params(),
         ModelConfig::Unet(c) => c.init(&device).num_params(),
+        ModelConfig::Lifetime(c) => c.init(&device).num_params(),
     }
 }

@@ -173,6 +173,7 @@ impl TrainConfig {
                     return bad("model", format!("base width {}, {} levels, {} returns, range {} m", m.base_width, m.levels, m.returns, m.range_m), "base width ≥ 1, 1–6 levels, 1 or 2 returns, a positive range");
                 }
             }
+            ModelConfig::Lifetime(_) => {}
         }
         if let Some(n) = &self.noise {
             n.validate()?;

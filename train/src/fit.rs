@@ -30,8 +30,8 @@ use crate::config::TrainConfig;
 use crate::deep_sensing::{LearnCodes, Learner};
 use crate::augment::DepthLabels;
 use crate::config::Loss;
-use crate::data::{load_cubes, load_depth};
-use crate::loss::{depth_loss, loss_fn};
+use crate::data::{load_cubes, load_depth, load_lifetime_labels};
+use crate::loss::{depth_loss, lifetime_loss, loss_fn};
 use crate::run_dir::{latest_checkpoint, load_checkpoint, read_json, read_rows, save_checkpoint, write_json, write_rows, EpochMetrics, RunLock, RunState, METRICS_FILE};
 use crate::{file_err, Result, TrainError};
 
@@ -62,11 +62,25 @@ pub fn validate(decoder: &mut dyn Decoder, plan: &FramePlan, sensor: &Measuremen
     let never = AtomicBool::new(false);
     let (mut total_mse, mut total_psnr) = (0.0, 0.0);
     let (mut truth, mut detected, mut se, mut ae) = (0usize, 0usize, 0.0, 0.0);
+    let mut lifetimes = false;
     for i in 0..n {
         let xi = x.slice_axis(Axis(0), ndarray::Slice::from(i..i + 1)); // [1, T, H, W]
         let y = measure_batch(plan, &xi, noise, derive_seed(seed ^ VALIDATION_STREAM, i as u64))?;
         let out = decoder.decode(y.view(), sensor, &Control::quiet(&never))?;
-        if let (Some(est), Some(d)) = (&out.depth, depth) {
+        if let (Some(est), Some(l)) = (&out.lifetime, depth) {
+            // τ_m where the truth holds a fluorophore: error (ns) where estimated, coverage
+            lifetimes = true;
+            let (est, l) = (est.index_axis(Axis(0), 0), l.index_axis(Axis(0), i));
+            for ((&e, &t), &sig) in est.index_axis(Axis(0), 0).iter().zip(l.index_axis(Axis(0), 0).iter()).zip(l.index_axis(Axis(0), 4).iter()) {
+                if sig > 0.5 && t.is_finite() {
+                    truth += 1;
+                    if e.is_finite() {
+                        detected += 1;
+                        ae += (e as f64 * 1e9 - t as f64).abs();
+                    }
+                }
+            }
+        } else if let (Some(est), Some(d)) = (&out.depth, depth) {
             for e in depth_errors(&est.index_axis(Axis(0), 0), &d.index_axis(Axis(0), i)) {
                 truth += e.truth;
                 detected += e.detected;
@@ -84,7 +98,9 @@ pub fn validate(decoder: &mut dyn Decoder, plan: &FramePlan, sensor: &Measuremen
         }
     }
     let per = |v: f64, k: usize| if k > 0 { v / k as f64 } else { f64::NAN };
-    Ok(if depth.is_some() {
+    Ok(if lifetimes {
+        vec![("val_lifetime_mae_ns".into(), per(ae, detected)), ("val_coverage".into(), per(detected as f64, truth))]
+    } else if depth.is_some() {
         vec![("val_depth_rmse_m".into(), per(se, detected).sqrt()), ("val_depth_mae_m".into(), per(ae, detected)), ("val_detection".into(), per(detected as f64, truth))]
     } else {
         vec![("val_mse".into(), per(total_mse, n)), ("val_psnr_db".into(), per(total_psnr, n))]
@@ -104,6 +120,7 @@ pub fn train_on(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, devi
     match &cfg.run.model {
         ModelConfig::AdmmNet(m) => train_with(cfg, codes, run, resume, device, progress, cancel, |device| m.init(device)),
         ModelConfig::Unet(m) => train_with(cfg, codes, run, resume, device, progress, cancel, |device| m.init(device)),
+        ModelConfig::Lifetime(m) => train_with(cfg, codes, run, resume, device, progress, cancel, |device| m.init(device)),
     }
 }
 
@@ -176,13 +193,14 @@ fn fit<M: Network>(
     }
     let train_x = load_cubes(&ds, "train", cfg.max_train_items)?;
     let val_x = load_cubes(&ds, "val", cfg.max_val_items)?;
-    // range labels of the first K returns for depth networks
+    // range labels of the first K returns for depth networks, lifetime labels for lifetime ones
     let (train_d, val_d) = match M::PREDICTION {
         Prediction::Cube => (None, None),
         Prediction::Depth => {
             let k = model_cfg.returns();
             (Some(load_depth(&ds, "train", cfg.max_train_items, k)?), Some(load_depth(&ds, "val", cfg.max_val_items, k)?))
         }
+        Prediction::Lifetime => (Some(load_lifetime_labels(&ds, "train", cfg.max_train_items)?), Some(load_lifetime_labels(&ds, "val", cfg.max_val_items)?)),
     };
     let (bin_m, range_m) = (C * a.bin_width_s() / 2.0, C * a.bin_width_s() * a.bins() as f64 / 2.0);
     if train_x.dim().0 == 0 {
@@ -256,7 +274,7 @@ fn fit<M: Network>(
                 return Err(TrainError::Cancelled);
             }
             let xb = train_x.select(Axis(0), idx); // [B, T, H, W]
-            let db = train_d.as_ref().map(|d| d.select(Axis(0), idx)); // [B, K, H, W]
+            let db = train_d.as_ref().map(|d| d.select(Axis(0), idx)); // [B, K, H, W] or [B, 5, H, W]
             state.step += 1;
             // the schedule spans this phase's steps (each phase of deep sensing has its own)
             let lr = cfg.lr_schedule.rate(cfg.learning_rate, (epoch * steps_per_epoch + bi + 1) as u64, total_steps as u64);
@@ -273,17 +291,20 @@ fn fit<M: Network>(
                     (xb, db, yb, None)
                 }
                 (Some(aug), noise) => {
-                    let labels = db.as_ref().map(|d| DepthLabels { depth: d.view(), bin_m, range_m });
-                    let out = aug.apply(&xb.view(), labels, noise.as_ref().unwrap_or(&crate::config::TRAINING_NOISE), a.block(), cfg.seed, state.step);
+                    let lifetimes = M::PREDICTION == Prediction::Lifetime;
+                    let labels = db.as_ref().filter(|_| !lifetimes).map(|d| DepthLabels { depth: d.view(), bin_m, range_m });
+                    let maps = db.as_ref().filter(|_| lifetimes).map(|d| d.view());
+                    let out = aug.apply(&xb.view(), labels, maps, noise.as_ref().unwrap_or(&crate::config::TRAINING_NOISE), a.block(), cfg.seed, state.step);
                     let yb = measure_items(&train_plan, &out.x, noise.as_ref().map(|_| out.noise.as_slice()), noise_seed)?;
                     // each item's loss on its own scale: its peak, brightness included
                     let peaks: Vec<f32> = out.x.outer_iter().map(|xi| xi.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-12)).collect();
-                    (out.x, out.depth, yb, Some(peaks))
+                    (out.x, out.depth.or(out.maps), yb, Some(peaks))
                 }
             };
-            let target = match &db {
-                Some(d) => Target::Depth { depth: d, range_m },
-                None => Target::Cube { x: &xb, scales: scales.as_deref() },
+            let target = match (&db, M::PREDICTION) {
+                (Some(l), Prediction::Lifetime) => Target::Lifetime { labels: l },
+                (Some(d), _) => Target::Depth { depth: d, range_m },
+                (None, _) => Target::Cube { x: &xb, scales: scales.as_deref() },
             };
             let l;
             (model, l) = match learner.as_mut() {
@@ -402,6 +423,8 @@ pub(crate) enum Target<'a> {
     Cube { x: &'a Array4<f32>, scales: Option<&'a [f32]> },
     /// Range labels `[B, K, H, W]` (m, NaN where none) and the unambiguous range.
     Depth { depth: &'a Array4<f32>, range_m: f64 },
+    /// Lifetime labels `[B, 5, H, W]` ([`crate::data::load_lifetime_labels`]).
+    Lifetime { labels: &'a Array4<f32> },
 }
 
 /// The loss of a prediction against its target.
@@ -419,6 +442,11 @@ pub(crate) fn objective(loss: Loss, pred: Tensor<4>, target: Target<'_>, device:
             let mask = depth.mapv(|d| if d.is_finite() { 1.0 } else { 0.0 });
             let filled = depth.mapv(|d| if d.is_finite() { d } else { 0.0 });
             depth_loss(pred, to_tensor(&filled.view(), device), to_tensor(&mask.view(), device), range_m)
+        }
+        Target::Lifetime { labels } => {
+            let filled = labels.mapv(|v| if v.is_finite() { v } else { 0.0 });
+            let distinct = ndarray::Zip::from(labels.index_axis(Axis(1), 1)).and(labels.index_axis(Axis(1), 2)).map_collect(|a, b| if (a - b).abs() > 1e-3 { 1f32 } else { 0.0 }).insert_axis(Axis(1));
+            lifetime_loss(pred, to_tensor(&filled.view(), device), to_tensor(&distinct.view(), device))
         }
     }
 }

@@ -36,6 +36,24 @@ pub fn depth_loss(pred: Tensor<4>, depth: Tensor<4>, mask: Tensor<4>, range_m: f
     l1 + bce.mean()
 }
 
+/// The lifetime loss of a batch: mean absolute error (ns) of `τ_m` where the pixel holds a
+/// fluorophore, half that of `τ₁` and `τ₂`, the error of `α₁` where the two components differ,
+/// and the binary cross-entropy of the confidence against "holds a fluorophore".
+///
+/// # Shapes
+/// - `pred`: `[B, 5, H, W]` (`τ_m`, `τ₁`, `τ₂` in ns, `α₁`, confidence logit), `labels`:
+///   `[B, 5, H, W]` (the same, 0 where unknown, then the signal mask), `distinct`:
+///   `[B, 1, H, W]` (1 where `τ₁ ≠ τ₂`) → `[1]`
+pub fn lifetime_loss(pred: Tensor<4>, labels: Tensor<4>, distinct: Tensor<4>) -> Tensor<1> {
+    let mask = labels.clone().narrow(1, 4, 1); // [B, 1, H, W]
+    let count = mask.clone().sum().add_scalar(1.0);
+    let err = |c: usize| (pred.clone().narrow(1, c, 1) - labels.clone().narrow(1, c, 1)).abs() * mask.clone();
+    let l1 = (err(0) + (err(1) + err(2)) * 0.5 + err(3) * distinct).sum() / count;
+    let logits = pred.narrow(1, 4, 1);
+    let bce = relu(logits.clone()) - logits.clone() * mask + logits.abs().neg().exp().add_scalar(1.0).log();
+    l1 + bce.mean()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -63,5 +81,18 @@ mod tests {
         let l: f32 = depth_loss(pred, depth, mask, 10.0).into_scalar();
         // L1 = |4 − 3| / (1 + 1) / 10 = 0.05 (the pixel without a return does not count); BCE = ln 2
         assert!((l - (0.05 + 2f32.ln())).abs() < 1e-6, "{l}");
+    }
+
+    #[test]
+    fn lifetime_loss_masks_and_weighs_the_components() {
+        let device = Device::flex();
+        // two pixels: a fluorophore (τ_m 2 ns predicted 2.5; τ₁ 1 vs 1.5, τ₂ 3 vs 3, α 0.4 vs
+        // 0.5, distinct) and background (every lifetime wrong, does not count); logits 0
+        let pred = Tensor::<4>::from_floats([[[[2.5, 9.0]], [[1.5, 9.0]], [[3.0, 9.0]], [[0.4, 0.9]], [[0.0, 0.0]]]], &device);
+        let labels = Tensor::<4>::from_floats([[[[2.0, 0.0]], [[1.0, 0.0]], [[3.0, 0.0]], [[0.5, 0.0]], [[1.0, 0.0]]]], &device);
+        let distinct = Tensor::<4>::from_floats([[[[1.0, 0.0]]]], &device);
+        let l: f32 = lifetime_loss(pred, labels, distinct).into_scalar();
+        // (0.5 + 0.5·(0.5 + 0) + 0.1) / (1 + 1) + ln 2
+        assert!((l - (0.85 / 2.0 + 2f32.ln())).abs() < 1e-6, "{l}");
     }
 }

@@ -121,7 +121,7 @@ fn augmented_runs_crop_resume_exactly_and_shift_like_a_delayed_scene() {
     let shift_only = Augmentation { time_shift: true, flips: false, crop: None, brightness: [1.0, 1.0], ..Augmentation::default() };
     let noise = tcsense_sensor::NoiseParams::default();
     for step in 1..4 {
-        let shifted = shift_only.apply(&x.view(), None, &noise, (2, 2), 11, step).x;
+        let shifted = shift_only.apply(&x.view(), None, None, &noise, (2, 2), 11, step).x;
         let t = grid.bins();
         let k = (0..t).find(|&k| (0..t).all(|j| shifted[(0, (j + k) % t, 0, 0)] == x[(0, j, 0, 0)])).expect("a roll");
         let delayed = tcsense_datasets::flim::render(&ch, &FlimKnobs { onset_s: (1e-9 + k as f64 * grid.bin_width_s()) % grid.cycle_s(), ..knobs }, &grid).x;

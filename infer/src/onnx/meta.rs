@@ -18,7 +18,7 @@ pub const VERSION: u32 = 1;
 /// The metadata of an exported tcsense model.
 #[derive(Debug, Clone, PartialEq)]
 pub struct OnnxMeta {
-    /// `admm-net` or `unet`.
+    /// `admm-net`, `unet` or `lifetime`.
     pub decoder: String,
     /// Taps `M`.
     pub taps: usize,
@@ -54,6 +54,10 @@ impl OnnxMeta {
                 let s = c.stride();
                 ((lcm(bh, s), lcm(bw, s)), c.returns, c.range_m)
             }
+            ModelConfig::Lifetime(c) => {
+                let s = c.stride();
+                ((lcm(bh, s), lcm(bw, s)), 0, 0.0)
+            }
         };
         OnnxMeta {
             decoder: run.spec.model.name().to_string(),
@@ -74,10 +78,10 @@ impl OnnxMeta {
 
     /// The names of the model's outputs.
     pub fn outputs(&self) -> &'static [&'static str] {
-        if self.decoder == "unet" {
-            &["depth", "confidence"]
-        } else {
-            &["cube"]
+        match self.decoder.as_str() {
+            "unet" => &["depth", "confidence"],
+            "lifetime" => &["lifetime", "confidence", "intensity"],
+            _ => &["cube"],
         }
     }
 
@@ -104,6 +108,8 @@ impl OnnxMeta {
             p.push(("returns", self.returns.to_string()));
             p.push(("range_m", format!("{}", self.range_m)));
             p.push(("units", "measurements: tap images, any scale; depth: m (c*t/2 from the start of the code cycle); confidence: probability in [0, 1] that the return exists".into()));
+        } else if self.decoder == "lifetime" {
+            p.push(("units", "measurements: tap images, any scale; lifetime: channels tau_m (amplitude-weighted mean), tau_1 <= tau_2 in s and the amplitude fraction alpha_1 of tau_1; confidence: probability in [0, 1] that the pixel holds a fluorophore; intensity: the sum of the tap images".into()));
         } else {
             p.push(("units", "measurements: tap images, any scale; cube: the measurements' scale per time bin (bin j covers [j*bin_s, (j+1)*bin_s))".into()));
         }
@@ -133,8 +139,8 @@ impl OnnxMeta {
             }
         };
         let decoder = req("decoder")?;
-        if decoder != "admm-net" && decoder != "unet" {
-            return Err(err("decoder", format!("got {decoder:?}, expected \"admm-net\" or \"unet\"")));
+        if !["admm-net", "unet", "lifetime"].contains(&decoder.as_str()) {
+            return Err(err("decoder", format!("got {decoder:?}, expected \"admm-net\", \"unet\" or \"lifetime\"")));
         }
         let codes = Codes::from_json(&req("codes")?).map_err(|e| err("codes", e))?;
         let sampling: Sampling = serde_json::from_str(&req("sampling")?).map_err(|e| err("sampling", e.to_string()))?;

@@ -26,7 +26,7 @@ use std::path::Path;
 
 use tcsense_models::runs::{LoadedRun, TrainedNet};
 use tcsense_models::admm::{Stage, DELAY_DILATIONS};
-use tcsense_models::{AdmmNet, Prior, Unet};
+use tcsense_models::{AdmmNet, LifetimeNet, Prior, Unet};
 
 use crate::{InferError, Result};
 use graph::{Attr, Dim, Graph};
@@ -68,6 +68,13 @@ pub fn export(run: &LoadedRun, opts: ExportOptions) -> Result<Vec<u8>> {
             let cube = admm_net(&mut g, net, &sensor, &y)?;
             g.output(&cube, "cube", &with_c(t));
             format!("tcsense ADMM-Net ({} stages): measurements [B, M, H, W] -> cube [B, T, H, W]", net.stages().len())
+        }
+        TrainedNet::Lifetime(net) => {
+            let (lifetime, conf, intensity) = lifetime(&mut g, net, &sensor, &y)?;
+            g.output(&lifetime, "lifetime", &with_c(4));
+            g.output(&conf, "confidence", &with_c(1));
+            g.output(&intensity, "intensity", &with_c(1));
+            format!("tcsense lifetime decoder ({} harmonics, {} levels): measurements [B, M, H, W] -> lifetime (s) [B, 4, H, W], confidence, intensity [B, 1, H, W]", net.harmonics(), net.down().len())
         }
         TrainedNet::Unet(net) => {
             let (depth, conf) = unet(&mut g, net, &sensor, &y)?;
@@ -223,6 +230,120 @@ fn admm_net(g: &mut Graph, net: &AdmmNet, sensor: &SensorGraph, y: &str) -> Resu
 
 /// Aᵀ + U-Net ([`tcsense_models::unet`]) on `y [B, M, H, W]` → (depth (m), confidence), each
 /// `[B, K, H, W]`; `H`, `W` multiples of the stride.
+/// The encoder–decoder of a U-Net ([`tcsense_models::unet`]) on frames that are multiples of
+/// its stride.
+///
+/// # Shapes
+/// - `x`: `[B, C, H, W]` → `[B, w₀, H, W]`
+fn unet_trunk(g: &mut Graph, down: &[tcsense_models::unet::Block], up: &[tcsense_models::unet::Block], x: &str) -> Result<String> {
+    let levels = down.len();
+    let block = |g: &mut Graph, b: &tcsense_models::unet::Block, x: &str| {
+        let [c1, c2] = b.convs();
+        let h = conv(g, c1, x)?;
+        let h = relu(g, &h);
+        let h = conv(g, c2, &h)?;
+        Ok::<String, InferError>(relu(g, &h))
+    };
+    let mut z = x.to_string();
+    let mut skips = Vec::with_capacity(levels);
+    for (l, b) in down.iter().enumerate() {
+        z = block(g, b, &z)?;
+        if l + 1 < levels {
+            skips.push(z.clone());
+            z = g.node("MaxPool", &[&z], &[Attr::Ints("kernel_shape", &[2, 2]), Attr::Ints("strides", &[2, 2])]);
+        }
+    }
+    let scales = g.weight("up_scales", &[4], &[1.0, 1.0, 2.0, 2.0]);
+    for (b, skip) in up.iter().zip(skips).rev() {
+        let up = g.node(
+            "Resize",
+            &[&z, "", &scales],
+            &[Attr::Str("mode", "nearest"), Attr::Str("coordinate_transformation_mode", "asymmetric"), Attr::Str("nearest_mode", "floor")],
+        );
+        let cat = g.node("Concat", &[&up, &skip], &[Attr::Int("axis", 1)]);
+        z = block(g, b, &cat)?;
+    }
+    Ok(z)
+}
+
+/// Channels `[start, start + len)` of `x` (axis 1).
+fn channels(g: &mut Graph, x: &str, start: usize, len: usize) -> String {
+    let (s, e, ax) = (g.ints("starts", &[start as i64]), g.ints("ends", &[(start + len) as i64]), g.ints("axes", &[1]));
+    g.op("Slice", &[x, &s, &e, &ax])
+}
+
+/// The lifetime decoder ([`tcsense_models::lifetime`]): harmonics of `Aᵀy` folded into one
+/// matrix per subpixel, turned to the frame's delay reference, normalised, the U-Net, and the
+/// heads; lifetimes in seconds.
+///
+/// # Shapes
+/// - `y`: `[B, M, H, W]` → (`lifetime [B, 4, H, W]`, `confidence [B, 1, H, W]`, `intensity [B, 1, H, W]`)
+fn lifetime(g: &mut Graph, net: &LifetimeNet, sensor: &SensorGraph, y: &str) -> Result<(String, String, String)> {
+    let (k, t) = (net.harmonics(), net.bins());
+    let spec = sensor.adjoint_then(g, y, &tcsense_models::lifetime::dft_basis(k, t), 2 * k + 1); // [B, 2K+1, H, W]
+    // the delay reference e^{iφ} from the frame's summed first harmonic
+    let axes23 = g.ints("axes23", &[2, 3]);
+    let total = g.node("ReduceSum", &[&spec, &axes23], &[Attr::Int("keepdims", 1)]); // [B, 2K+1, 1, 1]
+    let (re1, im1) = (channels(g, &total, 1, 1), channels(g, &total, k + 1, 1));
+    let (re2, im2) = (g.op("Mul", &[&re1, &re1]), g.op("Mul", &[&im1, &im1]));
+    let r = g.op("Add", &[&re2, &im2]);
+    let r = g.op("Sqrt", &[&r]);
+    let floor = g.scalar("ref_floor", 1e-20);
+    let r = g.op("Add", &[&r, &floor]);
+    let (c1, s1) = (g.op("Div", &[&re1, &r]), g.op("Div", &[&im1, &r]));
+    let (mut cs, mut ss) = (vec![c1.clone()], vec![s1.clone()]);
+    for j in 1..k {
+        let (c, s) = (cs[j - 1].clone(), ss[j - 1].clone());
+        let (a, b) = (g.op("Mul", &[&c, &c1]), g.op("Mul", &[&s, &s1]));
+        let (e, f) = (g.op("Mul", &[&s, &c1]), g.op("Mul", &[&c, &s1]));
+        cs.push(g.op("Sub", &[&a, &b]));
+        ss.push(g.op("Add", &[&e, &f]));
+    }
+    let cs_refs: Vec<&str> = cs.iter().map(String::as_str).collect();
+    let ss_refs: Vec<&str> = ss.iter().map(String::as_str).collect();
+    let c = g.node("Concat", &cs_refs, &[Attr::Int("axis", 1)]); // [B, K, 1, 1]
+    let s = g.node("Concat", &ss_refs, &[Attr::Int("axis", 1)]);
+    let (dc, re, im) = (channels(g, &spec, 0, 1), channels(g, &spec, 1, k), channels(g, &spec, k + 1, k));
+    let (a, b) = (g.op("Mul", &[&re, &c]), g.op("Mul", &[&im, &s]));
+    let re_r = g.op("Add", &[&a, &b]);
+    let (a, b) = (g.op("Mul", &[&im, &c]), g.op("Mul", &[&re, &s]));
+    let im_r = g.op("Sub", &[&a, &b]);
+    let z = g.node("Concat", &[&dc, &re_r, &im_r], &[Attr::Int("axis", 1)]);
+    // per-pixel normalisation and the relative brightness
+    let norm = g.node("ReduceL2", &[&z], &[Attr::Ints("axes", &[1]), Attr::Int("keepdims", 1)]);
+    let mean = g.node("ReduceMean", &[&norm], &[Attr::Ints("axes", &[2, 3]), Attr::Int("keepdims", 1)]);
+    let tiny = g.scalar("tiny", 1e-30);
+    let mt = g.op("Add", &[&mean, &tiny]);
+    let rel = g.op("Div", &[&norm, &mt]);
+    let nf = g.scalar("norm_floor", tcsense_models::unet::NORM_FLOOR as f32);
+    let mf = g.op("Mul", &[&mean, &nf]);
+    let den = g.op("Add", &[&norm, &mf]);
+    let den = g.op("Add", &[&den, &tiny]);
+    let zn = g.op("Div", &[&z, &den]);
+    let x = g.node("Concat", &[&zn, &rel], &[Attr::Int("axis", 1)]);
+    let trunk = unet_trunk(g, net.down(), net.up(), &x)?;
+    let o = conv(g, net.head(), &trunk)?; // [B, 5, H, W]
+    let split5 = g.ints("split5", &[1, 1, 1, 1, 1]);
+    let parts = g.node_multi("Split", &[&o, &split5], &[Attr::Int("axis", 1)], 5);
+    let [lo, hi] = net.tau_range_ns();
+    let (lo_n, span_n) = (g.scalar("log_tau_lo", (lo * 1e-9).ln() as f32), g.scalar("log_tau_span", (hi / lo).ln() as f32));
+    let tau = |g: &mut Graph, o: &str| {
+        let sg = g.op("Sigmoid", &[o]);
+        let a = g.op("Mul", &[&sg, &span_n]);
+        let a = g.op("Add", &[&a, &lo_n]);
+        g.op("Exp", &[&a])
+    };
+    let tm = tau(g, &parts[0]);
+    let (ta, tb) = (tau(g, &parts[1]), tau(g, &parts[2]));
+    let (t1, t2) = (g.op("Min", &[&ta, &tb]), g.op("Max", &[&ta, &tb]));
+    let alpha = g.op("Sigmoid", &[&parts[3]]);
+    let conf = g.op("Sigmoid", &[&parts[4]]);
+    let lifetime = g.node("Concat", &[&tm, &t1, &t2, &alpha], &[Attr::Int("axis", 1)]);
+    let axis1 = g.ints("axis1", &[1]);
+    let intensity = g.node("ReduceSum", &[y, &axis1], &[Attr::Int("keepdims", 1)]);
+    Ok((lifetime, conf, intensity))
+}
+
 fn unet(g: &mut Graph, net: &Unet, sensor: &SensorGraph, y: &str) -> Result<(String, String)> {
     let x0 = sensor.adjoint(g, y);
     // per-pixel normalisation: x₀ / (‖x₀‖₂ + 10⁻³·mean‖x₀‖₂ + 10⁻³⁰)
@@ -234,32 +355,7 @@ fn unet(g: &mut Graph, net: &Unet, sensor: &SensorGraph, y: &str) -> Result<(Str
     let tiny = g.scalar("tiny", 1e-30);
     let den = g.node("Add", &[&den, &tiny], &[]);
     let mut z = g.node("Div", &[&x0, &den], &[]);
-    let levels = net.levels();
-    let block = |g: &mut Graph, b: &tcsense_models::unet::Block, x: &str| {
-        let [c1, c2] = b.convs();
-        let h = conv(g, c1, x)?;
-        let h = relu(g, &h);
-        let h = conv(g, c2, &h)?;
-        Ok::<String, InferError>(relu(g, &h))
-    };
-    let mut skips = Vec::with_capacity(levels);
-    for (l, b) in net.down().iter().enumerate() {
-        z = block(g, b, &z)?;
-        if l + 1 < levels {
-            skips.push(z.clone());
-            z = g.node("MaxPool", &[&z], &[Attr::Ints("kernel_shape", &[2, 2]), Attr::Ints("strides", &[2, 2])]);
-        }
-    }
-    let scales = g.weight("up_scales", &[4], &[1.0, 1.0, 2.0, 2.0]);
-    for (b, skip) in net.up().iter().zip(skips).rev() {
-        let up = g.node(
-            "Resize",
-            &[&z, "", &scales],
-            &[Attr::Str("mode", "nearest"), Attr::Str("coordinate_transformation_mode", "asymmetric"), Attr::Str("nearest_mode", "floor")],
-        );
-        let cat = g.node("Concat", &[&up, &skip], &[Attr::Int("axis", 1)]);
-        z = block(g, b, &cat)?;
-    }
+    z = unet_trunk(g, net.down(), net.up(), &z)?;
     let out = conv(g, net.head(), &z)?; // [B, 2K, H, W]
     let k = net.returns() as i64;
     let split = g.ints("split", &[k, k]);

@@ -169,6 +169,35 @@ impl SensorGraph {
         self.from_blocks(g, &blocks, &w)
     }
 
+    /// `D Aᵀy`: the adjoint followed by a fixed linear map `D [F, T]` of the time axis, folded
+    /// into one `F × M` matrix per subpixel (`D A_nᵀ`), so the `T`-channel cube is never formed.
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]`, `d`: `[F, T]` row-major → `[B, F, H, W]`
+    pub fn adjoint_then(&self, g: &mut Graph, y: &str, d: &[f32], f: usize) -> String {
+        let (n, m, t) = (self.n, self.m, self.t);
+        let mats = match &self.src {
+            Source::Baked { a, .. } => {
+                let mut w = vec![0f64; n * f * m];
+                for k in 0..n {
+                    for r in 0..f {
+                        for c in 0..m {
+                            w[(k * f + r) * m + c] = (0..t).map(|j| d[r * t + j] as f64 * a[(k * m + c) * t + j]).sum();
+                        }
+                    }
+                }
+                Mats::Const(w)
+            }
+            Source::Input { at, .. } => {
+                let dn = g.weight("time_map", &[f, t], d);
+                Mats::Value(g.op("MatMul", &[&dn, at])) // [N, F, M]
+            }
+        };
+        let w = self.back_weight(g, "adjoint_then", mats, f, m);
+        let blocks = self.to_blocks(g, y, m);
+        self.from_blocks(g, &blocks, &w)
+    }
+
     /// Weights of the stages' data-consistency solves: the frame-to-block `A` convolution
     /// (shared) and, per `ρ`, the block-to-frame transposed convolution of `[y ; w]` with
     /// `[A_nᵀ/ρ ; −A_nᵀ(ρI + A_nA_nᵀ)⁻¹/ρ]` (see [`Self::x_update`]).

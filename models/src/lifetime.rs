@@ -1,0 +1,309 @@
+//! The lifetime decoder: tap images straight to fluorescence lifetimes, fit-free (in the manner
+//! of FLI-Net, Smith et al., PNAS 2019, and Net-FLICS, Yao et al., Light Sci. Appl. 2019, on
+//! the compressed measurement `y = A x` of paper eq. (1)).
+//!
+//! ```text
+//! y [B, M, H, W] ──Aᵀ──▶ x₀ [B, T, H, W] ──DFT over t, harmonics 0..K──▶ F [B, 2K+1, H, W]
+//! F_k ← F_k · e^{−ikφ},  e^{iφ} = Σ_pixels F₁ / |Σ_pixels F₁|            (delay reference)
+//! F ÷ (‖F‖₂ per pixel + 10⁻³·mean‖F‖₂), and ‖F‖₂ / mean‖F‖₂ as one more channel
+//! ──▶ U-Net (levels, base width) ──1×1──▶ [B, 5, H, W]
+//! τ_m, τ₁, τ₂ = τ_lo·(τ_hi/τ_lo)^sigmoid(o)  (ns; τ₁ ≤ τ₂),  α₁ = sigmoid(o₃),  confidence logit o₄
+//! ```
+//!
+//! **Why the Fourier harmonics.** A delay of the decay by `d` bins (the instrument's cables and
+//! trigger; the codes loop, so it is a cyclic shift of the cube) multiplies harmonic `k` of
+//! `x₀` by `e^{−2πikd/T}` — the frame's summed first harmonic turns by the same angle, so
+//! `F_k·e^{−ikφ}` does not change: the network's input, and so its output, is exactly the same
+//! for `Aᵀy` and for `Aᵀy` delayed cyclically (tested). The harmonics are a fixed linear
+//! pooling of the time axis (`T = 256` bins to `2K + 1 = 33` channels by default), so the
+//! learned part is a 2-D U-Net on a few channels: cheap enough for the sensor's frame rate.
+//! The per-pixel normalisation makes the output independent of the scale of `y`; the relative
+//! brightness channel tells the network how much light a pixel has (its confidence).
+//!
+//! Outputs: the amplitude-weighted mean lifetime `τ_m = Σ a_i τ_i / Σ a_i` (what a lifetime map
+//! shows), two components `τ₁ ≤ τ₂` with the amplitude fraction `α₁` of `τ₁` (one component:
+//! `τ₁ = τ₂`), and a confidence logit (the pixel holds a fluorophore). The intensity is not
+//! learned: it is the photo-charge the taps collected, `Σ_m y_m` ([`intensity`]).
+
+use burn::config::Config;
+use burn::module::Module;
+use burn::nn::conv::{Conv2d, Conv2dConfig};
+use burn::tensor::activation::sigmoid;
+use burn::tensor::{Device, Tensor, TensorData};
+
+use crate::net::{Network, Prediction};
+use crate::sensor_tensors::SensorTensors;
+use crate::unet::{conv1x1, trunk, trunk_flops, Block, NORM_FLOOR};
+
+/// Channels of the prediction: `τ_m`, `τ₁`, `τ₂` (ns), `α₁`, confidence logit.
+pub const OUTPUTS: usize = 5;
+/// Floor of the delay reference's magnitude (a dark frame has no phase).
+const REF_FLOOR: f32 = 1e-20;
+
+/// Lifetime-decoder hyper-parameters.
+#[derive(Config, Debug, PartialEq)]
+pub struct LifetimeNetConfig {
+    /// Taps `M`.
+    pub taps: usize,
+    /// Bins `T` of `x₀ = Aᵀy`.
+    pub bins: usize,
+    /// Harmonics `K` of the cycle kept (input channels `2K + 2`).
+    #[config(default = 16)]
+    pub harmonics: usize,
+    /// Channels of the U-Net's first level, doubled at every level down.
+    #[config(default = 16)]
+    pub base_width: usize,
+    /// Resolutions (`levels − 1` down-samplings by 2).
+    #[config(default = 3)]
+    pub levels: usize,
+    /// Lifetimes the outputs span, `[τ_lo, τ_hi]` (ns).
+    #[config(default = "[0.05, 25.0]")]
+    pub tau_range_ns: [f64; 2],
+}
+
+/// The network.
+#[derive(Module, Debug)]
+pub struct LifetimeNet {
+    down: Vec<Block>,
+    up: Vec<Block>,
+    head: Conv2d,
+    harmonics: usize,
+    bins: usize,
+    tau_range_ns: [f64; 2],
+}
+
+impl LifetimeNetConfig {
+    /// Channels of level `l`.
+    pub fn width(&self, l: usize) -> usize {
+        self.base_width << l
+    }
+
+    /// Input channels of the U-Net: `2K + 1` harmonics and the relative brightness.
+    pub fn features(&self) -> usize {
+        2 * self.harmonics + 2
+    }
+
+    /// Frames must be multiples of this (the model pads to it internally).
+    pub fn stride(&self) -> usize {
+        1 << self.levels.saturating_sub(1)
+    }
+
+    /// Build the network.
+    pub fn init(&self, device: &Device) -> LifetimeNet {
+        let down = (0..self.levels).map(|l| Block::new(if l == 0 { self.features() } else { self.width(l - 1) }, self.width(l), device)).collect();
+        let up = (0..self.levels.saturating_sub(1)).map(|l| Block::new(self.width(l + 1) + self.width(l), self.width(l), device)).collect();
+        let head = Conv2dConfig::new([self.width(0), OUTPUTS], [1, 1]).init(device);
+        LifetimeNet { down, up, head, harmonics: self.harmonics, bins: self.bins, tau_range_ns: self.tau_range_ns }
+    }
+
+    /// Multiply-adds ×2 per frame of `h × w`: `Aᵀ` and the harmonics folded into one
+    /// `(2K+1) × M` matrix per pixel (as exported), the U-Net and the head.
+    pub fn flops(&self, h: usize, w: usize) -> f64 {
+        let px = (h * w) as f64;
+        2.0 * px * ((2 * self.harmonics + 1) * self.taps) as f64 + trunk_flops(self.features(), self.levels, |l| self.width(l), h, w) + 2.0 * px * (self.width(0) * OUTPUTS) as f64
+    }
+}
+
+/// The DFT basis `[2K + 1, T]`: row 0 the sum, rows `1..=K` `cos(2πkt/T)`, rows `K+1..=2K`
+/// `−sin(2πkt/T)` (so row pairs are the real and imaginary parts of `Σ_t x(t)e^{−2πikt/T}`).
+pub fn dft_basis(harmonics: usize, bins: usize) -> Vec<f32> {
+    let f = 2 * harmonics + 1;
+    let mut b = vec![0f32; f * bins];
+    for t in 0..bins {
+        b[t] = 1.0;
+        for k in 1..=harmonics {
+            let a = 2.0 * std::f64::consts::PI * (k * t % bins) as f64 / bins as f64;
+            b[k * bins + t] = a.cos() as f32;
+            b[(harmonics + k) * bins + t] = (-a.sin()) as f32;
+        }
+    }
+    b
+}
+
+/// The intensity of each pixel: the photo-charge of all its taps, `Σ_m y_m` (every bin of the
+/// cycle goes to one tap, so it is the decay's integral over the cycle).
+///
+/// # Shapes
+/// - `y`: `[B, M, H, W]` → `[B, 1, H, W]`
+pub fn intensity(y: Tensor<4>) -> Tensor<4> {
+    y.sum_dim(1)
+}
+
+impl LifetimeNet {
+    /// The delay-referenced, normalised harmonics of `x₀` and the relative brightness.
+    ///
+    /// # Shapes
+    /// - `x0`: `[B, T, H, W]` → `[B, 2K + 2, H, W]`
+    pub fn features(&self, x0: Tensor<4>) -> Tensor<4> {
+        let [b, t, h, w] = x0.dims();
+        let k = self.harmonics;
+        let f = 2 * k + 1;
+        let device = x0.device();
+        let basis = Tensor::<2>::from_data(TensorData::new(dft_basis(k, t), [f, t]), &device);
+        let spec = basis.unsqueeze::<3>().expand([b, f, t]).matmul(x0.reshape([b, t, h * w])).reshape([b, f, h, w]); // [B, 2K+1, H, W]
+        Self::reference(spec, k)
+    }
+
+    /// Turn harmonic `k` by `e^{−ikφ}` (`φ` the phase of the frame's summed first harmonic),
+    /// normalise each pixel and append its relative brightness.
+    ///
+    /// # Shapes
+    /// - `spec`: `[B, 2K + 1, H, W]` (sum, real parts, imaginary parts) → `[B, 2K + 2, H, W]`
+    pub fn reference(spec: Tensor<4>, k: usize) -> Tensor<4> {
+        let total = spec.clone().sum_dim(2).sum_dim(3); // [B, 2K+1, 1, 1]
+        let (re1, im1) = (total.clone().narrow(1, 1, 1), total.narrow(1, k + 1, 1)); // [B, 1, 1, 1]
+        let r = (re1.clone().powi_scalar(2) + im1.clone().powi_scalar(2)).sqrt().add_scalar(REF_FLOOR);
+        let (c1, s1) = (re1 / r.clone(), im1 / r);
+        // cos kφ, sin kφ by the angle-addition recursion
+        let (mut cs, mut ss) = (vec![c1.clone()], vec![s1.clone()]);
+        for j in 1..k {
+            let (c, s) = (cs[j - 1].clone(), ss[j - 1].clone());
+            cs.push(c.clone() * c1.clone() - s.clone() * s1.clone());
+            ss.push(s * c1.clone() + c * s1.clone());
+        }
+        let (c, s) = (Tensor::cat(cs, 1), Tensor::cat(ss, 1)); // [B, K, 1, 1]
+        let dc = spec.clone().narrow(1, 0, 1);
+        let (re, im) = (spec.clone().narrow(1, 1, k), spec.narrow(1, k + 1, k)); // [B, K, H, W]
+        let re_r = re.clone() * c.clone() + im.clone() * s.clone();
+        let im_r = im * c - re * s;
+        let z = Tensor::cat(vec![dc, re_r, im_r], 1); // [B, 2K+1, H, W]
+        let norm = z.clone().powi_scalar(2).sum_dim(1).sqrt(); // [B, 1, H, W]
+        let mean = norm.clone().mean_dim(2).mean_dim(3); // [B, 1, 1, 1]
+        let rel = norm.clone() / (mean.clone() + 1e-30);
+        Tensor::cat(vec![z / (norm + mean * NORM_FLOOR + 1e-30), rel], 1)
+    }
+
+    /// The prediction from `x₀ = Aᵀy` (what the delay invariance is a property of).
+    ///
+    /// # Shapes
+    /// - `x0`: `[B, T, H, W]` → `[B, 5, H, W]`: `τ_m`, `τ₁`, `τ₂` (ns), `α₁`, confidence logit
+    pub fn from_adjoint(&self, x0: Tensor<4>) -> Tensor<4> {
+        let o = conv1x1(&self.head, trunk(&self.down, &self.up, self.features(x0))); // [B, 5, H, W]
+        let [lo, hi] = self.tau_range_ns;
+        let (lo, span) = (lo.ln(), (hi / lo).ln());
+        let tau = |o: Tensor<4>| (sigmoid(o) * span).add_scalar(lo).exp();
+        let (ta, tb) = (tau(o.clone().narrow(1, 1, 1)), tau(o.clone().narrow(1, 2, 1)));
+        Tensor::cat(vec![tau(o.clone().narrow(1, 0, 1)), ta.clone().min_pair(tb.clone()), ta.max_pair(tb), sigmoid(o.clone().narrow(1, 3, 1)), o.narrow(1, 4, 1)], 1)
+    }
+
+    /// Encoder blocks, finest level first (for exporters).
+    pub fn down(&self) -> &[Block] {
+        &self.down
+    }
+
+    /// Decoder blocks: `up()[l]` runs at level `l` on `[up-sampled level l+1, skip l]`.
+    pub fn up(&self) -> &[Block] {
+        &self.up
+    }
+
+    /// The 1×1 head to the five raw outputs.
+    pub fn head(&self) -> &Conv2d {
+        &self.head
+    }
+
+    /// Bins `T` of `x₀`.
+    pub fn bins(&self) -> usize {
+        self.bins
+    }
+
+    /// Harmonics `K`.
+    pub fn harmonics(&self) -> usize {
+        self.harmonics
+    }
+
+    /// `[τ_lo, τ_hi]` (ns).
+    pub fn tau_range_ns(&self) -> [f64; 2] {
+        self.tau_range_ns
+    }
+}
+
+impl Network for LifetimeNet {
+    const PREDICTION: Prediction = Prediction::Lifetime;
+
+    /// `[B, 5, H, W]`: `τ_m`, `τ₁`, `τ₂` (ns), `α₁`, confidence logit.
+    fn predict(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
+        self.from_adjoint(sensor.adjoint(y))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::tensor::Distribution;
+    use tcsense_sensor::codes::{CodeShape, Constraints};
+    use tcsense_sensor::generate::random_codes;
+    use tcsense_sensor::{MeasurementMatrix, SensorParams};
+
+    fn sensor(t_len: usize, h: usize, w: usize, device: &Device) -> SensorTensors {
+        let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: t_len, drain: false };
+        let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 1).unwrap();
+        let a = MeasurementMatrix::synthesize(&codes, &SensorParams::from_codes(&codes).validate().unwrap()).unwrap();
+        SensorTensors::new(&a, h, w, device).unwrap()
+    }
+
+    fn roll_t(x: &Tensor<4>, d: usize) -> Tensor<4> {
+        let t = x.dims()[1];
+        Tensor::cat(vec![x.clone().narrow(1, t - d, d), x.clone().narrow(1, 0, t - d)], 1)
+    }
+
+    #[test]
+    fn same_lifetimes_for_a_cyclically_delayed_input() {
+        let device = Device::flex();
+        let cfg = LifetimeNetConfig::new(4, 16).with_harmonics(5).with_base_width(4).with_levels(2);
+        device.seed(3);
+        let net = cfg.init(&device);
+        let (h, w) = (8, 8);
+        let st = sensor(16, h, w, &device);
+        let y = Tensor::<4>::random([2, 4, h, w], Distribution::Uniform(0.0, 1.0), &device);
+        let x0 = st.adjoint(y.clone());
+        let base = net.from_adjoint(x0.clone());
+        assert_eq!(base.dims(), [2, OUTPUTS, h, w]);
+        let v: Vec<f32> = base.clone().into_data().try_into_vec().unwrap();
+        for (i, px) in v.chunks(h * w).enumerate() {
+            let ch = i % OUTPUTS;
+            if ch < 3 {
+                assert!(px.iter().all(|&t| (0.05..=25.0).contains(&t)), "lifetimes within the range (ns)");
+            }
+            if ch == 3 {
+                assert!(px.iter().all(|&a| (0.0..=1.0).contains(&a)));
+            }
+        }
+        for c in 0..h * w * 2 {
+            let (b, p) = (c / (h * w), c % (h * w));
+            assert!(v[(b * OUTPUTS + 1) * h * w + p] <= v[(b * OUTPUTS + 2) * h * w + p], "τ₁ ≤ τ₂");
+        }
+        for d in [1, 5, 11] {
+            let shifted = net.from_adjoint(roll_t(&x0, d));
+            let diff = (shifted.clone() - base.clone()).abs().max().into_scalar::<f32>();
+            assert!(diff < 2e-4, "delay {d}: outputs move by {diff}");
+        }
+        // the prediction does depend on the waveform's shape (a reversed input differs)
+        let rev = Tensor::cat((0..16).rev().map(|j| x0.clone().narrow(1, j, 1)).collect(), 1);
+        let diff = (net.from_adjoint(rev) - base.clone()).abs().max().into_scalar::<f32>();
+        assert!(diff > 1e-3, "time reversal changes the outputs ({diff})");
+        // y and 10·y give the same lifetimes
+        let d10 = (net.predict(y.clone() * 10.0, &st) - net.predict(y, &st)).abs().max().into_scalar::<f32>();
+        assert!(d10 < 1e-4, "scale changes the output by {d10}");
+    }
+
+    #[test]
+    fn harmonics_are_the_dft_and_intensity_sums_the_taps() {
+        let device = Device::flex();
+        // one pixel, T = 8, x(t) = cos(2π·2t/8): harmonic 2 has real part T/2, the rest 0
+        let t = 8;
+        let b = dft_basis(3, t);
+        let x: Vec<f32> = (0..t).map(|j| (2.0 * std::f64::consts::PI * 2.0 * j as f64 / t as f64).cos() as f32).collect();
+        let f: Vec<f32> = (0..7).map(|r| (0..t).map(|j| b[r * t + j] * x[j]).sum()).collect();
+        for (r, v) in f.iter().enumerate() {
+            let want = if r == 2 { 4.0 } else { 0.0 };
+            assert!((v - want).abs() < 1e-5, "row {r}: {v}");
+        }
+        let y = Tensor::<4>::from_floats([[[[1.0, 2.0]], [[3.0, 4.0]]]], &device); // [1, 2, 1, 2]
+        let i: Vec<f32> = intensity(y).into_data().try_into_vec().unwrap();
+        assert_eq!(i, vec![4.0, 6.0]);
+        // FLOPs at 8×8, K = 2 (6 features), widths 4, 8: folded Aᵀ + DFT, trunk, head
+        let cfg = LifetimeNetConfig::new(4, 16).with_harmonics(2).with_base_width(4).with_levels(2);
+        let want = 2.0 * 64.0 * 20.0 + 18.0 * 64.0 * (6.0 * 4.0 + 16.0) + 18.0 * 64.0 * (12.0 * 4.0 + 16.0) + 18.0 * 16.0 * (4.0 * 8.0 + 64.0) + 2.0 * 64.0 * 20.0;
+        assert_eq!(cfg.flops(8, 8), want);
+    }
+}
