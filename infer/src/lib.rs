@@ -23,6 +23,7 @@
 pub mod error;
 pub mod figures;
 pub mod eval;
+pub mod lifetime;
 pub mod metrics;
 pub mod onnx;
 pub mod products;
