@@ -127,6 +127,30 @@ fn train_reconstruct_and_eval_the_unet() {
 }
 
 #[test]
+fn train_and_eval_the_lifetime_decoder() {
+    let d = tempdir();
+    let d = d.path();
+    tiny_lidar_and_codes(d);
+    ok(d, &["dataset", "flim", "--count", "6", "--size", "8x8", "--length", "8", "--heterodyne", "2", "-o", "f"]);
+    let out = ok(d, &["train", "lifetime", "--dataset", "f", "--codes", "codes.json", "--harmonics", "3", "--base-width", "4", "--levels", "2", "--epochs", "2", "--seed", "3", "-o", "lt"]);
+    assert!(out.contains("lifetime decoder") && out.contains("lifetime MAE"), "{out}");
+    let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("lt/config.json")).unwrap()).unwrap();
+    assert_eq!((cfg["decoder"].as_str(), cfg["model"]["harmonics"].as_u64()), (Some("lifetime"), Some(3)));
+    let out = ok(d, &["eval", "--dataset", "f", "--codes", "codes.json", "--heterodyne", "2", "--decoder", "tval3", "--decoder", "lifetime:lt", "--maxit", "10", "--noise", "-o", "rep.json"]);
+    assert!(out.contains("lifetime:lt") && out.contains("within 0.2 ns"), "{out}");
+    let rep: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("rep.json")).unwrap()).unwrap();
+    for r in rep.as_array().unwrap() {
+        let (share, cover) = (r["lifetime_within_02ns"].as_f64().unwrap(), r["lifetime_coverage"].as_f64().unwrap());
+        assert!((0.0..=1.0).contains(&share) && share <= cover && cover <= 1.0, "{r}");
+    }
+    // bad input: a LiDAR dataset has no lifetimes; a run of the other kind; a lifetime decoder on LiDAR
+    fails(d, &["train", "lifetime", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "-o", "l2"], &["ds", "no lifetime field"]);
+    fails(d, &["train", "unet", "--resume", "-o", "lt"], &["lifetime run", "tcsense train lifetime"]);
+    fails(d, &["eval", "--dataset", "f", "--codes", "codes.json", "--heterodyne", "2", "--decoder", "unet:lt", "-o", "r2.json"], &["a lifetime run"]);
+    fails(d, &["train", "lifetime", "--dataset", "f", "--codes", "codes.json", "--harmonics", "99", "-o", "l3"], &["harmonics"]);
+}
+
+#[test]
 fn broken_run_directories_exit_2_naming_the_file() {
     let d = tempdir();
     let d = d.path();

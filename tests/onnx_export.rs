@@ -11,7 +11,7 @@ use tcsense_infer::runtime::OnnxModel;
 use tcsense_infer::InferError;
 use tcsense_models::net::{to_array, to_tensor, Network};
 use tcsense_models::runs::{self, LoadedRun, ModelConfig, RunSpec, TrainedNet};
-use tcsense_models::{AdmmNetConfig, Device, Prior, SensorTensors, UnetConfig};
+use tcsense_models::{AdmmNetConfig, Device, LifetimeNetConfig, Prior, SensorTensors, UnetConfig};
 use tcsense_sensor::codes::{CodeShape, Constraints};
 use tcsense_sensor::generate::random_codes;
 use tcsense_sensor::npy::read_npy;
@@ -33,6 +33,7 @@ fn random_run(model: impl Fn(usize, usize) -> ModelConfig, block: (usize, usize)
     let net = match &spec.model {
         ModelConfig::AdmmNet(c) => TrainedNet::AdmmNet(c.init(&device)),
         ModelConfig::Unet(c) => TrainedNet::Unet(c.init(&device)),
+        ModelConfig::Lifetime(c) => TrainedNet::Lifetime(c.init(&device)),
     };
     LoadedRun { dir: PathBuf::from("."), spec, codes, sensor, net }
 }
@@ -48,6 +49,14 @@ fn burn_outputs(run: &LoadedRun, y: &Array4<f32>) -> Vec<Array4<f32>> {
         TrainedNet::Unet(net) => {
             let (depth, conf) = net.forward(yt, &st);
             vec![to_array(depth).unwrap(), to_array(conf).unwrap()]
+        }
+        TrainedNet::Lifetime(net) => {
+            // burn gives ns and the confidence logit; the graph seconds and the probability
+            let out = to_array(net.predict(yt.clone(), &st)).unwrap();
+            let mut l = out.slice(ndarray::s![.., ..4, .., ..]).to_owned();
+            l.slice_mut(ndarray::s![.., ..3, .., ..]).mapv_inplace(|t| t * 1e-9);
+            let conf = out.slice(ndarray::s![.., 4..5, .., ..]).mapv(|v| 1.0 / (1.0 + (-v).exp()));
+            vec![l, conf, to_array(tcsense_models::lifetime::intensity(yt)).unwrap()]
         }
     }
 }
@@ -123,6 +132,25 @@ fn unet_in_onnx_runtime_equals_burn() {
             }
             // depth in metres within the range, confidence a probability
             assert!(got[0].iter().all(|v| (0.0..=12.0).contains(v)) && got[1].iter().all(|v| (0.0..=1.0).contains(v)));
+        }
+    }
+}
+
+#[test]
+fn lifetime_decoder_in_onnx_runtime_equals_burn() {
+    let dir = tempfile::tempdir().unwrap();
+    let net = |m: usize, t: usize| ModelConfig::Lifetime(LifetimeNetConfig::new(m, t).with_harmonics(6).with_base_width(4).with_levels(2));
+    let run = random_run(net, (2, 2), Sampling::Heterodyne(4), Irf::Ideal, 6);
+    for (h, w) in [(8, 8), (12, 16)] {
+        let y = random_y(4, h, w, 10);
+        let want = burn_outputs(&run, &y);
+        for matrix_input in [false, true] {
+            let got = ort_outputs(&run, ExportOptions { matrix_input }, &y, dir.path(), "lifetime.onnx");
+            for (k, name) in ["lifetime", "confidence", "intensity"].iter().enumerate() {
+                let d = rel_diff(&got[k], &want[k]);
+                assert!(d <= 1e-4, "{h}x{w}, matrix input {matrix_input}, {name}: ort differs from burn by {d:e}");
+            }
+            assert!(got[0].iter().all(|v| v.is_finite()) && got[1].iter().all(|v| (0.0..=1.0).contains(v)));
         }
     }
 }

@@ -15,8 +15,12 @@ use tcsense_sensor::measure::measure_batch;
 use tcsense_sensor::noise::derive_seed;
 use tcsense_sensor::{Codes, MeasurementMatrix, NoiseParams};
 
-use crate::metrics::{depth_errors, lifetime_mae, mse, psnr, DepthErrors};
-use crate::products::{depth_map, lifetime_map, PeakOptions};
+use crate::metrics::{depth_errors, mse, psnr, DepthErrors};
+use crate::products::{depth_map, PeakOptions};
+
+/// A pixel holds a fluorophore where its true intensity is at least this fraction of the
+/// brightest pixel's (the lifetime decoder's training label uses the same rule).
+pub const SIGNAL_REL: f32 = 0.02;
 use crate::{InferError, Result};
 
 /// Accumulates metrics over items.
@@ -28,13 +32,21 @@ pub struct EvalRow {
     pub psnr_db: f64,
     /// Per bounce (LiDAR).
     pub depth: Vec<DepthErrors>,
-    /// Mean absolute lifetime error (s), FLIm.
+    /// Mean absolute error of the mean lifetime `τ_m` (s), FLIm: over the pixels that hold a
+    /// fluorophore ([`SIGNAL_REL`] of the brightest or more) and got a lifetime.
     pub lifetime_mae_s: Option<f64>,
+    /// The same weighted by the true intensity.
+    pub lifetime_mae_weighted_s: Option<f64>,
+    /// Share of the fluorophore pixels whose lifetime is within 0.2 ns (no lifetime: a miss).
+    pub lifetime_within_02ns: Option<f64>,
+    /// Share of the fluorophore pixels that got a lifetime.
+    pub lifetime_coverage: Option<f64>,
     pub seconds_per_frame: f64,
     #[serde(skip)]
     depth_sums: Vec<(usize, usize, f64, f64)>,
+    /// Σ|err|, Σ I·|err|, Σ I (over estimated pixels), pixels estimated, within 0.2 ns, truth pixels.
     #[serde(skip)]
-    lt_sum: (f64, usize),
+    lt_sum: (f64, f64, f64, usize, usize, usize),
     #[serde(skip)]
     time_sum: f64,
 }
@@ -50,6 +62,24 @@ impl EvalRow {
     /// estimated it, else from peaks of `x̂`; MSE, PSNR and lifetimes need `x̂` (NaN without).
     #[allow(clippy::too_many_arguments)]
     pub fn add(&mut self, xh: Option<&ArrayView3<'_, f32>>, x: &ArrayView3<'_, f32>, depth_est: Option<&ArrayView3<'_, f32>>, depth: Option<&ArrayView3<'_, f32>>, lifetime: Option<&ArrayView2<'_, f32>>, bin_width_s: f64, seconds: f64) {
+        self.add_with(xh, x, depth_est, depth, lifetime.map(|l| (l, None, None)), bin_width_s, seconds)
+    }
+
+    /// [`Self::add`] with the lifetime truth as `(τ_m [H, W], intensity [H, W], estimate)`: a
+    /// lifetime decoder's own `τ_m` estimate `[H, W]` (s), else the fit of `x̂`
+    /// ([`crate::lifetime::fit_cube`], IRF fitted); without the intensity every pixel with a
+    /// true lifetime counts.
+    #[allow(clippy::too_many_arguments, clippy::type_complexity)]
+    pub fn add_with(
+        &mut self,
+        xh: Option<&ArrayView3<'_, f32>>,
+        x: &ArrayView3<'_, f32>,
+        depth_est: Option<&ArrayView3<'_, f32>>,
+        depth: Option<&ArrayView3<'_, f32>>,
+        lifetime: Option<(&ArrayView2<'_, f32>, Option<&ArrayView2<'_, f32>>, Option<&ArrayView2<'_, f32>>)>,
+        bin_width_s: f64,
+        seconds: f64,
+    ) {
         let n = self.items as f64;
         let (m, p) = match xh {
             Some(xh) => {
@@ -85,14 +115,42 @@ impl EvalRow {
                 .map(|&(t, d, se, ae)| DepthErrors { truth: t, detected: d, rmse_m: if d > 0 { (se / d as f64).sqrt() } else { f64::NAN }, mae_m: if d > 0 { ae / d as f64 } else { f64::NAN } })
                 .collect();
         }
-        if let (Some(lt), Some(xh)) = (lifetime, xh) {
-            let (tau, _) = lifetime_map(xh, bin_width_s, 0.05, 0.02);
-            let t = lt.as_standard_layout();
-            let (mae, k) = lifetime_mae(tau.as_slice().unwrap_or(&[]), t.as_slice().unwrap_or(&[]));
-            if k > 0 {
-                self.lt_sum.0 += mae * k as f64;
-                self.lt_sum.1 += k;
-                self.lifetime_mae_s = Some(self.lt_sum.0 / self.lt_sum.1 as f64);
+        if let Some((truth, intensity, est)) = lifetime {
+            let fitted;
+            let est = match (est, xh) {
+                (Some(e), _) => Some(e.to_owned()),
+                (None, Some(xh)) => {
+                    fitted = crate::lifetime::fit_cube(xh, bin_width_s, &crate::lifetime::FitOptions::default());
+                    Some(fitted.lifetimes.index_axis(Axis(0), 0).to_owned())
+                }
+                (None, None) => None,
+            };
+            if let Some(est) = est {
+                let peak = intensity.map_or(0.0, |i| i.iter().fold(0f32, |m, &v| m.max(v)));
+                for ((idx, &t), &e) in truth.indexed_iter().zip(est.iter()) {
+                    let inten = intensity.map_or(1.0, |i| i[idx]);
+                    if !t.is_finite() || (intensity.is_some() && inten < SIGNAL_REL * peak) {
+                        continue;
+                    }
+                    self.lt_sum.5 += 1;
+                    if e.is_finite() {
+                        let err = (e as f64 - t as f64).abs();
+                        self.lt_sum.0 += err;
+                        self.lt_sum.1 += inten as f64 * err;
+                        self.lt_sum.2 += inten as f64;
+                        self.lt_sum.3 += 1;
+                        if err <= 0.2e-9 {
+                            self.lt_sum.4 += 1;
+                        }
+                    }
+                }
+                let (sa, sw, si, k, within, all) = self.lt_sum;
+                if all > 0 {
+                    self.lifetime_mae_s = (k > 0).then(|| sa / k as f64);
+                    self.lifetime_mae_weighted_s = (si > 0.0).then(|| sw / si);
+                    self.lifetime_within_02ns = Some(within as f64 / all as f64);
+                    self.lifetime_coverage = Some(k as f64 / all as f64);
+                }
             }
         }
     }
@@ -106,16 +164,33 @@ impl EvalRow {
         if let Some(l) = self.lifetime_mae_s {
             s.push_str(&format!("  lifetime MAE {:.3} ns", l * 1e9));
         }
+        if let (Some(w), Some(f), Some(c)) = (self.lifetime_mae_weighted_s, self.lifetime_within_02ns, self.lifetime_coverage) {
+            s.push_str(&format!(" (intensity-weighted {:.3} ns, {:.1} % within 0.2 ns, {:.1} % with a lifetime)", w * 1e9, f * 100.0, c * 100.0));
+        }
         s.push_str(&format!("  {:.1} ms/frame", self.seconds_per_frame * 1e3));
         s
     }
 
     /// The rows as CSV, one line per decoder after a header.
     pub fn csv(rows: &[EvalRow]) -> String {
-        let mut csv = String::from("decoder,items,mse,psnr_db,bounce1_rmse_m,bounce1_mae_m,bounce1_detection,bounce2_rmse_m,bounce2_mae_m,bounce2_detection,lifetime_mae_s,seconds_per_frame\n");
+        let mut csv = String::from("decoder,items,mse,psnr_db,bounce1_rmse_m,bounce1_mae_m,bounce1_detection,bounce2_rmse_m,bounce2_mae_m,bounce2_detection,lifetime_mae_s,seconds_per_frame,lifetime_mae_weighted_s,lifetime_within_02ns,lifetime_coverage\n");
         for r in rows {
             let b = |k: usize| r.depth.get(k).map_or(",,".to_string(), |d| format!("{},{},{}", d.rmse_m, d.mae_m, d.detection_rate()));
-            csv.push_str(&format!("{},{},{},{},{},{},{},{}\n", r.decoder, r.items, r.mse, r.psnr_db, b(0), b(1), r.lifetime_mae_s.map_or(String::new(), |v| v.to_string()), r.seconds_per_frame));
+            let o = |v: Option<f64>| v.map_or(String::new(), |v| v.to_string());
+            csv.push_str(&format!(
+                "{},{},{},{},{},{},{},{},{},{},{}\n",
+                r.decoder,
+                r.items,
+                r.mse,
+                r.psnr_db,
+                b(0),
+                b(1),
+                o(r.lifetime_mae_s),
+                r.seconds_per_frame,
+                o(r.lifetime_mae_weighted_s),
+                o(r.lifetime_within_02ns),
+                o(r.lifetime_coverage)
+            ));
         }
         csv
     }
@@ -136,7 +211,7 @@ pub struct NamedDecoder {
 pub fn open_decoder(name: &str, tval3: &Tval3Options, device: &Device) -> Result<NamedDecoder> {
     match name.split_once(':') {
         None if name == "tval3" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(Tval3Decoder::new(*tval3)?), codes: None }),
-        Some((kind, dir)) if kind == "admm-net" || kind == "unet" => {
+        Some((kind, dir)) if kind == "admm-net" || kind == "unet" || kind == "lifetime" => {
             let run = runs::open(Path::new(dir), device)?;
             if run.spec.model.name() != kind {
                 return Err(InferError::File { path: run.dir.join(runs::CONFIG_FILE), msg: format!("a {} run, not {kind}; name it {}:{dir}", run.spec.model.name(), run.spec.model.name()) });
@@ -177,6 +252,7 @@ pub fn evaluate(ds: &Dataset, a: &MeasurementMatrix, decoders: &mut [NamedDecode
     let field = |name: &str| -> Result<Option<ndarray::ArrayD<f32>>> { Ok(if ds.manifest.fields.contains_key(name) { Some(ds.load(&settings.split, name)?) } else { None }) };
     let depth = field("depth")?.map(|d| d.into_dimensionality::<Ix4>()).transpose().map_err(|e| file_err(&ds.dir, format!("field depth: {e}")))?;
     let lifetime = field("lifetime")?.map(|d| d.into_dimensionality::<Ix3>()).transpose().map_err(|e| file_err(&ds.dir, format!("field lifetime: {e}")))?;
+    let intensity = field("intensity")?.map(|d| d.into_dimensionality::<Ix3>()).transpose().map_err(|e| file_err(&ds.dir, format!("field intensity: {e}")))?;
     let (_, _, h, w) = x.dim();
     let plan = a.plan(h, w)?;
     // the measurements every decoder sees, [1, M, H, W] per item
@@ -194,14 +270,21 @@ pub fn evaluate(ds: &Dataset, a: &MeasurementMatrix, decoders: &mut [NamedDecode
                 e => e.into(),
             })?;
             let secs = t0.elapsed().as_secs_f64();
-            if out.cube.is_none() && out.depth.is_none() {
-                return Err(InferError::InvalidParam { field: "decoder", got: d.label.clone(), expected: "a decoder that gives a cube or depth".into() });
+            if out.cube.is_none() && out.depth.is_none() && out.lifetime.is_none() {
+                return Err(InferError::InvalidParam { field: "decoder", got: d.label.clone(), expected: "a decoder that gives a cube, depth or lifetimes".into() });
+            }
+            if out.lifetime.is_some() && lifetime.is_none() {
+                return Err(file_err(&ds.dir, format!("{} estimates lifetimes; this dataset has no lifetime field (a FLIm dataset has)", d.label)));
             }
             let est = out.depth.as_ref().map(|e| e.index_axis(Axis(0), 0));
             let truth_d = depth.as_ref().map(|t| t.index_axis(Axis(0), i));
             let truth_l = lifetime.as_ref().map(|t| t.index_axis(Axis(0), i));
             let cube = out.cube.as_ref().map(|c| c.index_axis(Axis(0), 0));
-            row.add(cube.as_ref(), &x.index_axis(Axis(0), i), est.as_ref(), truth_d.as_ref(), truth_l.as_ref(), a.bin_width_s(), secs);
+            let truth_i = intensity.as_ref().map(|t| t.index_axis(Axis(0), i));
+            let est_l = out.lifetime.as_ref().map(|l| l.index_axis(Axis(0), 0).index_axis(Axis(0), 0).to_owned());
+            let lt = truth_l.as_ref().map(|t| (t, truth_i.as_ref(), est_l.as_ref().map(|e| e.view())));
+            let lt = lt.as_ref().map(|(t, i, e)| (*t, *i, e.as_ref()));
+            row.add_with(cube.as_ref(), &x.index_axis(Axis(0), i), est.as_ref(), truth_d.as_ref(), lt, a.bin_width_s(), secs);
             on_item(&d.label, i + 1, n);
         }
         rows.push(row);

@@ -27,7 +27,7 @@ pub struct EvalArgs {
     items: Option<usize>,
     #[command(flatten)]
     sensor: SensorArgs,
-    /// Decoders to compare: `tval3`, `admm-net:RUN` and/or `unet:RUN` (training run directories); repeat the flag.
+    /// Decoders to compare: `tval3`, `admm-net:RUN`, `unet:RUN` and/or `lifetime:RUN` (training run directories), `onnx:MODEL.onnx`; repeat the flag. Lifetimes of cube decoders come from the reconvolution fit (`tcsense lifetime`).
     #[arg(long, num_args = 1.., default_value = "tval3")]
     decoder: Vec<String>,
     #[command(flatten)]

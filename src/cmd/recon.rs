@@ -7,7 +7,7 @@ use ndarray::{Array4, ArrayD, Axis, Ix3, Ix4};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use tcsense_infer::figures;
-use tcsense_infer::products::{depth_map, lifetime_map, plot_waveforms, write_ply, PeakOptions};
+use tcsense_infer::products::{depth_map, plot_waveforms, write_ply, PeakOptions};
 use tcsense_models::decoder::{Control, Decoder, Step, Tval3Decoder};
 use tcsense_models::{runs, ModelError, Tval3Options, TvNorm};
 use tcsense_sensor::npy::{read_npy, write_bytes, write_npy};
@@ -340,20 +340,29 @@ pub fn depth(a: DepthArgs) -> Result<ExitCode> {
 
 #[derive(Args)]
 pub struct LifetimeArgs {
-    /// Reconstructed cube .npy [T, H, W] (or a batch [B, T, H, W]).
+    /// Reconstructed cube .npy [T, H, W] (or a batch [B, T, H, W]), one code cycle.
     cube: PathBuf,
     #[command(flatten)]
     bins: BinArgs,
-    /// Fit the decay while it stays above this fraction of the peak.
-    #[arg(long, default_value_t = 0.05)]
-    min_rel: f32,
+    /// FWHM of the Gaussian instrument response in ns (default: fitted to the frame).
+    #[arg(long, conflicts_with = "irf")]
+    irf_fwhm_ns: Option<f64>,
+    /// A measured instrument response .npy [T] (one value per bin; its position is fitted).
+    #[arg(long)]
+    irf: Option<PathBuf>,
+    /// Exponentials per pixel: 1, 2, or auto (two where the Akaike criterion asks for them).
+    #[arg(long, default_value = "auto")]
+    components: String,
     /// Skip pixels whose total signal is below this fraction of the brightest pixel's.
     #[arg(long, default_value_t = 0.02)]
     min_intensity: f32,
-    /// Output lifetime map .npy [H, W] (s, NaN where no fit).
+    /// Output mean-lifetime map .npy [H, W] (s, amplitude-weighted; NaN where no fit).
     #[arg(short, long)]
     output: PathBuf,
-    /// Also write the phasor coordinates .npy [2, H, W] (g, s).
+    /// Also write the components .npy [4, H, W]: τ_m, τ₁ ≤ τ₂ (s) and the fraction α₁ of τ₁.
+    #[arg(long)]
+    components_out: Option<PathBuf>,
+    /// Also write the IRF-referenced phasor .npy [2, H, W] (g, s).
     #[arg(long)]
     phasor: Option<PathBuf>,
     /// Also write a PNG of the lifetime map.
@@ -362,23 +371,59 @@ pub struct LifetimeArgs {
 }
 
 pub fn lifetime(a: LifetimeArgs) -> Result<ExitCode> {
+    use tcsense_infer::lifetime::{fit_cube, Components, FitOptions, IrfModel};
     let (batched, cubes) = read_cubes(&a.cube)?;
-    let dt = a.bins.bin_width(cubes[0].dim().0, &a.cube)?;
+    let t = cubes[0].dim().0;
+    let dt = a.bins.bin_width(t, &a.cube)?;
     if batched && cubes.len() > 1 && a.png.is_some() {
         bail!("{}: --png takes a single cube; this batch holds {}", a.cube.display(), cubes.len());
     }
-    let maps: Vec<_> = cubes.iter().map(|x| lifetime_map(&x.view(), dt, a.min_rel, a.min_intensity)).collect();
-    write_npy(&a.output, &stack_out(batched, maps.iter().map(|m| m.0.clone()).collect())?.view())?;
-    let (tau, _) = &maps[0];
+    let components = match a.components.as_str() {
+        "1" => Components::One,
+        "2" => Components::Two,
+        "auto" => Components::Auto,
+        other => bail!("--components {other:?}: expected 1, 2 or auto"),
+    };
+    if !(0.0..1.0).contains(&a.min_intensity) {
+        bail!("--min-intensity {}: expected a fraction in [0, 1)", a.min_intensity);
+    }
+    let irf = match (&a.irf, a.irf_fwhm_ns) {
+        (Some(p), _) => {
+            let v = tcsense_sensor::npy::read_npy(p)?;
+            if v.shape() != [t] || v.iter().any(|x| !x.is_finite() || *x < 0.0) || v.iter().all(|&x| x == 0.0) {
+                bail!("{}: the IRF has shape {:?}; expected [{t}] non-negative finite values, not all zero (one per bin of the cube)", p.display(), v.shape());
+            }
+            IrfModel::Measured(v.iter().map(|&x| x as f64).collect())
+        }
+        (None, Some(w)) if w.is_finite() && w >= 0.0 => IrfModel::Gaussian(Some(w * 1e-9)),
+        (None, Some(w)) => bail!("--irf-fwhm-ns {w}: expected a width ≥ 0"),
+        (None, None) => IrfModel::Gaussian(None),
+    };
+    let opts = FitOptions { irf, components, min_intensity: a.min_intensity, ..Default::default() };
+    let fits: Vec<_> = cubes.iter().map(|x| fit_cube(&x.view(), dt, &opts)).collect();
+    let taus: Vec<_> = fits.iter().map(|f| f.lifetimes.index_axis(Axis(0), 0).to_owned()).collect();
+    write_npy(&a.output, &stack_out(batched, taus.clone())?.view())?;
+    let tau = &taus[0];
     let fit: Vec<f32> = tau.iter().copied().filter(|v| v.is_finite()).collect();
     let mean = fit.iter().map(|&v| v as f64).sum::<f64>() / fit.len().max(1) as f64;
-    println!("wrote {}: {} pixels fitted, mean lifetime {:.3} ns", a.output.display(), fit.len(), mean * 1e9);
+    println!(
+        "wrote {}: {} pixels fitted, mean lifetime {:.3} ns (onset {:.3} ns, IRF FWHM {:.3} ns)",
+        a.output.display(),
+        fit.len(),
+        mean * 1e9,
+        fits[0].onset_s * 1e9,
+        fits[0].irf_fwhm_s * 1e9
+    );
+    if let Some(p) = &a.components_out {
+        write_npy(p, &stack_out(batched, fits.iter().map(|f| f.lifetimes.clone()).collect())?.view())?;
+        println!("wrote {}", p.display());
+    }
     if let Some(p) = &a.phasor {
-        write_npy(p, &stack_out(batched, maps.iter().map(|m| m.1.clone()).collect())?.view())?;
+        write_npy(p, &stack_out(batched, fits.iter().map(|f| f.phasor.clone()).collect())?.view())?;
         println!("wrote {}", p.display());
     }
     if let Some(p) = &a.png {
-        figures::map(p, "Fluorescence lifetime", &tau.mapv(|t| t * 1e9).view(), "lifetime τ (ns)")?;
+        figures::map(p, "Fluorescence lifetime (reconvolution fit, amplitude-weighted mean)", &tau.mapv(|t| t * 1e9).view(), "lifetime τ (ns)")?;
         println!("wrote {}", p.display());
     }
     Ok(ExitCode::SUCCESS)
