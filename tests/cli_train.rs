@@ -144,7 +144,7 @@ fn train_and_eval_the_lifetime_decoder() {
         assert!((0.0..=1.0).contains(&share) && share <= cover && cover <= 1.0, "{r}");
     }
     // bad input: a LiDAR dataset has no lifetimes; a run of the other kind; a lifetime decoder on LiDAR
-    fails(d, &["train", "lifetime", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "-o", "l2"], &["ds", "no lifetime field"]);
+    fails(d, &["train", "lifetime", "--dataset", "ds", "--codes", "codes.json", "--harmonics", "3", "--epochs", "1", "-o", "l2"], &["ds", "no lifetime field"]);
     fails(d, &["train", "unet", "--resume", "-o", "lt"], &["lifetime run", "tcsense train lifetime"]);
     fails(d, &["eval", "--dataset", "f", "--codes", "codes.json", "--heterodyne", "2", "--decoder", "unet:lt", "-o", "r2.json"], &["a lifetime run"]);
     fails(d, &["train", "lifetime", "--dataset", "f", "--codes", "codes.json", "--harmonics", "99", "-o", "l3"], &["harmonics"]);
