@@ -183,7 +183,7 @@ fn export_and_bench_infer_bad_inputs_exit_2() {
     }
     fails(d, &["export", "onnx", "--run", "broken", "-o", "m.onnx"], &["model.bpk", "no trained weights"]);
     assert!(!d.join("m.onnx").exists());
-    fails(d, &["bench", "infer", "--decoder", "magic", "--size", "8x8"], &["--decoder", "unet or admm-net"]);
+    fails(d, &["bench", "infer", "--decoder", "magic", "--size", "8x8"], &["--decoder", "unet, admm-net or lifetime"]);
     fails(d, &["bench", "infer", "--decoder", "unet", "--size", "8x8", "--ort-threads", "0"], &["--ort-threads"]);
     fails(d, &["bench", "infer", "--decoder", "unet", "--size", "6x6", "--reps", "1"], &["--size 6x6", "multiples of 4x4"]);
 }
