@@ -73,6 +73,12 @@ fn lifetime_map_of_a_flim_cube() {
     }
     assert!(n > 0);
     assert_eq!(read_npy(&d.join("ph.npy")).unwrap().shape(), &[2, 8, 8]);
+    // bad settings of the fit: nothing is written
+    fails(d, &["lifetime", "x.npy", "--components", "3", "-o", "t2.npy"], &["--components", "1, 2 or auto"]);
+    fails(d, &["lifetime", "x.npy", "--irf-fwhm-ns=-1", "-o", "t2.npy"], &["--irf-fwhm-ns", "≥ 0"]);
+    write_npy(&d.join("irf5.npy"), &ndarray::Array1::<f32>::ones(5).view()).unwrap();
+    fails(d, &["lifetime", "x.npy", "--irf", "irf5.npy", "-o", "t2.npy"], &["irf5.npy", "[5]", "one per bin"]);
+    assert!(!d.join("t2.npy").exists());
 }
 
 #[test]

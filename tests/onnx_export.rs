@@ -95,15 +95,7 @@ fn admm_net_in_onnx_runtime_equals_burn() {
         ("1x2 heterodyne physical, delay prior", random_run(admm(false, Prior::Delay), (1, 2), Sampling::Heterodyne(2), physical, 5)),
     ];
     for (label, run) in &cases {
-        for (h, w) in [(8, 8), (6, 10)] {
-            let y = random_y(4, h, w, 7);
-            let want = burn_outputs(run, &y);
-            for matrix_input in [false, true] {
-                let got = ort_outputs(run, ExportOptions { matrix_input }, &y, dir.path(), "admm.onnx");
-                let d = rel_diff(&got[0], &want[0]);
-                assert!(d <= 1e-4, "{label}, {h}x{w}, matrix input {matrix_input}: ort differs from burn by {d:e} of the output scale");
-            }
-        }
+        ort_equals_burn(label, run, &[(8, 8), (6, 10)], 7, "admm.onnx", &["cube"]);
     }
     // trained weights: the fixture run reconstructs its stored xhat through ONNX Runtime
     let run = runs::load(&fixture(), &Device::flex()).unwrap();
@@ -116,42 +108,43 @@ fn admm_net_in_onnx_runtime_equals_burn() {
     }
 }
 
+/// Export `run` (sensor baked in and as an input), run it through ONNX Runtime on frames of
+/// each size and assert every output named in `names` equals burn's to 1e-4; returns ONNX
+/// Runtime's outputs for further checks.
+fn ort_equals_burn(label: &str, run: &LoadedRun, sizes: &[(usize, usize)], seed: u64, file: &str, names: &[&str]) -> Vec<Vec<Array4<f32>>> {
+    let dir = tempfile::tempdir().unwrap();
+    let mut all = Vec::new();
+    for &(h, w) in sizes {
+        let y = random_y(4, h, w, seed);
+        let want = burn_outputs(run, &y);
+        for matrix_input in [false, true] {
+            let got = ort_outputs(run, ExportOptions { matrix_input }, &y, dir.path(), file);
+            for (k, name) in names.iter().enumerate() {
+                let d = rel_diff(&got[k], &want[k]);
+                assert!(d <= 1e-4, "{label}, {h}x{w}, matrix input {matrix_input}, {name}: ort differs from burn by {d:e} of the output scale");
+            }
+            all.push(got);
+        }
+    }
+    all
+}
+
 #[test]
 fn unet_in_onnx_runtime_equals_burn() {
-    let dir = tempfile::tempdir().unwrap();
     let unet = |m: usize, t: usize| ModelConfig::Unet(UnetConfig::new(m, t, 12.0).with_base_width(4).with_levels(3).with_returns(2));
     let run = random_run(unet, (2, 2), Sampling::Oversample(1), Irf::Ideal, 4);
-    for (h, w) in [(8, 8), (12, 16)] {
-        let y = random_y(4, h, w, 9);
-        let want = burn_outputs(&run, &y);
-        for matrix_input in [false, true] {
-            let got = ort_outputs(&run, ExportOptions { matrix_input }, &y, dir.path(), "unet.onnx");
-            for (k, name) in ["depth", "confidence"].iter().enumerate() {
-                let d = rel_diff(&got[k], &want[k]);
-                assert!(d <= 1e-4, "{h}x{w}, matrix input {matrix_input}, {name}: ort differs from burn by {d:e}");
-            }
-            // depth in metres within the range, confidence a probability
-            assert!(got[0].iter().all(|v| (0.0..=12.0).contains(v)) && got[1].iter().all(|v| (0.0..=1.0).contains(v)));
-        }
+    for got in ort_equals_burn("unet", &run, &[(8, 8), (12, 16)], 9, "unet.onnx", &["depth", "confidence"]) {
+        // depth in metres within the range, confidence a probability
+        assert!(got[0].iter().all(|v| (0.0..=12.0).contains(v)) && got[1].iter().all(|v| (0.0..=1.0).contains(v)));
     }
 }
 
 #[test]
 fn lifetime_decoder_in_onnx_runtime_equals_burn() {
-    let dir = tempfile::tempdir().unwrap();
     let net = |m: usize, t: usize| ModelConfig::Lifetime(LifetimeNetConfig::new(m, t).with_harmonics(6).with_base_width(4).with_levels(2));
     let run = random_run(net, (2, 2), Sampling::Heterodyne(4), Irf::Ideal, 6);
-    for (h, w) in [(8, 8), (12, 16)] {
-        let y = random_y(4, h, w, 10);
-        let want = burn_outputs(&run, &y);
-        for matrix_input in [false, true] {
-            let got = ort_outputs(&run, ExportOptions { matrix_input }, &y, dir.path(), "lifetime.onnx");
-            for (k, name) in ["lifetime", "confidence", "intensity"].iter().enumerate() {
-                let d = rel_diff(&got[k], &want[k]);
-                assert!(d <= 1e-4, "{h}x{w}, matrix input {matrix_input}, {name}: ort differs from burn by {d:e}");
-            }
-            assert!(got[0].iter().all(|v| v.is_finite()) && got[1].iter().all(|v| (0.0..=1.0).contains(v)));
-        }
+    for got in ort_equals_burn("lifetime", &run, &[(8, 8), (12, 16)], 10, "lifetime.onnx", &["lifetime", "confidence", "intensity"]) {
+        assert!(got[0].iter().all(|v| v.is_finite()) && got[1].iter().all(|v| (0.0..=1.0).contains(v)));
     }
 }
 

@@ -40,6 +40,16 @@ pub const TAU_RANGES: [(f64, f64); 3] = [(0.5e-9, 1.5e-9), (1.5e-9, 2.5e-9), (2.
 /// Below this total channel value a pixel counts as background (no lifetime).
 pub const BACKGROUND: f32 = 1e-3;
 
+/// A pixel holds a fluorophore, for training and scoring lifetimes, where the truth has a
+/// lifetime and its intensity is at least this fraction of the item's brightest pixel.
+pub const SIGNAL_REL: f32 = 0.02;
+
+/// Whether a pixel with true `lifetime` and `intensity` holds a fluorophore in an item whose
+/// brightest pixel has intensity `peak` ([`SIGNAL_REL`]).
+pub fn holds_fluorophore(lifetime: f32, intensity: f32, peak: f32) -> bool {
+    lifetime.is_finite() && peak > 0.0 && intensity >= SIGNAL_REL * peak
+}
+
 /// Stream of the randomisation knobs, apart from the scene's own `(seed, index)` stream.
 const KNOB_STREAM: u64 = 0x464C_494D_5241_4E44;
 
@@ -272,7 +282,7 @@ pub fn decay_bins(grid: &TimeGrid, tau: f64, t0: f64) -> Vec<f64> {
 }
 
 /// `erf(x)` (Abramowitz & Stegun 7.1.26, |error| < 1.5e-7).
-fn erf(x: f64) -> f64 {
+pub fn erf(x: f64) -> f64 {
     let t = 1.0 / (1.0 + 0.327_591_1 * x.abs());
     let poly = t * (0.254_829_592 + t * (-0.284_496_736 + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
     (1.0 - poly * (-x * x).exp()).copysign(x)

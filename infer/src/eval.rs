@@ -15,12 +15,8 @@ use tcsense_sensor::measure::measure_batch;
 use tcsense_sensor::noise::derive_seed;
 use tcsense_sensor::{Codes, MeasurementMatrix, NoiseParams};
 
-use crate::metrics::{depth_errors, mse, psnr, DepthErrors};
+use crate::metrics::{depth_errors, mse, psnr, DepthErrors, LifetimeErrors};
 use crate::products::{depth_map, PeakOptions};
-
-/// A pixel holds a fluorophore where its true intensity is at least this fraction of the
-/// brightest pixel's (the lifetime decoder's training label uses the same rule).
-pub const SIGNAL_REL: f32 = 0.02;
 use crate::{InferError, Result};
 
 /// Accumulates metrics over items.
@@ -33,7 +29,8 @@ pub struct EvalRow {
     /// Per bounce (LiDAR).
     pub depth: Vec<DepthErrors>,
     /// Mean absolute error of the mean lifetime `τ_m` (s), FLIm: over the pixels that hold a
-    /// fluorophore ([`SIGNAL_REL`] of the brightest or more) and got a lifetime.
+    /// fluorophore ([`tcsense_datasets::flim::SIGNAL_REL`] of the brightest or more) and got a
+    /// lifetime ([`LifetimeErrors`]).
     pub lifetime_mae_s: Option<f64>,
     /// The same weighted by the true intensity.
     pub lifetime_mae_weighted_s: Option<f64>,
@@ -44,9 +41,8 @@ pub struct EvalRow {
     pub seconds_per_frame: f64,
     #[serde(skip)]
     depth_sums: Vec<(usize, usize, f64, f64)>,
-    /// Σ|err|, Σ I·|err|, Σ I (over estimated pixels), pixels estimated, within 0.2 ns, truth pixels.
     #[serde(skip)]
-    lt_sum: (f64, f64, f64, usize, usize, usize),
+    lt_sum: LifetimeErrors,
     #[serde(skip)]
     time_sum: f64,
 }
@@ -126,30 +122,12 @@ impl EvalRow {
                 (None, None) => None,
             };
             if let Some(est) = est {
-                let peak = intensity.map_or(0.0, |i| i.iter().fold(0f32, |m, &v| m.max(v)));
-                for ((idx, &t), &e) in truth.indexed_iter().zip(est.iter()) {
-                    let inten = intensity.map_or(1.0, |i| i[idx]);
-                    if !t.is_finite() || (intensity.is_some() && inten < SIGNAL_REL * peak) {
-                        continue;
-                    }
-                    self.lt_sum.5 += 1;
-                    if e.is_finite() {
-                        let err = (e as f64 - t as f64).abs();
-                        self.lt_sum.0 += err;
-                        self.lt_sum.1 += inten as f64 * err;
-                        self.lt_sum.2 += inten as f64;
-                        self.lt_sum.3 += 1;
-                        if err <= 0.2e-9 {
-                            self.lt_sum.4 += 1;
-                        }
-                    }
-                }
-                let (sa, sw, si, k, within, all) = self.lt_sum;
-                if all > 0 {
-                    self.lifetime_mae_s = (k > 0).then(|| sa / k as f64);
-                    self.lifetime_mae_weighted_s = (si > 0.0).then(|| sw / si);
-                    self.lifetime_within_02ns = Some(within as f64 / all as f64);
-                    self.lifetime_coverage = Some(k as f64 / all as f64);
+                self.lt_sum.add(&est.view(), truth, intensity);
+                if self.lt_sum.truth > 0 {
+                    self.lifetime_mae_s = self.lt_sum.mae();
+                    self.lifetime_mae_weighted_s = self.lt_sum.weighted_mae();
+                    self.lifetime_within_02ns = self.lt_sum.within_share();
+                    self.lifetime_coverage = self.lt_sum.coverage();
                 }
             }
         }

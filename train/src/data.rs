@@ -29,10 +29,6 @@ pub fn load_depth(ds: &Dataset, split: &str, max: Option<usize>, k: usize) -> Re
     Ok(d.slice(ndarray::s![..n, ..k, .., ..]).to_owned())
 }
 
-/// A pixel counts as holding a fluorophore (the lifetime decoder's "signal") where the truth
-/// has a lifetime and its intensity is at least this fraction of the item's brightest pixel.
-pub const SIGNAL_REL: f32 = 0.02;
-
 /// Lifetime labels of one pixel from its channel weights `w_i` and lifetimes `τ_i` (s): the
 /// amplitude-weighted mean `τ_m` and two components `τ₁ ≤ τ₂` (ns) with the fraction `α₁`.
 /// Channels with the same lifetime are one component; of three distinct ones the two closest
@@ -72,7 +68,7 @@ pub fn components(w: [f32; 3], tau_s: [f32; 3]) -> [f32; 4] {
 
 /// Lifetime labels of a split, `[N, 5, H, W]`: `τ_m`, `τ₁`, `τ₂` (ns), `α₁` (NaN where the
 /// truth has no lifetime) and the signal mask (1 where a fluorophore is at least
-/// [`SIGNAL_REL`] of the item's brightest pixel, else 0), at most `max` items. Datasets without
+/// [`tcsense_datasets::flim::SIGNAL_REL`] of the item's brightest pixel, else 0), at most `max` items. Datasets without
 /// the FLIm fields (LiDAR, imported cubes without lifetimes) cannot train a lifetime network.
 pub fn load_lifetime_labels(ds: &Dataset, split: &str, max: Option<usize>) -> Result<Array4<f32>> {
     for f in ["lifetime", "weights", "tau", "intensity"] {
@@ -96,7 +92,7 @@ pub fn load_lifetime_labels(ds: &Dataset, split: &str, max: Option<usize>) -> Re
         let t = [tau[(i, 0)], tau[(i, 1)], tau[(i, 2)]];
         for r in 0..h {
             for c in 0..wd {
-                let signal = life[(i, r, c)].is_finite() && inten[(i, r, c)] >= SIGNAL_REL * peak && peak > 0.0;
+                let signal = tcsense_datasets::flim::holds_fluorophore(life[(i, r, c)], inten[(i, r, c)], peak);
                 out[(i, 4, r, c)] = if signal { 1.0 } else { 0.0 };
                 if life[(i, r, c)].is_finite() {
                     let l = components([w[(i, 0, r, c)], w[(i, 1, r, c)], w[(i, 2, r, c)]], t);
