@@ -183,12 +183,14 @@ pub struct NamedDecoder {
     pub codes: Option<Codes>,
 }
 
-/// Open a decoder by name: `tval3` (with `tval3` options) or `KIND:RUN`, a training run
+/// Open a decoder by name: `tval3` (with `tval3` options), `lifetime-fit` (lifetimes fitted
+/// to the tap images, [`crate::tapfit`]) or `KIND:RUN`, a training run
 /// directory of a learned decoder of that kind (`admm-net:RUN`, `unet:RUN`), on `device`, or
 /// `onnx:MODEL.onnx`, an exported model through ONNX Runtime.
 pub fn open_decoder(name: &str, tval3: &Tval3Options, device: &Device) -> Result<NamedDecoder> {
     match name.split_once(':') {
         None if name == "tval3" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(Tval3Decoder::new(*tval3)?), codes: None }),
+        None if name == "lifetime-fit" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::tapfit::TapFitDecoder::default()), codes: None }),
         Some((kind, dir)) if kind == "admm-net" || kind == "unet" || kind == "lifetime" => {
             let run = runs::open(Path::new(dir), device)?;
             if run.spec.model.name() != kind {

@@ -24,6 +24,7 @@ pub mod error;
 pub mod figures;
 pub mod eval;
 pub mod lifetime;
+pub mod tapfit;
 pub mod metrics;
 pub mod onnx;
 pub mod products;

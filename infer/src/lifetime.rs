@@ -86,19 +86,19 @@ pub struct LifetimeFit {
 
 /// A cycle's time grid.
 #[derive(Debug, Clone, Copy)]
-struct Cycle {
-    bins: usize,
-    dt: f64,
+pub(crate) struct Cycle {
+    pub(crate) bins: usize,
+    pub(crate) dt: f64,
 }
 
 impl Cycle {
-    fn period(&self) -> f64 {
+    pub(crate) fn period(&self) -> f64 {
         self.bins as f64 * self.dt
     }
 }
 
 /// Bin averages of the periodic unit decay with onset `t0` (`D_τ` above).
-fn periodic_decay(c: Cycle, tau: f64, t0: f64) -> Vec<f64> {
+pub(crate) fn periodic_decay(c: Cycle, tau: f64, t0: f64) -> Vec<f64> {
     let p = c.period();
     let t0 = t0.rem_euclid(p);
     let norm = 1.0 / (1.0 - (-p / tau).exp());
@@ -127,14 +127,14 @@ fn normal_cdf(x: f64) -> f64 {
 /// The response the decays are convolved with, as a cyclic kernel `k[d]`, `d = −r..=r` bins
 /// (sums to 1).
 #[derive(Debug, Clone)]
-struct Kernel {
+pub(crate) struct Kernel {
     taps: Vec<f64>,
     reach: usize,
 }
 
 impl Kernel {
     /// A bin-integrated Gaussian of `fwhm` (s); a delta for 0.
-    fn gaussian(c: Cycle, fwhm: f64) -> Kernel {
+    pub(crate) fn gaussian(c: Cycle, fwhm: f64) -> Kernel {
         if fwhm <= 0.0 {
             return Kernel { taps: vec![1.0], reach: 0 };
         }
@@ -165,7 +165,7 @@ impl Kernel {
     }
 
     /// Cyclic convolution `(k ⊛ v)[j] = Σ_d k[d]·v[j − d]`.
-    fn apply(&self, v: &[f64]) -> Vec<f64> {
+    pub(crate) fn apply(&self, v: &[f64]) -> Vec<f64> {
         if self.reach == 0 {
             return v.to_vec();
         }

@@ -84,6 +84,37 @@ impl Tval3Args {
     }
 }
 
+/// Settings of the tap-domain lifetime fit (`tcsense_infer::tapfit`).
+#[derive(Args, Clone)]
+pub struct TapFitArgs {
+    /// The decay onset in ns when known (e.g. from a calibration); default: fitted to each frame.
+    #[arg(long)]
+    pub onset_ns: Option<f64>,
+    /// Side of the square window of pixels whose fit costs are summed (odd; 1: every pixel alone).
+    #[arg(long, default_value_t = 3)]
+    pub window: usize,
+    /// Lifetimes searched, LO,HI in ns.
+    #[arg(long, default_value = "0.1,25")]
+    pub tau_ns: String,
+    /// Pixels below this fraction of the brightest pixel's charge get no lifetime.
+    #[arg(long, default_value_t = 0.02)]
+    pub min_intensity: f32,
+    /// No background term (when the scene is known to have none).
+    #[arg(long)]
+    pub no_background: bool,
+}
+
+impl TapFitArgs {
+    pub fn options(&self) -> Result<tcsense_infer::tapfit::TapFitOptions> {
+        let r: Vec<f64> = self.tau_ns.split(',').map(|s| s.trim().parse::<f64>()).collect::<std::result::Result<_, _>>().ok().filter(|v: &Vec<f64>| v.len() == 2).with_context(|| format!("--tau-ns {:?}: expected LO,HI in ns (e.g. 0.1,25)", self.tau_ns))?;
+        let o = tcsense_infer::tapfit::TapFitOptions { tau_range_s: [r[0] * 1e-9, r[1] * 1e-9], window: self.window, min_intensity: self.min_intensity, onset_s: self.onset_ns.map(|t| t * 1e-9), background: !self.no_background, ..Default::default() };
+        if let Err(e) = o.validate() {
+            bail!("lifetime fit settings (--onset-ns, --window, --tau-ns, --min-intensity): {e}");
+        }
+        Ok(o)
+    }
+}
+
 #[derive(Subcommand)]
 pub enum ReconstructCmd {
     /// TVAL3: TV-regularised reconstruction (the paper's iterative decoder).
@@ -99,6 +130,25 @@ pub enum ReconstructCmd {
         #[arg(short, long)]
         output: PathBuf,
     },
+    /// Lifetimes fitted to the tap images themselves (no cube): a reconvolution fit in the
+    /// measurement domain with the onset and IRF fitted to the frame, costs summed over a small
+    /// window. Writes `[4, H, W]` like `reconstruct lifetime` (τ_m = τ₁ = τ₂, α₁ = 1), the
+    /// confidence and intensity next to it.
+    LifetimeFit {
+        #[command(flatten)]
+        sensor: SensorArgs,
+        /// Tap images .npy, [M, H, W] or [B, M, H, W].
+        #[arg(long)]
+        measurements: PathBuf,
+        #[command(flatten)]
+        fit: TapFitArgs,
+        /// Output lifetimes .npy, [4, H, W] (or [B, 4, H, W]).
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Also draw the first frame's lifetime map as a PNG.
+        #[arg(long)]
+        png: Option<PathBuf>,
+    },
     /// Aᵀ + U-Net from a trained run directory: depth of K returns [K, H, W] (m, NaN where the
     /// confidence is below ½), the confidence next to it (`OUTPUT.confidence.npy`).
     Unet {
@@ -113,6 +163,26 @@ pub enum ReconstructCmd {
         output: PathBuf,
         #[command(flatten)]
         products: DepthProductArgs,
+        #[command(flatten)]
+        device: super::DeviceArgs,
+    },
+    /// The lifetime decoder from a trained run directory (`tcsense train lifetime`): per pixel
+    /// the amplitude-weighted mean lifetime τ_m, the components τ₁ ≤ τ₂ (s) and the fraction α₁,
+    /// `[4, H, W]` (NaN where no fluorophore), with the confidence (`OUTPUT.confidence.npy`,
+    /// `[1, H, W]`) and the intensity (`OUTPUT.intensity.npy`, `[1, H, W]`) next to it.
+    Lifetime {
+        /// Run directory (from `tcsense train lifetime`).
+        #[arg(long)]
+        run: PathBuf,
+        /// Tap images .npy, [M, H, W] or [B, M, H, W].
+        #[arg(long)]
+        measurements: PathBuf,
+        /// Output lifetimes .npy, [4, H, W] (or [B, 4, H, W]): τ_m, τ₁, τ₂ (s), α₁.
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Also draw the first frame's mean lifetime map as a PNG.
+        #[arg(long)]
+        png: Option<PathBuf>,
         #[command(flatten)]
         device: super::DeviceArgs,
     },
@@ -135,12 +205,23 @@ pub enum ReconstructCmd {
 pub fn reconstruct(cmd: ReconstructCmd) -> Result<ExitCode> {
     match cmd {
         ReconstructCmd::AdmmNet { run, measurements, output, device } => {
-            let mut r = runs::open(&run, &device.device()?)?;
+            let mut r = open_kind(&run, "admm-net", &device)?;
             decode_file(r.decoder.as_mut(), &r.sensor, &r.codes, &measurements, &output, &DepthProductArgs::default())
         }
         ReconstructCmd::Unet { run, measurements, output, products, device } => {
-            let mut r = runs::open(&run, &device.device()?)?;
+            let mut r = open_kind(&run, "unet", &device)?;
             decode_file(r.decoder.as_mut(), &r.sensor, &r.codes, &measurements, &output, &products)
+        }
+        ReconstructCmd::Lifetime { run, measurements, output, png, device } => {
+            let mut r = open_kind(&run, "lifetime", &device)?;
+            let products = DepthProductArgs { png, ..DepthProductArgs::default() };
+            decode_file(r.decoder.as_mut(), &r.sensor, &r.codes, &measurements, &output, &products)
+        }
+        ReconstructCmd::LifetimeFit { sensor, measurements, fit, output, png } => {
+            let mut decoder = tcsense_infer::tapfit::TapFitDecoder::new(fit.options()?)?;
+            let (codes, _, a) = sensor.matrix()?;
+            let products = DepthProductArgs { png, ..DepthProductArgs::default() };
+            decode_file(&mut decoder, &a, &codes, &measurements, &output, &products)
         }
         ReconstructCmd::Tval3 { sensor, measurements, tval3: targs, output } => {
             let mut decoder = Tval3Decoder::new(targs.options()?)?;
@@ -148,6 +229,16 @@ pub fn reconstruct(cmd: ReconstructCmd) -> Result<ExitCode> {
             decode_file(&mut decoder, &a, &codes, &measurements, &output, &DepthProductArgs::default())
         }
     }
+}
+
+/// Open a run and check that it is of the decoder kind the subcommand names.
+fn open_kind(run: &Path, kind: &str, device: &super::DeviceArgs) -> Result<runs::Run> {
+    let r = runs::open(run, &device.device()?)?;
+    let got = r.spec.model.name();
+    if got != kind {
+        bail!("{}: config.json field decoder is {got:?}, expected a {kind:?} run (use `tcsense reconstruct {got}`)", run.display());
+    }
+    Ok(r)
 }
 
 /// Decode the tap images in `measurements` (`[M, H, W]` or a batch `[B, M, H, W]`) with any
@@ -188,6 +279,31 @@ fn decode_file(decoder: &mut dyn Decoder, sensor: &MeasurementMatrix, codes: &tc
         let cube = unbatch(cube);
         write_npy(output, &cube.view())?;
         println!("wrote {}: x̂ {:?} ({} per frame, {})", output.display(), cube.shape(), human_time(per_frame), decoder.name());
+        return Ok(ExitCode::SUCCESS);
+    }
+    if let (Some(lifetime), Some(confidence), Some(intensity)) = (&out.lifetime, &out.confidence, &out.intensity) {
+        let first = lifetime.index_axis(Axis(0), 0).to_owned();
+        let (conf_path, int_path) = (output.with_extension("confidence.npy"), output.with_extension("intensity.npy"));
+        write_npy(output, &unbatch(lifetime.clone()).view())?;
+        write_npy(&conf_path, &unbatch(confidence.clone()).view())?;
+        write_npy(&int_path, &unbatch(intensity.clone()).view())?;
+        let tau_m: Vec<f64> = first.index_axis(Axis(0), 0).iter().filter(|v| v.is_finite()).map(|&v| v as f64).collect();
+        let mean = tau_m.iter().sum::<f64>() / tau_m.len().max(1) as f64;
+        println!(
+            "wrote {}, {} and {}: lifetimes {:?}, {} pixels with a fluorophore, mean τ_m {:.3} ns (first frame) ({} per frame, {})",
+            output.display(),
+            conf_path.display(),
+            int_path.display(),
+            unbatch(lifetime.clone()).shape(),
+            tau_m.len(),
+            mean * 1e9,
+            human_time(per_frame),
+            decoder.name()
+        );
+        if let Some(p) = &products.png {
+            figures::map(p, &format!("Fluorescence lifetime ({})", decoder.name()), &first.index_axis(Axis(0), 0).mapv(|t| t * 1e9).view(), "lifetime τ_m (ns)")?;
+            println!("wrote {}", p.display());
+        }
         return Ok(ExitCode::SUCCESS);
     }
     let (depth, confidence) = out.depth.zip(out.confidence).with_context(|| format!("decoder {} gives neither a cube nor depth", decoder.name()))?;

@@ -1,0 +1,516 @@
+//! Lifetimes straight from the tap images: a reconvolution fit in the **measurement domain**,
+//! as gated FLIm does it (rapid lifetime determination generalised to any codes), with no cube
+//! in between.
+//!
+//! A pixel of subpixel type `n` measures `y_m = Σ_t A[n][m][t]·x(t)`. For a decay of one
+//! lifetime on a background, `x = a·(IRF ⊛ D_τ) + b`, its taps divided by their sum are
+//!
+//! ```text
+//! r_m = y_m / Σ_m' y_m' = (1 − β)·g_m(τ) + β·g_m(bg),   g(τ) = A_n (IRF ⊛ D_τ) / Σ,  g(bg) = A_n 1 / Σ,
+//! ```
+//!
+//! with `β ∈ [0, 1]` the background's share of the pixel's charge: the amplitude drops out, and
+//! for each candidate `τ` the best `β` is one clamped projection. The cost of `τ` at a pixel is
+//! its squared residual times the pixel's charge (shot noise makes the variance of `r` fall as
+//! one over the charge), and the lifetime is the minimum of that cost **summed over a small
+//! window** of neighbours (all subpixel types of the block take part, each with its own row of
+//! `A`): the 4 taps of one pixel hold 3 numbers about its decay, a 3×3 window 27.
+//!
+//! The onset `t₀` and the IRF width are the instrument's, one per frame: they come from the
+//! same cost summed over the frame's brightest pixels, searched over every bin of the cycle
+//! (a cyclic shift of the templates) and the candidate widths, then refined to a quarter bin.
+//! A delayed scene therefore gives the same lifetimes: the search finds the delayed onset.
+//! The lifetimes are searched on a log grid and refined by a parabola through the minimum.
+
+use ndarray::{Array2, Array3, ArrayView3, Axis};
+use rayon::prelude::*;
+use tcsense_sensor::MeasurementMatrix;
+
+use crate::lifetime::{periodic_decay, Cycle, Kernel};
+
+/// Settings of [`fit_taps`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct TapFitOptions {
+    /// Lifetimes searched, `[lo, hi]` (s).
+    pub tau_range_s: [f64; 2],
+    /// Points of the log grid of lifetimes.
+    pub points: usize,
+    /// Side of the square window whose costs are summed (1: every pixel alone).
+    pub window: usize,
+    /// Pixels whose charge is below this fraction of the brightest pixel's get no lifetime.
+    pub min_intensity: f32,
+    /// The onset `t₀` (s) when known (a calibration); `None`: fitted to the frame.
+    pub onset_s: Option<f64>,
+    /// Candidate FWHMs (s) of the fluorescence IRF on top of the sensor's response (in `A`).
+    pub irf_fwhm_s: Vec<f64>,
+    /// Brightest pixels the onset and IRF are fitted on.
+    pub brightest: usize,
+    /// Fit a background (`β`) per pixel.
+    pub background: bool,
+}
+
+impl Default for TapFitOptions {
+    /// Lifetimes 0.1–25 ns on 96 points, a 3×3 window, pixels above 2 % of the brightest, the
+    /// onset fitted, IRF widths 0–2 ns, 256 pixels for the instrument, a background.
+    fn default() -> Self {
+        TapFitOptions {
+            tau_range_s: [0.1e-9, 25e-9],
+            points: 96,
+            window: 3,
+            min_intensity: 0.02,
+            onset_s: None,
+            irf_fwhm_s: vec![0.0, 0.5e-9, 1e-9, 1.5e-9, 2e-9],
+            brightest: 256,
+            background: true,
+        }
+    }
+}
+
+impl TapFitOptions {
+    /// Checks the settings; the error names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        let [lo, hi] = self.tau_range_s;
+        if !(lo > 0.0 && hi > lo && hi.is_finite()) {
+            return Err(format!("tau_range_s: [{lo:e}, {hi:e}], expected 0 < lo < hi"));
+        }
+        if self.points < 3 {
+            return Err(format!("points: {}, expected at least 3", self.points));
+        }
+        if self.window == 0 || self.window % 2 == 0 {
+            return Err(format!("window: {}, expected an odd size ≥ 1", self.window));
+        }
+        if !(0.0..1.0).contains(&self.min_intensity) {
+            return Err(format!("min_intensity: {}, expected a fraction in [0, 1)", self.min_intensity));
+        }
+        if self.irf_fwhm_s.is_empty() || self.irf_fwhm_s.iter().any(|w| !(w.is_finite() && *w >= 0.0)) {
+            return Err(format!("irf_fwhm_s: {:?}, expected one or more widths ≥ 0", self.irf_fwhm_s));
+        }
+        if matches!(self.onset_s, Some(t) if !t.is_finite()) {
+            return Err("onset_s: expected a finite time".into());
+        }
+        if self.brightest == 0 {
+            return Err("brightest: expected at least 1 pixel".into());
+        }
+        Ok(())
+    }
+}
+
+/// What [`fit_taps`] gives for one frame.
+#[derive(Debug, Clone)]
+pub struct TapFit {
+    /// Lifetime `[H, W]` (s); NaN where the pixel holds too little charge.
+    pub lifetime: Array2<f32>,
+    /// The taps' sum per pixel `[H, W]` (the measurements' units).
+    pub intensity: Array2<f32>,
+    /// The background's share `β` of each pixel's charge `[H, W]` (NaN where no lifetime).
+    pub background: Array2<f32>,
+    /// The frame's onset `t₀` (s, in `[0, P)`).
+    pub onset_s: f64,
+    /// The fluorescence IRF's FWHM (s).
+    pub irf_fwhm_s: f64,
+}
+
+/// Normalised templates `g(τ_i)` per subpixel type and tap, `[G][N·M]`, plus `g(bg)` `[N·M]`.
+struct Templates {
+    g: Vec<f64>,
+    bg: Vec<f64>,
+    nm: usize,
+    m: usize,
+}
+
+impl Templates {
+    /// The templates of decays `curves[i]` (bins of one cycle) through `A`.
+    fn new(a: &ArrayView3<'_, f32>, curves: &[Vec<f64>]) -> Templates {
+        let (n, m, t) = a.dim();
+        let nm = n * m;
+        let project = |d: &[f64]| -> Vec<f64> {
+            let mut g = vec![0.0; nm];
+            for ni in 0..n {
+                let row: Vec<f64> = (0..m).map(|mi| (0..t).map(|j| a[(ni, mi, j)] as f64 * d[j]).sum()).collect();
+                let s: f64 = row.iter().sum::<f64>().max(1e-300);
+                for mi in 0..m {
+                    g[ni * m + mi] = row[mi] / s;
+                }
+            }
+            g
+        };
+        let g = curves.iter().flat_map(|d| project(d)).collect();
+        let bg = project(&vec![1.0; t]);
+        Templates { g, bg, nm, m }
+    }
+
+    fn points(&self) -> usize {
+        self.g.len() / self.nm
+    }
+
+    /// Cost of lifetime `i` for normalised taps `r` of subpixel type `n` weighted by `w`, and
+    /// the background share it takes.
+    #[inline]
+    fn cost(&self, i: usize, n: usize, r: &[f64], w: f64, background: bool) -> (f64, f64) {
+        self.cost_of(&self.g[i * self.nm + n * self.m..i * self.nm + (n + 1) * self.m], n, r, w, background)
+    }
+
+    /// The template of type `n` at the fractional grid position `u` (Catmull-Rom between the
+    /// grid's templates, which are smooth in `ln τ`), into `out` `[M]`.
+    #[inline]
+    fn at(&self, u: f64, n: usize, out: &mut [f64]) {
+        let last = self.points() - 1;
+        let u = u.clamp(0.0, last as f64);
+        let i = (u.floor() as usize).min(last.saturating_sub(1));
+        let f = u - i as f64;
+        let idx = |k: isize| (i as isize + k).clamp(0, last as isize) as usize;
+        let w = [(-f + 2.0 * f * f - f * f * f) / 2.0, (2.0 - 5.0 * f * f + 3.0 * f * f * f) / 2.0, (f + 4.0 * f * f - 3.0 * f * f * f) / 2.0, (-f * f + f * f * f) / 2.0];
+        for (k, o) in out.iter_mut().enumerate() {
+            *o = (0..4).map(|q| w[q] * self.g[idx(q as isize - 1) * self.nm + n * self.m + k]).sum();
+        }
+    }
+
+    /// [`Self::cost`] for a given template `g` `[M]` of type `n`.
+    #[inline]
+    fn cost_of(&self, g: &[f64], n: usize, r: &[f64], w: f64, background: bool) -> (f64, f64) {
+        let b = &self.bg[n * self.m..(n + 1) * self.m];
+        let beta = if background {
+            let (mut num, mut den) = (0.0, 0.0);
+            for k in 0..self.m {
+                let e = b[k] - g[k];
+                num += (r[k] - g[k]) * e;
+                den += e * e;
+            }
+            if den > 1e-300 {
+                (num / den).clamp(0.0, 1.0)
+            } else {
+                0.0
+            }
+        } else {
+            0.0
+        };
+        let mut c = 0.0;
+        for k in 0..self.m {
+            let e = r[k] - (1.0 - beta) * g[k] - beta * b[k];
+            c += e * e;
+        }
+        (w * c, beta)
+    }
+}
+
+/// The lifetime grid (log-spaced) of the options.
+fn grid(opts: &TapFitOptions, points: usize) -> Vec<f64> {
+    let (lo, hi) = (opts.tau_range_s[0].ln(), opts.tau_range_s[1].ln());
+    (0..points).map(|i| (lo + (hi - lo) * i as f64 / (points - 1) as f64).exp()).collect()
+}
+
+/// IRF-convolved periodic decays with onset `t0` for each lifetime of `taus`.
+fn decays(c: Cycle, taus: &[f64], t0: f64, fwhm: f64) -> Vec<Vec<f64>> {
+    let k = Kernel::gaussian(c, fwhm);
+    taus.iter().map(|&tau| k.apply(&periodic_decay(c, tau, t0))).collect()
+}
+
+/// Lifetimes of one frame of tap images through the sensor `A`.
+///
+/// # Shapes
+/// - `y`: `[M, H, W]` (H, W multiples of `A`'s block), `a`: `A [N, M, T]` → maps `[H, W]`
+pub fn fit_taps(y: &ArrayView3<'_, f32>, a: &MeasurementMatrix, opts: &TapFitOptions) -> TapFit {
+    let (m, h, w) = y.dim();
+    let (bh, bw) = a.block();
+    let av = a.a();
+    let c = Cycle { bins: a.bins(), dt: a.bin_width_s() };
+    let intensity = y.sum_axis(Axis(0));
+    let peak = intensity.iter().fold(0f32, |p, &v| p.max(v));
+    let floor = opts.min_intensity * peak;
+    // normalised taps r [H·W][M], charge weights, subpixel types
+    let mut r = vec![0.0f64; h * w * m];
+    let mut weight = vec![0.0f64; h * w];
+    for i in 0..h {
+        for j in 0..w {
+            let s = intensity[(i, j)] as f64;
+            let p = i * w + j;
+            if s > 0.0 && intensity[(i, j)] > floor {
+                weight[p] = s;
+                for k in 0..m {
+                    r[p * m + k] = y[(k, i, j)] as f64 / s;
+                }
+            }
+        }
+    }
+    let kind = |p: usize| (p / w % bh) * bw + (p % w % bw);
+    let signal: Vec<usize> = (0..h * w).filter(|&p| weight[p] > 0.0).collect();
+
+    let (onset_s, irf_fwhm_s) = instrument(&av, c, opts, &r, &weight, &signal, m, &kind);
+
+    // every pixel's cost on the full grid, then summed over the window
+    let taus = grid(opts, opts.points);
+    let tpl = Templates::new(&av, &decays(c, &taus, onset_s, irf_fwhm_s));
+    let g = taus.len();
+    let costs: Vec<(Vec<f64>, Vec<f64>)> = (0..h * w)
+        .into_par_iter()
+        .map(|p| {
+            if weight[p] <= 0.0 {
+                return (Vec::new(), Vec::new());
+            }
+            let rp = &r[p * m..(p + 1) * m];
+            (0..g).map(|i| tpl.cost(i, kind(p), rp, weight[p], opts.background)).unzip()
+        })
+        .collect();
+    let half = opts.window / 2;
+    let fits: Vec<(f32, f32)> = (0..h * w)
+        .into_par_iter()
+        .map(|p| {
+            if weight[p] <= 0.0 {
+                return (f32::NAN, f32::NAN);
+            }
+            let (i, j) = (p / w, p % w);
+            let mut total = vec![0.0; g];
+            for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
+                for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
+                    let q = ii * w + jj;
+                    if weight[q] > 0.0 {
+                        total.iter_mut().zip(&costs[q].0).for_each(|(t, v)| *t += v);
+                    }
+                }
+            }
+            let best = (0..g).min_by(|&x, &y| total[x].total_cmp(&total[y])).unwrap_or(0);
+            // continuously between the grid's points: the window's cost on interpolated templates
+            let mut gq = vec![0.0; m];
+            let window_cost = |u: f64| -> f64 {
+                let mut sum = 0.0;
+                let mut gq = vec![0.0; m];
+                for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
+                    for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
+                        let q = ii * w + jj;
+                        if weight[q] > 0.0 {
+                            tpl.at(u, kind(q), &mut gq);
+                            sum += tpl.cost_of(&gq, kind(q), &r[q * m..(q + 1) * m], weight[q], opts.background).0;
+                        }
+                    }
+                }
+                sum
+            };
+            let (u, _) = golden(best, g - 1, &window_cost);
+            tpl.at(u, kind(p), &mut gq);
+            let beta = tpl.cost_of(&gq, kind(p), &r[p * m..(p + 1) * m], weight[p], opts.background).1;
+            let (l0, step) = (taus[0].ln(), taus[1].ln() - taus[0].ln());
+            ((l0 + u * step).exp() as f32, beta as f32)
+        })
+        .collect();
+    let lifetime = Array2::from_shape_fn((h, w), |(i, j)| fits[i * w + j].0);
+    let background = Array2::from_shape_fn((h, w), |(i, j)| fits[i * w + j].1);
+    TapFit { lifetime, intensity, background, onset_s, irf_fwhm_s }
+}
+
+/// The minimum over `u ∈ [best − 1, best + 1]` of `cost(u)` by golden-section search:
+/// `(u, cost)`.
+fn golden(best: usize, last: usize, cost: &dyn Fn(f64) -> f64) -> (f64, f64) {
+    let (mut lo, mut hi) = ((best as f64 - 1.0).max(0.0), (best as f64 + 1.0).min(last as f64));
+    let phi = 0.5 * (5f64.sqrt() - 1.0);
+    let (mut x1, mut x2) = (hi - phi * (hi - lo), lo + phi * (hi - lo));
+    let (mut f1, mut f2) = (cost(x1), cost(x2));
+    for _ in 0..24 {
+        if f1 <= f2 {
+            hi = x2;
+            x2 = x1;
+            f2 = f1;
+            x1 = hi - phi * (hi - lo);
+            f1 = cost(x1);
+        } else {
+            lo = x1;
+            x1 = x2;
+            f1 = f2;
+            x2 = lo + phi * (hi - lo);
+            f2 = cost(x2);
+        }
+    }
+    if f1 <= f2 { (x1, f1) } else { (x2, f2) }
+}
+
+/// The frame's onset and IRF width: the cost of the brightest pixels, each at its best
+/// lifetime of a coarse grid, over every bin of the cycle and every candidate width, then
+/// refined to a quarter bin around the best.
+#[allow(clippy::too_many_arguments)]
+fn instrument(a: &ArrayView3<'_, f32>, c: Cycle, opts: &TapFitOptions, r: &[f64], weight: &[f64], signal: &[usize], m: usize, kind: &(dyn Fn(usize) -> usize + Sync)) -> (f64, f64) {
+    let mut bright = signal.to_vec();
+    bright.sort_by(|&p, &q| weight[q].total_cmp(&weight[p]).then(p.cmp(&q)));
+    bright.truncate(opts.brightest);
+    // the cost of a frame at its pixels' best lifetimes, each refined between the grid's points
+    // (a grid's steps would bias the onset)
+    let frame_cost = |taus: &[f64], t0: f64, fwhm: f64| -> f64 {
+        let tpl = Templates::new(a, &decays(c, taus, t0, fwhm));
+        bright
+            .iter()
+            .map(|&p| {
+                let rp = &r[p * m..(p + 1) * m];
+                let cost: Vec<f64> = (0..tpl.points()).map(|i| tpl.cost(i, kind(p), rp, weight[p], opts.background).0).collect();
+                let best = (0..cost.len()).min_by(|&x, &y| cost[x].total_cmp(&cost[y])).unwrap_or(0);
+                let mut gq = vec![0.0; m];
+                golden(best, cost.len() - 1, &|u| {
+                    let mut gq2 = vec![0.0; m];
+                    tpl.at(u, kind(p), &mut gq2);
+                    tpl.cost_of(&gq2, kind(p), rp, weight[p], opts.background).0
+                })
+                .1
+                .min({
+                    tpl.at(best as f64, kind(p), &mut gq);
+                    cost[best]
+                })
+            })
+            .sum()
+    };
+    let (coarse, full) = (grid(opts, 32), grid(opts, opts.points));
+    if bright.is_empty() {
+        return (opts.onset_s.unwrap_or(0.0).rem_euclid(c.period()), opts.irf_fwhm_s[0]);
+    }
+    let widths = &opts.irf_fwhm_s;
+    let candidates: Vec<(f64, f64)> = match opts.onset_s {
+        Some(t0) => widths.iter().map(|&f| (t0.rem_euclid(c.period()), f)).collect(),
+        None => (0..c.bins).flat_map(|j| widths.iter().map(move |&f| (j as f64 * c.dt, f))).collect(),
+    };
+    let score = |taus: &[f64], cands: &[(f64, f64)]| -> (f64, f64, f64) {
+        cands.par_iter().map(|&(t0, f)| (frame_cost(taus, t0, f), t0, f)).min_by(|x, y| x.0.total_cmp(&y.0).then(x.1.total_cmp(&y.1)).then(x.2.total_cmp(&y.2))).unwrap_or((0.0, 0.0, widths[0]))
+    };
+    let (_, t0, f) = score(if opts.onset_s.is_some() { &full } else { &coarse }, &candidates);
+    if opts.onset_s.is_some() {
+        return (t0, f);
+    }
+    let fine: Vec<(f64, f64)> = (-4..=4).flat_map(|q| widths.iter().map(move |&w| ((t0 + q as f64 * 0.25 * c.dt).rem_euclid(c.period()), w))).collect();
+    let (_, t0, f) = score(&full, &fine);
+    // then continuously, by golden sections: the onset within a quarter bin, the width within a
+    // quarter nanosecond
+    let q = 0.25 * c.dt;
+    let t0 = (t0 + (golden(1, 2, &|u| frame_cost(&full, t0 + (u - 1.0) * q, f)).0 - 1.0) * q).rem_euclid(c.period());
+    let max_w = widths.iter().fold(0f64, |a, &b| a.max(b));
+    let f = if widths.len() > 1 {
+        let (lo, hi) = ((f - 0.25e-9).max(0.0), (f + 0.25e-9).min(max_w));
+        lo + (hi - lo) * 0.5 * golden(1, 2, &|u| frame_cost(&full, t0, lo + (hi - lo) * 0.5 * u)).0
+    } else {
+        f
+    };
+    (t0, f)
+}
+
+/// [`fit_taps`] on every frame of a batch.
+///
+/// # Shapes
+/// - `y`: `[B, M, H, W]` → lifetimes `[B, H, W]`
+pub fn fit_batch(y: &ndarray::ArrayView4<'_, f32>, a: &MeasurementMatrix, opts: &TapFitOptions) -> Vec<TapFit> {
+    y.outer_iter().map(|f| fit_taps(&f, a, opts)).collect()
+}
+
+/// `[H, W]` maps of a batch of fits stacked as `[B, H, W]`.
+pub fn stack(maps: &[Array2<f32>]) -> Array3<f32> {
+    let views: Vec<_> = maps.iter().map(|m| m.view()).collect();
+    ndarray::stack(Axis(0), &views).unwrap_or_else(|_| Array3::zeros((0, 0, 0)))
+}
+
+/// [`fit_taps`] behind the decoder contract: lifetimes `[B, 4, H, W]` (`τ_m = τ₁ = τ₂`, `α₁ = 1`:
+/// one component), the charge as intensity and a confidence of 1 where a lifetime was fitted.
+#[derive(Debug, Clone, Default)]
+pub struct TapFitDecoder {
+    pub options: TapFitOptions,
+}
+
+impl TapFitDecoder {
+    /// A decoder with checked options.
+    pub fn new(options: TapFitOptions) -> crate::Result<Self> {
+        options.validate().map_err(|e| crate::InferError::InvalidParam { field: "lifetime-fit", got: format!("{options:?}"), expected: e })?;
+        Ok(TapFitDecoder { options })
+    }
+}
+
+impl tcsense_models::decoder::Decoder for TapFitDecoder {
+    fn name(&self) -> &str {
+        "lifetime-fit"
+    }
+
+    fn decode(&mut self, y: ndarray::ArrayView4<'_, f32>, sensor: &MeasurementMatrix, ctl: &tcsense_models::decoder::Control<'_>) -> tcsense_models::Result<tcsense_models::decoder::Decoded> {
+        tcsense_models::decoder::check_measurements(&y, sensor)?;
+        let (b, _, h, w) = y.dim();
+        let mut lifetime = ndarray::Array4::<f32>::from_elem((b, 4, h, w), f32::NAN);
+        let mut confidence = ndarray::Array4::<f32>::zeros((b, 1, h, w));
+        let mut intensity = ndarray::Array4::<f32>::zeros((b, 1, h, w));
+        for (f, frame) in y.outer_iter().enumerate() {
+            ctl.check()?;
+            (ctl.progress)(tcsense_models::decoder::Step { frame: f, frames: b, done: 0, total: 1 });
+            let fit = fit_taps(&frame, sensor, &self.options);
+            for c in 0..3 {
+                lifetime.index_axis_mut(Axis(0), f).index_axis_mut(Axis(0), c).assign(&fit.lifetime);
+            }
+            lifetime.index_axis_mut(Axis(0), f).index_axis_mut(Axis(0), 3).assign(&fit.lifetime.mapv(|t| if t.is_finite() { 1.0 } else { f32::NAN }));
+            confidence.index_axis_mut(Axis(0), f).index_axis_mut(Axis(0), 0).assign(&fit.lifetime.mapv(|t| if t.is_finite() { 1.0 } else { 0.0 }));
+            intensity.index_axis_mut(Axis(0), f).index_axis_mut(Axis(0), 0).assign(&fit.intensity);
+            (ctl.progress)(tcsense_models::decoder::Step { frame: f, frames: b, done: 1, total: 1 });
+        }
+        Ok(tcsense_models::decoder::Decoded { lifetime: Some(lifetime), confidence: Some(confidence), intensity: Some(intensity), ..Default::default() })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tcsense_sensor::codes::{CodeShape, Constraints};
+    use tcsense_sensor::generate::random_codes;
+    use tcsense_sensor::{Irf, Sampling, SensorParams};
+
+    /// The prototype's geometry (4 taps, 2×2, L = 32 at 607 MHz, heterodyne K = 8, physical IRF).
+    fn sensor() -> MeasurementMatrix {
+        let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
+        let codes = random_codes(shape, 607e6, Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1).unwrap();
+        let p = SensorParams { sampling: Sampling::Heterodyne(8), irf: Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }, ..SensorParams::from_codes(&codes) };
+        MeasurementMatrix::synthesize(&codes, &p.validate().unwrap()).unwrap()
+    }
+
+    /// Noise-free taps `[M, H, W]` of a scene whose pixel `(i, j)` decays with `tau(i, j)` (by
+    /// the datasets crate's generator, an independent implementation), onset `t0`, IRF `fwhm`,
+    /// a background share and a brightness that varies over the frame.
+    fn taps(a: &MeasurementMatrix, h: usize, w: usize, tau: &dyn Fn(usize, usize) -> f64, t0: f64, fwhm: f64, bg: f64) -> ndarray::Array3<f32> {
+        let grid = tcsense_datasets::grid::TimeGrid { length: 32, clock_hz: 607e6, sampling: Sampling::Heterodyne(8) };
+        let av = a.a();
+        let (bh, bw) = a.block();
+        let (_, m, t) = av.dim();
+        let mut y = ndarray::Array3::<f32>::zeros((m, h, w));
+        for i in 0..h {
+            for j in 0..w {
+                let d = tcsense_datasets::flim::blur_cyclic(&tcsense_datasets::flim::decay_bins(&grid, tau(i, j), t0), grid.bin_width_s(), fwhm);
+                let total: f64 = d.iter().sum();
+                let bright = 0.3 + 0.7 * ((i * w + j) % 7) as f64 / 6.0;
+                let n = (i % bh) * bw + j % bw;
+                for k in 0..m {
+                    y[(k, i, j)] = (bright * (0..t).map(|s| av[(n, k, s)] as f64 * ((1.0 - bg) * d[s] / total + bg / t as f64)).sum::<f64>()) as f32;
+                }
+            }
+        }
+        y
+    }
+
+    #[test]
+    fn recovers_lifetimes_at_any_onset_irf_and_background() {
+        let a = sensor();
+        // two regions of different lifetimes (left 0.6 ns, right 3.5 ns) so the window sees an edge
+        let tau = |_: usize, j: usize| if j < 4 { 0.6e-9 } else { 3.5e-9 };
+        for &(t0, fwhm, bg) in &[(2e-9, 0.0, 0.0), (31.7e-9, 1.0e-9, 0.03), (51.9e-9, 2.0e-9, 0.0), (0.1e-9, 0.5e-9, 0.05)] {
+            let y = taps(&a, 8, 8, &tau, t0, fwhm, bg);
+            // a pixel alone can hold all its charge in one tap (its code has no transition near
+            // the decay) and then says nothing about τ: the window brings the other subpixel types
+            {
+                let window = 3;
+                let fit = fit_taps(&y.view(), &a, &TapFitOptions { window, ..Default::default() });
+                let dt = (fit.onset_s - t0 + 26.35e-9).rem_euclid(52.7e-9) - 26.35e-9;
+                assert!(dt.abs() < 0.005e-9, "onset {:e} vs {t0:e}", fit.onset_s);
+                assert!((fit.irf_fwhm_s - fwhm).abs() < 0.1e-9, "IRF {:e} vs {fwhm:e}", fit.irf_fwhm_s);
+                for ((i, j), &v) in fit.lifetime.indexed_iter() {
+                    // pixels whose window straddles the edge mix both lifetimes
+                    if (3..=4).contains(&j) {
+                        continue;
+                    }
+                    let want = tau(i, j);
+                    assert!(((v as f64) - want).abs() < 0.01 * want, "τ at ({i}, {j}) = {v:e}, want {want:e} (onset {t0:e}, IRF {fwhm:e}, background {bg}, window {window})");
+                }
+                if bg > 0.0 {
+                    // (its median: a pixel whose charge sits in one tap cannot tell background from decay)
+                    let mut v: Vec<f32> = fit.background.iter().copied().collect();
+                    v.sort_by(f32::total_cmp);
+                    let b = v[v.len() / 2];
+                    assert!((b - bg as f32).abs() < 0.005, "background share {b} vs {bg}");
+                }
+            }
+        }
+    }
+}
