@@ -285,7 +285,7 @@ pub fn fit_taps(y: &ArrayView3<'_, f32>, a: &MeasurementMatrix, opts: &TapFitOpt
                 }
                 sum
             };
-            let (u, _) = golden(best, g - 1, &window_cost);
+            let (u, _) = golden(best, g - 1, 24, &window_cost);
             tpl.at(u, kind(p), &mut gq);
             let beta = tpl.cost_of(&gq, kind(p), &r[p * m..(p + 1) * m], weight[p], opts.background).1;
             let (l0, step) = (taus[0].ln(), taus[1].ln() - taus[0].ln());
@@ -297,14 +297,14 @@ pub fn fit_taps(y: &ArrayView3<'_, f32>, a: &MeasurementMatrix, opts: &TapFitOpt
     TapFit { lifetime, intensity, background, onset_s, irf_fwhm_s }
 }
 
-/// The minimum over `u ∈ [best − 1, best + 1]` of `cost(u)` by golden-section search:
-/// `(u, cost)`.
-fn golden(best: usize, last: usize, cost: &dyn Fn(f64) -> f64) -> (f64, f64) {
+/// The minimum over `u ∈ [best − 1, best + 1]` of `cost(u)` by golden-section search
+/// (the interval shrinks by 0.618 per iteration): `(u, cost)`.
+fn golden(best: usize, last: usize, iterations: usize, cost: &dyn Fn(f64) -> f64) -> (f64, f64) {
     let (mut lo, mut hi) = ((best as f64 - 1.0).max(0.0), (best as f64 + 1.0).min(last as f64));
     let phi = 0.5 * (5f64.sqrt() - 1.0);
     let (mut x1, mut x2) = (hi - phi * (hi - lo), lo + phi * (hi - lo));
     let (mut f1, mut f2) = (cost(x1), cost(x2));
-    for _ in 0..24 {
+    for _ in 0..iterations {
         if f1 <= f2 {
             hi = x2;
             x2 = x1;
@@ -330,56 +330,68 @@ fn instrument(a: &ArrayView3<'_, f32>, c: Cycle, opts: &TapFitOptions, r: &[f64]
     let mut bright = signal.to_vec();
     bright.sort_by(|&p, &q| weight[q].total_cmp(&weight[p]).then(p.cmp(&q)));
     bright.truncate(opts.brightest);
-    // the cost of a frame at its pixels' best lifetimes, each refined between the grid's points
-    // (a grid's steps would bias the onset)
-    let frame_cost = |taus: &[f64], t0: f64, fwhm: f64| -> f64 {
-        let tpl = Templates::new(a, &decays(c, taus, t0, fwhm));
-        bright
-            .iter()
-            .map(|&p| {
-                let rp = &r[p * m..(p + 1) * m];
-                let cost: Vec<f64> = (0..tpl.points()).map(|i| tpl.cost(i, kind(p), rp, weight[p], opts.background).0).collect();
-                let best = (0..cost.len()).min_by(|&x, &y| cost[x].total_cmp(&cost[y])).unwrap_or(0);
-                let mut gq = vec![0.0; m];
-                golden(best, cost.len() - 1, &|u| {
-                    let mut gq2 = vec![0.0; m];
-                    tpl.at(u, kind(p), &mut gq2);
-                    tpl.cost_of(&gq2, kind(p), rp, weight[p], opts.background).0
-                })
-                .1
-                .min({
-                    tpl.at(best as f64, kind(p), &mut gq);
-                    cost[best]
-                })
-            })
-            .sum()
+    // the cost of a frame at its first `pixels` pixels' best lifetimes, refined between the grid's
+    // points by `refine` golden-section steps (a grid's steps would bias the onset)
+    let cost_on = |tpl: &Templates, pixels: usize, refine: usize| -> f64 {
+        let mut cost = vec![0.0; tpl.points()];
+        let mut total = 0.0;
+        for &p in bright.iter().take(pixels) {
+            let rp = &r[p * m..(p + 1) * m];
+            for (i, v) in cost.iter_mut().enumerate() {
+                *v = tpl.cost(i, kind(p), rp, weight[p], opts.background).0;
+            }
+            let best = (0..cost.len()).min_by(|&x, &y| cost[x].total_cmp(&cost[y])).unwrap_or(0);
+            total += if refine > 0 {
+                let between = golden(best, cost.len() - 1, refine, &|u| {
+                    let mut g = vec![0.0; m];
+                    tpl.at(u, kind(p), &mut g);
+                    tpl.cost_of(&g, kind(p), rp, weight[p], opts.background).0
+                });
+                between.1.min(cost[best])
+            } else {
+                cost[best]
+            };
+        }
+        total
     };
-    let (coarse, full) = (grid(opts, 32), grid(opts, opts.points));
+    let frame_cost = |taus: &[f64], t0: f64, fwhm: f64| -> f64 { cost_on(&Templates::new(a, &decays(c, taus, t0, fwhm)), usize::MAX, 24) };
+    let full = grid(opts, opts.points);
     if bright.is_empty() {
         return (opts.onset_s.unwrap_or(0.0).rem_euclid(c.period()), opts.irf_fwhm_s[0]);
     }
     let widths = &opts.irf_fwhm_s;
-    let candidates: Vec<(f64, f64)> = match opts.onset_s {
-        Some(t0) => widths.iter().map(|&f| (t0.rem_euclid(c.period()), f)).collect(),
-        None => (0..c.bins).flat_map(|j| widths.iter().map(move |&f| (j as f64 * c.dt, f))).collect(),
-    };
     let score = |taus: &[f64], cands: &[(f64, f64)]| -> (f64, f64, f64) {
         cands.par_iter().map(|&(t0, f)| (frame_cost(taus, t0, f), t0, f)).min_by(|x, y| x.0.total_cmp(&y.0).then(x.1.total_cmp(&y.1)).then(x.2.total_cmp(&y.2))).unwrap_or((0.0, 0.0, widths[0]))
     };
-    let (_, t0, f) = score(if opts.onset_s.is_some() { &full } else { &coarse }, &candidates);
-    if opts.onset_s.is_some() {
+    if let Some(t0) = opts.onset_s {
+        let known: Vec<(f64, f64)> = widths.iter().map(|&f| (t0.rem_euclid(c.period()), f)).collect();
+        let (_, t0, f) = score(&full, &known);
         return (t0, f);
     }
+    // every bin of the cycle: the decays at onset 0, shifted (exact for whole bins)
+    let coarse_cands: Vec<(usize, usize)> = (0..widths.len()).flat_map(|wi| (0..c.bins).map(move |j| (wi, j))).collect();
+    let coarse = grid(opts, 32);
+    let at_zero: Vec<Vec<Vec<f64>>> = widths.iter().map(|&f| decays(c, &coarse, 0.0, f)).collect();
+    let (_, _, j) = coarse_cands
+        .par_iter()
+        .map(|&(wi, j)| {
+            let shifted: Vec<Vec<f64>> = at_zero[wi].iter().map(|d| (0..c.bins).map(|t| d[(t + c.bins - j) % c.bins]).collect()).collect();
+            (cost_on(&Templates::new(a, &shifted), 128, 10), wi, j)
+        })
+        .min_by(|x, y| x.0.total_cmp(&y.0).then(x.2.cmp(&y.2)).then(x.1.cmp(&y.1)))
+        .unwrap_or((0.0, 0, 0));
+    // then every width within a bin of the best, a quarter bin apart, between grid points
+    let t0 = j as f64 * c.dt;
     let fine: Vec<(f64, f64)> = (-4..=4).flat_map(|q| widths.iter().map(move |&w| ((t0 + q as f64 * 0.25 * c.dt).rem_euclid(c.period()), w))).collect();
     let (_, t0, f) = score(&full, &fine);
     // then continuously, by golden sections: the onset within a quarter bin, the width within a
     // quarter nanosecond
     let q = 0.25 * c.dt;
-    let t0 = (t0 + (golden(1, 2, &|u| frame_cost(&full, t0 + (u - 1.0) * q, f)).0 - 1.0) * q).rem_euclid(c.period());
+    let t0 = (t0 + (golden(1, 2, 24, &|u| frame_cost(&full, t0 + (u - 1.0) * q, f)).0 - 1.0) * q).rem_euclid(c.period());
     let max_w = widths.iter().fold(0f64, |a, &b| a.max(b));
     let f = if widths.len() > 1 {
         let (lo, hi) = ((f - 0.25e-9).max(0.0), (f + 0.25e-9).min(max_w));
-        lo + (hi - lo) * 0.5 * golden(1, 2, &|u| frame_cost(&full, t0, lo + (hi - lo) * 0.5 * u)).0
+        lo + (hi - lo) * 0.5 * golden(1, 2, 24, &|u| frame_cost(&full, t0, lo + (hi - lo) * 0.5 * u)).0
     } else {
         f
     };
