@@ -14,7 +14,9 @@
 //! streamed into a temporary file and renamed at the end, so an error or Ctrl-C leaves none:
 //! `cube.npy [F, T, H, W]`, `depth.npy [F, K, H, W]` (m, NaN where no return),
 //! `confidence.npy` (depth models) or `peaks.npy` (peak amplitudes, cube models),
-//! `lifetime.npy [F, H, W]` (s) and `ply/frame_NNNNN.ply`.
+//! `lifetime.npy [F, H, W]` (s; the amplitude-weighted mean — a cube's by the reconvolution
+//! fit, the lifetime decoder's own), `intensity.npy [F, H, W]`, `phasor.npy [F, 2, H, W]`
+//! (IRF-referenced `g, s`) and `ply/frame_NNNNN.ply`.
 
 use ndarray::{Array3, Array4, ArrayView3, Axis};
 use std::fs::File;
@@ -26,7 +28,7 @@ use std::time::Instant;
 
 use tcsense_sensor::npy::{f32_header, parse_header, read_npy, NpyHeader};
 
-use crate::products::{depth_map, lifetime_map, write_ply, PeakOptions};
+use crate::products::{depth_map, write_ply, PeakOptions};
 use crate::runtime::OnnxModel;
 use tcsense_models::net::mask_depth;
 use crate::{InferError, Result};
@@ -234,6 +236,37 @@ impl Drop for NpyStackWriter {
     }
 }
 
+/// What an exported model gives, from its metadata's decoder name.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ModelKind {
+    /// A transient cube (ADMM-Net).
+    Cube,
+    /// Depth of K returns with confidences (the U-Net).
+    Depth,
+    /// Lifetimes, confidence and intensity (the lifetime decoder).
+    Lifetime,
+}
+
+impl ModelKind {
+    /// The kind of a model whose metadata names `decoder`.
+    pub fn of(decoder: &str) -> ModelKind {
+        match decoder {
+            "unet" => ModelKind::Depth,
+            "lifetime" => ModelKind::Lifetime,
+            _ => ModelKind::Cube,
+        }
+    }
+
+    /// The products this kind of model can give, and those written when none are asked for.
+    pub fn products(self) -> (&'static [&'static str], &'static str) {
+        match self {
+            ModelKind::Cube => (&["cube", "depth", "peaks", "ply", "lifetime", "intensity", "phasor"], "cube"),
+            ModelKind::Depth => (&["depth", "ply"], "depth"),
+            ModelKind::Lifetime => (&["lifetime", "intensity", "phasor"], "lifetime,intensity"),
+        }
+    }
+}
+
 /// What to write.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Products {
@@ -241,7 +274,12 @@ pub struct Products {
     pub depth: bool,
     pub peaks: bool,
     pub ply: bool,
+    /// The amplitude-weighted mean lifetime `[H, W]` (s): a cube's by the reconvolution fit.
     pub lifetime: bool,
+    /// The photo-charge per pixel `[H, W]`.
+    pub intensity: bool,
+    /// The IRF-referenced phasor `(g, s)` at the cycle's first harmonic, `[2, H, W]`.
+    pub phasor: bool,
     /// Returns per pixel from a cube (peak detection).
     pub returns: usize,
     /// Camera field of view for point clouds (degrees).
@@ -249,31 +287,56 @@ pub struct Products {
 }
 
 impl Products {
-    /// Parse `cube,depth,peaks,ply,lifetime` for a model that gives a cube (`cube_model`) or depth.
-    pub fn parse(list: &str, cube_model: bool) -> Result<Self> {
-        let mut p = Products { cube: false, depth: false, peaks: false, ply: false, lifetime: false, returns: 2, fov_deg: 40.0 };
+    /// Parse a comma-separated list (`cube,depth,peaks,ply,lifetime,intensity,phasor`) for a
+    /// model of `kind`.
+    pub fn parse(list: &str, kind: ModelKind) -> Result<Self> {
+        let mut p = Products { cube: false, depth: false, peaks: false, ply: false, lifetime: false, intensity: false, phasor: false, returns: 2, fov_deg: 40.0 };
+        let (allowed, _) = kind.products();
         for item in list.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+            let known = ["cube", "depth", "peaks", "ply", "lifetime", "intensity", "phasor"];
+            if !known.contains(&item) {
+                return Err(InferError::InvalidParam { field: "--products", got: item.into(), expected: format!("a comma-separated list of {}", known.join(", ")) });
+            }
+            if !allowed.contains(&item) {
+                let what = match kind {
+                    ModelKind::Cube => "a cube",
+                    ModelKind::Depth => "depth directly",
+                    ModelKind::Lifetime => "lifetimes directly",
+                };
+                return Err(InferError::InvalidParam { field: "--products", got: list.into(), expected: format!("{}: this model estimates {what}", allowed.join(", ")) });
+            }
             match item {
                 "cube" => p.cube = true,
                 "depth" => p.depth = true,
                 "peaks" => p.peaks = true,
                 "ply" => p.ply = true,
                 "lifetime" => p.lifetime = true,
-                other => return Err(InferError::InvalidParam { field: "--products", got: other.into(), expected: "a comma-separated list of cube, depth, peaks, ply, lifetime".into() }),
+                "intensity" => p.intensity = true,
+                _ => p.phasor = true,
             }
         }
-        if !cube_model && (p.cube || p.peaks || p.lifetime) {
-            return Err(InferError::InvalidParam {
-                field: "--products",
-                got: list.into(),
-                expected: "depth and ply: this model estimates depth directly (cube, peaks and lifetime need a model that reconstructs the cube)".into(),
-            });
-        }
-        if !(p.cube || p.depth || p.peaks || p.ply || p.lifetime) {
+        if !(p.cube || p.depth || p.peaks || p.ply || p.lifetime || p.intensity || p.phasor) {
             return Err(InferError::InvalidParam { field: "--products", got: list.into(), expected: "at least one product".into() });
         }
         Ok(p)
     }
+}
+
+/// The phasor `(g, s)` at angular frequency `ω` of a pixel's decay from its lifetimes: the
+/// components' semicircle points weighted by their intensity fractions `α_iτ_i / Σ α_jτ_j`.
+pub fn phasor_of_components(tau1: f32, tau2: f32, alpha1: f32, omega: f64) -> (f32, f32) {
+    if !(tau1.is_finite() && tau2.is_finite() && alpha1.is_finite()) {
+        return (f32::NAN, f32::NAN);
+    }
+    let (t1, t2, a1) = (tau1 as f64, tau2 as f64, (alpha1 as f64).clamp(0.0, 1.0));
+    let (i1, i2) = (a1 * t1, (1.0 - a1) * t2);
+    let total = (i1 + i2).max(1e-300);
+    let point = |t: f64| {
+        let wt = omega * t;
+        (1.0 / (1.0 + wt * wt), wt / (1.0 + wt * wt))
+    };
+    let (p1, p2) = (point(t1), point(t2));
+    (((i1 * p1.0 + i2 * p2.0) / total) as f32, ((i1 * p1.1 + i2 * p2.1) / total) as f32)
 }
 
 /// What a streamed run did.
@@ -291,6 +354,8 @@ struct Writers {
     depth: Option<NpyStackWriter>,
     second: Option<NpyStackWriter>,
     lifetime: Option<NpyStackWriter>,
+    intensity: Option<NpyStackWriter>,
+    phasor: Option<NpyStackWriter>,
 }
 
 /// Stream every frame of `source` through `model` into `out`, calling `on_frame(done, total)`
@@ -301,7 +366,8 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
     let (first, first_path) = source.read(0, taps)?;
     let (m, h, w) = first.dim();
     model.check(&first.view().insert_axis(Axis(0)), &first_path.display().to_string())?;
-    let cube_model = model.meta.decoder != "unet";
+    let kind = ModelKind::of(&model.meta.decoder);
+    let cube_model = kind == ModelKind::Cube;
     let (t, k) = (model.meta.bins, if cube_model { products.returns } else { model.meta.returns });
     std::fs::create_dir_all(out).map_err(|e| file_err(out, e))?;
     let lead: Vec<usize> = if source.single() { vec![] } else { vec![frames] };
@@ -315,6 +381,8 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
             _ => None,
         },
         lifetime: if products.lifetime { Some(NpyStackWriter::create(&out.join("lifetime.npy"), &shape(&[h, w]))?) } else { None },
+        intensity: if products.intensity { Some(NpyStackWriter::create(&out.join("intensity.npy"), &shape(&[h, w]))?) } else { None },
+        phasor: if products.phasor { Some(NpyStackWriter::create(&out.join("phasor.npy"), &shape(&[2, h, w]))?) } else { None },
     };
     if products.ply {
         std::fs::create_dir_all(out.join("ply")).map_err(|e| file_err(out, e))?;
@@ -346,14 +414,14 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
         let writer = scope.spawn(move || -> Result<()> {
             let mut done = 0;
             for (i, outs) in orx {
-                write_frame(i, outs, &mut writers, products, cube_model, bin_s, &peak_opts, out)?;
+                write_frame(i, outs, &mut writers, products, kind, bin_s, t, &peak_opts, out)?;
                 done += 1;
                 on_frame(i + 1, frames);
             }
             // only a complete stream is renamed into place; otherwise the writers are dropped
             // and their temporary files removed
             if done == frames {
-                for wr in [writers.cube, writers.depth, writers.second, writers.lifetime].into_iter().flatten() {
+                for wr in [writers.cube, writers.depth, writers.second, writers.lifetime, writers.intensity, writers.phasor].into_iter().flatten() {
                     wr.finish()?;
                 }
             }
@@ -399,7 +467,7 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
         status.and(written)
     });
     result?;
-    let mut written: Vec<PathBuf> = ["cube.npy", "depth.npy", "peaks.npy", "confidence.npy", "lifetime.npy"].iter().map(|n| out.join(n)).filter(|p| p.exists()).collect();
+    let mut written: Vec<PathBuf> = ["cube.npy", "depth.npy", "peaks.npy", "confidence.npy", "lifetime.npy", "intensity.npy", "phasor.npy"].iter().map(|n| out.join(n)).filter(|p| p.exists()).collect();
     if products.ply {
         written.push(out.join("ply"));
     }
@@ -408,39 +476,70 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
 
 /// The products of frame `i` from the model's outputs (`[1, C, H, W]` each).
 #[allow(clippy::too_many_arguments)]
-fn write_frame(i: usize, outs: Vec<Array4<f32>>, wr: &mut Writers, p: &Products, cube_model: bool, bin_s: f64, peak_opts: &PeakOptions, out: &Path) -> Result<()> {
-    if cube_model {
-        let cube: ArrayView3<'_, f32> = outs[0].index_axis(Axis(0), 0);
-        if let Some(w) = wr.cube.as_mut() {
-            w.push(cube.iter())?;
+fn write_frame(i: usize, outs: Vec<Array4<f32>>, wr: &mut Writers, p: &Products, kind: ModelKind, bin_s: f64, bins: usize, peak_opts: &PeakOptions, out: &Path) -> Result<()> {
+    match kind {
+        ModelKind::Cube => {
+            let cube: ArrayView3<'_, f32> = outs[0].index_axis(Axis(0), 0);
+            if let Some(w) = wr.cube.as_mut() {
+                w.push(cube.iter())?;
+            }
+            if p.depth || p.peaks || p.ply {
+                let (depth, amp) = depth_map(&cube, bin_s, peak_opts);
+                if let Some(w) = wr.depth.as_mut() {
+                    w.push(depth.iter())?;
+                }
+                if let Some(w) = wr.second.as_mut() {
+                    w.push(amp.iter())?;
+                }
+                if p.ply {
+                    write_ply(&out.join("ply").join(format!("frame_{i:05}.ply")), &depth.view(), &amp.view(), p.fov_deg)?;
+                }
+            }
+            if p.lifetime || p.phasor {
+                // the reconvolution fit (IRF fitted to the frame)
+                let fit = crate::lifetime::fit_cube(&cube, bin_s, &crate::lifetime::FitOptions::default());
+                if let Some(w) = wr.lifetime.as_mut() {
+                    w.push(fit.lifetimes.index_axis(Axis(0), 0).iter())?;
+                }
+                if let Some(w) = wr.phasor.as_mut() {
+                    w.push(fit.phasor.iter())?;
+                }
+            }
+            if let Some(w) = wr.intensity.as_mut() {
+                w.push(cube.sum_axis(Axis(0)).iter())?;
+            }
         }
-        if p.depth || p.peaks || p.ply {
-            let (depth, amp) = depth_map(&cube, bin_s, peak_opts);
+        ModelKind::Depth => {
+            let mut depth = outs[0].clone();
+            mask_depth(&mut depth, &outs[1]);
             if let Some(w) = wr.depth.as_mut() {
                 w.push(depth.iter())?;
             }
             if let Some(w) = wr.second.as_mut() {
-                w.push(amp.iter())?;
+                w.push(outs[1].iter())?;
             }
             if p.ply {
-                write_ply(&out.join("ply").join(format!("frame_{i:05}.ply")), &depth.view(), &amp.view(), p.fov_deg)?;
+                write_ply(&out.join("ply").join(format!("frame_{i:05}.ply")), &depth.index_axis(Axis(0), 0), &outs[1].index_axis(Axis(0), 0), p.fov_deg)?;
             }
         }
-        if let Some(w) = wr.lifetime.as_mut() {
-            let (tau, _) = lifetime_map(&cube, bin_s, 0.1, 0.05);
-            w.push(tau.iter())?;
-        }
-    } else {
-        let mut depth = outs[0].clone();
-        mask_depth(&mut depth, &outs[1]);
-        if let Some(w) = wr.depth.as_mut() {
-            w.push(depth.iter())?;
-        }
-        if let Some(w) = wr.second.as_mut() {
-            w.push(outs[1].iter())?;
-        }
-        if p.ply {
-            write_ply(&out.join("ply").join(format!("frame_{i:05}.ply")), &depth.index_axis(Axis(0), 0), &outs[1].index_axis(Axis(0), 0), p.fov_deg)?;
+        ModelKind::Lifetime => {
+            // lifetime [1, 4, H, W] (τ_m, τ₁, τ₂ in s, α₁), confidence and intensity [1, 1, H, W]
+            let mut lifetime = outs[0].clone();
+            tcsense_models::net::mask_lifetime(&mut lifetime, &outs[1]);
+            let l = lifetime.index_axis(Axis(0), 0);
+            if let Some(w) = wr.lifetime.as_mut() {
+                w.push(l.index_axis(Axis(0), 0).iter())?;
+            }
+            if let Some(w) = wr.intensity.as_mut() {
+                w.push(outs[2].iter())?;
+            }
+            if let Some(w) = wr.phasor.as_mut() {
+                let omega = 2.0 * std::f64::consts::PI / (bins as f64 * bin_s);
+                let (_, h, wd) = l.dim();
+                let ph: Vec<(f32, f32)> = (0..h * wd).map(|q| phasor_of_components(l[(1, q / wd, q % wd)], l[(2, q / wd, q % wd)], l[(3, q / wd, q % wd)], omega)).collect();
+                let planes: Vec<f32> = ph.iter().map(|v| v.0).chain(ph.iter().map(|v| v.1)).collect();
+                w.push(planes.iter())?;
+            }
         }
     }
     Ok(())

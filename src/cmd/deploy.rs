@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use tcsense_infer::onnx::{export_to, ExportOptions};
 use tcsense_infer::runtime::OnnxModel;
-use tcsense_infer::stream::{run_stream, FrameSource, Products};
+use tcsense_infer::stream::{run_stream, FrameSource, ModelKind, Products};
 use tcsense_models::{runs, Device};
 use tcsense_sensor::npy::read_npy;
 
@@ -62,8 +62,9 @@ pub struct InferArgs {
     /// frames (.npy [M, H, W], or grayscale 16-bit PNGs with the M tap images side by side).
     #[arg(long)]
     measurements: PathBuf,
-    /// Products to write: cube, depth, peaks, ply, lifetime (default: cube for ADMM-Net,
-    /// depth for the U-Net).
+    /// Products to write: cube, depth, peaks, ply, lifetime, intensity, phasor (a cube model:
+    /// all, default cube; the U-Net: depth, ply, default depth; the lifetime decoder: lifetime,
+    /// intensity, phasor, default lifetime,intensity).
     #[arg(long)]
     products: Option<String>,
     /// Returns per pixel found in a cube (depth, peaks, ply of a cube model).
@@ -88,9 +89,9 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
         bail!("--returns 0: at least one return per pixel");
     }
     let mut model = OnnxModel::open(&a.model, a.ort_threads.or(threads).unwrap_or(0))?;
-    let cube_model = model.meta.decoder != "unet";
-    let list = a.products.clone().unwrap_or_else(|| if cube_model { "cube".into() } else { "depth".into() });
-    let mut products = Products::parse(&list, cube_model)?;
+    let kind = ModelKind::of(&model.meta.decoder);
+    let list = a.products.clone().unwrap_or_else(|| kind.products().1.to_string());
+    let mut products = Products::parse(&list, kind)?;
     products.returns = a.returns;
     products.fov_deg = a.fov;
     // a recalibrated sensor matrix, read once: given to the model and checked against the sidecar
