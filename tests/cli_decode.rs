@@ -81,6 +81,56 @@ fn lifetime_map_of_a_flim_cube() {
     assert!(!d.join("t2.npy").exists());
 }
 
+/// Issue 27: `tcsense lifetime` on true cubes against an independent pure-numpy reconvolution
+/// fit (scripts/lifetime_reference.py; numpy from scripts/setup.sh's .venv) and the truth.
+#[test]
+fn lifetime_fit_agrees_with_a_numpy_reference() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let python = root.join(".venv/bin/python");
+    assert!(python.exists(), "{} missing: run scripts/setup.sh (numpy for the reference fit)", python.display());
+    let d = tempdir();
+    let o = std::process::Command::new(python).arg(root.join("scripts/lifetime_reference.py")).arg(env!("CARGO_BIN_EXE_tcsense")).arg(d.path()).output().unwrap();
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "reference fit: {out}{}", String::from_utf8_lossy(&o.stderr));
+    assert!(out.contains("tcsense vs numpy reference"), "{out}");
+}
+
+/// The fit to the tap images (`reconstruct lifetime-fit`, `eval --decoder lifetime-fit`) on
+/// noise-free measurements of the paper's FLIm scenes; a LiDAR dataset is refused.
+#[test]
+fn lifetime_fit_to_the_taps() {
+    let d = tempdir();
+    let d = d.path();
+    ok(d, &["dataset", "flim", "--paper", "--count", "10", "--size", "16x16", "--seed", "3", "-o", "f"]);
+    ok(d, &["codes", "generate", "--taps", "4", "--block", "2x2", "--length", "32", "--tap-constraint", "--hamming", "2", "--window", "2", "--seed", "1", "-o", "codes.json"]);
+    let x = read_npy(&d.join("f/test/x_000.npy")).unwrap();
+    write_npy(&d.join("x.npy"), &x.index_axis(ndarray::Axis(0), 0)).unwrap();
+    let sensor = ["--codes", "codes.json", "--irf", "physical", "--heterodyne", "8"];
+    ok(d, &[&["simulate", "--cube", "x.npy", "-o", "y.npy"][..], &sensor[..]].concat());
+    ok(d, &[&["reconstruct", "lifetime-fit", "--measurements", "y.npy", "-o", "tau.npy", "--png", "tau.png"][..], &sensor[..]].concat());
+    let tau = read_npy(&d.join("tau.npy")).unwrap().into_dimensionality::<Ix3>().unwrap();
+    assert_eq!(tau.dim(), (4, 16, 16));
+    let truth = read_npy(&d.join("f/test/lifetime_000.npy")).unwrap().into_dimensionality::<Ix3>().unwrap();
+    let intensity = read_npy(&d.join("f/test/intensity_000.npy")).unwrap().into_dimensionality::<Ix3>().unwrap();
+    let peak = intensity.index_axis(ndarray::Axis(0), 0).iter().fold(0f32, |a, &b| a.max(b));
+    let mut errs: Vec<f32> = Vec::new();
+    for ((r, c), &g) in truth.index_axis(ndarray::Axis(0), 0).indexed_iter() {
+        if g.is_finite() && intensity[[0, r, c]] > 0.02 * peak {
+            errs.push((tau[[0, r, c]] - g).abs() / g);
+        }
+    }
+    errs.sort_by(f32::total_cmp);
+    assert!(errs.len() > 20 && errs[errs.len() / 2] < 0.05, "median relative error {} of {} pixels", errs[errs.len() / 2], errs.len());
+    assert!(read_npy(&d.join("tau.confidence.npy")).unwrap().shape() == [1, 16, 16]);
+    let out = ok(d, &[&["eval", "--dataset", "f", "--items", "1", "--decoder", "lifetime-fit"][..], &sensor[..]].concat());
+    assert!(out.contains("lifetime-fit") && out.contains("lifetime MAE"), "{out}");
+    // a LiDAR dataset has no lifetimes; bad fit settings exit 2
+    lidar(d);
+    fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "lifetime-fit"], &["no lifetime field"]);
+    fails(d, &[&["reconstruct", "lifetime-fit", "--measurements", "y.npy", "-o", "t2.npy", "--window", "2"][..], &sensor[..]].concat(), &["--window", "odd"]);
+    assert!(!d.join("t2.npy").exists());
+}
+
 #[test]
 fn eval_select_and_sweep() {
     let d = tempdir();
