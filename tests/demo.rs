@@ -81,11 +81,14 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
     let flim = json(&demo.join("results/flim.json"));
     let timing = json(&demo.join("results/timing.json"));
     // LiDAR: TVAL3, ADMM-Net (burn, ONNX), U-Net (burn, ONNX) with the selected codes; TVAL3 and
-    // ADMM-Net (burn, ONNX) with the learned codes; FLIm: TVAL3, ADMM-Net (burn, ONNX)
+    // ADMM-Net (burn, ONNX) with the learned codes; FLIm: TVAL3, ADMM-Net (burn, ONNX), the fit
+    // to the taps
     let rows = lidar["rows"].as_array().unwrap();
     assert_eq!(rows.len(), 8);
-    assert_eq!(flim["rows"].as_array().unwrap().len(), 3);
-    for (file, n) in [("results/lidar.json", 8 * 7), ("results/flim.json", 3 * 4), ("results/timing.json", 9 * 2)] {
+    assert_eq!(flim["rows"].as_array().unwrap().len(), 4);
+    let fit = &flim["rows"][3];
+    assert!(fit["mse"].is_null() && fit["lifetime_mae_ns"].as_f64().is_some_and(|v| v.is_finite()), "the fit to the taps has lifetimes and no cube: {fit}");
+    for (file, n) in [("results/lidar.json", 8 * 7), ("results/flim.json", 4 * 5), ("results/timing.json", 9 * 2)] {
         assert_eq!(cells.iter().filter(|c| c.0 == file).count(), n, "cells from {file}");
     }
     assert_eq!(timing["decoders"].as_array().unwrap().len(), 3);

@@ -146,6 +146,36 @@ fn lifetime_decoder_in_onnx_runtime_equals_burn() {
     for got in ort_equals_burn("lifetime", &run, &[(8, 8), (12, 16)], 10, "lifetime.onnx", &["lifetime", "confidence", "intensity"]) {
         assert!(got[0].iter().all(|v| v.is_finite()) && got[1].iter().all(|v| (0.0..=1.0).contains(v)));
     }
+    // streamed deployment: lifetime, intensity and phasor products of the exported model
+    use tcsense_infer::stream::{run_stream, FrameSource, ModelKind, Products};
+    let dir = tempfile::tempdir().unwrap();
+    let (onnx, stack, out) = (dir.path().join("l.onnx"), dir.path().join("y.npy"), dir.path().join("out"));
+    std::fs::write(&onnx, export(&run, ExportOptions::default()).unwrap()).unwrap();
+    let y = random_y(4, 8, 8, 11);
+    tcsense_sensor::npy::write_npy(&stack, &y.view()).unwrap();
+    let mut model = OnnxModel::open(&onnx, 1).unwrap();
+    assert!(Products::parse("cube", ModelKind::Lifetime).is_err(), "a lifetime model has no cube");
+    let products = Products::parse("lifetime,intensity,phasor", ModelKind::Lifetime).unwrap();
+    let cancel = std::sync::atomic::AtomicBool::new(false);
+    run_stream(&mut model, FrameSource::open(&stack).unwrap(), &out, &products, &cancel, &|_, _| {}).unwrap();
+    let want = model.run(y.view()).unwrap();
+    let tau = read_npy(&out.join("lifetime.npy")).unwrap();
+    let intensity = read_npy(&out.join("intensity.npy")).unwrap();
+    let phasor = read_npy(&out.join("phasor.npy")).unwrap();
+    assert_eq!((tau.shape(), intensity.shape(), phasor.shape()), (&[2, 8, 8][..], &[2, 8, 8][..], &[2, 2, 8, 8][..]));
+    for b in 0..2 {
+        for i in 0..8 {
+            for j in 0..8 {
+                let conf = want[1][[b, 0, i, j]];
+                let t = tau[[b, i, j]];
+                assert!(if conf >= 0.5 { t == want[0][[b, 0, i, j]] } else { t.is_nan() }, "τ_m at {b},{i},{j}: {t} (confidence {conf})");
+                assert_eq!(intensity[[b, i, j]], want[2][[b, 0, i, j]]);
+                let (g, s) = (phasor[[b, 0, i, j]], phasor[[b, 1, i, j]]);
+                // mixtures of exponentials fall inside the universal semicircle
+                assert!(t.is_nan() || (g - 0.5).powi(2) + s * s <= 0.25 + 1e-5, "phasor ({g}, {s}) outside the semicircle");
+            }
+        }
+    }
 }
 
 #[test]

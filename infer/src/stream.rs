@@ -544,3 +544,24 @@ fn write_frame(i: usize, outs: Vec<Array4<f32>>, wr: &mut Writers, p: &Products,
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// One exponential lies on the universal semicircle at `g = 1/(1+ω²τ²)`; a mixture
+    /// weighted by intensity fractions `α_iτ_i` sits on the chord between its components.
+    #[test]
+    fn phasor_of_components_is_on_the_semicircle_and_its_chords() {
+        let omega = 2.0 * std::f64::consts::PI / 52.7e-9;
+        let (g, s) = phasor_of_components(3e-9, 3e-9, 1.0, omega);
+        let wt = omega * 3e-9;
+        assert!((g as f64 - 1.0 / (1.0 + wt * wt)).abs() < 1e-6 && (s as f64 - wt / (1.0 + wt * wt)).abs() < 1e-6);
+        let (p1, p2) = (phasor_of_components(1e-9, 1e-9, 1.0, omega), phasor_of_components(5e-9, 5e-9, 1.0, omega));
+        let (gm, sm) = phasor_of_components(1e-9, 5e-9, 0.5, omega);
+        // intensity fraction of τ₁: 0.5·1 / (0.5·1 + 0.5·5) = 1/6
+        let f = 1.0 / 6.0;
+        assert!((gm - (f * p1.0 + (1.0 - f) * p2.0)).abs() < 1e-6 && (sm - (f * p1.1 + (1.0 - f) * p2.1)).abs() < 1e-6);
+        assert!(phasor_of_components(f32::NAN, 1e-9, 0.5, omega).0.is_nan());
+    }
+}
