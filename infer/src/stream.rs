@@ -293,7 +293,7 @@ impl Products {
         let mut p = Products { cube: false, depth: false, peaks: false, ply: false, lifetime: false, intensity: false, phasor: false, returns: 2, fov_deg: 40.0 };
         let (allowed, _) = kind.products();
         for item in list.split(',').map(str::trim).filter(|s| !s.is_empty()) {
-            let known = ["cube", "depth", "peaks", "ply", "lifetime", "intensity", "phasor"];
+            let (known, _) = ModelKind::Cube.products(); // a cube model gives every product
             if !known.contains(&item) {
                 return Err(InferError::InvalidParam { field: "--products", got: item.into(), expected: format!("a comma-separated list of {}", known.join(", ")) });
             }

@@ -22,7 +22,7 @@
 //! A delayed scene therefore gives the same lifetimes: the search finds the delayed onset.
 //! The lifetimes are searched on a log grid and refined by a parabola through the minimum.
 
-use ndarray::{Array2, Array3, ArrayView3, Axis};
+use ndarray::{Array2, ArrayView3, Axis};
 use rayon::prelude::*;
 use tcsense_sensor::MeasurementMatrix;
 
@@ -76,7 +76,7 @@ impl TapFitOptions {
         if self.points < 3 {
             return Err(format!("points: {}, expected at least 3", self.points));
         }
-        if self.window == 0 || self.window % 2 == 0 {
+        if self.window == 0 || self.window.is_multiple_of(2) {
             return Err(format!("window: {}, expected an odd size ≥ 1", self.window));
         }
         if !(0.0..1.0).contains(&self.min_intensity) {
@@ -241,14 +241,14 @@ pub fn fit_taps(y: &ArrayView3<'_, f32>, a: &MeasurementMatrix, opts: &TapFitOpt
     let taus = grid(opts, opts.points);
     let tpl = Templates::new(&av, &decays(c, &taus, onset_s, irf_fwhm_s));
     let g = taus.len();
-    let costs: Vec<(Vec<f64>, Vec<f64>)> = (0..h * w)
+    let costs: Vec<Vec<f64>> = (0..h * w)
         .into_par_iter()
         .map(|p| {
             if weight[p] <= 0.0 {
-                return (Vec::new(), Vec::new());
+                return Vec::new();
             }
             let rp = &r[p * m..(p + 1) * m];
-            (0..g).map(|i| tpl.cost(i, kind(p), rp, weight[p], opts.background)).unzip()
+            (0..g).map(|i| tpl.cost(i, kind(p), rp, weight[p], opts.background).0).collect()
         })
         .collect();
     let half = opts.window / 2;
@@ -259,33 +259,23 @@ pub fn fit_taps(y: &ArrayView3<'_, f32>, a: &MeasurementMatrix, opts: &TapFitOpt
                 return (f32::NAN, f32::NAN);
             }
             let (i, j) = (p / w, p % w);
+            let window: Vec<usize> = (i.saturating_sub(half)..(i + half + 1).min(h)).flat_map(|ii| (j.saturating_sub(half)..(j + half + 1).min(w)).map(move |jj| ii * w + jj)).filter(|&q| weight[q] > 0.0).collect();
             let mut total = vec![0.0; g];
-            for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
-                for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
-                    let q = ii * w + jj;
-                    if weight[q] > 0.0 {
-                        total.iter_mut().zip(&costs[q].0).for_each(|(t, v)| *t += v);
-                    }
-                }
+            for &q in &window {
+                total.iter_mut().zip(&costs[q]).for_each(|(t, v)| *t += v);
             }
             let best = (0..g).min_by(|&x, &y| total[x].total_cmp(&total[y])).unwrap_or(0);
             // continuously between the grid's points: the window's cost on interpolated templates
             let mut gq = vec![0.0; m];
-            let window_cost = |u: f64| -> f64 {
-                let mut sum = 0.0;
-                let mut gq = vec![0.0; m];
-                for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
-                    for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
-                        let q = ii * w + jj;
-                        if weight[q] > 0.0 {
-                            tpl.at(u, kind(q), &mut gq);
-                            sum += tpl.cost_of(&gq, kind(q), &r[q * m..(q + 1) * m], weight[q], opts.background).0;
-                        }
-                    }
-                }
-                sum
-            };
-            let (u, _) = golden(best, g - 1, 24, &window_cost);
+            let (u, _) = golden(best, g - 1, 24, &mut |u| {
+                window
+                    .iter()
+                    .map(|&q| {
+                        tpl.at(u, kind(q), &mut gq);
+                        tpl.cost_of(&gq, kind(q), &r[q * m..(q + 1) * m], weight[q], opts.background).0
+                    })
+                    .sum()
+            });
             tpl.at(u, kind(p), &mut gq);
             let beta = tpl.cost_of(&gq, kind(p), &r[p * m..(p + 1) * m], weight[p], opts.background).1;
             let (l0, step) = (taus[0].ln(), taus[1].ln() - taus[0].ln());
@@ -299,7 +289,7 @@ pub fn fit_taps(y: &ArrayView3<'_, f32>, a: &MeasurementMatrix, opts: &TapFitOpt
 
 /// The minimum over `u ∈ [best − 1, best + 1]` of `cost(u)` by golden-section search
 /// (the interval shrinks by 0.618 per iteration): `(u, cost)`.
-fn golden(best: usize, last: usize, iterations: usize, cost: &dyn Fn(f64) -> f64) -> (f64, f64) {
+fn golden(best: usize, last: usize, iterations: usize, cost: &mut dyn FnMut(f64) -> f64) -> (f64, f64) {
     let (mut lo, mut hi) = ((best as f64 - 1.0).max(0.0), (best as f64 + 1.0).min(last as f64));
     let phi = 0.5 * (5f64.sqrt() - 1.0);
     let (mut x1, mut x2) = (hi - phi * (hi - lo), lo + phi * (hi - lo));
@@ -334,6 +324,7 @@ fn instrument(a: &ArrayView3<'_, f32>, c: Cycle, opts: &TapFitOptions, r: &[f64]
     // points by `refine` golden-section steps (a grid's steps would bias the onset)
     let cost_on = |tpl: &Templates, pixels: usize, refine: usize| -> f64 {
         let mut cost = vec![0.0; tpl.points()];
+        let mut g = vec![0.0; m];
         let mut total = 0.0;
         for &p in bright.iter().take(pixels) {
             let rp = &r[p * m..(p + 1) * m];
@@ -342,8 +333,7 @@ fn instrument(a: &ArrayView3<'_, f32>, c: Cycle, opts: &TapFitOptions, r: &[f64]
             }
             let best = (0..cost.len()).min_by(|&x, &y| cost[x].total_cmp(&cost[y])).unwrap_or(0);
             total += if refine > 0 {
-                let between = golden(best, cost.len() - 1, refine, &|u| {
-                    let mut g = vec![0.0; m];
+                let between = golden(best, cost.len() - 1, refine, &mut |u| {
                     tpl.at(u, kind(p), &mut g);
                     tpl.cost_of(&g, kind(p), rp, weight[p], opts.background).0
                 });
@@ -387,29 +377,15 @@ fn instrument(a: &ArrayView3<'_, f32>, c: Cycle, opts: &TapFitOptions, r: &[f64]
     // then continuously, by golden sections: the onset within a quarter bin, the width within a
     // quarter nanosecond
     let q = 0.25 * c.dt;
-    let t0 = (t0 + (golden(1, 2, 24, &|u| frame_cost(&full, t0 + (u - 1.0) * q, f)).0 - 1.0) * q).rem_euclid(c.period());
+    let t0 = (t0 + (golden(1, 2, 24, &mut |u| frame_cost(&full, t0 + (u - 1.0) * q, f)).0 - 1.0) * q).rem_euclid(c.period());
     let max_w = widths.iter().fold(0f64, |a, &b| a.max(b));
     let f = if widths.len() > 1 {
         let (lo, hi) = ((f - 0.25e-9).max(0.0), (f + 0.25e-9).min(max_w));
-        lo + (hi - lo) * 0.5 * golden(1, 2, 24, &|u| frame_cost(&full, t0, lo + (hi - lo) * 0.5 * u)).0
+        lo + (hi - lo) * 0.5 * golden(1, 2, 24, &mut |u| frame_cost(&full, t0, lo + (hi - lo) * 0.5 * u)).0
     } else {
         f
     };
     (t0, f)
-}
-
-/// [`fit_taps`] on every frame of a batch.
-///
-/// # Shapes
-/// - `y`: `[B, M, H, W]` → lifetimes `[B, H, W]`
-pub fn fit_batch(y: &ndarray::ArrayView4<'_, f32>, a: &MeasurementMatrix, opts: &TapFitOptions) -> Vec<TapFit> {
-    y.outer_iter().map(|f| fit_taps(&f, a, opts)).collect()
-}
-
-/// `[H, W]` maps of a batch of fits stacked as `[B, H, W]`.
-pub fn stack(maps: &[Array2<f32>]) -> Array3<f32> {
-    let views: Vec<_> = maps.iter().map(|m| m.view()).collect();
-    ndarray::stack(Axis(0), &views).unwrap_or_else(|_| Array3::zeros((0, 0, 0)))
 }
 
 /// [`fit_taps`] behind the decoder contract: lifetimes `[B, 4, H, W]` (`τ_m = τ₁ = τ₂`, `α₁ = 1`:

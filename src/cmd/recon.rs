@@ -284,7 +284,8 @@ fn decode_file(decoder: &mut dyn Decoder, sensor: &MeasurementMatrix, codes: &tc
     if let (Some(lifetime), Some(confidence), Some(intensity)) = (&out.lifetime, &out.confidence, &out.intensity) {
         let first = lifetime.index_axis(Axis(0), 0).to_owned();
         let (conf_path, int_path) = (output.with_extension("confidence.npy"), output.with_extension("intensity.npy"));
-        write_npy(output, &unbatch(lifetime.clone()).view())?;
+        let written = unbatch(lifetime.clone());
+        write_npy(output, &written.view())?;
         write_npy(&conf_path, &unbatch(confidence.clone()).view())?;
         write_npy(&int_path, &unbatch(intensity.clone()).view())?;
         let tau_m: Vec<f64> = first.index_axis(Axis(0), 0).iter().filter(|v| v.is_finite()).map(|&v| v as f64).collect();
@@ -294,7 +295,7 @@ fn decode_file(decoder: &mut dyn Decoder, sensor: &MeasurementMatrix, codes: &tc
             output.display(),
             conf_path.display(),
             int_path.display(),
-            unbatch(lifetime.clone()).shape(),
+            written.shape(),
             tau_m.len(),
             mean * 1e9,
             human_time(per_frame),
