@@ -148,6 +148,15 @@ fn train_and_eval_the_lifetime_decoder() {
     fails(d, &["train", "unet", "--resume", "-o", "lt"], &["lifetime run", "tcsense train lifetime"]);
     fails(d, &["eval", "--dataset", "f", "--codes", "codes.json", "--heterodyne", "2", "--decoder", "unet:lt", "-o", "r2.json"], &["a lifetime run"]);
     fails(d, &["train", "lifetime", "--dataset", "f", "--codes", "codes.json", "--harmonics", "99", "-o", "l3"], &["harmonics"]);
+    // reconstruct lifetime: [4, H, W] with confidence and intensity beside it; another kind's subcommand refuses the run
+    let x = tcsense_sensor::npy::read_npy(&d.join("f/test/x_000.npy")).unwrap();
+    tcsense_sensor::npy::write_npy(&d.join("x.npy"), &x.index_axis(ndarray::Axis(0), 0)).unwrap();
+    ok(d, &["simulate", "--codes", "codes.json", "--heterodyne", "2", "--cube", "x.npy", "-o", "y.npy"]);
+    ok(d, &["reconstruct", "lifetime", "--run", "lt", "--measurements", "y.npy", "-o", "tau.npy"]);
+    assert_eq!(tcsense_sensor::npy::read_npy(&d.join("tau.npy")).unwrap().shape(), &[4, 8, 8]);
+    assert_eq!(tcsense_sensor::npy::read_npy(&d.join("tau.intensity.npy")).unwrap().shape(), &[1, 8, 8]);
+    fails(d, &["reconstruct", "unet", "--run", "lt", "--measurements", "y.npy", "-o", "d.npy"], &["lt", "decoder", "\"lifetime\"", "reconstruct lifetime"]);
+    assert!(!d.join("d.npy").exists());
 }
 
 #[test]
