@@ -61,6 +61,10 @@ enum Command {
     /// Throughput benchmarks (prints figures).
     #[command(subcommand)]
     Bench(cmd::bench::BenchCmd),
+    /// Trained decoders shipped with the toolkit: list them, show one's provenance; use them
+    /// as `zoo:NAME` wherever a run is taken.
+    #[command(subcommand)]
+    Zoo(cmd::zoo::ZooCmd),
 }
 
 fn main() -> ExitCode {
@@ -88,6 +92,7 @@ fn main() -> ExitCode {
         Command::Infer(a) => cmd::deploy::infer(a, cli.threads),
         Command::Demo(a) => cmd::demo::run(a),
         Command::Bench(c) => cmd::bench::run(c),
+        Command::Zoo(c) => cmd::zoo::run(c),
     };
     match result {
         Ok(code) => code,

@@ -206,9 +206,17 @@ fn same_seed_same_weights_bytes() {
         ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "2", "--seed", seed, "-o", run]);
     }
     let read = |p: &str| std::fs::read(d.join(p)).unwrap();
-    assert_eq!(read("a/model.bpk"), read("b/model.bpk"), "same seed, same weights file");
-    assert_eq!(read("a/checkpoint/model.bpk"), read("b/checkpoint/model.bpk"));
+    // every file of the run, the optimiser's included, but the one clock reading
+    let files = files_under(&d.join("a"));
+    for f in ["model.bpk", "metrics.csv", "config.json", "codes.json", "checkpoint/model.bpk", "checkpoint/optim.bpk", "checkpoint/state.json", "timing.csv"] {
+        assert!(files.iter().any(|p| p == f), "the run has {f}: {files:?}");
+    }
+    for f in files.iter().filter(|f| *f != "timing.csv") {
+        assert!(read(&format!("a/{f}")) == read(&format!("b/{f}")), "same seed, same bytes in {f}");
+    }
+    assert_eq!(files, files_under(&d.join("b")));
     assert_ne!(read("a/model.bpk"), read("c/model.bpk"), "another seed, other weights");
+    assert_ne!(read("a/checkpoint/optim.bpk"), read("c/checkpoint/optim.bpk"), "another seed, other moments");
 }
 
 #[test]
@@ -275,4 +283,22 @@ fn a_delay_prior_run_records_its_prior_and_keeps_it() {
     ok(d, &["train", "admm-net", "--config", "run3/config.json", "--codes", "codes.json", "--prior", "delay", "-o", "run4"]);
     let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("run4/config.json")).unwrap()).unwrap();
     assert_eq!((cfg["model"]["prior"].as_str(), cfg["model"]["channels"].as_u64()), (Some("Delay"), Some(2)), "{cfg}");
+}
+
+/// The files under `dir`, as sorted paths relative to it.
+fn files_under(dir: &std::path::Path) -> Vec<String> {
+    fn walk(root: &std::path::Path, dir: &std::path::Path, out: &mut Vec<String>) {
+        for e in std::fs::read_dir(dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                walk(root, &p, out);
+            } else {
+                out.push(p.strip_prefix(root).unwrap().to_string_lossy().into_owned());
+            }
+        }
+    }
+    let mut out = Vec::new();
+    walk(dir, dir, &mut out);
+    out.sort();
+    out
 }

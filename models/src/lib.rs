@@ -34,6 +34,7 @@ pub mod runs;
 pub mod sensor_tensors;
 pub mod tval3;
 pub mod unet;
+pub mod zoo;
 
 pub use admm::{AdmmNet, AdmmNetConfig, Prior};
 /// The burn device type (CPU `Device::flex()` by default).

@@ -18,8 +18,8 @@ pub enum ExportCmd {
     /// A trained run (ADMM-Net or U-Net) as an ONNX model (opset 17) with its codes, sensor
     /// model, units and frame rule in the metadata.
     Onnx {
-        /// Run directory (from `tcsense train`).
-        #[arg(long)]
+        /// Run directory (from `tcsense train`) or a zoo entry, `zoo:NAME`.
+        #[arg(long, value_parser = super::parse_run)]
         run: PathBuf,
         /// Take the sensor matrix [N, M, T] as a second input (`sensor_matrix`) instead of
         /// baking it in, so a recalibrated sensor needs no new export.
@@ -152,8 +152,9 @@ pub struct BenchInferArgs {
     /// An exported model (timed through ONNX Runtime only, unless --run gives its network).
     #[arg(long)]
     model: Option<PathBuf>,
-    /// A trained run: timed in burn, and exported for ONNX Runtime when --model is not given.
-    #[arg(long)]
+    /// A trained run (or `zoo:NAME`): timed in burn, and exported for ONNX Runtime when
+    /// --model is not given.
+    #[arg(long, value_parser = super::parse_run)]
     run: Option<PathBuf>,
     /// Without --run/--model: a fresh network of this kind (unet, admm-net or lifetime) on the
     /// prototype's codes (4 taps, 2x2, L = 32, tap + H 2 + W 2).

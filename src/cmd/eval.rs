@@ -27,7 +27,7 @@ pub struct EvalArgs {
     items: Option<usize>,
     #[command(flatten)]
     sensor: SensorArgs,
-    /// Decoders to compare: `tval3`, `admm-net:RUN`, `unet:RUN` and/or `lifetime:RUN` (training run directories), `onnx:MODEL.onnx`; repeat the flag. Lifetimes of cube decoders come from the reconvolution fit (`tcsense lifetime`).
+    /// Decoders to compare: `tval3`, `lifetime-fit`, `admm-net:RUN`, `unet:RUN` and/or `lifetime:RUN` (training run directories; RUN may be `zoo:NAME`), `zoo:NAME` (a zoo entry of any kind), `onnx:MODEL.onnx`; repeat the flag. Lifetimes of cube decoders come from the reconvolution fit (`tcsense lifetime`).
     #[arg(long, num_args = 1.., default_value = "tval3")]
     decoder: Vec<String>,
     #[command(flatten)]
@@ -69,12 +69,13 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     }
     let opts = a.tval3.options()?;
     let mut decoders = Vec::new();
-    let device = if a.decoder.iter().any(|d| d.starts_with("admm-net:") || d.starts_with("unet:")) { a.device.device()? } else { tcsense_models::Device::flex() };
+    let device = if a.decoder.iter().any(|d| ["admm-net:", "unet:", "lifetime:", "zoo:"].iter().any(|k| d.starts_with(k))) { a.device.device()? } else { tcsense_models::Device::flex() };
     for name in &a.decoder {
         let d = open_decoder(name, &opts, &device)?;
         if let (Some(run_codes), Some((_, run))) = (&d.codes, name.split_once(':')) {
             if run_codes.shape() != codes.shape() || (0..codes.subpixels() * codes.taps()).any(|c| run_codes.channel(c) != codes.channel(c)) {
-                bail!("{run}: the run was trained with other codes than {}; evaluate it with its own {run}/codes.json", a.sensor.codes.display());
+                let run = tcsense_models::zoo::resolve(if name.starts_with("zoo:") { name } else { run })?;
+                bail!("{}: the run was trained with other codes than {}; evaluate it with its own {}", run.display(), a.sensor.codes.display(), run.join("codes.json").display());
             }
         }
         decoders.push(d);

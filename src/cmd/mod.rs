@@ -10,6 +10,13 @@ pub mod eval;
 pub mod recon;
 pub mod sensor;
 pub mod train;
+pub mod zoo;
+
+/// A run directory argument: a path, or `zoo:NAME` for the zoo's entry (an unknown name is
+/// a usage error listing the zoo's entries).
+pub fn parse_run(s: &str) -> Result<std::path::PathBuf, String> {
+    tcsense_models::zoo::resolve(s).map_err(|e| e.to_string())
+}
 
 /// Parse `HxW` (e.g. `2x2`, `188x212`).
 pub fn parse_hw(s: &str) -> Result<(usize, usize), String> {

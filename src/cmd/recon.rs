@@ -152,8 +152,8 @@ pub enum ReconstructCmd {
     /// Aᵀ + U-Net from a trained run directory: depth of K returns [K, H, W] (m, NaN where the
     /// confidence is below ½), the confidence next to it (`OUTPUT.confidence.npy`).
     Unet {
-        /// Run directory (from `tcsense train unet`).
-        #[arg(long)]
+        /// Run directory (from `tcsense train unet`) or a zoo entry, `zoo:NAME`.
+        #[arg(long, value_parser = super::parse_run)]
         run: PathBuf,
         /// Tap images .npy, [M, H, W] or [B, M, H, W].
         #[arg(long)]
@@ -171,8 +171,8 @@ pub enum ReconstructCmd {
     /// `[4, H, W]` (NaN where no fluorophore), with the confidence (`OUTPUT.confidence.npy`,
     /// `[1, H, W]`) and the intensity (`OUTPUT.intensity.npy`, `[1, H, W]`) next to it.
     Lifetime {
-        /// Run directory (from `tcsense train lifetime`).
-        #[arg(long)]
+        /// Run directory (from `tcsense train lifetime`) or a zoo entry, `zoo:NAME`.
+        #[arg(long, value_parser = super::parse_run)]
         run: PathBuf,
         /// Tap images .npy, [M, H, W] or [B, M, H, W].
         #[arg(long)]
@@ -188,8 +188,8 @@ pub enum ReconstructCmd {
     },
     /// ADMM-Net from a trained run directory.
     AdmmNet {
-        /// Run directory (from `tcsense train admm-net`).
-        #[arg(long)]
+        /// Run directory (from `tcsense train admm-net`) or a zoo entry, `zoo:NAME`.
+        #[arg(long, value_parser = super::parse_run)]
         run: PathBuf,
         /// Tap images .npy, [M, H, W] or [B, M, H, W].
         #[arg(long)]
@@ -552,8 +552,8 @@ pub enum PlotCmd {
     /// validation metric (MSE for cube networks, range RMSE for depth networks) against the
     /// epoch; a learned-codes run's relaxed phase is the run RUN/relaxed.
     Training {
-        /// Run directories (from `tcsense train`).
-        #[arg(long, num_args = 1.., required = true)]
+        /// Run directories (from `tcsense train`) or zoo entries, `zoo:NAME`.
+        #[arg(long, num_args = 1.., required = true, value_parser = super::parse_run)]
         run: Vec<PathBuf>,
         /// Output PNG.
         #[arg(short, long)]

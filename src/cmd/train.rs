@@ -165,8 +165,8 @@ pub struct TrainArgs {
     #[arg(long)]
     resume: bool,
     /// Start from the weights of a trained run of the same network (fine-tuning on new codes,
-    /// another IRF or a recalibrated sensor).
-    #[arg(long, value_name = "RUN")]
+    /// another IRF or a recalibrated sensor); `zoo:NAME` starts from a zoo entry.
+    #[arg(long, value_name = "RUN", value_parser = super::parse_run)]
     init_from: Option<PathBuf>,
     /// Deep sensing: learn the codes with the decoder, starting from --codes; after the relaxed
     /// epochs they are projected exactly onto the constraints (those of --codes, or the flags

@@ -236,6 +236,11 @@ fn fit<M: Network>(
                     l.load(&ckpt)?;
                 }
                 let rows = read_rows(&run.join(METRICS_FILE), state.epoch)?;
+                // the clock is in timing.csv (state.json has it only from before that file)
+                let mut state = state;
+                if let Some(last) = rows.last().filter(|r| r.epoch == state.epoch && r.seconds > 0.0) {
+                    state.seconds = last.seconds;
+                }
                 (model, optim, state, rows)
             }
             // killed before its first checkpoint: start over, as the run would have

@@ -27,6 +27,8 @@ const CHECKPOINT_TMP: &str = "checkpoint.tmp";
 pub const METRICS_FILE: &str = "metrics.csv";
 /// The progress state inside a checkpoint.
 pub const STATE_FILE: &str = "state.json";
+/// Training seconds per epoch, the run's only clock reading.
+pub const TIMING_FILE: &str = "timing.csv";
 
 /// Progress of a run after a checkpoint.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -35,7 +37,9 @@ pub struct RunState {
     pub epoch: usize,
     /// Optimiser steps taken.
     pub step: u64,
-    /// Seconds of training so far.
+    /// Seconds of training so far (kept in `timing.csv`, not in `state.json`: a clock in the
+    /// checkpoint would make two runs of one seed differ).
+    #[serde(default, skip_serializing)]
     pub seconds: f64,
 }
 
@@ -91,8 +95,31 @@ pub fn latest_checkpoint(run: &Path) -> Result<Option<PathBuf>> {
 pub fn load_checkpoint<M: Module>(dir: &Path, model: M, optim: ModuleOptimizer) -> Result<(M, ModuleOptimizer, RunState)> {
     let state: RunState = read_json(&dir.join(STATE_FILE))?;
     let model = model.try_load_file(dir.join(WEIGHTS_STEM)).map_err(|e| file_err(&dir.join(WEIGHTS_FILE), e))?;
-    let optim = optim.load(dir.join("optim")).map_err(|e| file_err(&dir.join("optim.bpk"), e))?;
+    let optim = optim.load(dir.join(OPTIMIZER_FILE)).map_err(|e| file_err(&dir.join(OPTIMIZER_FILE), e))?;
     Ok((model, optim, state))
+}
+
+/// The optimiser state inside a checkpoint.
+pub const OPTIMIZER_FILE: &str = "optim.bpk";
+
+/// Write the optimiser state to `path` with its entries sorted by name: burn collects them
+/// from a hash map, so the same state would otherwise come out in another order every run
+/// (same seed, same bytes covers this file too). Parameter ids are fixed by the seeded init.
+fn save_optimizer(optim: &ModuleOptimizer, path: &Path) -> Result<()> {
+    let err = |e: &dyn std::fmt::Display| file_err(path, e.to_string());
+    let bytes = optim.into_bytes().map_err(|e| err(&e))?;
+    let reader = burn_pack::Reader::from_bytes(bytes).map_err(|e| err(&e))?;
+    let (scalars, metadata) = (reader.scalars().clone(), reader.metadata().clone());
+    let mut tensors = reader.into_tensors().map_err(|e| err(&e))?;
+    tensors.sort_by(|a, b| a.name.cmp(&b.name));
+    let mut writer = burn_pack::Writer::new(tensors).auto_extension(false);
+    for (k, v) in &scalars {
+        writer = writer.with_scalar(k, *v);
+    }
+    for (k, v) in &metadata {
+        writer = writer.with_metadata(k, v);
+    }
+    writer.write_to_file(path).map_err(|e| err(&e))
 }
 
 /// Write a checkpoint (weights, optimiser, progress) and the latest weights, each replaced
@@ -104,7 +131,7 @@ pub fn save_checkpoint<M: Module>(run: &Path, model: &M, optim: &ModuleOptimizer
     let _ = std::fs::remove_dir_all(&tmp);
     std::fs::create_dir_all(&tmp).map_err(|e| file_err(&tmp, e))?;
     model.clone().save_file(tmp.join(WEIGHTS_STEM)).map_err(|e| file_err(&tmp.join(WEIGHTS_FILE), e))?;
-    optim.save(tmp.join("optim")).map_err(|e| file_err(&tmp.join("optim.bpk"), e))?;
+    save_optimizer(optim, &tmp.join(OPTIMIZER_FILE))?;
     extra(&tmp)?;
     write_json(&tmp.join(STATE_FILE), state)?;
     failpoint("checkpoint-written");
@@ -143,37 +170,63 @@ fn failpoint(name: &str) {
     }
 }
 
-/// Write `metrics.csv` (the validation columns of the first row name the header).
+/// Write `metrics.csv` (the validation columns of the first row name the header) and, beside
+/// it, `timing.csv` (`epoch,seconds`: training seconds so far). The clock is kept out of
+/// every other file of the run, so two runs of one seed write the same bytes but for it.
 pub fn write_rows(path: &Path, rows: &[EpochMetrics]) -> Result<()> {
     let names: Vec<&str> = rows.first().map(|r| r.val.iter().map(|(n, _)| n.as_str()).collect()).unwrap_or_default();
-    let mut s = format!("epoch,step,train_loss,{}seconds\n", names.iter().map(|n| format!("{n},")).collect::<String>());
+    let mut s = format!("epoch,step,train_loss{}\n", names.iter().map(|n| format!(",{n}")).collect::<String>());
+    let mut t = String::from("epoch,seconds\n");
     for r in rows {
-        let vals: String = r.val.iter().map(|(n, v)| if n.ends_with("_db") { format!("{v:.3},") } else { format!("{v:.6e},") }).collect();
-        s.push_str(&format!("{},{},{:.6e},{vals}{:.2}\n", r.epoch, r.step, r.train_loss, r.seconds));
+        let vals: String = r.val.iter().map(|(n, v)| if n.ends_with("_db") { format!(",{v:.3}") } else { format!(",{v:.6e}") }).collect();
+        s.push_str(&format!("{},{},{:.6e}{vals}\n", r.epoch, r.step, r.train_loss));
+        t.push_str(&format!("{},{:.2}\n", r.epoch, r.seconds));
     }
+    write_bytes(&timing_path(path), t.as_bytes())?;
     Ok(write_bytes(path, s.as_bytes())?)
 }
 
+/// `timing.csv` beside a `metrics.csv`.
+fn timing_path(metrics: &Path) -> PathBuf {
+    metrics.with_file_name(TIMING_FILE)
+}
+
 /// Read the rows of `metrics.csv` up to epoch `upto` (the checkpoint's); none if it is missing.
+/// Their seconds come from `timing.csv` beside it (or the last column of a `metrics.csv`
+/// written before the clock moved out; 0 when neither has it).
 pub fn read_rows(path: &Path, upto: usize) -> Result<Vec<EpochMetrics>> {
     let Ok(text) = std::fs::read_to_string(path) else { return Ok(Vec::new()) };
     let mut lines = text.lines();
     let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
-    if header.len() < 4 {
-        return Err(file_err(path, format!("header {header:?} lacks epoch,step,train_loss,…,seconds")));
+    if header.len() < 3 || header[..3] != ["epoch", "step", "train_loss"] {
+        return Err(file_err(path, format!("header {header:?} lacks epoch,step,train_loss,…")));
     }
-    let names = &header[3..header.len() - 1];
+    let old = header.last() == Some(&"seconds");
+    let names = &header[3..header.len() - old as usize];
+    let p = |path: &Path, s: &str| s.parse::<f64>().map_err(|_| file_err(path, format!("bad number {s:?}")));
+    let timing = timing_path(path);
+    let mut seconds = std::collections::HashMap::new();
+    if let Ok(t) = std::fs::read_to_string(&timing) {
+        for line in t.lines().skip(1) {
+            let (e, s) = line.split_once(',').ok_or_else(|| file_err(&timing, format!("row {line:?} is not epoch,seconds")))?;
+            seconds.insert(p(&timing, e)? as usize, p(&timing, s)?);
+        }
+    }
     let mut rows = Vec::new();
     for line in lines {
         let f: Vec<&str> = line.split(',').collect();
         if f.len() != header.len() {
             return Err(file_err(path, format!("row {line:?} does not have {} fields", header.len())));
         }
-        let p = |s: &str| s.parse::<f64>().map_err(|_| file_err(path, format!("bad number {s:?}")));
-        let epoch = p(f[0])? as usize;
+        let epoch = p(path, f[0])? as usize;
         if epoch <= upto {
-            let val = names.iter().zip(&f[3..f.len() - 1]).map(|(n, v)| Ok((n.to_string(), p(v)?))).collect::<Result<_>>()?;
-            rows.push(EpochMetrics { epoch, step: p(f[1])? as u64, train_loss: p(f[2])?, val, seconds: p(f[f.len() - 1])? });
+            let val = names.iter().zip(&f[3..3 + names.len()]).map(|(n, v)| Ok((n.to_string(), p(path, v)?))).collect::<Result<_>>()?;
+            let secs = match seconds.get(&epoch) {
+                Some(s) => *s,
+                None if old => p(path, f[f.len() - 1])?,
+                None => 0.0,
+            };
+            rows.push(EpochMetrics { epoch, step: p(path, f[1])? as u64, train_loss: p(path, f[2])?, val, seconds: secs });
         }
     }
     Ok(rows)
@@ -191,12 +244,18 @@ mod tests {
         let val = vec![("val_mse".to_string(), 1e-3), ("val_psnr_db".to_string(), 30.0)];
         let rows: Vec<EpochMetrics> = (1..=3).map(|e| EpochMetrics { epoch: e, step: 3 * e as u64, train_loss: 0.5 / e as f64, val: val.clone(), seconds: e as f64 }).collect();
         write_rows(&path, &rows).unwrap();
-        assert!(std::fs::read_to_string(&path).unwrap().starts_with("epoch,step,train_loss,val_mse,val_psnr_db,seconds\n"));
+        assert!(std::fs::read_to_string(&path).unwrap().starts_with("epoch,step,train_loss,val_mse,val_psnr_db\n"));
+        assert_eq!(std::fs::read_to_string(dir.join(TIMING_FILE)).unwrap(), "epoch,seconds\n1,1.00\n2,2.00\n3,3.00\n");
         let back = read_rows(&path, 2).unwrap();
         assert_eq!(back.len(), 2);
-        assert_eq!((back[1].epoch, back[1].step), (2, 6));
+        assert_eq!((back[1].epoch, back[1].step, back[1].seconds), (2, 6, 2.0));
         assert!((back[1].train_loss - 0.25).abs() < 1e-9);
         assert_eq!((back[1].get("val_psnr_db"), back[1].get("val_mse")), (30.0, 1e-3));
+        // a metrics.csv from before timing.csv: its last column is the clock
+        std::fs::remove_file(dir.join(TIMING_FILE)).unwrap();
+        std::fs::write(&path, "epoch,step,train_loss,val_mse,seconds\n1,2,3,4,5\n").unwrap();
+        let back = read_rows(&path, 5).unwrap();
+        assert_eq!((back[0].get("val_mse"), back[0].seconds), (4.0, 5.0));
         std::fs::write(&path, "epoch,step,train_loss,val_mse,seconds\n1,2,3\n").unwrap();
         assert!(read_rows(&path, 5).unwrap_err().to_string().contains("5 fields"));
         assert!(read_rows(&dir.join("missing.csv"), 5).unwrap().is_empty());

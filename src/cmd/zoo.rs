@@ -1,0 +1,75 @@
+//! `tcsense zoo …`: the trained decoders shipped with the toolkit (`tcsense_models::zoo`).
+
+use anyhow::Result;
+use clap::Subcommand;
+use std::process::ExitCode;
+use tcsense_models::zoo::{self, Entry};
+
+#[derive(Subcommand)]
+pub enum ZooCmd {
+    /// The zoo's entries: decoder, domain, codes, epochs and last validation metrics. Use one
+    /// wherever a run is taken as `zoo:NAME` (`reconstruct`, `eval`, `export onnx`,
+    /// `train --init-from`).
+    List,
+    /// One entry: what it is, where its files are, and its PROVENANCE.md (commands, commit,
+    /// data, wall time, benchmark tables).
+    Show {
+        /// The entry's name (`NAME` or `zoo:NAME`).
+        name: String,
+    },
+}
+
+pub fn run(cmd: ZooCmd) -> Result<ExitCode> {
+    match cmd {
+        ZooCmd::List => {
+            let entries = zoo::list()?;
+            println!("zoo: {} ({} entries)", zoo::root().display(), entries.len());
+            println!("{:<28} {:<9} {:<6} {:<8} {:>6}  {}", "NAME", "DECODER", "DOMAIN", "CODES", "EPOCHS", "VALIDATION");
+            for e in &entries {
+                println!("{:<28} {:<9} {:<6} {:<8} {:>6}  {}", e.name, e.model.name(), e.domain, codes_kind(e), e.epochs, validation(e));
+            }
+        }
+        ZooCmd::Show { name } => {
+            let e = zoo::entry(&name)?;
+            println!("zoo:{} — {}", e.name, e.title);
+            println!("  directory   {}", e.dir.display());
+            println!("  decoder     {} ({} taps, {} bins, {:.2} GFLOP per 188x212 frame)", e.model.name(), e.model.taps(), e.model.bins(), e.model.flops(188, 212) / 1e9);
+            println!("  domain      {}", e.domain);
+            println!("  codes       {} ({})", e.codes, codes_kind(&e));
+            println!("  trained     {} epochs; last validation {}", e.epochs, validation(&e));
+            println!("  weights     {:.2} MB", e.weights_bytes as f64 / 1e6);
+            println!();
+            match std::fs::read_to_string(e.dir.join(zoo::PROVENANCE_FILE)) {
+                Ok(text) => print!("{text}"),
+                Err(_) => println!("(no {} in this entry)", zoo::PROVENANCE_FILE),
+            }
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn codes_kind(e: &Entry) -> &'static str {
+    if e.learned_codes {
+        "learned"
+    } else {
+        "given"
+    }
+}
+
+/// The last validation metrics, in the units their column names give.
+fn validation(e: &Entry) -> String {
+    e.validation
+        .iter()
+        .map(|(n, v)| match n.as_str() {
+            "val_psnr_db" => format!("PSNR {v:.2} dB"),
+            "val_mse" => format!("MSE {v:.3e}"),
+            "val_depth_mae_m" => format!("range MAE {:.1} cm", v * 100.0),
+            "val_depth_rmse_m" => format!("range RMSE {:.1} cm", v * 100.0),
+            "val_detection" => format!("detected {:.1} %", v * 100.0),
+            "val_lifetime_mae_ns" => format!("lifetime MAE {v:.3} ns"),
+            "val_coverage" => format!("coverage {:.1} %", v * 100.0),
+            other => format!("{other} {v:.4}"),
+        })
+        .collect::<Vec<_>>()
+        .join(", ")
+}
