@@ -132,13 +132,12 @@ class Sensor:
     def backproject(self, y):  # Aᵀ(AAᵀ + εI)⁻¹y, [B, M, H, W] → [B, T, H, W]
         return (self.pinv.unsqueeze(0) * y.unsqueeze(1)).sum(2)
 
-    def dc(self, torch, v, rho):
-        """(AᵀA + ρI)⁻¹v = (v − Aᵀ Q diag(1/(ρ + λ)) Qᵀ A v)/ρ, differentiable in v and ρ."""
+    def x_update(self, torch, w, y, rho):
+        """(AᵀA + ρI)⁻¹(Aᵀy + ρw) = w + Aᵀ Q diag(1/(ρ + λ)) Qᵀ (y − Aw), differentiable in w, y, ρ."""
         k_n = self.q @ torch.diag_embed(1.0 / (rho + self.lam)) @ self.q.transpose(1, 2)  # [N, M, M]
         k = self.frame(torch, k_n, self.h, self.w)  # [M, M, H, W]
-        w1 = self.forward(v)  # [B, M, H, W]
-        w2 = (k.unsqueeze(0) * w1.unsqueeze(1)).sum(2)
-        return (v - self.adjoint(w2)) / rho
+        r = y - self.forward(w)  # [B, M, H, W]
+        return w + self.adjoint((k.unsqueeze(0) * r.unsqueeze(1)).sum(2))
 
 
 def AdmmNet(torch, sensor, stages, prior, channels):
@@ -191,12 +190,11 @@ def AdmmNet(torch, sensor, stages, prior, channels):
             self.stages = nn.ModuleList(Stage() for _ in range(stages))
 
         def forward(self, y):
-            aty = sensor.adjoint(y)
             z = sensor.backproject(y)
             u = torch.zeros_like(z)
             for st in self.stages:
                 rho = st.log_rho.exp()
-                x = sensor.dc(torch, aty + rho * (z - u), rho)
+                x = sensor.x_update(torch, z - u, y, rho)
                 xu = x + u
                 z = xu + st.prior(xu)
                 u = u + st.eta * (x - z)

@@ -3,15 +3,18 @@
 //! Stage `k` (learned `ρ_k > 0`, step `η_k`, CNN prior `P_k` with `CN` channels):
 //!
 //! ```text
-//! x_k = (AᵀA + ρ_k I)⁻¹ (Aᵀy + ρ_k (z_{k−1} − u_{k−1}))      exact, per pixel (Woodbury)
+//! x_k = (AᵀA + ρ_k I)⁻¹ (Aᵀy + ρ_k (z_{k−1} − u_{k−1}))      exact, per pixel
 //! z_k = (x_k + u_{k−1}) + P_k(x_k + u_{k−1})                   residual CNN: 3×3 convs T→CN→CN→T
 //! u_k = u_{k−1} + η_k (x_k − z_k)
 //! ```
 //!
 //! starting from the normalised back-projection `z_0 = Aᵀ(AAᵀ + εI)⁻¹y` (the minimum-norm
-//! solution of `Ax = y`), `u_0 = 0`; the output is `z_S`. The data-consistency step uses
-//! `(ρI + AᵀA)⁻¹ = (I − Aᵀ(ρI_M + AAᵀ)⁻¹A)/ρ`, where `AAᵀ = QΛQᵀ` is decomposed once per
-//! subpixel type, so `(ρI_M + AAᵀ)⁻¹ = Q diag(1/(ρ+λ)) Qᵀ` stays differentiable in `ρ`.
+//! solution of `Ax = y`), `u_0 = 0`; the output is `z_S`. The data-consistency step is
+//! computed as `x_k = w + Aᵀ(ρI_M + AAᵀ)⁻¹(y − Aw)`, `w = z_{k−1} − u_{k−1}` (equal by the
+//! push-through identity, and free of the `λ/ρ`-fold cancellation of the Woodbury form
+//! `(I − Aᵀ(ρI_M + AAᵀ)⁻¹A)/ρ` applied to the right-hand side), where `AAᵀ = QΛQᵀ` is
+//! decomposed once per subpixel type, so `(ρI_M + AAᵀ)⁻¹ = Q diag(1/(ρ+λ)) Qᵀ` stays
+//! differentiable in `ρ`.
 //! The prior comes in two kinds ([`Prior`]). The paper's (`bins`) makes time the channel
 //! axis of 3×3 convolutions over the frame: cheap, but each bin has its own weights, so a
 //! network trained on decays that start at one delay has learned that delay. The
@@ -207,13 +210,12 @@ impl AdmmNet {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
     fn unrolled(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
-        let aty = sensor.adjoint(y.clone()); // [B, T, H, W]
-        let mut z = sensor.pinv(y);
+        let mut z = sensor.pinv(y.clone()); // [B, T, H, W]
         let mut u = z.zeros_like();
         for st in &self.stages {
             let rho = st.log_rho.val().exp();
-            let v = aty.clone() + (z.clone() - u.clone()) * rho.clone().reshape([1, 1, 1, 1]);
-            let x = sensor.data_consistency(v, rho);
+            // (AᵀA + ρI)⁻¹(Aᵀy + ρ(z − u)) without the cancellation of forming Aᵀy + ρ(z − u)
+            let x = sensor.x_update(z.clone() - u.clone(), y.clone(), rho);
             let xu = x.clone() + u.clone();
             z = xu.clone() + st.prior(xu, self.prior());
             u = u + (x - z.clone()) * st.eta.val().reshape([1, 1, 1, 1]);

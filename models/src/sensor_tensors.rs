@@ -7,6 +7,12 @@
 //! [`MeasurementMatrix::gram_eigen`], so `(ρI_M + A_nA_nᵀ)⁻¹ = Q_n diag(1/(ρ + λ_n)) Q_nᵀ`
 //! and, by Woodbury, `(AᵀA + ρI)⁻¹ = (I − Aᵀ(ρI_M + AAᵀ)⁻¹A)/ρ` stay differentiable in `ρ`.
 //!
+//! ADMM's x-update `(AᵀA + ρI)⁻¹(Aᵀy + ρw)` is computed as `w + Aᵀ(ρI_M + AAᵀ)⁻¹(y − Aw)`
+//! ([`SensorTensors::x_update`]; the same by the push-through identity). Forming the
+//! right-hand side and dividing by `ρ` instead cancels terms of size `λ/ρ` times the result:
+//! with the FLIm sensor's `λ ≈ 10⁴` (T = 256) and `ρ ≈ 0.1` that is 10⁵ times f32's rounding,
+//! enough for two runtimes (or two thread counts) to disagree by a per cent.
+//!
 //! Two implementations of the same algebra: the fused frame-layout kernels of
 //! `tcsense-kernels` ([`pixel_linear`], [`pixel_dc`]; what the networks run) and a reference
 //! composed from burn ops in *block layout* (`[B, N, C, P]`, batched matmuls; differentiable
@@ -44,6 +50,8 @@ pub struct SensorTensors {
     /// Whether `a`/`at` carry a graph to learnable codes ([`Self::with_matrix`]): the operators
     /// then run in block layout from burn ops, differentiable in `A`.
     pub differentiable: bool,
+    /// `λ_{n(r,c), j}` at every pixel, `[1, M, H, W]` (for the fused x-update).
+    pub lambda_frame: Tensor<4>,
     /// Whether the device has no fused kernels (anything but the CPU `flex` device, e.g. the
     /// wgpu GPU backend): the operators then run in block layout from burn ops too.
     pub composed: bool,
@@ -56,6 +64,10 @@ pub struct FusedSensor {
     pub at: Arc<PixelMap>,
     pub pinv: Arc<PixelMap>,
     pub dc: Arc<PixelSensor>,
+    /// `Q_nᵀ`, `M → M`.
+    pub qt: Arc<PixelMap>,
+    /// `A_nᵀQ_n` (formed in f64), `M → T`.
+    pub atq: Arc<PixelMap>,
 }
 
 impl SensorTensors {
@@ -96,12 +108,32 @@ impl SensorTensors {
                 }
             }
         }
+        // A_nᵀQ_n in f64: a column with λ ≈ 0 is ≈ 0 and must stay so
+        let mut atq_v = vec![0f32; n_sub * t * m];
+        for k in 0..n_sub {
+            for j in 0..t {
+                for c in 0..m {
+                    atq_v[(k * t + j) * m + c] = (0..m).map(|r| av[(k, r, j)] as f64 * q[(k, r, c)]).sum::<f64>() as f32;
+                }
+            }
+        }
         let block = a.block();
+        let (bh, bw) = block;
+        let mut lf = vec![0f32; m * height * width];
+        for j in 0..m {
+            for r in 0..height {
+                for c in 0..width {
+                    lf[(j * height + r) * width + c] = l_v[((r % bh) * bw + c % bw) * m + j];
+                }
+            }
+        }
         let fused = FusedSensor {
             a: Arc::new(PixelMap::new(block, m, t, width, &a_v)),
             at: Arc::new(PixelMap::new(block, t, m, width, &at_v)),
             pinv: Arc::new(PixelMap::new(block, t, m, width, &pinv_v)),
             dc: Arc::new(PixelSensor::new(block, m, t, width, &a_v, &q_v, &l_v)),
+            qt: Arc::new(PixelMap::new(block, m, m, width, &qt_v)),
+            atq: Arc::new(PixelMap::new(block, t, m, width, &atq_v)),
         };
         Ok(SensorTensors {
             fused,
@@ -110,6 +142,7 @@ impl SensorTensors {
             q: Tensor::from_data(TensorData::new(q_v, [1, n_sub, m, m]), device),
             qt: Tensor::from_data(TensorData::new(qt_v, [1, n_sub, m, m]), device),
             lambda: Tensor::from_data(TensorData::new(l_v, [1, n_sub, 1, m]), device),
+            lambda_frame: Tensor::from_data(TensorData::new(lf, [1, m, height, width]), device),
             taps: m,
             bins: t,
             height,
@@ -243,6 +276,24 @@ impl SensorTensors {
         (v - self.at_blocks(w)) / rho.reshape([1, 1, 1, 1])
     }
 
+    /// ADMM's x-update `x = (AᵀA + ρI)⁻¹(Aᵀy + ρw)`, computed as `w + Aᵀ(ρI + AAᵀ)⁻¹(y − Aw)`
+    /// (see the module documentation: no division by `ρ`, so rounding is not amplified by
+    /// `λ/ρ`); differentiable in `w`, `y` and `ρ` (and in `A` with [`Self::with_matrix`]).
+    ///
+    /// # Shapes
+    /// - `w`: `[B, T, H, W]`, `y`: `[B, M, H, W]`, `rho`: `[1]` → `[B, T, H, W]`
+    pub fn x_update(&self, w: Tensor<4>, y: Tensor<4>, rho: Tensor<1>) -> Tensor<4> {
+        if self.in_blocks() {
+            let wb = self.to_blocks(w);
+            let r = self.to_blocks(y) - self.a_blocks(wb.clone());
+            return self.from_blocks(wb + self.at_blocks(self.solve_aat(r, rho)));
+        }
+        // Q_nᵀ r, scaled by 1/(ρ + λ) per eigenvector, back through A_nᵀQ_n
+        let r = y - pixel_linear(w.clone(), self.fused.a.clone());
+        let coef = (self.lambda_frame.clone() + rho.reshape([1, 1, 1, 1])).recip();
+        w + pixel_linear(pixel_linear(r, self.fused.qt.clone()) * coef, self.fused.atq.clone())
+    }
+
     /// Exact data consistency on frames, fused ([`pixel_dc`]): differentiable in `v` and `ρ`.
     ///
     /// # Shapes
@@ -309,6 +360,66 @@ mod tests {
             let fd = (f(up) - f(down)) / (2.0 * eps as f64);
             assert!((g[idx] as f64 - fd).abs() <= 2e-2 * fd.abs().max(0.1), "dA[{idx}]: autodiff {} vs finite differences {fd}", g[idx]);
         }
+    }
+
+    /// The x-update on the FLIm sensor (heterodyne K = 8, T = 256: `λ` up to ~10⁴) with a small
+    /// `ρ`: within 1e-5 of the f64 solution, fused and composed, where the Woodbury form on the
+    /// formed right-hand side loses 10⁻³ or more (the burn/ONNX Runtime disagreement of
+    /// trained FLIm networks).
+    #[test]
+    fn x_update_is_accurate_where_the_woodbury_form_cancels() {
+        let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
+        let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 5).unwrap();
+        let spec = SensorParams { irf: tcsense_sensor::Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }, sampling: tcsense_sensor::params::Sampling::Heterodyne(8), ..SensorParams::from_codes(&codes) }.validate().unwrap();
+        let a = MeasurementMatrix::synthesize(&codes, &spec).unwrap();
+        let (m, t, h, w) = (4, 256, 2, 4);
+        assert_eq!(a.bins(), t);
+        let av = a.a();
+        // a decay per pixel as w, and measurements of another one
+        let wv: Vec<f32> = (0..t * h * w).map(|i| (-((i / (h * w)) as f32) / 20.0).exp() * (1.0 + (i % 7) as f32 / 10.0)).collect();
+        let yv: Vec<f32> = (0..m * h * w).map(|i| 40.0 + (i * 13 % 11) as f32).collect();
+        let rho = 0.05f64;
+        // f64: x = w + Aᵀ(ρI + AAᵀ)⁻¹(y − Aw) per pixel, the M × M system by Gaussian elimination
+        let mut want = vec![0f64; t * h * w];
+        for r in 0..h {
+            for c in 0..w {
+                let n = (r % 2) * 2 + c % 2;
+                let px = |j: usize| (j * h + r) * w + c;
+                let res: Vec<f64> = (0..m).map(|k| yv[(k * h + r) * w + c] as f64 - (0..t).map(|j| av[(n, k, j)] as f64 * wv[px(j)] as f64).sum::<f64>()).collect();
+                let mut mtx: Vec<f64> = (0..m * m).map(|ij| (0..t).map(|j| av[(n, ij / m, j)] as f64 * av[(n, ij % m, j)] as f64).sum::<f64>() + if ij / m == ij % m { rho } else { 0.0 }).collect();
+                let mut rhs = res.clone();
+                for k in 0..m {
+                    for i in k + 1..m {
+                        let f = mtx[i * m + k] / mtx[k * m + k];
+                        for j in k..m {
+                            mtx[i * m + j] -= f * mtx[k * m + j];
+                        }
+                        rhs[i] -= f * rhs[k];
+                    }
+                }
+                let mut sol = vec![0.0; m];
+                for k in (0..m).rev() {
+                    sol[k] = (rhs[k] - (k + 1..m).map(|j| mtx[k * m + j] * sol[j]).sum::<f64>()) / mtx[k * m + k];
+                }
+                for j in 0..t {
+                    want[px(j)] = wv[px(j)] as f64 + (0..m).map(|k| av[(n, k, j)] as f64 * sol[k]).sum::<f64>();
+                }
+            }
+        }
+        let scale = want.iter().fold(0f64, |acc, v| acc.max(v.abs()));
+        let err = |got: Tensor<4>| {
+            let got: Vec<f32> = got.into_data().try_into_vec::<f32>().unwrap();
+            got.iter().zip(&want).fold(0f64, |acc, (g, w)| acc.max((*g as f64 - w).abs())) / scale
+        };
+        let device = Device::flex();
+        let st = SensorTensors::new(&a, h, w, &device).unwrap();
+        let (wt, yt) = (Tensor::<4>::from_data(TensorData::new(wv.clone(), [1, t, h, w]), &device), Tensor::<4>::from_data(TensorData::new(yv.clone(), [1, m, h, w]), &device));
+        let rho_t = || Tensor::<1>::from_floats([rho as f32], &device);
+        let fused = err(st.x_update(wt.clone(), yt.clone(), rho_t()));
+        let composed = err(st.clone().with_matrix(st.a.clone().squeeze_dim(0)).x_update(wt.clone(), yt.clone(), rho_t()));
+        let woodbury = err(st.data_consistency(st.adjoint(yt) + wt * rho as f32, rho_t()));
+        assert!(fused < 1e-5 && composed < 1e-5, "x-update error of the scale: fused {fused:e}, composed {composed:e}");
+        assert!(woodbury > 1e-3, "the Woodbury form on Aᵀy + ρw cancels ({woodbury:e}); if not, this test no longer shows why x_update exists");
     }
 
     #[test]

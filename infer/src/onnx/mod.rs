@@ -195,10 +195,9 @@ fn admm_net(g: &mut Graph, net: &AdmmNet, sensor: &SensorGraph, y: &str) -> Resu
         None => y.to_string(),
     };
     let yb = sensor.measurement_blocks(g, &y);
-    let (aty, mut z) = sensor.adjoint_and_pinv(g, &yb);
+    let mut z = sensor.pinv(g, &yb);
     let rhos: Vec<f64> = net.stages().iter().map(|s| s.rho() as f64).collect();
     let dc = sensor.dc_weights(g, &rhos);
-    let aaty = sensor.forward_blocks(g, &aty, &dc);
     let mut u: Option<String> = None;
     for (k, st) in net.stages().iter().enumerate() {
         // x = (AᵀA + ρI)⁻¹(Aᵀy + ρ(z − u))
@@ -206,7 +205,7 @@ fn admm_net(g: &mut Graph, net: &AdmmNet, sensor: &SensorGraph, y: &str) -> Resu
             Some(u) => g.op("Sub", &[&z, u]),
             None => z.clone(),
         };
-        let x = sensor.x_update(g, &d, &yb, &aaty, &dc, k, rhos[k]);
+        let x = sensor.x_update(g, &d, &yb, &dc, k);
         let xu = match &u {
             Some(u) => g.op("Add", &[&x, u]),
             None => x.clone(),

@@ -6,9 +6,9 @@
 //! convolutions: a `Conv` with a `bh × bw` kernel and stride (output channel `n·C_out + c`
 //! sees only kernel tap `(n / bw, n mod bw)`) goes from frames to blocks, and a
 //! `ConvTranspose` with the same kernel and stride (input channel `n·C_in + k` writes only
-//! subpixel `n`) goes back to frames, with the matrices in either. The data-consistency solve
-//! `(AᵀA + ρI)⁻¹v = v/ρ − Aᵀ(ρI + AAᵀ)⁻¹A v/ρ` (Woodbury) is then a `Conv` with `A_n` to
-//! `N·M` block channels and a `ConvTranspose` with `A_nᵀ(ρI + A_nA_nᵀ)⁻¹/ρ` back: two
+//! subpixel `n`) goes back to frames, with the matrices in either. ADMM's x-update
+//! `(AᵀA + ρI)⁻¹(Aᵀy + ρd) = d + Aᵀ(ρI + AAᵀ)⁻¹(y − Ad)` is then a `Conv` with `A_n` to
+//! `N·M` block channels and a `ConvTranspose` with `A_nᵀ(ρI + A_nA_nᵀ)⁻¹` back: two
 //! convolutions through `M` channels instead of a `T × T` product per pixel. (`DepthToSpace`
 //! would express the same; ONNX Runtime's runs several times slower than the transposed
 //! convolution, and only for square blocks.)
@@ -99,7 +99,7 @@ impl SensorGraph {
         self.n
     }
 
-    /// Measurements in block layout (for [`Self::adjoint_and_pinv`] and [`Self::x_update`]).
+    /// Measurements in block layout (for [`Self::pinv`] and [`Self::x_update`]).
     ///
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → `[B, N·M, H/bh, W/bw]`
@@ -107,21 +107,20 @@ impl SensorGraph {
         self.to_blocks(g, y, self.m)
     }
 
-    /// `Aᵀy` and the back-projection `Aᵀ(AAᵀ + εI)⁻¹y` with one transposed convolution.
+    /// The back-projection `Aᵀ(AAᵀ + εI)⁻¹y`: one transposed convolution.
     ///
     /// # Shapes
-    /// - `yb`: `[B, N·M, H/bh, W/bw]` (from [`Self::measurement_blocks`]) → (`[B, T, H, W]`, `[B, T, H, W]`)
-    pub fn adjoint_and_pinv(&self, g: &mut Graph, yb: &str) -> (String, String) {
+    /// - `yb`: `[B, N·M, H/bh, W/bw]` (from [`Self::measurement_blocks`]) → `[B, T, H, W]`
+    pub fn pinv(&self, g: &mut Graph, yb: &str) -> String {
         let (n, m, t) = (self.n, self.m, self.t);
         let mats = match &self.src {
             Source::Baked { a, gram, eps } => {
-                let mut w = vec![0f64; n * 2 * t * m];
+                let mut w = vec![0f64; n * t * m];
                 for k in 0..n {
                     let inv = spd_inverse(&gram[k * m * m..(k + 1) * m * m], m, *eps);
                     for j in 0..t {
                         for c in 0..m {
-                            w[(k * 2 * t + j) * m + c] = a[(k * m + c) * t + j];
-                            w[(k * 2 * t + t + j) * m + c] = (0..m).map(|r| a[(k * m + r) * t + j] * inv[r * m + c]).sum();
+                            w[(k * t + j) * m + c] = (0..m).map(|r| a[(k * m + r) * t + j] * inv[r * m + c]).sum();
                         }
                     }
                 }
@@ -131,17 +130,11 @@ impl SensorGraph {
                 let k = self.inverses(g, eps); // [1, N, M, M]
                 let axis0 = g.ints("axis0", &[0]);
                 let k = g.op("Squeeze", &[&k, &axis0]); // [N, M, M]
-                let pinv = g.op("MatMul", &[at, &k]); // [N, T, M]
-                Mats::Value(g.node("Concat", &[at, &pinv], &[Attr::Int("axis", 1)]))
+                Mats::Value(g.op("MatMul", &[at, &k])) // [N, T, M]
             }
         };
-        let w = self.back_weight(g, "adjoint_pinv", mats, 2 * t, m);
-        let both = self.from_blocks(g, yb, &w);
-        let split = g.ints("split", &[t as i64, t as i64]);
-        let mut parts = g.node_multi("Split", &[&both, &split], &[Attr::Int("axis", 1)], 2).into_iter();
-        let aty = parts.next().unwrap_or_default();
-        let pinv = parts.next().unwrap_or_default();
-        (aty, pinv)
+        let w = self.back_weight(g, "pinv", mats, t, m);
+        self.from_blocks(g, yb, &w)
     }
 
     /// `Aᵀy`.
@@ -198,27 +191,26 @@ impl SensorGraph {
         self.from_blocks(g, &blocks, &w)
     }
 
-    /// Weights of the stages' data-consistency solves: the frame-to-block `A` convolution
-    /// (shared) and, per `ρ`, the block-to-frame transposed convolution of `[y ; w]` with
-    /// `[A_nᵀ/ρ ; −A_nᵀ(ρI + A_nA_nᵀ)⁻¹/ρ]` (see [`Self::x_update`]).
+    /// Weights of the stages' x-updates: the frame-to-block `A` convolution (shared) and, per
+    /// `ρ`, the block-to-frame transposed convolution with `A_nᵀ(ρI + A_nA_nᵀ)⁻¹` (see
+    /// [`Self::x_update`]).
     pub fn dc_weights(&self, g: &mut Graph, rhos: &[f64]) -> DcWeights {
         let (n, m, t) = (self.n, self.m, self.t);
-        let (a_mats, stages): (Mats, Vec<(Mats, Mats)>) = match &self.src {
+        let (a_mats, stages): (Mats, Vec<Mats>) = match &self.src {
             Source::Baked { a, gram, .. } => {
                 let stages = rhos
                     .iter()
                     .map(|&rho| {
-                        let (mut at, mut back) = (vec![0f64; n * t * m], vec![0f64; n * t * m]);
+                        let mut back = vec![0f64; n * t * m];
                         for k in 0..n {
                             let inv = spd_inverse(&gram[k * m * m..(k + 1) * m * m], m, rho);
                             for j in 0..t {
                                 for c in 0..m {
-                                    at[(k * t + j) * m + c] = a[(k * m + c) * t + j] / rho;
-                                    back[(k * t + j) * m + c] = -(0..m).map(|r| a[(k * m + r) * t + j] * inv[r * m + c]).sum::<f64>() / rho;
+                                    back[(k * t + j) * m + c] = (0..m).map(|r| a[(k * m + r) * t + j] * inv[r * m + c]).sum::<f64>();
                                 }
                             }
                         }
-                        (Mats::Const(at), Mats::Const(back))
+                        Mats::Const(back)
                     })
                     .collect();
                 (Mats::Const(a.clone()), stages)
@@ -230,32 +222,18 @@ impl SensorGraph {
                 let axis0 = g.ints("axis0", &[0]);
                 let at4 = g.op("Unsqueeze", &[at, &axis0]); // [1, N, T, M]
                 let w = g.op("MatMul", &[&at4, &k]); // [S, N, T, M]
-                let neg_inv_rho: Vec<f32> = rhos.iter().map(|&r| (-1.0 / r) as f32).collect();
-                let neg_inv_rho = g.weight("neg_inv_rhos", &[rhos.len(), 1, 1, 1], &neg_inv_rho);
-                let w = g.op("Mul", &[&w, &neg_inv_rho]);
-                let stages = rhos
-                    .iter()
-                    .enumerate()
-                    .map(|(s, &rho)| {
+                let stages = (0..rhos.len())
+                    .map(|s| {
                         let idx = g.ints("stage", &[s as i64]);
                         let ws = g.node("Gather", &[&w, &idx], &[Attr::Int("axis", 0)]); // [1, N, T, M]
-                        let back = Mats::Value(g.op("Squeeze", &[&ws, &axis0]));
-                        let inv = g.scalar("inv_rho", (1.0 / rho) as f32);
-                        (Mats::Value(g.op("Mul", &[at, &inv])), back)
+                        Mats::Value(g.op("Squeeze", &[&ws, &axis0]))
                     })
                     .collect();
                 (Mats::Value(a.clone()), stages)
             }
         };
         let a = self.frame_weight(g, "dc_a", a_mats, m, t);
-        let ct = stages
-            .into_iter()
-            .map(|(at, back)| {
-                let at = self.back_weight(g, "dc_at", at, t, m);
-                let back = self.back_weight(g, "dc_back", back, t, m);
-                g.node("Concat", &[&at, &back], &[Attr::Int("axis", 0)]) // [2·N·M, T, bh, bw]
-            })
-            .collect();
+        let ct = stages.into_iter().map(|back| self.back_weight(g, "dc_back", back, t, m)).collect();
         DcWeights { a, ct }
     }
 
@@ -274,22 +252,19 @@ impl SensorGraph {
         g.node("Conv", &[x, w], &[Attr::Ints("kernel_shape", &[bh as i64, bw as i64]), Attr::Ints("strides", &[bh as i64, bw as i64])])
     }
 
-    /// ADMM's x-update of stage `s`, `x = (AᵀA + ρI)⁻¹(Aᵀy + ρd)`, without forming the
-    /// right-hand side: by Woodbury and linearity,
-    /// `x = d + Aᵀy/ρ − Aᵀ(ρI + AAᵀ)⁻¹(AAᵀy + ρ·Ad)/ρ`, where `AAᵀy` (`aaty`, from
-    /// [`Self::forward_blocks`] of `Aᵀy`) is computed once for all stages. Per stage this is one
-    /// strided convolution (`Ad`), two small operations in block layout, one transposed
-    /// convolution and one full-frame addition.
+    /// ADMM's x-update of stage `s`, `x = (AᵀA + ρI)⁻¹(Aᵀy + ρd)`, as
+    /// `x = d + Aᵀ(ρI + AAᵀ)⁻¹(y − Ad)` (the push-through identity; forming the right-hand
+    /// side and dividing by `ρ` would cancel terms `λ/ρ` times larger than the result, and
+    /// rounding with them: see `tcsense_models::sensor_tensors`). One strided convolution
+    /// (`Ad`), a subtraction in block layout, one transposed convolution and one full-frame
+    /// addition.
     ///
     /// # Shapes
-    /// - `d`: `[B, T, H, W]`, `yb`, `aaty`: `[B, N·M, H/bh, W/bw]` → `[B, T, H, W]`
-    pub fn x_update(&self, g: &mut Graph, d: &str, yb: &str, aaty: &str, w: &DcWeights, s: usize, rho: f64) -> String {
+    /// - `d`: `[B, T, H, W]`, `yb`: `[B, N·M, H/bh, W/bw]` → `[B, T, H, W]`
+    pub fn x_update(&self, g: &mut Graph, d: &str, yb: &str, w: &DcWeights, s: usize) -> String {
         let ad = self.forward_blocks(g, d, w);
-        let r = g.scalar("rho", rho as f32);
-        let rad = g.op("Mul", &[&ad, &r]);
-        let rhs = g.op("Add", &[&rad, aaty]);
-        let cat = g.node("Concat", &[yb, &rhs], &[Attr::Int("axis", 1)]); // [B, 2·N·M, H', W']
-        let back = self.from_blocks(g, &cat, &w.ct[s]); // Aᵀy/ρ − Aᵀ(ρI + AAᵀ)⁻¹(…)/ρ
+        let r = g.op("Sub", &[yb, &ad]);
+        let back = self.from_blocks(g, &r, &w.ct[s]);
         g.op("Add", &[d, &back])
     }
 
