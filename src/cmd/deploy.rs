@@ -163,9 +163,12 @@ pub struct BenchInferArgs {
     /// Fresh ADMM-Net: stages S.
     #[arg(long, default_value_t = 9)]
     stages: usize,
-    /// Fresh ADMM-Net: channels CN.
+    /// Fresh ADMM-Net: channels CN (per bin with --prior delay).
     #[arg(long, default_value_t = 32)]
     channels: usize,
+    /// Fresh ADMM-Net: the prior (`bins` or `delay`).
+    #[arg(long, default_value = "bins", value_parser = ["bins", "delay"])]
+    prior: String,
     /// Fresh networks: bins T (L = 32, K = T/32).
     #[arg(long, default_value_t = 32)]
     bins: usize,
@@ -195,7 +198,10 @@ fn fresh_run(a: &BenchInferArgs) -> Result<runs::LoadedRun> {
     let sampling = Sampling::Oversample(a.bins / 32);
     let model = match a.decoder.as_str() {
         "unet" => runs::ModelConfig::Unet(tcsense_models::UnetConfig::new(4, a.bins, 299_792_458.0 * 32.0 / 607e6 / 2.0)),
-        "admm-net" => runs::ModelConfig::AdmmNet(tcsense_models::AdmmNetConfig::new(4, a.bins).with_stages(a.stages).with_channels(a.channels).with_normalize(true)),
+        "admm-net" => {
+            let prior = if a.prior == "delay" { tcsense_models::Prior::Delay } else { tcsense_models::Prior::Bins };
+            runs::ModelConfig::AdmmNet(tcsense_models::AdmmNetConfig::new(4, a.bins).with_stages(a.stages).with_channels(a.channels).with_normalize(true).with_prior(prior))
+        }
         "lifetime" => runs::ModelConfig::Lifetime(tcsense_models::LifetimeNetConfig::new(4, a.bins)),
         other => bail!("--decoder {other:?}: expected unet, admm-net or lifetime"),
     };
