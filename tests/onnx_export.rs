@@ -177,6 +177,12 @@ fn unet_in_onnx_runtime_equals_burn() {
         // depth in metres within the range, confidence a probability
         assert!(got[0].iter().all(|v| (0.0..=12.0).contains(v)) && got[1].iter().all(|v| (0.0..=1.0).contains(v)));
     }
+    // the score-volume head: the soft-argmax in the graph, depth between the first and last bin centres
+    let scores = |m: usize, t: usize| ModelConfig::Unet(UnetConfig::new(m, t, 12.0).with_base_width(4).with_levels(3).with_returns(2).with_head(tcsense_models::UnetHead::ScoreVolume));
+    let run = random_run(scores, (2, 2), Sampling::Oversample(2), Irf::Ideal, 5);
+    for got in ort_equals_burn("unet score volume", &run, &[(8, 8), (12, 16)], 10, "unet-scores.onnx", &["depth", "confidence"]) {
+        assert!(got[0].iter().all(|v| (0.37..=11.63).contains(v)) && got[1].iter().all(|v| (0.0..=1.0).contains(v)));
+    }
 }
 
 #[test]

@@ -43,7 +43,7 @@ pub use decoder::{Control, Decoded, Decoder};
 pub use lifetime::{LifetimeNet, LifetimeNetConfig};
 pub use sensor_tensors::SensorTensors;
 pub use tval3::{tval3, TvNorm, Tval3Options, Tval3Report};
-pub use unet::{Unet, UnetConfig};
+pub use unet::{Unet, UnetConfig, UnetHead};
 
 use std::path::PathBuf;
 

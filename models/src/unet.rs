@@ -6,9 +6,17 @@
 //! x̄ ──pad to a multiple of 2^(levels−1)──▶ U-Net ──crop──▶ [B, 2K, H, W]
 //!     level ℓ: two 3×3 conv + ReLU with w·2^ℓ channels; 2×2 max-pool between levels;
 //!     decoder: nearest ×2 up-sampling, concatenation with the skip, two 3×3 conv + ReLU;
-//!     head: 1×1 conv to 2K channels
-//! depth_k = r_max·sigmoid(o_k) (m),  confidence_k = sigmoid(o_{K+k})
+//!     head: 1×1 conv to K·T + K channels (score volume) or 2K (regression)
+//! score volume: depth_k = Σ_t softmax_t(s_{k,t})·(t + ½)·Δ (m), Δ = r_max/T   (soft-argmax)
+//! regression:   depth_k = r_max·sigmoid(o_k) (m)                            (runs before it)
+//! confidence_k = sigmoid(o_{K+k})
 //! ```
+//!
+//! The score volume ([`UnetHead::ScoreVolume`]) is what learned single-photon 3-D imaging
+//! decoders output: a score per bin and return, the range its soft-argmax. Where the
+//! regression head squeezes the whole range through one sigmoid (and was imprecise to a
+//! bin and more on scenes unlike its training set), the soft-argmax places a return between
+//! bin centres by the weights of the neighbouring bins, as peak fitting does.
 //!
 //! The normalisation is part of the model, so deployment feeds raw tap images, and it makes
 //! the output invariant to the scale of `y` (`y` and `10·y` give the same depth). Time is the
@@ -52,6 +60,18 @@ pub struct UnetConfig {
     /// Resolutions (`levels − 1` down-samplings by 2).
     #[config(default = 3)]
     pub levels: usize,
+    /// How the range is read out (`regression` in runs written before the score volume).
+    #[config(default = "UnetHead::Regression")]
+    pub head: UnetHead,
+}
+
+/// The U-Net's read-out of the range (see the module documentation).
+#[derive(Config, Debug, PartialEq, Eq, Copy)]
+pub enum UnetHead {
+    /// `depth = r_max·sigmoid(o)`: one regressed value per return.
+    Regression,
+    /// A score per bin and return, `depth` its soft-argmax over the bin centres.
+    ScoreVolume,
 }
 
 /// Two 3×3 conv + ReLU.
@@ -70,6 +90,8 @@ pub struct Unet {
     returns: usize,
     levels: usize,
     range_m: f64,
+    /// Bins `T` of the score volume; 0 for the regression head.
+    score_bins: usize,
 }
 
 impl UnetConfig {
@@ -88,8 +110,17 @@ impl UnetConfig {
         let block = |i: usize, o: usize| Block::new(i, o, device);
         let down = (0..self.levels).map(|l| block(if l == 0 { self.bins } else { self.width(l - 1) }, self.width(l))).collect();
         let up = (0..self.levels.saturating_sub(1)).map(|l| block(self.width(l + 1) + self.width(l), self.width(l))).collect();
-        let head = Conv2dConfig::new([self.width(0), 2 * self.returns], [1, 1]).init(device);
-        Unet { down, up, head, returns: self.returns, levels: self.levels, range_m: self.range_m }
+        let head = Conv2dConfig::new([self.width(0), self.head_channels()], [1, 1]).init(device);
+        let score_bins = if self.head == UnetHead::ScoreVolume { self.bins } else { 0 };
+        Unet { down, up, head, returns: self.returns, levels: self.levels, range_m: self.range_m, score_bins }
+    }
+
+    /// Output channels of the 1×1 head: `K·T + K` (score volume) or `2K` (regression).
+    pub fn head_channels(&self) -> usize {
+        match self.head {
+            UnetHead::Regression => 2 * self.returns,
+            UnetHead::ScoreVolume => (self.bins + 1) * self.returns,
+        }
     }
 
     /// Multiply-adds ×2 per frame of `h × w` (convolutions, head and `Aᵀ`).
@@ -98,7 +129,7 @@ impl UnetConfig {
         let (h, w) = (h.div_ceil(s) * s, w.div_ceil(s) * s);
         let f = 2.0 * (self.taps * self.bins * h * w) as f64 // Aᵀ
             + trunk_flops(self.bins, self.levels, |l| self.width(l), h, w);
-        f + 2.0 * (h * w * self.width(0) * 2 * self.returns) as f64
+        f + 2.0 * (h * w * self.width(0) * self.head_channels()) as f64
     }
 }
 
@@ -195,10 +226,11 @@ impl Unet {
         x0 / (norm + mean * NORM_FLOOR + 1e-30)
     }
 
-    /// Raw outputs: depth logits then confidence logits.
+    /// Raw outputs: depth logits (regression, `K` channels) or scores (score volume, `K·T`
+    /// channels, return-major), then `K` confidence logits.
     ///
     /// # Shapes
-    /// - `y`: `[B, M, H, W]` → `[B, 2K, H, W]`
+    /// - `y`: `[B, M, H, W]` → `[B, 2K, H, W]` or `[B, K·T + K, H, W]`
     pub fn logits(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
         let x = Self::normalise(sensor.adjoint(y)); // [B, T, H, W]
         self.head_1x1(trunk(&self.down, &self.up, x))
@@ -227,14 +259,42 @@ impl Unet {
     /// The 1×1 head ([`conv1x1`]).
     ///
     /// # Shapes
-    /// - `z`: `[B, C, H, W]` → `[B, 2K, H, W]`
+    /// - `z`: `[B, C, H, W]` → `[B, 2K, H, W]` or `[B, K·T + K, H, W]`
     fn head_1x1(&self, z: Tensor<4>) -> Tensor<4> {
         conv1x1(&self.head, z)
     }
 
-    /// The 1×1 head to `2K` channels.
+    /// The 1×1 head (to `2K` channels, or `K·T + K` with the score volume).
     pub fn head(&self) -> &Conv2d {
         &self.head
+    }
+
+    /// The read-out of the range.
+    pub fn head_kind(&self) -> UnetHead {
+        if self.score_bins > 0 {
+            UnetHead::ScoreVolume
+        } else {
+            UnetHead::Regression
+        }
+    }
+
+    /// Bin centres of the score volume (m): `(t + ½)·r_max/T`, `T` values (empty for the
+    /// regression head).
+    pub fn bin_centres_m(&self) -> Vec<f32> {
+        let t = self.score_bins;
+        (0..t).map(|j| ((j as f64 + 0.5) * self.range_m / t as f64) as f32).collect()
+    }
+
+    /// The soft-argmax of a score volume over the bin centres.
+    ///
+    /// # Shapes
+    /// - `scores`: `[B, K·T, H, W]` → `[B, K, H, W]` (m)
+    pub fn soft_argmax(&self, scores: Tensor<4>) -> Tensor<4> {
+        let [b, _, h, w] = scores.dims();
+        let (k, t) = (self.returns, self.score_bins);
+        let p = burn::tensor::activation::softmax(scores.reshape([b, k, t, h, w]), 2);
+        let centres = Tensor::<1>::from_floats(self.bin_centres_m().as_slice(), &p.device()).reshape([1, 1, t, 1, 1]);
+        (p * centres).sum_dim(2).reshape([b, k, h, w])
     }
 
     /// Resolutions (`levels − 1` down-samplings by 2).
@@ -260,6 +320,11 @@ impl Network for Unet {
     fn predict(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
         let o = self.logits(y, sensor);
         let k = self.returns;
+        if self.score_bins > 0 {
+            let kt = k * self.score_bins;
+            let depth = self.soft_argmax(o.clone().narrow(1, 0, kt));
+            return Tensor::cat(vec![depth, o.narrow(1, kt, k)], 1);
+        }
         let depth = sigmoid(o.clone().narrow(1, 0, k)) * self.range_m;
         Tensor::cat(vec![depth, o.narrow(1, k, k)], 1)
     }
@@ -315,6 +380,33 @@ mod tests {
             + 18.0 * 4.0 * (8.0 * 16.0 + 256.0)
             + 2.0 * 64.0 * 4.0 * 4.0;
         assert_eq!(cfg.flops(8, 8), want);
+    }
+
+    #[test]
+    fn the_score_volume_reads_the_range_between_bin_centres() {
+        let device = Device::flex();
+        let cfg = UnetConfig::new(4, 8, 12.0).with_base_width(4).with_levels(2).with_returns(2).with_head(UnetHead::ScoreVolume);
+        assert_eq!(cfg.head_channels(), 18);
+        let net = cfg.init(&device);
+        assert_eq!(net.head_kind(), UnetHead::ScoreVolume);
+        // centres of 8 bins of 1.5 m
+        assert_eq!(net.bin_centres_m(), vec![0.75, 2.25, 3.75, 5.25, 6.75, 8.25, 9.75, 11.25]);
+        // return 0: equal scores at bins 2 and 3 → 4.5 m; return 1: one bin far above the
+        // rest → its centre, 9.75 m
+        let mut s = vec![0f32; 16];
+        (s[2], s[3], s[8 + 6]) = (30.0, 30.0, 40.0);
+        let scores = Tensor::<4>::from_data(TensorData::new(s, [1, 16, 1, 1]), &device);
+        let d: Vec<f32> = net.soft_argmax(scores).into_data().try_into_vec().unwrap();
+        assert!((d[0] - 4.5).abs() < 1e-4 && (d[1] - 9.75).abs() < 1e-4, "{d:?}");
+        // and through the whole network: depth within the range, scale invariant
+        let (_, st) = sensor(8, 8, &device);
+        let y = Tensor::<4>::random([1, 4, 8, 8], Distribution::Uniform(0.0, 1.0), &device);
+        let (depth, conf) = net.forward(y.clone(), &st);
+        assert_eq!((depth.dims(), conf.dims()), ([1, 2, 8, 8], [1, 2, 8, 8]));
+        let dv: Vec<f32> = depth.clone().into_data().try_into_vec().unwrap();
+        assert!(dv.iter().all(|&v| (0.75..=11.25).contains(&v)));
+        let diff = (net.forward(y * 7.0, &st).0 - depth).abs().max().into_scalar::<f32>();
+        assert!(diff < 1e-4, "scale changes the depth by {diff} m");
     }
 
     #[test]

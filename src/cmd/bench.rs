@@ -168,7 +168,7 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
                     (format!("ADMM-Net delay prior S={stages} C={delay_channels}/bin"), ModelConfig::AdmmNet(admm(Prior::Delay, delay_channels)), false),
                     (
                         format!("Aᵀ + U-Net K=2 width {unet_width}, {unet_levels} levels"),
-                        ModelConfig::Unet(tcsense_models::UnetConfig::new(4, t, range_m).with_base_width(unet_width).with_levels(unet_levels)),
+                        ModelConfig::Unet(tcsense_models::UnetConfig::new(4, t, range_m).with_base_width(unet_width).with_levels(unet_levels).with_head(tcsense_models::UnetHead::ScoreVolume)),
                         false,
                     ),
                     ("ADMM-Net bins prior, learned codes".to_string(), bins_prior, true),

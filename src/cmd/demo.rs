@@ -415,7 +415,7 @@ fn model_of(name: &str, ds: &Dataset) -> ModelConfig {
     let (m, t) = (4, ds.manifest.bins);
     if name.starts_with("unet") {
         let range_m = C * ds.manifest.bin_width_s * t as f64 / 2.0;
-        ModelConfig::Unet(UnetConfig::new(m, t, range_m))
+        ModelConfig::Unet(UnetConfig::new(m, t, range_m).with_head(tcsense_models::UnetHead::ScoreVolume))
     } else if name.ends_with("flim") {
         // onsets anywhere in the cycle: the delay-equivariant prior, 4 channels per bin
         ModelConfig::AdmmNet(AdmmNetConfig::cpu(m, t).with_prior(Prior::Delay).with_channels(4).with_normalize(true))

@@ -89,6 +89,12 @@ pub struct AdmmArgs {
 }
 
 #[derive(Clone, Copy, ValueEnum)]
+enum HeadArg {
+    ScoreVolume,
+    Regression,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
 enum PriorArg {
     Bins,
     Delay,
@@ -97,6 +103,11 @@ enum PriorArg {
 /// U-Net size.
 #[derive(Args)]
 pub struct UnetArgs {
+    /// How the range is read out: `score-volume` (a score per bin and return, the range their
+    /// soft-argmax: sub-bin precision) or `regression` (one sigmoid per return over the whole
+    /// range, as runs before the score volume).
+    #[arg(long, value_enum, default_value = "score-volume")]
+    head: HeadArg,
     /// Returns per pixel: 1 (first surface) or 2 (and the one behind a diffusive sheet).
     #[arg(long, default_value_t = 2)]
     returns: usize,
@@ -286,7 +297,11 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
             NetArgs::Unet(n) => {
                 // depth up to the unambiguous range of the dataset's cycle
                 let range_m = tcsense_datasets::grid::C * ds.manifest.bin_width_s * t as f64 / 2.0;
-                ModelConfig::Unet(UnetConfig::new(m, t, range_m).with_returns(n.returns).with_base_width(n.base_width).with_levels(n.levels))
+                let head = match n.head {
+                    HeadArg::ScoreVolume => tcsense_models::UnetHead::ScoreVolume,
+                    HeadArg::Regression => tcsense_models::UnetHead::Regression,
+                };
+                ModelConfig::Unet(UnetConfig::new(m, t, range_m).with_returns(n.returns).with_base_width(n.base_width).with_levels(n.levels).with_head(head))
             }
             NetArgs::Lifetime(n) => ModelConfig::Lifetime(LifetimeNetConfig::new(m, t).with_harmonics(n.harmonics).with_base_width(n.base_width).with_levels(n.levels)),
         };

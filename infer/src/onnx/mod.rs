@@ -355,8 +355,30 @@ fn unet(g: &mut Graph, net: &Unet, sensor: &SensorGraph, y: &str) -> Result<(Str
     let den = g.node("Add", &[&den, &tiny], &[]);
     let mut z = g.node("Div", &[&x0, &den], &[]);
     z = unet_trunk(g, net.down(), net.up(), &z)?;
-    let out = conv(g, net.head(), &z)?; // [B, 2K, H, W]
+    let out = conv(g, net.head(), &z)?; // [B, 2K, H, W] or [B, K·T + K, H, W]
     let k = net.returns() as i64;
+    if net.head_kind() == tcsense_models::UnetHead::ScoreVolume {
+        // soft-argmax of the scores [B, K, T, H, W] over the bin centres
+        let centres = net.bin_centres_m();
+        let t = centres.len() as i64;
+        let split = g.ints("split", &[k * t, k]);
+        let parts = g.node_multi("Split", &[&out, &split], &[Attr::Int("axis", 1)], 2);
+        let shape5 = g.ints("score_shape", &[0, k, t, -1]);
+        let flat = g.op("Reshape", &[&parts[0], &shape5]); // [B, K, T, H·W]
+        let p = g.node("Softmax", &[&flat], &[Attr::Int("axis", 2)]);
+        let c = g.weight("bin_centres_m", &[1, 1, centres.len(), 1], &centres);
+        let pc = g.op("Mul", &[&p, &c]);
+        let axis2 = g.ints("axis2", &[2]);
+        let d = g.node("ReduceSum", &[&pc, &axis2], &[Attr::Int("keepdims", 0)]); // [B, K, H·W]
+        let yshape = g.op("Shape", &[y]);
+        let (from, to) = (g.ints("from2", &[2]), g.ints("to4", &[4]));
+        let hw = g.node("Slice", &[&yshape, &from, &to], &[]);
+        let bk = g.ints("bk", &[0, k]);
+        let out_shape = g.node("Concat", &[&bk, &hw], &[Attr::Int("axis", 0)]);
+        let depth = g.op("Reshape", &[&d, &out_shape]); // [B, K, H, W]
+        let conf = g.node("Sigmoid", &[&parts[1]], &[]);
+        return Ok((depth, conf));
+    }
     let split = g.ints("split", &[k, k]);
     let parts = g.node_multi("Split", &[&out, &split], &[Attr::Int("axis", 1)], 2);
     let sd = g.node("Sigmoid", &[&parts[0]], &[]);
