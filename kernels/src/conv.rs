@@ -96,6 +96,10 @@ pub fn conv_seconds() -> f64 {
     CONV_NANOS.load(std::sync::atomic::Ordering::Relaxed) as f64 * 1e-9
 }
 
+/// Groups the weight gradient's tasks are summed in (see [`Conv3x3::backward_w`]): enough to
+/// keep two cores busy with work stealing, few enough that the partials stay small.
+const WGRAD_GROUPS: usize = 16;
+
 impl Conv3x3 {
     pub(crate) fn hw(&self) -> usize {
         self.height * self.width
@@ -168,13 +172,18 @@ impl Conv3x3 {
         }
         let p = self.plane(self.c_in, self.c_out);
         let (hw, k3) = (self.hw(), self.c_in * 3);
-        // Accumulated as dW_kyᵀ: acc[(ky·3C_in + ci·3 + kx)·C_out + co], one partial per rayon
-        // split (a handful), summed at the end.
-        let total = (0..self.batch * p.bands())
+        // Accumulated as dW_kyᵀ: acc[(ky·3C_in + ci·3 + kx)·C_out + co]. The tasks are cut into
+        // a fixed number of contiguous groups (set by the problem, not by the threads), each
+        // summed in order, and the groups' partials added in order: the same bytes on any
+        // number of threads and any scheduling (rayon's adaptive fold/reduce split the sum
+        // differently from run to run).
+        let tasks = self.batch * p.bands();
+        let groups = tasks.min(WGRAD_GROUPS);
+        let partials: Vec<Vec<f32>> = (0..groups)
             .into_par_iter()
-            .fold(
-                || vec![0.0f32; dw.len()],
-                |mut acc, task| {
+            .map(|gi| {
+                let mut acc = vec![0.0f32; dw.len()];
+                for task in gi * tasks / groups..(gi + 1) * tasks / groups {
                     let (b, (y0, y1)) = (task / p.bands(), p.band(task % p.bands()));
                     let n = (y1 - y0) * p.w;
                     let ld = p.ld(y0, y1);
@@ -191,16 +200,14 @@ impl Conv3x3 {
                             );
                         }
                     });
-                    acc
-                },
-            )
-            .reduce(
-                || vec![0.0f32; dw.len()],
-                |mut a, b| {
-                    a.iter_mut().zip(&b).for_each(|(u, v)| *u += v);
-                    a
-                },
-            );
+                }
+                acc
+            })
+            .collect();
+        let mut total = vec![0.0f32; dw.len()];
+        for part in &partials {
+            total.iter_mut().zip(part).for_each(|(u, v)| *u += v);
+        }
         for co in 0..self.c_out {
             for ci in 0..self.c_in {
                 for ky in 0..3 {

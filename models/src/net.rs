@@ -43,6 +43,12 @@ pub trait Network: Module + Sized + Send + 'static {
     /// - `y`: `[B, M, H, W]` → `[B, T, H, W]` for [`Prediction::Cube`], `[B, 2K, H, W]` for
     ///   [`Prediction::Depth`]
     fn predict(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4>;
+
+    /// What the training loss sees: [`Network::predict`]'s channels, then any the loss needs
+    /// besides (the U-Net's score volume appends its log-probabilities per bin, `[B, K·T, H, W]`).
+    fn train_output(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
+        self.predict(y, sensor)
+    }
 }
 
 /// An ndarray batch as a tensor on `device`.

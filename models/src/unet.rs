@@ -328,6 +328,22 @@ impl Network for Unet {
         let depth = sigmoid(o.clone().narrow(1, 0, k)) * self.range_m;
         Tensor::cat(vec![depth, o.narrow(1, k, k)], 1)
     }
+
+    /// `[B, 2K + K·T, H, W]` with the score volume: depth, confidence logits, and the scores'
+    /// log-probabilities over the bins (for the cross-entropy against the true bin).
+    fn train_output(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
+        let o = self.logits(y, sensor);
+        let (k, t) = (self.returns, self.score_bins);
+        if t == 0 {
+            let depth = sigmoid(o.clone().narrow(1, 0, k)) * self.range_m;
+            return Tensor::cat(vec![depth, o.narrow(1, k, k)], 1);
+        }
+        let [b, _, h, w] = o.dims();
+        let scores = o.clone().narrow(1, 0, k * t);
+        let depth = self.soft_argmax(scores.clone());
+        let logp = burn::tensor::activation::log_softmax(scores.reshape([b, k, t, h, w]), 2).reshape([b, k * t, h, w]);
+        Tensor::cat(vec![depth, o.narrow(1, k * t, k), logp], 1)
+    }
 }
 
 #[cfg(test)]

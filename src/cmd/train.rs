@@ -175,6 +175,10 @@ pub struct TrainArgs {
     /// Continue the run in the output directory from its last checkpoint.
     #[arg(long)]
     resume: bool,
+    /// Stop after N epochs of this invocation with the run's checkpoint in place (the schedule
+    /// stays that of --epochs): long trainings go in slices, `--resume --pause-after N` each.
+    #[arg(long, value_name = "N")]
+    pause_after: Option<usize>,
     /// Start from the weights of a trained run of the same network (fine-tuning on new codes,
     /// another IRF or a recalibrated sensor); `zoo:NAME` starts from a zoo entry.
     #[arg(long, value_name = "RUN", value_parser = super::parse_run)]
@@ -219,13 +223,17 @@ pub enum ScheduleArg {
 /// Training progress: a bar over the steps of an epoch, a line per epoch.
 pub(crate) struct Bar {
     pub pb: ProgressBar,
+    /// `--pause-after N`: after N epochs of this invocation the flag is raised, the loop stops
+    /// at the next step (the epoch's checkpoint is written), and the run resumes later.
+    pub pause: Option<(usize, std::sync::Arc<std::sync::atomic::AtomicBool>)>,
+    pub epochs_done: std::sync::atomic::AtomicUsize,
 }
 
 impl Bar {
     pub fn new() -> Self {
         let pb = ProgressBar::new(1);
         pb.set_style(ProgressStyle::with_template("[{bar:30}] {pos}/{len} steps {per_sec} eta {eta} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
-        Bar { pb }
+        Bar { pb, pause: None, epochs_done: Default::default() }
     }
 }
 
@@ -251,6 +259,12 @@ impl Progress for Bar {
             })
             .collect();
         self.pb.suspend(|| println!("epoch {:>4}  step {:>6}  train loss {:.4e}  val{val}  {:.0} s", m.epoch, m.step, m.train_loss, m.seconds));
+        let done = self.epochs_done.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1;
+        if let Some((n, flag)) = &self.pause {
+            if done >= *n {
+                flag.store(true, std::sync::atomic::Ordering::SeqCst);
+            }
+        }
     }
 }
 
@@ -464,7 +478,11 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
             lc.constraints.label()
         );
     }
-    let res = tcsense_train::train_on(&cfg, &codes, run_dir, a.resume, &device, &Bar { pb: pb.clone() }, &cancel);
+    if a.pause_after == Some(0) {
+        bail!("--pause-after 0: expected at least one epoch");
+    }
+    let bar = Bar { pb: pb.clone(), pause: a.pause_after.map(|n| (n, cancel.clone())), epochs_done: Default::default() };
+    let res = tcsense_train::train_on(&cfg, &codes, run_dir, a.resume, &device, &bar, &cancel);
     pb.finish_and_clear();
     match res {
         Ok(rows) => {
@@ -474,6 +492,10 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
             } else {
                 println!("{}: already trained for {} epochs", run_dir.display(), cfg.epochs);
             }
+            Ok(ExitCode::SUCCESS)
+        }
+        Err(TrainError::Cancelled) if a.pause_after.is_some_and(|n| bar.epochs_done.load(std::sync::atomic::Ordering::SeqCst) >= n) => {
+            println!("paused after {} epochs: {} holds the checkpoint; continue with --resume", a.pause_after.unwrap_or(0), run_dir.display());
             Ok(ExitCode::SUCCESS)
         }
         Err(TrainError::Cancelled) => bail!("interrupted; the last checkpoint in {} is kept, continue with --resume", run_dir.display()),

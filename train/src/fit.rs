@@ -360,7 +360,7 @@ fn sensing_for(cfg: &TrainConfig, codes: &Codes, hw: (usize, usize), thw: (usize
 #[allow(clippy::too_many_arguments)]
 fn step_learned<M: Network>(model: M, optim: &mut ModuleOptimizer, learner: &mut Learner, cfg: &TrainConfig, lr: f64, sensor: &SensorTensors, x: &Array4<f32>, y: &Array4<f32>, target: Target<'_>, device: &Device) -> (M, f64) {
     let (yt, a, penalty) = learner.measurements(x, y, device);
-    let pred = model.predict(yt, &sensor.clone().with_matrix(a));
+    let pred = model.train_output(yt, &sensor.clone().with_matrix(a));
     let loss = objective(cfg.loss, pred, target, device) + penalty;
     let l: f32 = loss.clone().into_scalar();
     let mut grads = loss.backward();
@@ -462,7 +462,7 @@ pub(crate) fn objective(loss: Loss, pred: Tensor<4>, target: Target<'_>, device:
 /// - `y`: `[B, M, H, W]`; the target as in [`Target`]
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn step<M: Network>(model: M, optim: &mut ModuleOptimizer, cfg: &TrainConfig, lr: f64, sensor: &SensorTensors, y: &Array4<f32>, target: Target<'_>, device: &Device) -> (M, f64) {
-    let pred = model.predict(to_tensor(&y.view(), device), sensor);
+    let pred = model.train_output(to_tensor(&y.view(), device), sensor);
     let loss = objective(cfg.loss, pred, target, device);
     let l: f32 = loss.clone().into_scalar();
     let grads = GradientsParams::from_grads(loss.backward(), &model);

@@ -26,15 +26,34 @@ pub fn loss_fn(loss: Loss, pred: Tensor<4>, truth: Tensor<4>) -> Tensor<1> {
 /// - `pred`: `[B, 2K, H, W]` (depth in metres, confidence logits), `depth`: `[B, K, H, W]` (m,
 ///   0 where none), `mask`: `[B, K, H, W]` (1 where the truth has a return) → `[1]`
 pub fn depth_loss(pred: Tensor<4>, depth: Tensor<4>, mask: Tensor<4>, range_m: f64) -> Tensor<1> {
-    let k = pred.dims()[1] / 2;
+    let k = depth.dims()[1];
     let d = pred.clone().narrow(1, 0, k);
-    let logits = pred.narrow(1, k, k);
+    let logits = pred.clone().narrow(1, k, k);
     let count = mask.clone().sum().add_scalar(1.0);
-    let l1 = ((d - depth).abs() * mask.clone()).sum() / count / range_m;
+    let l1 = ((d - depth.clone()).abs() * mask.clone()).sum() / count.clone() / range_m;
     // BCE with logits, stable: max(l, 0) − l·t + log(1 + e^{−|l|})
-    let bce = relu(logits.clone()) - logits.clone() * mask + logits.abs().neg().exp().add_scalar(1.0).log();
-    l1 + bce.mean()
+    let bce = relu(logits.clone()) - logits.clone() * mask.clone() + logits.abs().neg().exp().add_scalar(1.0).log();
+    let c = pred.dims()[1];
+    if c == 2 * k {
+        return l1 + bce.mean();
+    }
+    // the score volume's log-probabilities [B, K·T, H, W] against the true range split between
+    // the two nearest bin centres (their expectation is the true range)
+    let t = (c - 2 * k) / k;
+    let logp = pred.narrow(1, 2 * k, k * t);
+    let [b, _, h, w] = depth.dims();
+    let u = depth.clone().mul_scalar(t as f64 / range_m).sub_scalar(0.5).clamp(0.0, (t - 1) as f64); // [B, K, H, W] in bins
+    let centres: Vec<f32> = (0..t).map(|j| j as f32).collect();
+    let bins = Tensor::<1>::from_floats(centres.as_slice(), &u.device()).reshape([1, 1, t, 1, 1]);
+    // hat function max(0, 1 − |t − u|): weight 1 − frac at ⌊u⌋, frac at ⌊u⌋ + 1
+    let label = (bins - u.reshape([b, k, 1, h, w])).abs().neg().add_scalar(1.0).clamp_min(0.0); // [B, K, T, H, W]
+    let ce = (label * logp.reshape([b, k, t, h, w])).sum_dim(2).reshape([b, k, h, w]).neg() * mask;
+    l1 + bce.mean() + ce.sum() / count * CE_WEIGHT
 }
+
+/// Weight of the score volume's cross-entropy in [`depth_loss`] (an error of one bin costs
+/// the L1 term `1/T`; the cross-entropy of a two-bin split is at least ln 2).
+pub const CE_WEIGHT: f64 = 0.1;
 
 /// The lifetime loss of a batch: mean absolute error (ns) of `τ_m` where the pixel holds a
 /// fluorophore, half that of `τ₁` and `τ₂`, the error of `α₁` where the two components differ,
@@ -81,6 +100,22 @@ mod tests {
         let l: f32 = depth_loss(pred, depth, mask, 10.0).into_scalar();
         // L1 = |4 − 3| / (1 + 1) / 10 = 0.05 (the pixel without a return does not count); BCE = ln 2
         assert!((l - (0.05 + 2f32.ln())).abs() < 1e-6, "{l}");
+    }
+
+    #[test]
+    fn the_score_volume_loss_adds_the_cross_entropy_of_the_split_bins() {
+        let device = Device::flex();
+        // K = 1, T = 4 bins over 8 m (centres 1, 3, 5, 7 m); one pixel with a return at 4 m
+        // (half way between bins 1 and 2), predicted 4 m, logit 0, log-probabilities ln ¼
+        let mut v = vec![4.0f32, 0.0];
+        v.extend([0.25f32.ln(); 4]);
+        let pred = Tensor::<4>::from_data(burn::tensor::TensorData::new(v, [1, 6, 1, 1]), &device);
+        let depth = Tensor::<4>::from_floats([[[[4.0]]]], &device);
+        let mask = Tensor::<4>::from_floats([[[[1.0]]]], &device);
+        let l: f32 = depth_loss(pred, depth, mask, 8.0).into_scalar();
+        // L1 0, BCE ln 2, CE −(½ ln ¼ + ½ ln ¼) = ln 4, over 1 + 1
+        let want = 2f64.ln() + 4f64.ln() / 2.0 * CE_WEIGHT;
+        assert!((l as f64 - want).abs() < 1e-5, "{l} vs {want}");
     }
 
     #[test]

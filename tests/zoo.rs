@@ -1,0 +1,152 @@
+//! The model zoo (`zoo/NAME/`): every entry is listed and shown, opens, decodes a realistic
+//! frame, exports to ONNX and gives burn's output through ONNX Runtime (on 1 and 2 threads)
+//! within 1e-4 of its scale; and re-running its recorded recipe (`zoo/NAME/recipe.json`) for
+//! one epoch from its seed logs the entry's first row of `metrics.csv` exactly, so its
+//! weights come from this code. Needs ONNX Runtime in `.venv` (`scripts/setup.sh`).
+
+mod common;
+
+use common::*;
+use ndarray::Array4;
+use rand::{RngExt, SeedableRng};
+use std::path::{Path, PathBuf};
+use tcsense_infer::onnx::{export, ExportOptions};
+use tcsense_infer::runtime::OnnxModel;
+use tcsense_models::net::{to_array, to_tensor, Network};
+use tcsense_models::runs::{self, TrainedNet};
+use tcsense_models::{Device, SensorTensors};
+
+fn zoo_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("zoo")
+}
+
+/// The zoo's entries (directories with a run config), sorted.
+fn entries() -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(zoo_dir()).unwrap().filter_map(|e| e.ok()).filter(|e| e.path().join("config.json").is_file()).map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+    names.sort();
+    names
+}
+
+/// The recipe's steps: tcsense argument lists, run in an empty directory in order.
+fn recipe(name: &str) -> Vec<Vec<String>> {
+    let path = zoo_dir().join(name).join("recipe.json");
+    let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e} (every zoo entry records its recipe)", path.display()));
+    let v: serde_json::Value = serde_json::from_str(&text).unwrap();
+    v["steps"].as_array().expect("recipe.steps").iter().map(|s| s.as_array().expect("a step is a list of arguments").iter().map(|a| a.as_str().unwrap().to_string()).collect()).collect()
+}
+
+/// Max |a − b| over the scale of `b`.
+fn rel_diff(a: &Array4<f32>, b: &Array4<f32>) -> f32 {
+    assert_eq!(a.dim(), b.dim());
+    let scale = b.iter().filter(|v| v.is_finite()).fold(0f32, |m, v| m.max(v.abs())).max(1e-12);
+    a.iter().zip(b.iter()).filter(|(x, y)| x.is_finite() && y.is_finite()).fold(0f32, |m, (x, y)| m.max((x - y).abs())) / scale
+}
+
+#[test]
+fn zoo_list_and_show_name_every_entry() {
+    let d = tempdir();
+    let names = entries();
+    assert!(!names.is_empty(), "the zoo has entries");
+    let list = ok(d.path(), &["zoo", "list"]);
+    for n in &names {
+        assert!(list.contains(n.as_str()), "zoo list names {n}: {list}");
+        let show = ok(d.path(), &["zoo", "show", &format!("zoo:{n}")]);
+        assert!(show.contains("# ") && show.contains("directory"), "zoo show {n} prints its provenance: {show}");
+    }
+    fails(d.path(), &["zoo", "show", "no-such-entry"], &["zoo entry", "no-such-entry", "one of"]);
+    fails(d.path(), &["export", "onnx", "--run", "zoo:no-such-entry", "-o", "x.onnx"], &["zoo:no-such-entry", "one of"]);
+    assert!(!d.path().join("x.onnx").exists());
+}
+
+/// A realistic frame for an entry: a scene of its kind (a generated LiDAR or FLIm test item,
+/// 32×32) measured by the entry's sensor, with shot noise.
+fn realistic_frame(run: &runs::LoadedRun, dir: &Path) -> Array4<f32> {
+    let flim = matches!(run.spec.sampling, tcsense_sensor::Sampling::Heterodyne(_));
+    let kind = if flim { "flim" } else { "lidar" };
+    ok(dir, &["dataset", kind, "--count", "10", "--size", "32x32", "--seed", "9", "--force", "-o", "scene"]);
+    let ds = tcsense_datasets::Dataset::open(&dir.join("scene")).unwrap();
+    let x = ds.item("test", 0, "x").unwrap().into_dimensionality::<ndarray::Ix3>().unwrap();
+    let plan = run.sensor.plan(32, 32).unwrap();
+    let peak = x.iter().fold(0f32, |m, v| m.max(*v)).max(1e-12);
+    // the brightest voxel at 5000 electrons, shot noise
+    let x = x.mapv(|v| v / peak * 5000.0).insert_axis(ndarray::Axis(0));
+    let mut y = plan.forward_batch(&x.view()).unwrap();
+    let mut rng = rand::rngs::StdRng::seed_from_u64(4);
+    y.mapv_inplace(|v| v + rng.random_range(-1.0f32..1.0) * v.max(0.0).sqrt());
+    y
+}
+
+#[test]
+fn every_entry_decodes_and_exports_with_burn_and_onnx_runtime_agreeing() {
+    let d = tempdir();
+    for name in entries() {
+        let dir = zoo_dir().join(&name);
+        let run = runs::load(&dir, &Device::flex()).unwrap_or_else(|e| panic!("zoo:{name} opens: {e}"));
+        let y = realistic_frame(&run, d.path());
+        let (_, _, h, w) = y.dim();
+        let device = Device::flex();
+        let st = SensorTensors::new(&run.sensor, h, w, &device).unwrap();
+        let yt = to_tensor(&y.view(), &device);
+        let want: Vec<Array4<f32>> = match &run.net {
+            TrainedNet::AdmmNet(net) => vec![to_array(net.predict(yt, &st)).unwrap()],
+            TrainedNet::Unet(net) => {
+                let (depth, conf) = net.forward(yt, &st);
+                vec![to_array(depth).unwrap(), to_array(conf).unwrap()]
+            }
+            TrainedNet::Lifetime(net) => {
+                let out = to_array(net.predict(yt, &st)).unwrap();
+                let mut l = out.slice(ndarray::s![.., ..4, .., ..]).to_owned();
+                l.slice_mut(ndarray::s![.., ..3, .., ..]).mapv_inplace(|t| t * 1e-9);
+                vec![l, out.slice(ndarray::s![.., 4..5, .., ..]).mapv(|v| 1.0 / (1.0 + (-v).exp()))]
+            }
+        };
+        assert!(want.iter().all(|o| o.iter().all(|v| v.is_finite())), "zoo:{name}: finite outputs");
+        let onnx = d.path().join(format!("{name}.onnx"));
+        std::fs::write(&onnx, export(&run, ExportOptions::default()).unwrap()).unwrap();
+        for threads in [1, 2] {
+            let got = OnnxModel::open(&onnx, threads).unwrap_or_else(|e| panic!("{e} (run scripts/setup.sh to install ONNX Runtime into .venv)")).run(y.view()).unwrap();
+            for (k, want) in want.iter().enumerate() {
+                let diff = rel_diff(&got[k], want);
+                assert!(diff <= 1e-4, "zoo:{name}, output {k}, {threads} threads: ONNX Runtime differs from burn by {diff:e} of the scale");
+            }
+        }
+        // and the command line takes it by name
+        ok(d.path(), &["export", "onnx", "--run", &format!("zoo:{name}"), "-o", &format!("{name}-cli.onnx")]);
+        assert!(d.path().join(format!("{name}-cli.onnx")).exists());
+    }
+}
+
+#[test]
+fn every_entry_reproduces_its_first_logged_epoch_from_its_recipe() {
+    for name in entries() {
+        let d = tempdir();
+        let steps = recipe(&name);
+        let (train, setup) = steps.split_last().expect("a recipe ends with its train command");
+        assert_eq!(train[0], "train", "zoo:{name}: the recipe's last step trains");
+        for s in setup {
+            ok(d.path(), &s.iter().map(String::as_str).collect::<Vec<_>>());
+        }
+        let out = train.iter().position(|a| a == "-o" || a == "--output").map(|i| train[i + 1].clone()).expect("the train step names its run");
+        let mut args: Vec<&str> = train.iter().map(String::as_str).collect();
+        args.extend(["--pause-after", "1"]);
+        let stdout = ok(d.path(), &args);
+        assert!(stdout.contains("paused after 1 epochs"), "{stdout}");
+        let first = |p: &Path| std::fs::read_to_string(p).unwrap().lines().nth(1).map(str::to_string).unwrap_or_default();
+        // the clock is in timing.csv; a metrics.csv from before it ends in seconds
+        let strip = |row: String, header: &str| if header.ends_with(",seconds") { row.rsplit_once(',').map(|(a, _)| a.to_string()).unwrap_or(row) } else { row };
+        let zoo_metrics = zoo_dir().join(&name).join("metrics.csv");
+        let header = std::fs::read_to_string(&zoo_metrics).unwrap().lines().next().unwrap_or_default().to_string();
+        let want = strip(first(&zoo_metrics), &header);
+        let got = first(&d.path().join(&out).join("metrics.csv"));
+        assert!(!want.is_empty(), "zoo:{name} logs its epochs");
+        assert_eq!(got, want, "zoo:{name}: the first epoch re-run from its recipe");
+        // the first epoch's checkpoint is a resumable run of the recorded config
+        let cfg = |p: &Path| serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(p.join("config.json")).unwrap()).unwrap();
+        let (zc, rc) = (cfg(&zoo_dir().join(&name)), cfg(&d.path().join(&out)));
+        for key in ["decoder", "model", "sampling", "irf", "epochs", "batch_size", "learning_rate", "seed", "augment"] {
+            assert_eq!(zc[key], rc[key], "zoo:{name}: config.{key} of the re-run");
+        }
+        let state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.path().join(&out).join("checkpoint/state.json")).unwrap()).unwrap();
+        assert_eq!(state["epoch"], 1, "zoo:{name}: paused after one epoch, its checkpoint in place");
+    }
+}
