@@ -58,6 +58,8 @@ fn bad_inputs_exit_2() {
     fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "c16.json", "--epochs", "1", "-o", "run16"], &["T = "]);
     fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "0", "-o", "run0"], &["epochs"]);
     fails(d, &["train", "admm-net", "--resume", "-o", "nothing"], &["no run to resume"]);
+    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--pause-after", "0", "-o", "runp"], &["--pause-after 0", "at least one epoch"]);
+    assert!(!d.join("runp").exists());
     fails(d, &["reconstruct", "admm-net", "--run", "nothing", "--measurements", "y.npy", "-o", "x.npy"], &["nothing", "config.json"]);
     fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--lr-schedule", "linear", "-o", "runlr"], &["--lr-schedule", "linear"]);
     assert!(!d.join("runlr").exists());

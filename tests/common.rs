@@ -4,6 +4,11 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+use ndarray::Array4;
+use tcsense_models::net::{to_array, to_tensor, Network};
+use tcsense_models::runs::{LoadedRun, TrainedNet};
+use tcsense_models::{Device, SensorTensors};
+
 pub fn bin() -> Command {
     Command::new(env!("CARGO_BIN_EXE_tcsense"))
 }
@@ -42,4 +47,28 @@ pub fn p(dir: &Path, name: &str) -> PathBuf {
 pub fn tiny_lidar_and_codes(dir: &Path) {
     ok(dir, &["dataset", "lidar", "--count", "8", "--size", "8x8", "--length", "8", "--seed", "2", "-o", "ds"]);
     ok(dir, &["codes", "generate", "--tap-constraint", "--length", "8", "--seed", "1", "-o", "codes.json"]);
+}
+
+/// burn's prediction of `run` on `y`, as the exported graph gives it: the cube; depth and
+/// confidence; or lifetimes (s), confidence and intensity.
+pub fn burn_outputs(run: &LoadedRun, y: &Array4<f32>) -> Vec<Array4<f32>> {
+    let device = Device::flex();
+    let (_, _, h, w) = y.dim();
+    let st = SensorTensors::new(&run.sensor, h, w, &device).unwrap();
+    let yt = to_tensor(&y.view(), &device);
+    match &run.net {
+        TrainedNet::AdmmNet(net) => vec![to_array(net.predict(yt, &st)).unwrap()],
+        TrainedNet::Unet(net) => {
+            let (depth, conf) = net.forward(yt, &st);
+            vec![to_array(depth).unwrap(), to_array(conf).unwrap()]
+        }
+        TrainedNet::Lifetime(net) => {
+            // burn gives ns and the confidence logit; the graph seconds and the probability
+            let out = to_array(net.predict(yt.clone(), &st)).unwrap();
+            let mut l = out.slice(ndarray::s![.., ..4, .., ..]).to_owned();
+            l.slice_mut(ndarray::s![.., ..3, .., ..]).mapv_inplace(|t| t * 1e-9);
+            let conf = out.slice(ndarray::s![.., 4..5, .., ..]).mapv(|v| 1.0 / (1.0 + (-v).exp()));
+            vec![l, conf, to_array(tcsense_models::lifetime::intensity(yt)).unwrap()]
+        }
+    }
 }

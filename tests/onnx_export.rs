@@ -3,15 +3,17 @@
 //! non-square blocks, oversampled and heterodyne sensors. Needs ONNX Runtime in `.venv`
 //! (`scripts/setup.sh`, which `scripts/test.sh` runs first).
 
+mod common;
+
+use common::burn_outputs;
 use ndarray::{Array4, Ix4};
 use rand::{RngExt, SeedableRng};
 use std::path::{Path, PathBuf};
 use tcsense_infer::onnx::{export, ExportOptions};
 use tcsense_infer::runtime::OnnxModel;
 use tcsense_infer::InferError;
-use tcsense_models::net::{to_array, to_tensor, Network};
 use tcsense_models::runs::{self, LoadedRun, ModelConfig, RunSpec, TrainedNet};
-use tcsense_models::{AdmmNetConfig, Device, LifetimeNetConfig, Prior, SensorTensors, UnetConfig};
+use tcsense_models::{AdmmNetConfig, Device, LifetimeNetConfig, Prior, UnetConfig};
 use tcsense_sensor::codes::{CodeShape, Constraints};
 use tcsense_sensor::generate::random_codes;
 use tcsense_sensor::npy::read_npy;
@@ -41,29 +43,6 @@ fn random_run_of_length(model: impl Fn(usize, usize) -> ModelConfig, block: (usi
         ModelConfig::Lifetime(c) => TrainedNet::Lifetime(c.init(&device)),
     };
     LoadedRun { dir: PathBuf::from("."), spec, codes, sensor, net }
-}
-
-/// burn's prediction of `run` on `y`: the cube, or (depth, confidence).
-fn burn_outputs(run: &LoadedRun, y: &Array4<f32>) -> Vec<Array4<f32>> {
-    let device = Device::flex();
-    let (_, _, h, w) = y.dim();
-    let st = SensorTensors::new(&run.sensor, h, w, &device).unwrap();
-    let yt = to_tensor(&y.view(), &device);
-    match &run.net {
-        TrainedNet::AdmmNet(net) => vec![to_array(net.predict(yt, &st)).unwrap()],
-        TrainedNet::Unet(net) => {
-            let (depth, conf) = net.forward(yt, &st);
-            vec![to_array(depth).unwrap(), to_array(conf).unwrap()]
-        }
-        TrainedNet::Lifetime(net) => {
-            // burn gives ns and the confidence logit; the graph seconds and the probability
-            let out = to_array(net.predict(yt.clone(), &st)).unwrap();
-            let mut l = out.slice(ndarray::s![.., ..4, .., ..]).to_owned();
-            l.slice_mut(ndarray::s![.., ..3, .., ..]).mapv_inplace(|t| t * 1e-9);
-            let conf = out.slice(ndarray::s![.., 4..5, .., ..]).mapv(|v| 1.0 / (1.0 + (-v).exp()));
-            vec![l, conf, to_array(tcsense_models::lifetime::intensity(yt)).unwrap()]
-        }
-    }
 }
 
 /// ONNX Runtime's outputs of `run` exported with `opts`, on `y`.

@@ -12,9 +12,8 @@ use rand::{RngExt, SeedableRng};
 use std::path::{Path, PathBuf};
 use tcsense_infer::onnx::{export, ExportOptions};
 use tcsense_infer::runtime::OnnxModel;
-use tcsense_models::net::{to_array, to_tensor, Network};
-use tcsense_models::runs::{self, TrainedNet};
-use tcsense_models::{Device, SensorTensors};
+use tcsense_models::runs;
+use tcsense_models::Device;
 
 fn zoo_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("zoo")
@@ -83,23 +82,7 @@ fn every_entry_decodes_and_exports_with_burn_and_onnx_runtime_agreeing() {
         let dir = zoo_dir().join(&name);
         let run = runs::load(&dir, &Device::flex()).unwrap_or_else(|e| panic!("zoo:{name} opens: {e}"));
         let y = realistic_frame(&run, d.path());
-        let (_, _, h, w) = y.dim();
-        let device = Device::flex();
-        let st = SensorTensors::new(&run.sensor, h, w, &device).unwrap();
-        let yt = to_tensor(&y.view(), &device);
-        let want: Vec<Array4<f32>> = match &run.net {
-            TrainedNet::AdmmNet(net) => vec![to_array(net.predict(yt, &st)).unwrap()],
-            TrainedNet::Unet(net) => {
-                let (depth, conf) = net.forward(yt, &st);
-                vec![to_array(depth).unwrap(), to_array(conf).unwrap()]
-            }
-            TrainedNet::Lifetime(net) => {
-                let out = to_array(net.predict(yt, &st)).unwrap();
-                let mut l = out.slice(ndarray::s![.., ..4, .., ..]).to_owned();
-                l.slice_mut(ndarray::s![.., ..3, .., ..]).mapv_inplace(|t| t * 1e-9);
-                vec![l, out.slice(ndarray::s![.., 4..5, .., ..]).mapv(|v| 1.0 / (1.0 + (-v).exp()))]
-            }
-        };
+        let want = burn_outputs(&run, &y);
         assert!(want.iter().all(|o| o.iter().all(|v| v.is_finite())), "zoo:{name}: finite outputs");
         let onnx = d.path().join(format!("{name}.onnx"));
         std::fs::write(&onnx, export(&run, ExportOptions::default()).unwrap()).unwrap();

@@ -313,6 +313,26 @@ mod tests {
     use tcsense_sensor::generate::random_codes;
     use tcsense_sensor::SensorParams;
 
+    /// `x` with `M x = b` for a dense `n × n` system (row-major), by Gaussian elimination in f64
+    /// (the reference the solves are checked against; the systems here are well conditioned).
+    fn solve_f64(mut mtx: Vec<f64>, mut rhs: Vec<f64>) -> Vec<f64> {
+        let n = rhs.len();
+        for k in 0..n {
+            for i in k + 1..n {
+                let f = mtx[i * n + k] / mtx[k * n + k];
+                for j in k..n {
+                    mtx[i * n + j] -= f * mtx[k * n + j];
+                }
+                rhs[i] -= f * rhs[k];
+            }
+        }
+        let mut sol = vec![0.0; n];
+        for k in (0..n).rev() {
+            sol[k] = (rhs[k] - (k + 1..n).map(|j| mtx[k * n + j] * sol[j]).sum::<f64>()) / mtx[k * n + k];
+        }
+        sol
+    }
+
     /// With `A` as a graph tensor the operators keep their values, and the gradient of the
     /// data-consistency solve in `A` matches central differences (the inverse's derivative
     /// comes from one Newton step around the constant eigendecomposition).
@@ -386,21 +406,8 @@ mod tests {
                 let n = (r % 2) * 2 + c % 2;
                 let px = |j: usize| (j * h + r) * w + c;
                 let res: Vec<f64> = (0..m).map(|k| yv[(k * h + r) * w + c] as f64 - (0..t).map(|j| av[(n, k, j)] as f64 * wv[px(j)] as f64).sum::<f64>()).collect();
-                let mut mtx: Vec<f64> = (0..m * m).map(|ij| (0..t).map(|j| av[(n, ij / m, j)] as f64 * av[(n, ij % m, j)] as f64).sum::<f64>() + if ij / m == ij % m { rho } else { 0.0 }).collect();
-                let mut rhs = res.clone();
-                for k in 0..m {
-                    for i in k + 1..m {
-                        let f = mtx[i * m + k] / mtx[k * m + k];
-                        for j in k..m {
-                            mtx[i * m + j] -= f * mtx[k * m + j];
-                        }
-                        rhs[i] -= f * rhs[k];
-                    }
-                }
-                let mut sol = vec![0.0; m];
-                for k in (0..m).rev() {
-                    sol[k] = (rhs[k] - (k + 1..m).map(|j| mtx[k * m + j] * sol[j]).sum::<f64>()) / mtx[k * m + k];
-                }
+                let mtx: Vec<f64> = (0..m * m).map(|ij| (0..t).map(|j| av[(n, ij / m, j)] as f64 * av[(n, ij % m, j)] as f64).sum::<f64>() + if ij / m == ij % m { rho } else { 0.0 }).collect();
+                let sol = solve_f64(mtx, res);
                 for j in 0..t {
                     want[px(j)] = wv[px(j)] as f64 + (0..m).map(|k| av[(n, k, j)] as f64 * sol[k]).sum::<f64>();
                 }
@@ -440,22 +447,8 @@ mod tests {
             for c in 0..w {
                 let n = (r % 2) * 2 + c % 2;
                 // (AᵀA + ρI) x = v, solved by Gaussian elimination in f64
-                let mut mtx: Vec<f64> = (0..t * t).map(|ij| (0..4).map(|m| av[(n, m, ij / t)] as f64 * av[(n, m, ij % t)] as f64).sum::<f64>() + if ij / t == ij % t { rho } else { 0.0 }).collect();
-                let mut rhs: Vec<f64> = (0..t).map(|j| vals[(j * h + r) * w + c] as f64).collect();
-                for k in 0..t {
-                    let piv = mtx[k * t + k];
-                    for i in k + 1..t {
-                        let f = mtx[i * t + k] / piv;
-                        for j in k..t {
-                            mtx[i * t + j] -= f * mtx[k * t + j];
-                        }
-                        rhs[i] -= f * rhs[k];
-                    }
-                }
-                let mut sol = vec![0.0; t];
-                for k in (0..t).rev() {
-                    sol[k] = (rhs[k] - (k + 1..t).map(|j| mtx[k * t + j] * sol[j]).sum::<f64>()) / mtx[k * t + k];
-                }
+                let mtx: Vec<f64> = (0..t * t).map(|ij| (0..4).map(|m| av[(n, m, ij / t)] as f64 * av[(n, m, ij % t)] as f64).sum::<f64>() + if ij / t == ij % t { rho } else { 0.0 }).collect();
+                let sol = solve_f64(mtx, (0..t).map(|j| vals[(j * h + r) * w + c] as f64).collect());
                 for j in 0..t {
                     let got = x[(j * h + r) * w + c] as f64;
                     assert!((got - sol[j]).abs() < 1e-4 * (1.0 + sol[j].abs()), "pixel ({r},{c}) bin {j}: {got} vs {}", sol[j]);

@@ -292,7 +292,15 @@ impl Unet {
     pub fn soft_argmax(&self, scores: Tensor<4>) -> Tensor<4> {
         let [b, _, h, w] = scores.dims();
         let (k, t) = (self.returns, self.score_bins);
-        let p = burn::tensor::activation::softmax(scores.reshape([b, k, t, h, w]), 2);
+        self.expected_range(burn::tensor::activation::softmax(scores.reshape([b, k, t, h, w]), 2))
+    }
+
+    /// The range expected under bin probabilities.
+    ///
+    /// # Shapes
+    /// - `p`: `[B, K, T, H, W]` → `[B, K, H, W]` (m)
+    fn expected_range(&self, p: Tensor<5>) -> Tensor<4> {
+        let [b, k, t, h, w] = p.dims();
         let centres = Tensor::<1>::from_floats(self.bin_centres_m().as_slice(), &p.device()).reshape([1, 1, t, 1, 1]);
         (p * centres).sum_dim(2).reshape([b, k, h, w])
     }
@@ -332,17 +340,16 @@ impl Network for Unet {
     /// `[B, 2K + K·T, H, W]` with the score volume: depth, confidence logits, and the scores'
     /// log-probabilities over the bins (for the cross-entropy against the true bin).
     fn train_output(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
-        let o = self.logits(y, sensor);
         let (k, t) = (self.returns, self.score_bins);
         if t == 0 {
-            let depth = sigmoid(o.clone().narrow(1, 0, k)) * self.range_m;
-            return Tensor::cat(vec![depth, o.narrow(1, k, k)], 1);
+            return self.predict(y, sensor);
         }
+        let o = self.logits(y, sensor);
         let [b, _, h, w] = o.dims();
-        let scores = o.clone().narrow(1, 0, k * t);
-        let depth = self.soft_argmax(scores.clone());
-        let logp = burn::tensor::activation::log_softmax(scores.reshape([b, k, t, h, w]), 2).reshape([b, k * t, h, w]);
-        Tensor::cat(vec![depth, o.narrow(1, k * t, k), logp], 1)
+        // one log-softmax: the range from its exponential, the cross-entropy from it
+        let logp = burn::tensor::activation::log_softmax(o.clone().narrow(1, 0, k * t).reshape([b, k, t, h, w]), 2);
+        let depth = self.expected_range(logp.clone().exp());
+        Tensor::cat(vec![depth, o.narrow(1, k * t, k), logp.reshape([b, k * t, h, w])], 1)
     }
 }
 
