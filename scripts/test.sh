@@ -6,6 +6,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh
+# no incremental caches: a clean run never reuses them, and they doubled the size of target/
+export CARGO_INCREMENTAL="${CARGO_INCREMENTAL:-0}"
 cargo test --workspace --locked "$@"
 # with a Vulkan driver installed the GPU tests must run (TCSENSE_REQUIRE_GPU), not skip
 if scripts/setup_vulkan.sh; then
