@@ -27,6 +27,9 @@ enum Command {
     Sensor(cmd::sensor::SensorCmd),
     /// Simulate tap images y = A x (+ noise) from a transient cube.
     Simulate(cmd::sensor::SimulateArgs),
+    /// Calibrate a real sensor from a laser-delay sweep: dark and gain maps per pixel and tap,
+    /// the measured matrix A, and a report page; use it with --calibration DIR.
+    Calibrate(cmd::calibrate::CalibrateArgs),
     /// Synthetic and imported transient datasets.
     #[command(subcommand)]
     Dataset(cmd::dataset::DatasetCmd),
@@ -80,6 +83,7 @@ fn main() -> ExitCode {
         Command::Codes(c) => cmd::codes::run(c),
         Command::Sensor(c) => cmd::sensor::run(c),
         Command::Simulate(a) => cmd::sensor::simulate(a),
+        Command::Calibrate(a) => cmd::calibrate::run(a),
         Command::Dataset(c) => cmd::dataset::run(c),
         Command::Reconstruct(c) => cmd::recon::reconstruct(c),
         Command::Train(c) => cmd::train::run(c),

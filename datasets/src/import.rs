@@ -48,20 +48,7 @@ pub fn read_map(path: &Path) -> Result<Array2<f32>> {
         ensure_finite(&a.view(), "map").map_err(|e| e.in_file(path))?;
         return Ok(a);
     }
-    let f = std::fs::File::open(path).map_err(|e| tcsense_sensor::SensorError::io(path, e))?;
-    let mut reader = png::Decoder::new(std::io::BufReader::new(f)).read_info().map_err(|e| file_err(path, format!("cannot decode PNG: {e}")))?;
-    let mut buf = vec![0u8; reader.output_buffer_size().ok_or_else(|| file_err(path, "PNG too large"))?];
-    let info = reader.next_frame(&mut buf).map_err(|e| file_err(path, format!("cannot decode PNG: {e}")))?;
-    if info.color_type != png::ColorType::Grayscale {
-        return Err(file_err(path, format!("PNG colour type {:?}, expected single-channel grayscale", info.color_type)));
-    }
-    let (w, h) = (info.width as usize, info.height as usize);
-    let vals: Vec<f32> = match info.bit_depth {
-        png::BitDepth::Sixteen => (0..h * w).map(|i| u16::from_be_bytes([buf[(i / w) * info.line_size + (i % w) * 2], buf[(i / w) * info.line_size + (i % w) * 2 + 1]]) as f32).collect(),
-        png::BitDepth::Eight => (0..h * w).map(|i| buf[(i / w) * info.line_size + i % w] as f32).collect(),
-        d => return Err(file_err(path, format!("PNG bit depth {d:?}, expected 8 or 16"))),
-    };
-    Array2::from_shape_vec((h, w), vals).map_err(|e| file_err(path, e.to_string()))
+    Ok(tcsense_sensor::show::read_gray_png(path)?)
 }
 
 fn check_frame(path: &Path, h: usize, w: usize, block: (usize, usize)) -> Result<()> {

@@ -20,6 +20,7 @@
 //!
 //! Errors are [`InferError`]; this crate never depends on the training crate.
 
+pub mod calibration_report;
 pub mod error;
 pub mod figures;
 pub mod eval;

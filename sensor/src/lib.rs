@@ -14,6 +14,7 @@
 //! entry, `y = quantise(clip(noise(A x)))`), [`export`] (the sensor's code memory), [`show`]
 //! (PNG pictures of codes), [`npy`] (`.npy` I/O and atomic writes).
 
+pub mod calibration;
 pub mod codes;
 pub mod error;
 pub mod export;
@@ -23,12 +24,14 @@ pub mod matrix;
 pub mod measure;
 pub mod mem;
 pub mod noise;
+pub mod nonideal;
 pub mod npy;
 pub mod operator;
 pub mod params;
 pub mod project;
 pub mod show;
 pub mod sidecar;
+pub mod sweep;
 
 pub use codes::{CodeShape, Codes, Constraints, Violation};
 pub use error::{Result, SensorError};

@@ -85,6 +85,20 @@ impl MeasurementMatrix {
         Ok(MeasurementMatrix { a, block: spec.params().block, bin_width_s: spec.bin_width_s() })
     }
 
+    /// The same sensor geometry (block, bin width) with other values of `A`, e.g. a real
+    /// sensor's or a calibrated one.
+    ///
+    /// # Shapes
+    /// - `a`: `[N, M, T]`, the shape of `self`
+    pub fn with_values(&self, a: Array3<f32>) -> Result<Self> {
+        if a.dim() != self.a.dim() {
+            let (n, m, t) = self.a.dim();
+            return Err(SensorError::Shape { what: "measurement matrix A".into(), got: a.shape().to_vec(), expected: format!("[N, M, T] = [{n}, {m}, {t}]") });
+        }
+        npy::ensure_finite(&a.view(), "measurement matrix A")?;
+        Ok(MeasurementMatrix { a, block: self.block, bin_width_s: self.bin_width_s })
+    }
+
     /// Load a measured `A [N, M, T]` from `.npy`; errors name the file.
     pub fn load(path: &Path, spec: &SensorSpec) -> Result<Self> {
         let a = npy::read_npy(path)?;

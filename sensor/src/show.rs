@@ -3,7 +3,43 @@
 
 use crate::error::{Result, SensorError};
 use crate::npy::atomic_write;
+use ndarray::{Array2, ArrayView2};
 use std::path::Path;
+
+/// Read a single-channel grayscale PNG (8 or 16 bit) as its raw values (`[H, W]`): what a
+/// sensor's software writes for tap images and depth maps.
+pub fn read_gray_png(path: &Path) -> Result<Array2<f32>> {
+    let err = |msg: String| SensorError::file(path, msg);
+    let f = std::fs::File::open(path).map_err(|e| SensorError::io(path, e))?;
+    let mut reader = png::Decoder::new(std::io::BufReader::new(f)).read_info().map_err(|e| err(format!("cannot decode PNG: {e}")))?;
+    let mut buf = vec![0u8; reader.output_buffer_size().ok_or_else(|| err("PNG too large".into()))?];
+    let info = reader.next_frame(&mut buf).map_err(|e| err(format!("cannot decode PNG: {e}")))?;
+    if info.color_type != png::ColorType::Grayscale {
+        return Err(err(format!("PNG colour type {:?}, expected single-channel grayscale", info.color_type)));
+    }
+    let (w, h) = (info.width as usize, info.height as usize);
+    let vals: Vec<f32> = match info.bit_depth {
+        png::BitDepth::Sixteen => (0..h * w).map(|i| u16::from_be_bytes([buf[(i / w) * info.line_size + (i % w) * 2], buf[(i / w) * info.line_size + (i % w) * 2 + 1]]) as f32).collect(),
+        png::BitDepth::Eight => (0..h * w).map(|i| buf[(i / w) * info.line_size + i % w] as f32).collect(),
+        d => return Err(err(format!("PNG bit depth {d:?}, expected 8 or 16"))),
+    };
+    Array2::from_shape_vec((h, w), vals).map_err(|e| err(e.to_string()))
+}
+
+/// Write `[H, W]` values as a 16-bit grayscale PNG, rounded and clamped to `0..=65535`
+/// (atomically).
+pub fn write_gray_png16(path: &Path, values: &ArrayView2<'_, f32>) -> Result<()> {
+    let (h, w) = values.dim();
+    let data: Vec<u8> = values.iter().flat_map(|&v| (v.round().clamp(0.0, 65535.0) as u16).to_be_bytes()).collect();
+    atomic_write(path, |out| {
+        let mut enc = png::Encoder::new(out, w as u32, h as u32);
+        enc.set_color(png::ColorType::Grayscale);
+        enc.set_depth(png::BitDepth::Sixteen);
+        let mut writer = enc.write_header().map_err(std::io::Error::other)?;
+        writer.write_image_data(&data).map_err(std::io::Error::other)?;
+        writer.finish().map_err(std::io::Error::other)
+    })
+}
 
 /// An RGB image in memory.
 pub struct Canvas {

@@ -51,6 +51,10 @@ pub struct Sidecar {
     /// What the values are (`input` units of the cube, `electrons`, `adc` codes, or a
     /// sensor's own word).
     pub units: String,
+    /// A simulated sensor's non-idealities (tap gains, PRNU, dark, crosstalk, tail, drift and
+    /// their seed); absent for the ideal sensor.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sensor: Option<crate::nonideal::NonIdeal>,
 }
 
 impl Sidecar {
@@ -71,6 +75,7 @@ impl Sidecar {
             noise,
             seed,
             units: units.into(),
+            sensor: None,
         }
     }
 

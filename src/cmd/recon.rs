@@ -16,6 +16,7 @@ use tcsense_sensor::MeasurementMatrix;
 
 use super::dataset::interrupt_flag;
 use super::sensor::SensorArgs;
+use tcsense_sensor::calibration::Calibration;
 
 /// TVAL3 options (defaults: the paper's §IV settings).
 #[derive(Args, Clone)]
@@ -163,6 +164,10 @@ pub enum ReconstructCmd {
         output: PathBuf,
         #[command(flatten)]
         products: DepthProductArgs,
+        /// A calibration directory (`tcsense calibrate`) of the sensor the run was trained
+        /// for: correct the tap images for its dark and gain maps and decode with its matrix.
+        #[arg(long, value_name = "DIR")]
+        calibration: Option<PathBuf>,
         #[command(flatten)]
         device: super::DeviceArgs,
     },
@@ -183,6 +188,10 @@ pub enum ReconstructCmd {
         /// Also draw the first frame's mean lifetime map as a PNG.
         #[arg(long)]
         png: Option<PathBuf>,
+        /// A calibration directory (`tcsense calibrate`) of the sensor the run was trained
+        /// for: correct the tap images for its dark and gain maps and decode with its matrix.
+        #[arg(long, value_name = "DIR")]
+        calibration: Option<PathBuf>,
         #[command(flatten)]
         device: super::DeviceArgs,
     },
@@ -197,6 +206,10 @@ pub enum ReconstructCmd {
         /// Output cube .npy.
         #[arg(short, long)]
         output: PathBuf,
+        /// A calibration directory (`tcsense calibrate`) of the sensor the run was trained
+        /// for: correct the tap images for its dark and gain maps and decode with its matrix.
+        #[arg(long, value_name = "DIR")]
+        calibration: Option<PathBuf>,
         #[command(flatten)]
         device: super::DeviceArgs,
     },
@@ -204,29 +217,32 @@ pub enum ReconstructCmd {
 
 pub fn reconstruct(cmd: ReconstructCmd) -> Result<ExitCode> {
     match cmd {
-        ReconstructCmd::AdmmNet { run, measurements, output, device } => {
+        ReconstructCmd::AdmmNet { run, measurements, output, calibration, device } => {
             let mut r = open_kind(&run, "admm-net", &device)?;
-            decode_file(r.decoder.as_mut(), &r.sensor, &r.codes, &measurements, &output, &DepthProductArgs::default())
+            let cal = load_calibration(calibration.as_deref(), &r)?;
+            decode_file(r.decoder.as_mut(), &r.sensor, cal.as_ref(), &r.codes, &measurements, &output, &DepthProductArgs::default())
         }
-        ReconstructCmd::Unet { run, measurements, output, products, device } => {
+        ReconstructCmd::Unet { run, measurements, output, products, calibration, device } => {
             let mut r = open_kind(&run, "unet", &device)?;
-            decode_file(r.decoder.as_mut(), &r.sensor, &r.codes, &measurements, &output, &products)
+            let cal = load_calibration(calibration.as_deref(), &r)?;
+            decode_file(r.decoder.as_mut(), &r.sensor, cal.as_ref(), &r.codes, &measurements, &output, &products)
         }
-        ReconstructCmd::Lifetime { run, measurements, output, png, device } => {
+        ReconstructCmd::Lifetime { run, measurements, output, png, calibration, device } => {
             let mut r = open_kind(&run, "lifetime", &device)?;
+            let cal = load_calibration(calibration.as_deref(), &r)?;
             let products = DepthProductArgs { png, ..DepthProductArgs::default() };
-            decode_file(r.decoder.as_mut(), &r.sensor, &r.codes, &measurements, &output, &products)
+            decode_file(r.decoder.as_mut(), &r.sensor, cal.as_ref(), &r.codes, &measurements, &output, &products)
         }
         ReconstructCmd::LifetimeFit { sensor, measurements, fit, output, png } => {
             let mut decoder = tcsense_infer::tapfit::TapFitDecoder::new(fit.options()?)?;
-            let (codes, _, a) = sensor.matrix()?;
+            let (codes, _, a, cal) = sensor.decoding()?;
             let products = DepthProductArgs { png, ..DepthProductArgs::default() };
-            decode_file(&mut decoder, &a, &codes, &measurements, &output, &products)
+            decode_file(&mut decoder, &a, cal.as_ref(), &codes, &measurements, &output, &products)
         }
         ReconstructCmd::Tval3 { sensor, measurements, tval3: targs, output } => {
             let mut decoder = Tval3Decoder::new(targs.options()?)?;
-            let (codes, _, a) = sensor.matrix()?;
-            decode_file(&mut decoder, &a, &codes, &measurements, &output, &DepthProductArgs::default())
+            let (codes, _, a, cal) = sensor.decoding()?;
+            decode_file(&mut decoder, &a, cal.as_ref(), &codes, &measurements, &output, &DepthProductArgs::default())
         }
     }
 }
@@ -241,14 +257,27 @@ fn open_kind(run: &Path, kind: &str, device: &super::DeviceArgs) -> Result<runs:
     Ok(r)
 }
 
+/// A run's sensor calibration (`--calibration DIR`), checked against the run's codes and sensor.
+fn load_calibration(dir: Option<&Path>, run: &runs::Run) -> Result<Option<Calibration>> {
+    Ok(dir.map(|d| Calibration::load(d, &run.sensor, &run.codes)).transpose()?)
+}
+
 /// Decode the tap images in `measurements` (`[M, H, W]` or a batch `[B, M, H, W]`) with any
 /// decoder and write what it gives (same batching) to `output`: the cubes, or the depth maps
-/// with their confidence, with a progress bar.
-fn decode_file(decoder: &mut dyn Decoder, sensor: &MeasurementMatrix, codes: &tcsense_sensor::Codes, measurements: &Path, output: &Path, products: &DepthProductArgs) -> Result<ExitCode> {
+/// with their confidence, with a progress bar. With a calibration the raw tap images are
+/// corrected for its dark and gain maps and decoded with its matrix (`sensor` is the nominal
+/// one, which the measurements' sidecar names).
+fn decode_file(decoder: &mut dyn Decoder, nominal: &MeasurementMatrix, calibration: Option<&Calibration>, codes: &tcsense_sensor::Codes, measurements: &Path, output: &Path, products: &DepthProductArgs) -> Result<ExitCode> {
     let y = read_npy(measurements)?;
     if let Some(meta) = Sidecar::read_for(measurements)? {
-        meta.check(&Sidecar::path_for(measurements), sensor, Some(codes))?;
+        meta.check(&Sidecar::path_for(measurements), nominal, Some(codes))?;
+        if let Some(cal) = calibration {
+            if meta.units != cal.meta.units {
+                bail!("{}: the measurements are in {:?} (field units), the calibration's dark offsets in {:?}; simulate or record them in the units of the sweep", Sidecar::path_for(measurements).display(), meta.units, cal.meta.units);
+            }
+        }
     }
+    let sensor = calibration.map_or(nominal, |c| &c.matrix);
     let (batched, y): (bool, Array4<f32>) = match y.ndim() {
         3 => (false, y.into_dimensionality::<Ix3>()?.insert_axis(Axis(0))),
         4 => (true, y.into_dimensionality::<Ix4>()?),
@@ -258,6 +287,10 @@ fn decode_file(decoder: &mut dyn Decoder, sensor: &MeasurementMatrix, codes: &tc
     if m != sensor.taps() {
         bail!("{}: {m} tap images, but the sensor (codes) has M = {} taps", measurements.display(), sensor.taps());
     }
+    let y = match calibration {
+        Some(c) => c.correct(&y.view()).map_err(|e| anyhow::anyhow!("{}: {e}", measurements.display()))?,
+        None => y,
+    };
     let cancel = interrupt_flag();
     let pb = ProgressBar::new(frames as u64);
     pb.set_style(ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));

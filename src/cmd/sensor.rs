@@ -8,6 +8,9 @@ use tcsense_sensor::measure::{measure, Measurement};
 use tcsense_sensor::noise::Exposure;
 use tcsense_sensor::npy::{read_cube, write_npy};
 use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
+use tcsense_sensor::calibration::Calibration;
+use tcsense_sensor::nonideal::NonIdeal;
+use tcsense_sensor::sweep::{simulate_sweep, SweepSettings};
 use tcsense_sensor::{Codes, Irf, MeasurementMatrix, NoiseParams, Sampling, SensorParams, SensorSpec};
 
 /// Sensor-model flags shared by every command that needs `A`.
@@ -32,6 +35,10 @@ pub struct SensorArgs {
     /// First-order tap time constant in ns (physical IRF).
     #[arg(long, default_value_t = 0.3)]
     pub tap_tau_ns: f64,
+    /// A calibration directory (`tcsense calibrate`): decode with its measured matrix, after
+    /// correcting the tap images for its dark offset and gain maps.
+    #[arg(long, value_name = "DIR")]
+    pub calibration: Option<PathBuf>,
 }
 
 impl SensorArgs {
@@ -60,6 +67,64 @@ impl SensorArgs {
             other => bail!("--irf {other:?}: expected `ideal`, `physical` or a measured matrix file `A.npy`"),
         };
         Ok((codes, spec, a))
+    }
+
+    /// The sensor as a decoder sees it: codes, spec, the nominal `A` and the calibration
+    /// (`--calibration`), checked against the codes and the nominal sensor.
+    pub fn decoding(&self) -> Result<(Codes, SensorSpec, MeasurementMatrix, Option<Calibration>)> {
+        let (codes, spec, a) = self.matrix()?;
+        let cal = self.calibration.as_ref().map(|dir| Calibration::load(dir, &a, &codes)).transpose()?;
+        Ok((codes, spec, a, cal))
+    }
+}
+
+/// Sensor non-idealities of a simulated sensor (all off by default: the ideal sensor).
+#[derive(Args, Clone, Default)]
+pub struct NonIdealArgs {
+    /// Per-tap gain mismatch: gains uniform in [1 − F, 1 + F].
+    #[arg(long, value_name = "F", default_value_t = 0.0)]
+    pub tap_gain: f64,
+    /// Per-pixel, per-tap gain σ (photo-response non-uniformity), relative.
+    #[arg(long, value_name = "F", default_value_t = 0.0)]
+    pub prnu: f64,
+    /// Mean dark offset, as a fraction of the full well.
+    #[arg(long, value_name = "F", default_value_t = 0.0)]
+    pub dark: f64,
+    /// Dark fixed-pattern noise σ, as a fraction of the full well.
+    #[arg(long, value_name = "F", default_value_t = 0.0)]
+    pub dark_fpn: f64,
+    /// Share of each tap's charge leaking evenly into the other taps.
+    #[arg(long, value_name = "F", default_value_t = 0.0)]
+    pub crosstalk: f64,
+    /// Share of the charge collected late (diffusion tail).
+    #[arg(long, value_name = "F", default_value_t = 0.0)]
+    pub tail: f64,
+    /// Time constant of the diffusion tail (ns).
+    #[arg(long, value_name = "NS", default_value_t = 0.5)]
+    pub tail_tau_ns: f64,
+    /// Delay of the whole response (drift), ns.
+    #[arg(long, value_name = "NS", default_value_t = 0.0)]
+    pub shift_ns: f64,
+    /// Seed of the random non-idealities (tap gains, PRNU, dark pattern).
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    pub sensor_seed: u64,
+}
+
+impl NonIdealArgs {
+    /// The checked non-idealities.
+    pub fn nonideal(&self) -> Result<NonIdeal> {
+        let n = NonIdeal {
+            tap_gain: self.tap_gain,
+            prnu: self.prnu,
+            dark: self.dark,
+            dark_fpn: self.dark_fpn,
+            crosstalk: self.crosstalk,
+            tail: self.tail,
+            tail_tau_s: self.tail_tau_ns * 1e-9,
+            shift_s: self.shift_ns * 1e-9,
+            seed: self.sensor_seed,
+        };
+        n.validate().map_err(|e| anyhow::anyhow!("sensor non-idealities (--tap-gain, --prnu, --dark, --dark-fpn, --crosstalk, --tail, --tail-tau-ns, --shift-ns): {e}"))
     }
 }
 
@@ -118,9 +183,28 @@ pub enum Units {
 pub struct SimulateArgs {
     #[command(flatten)]
     sensor: SensorArgs,
+    #[command(flatten)]
+    nonideal: NonIdealArgs,
     /// Transient cube .npy, [T, H, W] or a batch [B, T, H, W].
-    #[arg(long)]
-    cube: PathBuf,
+    #[arg(long, required_unless_present = "sweep")]
+    cube: Option<PathBuf>,
+    /// Instead of a cube: write a laser-delay sweep of a flat target (one frame per bin, dark and
+    /// flat frames, `sweep.json`) into DIR, for `tcsense calibrate`. Values in electrons, or ADC
+    /// codes with `--units adc`.
+    #[arg(long, value_name = "DIR", conflicts_with_all = ["cube", "output"])]
+    sweep: Option<PathBuf>,
+    /// Sweep: frame size.
+    #[arg(long, value_parser = super::parse_hw, default_value = "32x32", requires = "sweep")]
+    size: (usize, usize),
+    /// Sweep: exposures averaged per delay (and dark and flat frames taken).
+    #[arg(long, default_value_t = 16, requires = "sweep")]
+    average: usize,
+    /// Sweep: the brightest tap's level, as a fraction of the full well.
+    #[arg(long, default_value_t = 0.7, requires = "sweep")]
+    sweep_level: f64,
+    /// Sweep: write 16-bit PNGs per tap instead of .npy stacks.
+    #[arg(long, requires = "sweep")]
+    png: bool,
     /// Add shot noise, read noise, full-well clipping and ADC quantisation.
     #[arg(long)]
     noise: bool,
@@ -146,8 +230,8 @@ pub struct SimulateArgs {
     #[arg(long, default_value_t = 0)]
     seed: u64,
     /// Output .npy: [M, H, W] (or [B, M, H, W]).
-    #[arg(short, long)]
-    output: PathBuf,
+    #[arg(short, long, required_unless_present = "sweep")]
+    output: Option<PathBuf>,
 }
 
 pub fn simulate(a: SimulateArgs) -> Result<ExitCode> {
@@ -159,24 +243,52 @@ pub fn simulate(a: SimulateArgs) -> Result<ExitCode> {
     }
     .validate()?;
     let (codes, spec, matrix) = a.sensor.matrix()?;
-    let x = read_cube(&a.cube, true)?;
+    if a.sensor.calibration.is_some() {
+        bail!("--calibration describes a decoder's knowledge of a sensor; simulate a sensor with --tap-gain, --prnu, --dark, --tail, …");
+    }
+    let nonideal = a.nonideal.nonideal()?;
+    if let Some(dir) = &a.sweep {
+        let settings = SweepSettings { size: a.size, average: a.average, noise, noisy: a.noise, adc: matches!(a.units, Units::Adc), png: a.png, level: a.sweep_level, seed: a.seed };
+        let (bh, bw) = codes.block();
+        if a.size.0 == 0 || a.size.1 == 0 || a.size.0 % bh != 0 || a.size.1 % bw != 0 {
+            bail!("--size {}x{}: expected a non-zero multiple of the {bh}x{bw} code block", a.size.0, a.size.1);
+        }
+        let m = simulate_sweep(&matrix, &codes, &nonideal, &settings, dir)?;
+        println!("wrote {}: {} delays over {:.3} ns, {} frames averaged each, in {} (full scale {})", dir.join(tcsense_sensor::sweep::MANIFEST).display(), m.delays_s.len(), spec.cycle_s() * 1e9, a.average, m.units, m.full_scale);
+        return Ok(ExitCode::SUCCESS);
+    }
+    let (Some(cube), Some(output)) = (&a.cube, &a.output) else { bail!("--cube and --output are required (or --sweep DIR)") };
+    let x = read_cube(cube, true)?;
     let shape = x.shape().to_vec();
     let (t, h, w) = (shape[shape.len() - 3], shape[shape.len() - 2], shape[shape.len() - 1]);
     if t != spec.bins() {
         bail!(
             "{}: cube has {t} time bins, but the sensor grid has T = L·K = {} bins (L = {}, K = {}); pass --oversample/--heterodyne to match",
-            a.cube.display(),
+            cube.display(),
             spec.bins(),
             spec.params().length,
             spec.sampling().k()
         );
     }
-    let plan = matrix.plan(h, w).map_err(|e| anyhow::anyhow!("{}: {e}", a.cube.display()))?;
+    let plan = matrix.plan(h, w).map_err(|e| anyhow::anyhow!("{}: {e}", cube.display()))?;
     let exposure = match a.electrons_per_unit {
         Some(s) => Exposure::ElectronsPerUnit(s),
         None => Exposure::Auto,
     };
-    let y = match measure(&plan, &x.view(), a.noise.then_some(&noise), exposure, a.seed)? {
+    let measured = if nonideal.is_ideal() {
+        measure(&plan, &x.view(), a.noise.then_some(&noise), exposure, a.seed)?
+    } else {
+        // the real sensor: gains, dark offset, crosstalk, tail and drift, in electrons
+        let real = nonideal.realise(&matrix, h, w)?;
+        let batch = if x.ndim() == 3 { x.clone().insert_axis(ndarray::Axis(0)) } else { x.clone() };
+        let batch = batch.into_dimensionality::<ndarray::Ix4>()?;
+        let mut e = real.measure(&batch.view(), &noise, a.noise, exposure, a.seed)?;
+        if x.ndim() == 3 {
+            e.electrons = e.electrons.index_axis_move(ndarray::Axis(0), 0);
+        }
+        Measurement::Noisy(e)
+    };
+    let y = match measured {
         Measurement::Noiseless(y) => y,
         Measurement::Noisy(noisy) => {
             eprintln!("noise: {:.4} e⁻ per unit, full well {} e⁻, read noise {} e⁻", noisy.electrons_per_unit, noise.full_well_e, noise.read_noise_e);
@@ -187,14 +299,15 @@ pub fn simulate(a: SimulateArgs) -> Result<ExitCode> {
             }
         }
     };
-    let units = match (a.noise, a.units) {
+    let units = match (a.noise || !nonideal.is_ideal(), a.units) {
         (false, _) | (true, Units::Input) => "input",
         (true, Units::Electrons) => "electrons",
         (true, Units::Adc) => "adc",
     };
-    let sidecar = tcsense_sensor::sidecar::Sidecar::new(&codes, &matrix, spec.sampling(), a.noise.then_some(noise), a.noise.then_some(a.seed), units);
-    write_npy(&a.output, &y.view())?;
-    let meta = sidecar.write_for(&a.output)?;
-    println!("wrote {}: y {:?} (sensor in {})", a.output.display(), y.shape(), meta.display());
+    let mut sidecar = tcsense_sensor::sidecar::Sidecar::new(&codes, &matrix, spec.sampling(), a.noise.then_some(noise), a.noise.then_some(a.seed), units);
+    sidecar.sensor = (!nonideal.is_ideal()).then_some(nonideal);
+    write_npy(output, &y.view())?;
+    let meta = sidecar.write_for(output)?;
+    println!("wrote {}: y {:?} (sensor in {})", output.display(), y.shape(), meta.display());
     Ok(ExitCode::SUCCESS)
 }
