@@ -91,7 +91,7 @@ fn admm_net_in_onnx_runtime_equals_burn() {
     let y = read_npy(&fixture().join("y.npy")).unwrap().into_dimensionality::<Ix4>().unwrap();
     let xhat = read_npy(&fixture().join("xhat.npy")).unwrap().into_dimensionality::<Ix4>().unwrap();
     for matrix_input in [false, true] {
-        let got = ort_outputs(&run, ExportOptions { matrix_input }, &y, dir.path(), "trained.onnx");
+        let got = ort_outputs(&run, ExportOptions { matrix_input, ..Default::default() }, &y, dir.path(), "trained.onnx");
         let d = rel_diff(&got[0], &xhat);
         assert!(d <= 1e-4, "trained run, matrix input {matrix_input}: {d:e}");
     }
@@ -137,7 +137,7 @@ fn ort_equals_burn(label: &str, run: &LoadedRun, sizes: &[(usize, usize)], seed:
         let y = random_y(4, h, w, seed);
         let want = burn_outputs(run, &y);
         for matrix_input in [false, true] {
-            let got = ort_outputs(run, ExportOptions { matrix_input }, &y, dir.path(), file);
+            let got = ort_outputs(run, ExportOptions { matrix_input, ..Default::default() }, &y, dir.path(), file);
             for (k, name) in names.iter().enumerate() {
                 let d = rel_diff(&got[k], &want[k]);
                 assert!(d <= 1e-4, "{label}, {h}x{w}, matrix input {matrix_input}, {name}: ort differs from burn by {d:e} of the output scale");

@@ -11,6 +11,9 @@ use std::time::Instant;
 use tcsense_datasets::Dataset;
 use tcsense_models::decoder::{Control, Decoded, Decoder, Tval3Decoder};
 use tcsense_models::{runs, Device, ModelError, Tval3Options};
+use tcsense_sensor::calibration::Calibration;
+use tcsense_sensor::noise::Exposure;
+use tcsense_sensor::nonideal::NonIdeal;
 use tcsense_sensor::measure::measure_batch;
 use tcsense_sensor::noise::derive_seed;
 use tcsense_sensor::{Codes, MeasurementMatrix, NoiseParams};
@@ -223,6 +226,12 @@ pub struct EvalSettings {
     pub noise: Option<NoiseParams>,
     /// Item `i`'s noise is seeded by `(seed, i)`.
     pub seed: u64,
+    /// The sensor the measurements come from, when it is not the ideal model: its
+    /// non-idealities (gains, dark offset, crosstalk, tail, drift), realised at the items' size.
+    pub sensor: Option<NonIdeal>,
+    /// What the decoders know of that sensor: a calibration (its dark and gain maps correct the
+    /// tap images, its matrix replaces the nominal one). `None`: the nominal model.
+    pub calibration: Option<Calibration>,
 }
 
 /// Evaluate `decoders` on a dataset split with the sensor `a`: the same measurements of each
@@ -240,10 +249,34 @@ pub fn evaluate(ds: &Dataset, a: &MeasurementMatrix, decoders: &mut [NamedDecode
     let intensity = field("intensity")?.map(|d| d.into_dimensionality::<Ix3>()).transpose().map_err(|e| file_err(&ds.dir, format!("field intensity: {e}")))?;
     let (_, _, h, w) = x.dim();
     let plan = a.plan(h, w)?;
+    // a non-ideal sensor, or any sensor whose raw tap images a calibration corrects (its dark
+    // offsets are in electrons), is measured in electrons
+    let real = match (&settings.sensor, &settings.calibration) {
+        (Some(s), _) if !s.is_ideal() => Some(s.realise(a, h, w)?),
+        (_, Some(_)) => Some(NonIdeal::default().realise(a, h, w)?),
+        _ => None,
+    };
+    let noise_model = settings.noise.unwrap_or_default();
     // the measurements every decoder sees, [1, M, H, W] per item
     let ys: Vec<Array4<f32>> = (0..n)
-        .map(|i| measure_batch(&plan, &x.slice_axis(Axis(0), ndarray::Slice::from(i..i + 1)), settings.noise.as_ref(), derive_seed(settings.seed, i as u64)))
-        .collect::<std::result::Result<_, _>>()?;
+        .map(|i| -> Result<Array4<f32>> {
+            let xi = x.slice_axis(Axis(0), ndarray::Slice::from(i..i + 1));
+            let seed = derive_seed(settings.seed, i as u64);
+            let Some(real) = &real else {
+                return Ok(measure_batch(&plan, &xi, settings.noise.as_ref(), seed)?);
+            };
+            // a real sensor: raw electrons, corrected with the calibration's maps when there is one
+            let m = real.measure(&xi, &noise_model, settings.noise.is_some(), Exposure::Auto, seed)?;
+            let s = m.electrons_per_unit as f32;
+            let e: Array4<f32> = m.electrons.into_dimensionality().map_err(|e| file_err(&ds.dir, e.to_string()))?;
+            Ok(match &settings.calibration {
+                Some(c) => c.correct(&e.view())?.mapv(|v| v / s),
+                None => e.mapv(|v| v / s),
+            })
+        })
+        .collect::<Result<_>>()?;
+    // the decoders' model of the sensor
+    let a = settings.calibration.as_ref().map_or(a, |c| &c.matrix);
     let ctl = Control::quiet(cancel);
     let mut rows = Vec::new();
     for d in decoders.iter_mut() {

@@ -159,6 +159,15 @@ impl OnnxModel {
                 ),
             });
         }
+        if let Some(c) = &self.meta.calibration {
+            if [h, w] != c.size {
+                return Err(InferError::InvalidParam {
+                    field: "measurements",
+                    got: format!("{what}: [{b}, {m}, {h}, {w}]"),
+                    expected: format!("raw {} tap images of {}x{}, the frame size of the calibration built into {}", c.units, c.size[0], c.size[1], self.path.display()),
+                });
+            }
+        }
         if let Some(v) = y.iter().find(|v| !v.is_finite()) {
             return Err(InferError::InvalidParam { field: "measurements", got: format!("{what}: a value {v}"), expected: "finite tap values".into() });
         }

@@ -315,7 +315,7 @@ pub fn run(a: DemoArgs) -> Result<ExitCode> {
     let lidar_json = dir.join("results/lidar.json");
     let flim_json = dir.join("results/flim.json");
     steps.run("evaluation on the test splits (same noisy measurements for every decoder): TVAL3, burn and ONNX Runtime", || {
-        let settings = |items| EvalSettings { split: "test".into(), items: Some(items), noise: Some(eval_noise), seed };
+        let settings = |items| EvalSettings { split: "test".into(), items: Some(items), noise: Some(eval_noise), seed, sensor: None, calibration: None };
         let pb = indicatif::ProgressBar::new(0);
         pb.set_style(indicatif::ProgressStyle::with_template("  {msg} [{bar:30}] {pos}/{len}").unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()).progress_chars("=> "));
         let on_item = |label: &str, done: usize, of: usize| {

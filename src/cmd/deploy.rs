@@ -25,6 +25,11 @@ pub enum ExportCmd {
         /// baking it in, so a recalibrated sensor needs no new export.
         #[arg(long)]
         matrix_input: bool,
+        /// Build a sensor calibration (`tcsense calibrate`) into the model: it takes raw tap
+        /// images of the calibration's frame size and corrects them for its dark and gain maps
+        /// in the graph, and decodes with its matrix.
+        #[arg(long, value_name = "DIR")]
+        calibration: Option<PathBuf>,
         /// Output model.
         #[arg(short, long)]
         output: PathBuf,
@@ -33,10 +38,12 @@ pub enum ExportCmd {
 
 pub fn export(cmd: ExportCmd) -> Result<ExitCode> {
     match cmd {
-        ExportCmd::Onnx { run, matrix_input, output } => {
+        ExportCmd::Onnx { run, matrix_input, calibration, output } => {
             let loaded = runs::load(&run, &Device::flex())?;
-            let bytes = export_to(&loaded, ExportOptions { matrix_input }, &output)?;
-            let meta = tcsense_infer::onnx::OnnxMeta::of_run(&loaded, ExportOptions { matrix_input });
+            let cal = calibration.as_ref().map(|d| tcsense_sensor::calibration::Calibration::load(d, &loaded.sensor, &loaded.codes)).transpose()?;
+            let opts = ExportOptions { matrix_input, calibration: cal.as_ref() };
+            let bytes = export_to(&loaded, opts, &output)?;
+            let meta = tcsense_infer::onnx::OnnxMeta::of_run(&loaded, opts);
             println!(
                 "wrote {}: {} ({:.1} kB), input measurements [B, {}, H, W] with H, W multiples of {}x{}{}, outputs {}",
                 output.display(),
@@ -45,7 +52,11 @@ pub fn export(cmd: ExportCmd) -> Result<ExitCode> {
                 meta.taps,
                 meta.frame_multiple.0,
                 meta.frame_multiple.1,
-                if matrix_input { format!(" and sensor_matrix [{}, {}, {}]", loaded.sensor.subpixels(), meta.taps, meta.bins) } else { String::new() },
+                match (&meta.calibration, matrix_input) {
+                    (Some(c), _) => format!(" (raw {} tap images of {}x{} only: calibration {} built in)", c.units, c.size[0], c.size[1], calibration.as_ref().map(|d| d.display().to_string()).unwrap_or_default()),
+                    (None, true) => format!(" and sensor_matrix [{}, {}, {}]", loaded.sensor.subpixels(), meta.taps, meta.bins),
+                    (None, false) => String::new(),
+                },
                 meta.outputs().join(", ")
             );
             Ok(ExitCode::SUCCESS)

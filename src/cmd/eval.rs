@@ -27,6 +27,10 @@ pub struct EvalArgs {
     items: Option<usize>,
     #[command(flatten)]
     sensor: SensorArgs,
+    /// The sensor the measurements are simulated with, when it is not ideal (the decoders know
+    /// only the nominal model, or the calibration given with --calibration).
+    #[command(flatten)]
+    nonideal: super::sensor::NonIdealArgs,
     /// Decoders to compare: `tval3`, `lifetime-fit`, `admm-net:RUN`, `unet:RUN` and/or `lifetime:RUN` (training run directories; RUN may be `zoo:NAME`), `zoo:NAME` (a zoo entry of any kind), `onnx:MODEL.onnx`; repeat the flag. Lifetimes of cube decoders come from the reconvolution fit (`tcsense lifetime`).
     #[arg(long, num_args = 1.., default_value = "tval3")]
     decoder: Vec<String>,
@@ -51,7 +55,8 @@ pub struct EvalArgs {
 
 pub fn run(a: EvalArgs) -> Result<ExitCode> {
     let ds = Dataset::open(&a.dataset)?;
-    let (codes, spec, matrix) = a.sensor.matrix()?;
+    let (codes, spec, matrix, calibration) = a.sensor.decoding()?;
+    let nonideal = a.nonideal.nonideal()?;
     let g = ds.manifest.grid;
     if spec.bins() != ds.manifest.bins || (spec.bin_width_s() - ds.manifest.bin_width_s).abs() > 1e-6 * spec.bin_width_s() {
         bail!(
@@ -82,7 +87,7 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     }
     let noise = NoiseParams { signal_fraction: NoiseParams::default().signal_fraction * a.brightness, ..NoiseParams::default() };
     let noise = noise.validate().map_err(|e| anyhow::anyhow!("--brightness {}: {e}", a.brightness))?;
-    let settings = EvalSettings { split: a.split.clone(), items: a.items, noise: a.noise.then_some(noise), seed: a.seed };
+    let settings = EvalSettings { split: a.split.clone(), items: a.items, noise: a.noise.then_some(noise), seed: a.seed, sensor: Some(nonideal), calibration };
     let cancel = interrupt_flag();
     let pb = ProgressBar::new(0);
     pb.set_style(ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));

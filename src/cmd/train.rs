@@ -156,6 +156,11 @@ pub struct TrainArgs {
     /// inference.
     #[arg(long)]
     irf: Option<String>,
+    /// Train for a calibrated sensor (`tcsense calibrate`): its measured matrix replaces the
+    /// model's (kept as sensor_matrix.npy); decode its raw tap images with the same
+    /// `--calibration DIR`. With --init-from this fine-tunes a decoder to the real sensor.
+    #[arg(long, value_name = "DIR", conflicts_with = "irf")]
+    calibration: Option<PathBuf>,
     /// Use at most N training items.
     #[arg(long)]
     max_train: Option<usize>,
@@ -398,6 +403,13 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
             cfg.run.measured = false;
         }
     }
+    if let Some(dir) = &a.calibration {
+        if a.resume {
+            bail!("--calibration {}: a run's sensor does not change on --resume; start a new run from it with --init-from", dir.display());
+        }
+        measured = Some(dir.join(tcsense_sensor::calibration::Calibration::matrix_file(dir)?));
+        cfg.run.measured = true;
+    }
     if a.max_train.is_some() {
         cfg.max_train_items = a.max_train;
     }
@@ -460,7 +472,11 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
         // the settings and the matrix are checked before the run takes a copy
         cfg.validate()?;
         let spec = SensorParams { sampling: cfg.run.sampling, irf: cfg.run.irf, ..SensorParams::from_codes(&codes) }.validate()?;
-        let matrix = MeasurementMatrix::load(src, &spec)?;
+        let matrix = match &a.calibration {
+            // checked against the codes and the geometry of the sensor
+            Some(dir) => tcsense_sensor::calibration::Calibration::load(dir, &MeasurementMatrix::synthesize(&codes, &spec)?, &codes)?.matrix,
+            None => MeasurementMatrix::load(src, &spec)?,
+        };
         if run_dir.join("checkpoint").exists() || run_dir.join("relaxed").exists() {
             bail!("{}: a run already exists here; pass --resume to continue it or choose another directory", run_dir.display());
         }

@@ -8,6 +8,7 @@ use tcsense_models::runs::{LoadedRun, ModelConfig};
 use tcsense_sensor::{Codes, Irf, MeasurementMatrix, Sampling, SensorParams, SensorSpec};
 
 use super::ExportOptions;
+
 use crate::{InferError, Result};
 
 /// The `format` key's value.
@@ -42,11 +43,29 @@ pub struct OnnxMeta {
     pub codes: Codes,
     /// The sensor matrix is the input `sensor_matrix` rather than baked in.
     pub matrix_input: bool,
+    /// The values of `A [N, M, T]` when it is not the one the codes and sensor model give (a
+    /// measured or calibrated sensor); key `sensor_matrix_values`.
+    pub matrix_values: Option<Vec<f32>>,
+    /// The calibration built into the graph; key `calibration`.
+    pub calibration: Option<CalibrationNote>,
+}
+
+/// What an exported model records of the calibration built into it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CalibrationNote {
+    /// The frame size `[H, W]` its dark and gain maps have (the model's only frame size).
+    pub size: [usize; 2],
+    /// Units of the raw tap images it expects (those of the sweep).
+    pub units: String,
+    /// Digest of the calibrated matrix.
+    pub matrix_digest: String,
+    /// The sweep it was measured from.
+    pub sweep: String,
 }
 
 impl OnnxMeta {
     /// The metadata of `run` exported with `opts`.
-    pub fn of_run(run: &LoadedRun, opts: ExportOptions) -> Self {
+    pub fn of_run(run: &LoadedRun, opts: ExportOptions<'_>) -> Self {
         let (bh, bw) = run.sensor.block();
         let (frame_multiple, returns, range_m) = match &run.spec.model {
             ModelConfig::AdmmNet(_) => ((bh, bw), 0, 0.0),
@@ -73,6 +92,11 @@ impl OnnxMeta {
             irf: run.spec.irf,
             codes: run.codes.clone(),
             matrix_input: opts.matrix_input,
+            matrix_values: match opts.calibration {
+                Some(c) => Some(c.matrix.a().iter().copied().collect()),
+                None => run.spec.measured.then(|| run.sensor.a().iter().copied().collect()),
+            },
+            calibration: opts.calibration.map(|c| CalibrationNote { size: c.meta.size, units: c.meta.units.clone(), matrix_digest: c.meta.matrix_digest.clone(), sweep: c.meta.sweep.clone() }),
         }
     }
 
@@ -104,6 +128,12 @@ impl OnnxMeta {
             ("matrix_input", self.matrix_input.to_string()),
             ("outputs", self.outputs().join(",")),
         ];
+        if let Some(v) = &self.matrix_values {
+            p.push(("sensor_matrix_values", json(serde_json::to_string(v))));
+        }
+        if let Some(c) = &self.calibration {
+            p.push(("calibration", json(serde_json::to_string(c))));
+        }
         if self.decoder == "unet" {
             p.push(("returns", self.returns.to_string()));
             p.push(("range_m", format!("{}", self.range_m)));
@@ -151,6 +181,8 @@ impl OnnxMeta {
             v => return Err(err("matrix_input", format!("got {v:?}, expected true or false"))),
         };
         let (returns, range_m) = if decoder == "unet" { (num("returns")?, float("range_m")?) } else { (0, 0.0) };
+        let matrix_values: Option<Vec<f32>> = get("sensor_matrix_values").map(|v| serde_json::from_str(&v).map_err(|e| err("sensor_matrix_values", format!("{e}; expected a JSON array of N·M·T numbers")))).transpose()?;
+        let calibration: Option<CalibrationNote> = get("calibration").map(|v| serde_json::from_str(&v).map_err(|e| err("calibration", e.to_string()))).transpose()?;
         let meta = OnnxMeta {
             decoder,
             taps: num("taps")?,
@@ -165,6 +197,8 @@ impl OnnxMeta {
             irf,
             codes,
             matrix_input,
+            matrix_values,
+            calibration,
         };
         // the codes and sensor model must give the declared shape
         let a = meta.matrix().map_err(|e| err("codes", e.to_string()))?;
@@ -182,9 +216,17 @@ impl OnnxMeta {
         Ok(SensorParams { sampling: self.sampling, irf: self.irf, ..SensorParams::from_codes(&self.codes) }.validate()?)
     }
 
-    /// The measurement matrix of the model's codes and sensor model.
+    /// The measurement matrix of the model: the recorded values of a measured or calibrated
+    /// sensor, else the one its codes and sensor model give.
     pub fn matrix(&self) -> Result<MeasurementMatrix> {
-        Ok(MeasurementMatrix::synthesize(&self.codes, &self.spec()?)?)
+        let synthetic = MeasurementMatrix::synthesize(&self.codes, &self.spec()?)?;
+        match &self.matrix_values {
+            None => Ok(synthetic),
+            Some(v) => {
+                let a = ndarray::Array3::from_shape_vec(synthetic.a().dim(), v.clone()).map_err(|e| InferError::InvalidParam { field: "sensor_matrix_values", got: format!("{} values", v.len()), expected: format!("N·M·T = {} ({e})", synthetic.a().len()) })?;
+                Ok(synthetic.with_values(a)?)
+            }
+        }
     }
 }
 

@@ -29,6 +29,7 @@ use tcsense_models::admm::{Stage, DELAY_DILATIONS};
 use tcsense_models::{AdmmNet, LifetimeNet, Prior, Unet};
 
 use crate::{InferError, Result};
+use tcsense_sensor::calibration::Calibration;
 use graph::{Attr, Dim, Graph};
 pub use meta::OnnxMeta;
 use sensor::SensorGraph;
@@ -40,22 +41,41 @@ pub const MATRIX_INPUT: &str = "sensor_matrix";
 
 /// Export options.
 #[derive(Debug, Clone, Copy, Default)]
-pub struct ExportOptions {
+pub struct ExportOptions<'a> {
     /// Take the sensor matrix `[N, M, T]` as a second input instead of baking it in.
     pub matrix_input: bool,
+    /// A sensor calibration to build in: the graph takes raw tap images of the calibration's
+    /// frame size, subtracts its dark offsets and divides by its gains (`(y − d) / G`), and
+    /// decodes with its matrix; the metadata records it.
+    pub calibration: Option<&'a Calibration>,
 }
 
 /// The ONNX model of a trained run, serialised.
-pub fn export(run: &LoadedRun, opts: ExportOptions) -> Result<Vec<u8>> {
+pub fn export(run: &LoadedRun, opts: ExportOptions<'_>) -> Result<Vec<u8>> {
     let meta = OnnxMeta::of_run(run, opts);
     let (n, m, t) = run.sensor.a().dim();
     let mut g = Graph::new(run.spec.model.name());
-    let y = g.input(INPUT, &[Dim::Named("batch"), Dim::Fixed(m), Dim::Named("height"), Dim::Named("width")]);
+    let y = match opts.calibration {
+        None => g.input(INPUT, &[Dim::Named("batch"), Dim::Fixed(m), Dim::Named("height"), Dim::Named("width")]),
+        Some(cal) => {
+            // raw tap images of the calibrated frame size, corrected in the graph: (y − d) / G
+            let [h, w] = cal.meta.size;
+            if cal.meta.taps != m || cal.matrix.a().dim() != (n, m, t) {
+                return Err(InferError::InvalidParam { field: "calibration", got: format!("A {:?}", cal.matrix.a().dim()), expected: format!("the run's sensor [N, M, T] = [{n}, {m}, {t}]") });
+            }
+            let raw = g.input(INPUT, &[Dim::Named("batch"), Dim::Fixed(m), Dim::Fixed(h), Dim::Fixed(w)]);
+            let dark = g.weight("calibration_dark", &[1, m, h, w], cal.dark.as_slice().ok_or_else(|| InferError::InvalidParam { field: "calibration", got: "a strided dark map".into(), expected: "a contiguous map".into() })?);
+            let gain = g.weight("calibration_gain", &[1, m, h, w], cal.gain.as_slice().ok_or_else(|| InferError::InvalidParam { field: "calibration", got: "a strided gain map".into(), expected: "a contiguous map".into() })?);
+            let d = g.op("Sub", &[&raw, &dark]);
+            g.op("Div", &[&d, &gain])
+        }
+    };
+    let a_model = opts.calibration.map_or(&run.sensor, |c| &c.matrix);
     let sensor = if opts.matrix_input {
         let a = g.input(MATRIX_INPUT, &[Dim::Fixed(n), Dim::Fixed(m), Dim::Fixed(t)]);
         SensorGraph::from_input(&mut g, &a, n, m, t, run.sensor.block())
     } else {
-        SensorGraph::baked(&run.sensor)
+        SensorGraph::baked(a_model)
     };
     let frame = [Dim::Named("batch"), Dim::Fixed(0), Dim::Named("height"), Dim::Named("width")];
     let with_c = |c: usize| {
@@ -89,7 +109,7 @@ pub fn export(run: &LoadedRun, opts: ExportOptions) -> Result<Vec<u8>> {
 }
 
 /// Export `run` to `path` (written to a temporary file, then renamed).
-pub fn export_to(run: &LoadedRun, opts: ExportOptions, path: &Path) -> Result<usize> {
+pub fn export_to(run: &LoadedRun, opts: ExportOptions<'_>, path: &Path) -> Result<usize> {
     let bytes = export(run, opts)?;
     tcsense_sensor::npy::write_bytes(path, &bytes)?;
     Ok(bytes.len())
