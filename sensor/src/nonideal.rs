@@ -23,7 +23,8 @@
 //!
 //! ```
 //! use tcsense_sensor::nonideal::NonIdeal;
-//! let n = NonIdeal { tap_gain: 0.05, prnu: 0.02, tail: 0.25, ..NonIdeal::default() };
+//! let n = NonIdeal { tap_gain: 0.05, prnu: 0.02, tail: 0.25, tail_tau_s: 2e-9, ..NonIdeal::default() };
+//! assert!(NonIdeal { tail: 0.25, ..NonIdeal::default() }.validate().is_err(), "a tail needs its time constant");
 //! assert!(n.validate().is_ok() && !n.is_ideal());
 //! assert!(NonIdeal { prnu: -0.1, ..NonIdeal::default() }.validate().is_err());
 //! ```
