@@ -22,7 +22,7 @@ cp "$ZOO/codes.json" codes.json
 SIZE=$(python3 -c 'import json,sys; s=json.load(open(sys.argv[1]))["size"]; print(f"{s[0]}x{s[1]}")' "$DS/manifest.json")
 NI=(--tap-gain 0.05 --prnu 0.02 --dark 0.01 --dark-fpn 0.002 --tail 0.25 --tail-tau-ns 2 --sensor-seed 7)
 S=(--codes codes.json --irf physical)
-"$T" simulate "${S[@]}" --sweep sweep --size "$SIZE" --noise --average 16 --seed 1 "${NI[@]}"
+"$T" simulate "${S[@]}" --sweep sweep --size "$SIZE" --noise --average 64 --seed 1 "${NI[@]}"
 "$T" calibrate "${S[@]}" --sweep sweep -o cal
 "$T" simulate "${S[@]}" --sweep clean-sweep --size "$SIZE" --average 1 "${NI[@]}"
 "$T" calibrate "${S[@]}" --sweep clean-sweep -o oracle --no-report

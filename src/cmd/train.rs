@@ -159,7 +159,7 @@ pub struct TrainArgs {
     /// Train for a calibrated sensor (`tcsense calibrate`): its measured matrix replaces the
     /// model's (kept as sensor_matrix.npy); decode its raw tap images with the same
     /// `--calibration DIR`. With --init-from this fine-tunes a decoder to the real sensor.
-    #[arg(long, value_name = "DIR", conflicts_with = "irf")]
+    #[arg(long, value_name = "DIR")]
     calibration: Option<PathBuf>,
     /// Use at most N training items.
     #[arg(long)]
@@ -406,6 +406,9 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     if let Some(dir) = &a.calibration {
         if a.resume {
             bail!("--calibration {}: a run's sensor does not change on --resume; start a new run from it with --init-from", dir.display());
+        }
+        if measured.is_some() {
+            bail!("--calibration {} and --irf A.npy both give the sensor matrix; pass one", dir.display());
         }
         measured = Some(dir.join(tcsense_sensor::calibration::Calibration::matrix_file(dir)?));
         cfg.run.measured = true;
