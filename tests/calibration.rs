@@ -191,4 +191,7 @@ fn bad_sweeps_and_calibrations_exit_2() {
     fails(dir, &["reconstruct", "tval3", "--codes", "codes.json", "--measurements", "y4.npy", "--calibration", "sweep", "-o", "out.npy"], &["calibration.json"]);
     // non-idealities out of range
     fails(dir, &["simulate", "--codes", "codes.json", "--sweep", "s2", "--prnu", "0.9"], &["prnu"]);
+    // the training augmentation's sensor residue: three numbers in range
+    fails(dir, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "--sensor-residue", "0.01,0.005", "-o", "r1"], &["--sensor-residue", "three numbers"]);
+    fails(dir, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "--sensor-residue", "0.01,0.5,0.002", "-o", "r2"], &["sensor_residue", "PRNU"]);
 }

@@ -174,6 +174,11 @@ pub struct TrainArgs {
     /// brightness over two decades and a noise level per item).
     #[arg(long, conflicts_with = "crop")]
     no_augment: bool,
+    /// Augmentation: after each measurement, perturb the tap images by what a calibration
+    /// leaves of a real sensor, drawn per item: tap gains 1 ± G, pixel gains 1 + N(0, P²),
+    /// offsets N(0, D²) × the brightest tap (e.g. 0.01,0.005,0.002), so the decoder tolerates it.
+    #[arg(long, value_name = "G,P,D", value_delimiter = ',', num_args = 1, conflicts_with = "no_augment")]
+    sensor_residue: Option<Vec<f64>>,
     /// Train on random HxW crops of the frames (a multiple of the pixel block).
     #[arg(long, value_parser = super::parse_hw)]
     crop: Option<(usize, usize)>,
@@ -326,6 +331,12 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
         };
         TrainConfig::for_dataset(model, ds_path, &ds)
     };
+    if let Some(r) = &a.sensor_residue {
+        if r.len() != 3 {
+            bail!("--sensor-residue {r:?}: expected three numbers G,P,D (tap gain, PRNU, dark), e.g. 0.01,0.005,0.002");
+        }
+        cfg.augment = Some(Augmentation { sensor_residue: [r[0], r[1], r[2]], ..cfg.augment.unwrap_or_default() });
+    }
     if a.no_augment {
         cfg.augment = None;
     }
@@ -468,7 +479,15 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
         if cfg.noise.is_some() { "shot + read" } else { "off" },
         match &cfg.augment {
             None => "off".to_string(),
-            Some(g) => format!("shifts {}, flips {}, crop {}, brightness {:?}, signal {:?} of full well", g.time_shift, g.flips, g.crop.map_or("none".into(), |[h, w]| format!("{h}x{w}")), g.brightness, g.signal_fraction),
+            Some(g) => format!(
+                "shifts {}, flips {}, crop {}, brightness {:?}, signal {:?} of full well{}",
+                g.time_shift,
+                g.flips,
+                g.crop.map_or("none".into(), |[h, w]| format!("{h}x{w}")),
+                g.brightness,
+                g.signal_fraction,
+                if g.sensor_residue.iter().any(|&v| v != 0.0) { format!(", sensor residue (tap gain, PRNU, dark) {:?}", g.sensor_residue) } else { String::new() }
+            ),
         }
     );
     if let Some(src) = &measured {

@@ -44,6 +44,16 @@ pub struct Augmentation {
     pub read_noise_e: [f64; 2],
     /// Fraction of full well the brightest tap reaches, per item, log-uniform.
     pub signal_fraction: [f64; 2],
+    /// What a calibration leaves of a real sensor's non-idealities, drawn afresh per item
+    /// after the measurement: `[tap gain, PRNU, dark]` — tap gains uniform in `1 ± g`, pixel
+    /// gains `1 + N(0, p²)` per pixel and tap, and offsets `N(0, d²)` times the item's
+    /// brightest tap. All zero (the default): off.
+    #[serde(default, skip_serializing_if = "is_off")]
+    pub sensor_residue: [f64; 3],
+}
+
+fn is_off(r: &[f64; 3]) -> bool {
+    r.iter().all(|&v| v == 0.0)
 }
 
 impl Default for Augmentation {
@@ -51,7 +61,7 @@ impl Default for Augmentation {
     /// read noise 10–60 e⁻, brightest tap at 5–90 % of full well (500 to 36 000 e⁻, against the
     /// paper's 16 000).
     fn default() -> Self {
-        Augmentation { time_shift: true, flips: true, crop: None, brightness: [0.01, 1.0], full_well_e: [1e4, 4e4], read_noise_e: [10.0, 60.0], signal_fraction: [0.05, 0.9] }
+        Augmentation { time_shift: true, flips: true, crop: None, brightness: [0.01, 1.0], full_well_e: [1e4, 4e4], read_noise_e: [10.0, 60.0], signal_fraction: [0.05, 0.9], sensor_residue: [0.0; 3] }
     }
 }
 
@@ -99,10 +109,43 @@ fn window(src: ArrayView3<'_, f32>, [r0, c0, ch, cw]: [usize; 4], flip_r: bool, 
     }
 }
 
+/// Stream of the sensor-residue draws.
+const RESIDUE_STREAM: u64 = 0x5245_5349_4455_4521;
+
 impl Augmentation {
+    /// Perturb measured tap images `y` (`[B, M, H, W]`) by the sensor residue (see
+    /// [`Augmentation::sensor_residue`]), item `i` from its own generator seeded by
+    /// `(seed, step, i)`; a no-op when the residue is off.
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]`, in place
+    pub fn perturb(&self, y: &mut Array4<f32>, seed: u64, step: u64) {
+        let [g, p, d] = self.sensor_residue;
+        if is_off(&self.sensor_residue) {
+            return;
+        }
+        let unit = rand_distr::Normal::new(0.0f64, 1.0).expect("unit normal");
+        for (i, mut item) in y.outer_iter_mut().enumerate() {
+            let mut rng = StdRng::seed_from_u64(derive_seed(derive_seed(seed ^ RESIDUE_STREAM, step), i as u64));
+            let peak = item.iter().fold(0f32, |m, v| m.max(v.abs())) as f64;
+            for mut tap in item.outer_iter_mut() {
+                let gain = if g > 0.0 { 1.0 + rng.random_range(-g..=g) } else { 1.0 };
+                for v in tap.iter_mut() {
+                    let pixel = 1.0 + p * rand_distr::Distribution::sample(&unit, &mut rng);
+                    let offset = d * peak * rand_distr::Distribution::sample(&unit, &mut rng);
+                    *v = (*v as f64 * gain * pixel + offset) as f32;
+                }
+            }
+        }
+    }
+
     /// Check the ranges against a frame of `h × w` with pixel block `block`.
     pub fn validate(&self, h: usize, w: usize, block: (usize, usize)) -> Result<()> {
         let bad = |field: &'static str, got: String, expected: &str| Err(TrainError::InvalidParam { field, got, expected: expected.into() });
+        let [g, p, d] = self.sensor_residue;
+        if !(g.is_finite() && p.is_finite() && d.is_finite() && (0.0..=0.5).contains(&g) && (0.0..=0.2).contains(&p) && (0.0..=0.1).contains(&d)) {
+            return bad("augment.sensor_residue", format!("{:?}", self.sensor_residue), "[tap gain ≤ 0.5, PRNU ≤ 0.2, dark ≤ 0.1], each ≥ 0");
+        }
         for (name, r, lo) in [("augment.brightness", self.brightness, 1e-6), ("augment.full_well_e", self.full_well_e, 1.0), ("augment.signal_fraction", self.signal_fraction, 1e-6)] {
             if !(r[0].is_finite() && r[1].is_finite() && lo <= r[0] && r[0] <= r[1]) {
                 return bad(name, format!("{r:?}"), "a range LO ≤ HI of positive numbers");
@@ -192,7 +235,7 @@ mod tests {
     fn shifts_flips_crops_and_levels() {
         let x = cube();
         let base = NoiseParams::default();
-        let off = Augmentation { time_shift: false, flips: false, crop: None, brightness: [1.0, 1.0], full_well_e: [2e4, 2e4], read_noise_e: [40.0, 40.0], signal_fraction: [0.8, 0.8] };
+        let off = Augmentation { time_shift: false, flips: false, crop: None, brightness: [1.0, 1.0], full_well_e: [2e4, 2e4], read_noise_e: [40.0, 40.0], signal_fraction: [0.8, 0.8], sensor_residue: [0.0; 3] };
         let same = off.apply(&x.view(), None, None, &base, (2, 2), 1, 1);
         assert_eq!(same.x, x, "everything off is the identity");
         assert!(same.noise.iter().all(|n| n.full_well_e == 2e4 && n.read_noise_e == 40.0 && n.signal_fraction == 0.8 && n.adc_bits == base.adc_bits));
@@ -234,6 +277,7 @@ mod tests {
             assert!((v / 10 % 10) % 2 == 0 && (v % 10) % 2 == 0, "crop origin ({}, {}) on the 2x2 block grid", v / 10 % 10, v % 10);
         }
         assert!(Augmentation { crop: Some([3, 4]), ..off }.validate(4, 6, (2, 2)).is_err());
+        assert!(Augmentation { sensor_residue: [0.0, 0.5, 0.0], ..off }.validate(4, 6, (2, 2)).is_err());
         assert!(Augmentation { crop: Some([6, 4]), ..off }.validate(4, 6, (2, 2)).is_err());
         assert!(Augmentation { brightness: [1.0, 0.5], ..off }.validate(4, 6, (2, 2)).is_err());
 
@@ -253,5 +297,30 @@ mod tests {
         }
         let gains: Vec<f32> = (0..200).map(|s| d.apply(&x.view(), None, None, &base, (2, 2), 7, s).x.iter().map(|v| v.abs()).sum::<f32>() / x.iter().map(|v| v.abs()).sum::<f32>()).collect();
         assert!(gains.iter().any(|&g| g < 0.05) && gains.iter().any(|&g| g > 0.5), "brightness over two decades");
+    }
+
+    #[test]
+    fn sensor_residue_perturbs_as_specified_and_is_seeded() {
+        let aug = Augmentation { sensor_residue: [0.05, 0.02, 0.01], ..Augmentation::default() };
+        let y = Array4::<f32>::from_elem((2, 4, 16, 16), 1.0);
+        let (mut a, mut b, mut c) = (y.clone(), y.clone(), y.clone());
+        aug.perturb(&mut a, 3, 7);
+        aug.perturb(&mut b, 3, 7);
+        aug.perturb(&mut c, 3, 8);
+        assert_eq!(a, b, "same seed and step, same bytes");
+        assert_ne!(a, c, "another step, other draws");
+        for item in a.outer_iter() {
+            for tap in item.outer_iter() {
+                let v: Vec<f64> = tap.iter().map(|&v| v as f64).collect();
+                let mean = v.iter().sum::<f64>() / v.len() as f64;
+                let sd = (v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / v.len() as f64).sqrt();
+                assert!((mean - 1.0).abs() <= 0.05 + 0.01, "tap gain within 1 ± 0.05: mean {mean}");
+                // pixel gain 2 % and offsets 1 % of the peak: σ ≈ 2.2 %
+                assert!(sd > 0.015 && sd < 0.03, "per-pixel scatter {sd}");
+            }
+        }
+        let mut off = y.clone();
+        Augmentation::default().perturb(&mut off, 3, 7);
+        assert_eq!(off, y, "off by default");
     }
 }

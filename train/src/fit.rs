@@ -300,7 +300,8 @@ fn fit<M: Network>(
                     let labels = db.as_ref().filter(|_| !lifetimes).map(|d| DepthLabels { depth: d.view(), bin_m, range_m });
                     let maps = db.as_ref().filter(|_| lifetimes).map(|d| d.view());
                     let out = aug.apply(&xb.view(), labels, maps, noise.as_ref().unwrap_or(&crate::config::TRAINING_NOISE), a.block(), cfg.seed, state.step);
-                    let yb = measure_items(&train_plan, &out.x, noise.as_ref().map(|_| out.noise.as_slice()), noise_seed)?;
+                    let mut yb = measure_items(&train_plan, &out.x, noise.as_ref().map(|_| out.noise.as_slice()), noise_seed)?;
+                    aug.perturb(&mut yb, cfg.seed, state.step);
                     // each item's loss on its own scale: its peak, brightness included
                     let peaks: Vec<f32> = out.x.outer_iter().map(|xi| xi.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-12)).collect();
                     (out.x, out.depth.or(out.maps), yb, Some(peaks))
