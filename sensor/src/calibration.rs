@@ -369,14 +369,6 @@ impl Calibration {
         Ok(Calibration { meta, matrix, gain, dark, residual, response: None })
     }
 
-    /// The matrix file named by the calibration directory `dir` (without checking the rest).
-    pub fn matrix_file(dir: &Path) -> Result<String> {
-        let path = dir.join(DESCRIPTION);
-        let text = std::fs::read_to_string(&path).map_err(|e| SensorError::io(&path, e))?;
-        let meta: CalibrationMeta = serde_json::from_str(&text).map_err(|e| err(&path, format!("not a calibration description: {e}")))?;
-        Ok(meta.files.matrix)
-    }
-
     /// Raw tap images → corrected ones, `(y − d) / G`.
     ///
     /// # Shapes

@@ -30,6 +30,20 @@ pub enum Exposure {
     ElectronsPerUnit(f64),
 }
 
+impl Exposure {
+    /// Electrons per unit of `y` (whose largest value is `peak`) under `noise`: the given
+    /// number, checked, or the one that brings `peak` to `signal_fraction` of full well
+    /// (`1` for a dark frame).
+    pub fn electrons_per_unit(self, peak: f32, noise: &NoiseParams) -> Result<f64> {
+        match self {
+            Exposure::ElectronsPerUnit(s) if s.is_finite() && s > 0.0 => Ok(s),
+            Exposure::ElectronsPerUnit(s) => Err(invalid("electrons_per_unit", s, "a positive finite number")),
+            Exposure::Auto if peak > 0.0 => Ok(noise.signal_fraction * noise.full_well_e / peak as f64),
+            Exposure::Auto => Ok(1.0),
+        }
+    }
+}
+
 /// Noisy measurements, in electrons, with the scale used.
 #[derive(Debug, Clone)]
 pub struct NoisyMeasurement {
@@ -69,22 +83,7 @@ pub fn derive_seed(seed: u64, stream: u64) -> u64 {
 /// Apply the noise model to noiseless tap values `y` (any shape, e.g. `[M, H, W]` or `[B, M, H, W]`).
 pub fn add_noise(y: &ArrayViewD<'_, f32>, noise: &NoiseParams, exposure: Exposure, seed: u64) -> Result<NoisyMeasurement> {
     let noise = noise.validate()?;
-    let scale = match exposure {
-        Exposure::ElectronsPerUnit(s) => {
-            if !(s.is_finite() && s > 0.0) {
-                return Err(invalid("electrons_per_unit", s, "a positive finite number"));
-            }
-            s
-        }
-        Exposure::Auto => {
-            let peak = y.iter().fold(0f32, |a, &v| a.max(v)) as f64;
-            if peak > 0.0 {
-                noise.signal_fraction * noise.full_well_e / peak
-            } else {
-                1.0
-            }
-        }
-    };
+    let scale = exposure.electrons_per_unit(y.iter().fold(0f32, |a, &v| a.max(v)), &noise)?;
     let input: Vec<f32> = y.iter().copied().collect();
     let mut out = vec![0f32; input.len()];
     let read = Normal::new(0.0, noise.read_noise_e).map_err(|e| invalid("read_noise", noise.read_noise_e, e.to_string()))?;

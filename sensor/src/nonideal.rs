@@ -29,7 +29,7 @@
 //! assert!(NonIdeal { prnu: -0.1, ..NonIdeal::default() }.validate().is_err());
 //! ```
 
-use ndarray::{Array3, Array4, ArrayView4, Axis};
+use ndarray::{Array3, Array4, ArrayView4};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use rand_distr::{Distribution, Normal};
@@ -205,20 +205,7 @@ impl RealSensor {
         for mut frame in y.outer_iter_mut() {
             frame *= &self.gain;
         }
-        let s = match exposure {
-            Exposure::ElectronsPerUnit(s) => s,
-            Exposure::Auto => {
-                let peak = y.iter().fold(0f32, |a, &v| a.max(v)) as f64;
-                if peak > 0.0 {
-                    noise.signal_fraction * noise.full_well_e / peak
-                } else {
-                    1.0
-                }
-            }
-        };
-        if !(s.is_finite() && s > 0.0) {
-            return Err(invalid("electrons_per_unit", s, "a positive finite number"));
-        }
+        let s = exposure.electrons_per_unit(y.iter().fold(0f32, |a, &v| a.max(v)), &noise)?;
         let fw = noise.full_well_e as f32;
         let mut mean = y.mapv(|v| v * s as f32);
         for mut frame in mean.outer_iter_mut() {
@@ -236,19 +223,6 @@ impl RealSensor {
     pub fn dark_electrons(&self, noise: &NoiseParams) -> Array3<f32> {
         self.dark.mapv(|d| d * noise.full_well_e as f32)
     }
-
-    /// Frames `[B, M, H, W]` of `x` in the units of `A x` as the nominal decoders get them from
-    /// this sensor: electrons / `s` (dark offset and gains uncorrected).
-    pub fn measure_input_units(&self, x: &ArrayView4<'_, f32>, noise: &NoiseParams, noisy: bool, seed: u64) -> Result<Array4<f32>> {
-        let m = self.measure(x, noise, noisy, Exposure::Auto, seed)?;
-        let s = m.electrons_per_unit as f32;
-        m.electrons.mapv(|e| e / s).into_dimensionality().map_err(|e| invalid("measurements", "a batch", e.to_string()))
-    }
-}
-
-/// The per-tap mean of a `[M, H, W]` map (for reports and tests).
-pub fn tap_means(map: &Array3<f32>) -> Vec<f64> {
-    map.axis_iter(Axis(0)).map(|t| t.iter().map(|&v| v as f64).sum::<f64>() / t.len().max(1) as f64).collect()
 }
 
 #[cfg(test)]

@@ -23,7 +23,7 @@
 //! `2^bits − 1`); a frame at or above it is refused. A simulated sweep also records the sensor
 //! that produced it (`sensor`: its non-idealities with their seed) and the codes' digest.
 
-use ndarray::{s, Array3, Array4, ArrayView3, Axis};
+use ndarray::{s, Array3, Array4, Axis};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -231,7 +231,8 @@ pub fn simulate_sweep(a: &MeasurementMatrix, codes: &Codes, sensor: &NonIdeal, s
     // electrons per unit so that the brightest tap of the whole sweep (gains included) sits at `level`
     let gmax = real.gain.iter().fold(0f32, |m, &v| m.max(v)) as f64;
     let peak = real.matrix.a().iter().fold(0f32, |m, &v| m.max(v)) as f64 * gmax;
-    let exposure = Exposure::ElectronsPerUnit(settings.level * noise.full_well_e / peak.max(f64::MIN_POSITIVE));
+    let electrons_per_unit = settings.level * noise.full_well_e / peak.max(f64::MIN_POSITIVE);
+    let exposure = Exposure::ElectronsPerUnit(electrons_per_unit);
     let lsb = if noise.adc_bits > 0 { noise.full_well_e / ((1u64 << noise.adc_bits) - 1) as f64 } else { 1.0 };
     let units = if settings.adc { "adc" } else { "electrons" };
     let scale = if settings.adc { 1.0 / lsb } else { 1.0 } as f32;
@@ -257,13 +258,16 @@ pub fn simulate_sweep(a: &MeasurementMatrix, codes: &Codes, sensor: &NonIdeal, s
     let dark = singles(&Array4::zeros((1, t, h, w)), 0)?;
     // flat: constant light, the brightest tap at half the sweep's level
     let row = real.matrix.a().sum_axis(Axis(2)).iter().fold(0f32, |m, &v| m.max(v)) as f64;
-    let flat_level = 0.5 * settings.level * noise.full_well_e / (exposure_units(exposure) * gmax * row.max(f64::MIN_POSITIVE));
+    let flat_level = 0.5 * settings.level * noise.full_well_e / (electrons_per_unit * gmax * row.max(f64::MIN_POSITIVE));
     let flat = singles(&Array4::from_elem((1, t, h, w), flat_level as f32), t as u64 + 1)?;
     let full_scale = if settings.adc { noise.full_well_e / lsb } else { noise.full_well_e };
+    if settings.png && full_scale > 65535.0 {
+        return Err(crate::error::invalid("PNG sweep", format!("full scale {full_scale}"), "at most 65535 (write ADC codes of ≤ 16 bits, or .npy)"));
+    }
     std::fs::create_dir_all(dir).map_err(|e| SensorError::io(dir, e))?;
-    let files = |name: &str, a: &ArrayView3<'_, f32>, stack: Option<&Array4<f32>>| -> Result<FrameFiles> {
+    // a stack of frames [F, M, H, W]: one .npy, or one PNG per frame and tap
+    let files = |name: &str, stack: &Array4<f32>| -> Result<FrameFiles> {
         if settings.png {
-            let stack = stack.cloned().unwrap_or_else(|| a.to_owned().insert_axis(Axis(0)));
             let mut list = Vec::new();
             for (f, frame) in stack.outer_iter().enumerate() {
                 let mut taps = Vec::new();
@@ -277,23 +281,17 @@ pub fn simulate_sweep(a: &MeasurementMatrix, codes: &Codes, sensor: &NonIdeal, s
             Ok(FrameFiles::Png(list))
         } else {
             let file = format!("{name}.npy");
-            match stack {
-                Some(s) => write_npy(&dir.join(&file), &s.view())?,
-                None => write_npy(&dir.join(&file), a)?,
-            }
+            write_npy(&dir.join(&file), &stack.view())?;
             Ok(FrameFiles::Npy(file))
         }
     };
-    if settings.png && full_scale > 65535.0 {
-        return Err(crate::error::invalid("PNG sweep", format!("full scale {full_scale}"), "at most 65535 (write ADC codes of ≤ 16 bits, or .npy)"));
-    }
     let manifest = SweepManifest {
         format: FORMAT.into(),
         version: VERSION,
         delays_s: delays,
-        frames: files("sweep", &frames.index_axis(Axis(0), 0), Some(&frames))?,
-        dark: files("dark", &dark.index_axis(Axis(0), 0), Some(&dark))?,
-        flat: Some(files("flat", &flat.index_axis(Axis(0), 0), Some(&flat))?),
+        frames: files("sweep", &frames)?,
+        dark: files("dark", &dark)?,
+        flat: Some(files("flat", &flat)?),
         full_scale,
         units: units.into(),
         codes_digest: Some(codes.digest()),
@@ -302,11 +300,4 @@ pub fn simulate_sweep(a: &MeasurementMatrix, codes: &Codes, sensor: &NonIdeal, s
     let text = serde_json::to_string_pretty(&manifest).map_err(|e| file_err(&dir.join(MANIFEST), e.to_string()))?;
     write_bytes(&dir.join(MANIFEST), (text + "\n").as_bytes())?;
     Ok(manifest)
-}
-
-fn exposure_units(e: Exposure) -> f64 {
-    match e {
-        Exposure::ElectronsPerUnit(s) => s,
-        Exposure::Auto => 1.0,
-    }
 }

@@ -421,7 +421,8 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
         if measured.is_some() {
             bail!("--calibration {} and --irf A.npy both give the sensor matrix; pass one", dir.display());
         }
-        measured = Some(dir.join(tcsense_sensor::calibration::Calibration::matrix_file(dir)?));
+        // loaded and checked against the codes with the rest of the sensor below
+        measured = Some(dir.clone());
         cfg.run.measured = true;
     }
     if a.max_train.is_some() {
