@@ -1,0 +1,17 @@
+//! Pipelines that run the toolkit's crates end to end, as library calls, so the binary and
+//! the Python module are two thin front ends over the same work.
+//!
+//! - [`demo`]: the paper's prototype from nothing to `report.html` — datasets, code design
+//!   (random selection by TVAL3 and deep sensing), code-memory export, training of ADMM-Net
+//!   and the Aᵀ + U-Net within a time budget, ONNX export, ONNX Runtime, metric tables in the
+//!   style of the paper's Tables 4 and 5, timing at 188×212, and the figures.
+//!
+//! Each pipeline takes a cancel flag and an observer (where its log lines and progress go)
+//! and returns its results as values; errors are [`PipelineError`]s carrying the message the
+//! command line prints.
+
+pub mod demo;
+pub mod error;
+
+pub use demo::{DemoOptions, DemoSummary, Observer};
+pub use error::{PipelineError, Result};

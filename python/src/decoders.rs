@@ -1,0 +1,252 @@
+//! Decoders: `tval3`, `lifetime_fit`, and `Decoder` objects for every kind — training runs
+//! (ADMM-Net, Aᵀ + U-Net, the lifetime network; `zoo:NAME` too), TVAL3, the fit to the taps and
+//! exported ONNX models — all behind the crates' one decoder contract.
+
+use std::path::PathBuf;
+use std::sync::Mutex;
+
+use ndarray::{Array4, Axis, Ix4};
+use numpy::{IntoPyArray, PyUntypedArrayMethods};
+use pyo3::prelude::*;
+use pyo3::types::{PyDict, PyList};
+use tcsense_infer::eval::open_decoder;
+use tcsense_infer::tapfit::{TapFitDecoder, TapFitOptions};
+use tcsense_models::decoder::{Control, Decoded, Decoder, Tval3Decoder};
+use tcsense_models::{runs, zoo, Device, Tval3Options};
+use tcsense_sensor::calibration::Calibration;
+use tcsense_sensor::{Codes, SensorParams};
+
+use crate::codes::PyCodes;
+use crate::sensor::PySensor;
+use crate::{check_rank, err, existing, f32_array, merged, path_of, run_long};
+
+/// A decoder: tap images in, cubes, depth or lifetimes out.
+#[pyclass(name = "Decoder", module = "tcsense", frozen)]
+pub struct PyDecoder {
+    label: String,
+    kind: String,
+    inner: Mutex<Box<dyn Decoder>>,
+    /// The codes it was trained with (learned decoders, ONNX models).
+    codes: Option<Codes>,
+    /// The sensor it decodes with when `decode` is given none (runs and ONNX models).
+    sensor: Option<Py<PySensor>>,
+    run: Option<PathBuf>,
+}
+
+/// The decoded batch as a dict of arrays, without the batch axis when the input had none.
+fn decoded_dict<'py>(py: Python<'py>, d: Decoded, batched: bool) -> PyResult<Bound<'py, PyDict>> {
+    let out = PyDict::new(py);
+    let put = |name: &str, a: Option<Array4<f32>>| -> PyResult<()> {
+        if let Some(a) = a {
+            let a = if batched { a.into_dyn() } else { a.index_axis_move(Axis(0), 0).into_dyn() };
+            out.set_item(name, a.into_pyarray(py))?;
+        }
+        Ok(())
+    };
+    put("cube", d.cube)?;
+    put("depth", d.depth)?;
+    put("confidence", d.confidence)?;
+    put("lifetime", d.lifetime)?;
+    put("intensity", d.intensity)?;
+    Ok(out)
+}
+
+/// Decode `y` (`[M, H, W]` or `[B, M, H, W]`) with `decoder` on `sensor`: a calibrated
+/// sensor's raw frames are corrected first, then decoded with its matrix.
+fn decode_with<'py>(py: Python<'py>, decoder: &Mutex<Box<dyn Decoder>>, sensor: &PySensor, y: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyDict>> {
+    let arr = f32_array(y, "y")?;
+    check_rank(arr.shape(), &[3, 4], "y", "[M, H, W] or [B, M, H, W]")?;
+    let v = arr.as_array();
+    let batched = v.ndim() == 4;
+    let v = if batched { v.into_dimensionality::<Ix4>() } else { v.insert_axis(Axis(0)).into_dimensionality::<Ix4>() }.map_err(err)?;
+    let corrected;
+    let v = if sensor.calibration.is_some() {
+        corrected = sensor.corrected(v)?;
+        corrected.view()
+    } else {
+        v
+    };
+    let a = sensor.matrix_ref();
+    let out = run_long(py, |cancel| {
+        let mut d = decoder.lock().unwrap_or_else(|e| e.into_inner());
+        d.decode(v, a, &Control::quiet(cancel))
+    })?
+    .map_err(err)?;
+    decoded_dict(py, out, batched)
+}
+
+#[pymethods]
+impl PyDecoder {
+    /// Decode tap images `y` (`[M, H, W]` or `[B, M, H, W]`, float32) with `sensor` (default:
+    /// the decoder's own, for runs and ONNX models). Returns a dict of the arrays the decoder
+    /// gives: `cube [T, H, W]`, `depth` and `confidence [K, H, W]` (m), `lifetime [4, H, W]`
+    /// (τ_m, τ₁, τ₂ in s, α₁) with `confidence` and `intensity [1, H, W]` — with a leading batch
+    /// axis when `y` had one. Runs with the GIL released; Ctrl-C stops it.
+    #[pyo3(signature = (y, sensor = None))]
+    fn decode<'py>(&self, py: Python<'py>, y: &Bound<'py, PyAny>, sensor: Option<&Bound<'py, PySensor>>) -> PyResult<Bound<'py, PyDict>> {
+        let own = self.sensor.as_ref().map(|s| s.bind(py).clone());
+        let Some(s) = sensor.cloned().or(own) else {
+            return Err(err(format!("{}: give the sensor the measurements come from: decode(y, sensor)", self.label)));
+        };
+        let s = s.get();
+        if let Some(c) = &self.codes {
+            if c.digest() != s.codes.digest() {
+                return Err(err(format!(
+                    "{}: the decoder was trained with codes {} but the sensor has codes {}; a learned decoder decodes its own codes only (fine-tune it to new codes with `tcsense train --init-from`)",
+                    self.label,
+                    c.digest(),
+                    s.codes.digest()
+                )));
+            }
+        }
+        decode_with(py, &self.inner, s, y)
+    }
+
+    /// `tval3`, `lifetime-fit`, `admm-net`, `unet`, `lifetime` or `onnx`.
+    #[getter]
+    fn kind(&self) -> &str {
+        &self.kind
+    }
+    /// How it was opened (`admm-net:RUN`, `zoo:NAME`, `onnx:FILE`, `tval3`).
+    #[getter]
+    fn label(&self) -> &str {
+        &self.label
+    }
+    /// The codes it was trained with (None for TVAL3 and the fit).
+    #[getter]
+    fn codes(&self) -> Option<PyCodes> {
+        self.codes.clone().map(|inner| PyCodes { inner })
+    }
+    /// The sensor it decodes with by default (None for TVAL3 and the fit).
+    #[getter]
+    fn sensor<'py>(&self, py: Python<'py>) -> Option<Bound<'py, PySensor>> {
+        self.sensor.as_ref().map(|s| s.bind(py).clone())
+    }
+    /// The run directory (None unless opened from a run).
+    #[getter]
+    fn run(&self) -> Option<PathBuf> {
+        self.run.clone()
+    }
+
+    fn __repr__(&self) -> String {
+        format!("Decoder({:?}, kind={:?})", self.label, self.kind)
+    }
+}
+
+/// The sensor of an opened run or model: its codes, sampling, IRF and matrix.
+fn run_sensor(py: Python<'_>, codes: &Codes, sampling: tcsense_sensor::Sampling, irf: tcsense_sensor::Irf, a: tcsense_sensor::MeasurementMatrix, calibration: Option<PathBuf>) -> PyResult<Py<PySensor>> {
+    let spec = SensorParams { sampling, irf, ..SensorParams::from_codes(codes) }.validate().map_err(err)?;
+    let cal = match calibration {
+        Some(d) => {
+            existing(&d, "calibration")?;
+            Some(Calibration::load(&d, &a, codes).map_err(err)?)
+        }
+        None => None,
+    };
+    let label = match irf {
+        tcsense_sensor::Irf::Ideal => "ideal",
+        tcsense_sensor::Irf::Physical { .. } => "physical",
+    };
+    Py::new(py, PySensor::new(codes.clone(), spec, a, cal, label.into()))
+}
+
+/// Open a trained run directory (or `zoo:NAME`) as a decoder, with its codes and sensor;
+/// `calibration` (a `tcsense calibrate` directory) makes it decode a calibrated sensor's raw
+/// frames (`tcsense reconstruct … --calibration`).
+#[pyfunction]
+#[pyo3(signature = (run, *, calibration = None))]
+fn open_run(py: Python<'_>, run: &Bound<'_, PyAny>, calibration: Option<&Bound<'_, PyAny>>) -> PyResult<PyDecoder> {
+    let spec: String = path_of(run)?.to_string_lossy().into_owned();
+    let dir = zoo::resolve(&spec).map_err(err)?;
+    existing(&dir, "run")?;
+    let cal = calibration.map(path_of).transpose()?;
+    let r = run_long(py, |_| runs::open(&dir, &Device::flex()))?.map_err(err)?;
+    let kind = r.spec.model.name().to_string();
+    let sensor = run_sensor(py, &r.codes, r.spec.sampling, r.spec.irf, r.sensor.clone(), cal)?;
+    Ok(PyDecoder { label: spec, kind, inner: Mutex::new(r.decoder), codes: Some(r.codes), sensor: Some(sensor), run: Some(r.dir) })
+}
+
+/// Open a decoder by its command-line name: `tval3`, `lifetime-fit`, `admm-net:RUN`,
+/// `unet:RUN`, `lifetime:RUN`, `zoo:NAME` or `onnx:MODEL.onnx` (through ONNX Runtime).
+/// `tval3` takes TVAL3's settings as keyword arguments (`mu`, `beta`, `maxit`, `tol`, …).
+#[pyfunction(name = "open_decoder")]
+#[pyo3(signature = (name, **tval3))]
+fn open_decoder_py(py: Python<'_>, name: &str, tval3: Option<&Bound<'_, PyDict>>) -> PyResult<PyDecoder> {
+    let opts: Tval3Options = merged(&Tval3Options::default(), tval3, "tval3 settings")?;
+    if let Some(("onnx", file)) = name.split_once(':') {
+        existing(std::path::Path::new(file), "onnx model")?;
+    }
+    let d = run_long(py, |_| open_decoder(name, &opts, &Device::flex()))?.map_err(err)?;
+    let (kind, sensor, run) = match name.split_once(':') {
+        None => (name.to_string(), None, None),
+        Some(("onnx", file)) => {
+            let m = crate::onnx::open_model(std::path::Path::new(file), 0)?;
+            let s = run_sensor(py, &m.meta.codes, m.meta.sampling, m.meta.irf, m.sensor.clone(), None)?;
+            ("onnx".to_string(), Some(s), None)
+        }
+        Some((_, dir)) => {
+            let path = zoo::resolve(if name.starts_with("zoo:") { name } else { dir }).map_err(err)?;
+            let loaded = runs::load(&path, &Device::flex()).map_err(err)?;
+            let s = run_sensor(py, &loaded.codes, loaded.spec.sampling, loaded.spec.irf, loaded.sensor.clone(), None)?;
+            (loaded.spec.model.name().to_string(), Some(s), Some(loaded.dir))
+        }
+    };
+    Ok(PyDecoder { label: name.into(), kind, inner: Mutex::new(d.decoder), codes: d.codes, sensor, run })
+}
+
+/// TVAL3 (`tcsense reconstruct tval3`): y `[M, H, W]` or `[B, M, H, W]` → cube `[T, H, W]` or
+/// `[B, T, H, W]`. Settings as keyword arguments (`mu`, `beta`, `maxit`, `tol`, `nonneg`, …).
+#[pyfunction]
+#[pyo3(signature = (y, sensor, **options))]
+fn tval3<'py>(py: Python<'py>, y: &Bound<'py, PyAny>, sensor: &Bound<'py, PySensor>, options: Option<&Bound<'py, PyDict>>) -> PyResult<Bound<'py, PyAny>> {
+    let opts: Tval3Options = merged(&Tval3Options::default(), options, "tval3 settings")?;
+    let dec: Mutex<Box<dyn Decoder>> = Mutex::new(Box::new(Tval3Decoder::new(opts).map_err(err)?));
+    let d = decode_with(py, &dec, sensor.get(), y)?;
+    d.get_item("cube")?.ok_or_else(|| err("tval3 gave no cube"))
+}
+
+/// Lifetimes fitted to the tap images directly (`tcsense reconstruct lifetime-fit`): y
+/// `[M, H, W]` or `[B, M, H, W]` → dict `lifetime [4, H, W]` (τ_m, τ₁, τ₂ in s, α₁),
+/// `confidence`, `intensity [1, H, W]`.
+#[pyfunction]
+#[pyo3(signature = (y, sensor))]
+fn lifetime_fit<'py>(py: Python<'py>, y: &Bound<'py, PyAny>, sensor: &Bound<'py, PySensor>) -> PyResult<Bound<'py, PyDict>> {
+    let dec: Mutex<Box<dyn Decoder>> = Mutex::new(Box::new(TapFitDecoder::new(TapFitOptions::default()).map_err(err)?));
+    decode_with(py, &dec, sensor.get(), y)
+}
+
+/// The zoo's entries as dicts: name, dir, decoder, domain, learned_codes, codes, epochs,
+/// validation metrics, title, weights_bytes (`tcsense zoo list`).
+#[pyfunction]
+fn zoo_list<'py>(py: Python<'py>) -> PyResult<Bound<'py, PyList>> {
+    let out = PyList::empty(py);
+    for e in zoo::list().map_err(err)? {
+        let d = PyDict::new(py);
+        d.set_item("name", &e.name)?;
+        d.set_item("dir", &e.dir)?;
+        d.set_item("decoder", e.model.name())?;
+        d.set_item("domain", e.domain)?;
+        d.set_item("learned_codes", e.learned_codes)?;
+        d.set_item("codes", &e.codes)?;
+        d.set_item("epochs", e.epochs)?;
+        let val = PyDict::new(py);
+        for (k, v) in &e.validation {
+            val.set_item(k, v)?;
+        }
+        d.set_item("validation", val)?;
+        d.set_item("title", &e.title)?;
+        d.set_item("weights_bytes", e.weights_bytes)?;
+        out.append(d)?;
+    }
+    Ok(out)
+}
+
+pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_class::<PyDecoder>()?;
+    m.add_function(wrap_pyfunction!(open_run, m)?)?;
+    m.add_function(wrap_pyfunction!(open_decoder_py, m)?)?;
+    m.add_function(wrap_pyfunction!(tval3, m)?)?;
+    m.add_function(wrap_pyfunction!(lifetime_fit, m)?)?;
+    m.add_function(wrap_pyfunction!(zoo_list, m)?)?;
+    Ok(())
+}
