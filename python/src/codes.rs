@@ -169,7 +169,7 @@ impl PyCodes {
     }
     #[getter]
     fn clock_hz(&self) -> f64 {
-        1.0 / self.inner.clock_period_s()
+        self.inner.clock_hz
     }
     /// `{tap, hamming, window}`.
     #[getter]
@@ -187,7 +187,9 @@ impl PyCodes {
     }
 
     fn __eq__(&self, other: &Bound<'_, PyAny>) -> bool {
-        other.cast::<PyCodes>().map(|o| o.get().inner == self.inner).unwrap_or(false)
+        // the same codes: shape, bits, clock and constraints (not the free-form provenance)
+        let same = |a: &Codes, b: &Codes| a.shape() == b.shape() && a.digest() == b.digest() && a.clock_hz == b.clock_hz && a.constraints == b.constraints;
+        other.cast::<PyCodes>().map(|o| same(&o.get().inner, &self.inner)).unwrap_or(false)
     }
 
     fn __repr__(&self) -> String {

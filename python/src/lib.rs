@@ -29,7 +29,7 @@ mod products;
 mod sensor;
 
 pyo3::create_exception!(
-    _tcsense,
+    tcsense,
     TcsenseError,
     PyException,
     "An error of tcsense: bad input (shape, values, a file's contents, mismatched codes) or a failed step; the message is the command line's."

@@ -4,7 +4,7 @@
 use std::sync::{Arc, Mutex};
 
 use ndarray::{ArrayD, Axis, Ix3, Ix4};
-use numpy::{IntoPyArray, PyArray3, PyArrayDyn, PyUntypedArrayMethods};
+use numpy::{IntoPyArray, PyArray3, PyArrayDyn, PyReadwriteArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use tcsense_sensor::calibration::Calibration;
@@ -134,6 +134,28 @@ fn batch_view<'a>(a: &'a numpy::PyReadonlyArrayDyn<'_, f32>, name: &str, axes: &
     Ok((batched, v.map_err(err)?))
 }
 
+/// The shape of an operator's output, `[C, H, W]` or `[B, C, H, W]`.
+fn out_shape(batched: bool, b: usize, c: usize, h: usize, w: usize) -> Vec<usize> {
+    if batched {
+        vec![b, c, h, w]
+    } else {
+        vec![c, h, w]
+    }
+}
+
+/// Write into the caller's float32 array `out` of shape `want` (checked) with the GIL
+/// released: `f` gets it as `[B, C, H, W]`.
+fn into_out(py: Python<'_>, out: &Bound<'_, PyAny>, want: &[usize], f: impl FnOnce(&mut ndarray::ArrayViewMut4<'_, f32>) -> tcsense_sensor::Result<()> + Send) -> PyResult<()> {
+    f32_array(out, "out")?;
+    let mut rw: PyReadwriteArrayDyn<'_, f32> = out.extract().map_err(|e| err(format!("out: {e}")))?;
+    if rw.shape() != want {
+        return Err(err(format!("out: shape {:?}; expected {want:?}", rw.shape())));
+    }
+    let view = rw.as_array_mut();
+    let mut v4 = if want.len() == 4 { view.into_dimensionality::<Ix4>() } else { view.insert_axis(Axis(0)).into_dimensionality::<Ix4>() }.map_err(err)?;
+    py.detach(|| f(&mut v4)).map_err(err)
+}
+
 fn unbatch(batched: bool, a: ndarray::Array4<f32>) -> ArrayD<f32> {
     if batched {
         a.into_dyn()
@@ -169,32 +191,57 @@ impl PySensor {
         Ok(PySensor::new(codes, spec, a, cal, label))
     }
 
-    /// `y = A x`: x `[T, H, W]` or `[B, T, H, W]` → y `[M, H, W]` or `[B, M, H, W]`.
-    fn forward<'py>(&self, py: Python<'py>, x: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+    /// `y = A x`: x `[T, H, W]` or `[B, T, H, W]` → y `[M, H, W]` or `[B, M, H, W]`. With
+    /// `out` (a float32 array of y's shape) the result is written into it and `out` returned:
+    /// no allocation, for loops over many frames.
+    #[pyo3(signature = (x, out = None))]
+    fn forward<'py>(&self, py: Python<'py>, x: &Bound<'py, PyAny>, out: Option<&Bound<'py, PyAny>>) -> PyResult<Bound<'py, PyAny>> {
         let arr = f32_array(x, "x")?;
         let (batched, v) = batch_view(&arr, "x", "[T, H, W] or [B, T, H, W]")?;
         let plan = self.plan(v.dim().2, v.dim().3)?;
+        if let Some(o) = out {
+            let want = out_shape(batched, v.dim().0, plan.taps(), plan.height(), plan.width());
+            into_out(py, o, &want, |dst| {
+                for (xi, mut yi) in v.outer_iter().zip(dst.outer_iter_mut()) {
+                    plan.forward_into(&xi, &mut yi)?;
+                }
+                Ok(())
+            })?;
+            return Ok(o.clone());
+        }
         let y = if batched {
             py.detach(|| plan.forward_batch(&v)).map_err(err)?.into_dyn()
         } else {
             let x3 = v.index_axis_move(Axis(0), 0);
             py.detach(|| plan.forward(&x3)).map_err(err)?.into_dyn()
         };
-        Ok(y.into_pyarray(py))
+        Ok(y.into_pyarray(py).into_any())
     }
 
-    /// `x = Aᵀ y`: y `[M, H, W]` or `[B, M, H, W]` → x `[T, H, W]` or `[B, T, H, W]`.
-    fn adjoint<'py>(&self, py: Python<'py>, y: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+    /// `x = Aᵀ y`: y `[M, H, W]` or `[B, M, H, W]` → x `[T, H, W]` or `[B, T, H, W]`; `out` as
+    /// for `forward`.
+    #[pyo3(signature = (y, out = None))]
+    fn adjoint<'py>(&self, py: Python<'py>, y: &Bound<'py, PyAny>, out: Option<&Bound<'py, PyAny>>) -> PyResult<Bound<'py, PyAny>> {
         let arr = f32_array(y, "y")?;
         let (batched, v) = batch_view(&arr, "y", "[M, H, W] or [B, M, H, W]")?;
         let plan = self.plan(v.dim().2, v.dim().3)?;
+        if let Some(o) = out {
+            let want = out_shape(batched, v.dim().0, plan.bins(), plan.height(), plan.width());
+            into_out(py, o, &want, |dst| {
+                for (yi, mut xi) in v.outer_iter().zip(dst.outer_iter_mut()) {
+                    plan.adjoint_into(&yi, &mut xi)?;
+                }
+                Ok(())
+            })?;
+            return Ok(o.clone());
+        }
         let x = if batched {
             py.detach(|| plan.adjoint_batch(&v)).map_err(err)?.into_dyn()
         } else {
             let y3 = v.index_axis_move(Axis(0), 0);
             py.detach(|| plan.adjoint(&y3)).map_err(err)?.into_dyn()
         };
-        Ok(x.into_pyarray(py))
+        Ok(x.into_pyarray(py).into_any())
     }
 
     /// What the sensor reads out (`tcsense simulate`): `A x`, with `noise` shot and read noise,
@@ -274,7 +321,7 @@ impl PySensor {
         Ok(unbatch(batched, self.corrected(v)?).into_pyarray(py))
     }
 
-    /// Write `y` to `path` (.npy) with its sidecar (`path` with `.json`), which names this
+    /// Write `y` to `path` (.npy) with its sidecar (`NAME.meta.json` beside it), which names this
     /// sensor, the noise settings and the units, as `tcsense simulate` does.
     #[pyo3(signature = (path, y, *, noise = None, seed = None, units = "input"))]
     fn save_measurements(&self, path: &Bound<'_, PyAny>, y: &Bound<'_, PyAny>, noise: Option<&Bound<'_, PyDict>>, seed: Option<u64>, units: &str) -> PyResult<()> {
