@@ -12,7 +12,6 @@ use tcsense_datasets::lidar::LidarParams;
 use tcsense_datasets::store::{self, Generator, WriteOptions, DEFAULT_SHARD};
 use tcsense_datasets::{Dataset, TimeGrid};
 use tcsense_sensor::npy::read_npy;
-use tcsense_sensor::Sampling;
 
 use crate::{err, existing, merged, path_of, run_long, to_python};
 
@@ -175,12 +174,7 @@ fn generate_dataset(
     force: bool,
 ) -> PyResult<PyDataset> {
     let dir = path_of(out)?;
-    let sampling = match (oversample, heterodyne) {
-        (Some(_), Some(_)) => return Err(err("oversample and heterodyne: give one of them")),
-        (_, Some(k)) => Sampling::Heterodyne(k),
-        (Some(k), None) => Sampling::Oversample(k),
-        (None, None) => Sampling::Oversample(1),
-    };
+    let sampling = crate::sampling_of(oversample, heterodyne)?;
     let grid = TimeGrid { length, clock_hz, sampling };
     let (h, w) = size;
     let gen = match kind {

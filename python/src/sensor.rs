@@ -53,6 +53,39 @@ impl PySensor {
         Ok(p)
     }
 
+    /// `forward` and `adjoint` alike: `op` applied frame by frame with the GIL released, into
+    /// `out` (checked to be `[C, H, W]` or `[B, C, H, W]`, `C = channels(plan)`) or a new array.
+    #[allow(clippy::too_many_arguments)]
+    fn apply<'py>(
+        &self,
+        py: Python<'py>,
+        input: &Bound<'py, PyAny>,
+        out: Option<&Bound<'py, PyAny>>,
+        name: &str,
+        axes: &str,
+        channels: fn(&FramePlan) -> usize,
+        op: fn(&FramePlan, &ndarray::ArrayView3<'_, f32>, &mut ndarray::ArrayViewMut3<'_, f32>) -> tcsense_sensor::Result<()>,
+    ) -> PyResult<Bound<'py, PyAny>> {
+        let arr = f32_array(input, name)?;
+        let (batched, v) = batch_view(&arr, name, axes)?;
+        let (b, _, h, w) = v.dim();
+        let plan = self.plan(h, w)?;
+        let run = |dst: &mut ndarray::ArrayViewMut4<'_, f32>| -> tcsense_sensor::Result<()> {
+            for (src, mut d) in v.outer_iter().zip(dst.outer_iter_mut()) {
+                op(&plan, &src, &mut d)?;
+            }
+            Ok(())
+        };
+        let c = channels(&plan);
+        if let Some(o) = out {
+            into_out(py, o, &out_shape(batched, b, c, h, w), run)?;
+            return Ok(o.clone());
+        }
+        let mut fresh = ndarray::Array4::<f32>::zeros((b, c, h, w));
+        py.detach(|| run(&mut fresh.view_mut())).map_err(err)?;
+        Ok(unbatch(batched, fresh).into_pyarray(py).into_any())
+    }
+
     /// `(y − d) / G` of a calibrated sensor; `y` as is otherwise.
     ///
     /// # Shapes
@@ -93,12 +126,7 @@ fn irf_arg(obj: &Bound<'_, PyAny>, laser_fwhm_ns: f64, tap_tau_ns: f64) -> PyRes
 /// The spec and nominal matrix of `codes` under these settings (what `--irf`, `--oversample`,
 /// `--heterodyne`, `--laser-fwhm-ns` and `--tap-tau-ns` give on the command line).
 pub fn build(codes: &Codes, irf: IrfArgOwned, oversample: Option<usize>, heterodyne: Option<usize>) -> PyResult<(SensorSpec, MeasurementMatrix, String)> {
-    let sampling = match (oversample, heterodyne) {
-        (Some(_), Some(_)) => return Err(err("oversample and heterodyne: give one of them (T = L·K either way)")),
-        (_, Some(k)) => Sampling::Heterodyne(k),
-        (Some(k), None) => Sampling::Oversample(k),
-        (None, None) => Sampling::Oversample(1),
-    };
+    let sampling = crate::sampling_of(oversample, heterodyne)?;
     let (irf_spec, label) = match &irf.0 {
         IrfArg::Named(i, s) => (*i, s.clone()),
         IrfArg::File(p) => (Irf::Ideal, p.display().to_string()),
@@ -196,52 +224,14 @@ impl PySensor {
     /// no allocation, for loops over many frames.
     #[pyo3(signature = (x, out = None))]
     fn forward<'py>(&self, py: Python<'py>, x: &Bound<'py, PyAny>, out: Option<&Bound<'py, PyAny>>) -> PyResult<Bound<'py, PyAny>> {
-        let arr = f32_array(x, "x")?;
-        let (batched, v) = batch_view(&arr, "x", "[T, H, W] or [B, T, H, W]")?;
-        let plan = self.plan(v.dim().2, v.dim().3)?;
-        if let Some(o) = out {
-            let want = out_shape(batched, v.dim().0, plan.taps(), plan.height(), plan.width());
-            into_out(py, o, &want, |dst| {
-                for (xi, mut yi) in v.outer_iter().zip(dst.outer_iter_mut()) {
-                    plan.forward_into(&xi, &mut yi)?;
-                }
-                Ok(())
-            })?;
-            return Ok(o.clone());
-        }
-        let y = if batched {
-            py.detach(|| plan.forward_batch(&v)).map_err(err)?.into_dyn()
-        } else {
-            let x3 = v.index_axis_move(Axis(0), 0);
-            py.detach(|| plan.forward(&x3)).map_err(err)?.into_dyn()
-        };
-        Ok(y.into_pyarray(py).into_any())
+        self.apply(py, x, out, "x", "[T, H, W] or [B, T, H, W]", FramePlan::taps, FramePlan::forward_into)
     }
 
     /// `x = Aᵀ y`: y `[M, H, W]` or `[B, M, H, W]` → x `[T, H, W]` or `[B, T, H, W]`; `out` as
     /// for `forward`.
     #[pyo3(signature = (y, out = None))]
     fn adjoint<'py>(&self, py: Python<'py>, y: &Bound<'py, PyAny>, out: Option<&Bound<'py, PyAny>>) -> PyResult<Bound<'py, PyAny>> {
-        let arr = f32_array(y, "y")?;
-        let (batched, v) = batch_view(&arr, "y", "[M, H, W] or [B, M, H, W]")?;
-        let plan = self.plan(v.dim().2, v.dim().3)?;
-        if let Some(o) = out {
-            let want = out_shape(batched, v.dim().0, plan.bins(), plan.height(), plan.width());
-            into_out(py, o, &want, |dst| {
-                for (yi, mut xi) in v.outer_iter().zip(dst.outer_iter_mut()) {
-                    plan.adjoint_into(&yi, &mut xi)?;
-                }
-                Ok(())
-            })?;
-            return Ok(o.clone());
-        }
-        let x = if batched {
-            py.detach(|| plan.adjoint_batch(&v)).map_err(err)?.into_dyn()
-        } else {
-            let y3 = v.index_axis_move(Axis(0), 0);
-            py.detach(|| plan.adjoint(&y3)).map_err(err)?.into_dyn()
-        };
-        Ok(x.into_pyarray(py).into_any())
+        self.apply(py, y, out, "y", "[M, H, W] or [B, M, H, W]", FramePlan::bins, FramePlan::adjoint_into)
     }
 
     /// What the sensor reads out (`tcsense simulate`): `A x`, with `noise` shot and read noise,
