@@ -12,11 +12,11 @@ export CARGO_INCREMENTAL="${CARGO_INCREMENTAL:-0}"
 cargo test --workspace --locked "$@"
 # the Python package: `pip install ./python` into a fresh venv (maturin, pytest and onnxruntime
 # from PyPI), then its pytest suite against that wheel and the binary `cargo test` built. The
-# test profile reuses the crates cargo test just compiled (`pip install ./python` alone
-# builds in release).
+# dev profile shares its dependencies' builds with the test profile cargo test just used
+# (`pip install ./python` alone builds in release; `--profile test` would build a test harness).
 rm -rf target/py-venv
 "${PYTHON:-python3}" -m venv target/py-venv
-MATURIN_PEP517_ARGS="--profile test" target/py-venv/bin/pip install --quiet --disable-pip-version-check "./python[test]"
+MATURIN_PEP517_ARGS="--profile dev" target/py-venv/bin/pip install --quiet --disable-pip-version-check "./python[test]"
 TCSENSE_BIN="$PWD/target/debug/tcsense" target/py-venv/bin/python -m pytest -q python/tests
 # with a Vulkan driver installed the GPU tests must run (TCSENSE_REQUIRE_GPU), not skip
 if scripts/setup_vulkan.sh; then
