@@ -55,7 +55,7 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
     let mut args = ARGS.to_vec();
     args.extend(["-o", "demo"]);
     let out = ok(d, &args);
-    assert!(out.contains("[11/12] timing") && out.contains("wrote demo/report.html"), "{out}");
+    assert!(out.contains("[12/13] timing") && out.contains("wrote demo/report.html"), "{out}");
     let demo = d.join("demo");
     let html = std::fs::read_to_string(demo.join("report.html")).unwrap();
 
@@ -82,13 +82,18 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
     let timing = json(&demo.join("results/timing.json"));
     // LiDAR: TVAL3, ADMM-Net (burn, ONNX), U-Net (burn, ONNX) with the selected codes; TVAL3 and
     // ADMM-Net (burn, ONNX) with the learned codes; FLIm: TVAL3, ADMM-Net (burn, ONNX), the fit
-    // to the taps
+    // to the taps; then the zoo's ADMM-Net fine-tuned to the selected codes, and as shipped on
+    // its own codes
     let rows = lidar["rows"].as_array().unwrap();
-    assert_eq!(rows.len(), 8);
+    assert_eq!(rows.len(), 10);
+    assert_eq!((rows[8]["codes"].as_str(), rows[9]["codes"].as_str()), (Some("selected"), Some("the zoo's")));
+    for r in &rows[8..] {
+        assert!(r["psnr_db"].as_f64().is_some_and(|v| v.is_finite() && v > 10.0), "{r}");
+    }
     assert_eq!(flim["rows"].as_array().unwrap().len(), 4);
     let fit = &flim["rows"][3];
     assert!(fit["mse"].is_null() && fit["lifetime_mae_ns"].as_f64().is_some_and(|v| v.is_finite()), "the fit to the taps has lifetimes and no cube: {fit}");
-    for (file, n) in [("results/lidar.json", 8 * 7), ("results/flim.json", 4 * 5), ("results/timing.json", 9 * 2)] {
+    for (file, n) in [("results/lidar.json", 10 * 7), ("results/flim.json", 4 * 5), ("results/timing.json", 9 * 2)] {
         assert_eq!(cells.iter().filter(|c| c.0 == file).count(), n, "cells from {file}");
     }
     assert_eq!(timing["decoders"].as_array().unwrap().len(), 3);
@@ -107,7 +112,9 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
     assert_eq!(regs["ECLEN"], 3);
     assert!(demo.join("code-memory/selected/codes.bin").exists());
     let plan = json(&demo.join("plan.json"));
-    assert_eq!(plan["trainings"].as_array().unwrap().len(), 4);
+    assert_eq!(plan["trainings"].as_array().unwrap().len(), 5);
+    let zoo_run = json(&demo.join("runs/zoo-lidar/config.json"));
+    assert!(zoo_run["init_from"].as_str().is_some_and(|p| p.ends_with("admm-lidar-delay")), "{zoo_run}");
     for t in plan["trainings"].as_array().unwrap() {
         // one row per epoch (a learned-codes run: relaxed epochs, then fine-tuning)
         let run = demo.join("runs").join(t["name"].as_str().unwrap());

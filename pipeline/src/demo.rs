@@ -144,13 +144,27 @@ struct Plan {
     trainings: Vec<TrainPlan>,
 }
 
-/// The four trainings and their shares of the training budget.
-const TRAININGS: [(&str, &str, f64); 4] = [
-    ("admm-lidar", "ADMM-Net on LiDAR, selected codes", 0.25),
-    ("learned-lidar", "ADMM-Net on LiDAR, codes learned with it (deep sensing)", 0.25),
-    ("unet-lidar", "Aᵀ + U-Net depth decoder on LiDAR, selected codes", 0.2),
-    ("admm-flim", "ADMM-Net with the delay prior on FLIm (heterodyne K = 8), selected codes", 0.3),
+/// The trainings and their shares of the training budget. `zoo-lidar` fine-tunes the zoo's
+/// LiDAR decoder ([`ZOO_ENTRY`]) to the selected codes in the time `admm-lidar` trains from
+/// scratch; it is left out when the zoo does not hold that entry.
+const TRAININGS: [(&str, &str, f64); 5] = [
+    ("admm-lidar", "ADMM-Net on LiDAR, selected codes", 0.2),
+    ("learned-lidar", "ADMM-Net on LiDAR, codes learned with it (deep sensing)", 0.2),
+    ("unet-lidar", "Aᵀ + U-Net depth decoder on LiDAR, selected codes", 0.15),
+    ("admm-flim", "ADMM-Net with the delay prior on FLIm (heterodyne K = 8), selected codes", 0.25),
+    ("zoo-lidar", "ADMM-Net from the zoo (zoo:admm-lidar-delay), fine-tuned to the selected codes in the same time", 0.2),
 ];
+
+/// The zoo entry the demo evaluates as shipped (on its own codes) and fine-tunes.
+const ZOO_ENTRY: &str = "admm-lidar-delay";
+
+/// The zoo entry's run directory and network, when the zoo holds it with the dataset's bins
+/// (a binary installed without the source tree's `zoo/` and no `TCSENSE_ZOO` has none).
+fn zoo_entry(ds: &Dataset) -> Option<(PathBuf, ModelConfig)> {
+    let dir = tcsense_models::zoo::resolve(&format!("{}{ZOO_ENTRY}", tcsense_models::zoo::PREFIX)).ok()?;
+    let spec: runs::RunSpec = serde_json::from_value(runs::read_config_json(&dir.join(CONFIG_FILE)).ok()?).ok()?;
+    (spec.model.bins() == ds.manifest.bins && spec.model.taps() == 4).then_some((dir, spec.model))
+}
 
 impl Request {
     fn from_options(a: &DemoOptions) -> Result<Self> {
@@ -240,6 +254,8 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
         None
     };
     let resumed = saved.is_some();
+    // datasets and (on a first run) the plan, then codes, the trainings, export, evaluation,
+    // frames, timing and the report: `of` is fixed once the plan is known
     let mut steps = Steps { obs, n: 0, of: if saved.is_some() { 11 } else { 12 }, times: Vec::new() };
     let seed = request.seed;
     let [h, w] = request.size;
@@ -274,6 +290,7 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
             p
         }
     };
+    steps.of = steps.n + 1 + plan.trainings.len() + 5;
     for t in &plan.trainings {
         obs.line(&format!("  {:<14} {:>4} epochs × {:>4} steps × {:>6.1} ms ≈ {:>5.0} s  ({})", t.name, t.epochs, t.steps_per_epoch, t.step_ms, (t.epochs * t.steps_per_epoch) as f64 * t.step_ms / 1e3, t.title));
     }
@@ -349,6 +366,14 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
             selected_set.extend([("Aᵀ + U-Net", run_of("unet", "unet-lidar")), ("Aᵀ + U-Net", onnx("unet-lidar"))]);
             let mut rows = rows_of(&lidar, &sensor(&selected, &lidar)?, &selected_set, plan.lidar_eval_items, &|r, n, e| lidar_row(r, "selected", n, e))?;
             rows.extend(rows_of(&lidar, &sensor(&learned, &lidar)?, &cube_decoders("learned-lidar"), plan.lidar_eval_items, &|r, n, e| lidar_row(r, "learned", n, e))?);
+            // the zoo's decoder fine-tuned to the selected codes, and as shipped on its own codes
+            if let (true, Some((zoo_dir, _))) = (plan.trainings.iter().any(|t| t.name == "zoo-lidar"), zoo_entry(&lidar)) {
+                let tuned = [("ADMM-Net (zoo, fine-tuned)", run_of("admm-net", "zoo-lidar"))];
+                rows.extend(rows_of(&lidar, &sensor(&selected, &lidar)?, &tuned, plan.lidar_eval_items, &|r, n, e| lidar_row(r, "selected", n, e))?);
+                let zoo_codes = Codes::load(&zoo_dir.join(CODES_FILE))?;
+                let shipped = [("ADMM-Net (zoo, as shipped)", format!("admm-net:{}", zoo_dir.display()))];
+                rows.extend(rows_of(&lidar, &sensor(&zoo_codes, &lidar)?, &shipped, plan.lidar_eval_items, &|r, n, e| lidar_row(r, "the zoo's", n, e))?);
+            }
             write_json(&lidar_json, &json!({ "split": "test", "items": plan.lidar_eval_items, "noise": eval_noise, "noise_seed": seed, "frame": [h, w], "rows": rows }))?;
         }
         if !flim_json.exists() {
@@ -422,6 +447,11 @@ fn generate_once(gen: &Generator, grid: &TimeGrid, count: usize, seed: u64, out:
 /// The model of a training.
 fn model_of(name: &str, ds: &Dataset) -> ModelConfig {
     let (m, t) = (4, ds.manifest.bins);
+    if name.starts_with("zoo") {
+        if let Some((_, model)) = zoo_entry(ds) {
+            return model;
+        }
+    }
     if name.starts_with("unet") {
         let range_m = C * ds.manifest.bin_width_s * t as f64 / 2.0;
         ModelConfig::Unet(UnetConfig::new(m, t, range_m).with_head(tcsense_models::UnetHead::ScoreVolume))
@@ -444,6 +474,10 @@ fn make_plan(r: &Request, lidar: &Dataset, flim: &Dataset, obs: &dyn Observer) -
     let mut trainings = Vec::new();
     for (name, title, share) in TRAININGS {
         let ds = if name.ends_with("flim") { flim } else { lidar };
+        if name.starts_with("zoo") && zoo_entry(ds).is_none() {
+            obs.line(&format!("  {name}: skipped, the zoo has no entry {ZOO_ENTRY} for these bins (see TCSENSE_ZOO)"));
+            continue;
+        }
         let a = sensor(&codes, ds)?;
         let step = tcsense_train::bench::bench_step(&a, &model_of(name, ds), ch, cw, 3)?.step_ms;
         // learning the codes adds the operators' rebuild from A(θ) and the logits' step
@@ -487,6 +521,10 @@ fn train_one(t: &TrainPlan, plan: &Plan, ds: &Dataset, ds_dir: &Path, codes: &Co
         }
         if t.name.starts_with("learned") {
             cfg.learn_codes = Some(LearnCodes::new(codes.constraints, t.epochs));
+        }
+        if t.name.starts_with("zoo") {
+            let Some((zoo_dir, _)) = zoo_entry(ds) else { bail!("the plan fine-tunes zoo:{ZOO_ENTRY}, but the zoo no longer holds it (see TCSENSE_ZOO)") };
+            cfg.init_from = Some(zoo_dir.display().to_string());
         }
         cfg
     };
@@ -714,7 +752,11 @@ fn draw_figures(dir: &Path, lidar: &Dataset, flim: &Dataset, selected: &Codes, l
 
     // training curves
     let runs_dir = dir.join("runs");
-    training_figure(&out("training-lidar.png"), &[("ADMM-Net, selected codes", runs_dir.join("admm-lidar")), ("ADMM-Net, learned codes", runs_dir.join("learned-lidar"))])?;
+    let mut lidar_runs = vec![("ADMM-Net, selected codes", runs_dir.join("admm-lidar")), ("ADMM-Net, learned codes", runs_dir.join("learned-lidar"))];
+    if runs_dir.join("zoo-lidar").join(tcsense_train::run_dir::METRICS_FILE).exists() {
+        lidar_runs.push(("ADMM-Net from the zoo, fine-tuned", runs_dir.join("zoo-lidar")));
+    }
+    training_figure(&out("training-lidar.png"), &lidar_runs)?;
     training_figure(&out("training-unet.png"), &[("Aᵀ + U-Net", runs_dir.join("unet-lidar"))])?;
     training_figure(&out("training-flim.png"), &[("ADMM-Net, FLIm", runs_dir.join("admm-flim"))])?;
     Ok(Figures { files })
@@ -904,7 +946,7 @@ fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Value], total_
         title: "LiDAR with multipath".into(),
         blocks: vec![
             Block::Table(Table {
-                caption: format!("LiDAR test split, {} items, noisy (in the style of the paper's Table 4). Every decoder of a code set sees the same measurements; the learned-codes rows measure the same scenes with the same noise seeds through their own codes. Range errors over the pixels where the truth and the decoder both have that return; the U-Net estimates range directly and has no cube (no MSE).", plan.lidar_eval_items),
+                caption: format!("LiDAR test split, {} items, noisy (in the style of the paper's Table 4). Every decoder of a code set sees the same measurements; the learned-codes rows measure the same scenes with the same noise seeds through their own codes, as does the zoo's decoder as shipped (zoo:admm-lidar-delay, trained for hours on the prototype's codes); the zoo's decoder fine-tuned to the selected codes had the training time of ADMM-Net from scratch. Range errors over the pixels where the truth and the decoder both have that return; the U-Net estimates range directly and has no cube (no MSE).", plan.lidar_eval_items),
                 headers: ["decoder", "codes", "engine", "MSE", "PSNR (dB)", "range RMSE return 1 (m)", "range RMSE return 2 (m)", "detected return 1 (%)", "detected return 2 (%)", "time per frame (ms)"].map(String::from).to_vec(),
                 rows,
             }),
@@ -942,7 +984,7 @@ fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Value], total_
         id: "training".into(),
         title: "Training curves".into(),
         blocks: vec![
-            fig("training-lidar.png", "ADMM-Net on LiDAR with the selected codes and with codes learned jointly (metrics.csv of each run; the learned run's relaxed epochs, then its fine-tuning on the projected codes)."),
+            fig("training-lidar.png", "ADMM-Net on LiDAR with the selected codes and with codes learned jointly (metrics.csv of each run; the learned run's relaxed epochs, then its fine-tuning on the projected codes), and the zoo's ADMM-Net fine-tuned to the selected codes in the same time as the run from scratch: what starting from the zoo buys."),
             fig("training-unet.png", "Aᵀ + U-Net: depth loss and validation range RMSE."),
             fig("training-flim.png", "ADMM-Net on FLIm."),
         ],
