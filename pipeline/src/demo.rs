@@ -550,33 +550,38 @@ fn engine(spec: &str) -> &'static str {
     }
 }
 
-fn lidar_row(r: &EvalRow, codes: &str, decoder: &str, engine: &str) -> Value {
-    json!({
+/// A row of a metric table: what every decoder has, and the domain's own metrics `own`.
+fn result_row(r: &EvalRow, codes: &str, decoder: &str, engine: &str, own: Value) -> Value {
+    let mut row = json!({
         "decoder": decoder,
         "codes": codes,
         "engine": engine,
         "items": r.items,
         "mse": r.mse,
         "psnr_db": r.psnr_db,
+        "ms_per_frame": r.seconds_per_frame * 1e3,
+    });
+    if let (Some(row), Value::Object(own)) = (row.as_object_mut(), own) {
+        row.extend(own);
+    }
+    row
+}
+
+fn lidar_row(r: &EvalRow, codes: &str, decoder: &str, engine: &str) -> Value {
+    let own = json!({
         "range_rmse_m": r.depth.iter().map(|d| d.rmse_m).collect::<Vec<_>>(),
         "range_mae_m": r.depth.iter().map(|d| d.mae_m).collect::<Vec<_>>(),
         "detection_pct": r.depth.iter().map(|d| 100.0 * d.detection_rate()).collect::<Vec<_>>(),
-        "ms_per_frame": r.seconds_per_frame * 1e3,
-    })
+    });
+    result_row(r, codes, decoder, engine, own)
 }
 
 fn flim_row(r: &EvalRow, codes: &str, decoder: &str, engine: &str) -> Value {
-    json!({
-        "decoder": decoder,
-        "codes": codes,
-        "engine": engine,
-        "items": r.items,
-        "mse": r.mse,
-        "psnr_db": r.psnr_db,
+    let own = json!({
         "lifetime_mae_ns": r.lifetime_mae_s.map(|v| v * 1e9),
         "lifetime_within_02ns_pct": r.lifetime_within_02ns.map(|v| v * 100.0),
-        "ms_per_frame": r.seconds_per_frame * 1e3,
-    })
+    });
+    result_row(r, codes, decoder, engine, own)
 }
 
 /// Decode one test item of each dataset (with the evaluation's noise for that item) with every

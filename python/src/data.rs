@@ -174,7 +174,7 @@ fn generate_dataset(
     force: bool,
 ) -> PyResult<PyDataset> {
     let dir = path_of(out)?;
-    let sampling = crate::sampling_of(oversample, heterodyne)?;
+    let sampling = tcsense_sensor::Sampling::from_factors(oversample, heterodyne, tcsense_sensor::Sampling::Oversample(1)).map_err(err)?;
     let grid = TimeGrid { length, clock_hz, sampling };
     let (h, w) = size;
     let gen = match kind {

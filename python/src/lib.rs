@@ -131,17 +131,6 @@ pub(crate) fn merged<T: serde::Serialize + serde::de::DeserializeOwned>(default:
     serde_json::from_value(v).map_err(|e| err(format!("{what}: {e}")))
 }
 
-/// `oversample` or `heterodyne` K (T = L·K), as the command line's flags; neither is K = 1.
-pub(crate) fn sampling_of(oversample: Option<usize>, heterodyne: Option<usize>) -> PyResult<tcsense_sensor::Sampling> {
-    use tcsense_sensor::Sampling;
-    match (oversample, heterodyne) {
-        (Some(_), Some(_)) => Err(err("oversample and heterodyne: give one of them (T = L·K either way)")),
-        (_, Some(k)) => Ok(Sampling::Heterodyne(k)),
-        (Some(k), None) => Ok(Sampling::Oversample(k)),
-        (None, None) => Ok(Sampling::Oversample(1)),
-    }
-}
-
 /// A JSON value as the Python object `json.loads` makes of it.
 pub(crate) fn to_python<'py>(py: Python<'py>, v: &serde_json::Value) -> PyResult<Bound<'py, PyAny>> {
     py.import("json")?.call_method1("loads", (v.to_string(),))

@@ -7,7 +7,7 @@ use ndarray::{ArrayD, Axis, Ix3, Ix4};
 use numpy::{IntoPyArray, PyArray3, PyArrayDyn, PyReadwriteArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
-use tcsense_sensor::calibration::Calibration;
+use tcsense_sensor::calibration::{check_measurements_file, Calibration};
 use tcsense_sensor::measure::{measure, Measurement};
 use tcsense_sensor::noise::Exposure;
 use tcsense_sensor::nonideal::NonIdeal;
@@ -126,7 +126,7 @@ fn irf_arg(obj: &Bound<'_, PyAny>, laser_fwhm_ns: f64, tap_tau_ns: f64) -> PyRes
 /// The spec and nominal matrix of `codes` under these settings (what `--irf`, `--oversample`,
 /// `--heterodyne`, `--laser-fwhm-ns` and `--tap-tau-ns` give on the command line).
 pub fn build(codes: &Codes, irf: IrfArgOwned, oversample: Option<usize>, heterodyne: Option<usize>) -> PyResult<(SensorSpec, MeasurementMatrix, String)> {
-    let sampling = crate::sampling_of(oversample, heterodyne)?;
+    let sampling = Sampling::from_factors(oversample, heterodyne, Sampling::Oversample(1)).map_err(err)?;
     let (irf_spec, label) = match &irf.0 {
         IrfArg::Named(i, s) => (*i, s.clone()),
         IrfArg::File(p) => (Irf::Ideal, p.display().to_string()),
@@ -332,19 +332,7 @@ impl PySensor {
         let p = path_of(path)?;
         existing(&p, "path")?;
         let y = read_npy(&p).map_err(err)?;
-        if let Some(meta) = Sidecar::read_for(&p).map_err(err)? {
-            meta.check(&Sidecar::path_for(&p), &self.nominal, Some(&self.codes)).map_err(err)?;
-            if let Some(cal) = &self.calibration {
-                if meta.units != cal.meta.units {
-                    return Err(err(format!(
-                        "{}: the measurements are in {:?} (field units), the calibration's dark offsets in {:?}; simulate or record them in the units of the sweep",
-                        Sidecar::path_for(&p).display(),
-                        meta.units,
-                        cal.meta.units
-                    )));
-                }
-            }
-        }
+        check_measurements_file(&p, &self.nominal, &self.codes, self.calibration.as_ref()).map_err(err)?;
         if !(y.ndim() == 3 || y.ndim() == 4) || y.shape()[y.ndim() - 3] != self.nominal.taps() {
             return Err(err(format!("{}: measurements have shape {:?}, expected [M, H, W] or [B, M, H, W] with M = {} taps", p.display(), y.shape(), self.nominal.taps())));
         }

@@ -28,6 +28,7 @@ use crate::error::{Result, SensorError};
 use crate::matrix::MeasurementMatrix;
 use crate::npy::{read_npy, write_bytes, write_npy};
 use crate::params::Sampling;
+use crate::sidecar::Sidecar;
 use crate::sweep::Sweep;
 
 /// The `format` of `calibration.json`.
@@ -121,6 +122,23 @@ pub struct Calibration {
 
 fn err(path: &Path, msg: impl Into<String>) -> SensorError {
     SensorError::file(path, msg)
+}
+
+/// The checks on tap images stored in `y` (`.npy`) before they are decoded, as `tcsense
+/// reconstruct` and the Python module make them: their sidecar, when there is one, must name
+/// the codes, sampling and matrix of `nominal`; with a calibration, their units must be its
+/// sweep's (its dark offsets are subtracted in those units).
+pub fn check_measurements_file(y: &Path, nominal: &MeasurementMatrix, codes: &Codes, calibration: Option<&Calibration>) -> Result<()> {
+    let Some(meta) = Sidecar::read_for(y)? else { return Ok(()) };
+    let path = Sidecar::path_for(y);
+    meta.check(&path, nominal, Some(codes))?;
+    match calibration {
+        Some(cal) if meta.units != cal.meta.units => Err(SensorError::File {
+            msg: format!("the measurements are in {:?} (field units), the calibration's dark offsets in {:?}; simulate or record them in the units of the sweep", meta.units, cal.meta.units),
+            path,
+        }),
+        _ => Ok(()),
+    }
 }
 
 /// Calibrate the sensor of `nominal` (from `codes` under `sampling`) from `sweep`.

@@ -25,6 +25,17 @@ impl Sampling {
             Sampling::Oversample(k) | Sampling::Heterodyne(k) => k,
         }
     }
+
+    /// The sampling the factors name, as the `--oversample K` / `--heterodyne K` flags do
+    /// (T = L·K); `default` when neither is given. Both at once is an error.
+    pub fn from_factors(oversample: Option<usize>, heterodyne: Option<usize>, default: Sampling) -> Result<Sampling> {
+        match (oversample, heterodyne) {
+            (Some(o), Some(h)) => Err(invalid("sampling", format!("oversample {o} and heterodyne {h}"), "one of oversample and heterodyne (T = L·K either way)")),
+            (None, Some(k)) => Ok(Sampling::Heterodyne(k)),
+            (Some(k), None) => Ok(Sampling::Oversample(k)),
+            (None, None) => Ok(default),
+        }
+    }
 }
 
 /// The instrument response used to build the measurement matrix.
@@ -230,6 +241,17 @@ impl SensorSpec {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn sampling_from_factors_takes_one_or_the_default() {
+        let d = Sampling::Oversample(1);
+        assert_eq!(Sampling::from_factors(None, None, d).unwrap(), d);
+        assert_eq!(Sampling::from_factors(None, None, Sampling::Heterodyne(8)).unwrap(), Sampling::Heterodyne(8));
+        assert_eq!(Sampling::from_factors(Some(4), None, d).unwrap(), Sampling::Oversample(4));
+        assert_eq!(Sampling::from_factors(None, Some(8), d).unwrap(), Sampling::Heterodyne(8));
+        let e = Sampling::from_factors(Some(2), Some(8), d).unwrap_err().to_string();
+        assert!(e.contains("oversample 2 and heterodyne 8"), "{e}");
+    }
 
     #[test]
     fn validate_rejects_bad_values() {

@@ -34,11 +34,7 @@ pub struct GridArgs {
 
 impl GridArgs {
     pub fn grid(&self, default: Sampling) -> Result<TimeGrid> {
-        let sampling = match (self.oversample, self.heterodyne) {
-            (_, Some(k)) => Sampling::Heterodyne(k),
-            (Some(k), None) => Sampling::Oversample(k),
-            (None, None) => default,
-        };
+        let sampling = Sampling::from_factors(self.oversample, self.heterodyne, default)?;
         Ok(TimeGrid { length: self.length, clock_hz: self.clock_mhz * 1e6, sampling }.validate()?)
     }
 }

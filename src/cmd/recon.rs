@@ -11,12 +11,11 @@ use tcsense_infer::products::{depth_map, plot_waveforms, write_ply, PeakOptions}
 use tcsense_models::decoder::{Control, Decoder, Step, Tval3Decoder};
 use tcsense_models::{runs, ModelError, Tval3Options, TvNorm};
 use tcsense_sensor::npy::{read_npy, write_bytes, write_npy};
-use tcsense_sensor::sidecar::Sidecar;
 use tcsense_sensor::MeasurementMatrix;
 
 use super::dataset::interrupt_flag;
 use super::sensor::SensorArgs;
-use tcsense_sensor::calibration::Calibration;
+use tcsense_sensor::calibration::{check_measurements_file, Calibration};
 
 /// TVAL3 options (defaults: the paper's §IV settings).
 #[derive(Args, Clone)]
@@ -269,14 +268,7 @@ fn load_calibration(dir: Option<&Path>, run: &runs::Run) -> Result<Option<Calibr
 /// one, which the measurements' sidecar names).
 fn decode_file(decoder: &mut dyn Decoder, nominal: &MeasurementMatrix, calibration: Option<&Calibration>, codes: &tcsense_sensor::Codes, measurements: &Path, output: &Path, products: &DepthProductArgs) -> Result<ExitCode> {
     let y = read_npy(measurements)?;
-    if let Some(meta) = Sidecar::read_for(measurements)? {
-        meta.check(&Sidecar::path_for(measurements), nominal, Some(codes))?;
-        if let Some(cal) = calibration {
-            if meta.units != cal.meta.units {
-                bail!("{}: the measurements are in {:?} (field units), the calibration's dark offsets in {:?}; simulate or record them in the units of the sweep", Sidecar::path_for(measurements).display(), meta.units, cal.meta.units);
-            }
-        }
-    }
+    check_measurements_file(measurements, nominal, codes, calibration)?;
     let sensor = calibration.map_or(nominal, |c| &c.matrix);
     let (batched, y): (bool, Array4<f32>) = match y.ndim() {
         3 => (false, y.into_dimensionality::<Ix3>()?.insert_axis(Axis(0))),

@@ -45,11 +45,7 @@ impl SensorArgs {
     /// Load the codes and build the checked spec (without noise settings).
     pub fn spec(&self) -> Result<(Codes, SensorSpec)> {
         let codes = Codes::load(&self.codes)?;
-        let sampling = match (self.oversample, self.heterodyne) {
-            (_, Some(k)) => Sampling::Heterodyne(k),
-            (Some(k), None) => Sampling::Oversample(k),
-            (None, None) => Sampling::Oversample(1),
-        };
+        let sampling = Sampling::from_factors(self.oversample, self.heterodyne, Sampling::Oversample(1))?;
         let irf = match self.irf.as_str() {
             "physical" => Irf::Physical { laser_fwhm_s: self.laser_fwhm_ns * 1e-9, tap_tau_s: self.tap_tau_ns * 1e-9 },
             _ => Irf::Ideal,
