@@ -222,6 +222,9 @@ pub struct TrainArgs {
 pub enum LossArg {
     Rmse,
     RmseMae,
+    /// RMSE + MAE, plus the same on every pixel's waveform divided by its peak (dim pixels'
+    /// returns count as much as bright ones')
+    RmseMaePixel,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -395,6 +398,7 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
         cfg.loss = match l {
             LossArg::Rmse => Loss::Rmse,
             LossArg::RmseMae => Loss::RmseMae,
+            LossArg::RmseMaePixel => Loss::RmseMaePixel,
         };
     }
     if a.no_noise {

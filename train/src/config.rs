@@ -17,6 +17,10 @@ pub enum Loss {
     Rmse,
     /// RMSE + `mean(|x̂ − x|)` (LiDAR).
     RmseMae,
+    /// RMSE + MAE of the cube, plus the same of every pixel's waveform divided by its own
+    /// peak ([`crate::loss::pixel_weights`]): dim pixels count for the shape of their return as
+    /// much as bright ones (LiDAR decoders whose range maps matter in dark parts of a scene).
+    RmseMaePixel,
 }
 
 /// How the learning rate moves over a run's optimiser steps.

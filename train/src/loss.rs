@@ -12,12 +12,30 @@ use crate::config::Loss;
 /// # Shapes
 /// - `pred`, `truth`: `[B, T, H, W]` → `[1]`
 pub fn loss_fn(loss: Loss, pred: Tensor<4>, truth: Tensor<4>) -> Tensor<1> {
-    let d = pred - truth;
+    let d = pred - truth.clone();
     let rmse = d.clone().powi_scalar(2).mean().sqrt();
     match loss {
         Loss::Rmse => rmse,
         Loss::RmseMae => rmse + d.abs().mean(),
+        Loss::RmseMaePixel => {
+            let dw = d.clone() * pixel_weights(truth);
+            rmse + d.abs().mean() + dw.clone().powi_scalar(2).mean().sqrt() + dw.abs().mean()
+        }
     }
+}
+
+/// Floor of a pixel's peak in [`pixel_weights`], as a fraction of its item's brightest bin: a
+/// pixel at a twentieth of the brightest counts as much as the brightest, a darker one less.
+pub const PIXEL_FLOOR: f64 = 0.05;
+
+/// `1 / (max_t x + PIXEL_FLOOR · max_{t,h,w} x)` per pixel: divides a waveform by its peak.
+///
+/// # Shapes
+/// - `truth`: `[B, T, H, W]` → `[B, 1, H, W]`
+pub fn pixel_weights(truth: Tensor<4>) -> Tensor<4> {
+    let peak = truth.max_dim(1); // [B, 1, H, W]
+    let item = peak.clone().max_dim(2).max_dim(3); // [B, 1, 1, 1]
+    (peak + item.mul_scalar(PIXEL_FLOOR).add_scalar(1e-12)).recip()
 }
 
 /// The depth loss of a batch.
@@ -88,6 +106,23 @@ mod tests {
         let both: f32 = loss_fn(Loss::RmseMae, pred, truth).into_scalar();
         assert!((rmse - 5f32.sqrt()).abs() < 1e-6, "{rmse}");
         assert!((both - (5f32.sqrt() + 1.5)).abs() < 1e-6, "{both}");
+    }
+
+    #[test]
+    fn the_pixel_loss_weighs_every_waveform_by_its_peak() {
+        let device = Device::flex();
+        // T = 2, two pixels: a bright one (peak 1) off by 0.1 in one bin and a dim one (peak
+        // 0.1) off by 0.01: the same shape error, ten times smaller in absolute terms
+        let truth = Tensor::<4>::from_floats([[[[1.0, 0.1]], [[0.0, 0.0]]]], &device); // [1, 2, 1, 2]
+        let pred = Tensor::<4>::from_floats([[[[1.1, 0.11]], [[0.0, 0.0]]]], &device);
+        let w: Vec<f32> = pixel_weights(truth.clone()).into_data().to_vec().unwrap();
+        assert!((w[0] - 1.0 / 1.05).abs() < 1e-6 && (w[1] - 1.0 / 0.15).abs() < 1e-5, "{w:?}");
+        let l: f32 = loss_fn(Loss::RmseMaePixel, pred.clone(), truth.clone()).into_scalar();
+        let plain: f32 = loss_fn(Loss::RmseMae, pred, truth).into_scalar();
+        // weighted differences 0.1/1.05 and 0.01/0.15 in 2 of 4 entries
+        let (a, b) = (0.1f32 / 1.05, 0.01f32 / 0.15);
+        let want = plain + ((a * a + b * b) / 4.0).sqrt() + (a + b) / 4.0;
+        assert!((l - want).abs() < 1e-6, "{l} vs {want}");
     }
 
     #[test]
