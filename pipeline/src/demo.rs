@@ -616,7 +616,7 @@ fn decode_frames(dir: &Path, lidar: &Dataset, flim: &Dataset, selected: &Codes, 
         let x = ds.load("test", "x")?.into_dimensionality::<Ix4>()?;
         Ok(x.slice_axis(Axis(0), ndarray::Slice::from(i..i + 1)).to_owned())
     };
-    let jobs: [(&str, &Dataset, &Codes, Vec<(&str, String)>); 3] = [
+    let jobs: [FrameJob<'_>; 3] = [
         ("lidar", lidar, selected, vec![("tval3", "tval3".into()), ("admm", format!("admm-net:{}", runs_dir.join("admm-lidar").display())), ("unet", format!("unet:{}", runs_dir.join("unet-lidar").display()))]),
         ("lidar-learned", lidar, learned, vec![("admm", format!("admm-net:{}", runs_dir.join("learned-lidar").display()))]),
         ("flim", flim, selected, vec![("tval3", "tval3".into()), ("admm", format!("admm-net:{}", runs_dir.join("admm-flim").display())), ("fit", "lifetime-fit".into())]),
@@ -658,8 +658,11 @@ fn decode_frames(dir: &Path, lidar: &Dataset, flim: &Dataset, selected: &Codes, 
     Ok(())
 }
 
+/// One dataset's test frame through decoders: (file tag, dataset, codes, [(name, decoder spec)]).
+type FrameJob<'a> = (&'a str, &'a Dataset, &'a Codes, Vec<(&'a str, String)>);
+
 fn read3(path: &Path) -> Result<Array3<f32>> {
-    Ok(read_npy(path)?.into_dimensionality::<Ix3>().with_context(|| format!("{}: expected a rank-3 array", path.display()))?)
+    read_npy(path)?.into_dimensionality::<Ix3>().with_context(|| format!("{}: expected a rank-3 array", path.display()))
 }
 
 /// Three distinct pixels worth looking at: `first` where it exists, the centre, `last`, and
@@ -859,7 +862,7 @@ fn read_json(path: &Path) -> Result<Value> {
 
 fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Value], total_s: f64) -> Result<Report> {
     let fig = |name: &str, caption: &str| -> Block {
-        debug_assert!(figs.files.iter().any(|f| *f == name), "figure {name} not drawn");
+        debug_assert!(figs.files.contains(&name), "figure {name} not drawn");
         Block::Figure { src: format!("figures/{name}"), caption: caption.into() }
     };
     let r = &plan.request;
