@@ -10,7 +10,7 @@ RUN=$1
 NAME=$2
 DEST=zoo/$NAME
 [ -f "$RUN/checkpoint/state.json" ] || { echo "error: $RUN/checkpoint/state.json: no checkpoint to snapshot" >&2; exit 2; }
-TMP=$(mktemp -d "zoo/.$NAME.XXXXXX")
+TMP=$(mktemp -d "zoo/.${NAME//\//-}.XXXXXX") # NAME may be drafts/…
 cp -r "$RUN/checkpoint" "$TMP/checkpoint"
 EPOCH=$(python3 -c 'import json,sys; print(json.load(open(sys.argv[1]))["epoch"])' "$TMP/checkpoint/state.json")
 cp "$TMP/checkpoint/model.bpk" "$TMP/model.bpk"
