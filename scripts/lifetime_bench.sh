@@ -18,15 +18,9 @@ SIZE=${SIZE:-64x64}
 ITEMS=${ITEMS:-8}
 cargo build --release --locked
 B=target/release/tcsense
+. scripts/ood_sets.sh
 mkdir -p "$OUT"
-F="$B dataset flim --size $SIZE --force --count 80"
-$F --paper --seed 11 -o "$OUT/standard"
-$F --paper --onset-ns 0 --seed 12 -o "$OUT/onset-0ns"
-$F --paper --onset-ns 30 --seed 13 -o "$OUT/onset-30ns"
-FIX="--onset-ns 2 --lifetimes 3 --tau-ns 0.5,3.5 --background 0 --brightness 1"
-$F $FIX --irf-fwhm-ns 1.5 --seed 14 -o "$OUT/irf-1.5ns"
-$F --onset-ns 2 --lifetimes 1,3 --tau-ns 4,8 --irf-fwhm-ns 0 --background 0 --brightness 1 --seed 15 -o "$OUT/long-lifetimes"
-$F --onset-ns 2 --lifetimes 3 --tau-ns 0.5,3.5 --brightness 1 --irf-fwhm-ns 0 --background 0.05 --seed 16 -o "$OUT/background"
+flim_test_sets "$OUT/" 80
 irf=$(python3 -c "import json,sys; print(json.load(open(sys.argv[1]))['irf']['kind'])" "$RUN/config.json") # ideal or physical (the eval defaults' laser and tap)
 echo "set,decoder,items,mse,psnr_db,b1r,b1m,b1d,b2r,b2m,b2d,lifetime_mae_s,seconds_per_frame,lifetime_mae_weighted_s,lifetime_within_02ns,lifetime_coverage" > "$OUT/lifetime.csv"
 evaluate() { # NAME DATASET [extra eval flags]

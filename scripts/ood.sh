@@ -26,10 +26,10 @@ UNET_EPOCHS=${UNET_EPOCHS:-150}
 FLIM_EPOCHS=${FLIM_EPOCHS:-16}
 FLIM_DELAY_EPOCHS=${FLIM_DELAY_EPOCHS:-8}
 ITEMS=${ITEMS:-10}
-SKIMAGE=scikit-image==0.26.0
 
 cargo build --release --locked
 B=target/release/tcsense
+. scripts/ood_sets.sh
 mkdir -p "$OUT"
 
 # --- codes: the paper's prototype (4 taps, 2x2, L = 32, tap + H 2 + W 2) ------------------
@@ -39,20 +39,9 @@ $B codes generate --taps 4 --block 2x2 --length 32 --tap-constraint --hamming 2 
 L="$B dataset lidar --size $SIZE --force"
 $L --paper --count "$LIDAR_COUNT" --seed 1 -o "$OUT/lidar-paper"
 $L --count "$LIDAR_COUNT" --seed 2 -o "$OUT/lidar-random"
-$L --paper --count 120 --seed 11 -o "$OUT/lidar-test-standard"
-$L --count 120 --seed 12 --wall-range 0.93,0.97 --object-range 0.6,0.9 --noise-texture 0 --max-slopes 0 --ambient-range 0 --interreflection-strength 0 --sheet-transmission 0.6,0.9 --sheet-reflectance 0.002,0.02 --sheet-distance 0.3,0.7 -o "$OUT/lidar-test-far"
-$L --count 120 --seed 13 --wall-range 0.2,0.35 --object-range 0.25,0.6 --noise-texture 0 --max-slopes 0 --ambient-range 0 --interreflection-strength 0 --sheet-transmission 0.6,0.9 --sheet-reflectance 0.002,0.02 --sheet-distance 0.3,0.7 -o "$OUT/lidar-test-near"
-$L --count 120 --seed 14 --wall-range 0.7,0.9 --object-range 0.25,0.6 --noise-texture 1 --max-slopes 3 --ambient-range 0 --interreflection-strength 0 --sheet-transmission 0.6,0.9 --sheet-reflectance 0.002,0.02 --sheet-distance 0.3,0.7 -o "$OUT/lidar-test-textures"
-$L --count 120 --seed 15 --wall-range 0.7,0.9 --object-range 0.25,0.6 --noise-texture 0 --max-slopes 0 --ambient-range 0 --interreflection-strength 0 --sheet-probability 1 --sheet-transmission 0.3,0.5 --sheet-reflectance 0.02,0.05 --sheet-distance 0.3,0.7 -o "$OUT/lidar-test-dense-sheet"
+lidar_test_sets "$OUT/lidar-test-" 120
 
-# a real scene: range and albedo from the Middlebury stereo ground truth
-if [ ! -x .venv/bin/python ]; then python3 -m venv .venv; fi
-.venv/bin/pip install -q numpy pillow
-wheel_dir="$OUT/wheels"
-mkdir -p "$wheel_dir"
-ls "$wheel_dir"/scikit_image-*.whl >/dev/null 2>&1 || .venv/bin/pip download -q --no-deps "$SKIMAGE" -d "$wheel_dir"
-.venv/bin/python scripts/middlebury_motorcycle.py "$wheel_dir"/scikit_image-*.whl "$OUT"
-$B dataset import --depth "$OUT/range.npy" --albedo "$OUT/albedo.npy" --force -o "$OUT/lidar-test-motorcycle"
+motorcycle_set "$OUT"
 
 T="$B train admm-net --codes $OUT/codes.json --preset cpu --seed 3"
 [ -f "$OUT/run-lidar-paper/model.bpk" ] || $T --dataset "$OUT/lidar-paper" --epochs "$LIDAR_EPOCHS" --no-augment -o "$OUT/run-lidar-paper"
@@ -66,14 +55,7 @@ U="$B train unet --codes $OUT/codes.json --seed 3"
 F="$B dataset flim --size $SIZE --force"
 $F --paper --count "$FLIM_COUNT" --seed 1 -o "$OUT/flim-paper"
 $F --count "$FLIM_COUNT" --seed 2 -o "$OUT/flim-random"
-$F --paper --count 120 --seed 11 -o "$OUT/flim-test-standard"
-$F --paper --onset-ns 0 --count 120 --seed 12 -o "$OUT/flim-test-onset-0ns"
-$F --paper --onset-ns 30 --count 120 --seed 13 -o "$OUT/flim-test-onset-30ns"
-# the paper's lifetimes and onset with one change each (three lifetimes drawn in 0.5-3.5 ns)
-FIX="--onset-ns 2 --lifetimes 3 --tau-ns 0.5,3.5 --background 0 --brightness 1"
-$F $FIX --irf-fwhm-ns 1.5 --count 120 --seed 14 -o "$OUT/flim-test-irf-1.5ns"
-$F --onset-ns 2 --lifetimes 1,3 --tau-ns 4,8 --irf-fwhm-ns 0 --background 0 --brightness 1 --count 120 --seed 15 -o "$OUT/flim-test-long-lifetimes"
-$F --onset-ns 2 --lifetimes 3 --tau-ns 0.5,3.5 --irf-fwhm-ns 0 --background 0.05 --brightness 1 --count 120 --seed 16 -o "$OUT/flim-test-background"
+flim_test_sets "$OUT/flim-test-" 120
 
 [ -f "$OUT/run-flim-paper/model.bpk" ] || $T --dataset "$OUT/flim-paper" --epochs "$FLIM_EPOCHS" --no-augment -o "$OUT/run-flim-paper"
 [ -f "$OUT/run-flim-random/model.bpk" ] || $T --dataset "$OUT/flim-random" --epochs "$FLIM_EPOCHS" -o "$OUT/run-flim-random"

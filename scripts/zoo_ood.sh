@@ -16,41 +16,23 @@ OUT=${1:-zoo-ood-out}
 shift || true
 SIZE=${SIZE:-64x64}
 ITEMS=${ITEMS:-10}
-SKIMAGE=scikit-image==0.26.0
 cargo build --release --locked
 B=$PWD/target/release/tcsense
+. scripts/ood_sets.sh
 mkdir -p "$OUT"
 if [ $# -gt 0 ]; then NAMES=("$@"); else mapfile -t NAMES < <(find zoo -mindepth 2 -maxdepth 2 -name config.json -not -path 'zoo/drafts/*' | sed 's|zoo/||; s|/config.json||' | sort); fi
 field() { python3 -c "import json,sys; c=json.load(open(sys.argv[1])); print(eval(sys.argv[2]))" "zoo/$1/config.json" "$2"; }
 
 lidar_sets() {
   [ -f "$OUT/.lidar-sets" ] && return
-  local L="$B dataset lidar --size $SIZE --force --count 120"
-  local FIX="--noise-texture 0 --max-slopes 0 --ambient-range 0 --interreflection-strength 0 --sheet-transmission 0.6,0.9 --sheet-reflectance 0.002,0.02 --sheet-distance 0.3,0.7"
-  $L --paper --seed 11 -o "$OUT/lidar-test-standard"
-  $L --seed 12 --wall-range 0.93,0.97 --object-range 0.6,0.9 $FIX -o "$OUT/lidar-test-far"
-  $L --seed 13 --wall-range 0.2,0.35 --object-range 0.25,0.6 $FIX -o "$OUT/lidar-test-near"
-  $L --seed 14 --wall-range 0.7,0.9 --object-range 0.25,0.6 --noise-texture 1 --max-slopes 3 --ambient-range 0 --interreflection-strength 0 --sheet-transmission 0.6,0.9 --sheet-reflectance 0.002,0.02 --sheet-distance 0.3,0.7 -o "$OUT/lidar-test-textures"
-  $L --seed 15 --wall-range 0.7,0.9 --object-range 0.25,0.6 --noise-texture 0 --max-slopes 0 --ambient-range 0 --interreflection-strength 0 --sheet-probability 1 --sheet-transmission 0.3,0.5 --sheet-reflectance 0.02,0.05 --sheet-distance 0.3,0.7 -o "$OUT/lidar-test-dense-sheet"
-  if [ ! -x .venv/bin/python ]; then python3 -m venv .venv; fi
-  .venv/bin/pip install -q numpy pillow
-  mkdir -p "$OUT/wheels"
-  ls "$OUT/wheels"/scikit_image-*.whl >/dev/null 2>&1 || .venv/bin/pip download -q --no-deps "$SKIMAGE" -d "$OUT/wheels"
-  .venv/bin/python scripts/middlebury_motorcycle.py "$OUT/wheels"/scikit_image-*.whl "$OUT"
-  $B dataset import --depth "$OUT/range.npy" --albedo "$OUT/albedo.npy" --force -o "$OUT/lidar-test-motorcycle"
+  lidar_test_sets "$OUT/lidar-test-" 120
+  motorcycle_set "$OUT"
   touch "$OUT/.lidar-sets"
 }
 
 flim_sets() {
   [ -f "$OUT/.flim-sets" ] && return
-  local F="$B dataset flim --size $SIZE --force --count 120"
-  local FIX="--onset-ns 2 --lifetimes 3 --tau-ns 0.5,3.5 --background 0 --brightness 1"
-  $F --paper --seed 11 -o "$OUT/flim-test-standard"
-  $F --paper --onset-ns 0 --seed 12 -o "$OUT/flim-test-onset-0ns"
-  $F --paper --onset-ns 30 --seed 13 -o "$OUT/flim-test-onset-30ns"
-  $F $FIX --irf-fwhm-ns 1.5 --seed 14 -o "$OUT/flim-test-irf-1.5ns"
-  $F --onset-ns 2 --lifetimes 1,3 --tau-ns 4,8 --irf-fwhm-ns 0 --background 0 --brightness 1 --seed 15 -o "$OUT/flim-test-long-lifetimes"
-  $F --onset-ns 2 --lifetimes 3 --tau-ns 0.5,3.5 --brightness 1 --irf-fwhm-ns 0 --background 0.05 --seed 16 -o "$OUT/flim-test-background"
+  flim_test_sets "$OUT/flim-test-" 120
   touch "$OUT/.flim-sets"
 }
 

@@ -369,6 +369,11 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
             let r = evaluate(ds, a, &mut dec, &settings(items), &on_item, cancel)?;
             Ok(r.iter().zip(decoders).map(|(r, (name, spec))| row(r, name, engine(spec))).collect())
         };
+        // a zoo entry decoded as shipped: on its own codes, with the same scenes and noise seeds
+        let shipped_rows = |ds: &Dataset, zoo_dir: &Path, decoder: (&str, String), items: usize, row: &dyn Fn(&EvalRow, &str, &str) -> Value| -> Result<Vec<Value>> {
+            let codes = Codes::load(&zoo_dir.join(CODES_FILE))?;
+            rows_of(ds, &sensor(&codes, ds)?, &[decoder], items, row)
+        };
         let cube_decoders = |run: &str| vec![("TVAL3", "tval3".to_string()), ("ADMM-Net", run_of("admm-net", run)), ("ADMM-Net", onnx(run))];
         if !lidar_json.exists() {
             let mut selected_set = cube_decoders("admm-lidar");
@@ -379,9 +384,8 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
             if let (true, Some((zoo_dir, _))) = (plan.trainings.iter().any(|t| t.name == "zoo-lidar"), zoo_entry(&lidar)) {
                 let tuned = [("ADMM-Net (zoo, fine-tuned)", run_of("admm-net", "zoo-lidar"))];
                 rows.extend(rows_of(&lidar, &sensor(&selected, &lidar)?, &tuned, plan.lidar_eval_items, &|r, n, e| lidar_row(r, "selected", n, e))?);
-                let zoo_codes = Codes::load(&zoo_dir.join(CODES_FILE))?;
-                let shipped = [("ADMM-Net (zoo, as shipped)", format!("admm-net:{}", zoo_dir.display()))];
-                rows.extend(rows_of(&lidar, &sensor(&zoo_codes, &lidar)?, &shipped, plan.lidar_eval_items, &|r, n, e| lidar_row(r, "the zoo's", n, e))?);
+                let shipped = ("ADMM-Net (zoo, as shipped)", format!("admm-net:{}", zoo_dir.display()));
+                rows.extend(shipped_rows(&lidar, &zoo_dir, shipped, plan.lidar_eval_items, &|r, n, e| lidar_row(r, "the zoo's", n, e))?);
             }
             write_json(&lidar_json, &json!({ "split": "test", "items": plan.lidar_eval_items, "noise": eval_noise, "noise_seed": seed, "frame": [h, w], "rows": rows }))?;
         }
@@ -389,11 +393,10 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
             let mut flim_set = cube_decoders("admm-flim");
             flim_set.push(("lifetime fit to the taps", "lifetime-fit".to_string()));
             let mut rows = rows_of(&flim, &sensor(&selected, &flim)?, &flim_set, plan.flim_eval_items, &|r, n, e| flim_row(r, "selected", n, e))?;
-            // the zoo's lifetime decoder as shipped, on its own codes (the same scenes and noise seeds)
+            // the zoo's lifetime decoder as shipped
             if let Some((zoo_dir, _)) = zoo_entry_named(ZOO_LIFETIME, &flim) {
-                let zoo_codes = Codes::load(&zoo_dir.join(CODES_FILE))?;
-                let shipped = [("lifetime decoder (zoo, as shipped, its own codes)", format!("lifetime:{}", zoo_dir.display()))];
-                rows.extend(rows_of(&flim, &sensor(&zoo_codes, &flim)?, &shipped, plan.flim_eval_items, &|r, n, e| flim_row(r, "the zoo's", n, e))?);
+                let shipped = ("lifetime decoder (zoo, as shipped, its own codes)", format!("lifetime:{}", zoo_dir.display()));
+                rows.extend(shipped_rows(&flim, &zoo_dir, shipped, plan.flim_eval_items, &|r, n, e| flim_row(r, "the zoo's", n, e))?);
             }
             write_json(&flim_json, &json!({ "split": "test", "items": plan.flim_eval_items, "noise": eval_noise, "noise_seed": seed, "frame": [h, w], "rows": rows }))?;
         }
