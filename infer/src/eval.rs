@@ -189,7 +189,8 @@ pub struct NamedDecoder {
 /// Open a decoder by name: `tval3` (with `tval3` options), `lifetime-fit` (lifetimes fitted
 /// to the tap images, [`crate::tapfit`]) or `KIND:RUN`, a training run
 /// directory of a learned decoder of that kind (`admm-net:RUN`, `unet:RUN`, `lifetime:RUN`;
-/// RUN may be `zoo:NAME`), on `device`, `zoo:NAME`, the zoo's entry whatever its kind, or
+/// RUN may be `zoo:NAME`; `unet-raw:RUN`: the U-Net's ranges without the fit in the tap
+/// domain), on `device`, `zoo:NAME`, the zoo's entry whatever its kind, or
 /// `onnx:MODEL.onnx`, an exported model through ONNX Runtime.
 pub fn open_decoder(name: &str, tval3: &Tval3Options, device: &Device) -> Result<NamedDecoder> {
     match name.split_once(':') {
@@ -197,6 +198,13 @@ pub fn open_decoder(name: &str, tval3: &Tval3Options, device: &Device) -> Result
         None if name == "lifetime-fit" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::tapfit::TapFitDecoder::default()), codes: None }),
         Some(("zoo", _)) => {
             let run = runs::open(&tcsense_models::zoo::resolve(name)?, device)?;
+            Ok(NamedDecoder { label: name.into(), decoder: run.decoder, codes: Some(run.codes) })
+        }
+        Some(("unet-raw", dir)) => {
+            let run = runs::open_with(&tcsense_models::zoo::resolve(dir)?, device, false)?;
+            if run.spec.model.name() != "unet" {
+                return Err(InferError::File { path: run.dir.join(runs::CONFIG_FILE), msg: format!("a {} run, not unet; name it {}:{dir}", run.spec.model.name(), run.spec.model.name()) });
+            }
             Ok(NamedDecoder { label: name.into(), decoder: run.decoder, codes: Some(run.codes) })
         }
         Some((kind, dir)) if kind == "admm-net" || kind == "unet" || kind == "lifetime" => {

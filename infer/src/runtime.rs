@@ -14,6 +14,7 @@ use std::sync::OnceLock;
 
 use tcsense_models::decoder::{check_measurements, Control, Decoded, Decoder, Step};
 use tcsense_models::net::{mask_depth, mask_lifetime};
+use tcsense_models::range_fit::{refine_ranges, RangeFitOptions};
 use tcsense_sensor::MeasurementMatrix;
 
 use crate::onnx::{OnnxMeta, INPUT, MATRIX_INPUT};
@@ -206,11 +207,19 @@ impl OnnxModel {
 pub struct OnnxDecoder {
     name: String,
     model: OnnxModel,
+    /// A U-Net's ranges refined in the tap domain ([`tcsense_models::range_fit`]).
+    range_fit: Option<RangeFitOptions>,
 }
 
 impl OnnxDecoder {
     pub fn new(model: OnnxModel) -> Self {
-        OnnxDecoder { name: format!("onnx:{}", model.meta.decoder), model }
+        OnnxDecoder { name: format!("onnx:{}", model.meta.decoder), model, range_fit: Some(RangeFitOptions::default()) }
+    }
+
+    /// A U-Net's ranges as the model outputs them, without the fit in the tap domain.
+    pub fn without_range_fit(mut self) -> Self {
+        self.range_fit = None;
+        self
     }
 }
 
@@ -245,6 +254,9 @@ impl Decoder for OnnxDecoder {
         if self.model.meta.decoder == "unet" {
             let (mut depth, confidence) = (cat(0)?, cat(1)?);
             mask_depth(&mut depth, &confidence);
+            if let Some(opts) = &self.range_fit {
+                refine_ranges(y, sensor, &mut depth, opts);
+            }
             Ok(Decoded { depth: Some(depth), confidence: Some(confidence), ..Default::default() })
         } else if self.model.meta.decoder == "lifetime" {
             let (mut lifetime, confidence) = (cat(0)?, cat(1)?);

@@ -30,6 +30,7 @@ pub mod learned_codes;
 pub mod lifetime;
 pub mod metrics;
 pub mod net;
+pub mod range_fit;
 pub mod runs;
 pub mod sensor_tensors;
 pub mod tval3;

@@ -12,6 +12,7 @@ use ndarray::{Array4, ArrayView4, Axis};
 use tcsense_sensor::MeasurementMatrix;
 
 use crate::decoder::{check_measurements, Control, Decoded, Decoder, Step};
+use crate::range_fit::{refine_ranges, RangeFitOptions};
 use crate::sensor_tensors::SensorTensors;
 use crate::{ModelError, Result};
 
@@ -134,12 +135,20 @@ pub struct NetDecoder<M> {
     device: Device,
     /// Sensor tensors of the last frame size and `A`.
     cache: Option<(MeasurementMatrix, SensorTensors)>,
+    /// Depth networks: the returns' ranges refined in the tap domain ([`crate::range_fit`]).
+    range_fit: Option<RangeFitOptions>,
 }
 
 impl<M: Network> NetDecoder<M> {
     /// Wrap `model` (already on `device`, without autodiff for inference).
     pub fn new(name: &str, model: M, device: Device) -> Self {
-        NetDecoder { name: name.to_string(), model, device, cache: None }
+        NetDecoder { name: name.to_string(), model, device, cache: None, range_fit: Some(RangeFitOptions::default()) }
+    }
+
+    /// A depth network's ranges as it outputs them, without the fit in the tap domain.
+    pub fn without_range_fit(mut self) -> Self {
+        self.range_fit = None;
+        self
     }
 
     /// The wrapped network.
@@ -179,7 +188,10 @@ impl<M: Network> Decoder for NetDecoder<M> {
         match M::PREDICTION {
             Prediction::Cube => Ok(Decoded { cube: Some(out), ..Default::default() }),
             Prediction::Depth => {
-                let (depth, confidence) = split_depth(&out);
+                let (mut depth, confidence) = split_depth(&out);
+                if let Some(opts) = &self.range_fit {
+                    refine_ranges(y, sensor, &mut depth, opts);
+                }
                 Ok(Decoded { depth: Some(depth), confidence: Some(confidence), ..Default::default() })
             }
             Prediction::Lifetime => {

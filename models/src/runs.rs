@@ -295,10 +295,17 @@ pub fn load(dir: &Path, device: &Device) -> Result<LoadedRun> {
 /// Open a run directory as a decoder on `device`: its config, codes, sensor model and latest
 /// weights.
 pub fn open(dir: &Path, device: &Device) -> Result<Run> {
+    open_with(dir, device, true)
+}
+
+/// [`open`], with a U-Net's ranges refined in the tap domain ([`crate::range_fit`], the
+/// default) or as the network outputs them (`range_fit: false`).
+pub fn open_with(dir: &Path, device: &Device, range_fit: bool) -> Result<Run> {
     let LoadedRun { dir, spec, codes, sensor, net } = load(dir, device)?;
     let name = spec.model.name();
     let decoder: Box<dyn Decoder> = match net {
         TrainedNet::AdmmNet(net) => Box::new(NetDecoder::new(name, net, device.clone())),
+        TrainedNet::Unet(net) if !range_fit => Box::new(NetDecoder::new(name, net, device.clone()).without_range_fit()),
         TrainedNet::Unet(net) => Box::new(NetDecoder::new(name, net, device.clone())),
         TrainedNet::Lifetime(net) => Box::new(NetDecoder::new(name, net, device.clone())),
     };
