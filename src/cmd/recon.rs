@@ -167,6 +167,10 @@ pub enum ReconstructCmd {
         /// for: correct the tap images for its dark and gain maps and decode with its matrix.
         #[arg(long, value_name = "DIR")]
         calibration: Option<PathBuf>,
+        /// The network's own ranges, without the fit of the pulse template to the tap images
+        /// (what `tcsense infer` gives from the exported model).
+        #[arg(long)]
+        no_range_fit: bool,
         #[command(flatten)]
         device: super::DeviceArgs,
     },
@@ -217,17 +221,17 @@ pub enum ReconstructCmd {
 pub fn reconstruct(cmd: ReconstructCmd) -> Result<ExitCode> {
     match cmd {
         ReconstructCmd::AdmmNet { run, measurements, output, calibration, device } => {
-            let mut r = open_kind(&run, "admm-net", &device)?;
+            let mut r = open_kind(&run, "admm-net", &device, false)?;
             let cal = load_calibration(calibration.as_deref(), &r)?;
             decode_file(r.decoder.as_mut(), &r.sensor, cal.as_ref(), &r.codes, &measurements, &output, &DepthProductArgs::default())
         }
-        ReconstructCmd::Unet { run, measurements, output, products, calibration, device } => {
-            let mut r = open_kind(&run, "unet", &device)?;
+        ReconstructCmd::Unet { run, measurements, output, products, calibration, no_range_fit, device } => {
+            let mut r = open_kind(&run, "unet", &device, !no_range_fit)?;
             let cal = load_calibration(calibration.as_deref(), &r)?;
             decode_file(r.decoder.as_mut(), &r.sensor, cal.as_ref(), &r.codes, &measurements, &output, &products)
         }
         ReconstructCmd::Lifetime { run, measurements, output, png, calibration, device } => {
-            let mut r = open_kind(&run, "lifetime", &device)?;
+            let mut r = open_kind(&run, "lifetime", &device, false)?;
             let cal = load_calibration(calibration.as_deref(), &r)?;
             let products = DepthProductArgs { png, ..DepthProductArgs::default() };
             decode_file(r.decoder.as_mut(), &r.sensor, cal.as_ref(), &r.codes, &measurements, &output, &products)
@@ -247,8 +251,8 @@ pub fn reconstruct(cmd: ReconstructCmd) -> Result<ExitCode> {
 }
 
 /// Open a run and check that it is of the decoder kind the subcommand names.
-fn open_kind(run: &Path, kind: &str, device: &super::DeviceArgs) -> Result<runs::Run> {
-    let r = runs::open(run, &device.device()?)?;
+fn open_kind(run: &Path, kind: &str, device: &super::DeviceArgs, range_fit: bool) -> Result<runs::Run> {
+    let r = runs::open_with(run, &device.device()?, range_fit)?;
     let got = r.spec.model.name();
     if got != kind {
         bail!("{}: config.json field decoder is {got:?}, expected a {kind:?} run (use `tcsense reconstruct {got}`)", run.display());
