@@ -149,6 +149,8 @@ fn train_and_eval_the_lifetime_decoder() {
     fails(d, &["train", "lifetime", "--dataset", "ds", "--codes", "codes.json", "--harmonics", "3", "--epochs", "1", "-o", "l2"], &["ds", "no lifetime field"]);
     fails(d, &["train", "unet", "--resume", "-o", "lt"], &["lifetime run", "tcsense train lifetime"]);
     fails(d, &["eval", "--dataset", "f", "--codes", "codes.json", "--heterodyne", "2", "--decoder", "unet:lt", "-o", "r2.json"], &["a lifetime run"]);
+    fails(d, &["eval", "--dataset", "f", "--codes", "codes.json", "--heterodyne", "2", "--decoder", "unet-raw:lt", "-o", "r3.json"], &["a lifetime run, not unet", "lifetime:lt"]);
+    assert!(!d.join("r3.json").exists());
     fails(d, &["train", "lifetime", "--dataset", "f", "--codes", "codes.json", "--harmonics", "99", "-o", "l3"], &["harmonics"]);
     // reconstruct lifetime: [4, H, W] with confidence and intensity beside it; another kind's subcommand refuses the run
     let x = tcsense_sensor::npy::read_npy(&d.join("f/test/x_000.npy")).unwrap();
@@ -158,6 +160,7 @@ fn train_and_eval_the_lifetime_decoder() {
     assert_eq!(tcsense_sensor::npy::read_npy(&d.join("tau.npy")).unwrap().shape(), &[4, 8, 8]);
     assert_eq!(tcsense_sensor::npy::read_npy(&d.join("tau.intensity.npy")).unwrap().shape(), &[1, 8, 8]);
     fails(d, &["reconstruct", "unet", "--run", "lt", "--measurements", "y.npy", "-o", "d.npy"], &["lt", "decoder", "\"lifetime\"", "reconstruct lifetime"]);
+    fails(d, &["reconstruct", "unet", "--run", "lt", "--no-range-fit", "--measurements", "y.npy", "-o", "d.npy"], &["lt", "decoder", "\"lifetime\"", "reconstruct lifetime"]);
     assert!(!d.join("d.npy").exists());
 }
 

@@ -200,15 +200,10 @@ pub fn open_decoder(name: &str, tval3: &Tval3Options, device: &Device) -> Result
             let run = runs::open(&tcsense_models::zoo::resolve(name)?, device)?;
             Ok(NamedDecoder { label: name.into(), decoder: run.decoder, codes: Some(run.codes) })
         }
-        Some(("unet-raw", dir)) => {
-            let run = runs::open_with(&tcsense_models::zoo::resolve(dir)?, device, false)?;
-            if run.spec.model.name() != "unet" {
-                return Err(InferError::File { path: run.dir.join(runs::CONFIG_FILE), msg: format!("a {} run, not unet; name it {}:{dir}", run.spec.model.name(), run.spec.model.name()) });
-            }
-            Ok(NamedDecoder { label: name.into(), decoder: run.decoder, codes: Some(run.codes) })
-        }
-        Some((kind, dir)) if kind == "admm-net" || kind == "unet" || kind == "lifetime" => {
-            let run = runs::open(&tcsense_models::zoo::resolve(dir)?, device)?;
+        Some((kind, dir)) if ["admm-net", "unet", "unet-raw", "lifetime"].contains(&kind) => {
+            // unet-raw: the U-Net's own ranges, without the fit in the tap domain
+            let (kind, range_fit) = if kind == "unet-raw" { ("unet", false) } else { (kind, true) };
+            let run = runs::open_with(&tcsense_models::zoo::resolve(dir)?, device, range_fit)?;
             if run.spec.model.name() != kind {
                 return Err(InferError::File { path: run.dir.join(runs::CONFIG_FILE), msg: format!("a {} run, not {kind}; name it {}:{dir}", run.spec.model.name(), run.spec.model.name()) });
             }
