@@ -43,7 +43,7 @@ pub struct EvalRow {
     pub lifetime_coverage: Option<f64>,
     pub seconds_per_frame: f64,
     #[serde(skip)]
-    depth_sums: Vec<(usize, usize, f64, f64)>,
+    depth_sums: Vec<(usize, usize, f64, f64, usize, usize)>,
     #[serde(skip)]
     lt_sum: LifetimeErrors,
     #[serde(skip)]
@@ -100,18 +100,27 @@ impl EvalRow {
                 (None, None) => Vec::new(),
             };
             if self.depth_sums.len() < errs.len() {
-                self.depth_sums.resize(errs.len(), (0, 0, 0.0, 0.0));
+                self.depth_sums.resize(errs.len(), (0, 0, 0.0, 0.0, 0, 0));
             }
             for (s, e) in self.depth_sums.iter_mut().zip(&errs) {
                 s.0 += e.truth;
                 s.1 += e.detected;
                 s.2 += e.rmse_m * e.rmse_m * e.detected as f64;
                 s.3 += e.mae_m * e.detected as f64;
+                s.4 += e.empty;
+                s.5 += e.false_alarms;
             }
             self.depth = self
                 .depth_sums
                 .iter()
-                .map(|&(t, d, se, ae)| DepthErrors { truth: t, detected: d, rmse_m: if d > 0 { (se / d as f64).sqrt() } else { f64::NAN }, mae_m: if d > 0 { ae / d as f64 } else { f64::NAN } })
+                .map(|&(t, d, se, ae, empty, false_alarms)| DepthErrors {
+                    truth: t,
+                    detected: d,
+                    rmse_m: if d > 0 { (se / d as f64).sqrt() } else { f64::NAN },
+                    mae_m: if d > 0 { ae / d as f64 } else { f64::NAN },
+                    empty,
+                    false_alarms,
+                })
                 .collect();
         }
         if let Some((truth, intensity, est)) = lifetime {
@@ -139,8 +148,14 @@ impl EvalRow {
     /// One line of a table.
     pub fn line(&self) -> String {
         let mut s = format!("{:<24} {:>5} {:>11.4e} {:>8.2}", self.decoder, self.items, self.mse, self.psnr_db);
-        for (b, d) in self.depth.iter().enumerate().filter(|(_, d)| d.truth > 0) {
-            s.push_str(&format!("  b{}: rmse {:.3} m mae {:.3} m det {:.0}%", b + 1, d.rmse_m, d.mae_m, 100.0 * d.detection_rate()));
+        for (b, d) in self.depth.iter().enumerate() {
+            if d.truth > 0 {
+                s.push_str(&format!("  b{}: rmse {:.3} m mae {:.3} m det {:.0}%", b + 1, d.rmse_m, d.mae_m, 100.0 * d.detection_rate()));
+            }
+            if d.false_alarms > 0 {
+                let lead = if d.truth > 0 { " ".to_string() } else { format!("  b{}: ", b + 1) };
+                s.push_str(&format!("{lead}false {:.0}%", 100.0 * d.false_alarm_rate()));
+            }
         }
         if let Some(l) = self.lifetime_mae_s {
             s.push_str(&format!("  lifetime MAE {:.3} ns", l * 1e9));

@@ -35,6 +35,10 @@ pub struct DepthErrors {
     pub detected: usize,
     pub rmse_m: f64,
     pub mae_m: f64,
+    /// Pixels without a ground-truth return.
+    pub empty: usize,
+    /// Of those, pixels with an estimated return (a false alarm: e.g. a sheet that is not there).
+    pub false_alarms: usize,
 }
 
 impl DepthErrors {
@@ -46,10 +50,20 @@ impl DepthErrors {
             self.detected as f64 / self.truth as f64
         }
     }
+
+    /// Fraction of the pixels without a ground-truth return that got one.
+    pub fn false_alarm_rate(&self) -> f64 {
+        if self.empty == 0 {
+            0.0
+        } else {
+            self.false_alarms as f64 / self.empty as f64
+        }
+    }
 }
 
 /// Depth errors per bounce between estimated and true range maps `[K, H, W]` (NaN = none).
-/// Errors are over pixels where both have a return.
+/// Errors are over pixels where both have a return; an estimate where the truth has none is a
+/// false alarm.
 pub fn depth_errors(est: &ArrayView3<'_, f32>, truth: &ArrayView3<'_, f32>) -> Vec<DepthErrors> {
     let k = truth.dim().0.min(est.dim().0);
     (0..k)
@@ -65,6 +79,9 @@ pub fn depth_errors(est: &ArrayView3<'_, f32>, truth: &ArrayView3<'_, f32>) -> V
                         se += d * d;
                         ae += d.abs();
                     }
+                } else {
+                    e.empty += 1;
+                    e.false_alarms += usize::from(x.is_finite());
                 }
             }
             if e.detected > 0 {
@@ -85,5 +102,18 @@ mod tests {
         assert!((mse(&[1.0, 2.0], &[1.0, 4.0]) - 2.0).abs() < 1e-12);
         assert!((psnr(&[0.0, 0.9], &[0.0, 1.0]) - 10.0 * (1.0f64 / 0.005).log10()).abs() < 1e-4);
         assert_eq!(psnr(&[0.5, 1.0], &[0.5, 1.0]), f64::INFINITY);
+    }
+
+    #[test]
+    fn depth_errors_count_misses_and_false_alarms() {
+        let nan = f32::NAN;
+        // 2 bounces of 1×4 pixels
+        let truth = ndarray::Array3::from_shape_vec((2, 1, 4), vec![1.0, 2.0, 3.0, nan, nan, nan, 5.0, nan]).unwrap();
+        let est = ndarray::Array3::from_shape_vec((2, 1, 4), vec![1.5, nan, 2.0, 4.0, 6.0, nan, 5.5, 7.0]).unwrap();
+        let e = depth_errors(&est.view(), &truth.view());
+        assert_eq!((e[0].truth, e[0].detected, e[0].empty, e[0].false_alarms), (3, 2, 1, 1));
+        assert!((e[0].mae_m - 0.75).abs() < 1e-12 && (e[0].rmse_m - (1.25f64 / 2.0).sqrt()).abs() < 1e-12);
+        assert_eq!((e[1].truth, e[1].detected, e[1].empty, e[1].false_alarms), (1, 1, 3, 2));
+        assert!((e[1].false_alarm_rate() - 2.0 / 3.0).abs() < 1e-12 && (e[1].mae_m - 0.5).abs() < 1e-12);
     }
 }

@@ -24,16 +24,20 @@
 //!
 //! Two returns (a diffusive sheet and the surface behind it) are fitted jointly,
 //! `y ≈ a₁·g(τ₁) + a₂·g(τ₂) + b·s` with `a₁, a₂, b ≥ 0`, by coordinate descent: each range
-//! searched with the other fixed, three rounds, from the decoder's estimates. Only the first
-//! two returns are refined. Every search goes bin by bin, then by `1/oversample` within a
-//! bin of the best. A phantom second return (the U-Net reports one where there is none)
-//! costs the first return precision: on the motorcycle 0.153 m against 0.082 m when every
-//! pixel is fitted with one return.
+//! searched with the other fixed, up to three rounds (fewer once neither moves), from the
+//! decoder's estimates. Only the first two returns are refined. Every search goes bin by
+//! bin, then by `1/oversample` within a bin of the best. The two are kept where they leave at
+//! most half the residual of the best single return near either estimate
+//! ([`RangeFitOptions::second_return_residual`]); elsewhere the pixel gets that single return.
+//! This drops the decoder's second returns that explain nothing, but not all its phantoms:
+//! with 4 taps a pixel and a free amplitude per return, a second return also fits the noise
+//! and the rounding of the first's position to the grid, often by more than half.
 //!
 //! Measured behind a 40-epoch score-volume U-Net (noise on, prototype codes, physical IRF;
 //! `eval --decoder unet:RUN --decoder unet-raw:RUN`), first-return MAE: the Middlebury
-//! motorcycle 0.399 → 0.153 m (TVAL3 + peaks 0.157 m; 0.082 m if every pixel is fitted with
-//! one return); the dense-sheet set 0.178 → 0.034 m, second return 1.122 → 0.500 m.
+//! motorcycle 0.399 → 0.147 m (TVAL3 + peaks 0.157 m; false second returns in 57 → 54 % of
+//! its pixels); the dense-sheet set 0.178 → 0.035 m, second return 1.122 → 0.477 m (95 %
+//! detected); the standard set 1.140 → 0.733 m, false second returns 32 → 20 %.
 
 use ndarray::{Array4, ArrayView4, Axis};
 use rayon::prelude::*;
@@ -42,8 +46,19 @@ use tcsense_sensor::MeasurementMatrix;
 /// Speed of light (m/s; `tcsense_datasets::grid::C`, which this crate does not depend on).
 const C: f64 = 299_792_458.0;
 
-/// Rounds of coordinate descent over two returns.
+/// Rounds of coordinate descent over two returns (at most).
 const ROUNDS: usize = 3;
+
+/// A window whose single-return residual is at most this share of `Σ y·y` is explained by
+/// one return (a 0.1 % RMS misfit, below the shot noise of any pixel): a
+/// second return there would fit the rounding of the first's position.
+const EXPLAINED: f64 = 1e-6;
+
+/// Distance between two positions on a cycle of `t` bins.
+fn cyclic_gap(a: f64, b: f64, t: usize) -> f64 {
+    let g = (a - b).rem_euclid(t as f64);
+    g.min(t as f64 - g)
+}
 
 /// Settings of [`refine_ranges`].
 #[derive(Debug, Clone, PartialEq)]
@@ -54,11 +69,15 @@ pub struct RangeFitOptions {
     pub search_bins: f64,
     /// Candidates per bin.
     pub oversample: usize,
+    /// A second return is kept where the joint fit of two leaves at most this share of the
+    /// best single return's residual (both summed over the window); elsewhere the pixel gets
+    /// that single return. 1 keeps every second return the decoder reports.
+    pub second_return_residual: f64,
 }
 
 impl Default for RangeFitOptions {
     fn default() -> Self {
-        RangeFitOptions { window: 3, search_bins: 6.0, oversample: 4 }
+        RangeFitOptions { window: 3, search_bins: 6.0, oversample: 4, second_return_residual: 0.5 }
     }
 }
 
@@ -73,6 +92,9 @@ impl RangeFitOptions {
         }
         if self.oversample == 0 {
             return Err("oversample: expected 1 or more".into());
+        }
+        if !(self.second_return_residual > 0.0 && self.second_return_residual <= 1.0) {
+            return Err(format!("second_return_residual {}: expected a share in (0, 1]", self.second_return_residual));
         }
         Ok(())
     }
@@ -187,8 +209,9 @@ fn nnls3(yy: f64, r: [f64; 3], g: [[f64; 3]; 3]) -> f64 {
 }
 
 /// The minimum of `cost` over the candidates within `±half` of `centre` (bins, cyclic),
-/// refined by a parabola through it and its neighbours: the position in bins.
-fn search(tpl: &Templates, centre: f64, half: f64, cost: &mut dyn FnMut(usize) -> f64) -> Option<f64> {
+/// refined by a parabola through it and its neighbours: the position in bins and the cost at
+/// the best candidate.
+fn search(tpl: &Templates, centre: f64, half: f64, cost: &mut dyn FnMut(usize) -> f64) -> Option<(f64, f64)> {
     let cands = tpl.candidates() as i64;
     let os = tpl.os as f64;
     // candidate c sits at (c + ½)/os; those within the window around `centre`
@@ -226,12 +249,128 @@ fn search(tpl: &Templates, centre: f64, half: f64, cost: &mut dyn FnMut(usize) -
     let (rm, rp) = (cost(wrap(c - 1)), cost(wrap(c + 1)));
     let den = rm - 2.0 * r0 + rp;
     let off = if den > 0.0 && rm.is_finite() && rp.is_finite() { (0.5 * (rm - rp) / den).clamp(-0.5, 0.5) } else { 0.0 };
-    Some((c as f64 + 0.5 + off) / os)
+    Some((((c as f64 + 0.5 + off) / os).rem_euclid(tpl.t as f64), r0))
+}
+
+/// One neighbour of the window: its subpixel type, where its taps start, `y·y`, `y·s`, and
+/// `y·g(other)` for the return held fixed in a joint search.
+#[derive(Clone, Copy)]
+struct Neighbour {
+    n: usize,
+    at: usize,
+    yy: f64,
+    sy: f64,
+    oy: f64,
+}
+
+/// The costs of one window, with buffers reused from pixel to pixel (no allocation per
+/// candidate or per pixel).
+struct WindowFit<'a> {
+    tpl: &'a Templates,
+    /// Taps of the frame, `[H·W][M]`.
+    taps: &'a [f64],
+    hood: Vec<Neighbour>,
+    /// The fixed return's template per type, `[N][M]`, with `[g·g, g·s]`.
+    other: Vec<f64>,
+    other_gram: Vec<[f64; 2]>,
+    /// Where the fixed return is (bins).
+    other_tau: f64,
+}
+
+impl<'a> WindowFit<'a> {
+    fn new(tpl: &'a Templates, taps: &'a [f64], window: usize) -> Self {
+        WindowFit { tpl, taps, hood: Vec::with_capacity(window * window), other: vec![0.0; tpl.n * tpl.m], other_gram: vec![[0.0; 2]; tpl.n], other_tau: f64::NAN }
+    }
+
+    /// The window: pixels `(q, p)` with their types.
+    fn set_window(&mut self, pixels: impl Iterator<Item = (usize, usize)>) {
+        let (tpl, m) = (self.tpl, self.tpl.m);
+        self.hood.clear();
+        for (n, at) in pixels {
+            let yq = &self.taps[at..][..m];
+            self.hood.push(Neighbour { n, at, yy: dot(yq, yq), sy: dot(yq, tpl.s(n)), oy: 0.0 });
+        }
+        self.other_tau = f64::NAN;
+    }
+
+    /// `Σ y·y` over the window.
+    fn energy(&self) -> f64 {
+        self.hood.iter().map(|q| q.yy).sum()
+    }
+
+    /// The window's cost of one return at candidate `c`.
+    fn single(&self, c: usize) -> f64 {
+        let (tpl, m, cands) = (self.tpl, self.tpl.m, self.tpl.candidates());
+        self.hood.iter().map(|q| nnls2(q.yy, [dot(tpl.g(q.n, c), &self.taps[q.at..][..m]), q.sy], tpl.gram[q.n * cands + c])).sum()
+    }
+
+    /// Hold a return fixed at `tau` (bins) for [`Self::joint`].
+    fn fix_other(&mut self, tau: f64) {
+        let (tpl, m) = (self.tpl, self.tpl.m);
+        for n in 0..tpl.n {
+            let o = &mut self.other[n * m..][..m];
+            tpl.at(n, tau, o);
+            self.other_gram[n] = [dot(o, o), dot(o, tpl.s(n))];
+        }
+        for q in &mut self.hood {
+            q.oy = dot(&self.taps[q.at..][..m], &self.other[q.n * m..][..m]);
+        }
+        self.other_tau = tau;
+    }
+
+    /// The window's cost of a return at candidate `c` jointly with the one held fixed:
+    /// `a₁·g(other) + a₂·g(τ_c) + b·s`, all non-negative.
+    fn joint(&self, c: usize) -> f64 {
+        let (tpl, m, cands) = (self.tpl, self.tpl.m, self.tpl.candidates());
+        let tau_c = (c as f64 + 0.5) / tpl.os as f64;
+        if cyclic_gap(tau_c, self.other_tau, tpl.t) < 1.0 {
+            return f64::INFINITY; // both returns in one bin
+        }
+        let mut sum = 0.0;
+        for q in &self.hood {
+            let (g, yq, o) = (tpl.g(q.n, c), &self.taps[q.at..][..m], &self.other[q.n * m..][..m]);
+            let [gg, gs, ss] = tpl.gram[q.n * cands + c];
+            let [oo, os] = self.other_gram[q.n];
+            let go = dot(g, o);
+            sum += nnls3(q.yy, [dot(g, yq), q.oy, q.sy], [[gg, go, gs], [go, oo, os], [gs, os, ss]]);
+        }
+        sum
+    }
+
+    /// The best single return within `±half` of any of `centres`: (bins, cost at the best
+    /// candidate).
+    fn best_single(&self, centres: &[f64], half: f64) -> Option<(f64, f64)> {
+        centres.iter().filter_map(|&c| search(self.tpl, c, half, &mut |k| self.single(k))).min_by(|a, b| a.1.total_cmp(&b.1))
+    }
+
+    /// Two returns from `(tau1, tau2)` by coordinate descent, each searched with the other
+    /// fixed: the two (bins) and the joint cost.
+    fn two_returns(&mut self, (mut tau1, mut tau2): (f64, f64), half: f64) -> ((f64, f64), f64) {
+        // the descent stops when neither return moves by more than half a candidate
+        let mut cost = f64::INFINITY;
+        let settled = 0.5 / self.tpl.os as f64;
+        for _ in 0..ROUNDS {
+            let before = (tau1, tau2);
+            self.fix_other(tau2);
+            if let Some((v, _)) = search(self.tpl, tau1, half, &mut |k| self.joint(k)) {
+                tau1 = v;
+            }
+            self.fix_other(tau1);
+            if let Some((v, r)) = search(self.tpl, tau2, half, &mut |k| self.joint(k)) {
+                (tau2, cost) = (v, r);
+            }
+            if cyclic_gap(tau1, before.0, self.tpl.t) <= settled && cyclic_gap(tau2, before.1, self.tpl.t) <= settled {
+                break;
+            }
+        }
+        ((tau1, tau2), cost)
+    }
 }
 
 /// Refine the ranges of the returns in `depth` in place by the fit described in the module.
 /// Returns that are NaN stay NaN; a pixel with one return gets the pooled single-return fit,
-/// one with more the joint fit of its first two.
+/// one with more the joint fit of its first two, kept where it explains the taps clearly
+/// better than one return (else the pixel gets the best single return and no second).
 ///
 /// # Shapes
 /// - `y`: `[B, M, H, W]` tap images, `sensor`: `A [N, M, T]`, `depth`: `[B, K, H, W]` (m, from
@@ -245,118 +384,55 @@ pub fn refine_ranges(y: ArrayView4<'_, f32>, sensor: &MeasurementMatrix, depth: 
     let tpl = Templates::new(sensor, opts.oversample);
     let (bh, bw) = sensor.block();
     let delta = C * sensor.bin_width_s() / 2.0; // metres per bin
-    let t = tpl.t as f64;
-    let cands = tpl.candidates();
     let half = opts.window / 2;
+    let kind = |i: usize, j: usize| (i % bh) * bw + (j % bw);
+    let mut taps = vec![0.0f64; h * w * m];
     for bi in 0..b {
         let yf = y.index_axis(Axis(0), bi);
         // the taps of every pixel as f64, [H·W][M]
-        let mut taps = vec![0.0f64; h * w * m];
-        for i in 0..h {
-            for j in 0..w {
-                for mm in 0..m {
-                    taps[(i * w + j) * m + mm] = yf[(mm, i, j)] as f64;
-                }
-            }
+        for ((mm, i, j), &v) in yf.indexed_iter() {
+            taps[(i * w + j) * m + mm] = v as f64;
         }
-        let kind = |i: usize, j: usize| (i % bh) * bw + (j % bw);
-        // single-return cost of every candidate at every pixel, [H·W][T·os]
-        let mut single = vec![0.0f32; h * w * cands];
-        single.par_chunks_mut(w * cands).enumerate().for_each(|(i, row)| {
-            for j in 0..w {
-                let yq = &taps[(i * w + j) * m..][..m];
-                let n = kind(i, j);
-                let (yy, sy) = (dot(yq, yq), dot(tpl.s(n), yq));
-                for (c, v) in row[j * cands..][..cands].iter_mut().enumerate() {
-                    *v = nnls2(yy, [dot(tpl.g(n, c), yq), sy], tpl.gram[n * cands + c]) as f32;
-                }
-            }
-        });
-        let d = depth.index_axis(Axis(0), bi).to_owned();
+        let d = depth.index_axis(Axis(0), bi);
         let rows: Vec<Vec<[f32; 2]>> = (0..h)
             .into_par_iter()
             .map(|i| {
                 let (i0, i1) = (i.saturating_sub(half), (i + half + 1).min(h));
+                let mut fit = WindowFit::new(&tpl, &taps, opts.window);
                 let mut out = Vec::with_capacity(w);
                 for j in 0..w {
                     let (j0, j1) = (j.saturating_sub(half), (j + half + 1).min(w));
-                    let est: Vec<f64> = (0..k.min(2)).map(|r| d[(r, i, j)] as f64 / delta).collect();
-                    let present: Vec<usize> = (0..est.len()).filter(|&r| est[r].is_finite()).collect();
-                    let mut refined = [f32::NAN; 2];
-                    for &r in &present {
-                        refined[r] = d[(r, i, j)];
+                    let est: [f64; 2] = std::array::from_fn(|r| if r < k { d[(r, i, j)] as f64 / delta } else { f64::NAN });
+                    let mut refined = est.map(|v| (v * delta) as f32);
+                    let present = [0, 1].map(|r| est[r].is_finite());
+                    if present.iter().any(|&p| p) {
+                        fit.set_window((i0..i1).flat_map(|q| (j0..j1).map(move |p| (kind(q, p), (q * w + p) * m))));
                     }
-                    // the joint cost of a return at candidate c with another fixed at `other`:
-                    // a₁·g(other) + a₂·g(τ_c) + b·s, summed over the window
-                    let joint_search = |centre: f64, other: f64| -> Option<f64> {
-                        let fixed: Vec<(Vec<f64>, f64, f64)> = (0..tpl.n)
-                            .map(|n| {
-                                let mut o = vec![0.0; m];
-                                tpl.at(n, other, &mut o);
-                                let (oo, os) = (dot(&o, &o), dot(&o, tpl.s(n)));
-                                (o, oo, os)
-                            })
-                            .collect();
-                        // per neighbour: type, where its taps are, y·y, y·s, y·g(other)
-                        let hood: Vec<(usize, usize, [f64; 3])> = (i0..i1)
-                            .flat_map(|q| (j0..j1).map(move |p| (q, p)))
-                            .map(|(q, p)| {
-                                let n = kind(q, p);
-                                let yq = &taps[(q * w + p) * m..][..m];
-                                (n, (q * w + p) * m, [dot(yq, yq), dot(yq, tpl.s(n)), dot(yq, &fixed[n].0)])
-                            })
-                            .collect();
-                        let mut joint = |c: usize| -> f64 {
-                            let tau_c = (c as f64 + 0.5) / tpl.os as f64;
-                            let gap = (tau_c - other).rem_euclid(t);
-                            if gap.min(t - gap) < 1.0 {
-                                return f64::INFINITY; // both returns in one bin
-                            }
-                            let mut sum = 0.0;
-                            for &(n, at, [yy, sy, oy]) in &hood {
-                                let (g, yq) = (tpl.g(n, c), &taps[at..][..m]);
-                                let [gg, gs, ss] = tpl.gram[n * cands + c];
-                                let (o, oo, os) = &fixed[n];
-                                let go = dot(g, o);
-                                sum += nnls3(yy, [dot(g, yq), oy, sy], [[gg, go, gs], [go, *oo, *os], [gs, *os, ss]]);
-                            }
-                            sum
-                        };
-                        search(&tpl, centre, opts.search_bins, &mut joint).map(|v| v.rem_euclid(t))
-                    };
-                    match present[..] {
-                        [r] => {
-                            // one return: the pooled single-return cost
-                            let mut pooled = |c: usize| -> f64 {
-                                let mut sum = 0.0;
-                                for q in i0..i1 {
-                                    for p in j0..j1 {
-                                        sum += single[(q * w + p) * cands + c] as f64;
-                                    }
+                    match present {
+                        [true, true] => {
+                            // two: the joint fit (the pooled single-return cost would pull a
+                            // bright sheet's return onto the surface behind it), kept if it
+                            // beats the best single return near either estimate
+                            // (both costs at the best candidates of their grids)
+                            let ((tau1, tau2), two) = fit.two_returns((est[0], est[1]), opts.search_bins);
+                            let one = if opts.second_return_residual < 1.0 { fit.best_single(&est, opts.search_bins) } else { None };
+                            let energy = fit.energy();
+                            match one {
+                                Some((tau, c1)) if !(two <= opts.second_return_residual * c1 && c1 > EXPLAINED * energy) => {
+                                    refined = [(tau * delta) as f32, f32::NAN];
                                 }
-                                sum
-                            };
-                            if let Some(tau) = search(&tpl, est[r], opts.search_bins, &mut pooled) {
-                                refined[r] = (tau.rem_euclid(t) * delta) as f32;
+                                _ => {
+                                    refined = [(tau1.min(tau2) * delta) as f32, (tau1.max(tau2) * delta) as f32]; // arrival order
+                                }
                             }
                         }
-                        [r1, r2, ..] => {
-                            // two: coordinate descent, each searched jointly with the other fixed
-                            // (the first with the decoder's second to begin with); the pooled
-                            // single-return cost would pull a bright sheet's return onto the
-                            // surface behind it
-                            let (mut tau1, mut tau2) = (est[r1], est[r2]);
-                            for _ in 0..ROUNDS {
-                                tau1 = joint_search(tau1, tau2).unwrap_or(tau1);
-                                tau2 = joint_search(tau2, tau1).unwrap_or(tau2);
-                            }
-                            refined[r1] = (tau1 * delta) as f32;
-                            refined[r2] = (tau2 * delta) as f32;
-                            if tau2 < tau1 {
-                                refined.swap(r1, r2); // arrival order
+                        [true, false] | [false, true] => {
+                            let r = if present[0] { 0 } else { 1 };
+                            if let Some((tau, _)) = fit.best_single(&[est[r]], opts.search_bins) {
+                                refined[r] = (tau * delta) as f32;
                             }
                         }
-                        [] => {}
+                        [false, false] => {}
                     }
                     out.push(refined);
                 }
@@ -451,6 +527,26 @@ mod tests {
     }
 
     #[test]
+    fn a_phantom_second_return_is_dropped() {
+        let a = sensor();
+        let dz = metres_per_bin(&a);
+        // on the candidate grid, where one return explains the taps exactly
+        let tau = 14.375;
+        let y = taps(&a, &[(tau, 0.9)], 0.02);
+        let mut depth = Array4::from_elem((1, 2, 8, 8), ((tau - 1.0) * dz) as f32);
+        depth.index_axis_mut(Axis(1), 1).fill(((tau + 12.0) * dz) as f32); // a return that is not there
+        refine_ranges(y.view(), &a, &mut depth, &RangeFitOptions::default());
+        let kept_n = depth.index_axis(Axis(1), 1).iter().filter(|v| v.is_finite()).count();
+        assert!(kept_n == 0, "the phantom is kept in {kept_n} of 64 pixels");
+        assert!(depth.index_axis(Axis(1), 0).iter().all(|&v| (v as f64 / dz - tau).abs() < 0.05));
+        // the same estimates with every second return kept: the first is still placed
+        let mut kept = Array4::from_elem((1, 2, 8, 8), ((tau - 1.0) * dz) as f32);
+        kept.index_axis_mut(Axis(1), 1).fill(((tau + 12.0) * dz) as f32);
+        refine_ranges(y.view(), &a, &mut kept, &RangeFitOptions { second_return_residual: 1.0, ..Default::default() });
+        assert!(kept.index_axis(Axis(1), 1).iter().all(|v| v.is_finite()));
+    }
+
+    #[test]
     fn a_wider_search_is_needed_for_an_estimate_far_off_and_settings_are_checked() {
         let a = sensor();
         let dz = metres_per_bin(&a);
@@ -464,6 +560,8 @@ mod tests {
         assert!(depth.iter().all(|&v| (v as f64 / dz - 12.0).abs() < 0.05));
         assert!(RangeFitOptions { window: 2, ..Default::default() }.validate().is_err());
         assert!(RangeFitOptions { search_bins: 0.0, ..Default::default() }.validate().is_err());
+        assert!(RangeFitOptions { second_return_residual: 0.0, ..Default::default() }.validate().is_err());
+        assert!(RangeFitOptions { second_return_residual: 1.5, ..Default::default() }.validate().is_err());
         assert!(RangeFitOptions::default().validate().is_ok());
     }
 }
