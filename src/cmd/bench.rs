@@ -101,6 +101,18 @@ pub enum BenchCmd {
     /// intra-op threads) and of the same network in burn, interleaved, with the FLOP rate.
     /// Without --run or --model, a fresh network of --decoder on the prototype's codes.
     Infer(super::deploy::BenchInferArgs),
+    /// The U-Net's range fit in the tap domain (`models::range_fit`): time per frame on the
+    /// paper's LiDAR scenes (about half with a sheet in front), from the true ranges moved by
+    /// about a bin, with one return per pixel and with two where the scene has them, and the
+    /// error left.
+    RangeFit {
+        /// Frame size HxW.
+        #[arg(long, default_value = "188x212", value_parser = super::parse_hw)]
+        size: (usize, usize),
+        /// Frames (each timed once per case, interleaved).
+        #[arg(long, default_value_t = 3)]
+        frames: usize,
+    },
 }
 
 /// How the delay prior's layers run (`bench train --delay-path`).
@@ -232,6 +244,50 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
                 println!("{:<30} {:>10.3} {:>10.3} {:>7.1}x", r.name, r.ours_ms, r.burn_ms, r.burn_ms / r.ours_ms);
             }
             println!("whole U-Net forward (ours): {whole:.1} ms per frame");
+        }
+        BenchCmd::RangeFit { size: (h, w), frames } => {
+            use tcsense_datasets::{lidar::LidarParams, TimeGrid};
+            use tcsense_models::range_fit::{refine_ranges, RangeFitOptions};
+            if h == 0 || w == 0 || h % 2 != 0 || w % 2 != 0 {
+                anyhow::bail!("--size {h}x{w}: expected an even frame (2x2 blocks)");
+            }
+            let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
+            let codes = random_codes(shape, 607e6, Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1)?;
+            let spec = SensorParams { irf: tcsense_sensor::Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }, ..SensorParams::from_codes(&codes) }.validate()?;
+            let a = MeasurementMatrix::synthesize(&codes, &spec)?;
+            let plan = a.plan(h, w)?;
+            let gen = LidarParams { height: h, width: w, ..LidarParams::paper() };
+            let dz = 299_792_458.0 * spec.bin_width_s() / 2.0;
+            println!("range fit {h}x{w}, prototype codes (T = 32), physical IRF, default settings, {} threads; estimates: the true ranges + 0.7 bin (first) and − 0.6 bin (second)", rayon::current_num_threads());
+            println!("{:<28} {:>10} {:>16} {:>16}", "case", "ms/frame", "first MAE (bin)", "second MAE (bin)");
+            let cases = ["one return per pixel", "two where the scene has"];
+            let mut rows: Vec<(Vec<f64>, [f64; 4])> = vec![(Vec::new(), [0.0; 4]); cases.len()];
+            for i in 0..frames.max(1) {
+                let sample = gen.sample(&TimeGrid::default(), 1, i as u64);
+                let y = plan.forward(&sample.x.view())?.insert_axis(ndarray::Axis(0));
+                for (case, row) in rows.iter_mut().enumerate() {
+                    let mut est = sample.depth.clone().insert_axis(ndarray::Axis(0));
+                    est.index_axis_mut(ndarray::Axis(1), 0).mapv_inplace(|v| v + (0.7 * dz) as f32);
+                    est.index_axis_mut(ndarray::Axis(1), 1).mapv_inplace(|v| if case == 0 { f32::NAN } else { v - (0.6 * dz) as f32 });
+                    let t0 = std::time::Instant::now();
+                    refine_ranges(y.view(), &a, &mut est, &RangeFitOptions::default());
+                    row.0.push(t0.elapsed().as_secs_f64() * 1e3);
+                    for r in 0..2 {
+                        for (e, t) in est.index_axis(ndarray::Axis(1), r).iter().zip(sample.depth.index_axis(ndarray::Axis(0), r)) {
+                            if e.is_finite() && t.is_finite() {
+                                row.1[2 * r] += ((e - t) as f64 / dz).abs();
+                                row.1[2 * r + 1] += 1.0;
+                            }
+                        }
+                    }
+                }
+            }
+            for (name, (ms, err)) in cases.iter().zip(&rows) {
+                let mut ms = ms.clone();
+                ms.sort_by(f64::total_cmp);
+                let mae = |k: usize| if err[2 * k + 1] > 0.0 { format!("{:.3}", err[2 * k] / err[2 * k + 1]) } else { "—".into() };
+                println!("{name:<28} {:>10.1} {:>16} {:>16}", ms[ms.len() / 2], mae(0), mae(1));
+            }
         }
         BenchCmd::Tval3 { size: (h, w), bins, maxit, frames } => {
             use tcsense_datasets::{lidar::LidarParams, TimeGrid};
