@@ -5,7 +5,7 @@ use serde::{Deserialize, Serialize};
 use tcsense_sensor::{Sampling, SensorSpec};
 
 /// Speed of light (m/s).
-pub const C: f64 = 299_792_458.0;
+pub use tcsense_sensor::C;
 
 /// A time grid tied to a code clock.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

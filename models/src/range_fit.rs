@@ -41,10 +41,8 @@
 
 use ndarray::{Array4, ArrayView4, Axis};
 use rayon::prelude::*;
-use tcsense_sensor::MeasurementMatrix;
+use tcsense_sensor::{MeasurementMatrix, C};
 
-/// Speed of light (m/s; `tcsense_datasets::grid::C`, which this crate does not depend on).
-const C: f64 = 299_792_458.0;
 
 /// Rounds of coordinate descent over two returns (at most).
 const ROUNDS: usize = 3;

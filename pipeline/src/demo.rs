@@ -34,7 +34,7 @@ use tcsense_sensor::codes::{CodeShape, Codes, Constraints, DEFAULT_CLOCK_HZ};
 use tcsense_sensor::measure::measure_batch;
 use tcsense_sensor::noise::derive_seed;
 use tcsense_sensor::npy::{read_npy, write_bytes, write_npy};
-use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
+use tcsense_sensor::params::{C, DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
 use tcsense_sensor::{export, generate, Irf, MeasurementMatrix, NoiseParams, Sampling, SensorParams};
 use tcsense_train::deep_sensing::LearnCodes;
 use tcsense_train::{train, Progress, TrainConfig, TrainError};
@@ -48,8 +48,6 @@ const TRAINING_SHARE: f64 = 0.8;
 const STEP_OVERHEAD_MS: f64 = 2.0;
 /// Horizontal field of view of the rendered point clouds (the generator's default).
 const FOV_DEG: f64 = 40.0;
-/// Speed of light (m/s).
-const C: f64 = 299_792_458.0;
 /// The sensor's frame rate, the target of deployment (frames/s at 188×212).
 const SENSOR_FPS: f64 = 21.0;
 

@@ -37,4 +37,4 @@ pub use codes::{CodeShape, Codes, Constraints, Violation};
 pub use error::{Result, SensorError};
 pub use matrix::MeasurementMatrix;
 pub use operator::FramePlan;
-pub use params::{Irf, NoiseParams, Sampling, SensorParams, SensorSpec};
+pub use params::{Irf, NoiseParams, Sampling, SensorParams, SensorSpec, C};

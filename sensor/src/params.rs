@@ -8,6 +8,9 @@ use crate::codes::{CodeShape, Codes, DEFAULT_CLOCK_HZ};
 use crate::error::{invalid, Result};
 use serde::{Deserialize, Serialize};
 
+/// Speed of light (m/s): a delay `t` is a range `C·t/2`.
+pub const C: f64 = 299_792_458.0;
+
 /// How the fine time grid relates to the code clock.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase", tag = "mode", content = "k")]

@@ -172,7 +172,7 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
                 let spec = SensorParams { sampling: Sampling::Oversample(t / 32), ..SensorParams::from_codes(&codes) }.validate()?;
                 let a = MeasurementMatrix::synthesize(&codes, &spec)?;
                 let admm = |prior: Prior, cn: usize| tcsense_models::AdmmNetConfig::new(4, t).with_stages(stages).with_channels(cn).with_prior(prior);
-                let range_m = 299_792_458.0 * spec.cycle_s() / 2.0;
+                let range_m = tcsense_sensor::C * spec.cycle_s() / 2.0;
                 let bins_prior = ModelConfig::AdmmNet(admm(Prior::Bins, channels));
                 // (label, network, whether it learns its codes)
                 let nets = [
@@ -257,7 +257,7 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             let a = MeasurementMatrix::synthesize(&codes, &spec)?;
             let plan = a.plan(h, w)?;
             let gen = LidarParams { height: h, width: w, ..LidarParams::paper() };
-            let dz = 299_792_458.0 * spec.bin_width_s() / 2.0;
+            let dz = tcsense_sensor::C * spec.bin_width_s() / 2.0;
             println!("range fit {h}x{w}, prototype codes (T = 32), physical IRF, default settings, {} threads; estimates: the true ranges + 0.7 bin (first) and − 0.6 bin (second)", rayon::current_num_threads());
             println!("{:<28} {:>10} {:>16} {:>16}", "case", "ms/frame", "first MAE (bin)", "second MAE (bin)");
             let cases = ["one return per pixel", "two where the scene has"];

@@ -208,7 +208,7 @@ fn fresh_run(a: &BenchInferArgs) -> Result<runs::LoadedRun> {
     let codes = random_codes(shape, 607e6, Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1)?;
     let sampling = Sampling::Oversample(a.bins / 32);
     let model = match a.decoder.as_str() {
-        "unet" => runs::ModelConfig::Unet(tcsense_models::UnetConfig::new(4, a.bins, 299_792_458.0 * 32.0 / 607e6 / 2.0).with_head(tcsense_models::UnetHead::ScoreVolume)),
+        "unet" => runs::ModelConfig::Unet(tcsense_models::UnetConfig::new(4, a.bins, tcsense_sensor::C * 32.0 / 607e6 / 2.0).with_head(tcsense_models::UnetHead::ScoreVolume)),
         "admm-net" => {
             let prior = if a.prior == "delay" { tcsense_models::Prior::Delay } else { tcsense_models::Prior::Bins };
             runs::ModelConfig::AdmmNet(tcsense_models::AdmmNetConfig::new(4, a.bins).with_stages(a.stages).with_channels(a.channels).with_normalize(true).with_prior(prior))
