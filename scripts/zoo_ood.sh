@@ -36,7 +36,7 @@ flim_sets() {
   touch "$OUT/.flim-sets"
 }
 
-[ -f "$OUT/zoo-ood.csv" ] || echo "entry,set,decoder,items,mse,psnr_db,bounce1_rmse_m,bounce1_mae_m,bounce1_detection,bounce2_rmse_m,bounce2_mae_m,bounce2_detection,lifetime_mae_s,seconds_per_frame,lifetime_mae_weighted_s,lifetime_within_02ns,lifetime_coverage" > "$OUT/zoo-ood.csv"
+[ -f "$OUT/zoo-ood.csv" ] || echo "entry,set,decoder,items,mse,psnr_db,bounce1_rmse_m,bounce1_mae_m,bounce1_detection,bounce2_rmse_m,bounce2_mae_m,bounce2_detection,lifetime_mae_s,seconds_per_frame,lifetime_mae_weighted_s,lifetime_within_02ns,lifetime_coverage,bounce1_false_alarm,bounce2_false_alarm" > "$OUT/zoo-ood.csv"
 for name in "${NAMES[@]}"; do
   kind=$(field "$name" "c['decoder']")
   mode=$(field "$name" "c['sampling']['mode']")
@@ -54,6 +54,8 @@ for name in "${NAMES[@]}"; do
     prefix=lidar; own=${DATA_LIDAR:-}
   fi
   decoders+=(--decoder "$kind:zoo:$name")
+  # a U-Net's ranges are refined in the tap domain; its network's own ranges next to them
+  if [ "$kind" = unet ]; then decoders+=(--decoder "unet-raw:zoo:$name"); fi
   evaluate() { # SET DATASET [extra eval flags]
     local set=$1 ds=$2
     shift 2
@@ -71,12 +73,13 @@ import csv, sys
 path, name, prefix = sys.argv[1:]
 rows = [r for r in csv.DictReader(open(path)) if r["entry"] == name]
 f = lambda v, s=1.0, d=3: "–" if v in ("", "NaN", "nan") else f"{float(v) * s:.{d}f}"
-label = lambda d: f"this entry" if d.endswith(f"zoo:{name}") else d
+pct = lambda v: "–" if v in (None, "", "NaN", "nan") else f"{float(v) * 100:.1f} %"
+label = lambda d: ("this entry, network alone" if d.startswith("unet-raw:") else "this entry") if d.endswith(f"zoo:{name}") else d
 if prefix == "lidar":
-    print("| set | decoder | PSNR (dB) | first-return MAE (m) | second-return MAE (m) | ms/frame |")
-    print("|---|---|---|---|---|---|")
+    print("| set | decoder | PSNR (dB) | first-return MAE (m) | second-return MAE (m) | false second returns | ms/frame |")
+    print("|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['set']} | {label(r['decoder'])} | {f(r['psnr_db'], 1, 2)} | {f(r['bounce1_mae_m'])} | {f(r['bounce2_mae_m'])} | {f(r['seconds_per_frame'], 1e3, 1)} |")
+        print(f"| {r['set']} | {label(r['decoder'])} | {f(r['psnr_db'], 1, 2)} | {f(r['bounce1_mae_m'])} | {f(r['bounce2_mae_m'])} | {pct(r.get('bounce2_false_alarm'))} | {f(r['seconds_per_frame'], 1e3, 1)} |")
 else:
     print("| set | decoder | lifetime MAE (ns) | intensity-weighted (ns) | within 0.2 ns | with a lifetime | ms/frame |")
     print("|---|---|---|---|---|---|---|")

@@ -82,21 +82,27 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
     let timing = json(&demo.join("results/timing.json"));
     // LiDAR: TVAL3, ADMM-Net (burn, ONNX), U-Net (burn, ONNX) with the selected codes; TVAL3 and
     // ADMM-Net (burn, ONNX) with the learned codes; FLIm: TVAL3, ADMM-Net (burn, ONNX), the fit
-    // to the taps, and the zoo's lifetime decoder as shipped on its own codes; then the zoo's
-    // ADMM-Net fine-tuned to the selected codes, and as shipped on its own codes
+    // to the taps, and the zoo's FLIm ADMM-Net and lifetime decoder as shipped on their own
+    // codes; then the zoo's LiDAR ADMM-Net fine-tuned to the selected codes, and as shipped
     let rows = lidar["rows"].as_array().unwrap();
     assert_eq!(rows.len(), 10);
     assert_eq!((rows[8]["codes"].as_str(), rows[9]["codes"].as_str()), (Some("selected"), Some("the zoo's")));
     for r in &rows[8..] {
         assert!(r["psnr_db"].as_f64().is_some_and(|v| v.is_finite() && v > 10.0), "{r}");
     }
-    assert_eq!(flim["rows"].as_array().unwrap().len(), 5);
-    for fit in [&flim["rows"][3], &flim["rows"][4]] {
+    assert_eq!(flim["rows"].as_array().unwrap().len(), 6);
+    for fit in [&flim["rows"][3], &flim["rows"][5]] {
         assert!(fit["mse"].is_null() && fit["lifetime_mae_ns"].as_f64().is_some_and(|v| v.is_finite() && v < 5.0), "the fit to the taps and the lifetime decoder have lifetimes and no cube: {fit}");
     }
-    assert_eq!(flim["rows"][4]["codes"].as_str(), Some("the zoo's"));
-    assert!(flim["rows"][4]["decoder"].as_str().is_some_and(|d| d.contains("zoo")), "{}", flim["rows"][4]);
-    for (file, n) in [("results/lidar.json", 10 * 7), ("results/flim.json", 5 * 5), ("results/timing.json", 9 * 2)] {
+    let zoo_cube = &flim["rows"][4];
+    // (its lifetimes on the quick demo's two 16×16 test items are off by about 5 ns, TVAL3's by
+    // 1.3: only that it gives them is asserted; its accuracy is in its PROVENANCE.md)
+    assert!(zoo_cube["psnr_db"].as_f64().is_some_and(|v| v > 20.0) && zoo_cube["lifetime_mae_ns"].as_f64().is_some_and(f64::is_finite), "the zoo's FLIm ADMM-Net gives a cube and its lifetimes: {zoo_cube}");
+    for r in &flim["rows"].as_array().unwrap()[4..] {
+        assert_eq!(r["codes"].as_str(), Some("the zoo's"));
+        assert!(r["decoder"].as_str().is_some_and(|d| d.contains("zoo")), "{r}");
+    }
+    for (file, n) in [("results/lidar.json", 10 * 7), ("results/flim.json", 6 * 5), ("results/timing.json", 9 * 2)] {
         assert_eq!(cells.iter().filter(|c| c.0 == file).count(), n, "cells from {file}");
     }
     assert_eq!(timing["decoders"].as_array().unwrap().len(), 3);

@@ -169,12 +169,13 @@ impl EvalRow {
 
     /// The rows as CSV, one line per decoder after a header.
     pub fn csv(rows: &[EvalRow]) -> String {
-        let mut csv = String::from("decoder,items,mse,psnr_db,bounce1_rmse_m,bounce1_mae_m,bounce1_detection,bounce2_rmse_m,bounce2_mae_m,bounce2_detection,lifetime_mae_s,seconds_per_frame,lifetime_mae_weighted_s,lifetime_within_02ns,lifetime_coverage\n");
+        let mut csv = String::from("decoder,items,mse,psnr_db,bounce1_rmse_m,bounce1_mae_m,bounce1_detection,bounce2_rmse_m,bounce2_mae_m,bounce2_detection,lifetime_mae_s,seconds_per_frame,lifetime_mae_weighted_s,lifetime_within_02ns,lifetime_coverage,bounce1_false_alarm,bounce2_false_alarm\n");
         for r in rows {
             let b = |k: usize| r.depth.get(k).map_or(",,".to_string(), |d| format!("{},{},{}", d.rmse_m, d.mae_m, d.detection_rate()));
             let o = |v: Option<f64>| v.map_or(String::new(), |v| v.to_string());
+            let fa = |k: usize| o(r.depth.get(k).map(|d| d.false_alarm_rate()));
             csv.push_str(&format!(
-                "{},{},{},{},{},{},{},{},{},{},{}\n",
+                "{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
                 r.decoder,
                 r.items,
                 r.mse,
@@ -185,7 +186,9 @@ impl EvalRow {
                 r.seconds_per_frame,
                 o(r.lifetime_mae_weighted_s),
                 o(r.lifetime_within_02ns),
-                o(r.lifetime_coverage)
+                o(r.lifetime_coverage),
+                fa(0),
+                fa(1)
             ));
         }
         csv
