@@ -189,6 +189,8 @@ fn bench_bad_inputs_exit_2() {
     fails(d, &["bench", "train", "--bins", "32,40"], &["--bins 32,40", "multiple of 32"]);
     fails(d, &["bench", "train", "--delay-path", "fast"], &["--delay-path", "kernel", "composed"]);
     fails(d, &["bench", "train", "--size", "7x8"], &["--size 7x8", "even"]);
+    fails(d, &["bench", "range-fit", "--size", "7x8"], &["--size 7x8", "even frame"]);
+    fails(d, &["bench", "range-fit", "--size", "0x8"], &["--size 0x8", "even frame"]);
     fails(d, &["bench", "dataset", "--size", "0x8"], &["size"]);
     fails(d, &["bench", "kernels", "--size", "5x5"], &["5x5", "even"]);
     fails(d, &["bench", "kernels", "--bins", "20"], &["--bins 20", "multiple of 32"]);

@@ -165,8 +165,7 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
                 rayon::current_num_threads()
             );
             println!("{:<36} {:>5} {:>10} {:>10} {:>10} {:>10} {:>8} {:>8}", "network", "T", "step ms", "fwd ms", "bwd ms", "GFLOP", "GFLOP/s", "non-conv");
-            let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
-            let codes = random_codes(shape, 607e6, Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1)?;
+            let codes = super::prototype_codes()?;
             let mut inference = Vec::new();
             for &t in &bins {
                 let spec = SensorParams { sampling: Sampling::Oversample(t / 32), ..SensorParams::from_codes(&codes) }.validate()?;
@@ -227,8 +226,7 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             if h == 0 || w == 0 || h % 2 != 0 || w % 2 != 0 || batch == 0 || channels == 0 {
                 anyhow::bail!("--size {h}x{w}, --batch {batch}, --channels {channels}: expected non-zero sizes and an even frame (2x2 blocks)");
             }
-            let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
-            let codes = random_codes(shape, 607e6, Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1)?;
+            let codes = super::prototype_codes()?;
             let spec = SensorParams { sampling: Sampling::Oversample(bins / 32), ..SensorParams::from_codes(&codes) }.validate()?;
             let a = MeasurementMatrix::synthesize(&codes, &spec)?;
             println!("kernels: batch {batch}, {h}x{w}, conv {channels}->{channels}, DC with T = {bins}, M = 4, 2x2 blocks, {} threads", rayon::current_num_threads());
@@ -251,9 +249,9 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             if h == 0 || w == 0 || h % 2 != 0 || w % 2 != 0 {
                 anyhow::bail!("--size {h}x{w}: expected an even frame (2x2 blocks)");
             }
-            let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
-            let codes = random_codes(shape, 607e6, Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1)?;
-            let spec = SensorParams { irf: tcsense_sensor::Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }, ..SensorParams::from_codes(&codes) }.validate()?;
+            let codes = super::prototype_codes()?;
+            use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
+            let spec = SensorParams { irf: tcsense_sensor::Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S }, ..SensorParams::from_codes(&codes) }.validate()?;
             let a = MeasurementMatrix::synthesize(&codes, &spec)?;
             let plan = a.plan(h, w)?;
             let gen = LidarParams { height: h, width: w, ..LidarParams::paper() };

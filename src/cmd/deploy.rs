@@ -199,13 +199,11 @@ pub struct BenchInferArgs {
 
 /// A fresh network on the prototype's codes, as a run.
 fn fresh_run(a: &BenchInferArgs) -> Result<runs::LoadedRun> {
-    use tcsense_sensor::codes::{CodeShape, Constraints};
-    use tcsense_sensor::{generate::random_codes, Irf, Sampling};
+    use tcsense_sensor::{Irf, Sampling};
     if a.bins == 0 || a.bins % 32 != 0 {
         bail!("--bins {}: expected a multiple of 32", a.bins);
     }
-    let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
-    let codes = random_codes(shape, 607e6, Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1)?;
+    let codes = super::prototype_codes()?;
     let sampling = Sampling::Oversample(a.bins / 32);
     let model = match a.decoder.as_str() {
         "unet" => runs::ModelConfig::Unet(tcsense_models::UnetConfig::new(4, a.bins, tcsense_sensor::C * 32.0 / 607e6 / 2.0).with_head(tcsense_models::UnetHead::ScoreVolume)),
