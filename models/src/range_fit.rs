@@ -268,8 +268,9 @@ struct WindowFit<'a> {
     /// Taps of the frame, `[H·W][M]`.
     taps: &'a [f64],
     hood: Vec<Neighbour>,
-    /// The fixed return's template per type, `[N][M]`, with `[g·g, g·s]`.
+    /// The fixed return's template per type, `[N][M]`.
     other: Vec<f64>,
+    /// Its `[g·g, g·s]` per type.
     other_gram: Vec<[f64; 2]>,
     /// Where the fixed return is (bins).
     other_tau: f64,
@@ -280,7 +281,7 @@ impl<'a> WindowFit<'a> {
         WindowFit { tpl, taps, hood: Vec::with_capacity(window * window), other: vec![0.0; tpl.n * tpl.m], other_gram: vec![[0.0; 2]; tpl.n], other_tau: f64::NAN }
     }
 
-    /// The window: pixels `(q, p)` with their types.
+    /// The window: each pixel as its subpixel type and where its taps start in `taps`.
     fn set_window(&mut self, pixels: impl Iterator<Item = (usize, usize)>) {
         let (tpl, m) = (self.tpl, self.tpl.m);
         self.hood.clear();
