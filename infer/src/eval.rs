@@ -43,7 +43,8 @@ pub struct EvalRow {
     pub lifetime_coverage: Option<f64>,
     pub seconds_per_frame: f64,
     #[serde(skip)]
-    depth_sums: Vec<(usize, usize, f64, f64, usize, usize)>,
+    /// Per bounce: the counts summed over items, Σ squared and Σ absolute errors.
+    depth_sums: Vec<(DepthErrors, f64, f64)>,
     #[serde(skip)]
     lt_sum: LifetimeErrors,
     #[serde(skip)]
@@ -100,26 +101,22 @@ impl EvalRow {
                 (None, None) => Vec::new(),
             };
             if self.depth_sums.len() < errs.len() {
-                self.depth_sums.resize(errs.len(), (0, 0, 0.0, 0.0, 0, 0));
+                self.depth_sums.resize(errs.len(), (DepthErrors::default(), 0.0, 0.0));
             }
-            for (s, e) in self.depth_sums.iter_mut().zip(&errs) {
-                s.0 += e.truth;
-                s.1 += e.detected;
-                s.2 += e.rmse_m * e.rmse_m * e.detected as f64;
-                s.3 += e.mae_m * e.detected as f64;
-                s.4 += e.empty;
-                s.5 += e.false_alarms;
+            for ((sum, se, ae), e) in self.depth_sums.iter_mut().zip(&errs) {
+                sum.truth += e.truth;
+                sum.detected += e.detected;
+                sum.empty += e.empty;
+                sum.false_alarms += e.false_alarms;
+                *se += e.rmse_m * e.rmse_m * e.detected as f64;
+                *ae += e.mae_m * e.detected as f64;
             }
             self.depth = self
                 .depth_sums
                 .iter()
-                .map(|&(t, d, se, ae, empty, false_alarms)| DepthErrors {
-                    truth: t,
-                    detected: d,
-                    rmse_m: if d > 0 { (se / d as f64).sqrt() } else { f64::NAN },
-                    mae_m: if d > 0 { ae / d as f64 } else { f64::NAN },
-                    empty,
-                    false_alarms,
+                .map(|&(sum, se, ae)| {
+                    let d = sum.detected as f64;
+                    DepthErrors { rmse_m: if d > 0.0 { (se / d).sqrt() } else { f64::NAN }, mae_m: if d > 0.0 { ae / d } else { f64::NAN }, ..sum }
                 })
                 .collect();
         }
