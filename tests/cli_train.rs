@@ -70,6 +70,14 @@ fn bad_inputs_exit_2() {
     ok(d, &["codes", "generate", "--tap-constraint", "--length", "8", "--seed", "9", "-o", "other.json"]);
     fails(d, &["eval", "--dataset", "ds", "--codes", "other.json", "--decoder", "admm-net:run"], &["other codes"]);
     fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "magic"], &["unknown decoder"]);
+    // a cube decoder's peaks refined in the tap domain: the same cube (PSNR), ranges beside it
+    let out = ok(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "admm-net:run", "--decoder", "admm-net:run+fit", "-o", "fit.json"]);
+    let rows: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("fit.json")).unwrap()).unwrap();
+    let rows = rows.as_array().cloned().unwrap_or_default();
+    assert_eq!(rows.len(), 2, "{out}");
+    assert_eq!(rows[0]["psnr_db"], rows[1]["psnr_db"], "{out}");
+    assert!(rows[1]["depth"][0]["detected"].as_u64().unwrap_or(0) > 0, "{out}");
+    fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "unet:run+fit"], &["+fit after a decoder of cubes"]);
     // a build without the GPU backend says how to get one, and writes nothing
     if !cfg!(feature = "gpu") {
         fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--device", "gpu", "-o", "rungpu"], &["--device", "--features gpu"]);

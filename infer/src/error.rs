@@ -18,7 +18,7 @@ pub enum InferError {
     #[error("invalid {field}: got {got}, expected {expected}")]
     InvalidParam { field: &'static str, got: String, expected: String },
     /// A decoder name that names none.
-    #[error("decoder {0:?}: unknown decoder; expected `tval3`, `lifetime-fit`, `admm-net:RUN`, `unet:RUN` or `lifetime:RUN` (a training run directory) or `onnx:MODEL.onnx` (an exported model)")]
+    #[error("decoder {0:?}: unknown decoder; expected `tval3`, `lifetime-fit`, `admm-net:RUN`, `unet:RUN` or `lifetime:RUN` (a training run directory), `zoo:NAME`, `onnx:MODEL.onnx` (an exported model), or a decoder of cubes followed by `+fit` (ranges refined in the tap domain)")]
     UnknownDecoder(String),
     /// The ONNX Runtime shared library cannot be found or loaded.
     #[error("ONNX Runtime 1.31.1: {0}; install it with `scripts/setup.sh` (the PyPI wheel onnxruntime==1.31.1 into .venv) or set ORT_DYLIB_PATH to libonnxruntime.so")]

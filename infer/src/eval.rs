@@ -206,8 +206,17 @@ pub struct NamedDecoder {
 /// directory of a learned decoder of that kind (`admm-net:RUN`, `unet:RUN`, `lifetime:RUN`;
 /// RUN may be `zoo:NAME`; `unet-raw:RUN`: the U-Net's ranges without the fit in the tap
 /// domain), on `device`, `zoo:NAME`, the zoo's entry whatever its kind, or
-/// `onnx:MODEL.onnx`, an exported model through ONNX Runtime.
+/// `onnx:MODEL.onnx`, an exported model through ONNX Runtime. `NAME+fit`: the cube decoder
+/// `NAME` with ranges, its peaks refined in the tap domain ([`crate::ranged`]).
 pub fn open_decoder(name: &str, tval3: &Tval3Options, device: &Device) -> Result<NamedDecoder> {
+    if let Some(inner) = name.strip_suffix("+fit") {
+        // a cube decoder's peaks refined by the fit in the tap domain
+        if inner.ends_with("+fit") || inner.starts_with("unet") || inner.starts_with("lifetime") {
+            return Err(InferError::InvalidParam { field: "decoder", got: name.into(), expected: "+fit after a decoder of cubes: tval3+fit, admm-net:RUN+fit, zoo:NAME+fit or onnx:MODEL.onnx+fit of an ADMM-Net".into() });
+        }
+        let d = open_decoder(inner, tval3, device)?;
+        return Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::ranged::PeaksThenFit::new(d.decoder)), codes: d.codes });
+    }
     match name.split_once(':') {
         None if name == "tval3" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(Tval3Decoder::new(*tval3)?), codes: None }),
         None if name == "lifetime-fit" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::tapfit::TapFitDecoder::default()), codes: None }),

@@ -7,6 +7,8 @@
 //! - [`products`]: peak detection with parabolic sub-bin refinement (several returns per
 //!   pixel for multipath), depth maps `d = c·t/2`, point clouds (PLY), per-pixel lifetimes by
 //!   an exponential fit of the decay after the peak, phasor coordinates, waveform plots.
+//! - [`ranged`]: ranges from any cube decoder, its peaks refined by the fit in the tap
+//!   domain (`NAME+fit`).
 //! - [`metrics`]: MSE, PSNR, depth RMSE/MAE per bounce with detection rate, lifetime MAE.
 //! - [`selection`]: code selection — the TVAL3 MSE of a code set over a dataset, the best of
 //!   random candidates, and the constraint settings of the paper's Table 1.
@@ -29,6 +31,7 @@ pub mod tapfit;
 pub mod metrics;
 pub mod onnx;
 pub mod products;
+pub mod ranged;
 pub mod runtime;
 pub mod selection;
 pub mod stream;
