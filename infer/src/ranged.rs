@@ -8,6 +8,13 @@
 //! at the measurements themselves, so it removes the reconstruction's share of the error.
 //! In `eval` and elsewhere a decoder is wrapped by naming it `NAME+fit`
 //! (`tval3+fit`, `zoo:admm-lidar-delay+fit`).
+//!
+//! Measured (zoo:admm-lidar-delay, 10 noisy items per set, first-return MAE, peaks → +fit):
+//! standard 0.764 → 0.597 m, near 0.159 → 0.155 m, dense-sheet 0.034 → 0.018 m, far 1.159 →
+//! 1.152 m, the Middlebury motorcycle 0.211 → 0.224 m. TVAL3 on far 1.042 → 0.975 m,
+//! motorcycle 0.157 → 0.180 m. It helps most where the cube's peak is biased (a smoothed
+//! pulse), not where the decoder chose the wrong peak: the search stays within
+//! `search_bins` of the estimate.
 
 use ndarray::{Array4, ArrayView4, Axis};
 use tcsense_models::decoder::{Control, Decoded, Decoder};

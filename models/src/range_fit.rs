@@ -52,6 +52,11 @@ const ROUNDS: usize = 3;
 /// second return there would fit the rounding of the first's position.
 const EXPLAINED: f64 = 1e-6;
 
+/// Two returns closer than this (bins) are not told apart: the joint fit would split one
+/// return's pulse into two. Peak detection's minimal separation (`PeakOptions::min_sep`) is
+/// the same.
+const MIN_GAP: f64 = 2.0;
+
 /// Distance between two positions on a cycle of `t` bins.
 fn cyclic_gap(a: f64, b: f64, t: usize) -> f64 {
     let g = (a - b).rem_euclid(t as f64);
@@ -71,11 +76,15 @@ pub struct RangeFitOptions {
     /// best single return's residual (both summed over the window); elsewhere the pixel gets
     /// that single return. 1 keeps every second return the decoder reports.
     pub second_return_residual: f64,
+    /// A neighbour joins a pixel's window only where the decoder placed one of its returns
+    /// within this many bins of the pixel's (nearer) return: the window pools pixels of one
+    /// surface and stops at depth edges. Infinite: every neighbour.
+    pub edge_bins: f64,
 }
 
 impl Default for RangeFitOptions {
     fn default() -> Self {
-        RangeFitOptions { window: 3, search_bins: 6.0, oversample: 4, second_return_residual: 0.5 }
+        RangeFitOptions { window: 3, search_bins: 6.0, oversample: 4, second_return_residual: 0.5, edge_bins: 2.0 }
     }
 }
 
@@ -90,6 +99,9 @@ impl RangeFitOptions {
         }
         if self.oversample == 0 {
             return Err("oversample: expected 1 or more".into());
+        }
+        if !(self.edge_bins > 0.0) {
+            return Err(format!("edge_bins {}: expected a positive number of bins (inf: every neighbour)", self.edge_bins));
         }
         if !(self.second_return_residual > 0.0 && self.second_return_residual <= 1.0) {
             return Err(format!("second_return_residual {}: expected a share in (0, 1]", self.second_return_residual));
@@ -322,8 +334,8 @@ impl<'a> WindowFit<'a> {
     fn joint(&self, c: usize) -> f64 {
         let (tpl, m, cands) = (self.tpl, self.tpl.m, self.tpl.candidates());
         let tau_c = (c as f64 + 0.5) / tpl.os as f64;
-        if cyclic_gap(tau_c, self.other_tau, tpl.t) < 1.0 {
-            return f64::INFINITY; // both returns in one bin
+        if cyclic_gap(tau_c, self.other_tau, tpl.t) < MIN_GAP {
+            return f64::INFINITY; // both returns within one pulse
         }
         let mut sum = 0.0;
         for q in &self.hood {
@@ -405,7 +417,11 @@ pub fn refine_ranges(y: ArrayView4<'_, f32>, sensor: &MeasurementMatrix, depth: 
                     let mut refined = est.map(|v| (v * delta) as f32);
                     let present = [0, 1].map(|r| est[r].is_finite());
                     if present.iter().any(|&p| p) {
-                        fit.set_window((i0..i1).flat_map(|q| (j0..j1).map(move |p| (kind(q, p), (q * w + p) * m))));
+                        // neighbours on the same surface: one of their returns near this
+                        // pixel's first
+                        let own = if present[0] { est[0] } else { est[1] };
+                        let near = |q: usize, p: usize| (q, p) == (i, j) || (0..k.min(2)).any(|r| cyclic_gap(d[(r, q, p)] as f64 / delta, own, tpl.t) <= opts.edge_bins);
+                        fit.set_window((i0..i1).flat_map(|q| (j0..j1).map(move |p| (q, p))).filter(|&(q, p)| near(q, p)).map(|(q, p)| (kind(q, p), (q * w + p) * m)));
                     }
                     match present {
                         [true, true] => {
@@ -546,6 +562,27 @@ mod tests {
     }
 
     #[test]
+    fn a_depth_edge_does_not_pull_the_pixels_beside_it() {
+        let a = sensor();
+        let dz = metres_per_bin(&a);
+        let (near, far) = (8.3, 11.6);
+        // the left half at `near`, the right half 3.3 bins behind (within the search, so a
+        // window pooled across the edge finds a compromise); estimates a bin late
+        let (yl, yr) = (taps(&a, &[(near, 1.0)], 0.01), taps(&a, &[(far, 1.0)], 0.01));
+        let y = Array4::from_shape_fn((1, 4, 8, 8), |(b, mm, i, j)| if j < 4 { yl[(b, mm, i, j)] } else { yr[(b, mm, i, j)] });
+        let estimate = Array4::from_shape_fn((1, 1, 8, 8), |(_, _, _, j)| ((if j < 4 { near } else { far } + 1.0) * dz) as f32);
+        let worst = |opts: &RangeFitOptions| {
+            let mut depth = estimate.clone();
+            refine_ranges(y.view(), &a, &mut depth, opts);
+            depth.indexed_iter().map(|((_, _, _, j), &v)| (v as f64 / dz - if j < 4 { near } else { far }).abs()).fold(0.0, f64::max)
+        };
+        assert!(worst(&RangeFitOptions::default()) < 0.1, "{}", worst(&RangeFitOptions::default()));
+        // pooled across the edge, the columns beside it are pulled off
+        let pooled = worst(&RangeFitOptions { edge_bins: f64::INFINITY, ..Default::default() });
+        assert!(pooled > 0.3, "{pooled}");
+    }
+
+    #[test]
     fn a_wider_search_is_needed_for_an_estimate_far_off_and_settings_are_checked() {
         let a = sensor();
         let dz = metres_per_bin(&a);
@@ -561,6 +598,8 @@ mod tests {
         assert!(RangeFitOptions { search_bins: 0.0, ..Default::default() }.validate().is_err());
         assert!(RangeFitOptions { second_return_residual: 0.0, ..Default::default() }.validate().is_err());
         assert!(RangeFitOptions { second_return_residual: 1.5, ..Default::default() }.validate().is_err());
+        assert!(RangeFitOptions { edge_bins: 0.0, ..Default::default() }.validate().is_err());
+        assert!(RangeFitOptions { edge_bins: f64::NAN, ..Default::default() }.validate().is_err());
         assert!(RangeFitOptions::default().validate().is_ok());
     }
 }

@@ -167,25 +167,28 @@ fn open_run(py: Python<'_>, run: &Bound<'_, PyAny>, calibration: Option<&Bound<'
 }
 
 /// Open a decoder by its command-line name: `tval3`, `lifetime-fit`, `admm-net:RUN`,
-/// `unet:RUN`, `lifetime:RUN`, `zoo:NAME` or `onnx:MODEL.onnx` (through ONNX Runtime).
-/// `tval3` takes TVAL3's settings as keyword arguments (`mu`, `beta`, `maxit`, `tol`, …).
+/// `unet:RUN`, `lifetime:RUN`, `zoo:NAME` or `onnx:MODEL.onnx` (through ONNX Runtime); a
+/// decoder of cubes followed by `+fit` also gives `depth`, the cube's peaks refined in the tap
+/// domain (`tval3+fit`, `zoo:admm-lidar-delay+fit`). `tval3` takes TVAL3's settings as keyword arguments (`mu`, `beta`, `maxit`, `tol`, …).
 #[pyfunction(name = "open_decoder")]
 #[pyo3(signature = (name, **tval3))]
 fn open_decoder_py(py: Python<'_>, name: &str, tval3: Option<&Bound<'_, PyDict>>) -> PyResult<PyDecoder> {
     let opts: Tval3Options = merged(&Tval3Options::default(), tval3, "tval3 settings")?;
-    if let Some(("onnx", file)) = name.split_once(':') {
+    // `NAME+fit`: the decoder NAME (its kind, codes and sensor) with its ranges refined
+    let base = name.strip_suffix("+fit").unwrap_or(name);
+    if let Some(("onnx", file)) = base.split_once(':') {
         existing(std::path::Path::new(file), "onnx model")?;
     }
     let d = run_long(py, |_| open_decoder(name, &opts, &Device::flex()))?.map_err(err)?;
-    let (kind, sensor, run) = match name.split_once(':') {
-        None => (name.to_string(), None, None),
+    let (kind, sensor, run) = match base.split_once(':') {
+        None => (base.to_string(), None, None),
         Some(("onnx", file)) => {
             let m = crate::onnx::open_model(std::path::Path::new(file), 0)?;
             let s = run_sensor(py, &m.meta.codes, m.meta.sampling, m.meta.irf, m.sensor.clone(), None)?;
             ("onnx".to_string(), Some(s), None)
         }
         Some((_, dir)) => {
-            let path = zoo::resolve(if name.starts_with("zoo:") { name } else { dir }).map_err(err)?;
+            let path = zoo::resolve(if base.starts_with("zoo:") { base } else { dir }).map_err(err)?;
             let loaded = runs::load(&path, &Device::flex()).map_err(err)?;
             let s = run_sensor(py, &loaded.codes, loaded.spec.sampling, loaded.spec.irf, loaded.sensor.clone(), None)?;
             (loaded.spec.model.name().to_string(), Some(s), Some(loaded.dir))

@@ -148,7 +148,8 @@ def open_run(run: PathLike, *, calibration: Optional[PathLike] = None) -> Decode
 
 def open_decoder(name: str, **tval3: Any) -> Decoder:
     """By command-line name: tval3, lifetime-fit, admm-net:RUN, unet:RUN, lifetime:RUN,
-    zoo:NAME, onnx:MODEL.onnx."""
+    zoo:NAME, onnx:MODEL.onnx; a decoder of cubes followed by ``+fit`` (``tval3+fit``,
+    ``zoo:admm-lidar-delay+fit``) also gives ``depth``, its peaks refined in the tap domain."""
 
 def tval3(y: F32, sensor: Sensor, **options: Any) -> F32:
     """TVAL3: ``[M, H, W]`` → ``[T, H, W]`` (or batched). Options: mu, beta, maxit, tol,
