@@ -1,6 +1,7 @@
 """Long calls release the GIL (two threads decode at once, and Python runs meanwhile) and
 stop on Ctrl-C."""
 
+import shutil
 import signal
 import subprocess
 import sys
@@ -62,7 +63,8 @@ def test_tval3_releases_the_gil(sensor):
 def test_ctrl_c_stops_a_long_call(tmp_path):
     script = textwrap.dedent(
         """
-        import sys, time, numpy as np, tcsense
+        import faulthandler, signal, sys, time, numpy as np, tcsense
+        faulthandler.register(signal.SIGUSR1, all_threads=True)  # the test's dump on a hang
         codes = tcsense.Codes.generate(seed=1)
         s = tcsense.Sensor(codes)
         y = s.forward(np.random.default_rng(0).random((32, 128, 128), dtype=np.float32))
@@ -79,6 +81,23 @@ def test_ctrl_c_stops_a_long_call(tmp_path):
     assert p.stdout.readline().strip() == "ready"
     time.sleep(1.0)
     p.send_signal(signal.SIGINT)
-    out, err = p.communicate(timeout=60)
+    try:
+        out, err = p.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        raise AssertionError(f"no exit within 60 s of Ctrl-C; where the child was:\n{_stacks(p)}") from None
     assert p.returncode == 3, err
     assert "interrupted after" in out
+
+
+def _stacks(p):
+    """The Python stacks (faulthandler, on SIGUSR1) and native stacks (gdb, where installed) of
+    a hung child, which is then killed: what a failure report needs."""
+    p.send_signal(signal.SIGUSR1)
+    time.sleep(1.0)
+    native = ""
+    if shutil.which("gdb"):
+        g = subprocess.run(["gdb", "-p", str(p.pid), "-batch", "-ex", "thread apply all bt 30"], capture_output=True, text=True, timeout=120)
+        native = g.stdout[-20000:]
+    p.kill()
+    out, err = p.communicate()
+    return f"stdout:\n{out}\nstderr (Python stacks):\n{err[-20000:]}\nnative stacks:\n{native}"
