@@ -100,7 +100,7 @@ impl RangeFitOptions {
         if self.oversample == 0 {
             return Err("oversample: expected 1 or more".into());
         }
-        if !(self.edge_bins > 0.0) {
+        if self.edge_bins.is_nan() || self.edge_bins <= 0.0 {
             return Err(format!("edge_bins {}: expected a positive number of bins (inf: every neighbour)", self.edge_bins));
         }
         if !(self.second_return_residual > 0.0 && self.second_return_residual <= 1.0) {
