@@ -89,13 +89,14 @@ mod tests {
     use std::sync::atomic::AtomicBool;
     use tcsense_sensor::codes::{CodeShape, Constraints};
     use tcsense_sensor::generate::random_codes;
+    use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
     use tcsense_sensor::{Irf, SensorParams, C};
 
     /// The prototype's shape (4 taps, 2×2, L = 32) with the physical IRF.
     fn sensor() -> MeasurementMatrix {
         let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
         let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 1).unwrap();
-        let params = SensorParams { irf: Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }, ..SensorParams::from_codes(&codes) };
+        let params = SensorParams { irf: Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S }, ..SensorParams::from_codes(&codes) };
         MeasurementMatrix::synthesize(&codes, &params.validate().unwrap()).unwrap()
     }
 

@@ -77,8 +77,9 @@ pub struct RangeFitOptions {
     /// that single return. 1 keeps every second return the decoder reports.
     pub second_return_residual: f64,
     /// A neighbour joins a pixel's window only where the decoder placed one of its returns
-    /// within this many bins of the pixel's (nearer) return: the window pools pixels of one
-    /// surface and stops at depth edges. Infinite: every neighbour.
+    /// within this many bins of the pixel's first return (its second where it has no first):
+    /// the window pools pixels of one surface and stops at depth edges. Infinite: every
+    /// neighbour.
     pub edge_bins: f64,
 }
 
@@ -470,13 +471,14 @@ mod tests {
     use ndarray::Array4;
     use tcsense_sensor::codes::{CodeShape, Constraints};
     use tcsense_sensor::generate::random_codes;
+    use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
     use tcsense_sensor::{Irf, SensorParams};
 
     /// The prototype's shape (4 taps, 2×2, L = 32) with the physical IRF.
     fn sensor() -> MeasurementMatrix {
         let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
         let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 1).unwrap();
-        let params = SensorParams { irf: Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }, ..SensorParams::from_codes(&codes) };
+        let params = SensorParams { irf: Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S }, ..SensorParams::from_codes(&codes) };
         MeasurementMatrix::synthesize(&codes, &params.validate().unwrap()).unwrap()
     }
 
