@@ -179,6 +179,9 @@ impl Templates {
 }
 
 fn dot(a: &[f64], b: &[f64]) -> f64 {
+    if let (Ok(a), Ok(b)) = (<&[f64; 4]>::try_from(a), <&[f64; 4]>::try_from(b)) {
+        return a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3]; // 4 taps, unrolled
+    }
     a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
@@ -198,25 +201,45 @@ fn nnls2(yy: f64, [gy, sy]: [f64; 2], [gg, gs, ss]: [f64; 3]) -> f64 {
     (yy - only(gy, gg).max(only(sy, ss))).max(0.0)
 }
 
+/// A symmetric 3×3 Gram matrix with its cofactors and determinant, shared by every pixel of
+/// one subpixel type at one candidate.
+struct Gram3 {
+    g: [[f64; 3]; 3],
+    cof: [[f64; 3]; 3],
+    inv_det: f64,
+    /// The unconstrained solve is well posed.
+    regular: bool,
+}
+
+impl Gram3 {
+    fn new(g: [[f64; 3]; 3]) -> Self {
+        let cof = [
+            [g[1][1] * g[2][2] - g[1][2] * g[2][1], g[0][2] * g[2][1] - g[0][1] * g[2][2], g[0][1] * g[1][2] - g[0][2] * g[1][1]],
+            [g[1][2] * g[2][0] - g[1][0] * g[2][2], g[0][0] * g[2][2] - g[0][2] * g[2][0], g[0][2] * g[1][0] - g[0][0] * g[1][2]],
+            [g[1][0] * g[2][1] - g[1][1] * g[2][0], g[0][1] * g[2][0] - g[0][0] * g[2][1], g[0][0] * g[1][1] - g[0][1] * g[1][0]],
+        ];
+        let det = g[0][0] * cof[0][0] + g[0][1] * cof[1][0] + g[0][2] * cof[2][0];
+        Gram3 { g, cof, inv_det: 1.0 / det, regular: det > 1e-9 * g[0][0] * g[1][1] * g[2][2] }
+    }
+}
+
 /// [`nnls2`] for three columns: the unconstrained solve if it has no negative coefficient,
 /// else the best of the three faces (each a two-column problem).
 ///
-/// `r`: the columns' inner products with `y`; `g`: their Gram matrix.
-fn nnls3(yy: f64, r: [f64; 3], g: [[f64; 3]; 3]) -> f64 {
-    let cof = [
-        [g[1][1] * g[2][2] - g[1][2] * g[2][1], g[0][2] * g[2][1] - g[0][1] * g[2][2], g[0][1] * g[1][2] - g[0][2] * g[1][1]],
-        [g[1][2] * g[2][0] - g[1][0] * g[2][2], g[0][0] * g[2][2] - g[0][2] * g[2][0], g[0][2] * g[1][0] - g[0][0] * g[1][2]],
-        [g[1][0] * g[2][1] - g[1][1] * g[2][0], g[0][1] * g[2][0] - g[0][0] * g[2][1], g[0][0] * g[1][1] - g[0][1] * g[1][0]],
-    ];
-    let det = g[0][0] * cof[0][0] + g[0][1] * cof[1][0] + g[0][2] * cof[2][0];
-    if det > 1e-9 * g[0][0] * g[1][1] * g[2][2] {
-        let x: [f64; 3] = std::array::from_fn(|i| (cof[i][0] * r[0] + cof[i][1] * r[1] + cof[i][2] * r[2]) / det);
+/// `r`: the columns' inner products with `y`; `gram`: their Gram matrix.
+///
+/// `face12`: the cost of the face of columns 1 and 2 alone (which a caller holding those two
+/// fixed computes once).
+fn nnls3(yy: f64, r: [f64; 3], gram: &Gram3, face12: f64) -> f64 {
+    let (g, cof) = (&gram.g, &gram.cof);
+    if gram.regular {
+        let x: [f64; 3] = std::array::from_fn(|i| (cof[i][0] * r[0] + cof[i][1] * r[1] + cof[i][2] * r[2]) * gram.inv_det);
         if x.iter().all(|&v| v >= 0.0) {
             return (yy - x[0] * r[0] - x[1] * r[1] - x[2] * r[2]).max(0.0);
         }
     }
     let face = |i: usize, j: usize| nnls2(yy, [r[i], r[j]], [g[i][i], g[i][j], g[j][j]]);
-    face(0, 1).min(face(0, 2)).min(face(1, 2))
+    face(0, 1).min(face(0, 2)).min(face12)
 }
 
 /// The minimum of `cost` over the candidates within `±half` of `centre` (bins, cyclic),
@@ -272,6 +295,8 @@ struct Neighbour {
     yy: f64,
     sy: f64,
     oy: f64,
+    /// The cost of the fixed return and the ambient level alone.
+    other_cost: f64,
 }
 
 /// The costs of one window, with buffers reused from pixel to pixel (no allocation per
@@ -280,7 +305,10 @@ struct WindowFit<'a> {
     tpl: &'a Templates,
     /// Taps of the frame, `[H·W][M]`.
     taps: &'a [f64],
+    /// The window's pixels, ordered by subpixel type.
     hood: Vec<Neighbour>,
+    /// The runs of one type in `hood`: `(n, start, end)`.
+    groups: Vec<(usize, usize, usize)>,
     /// The fixed return's template per type, `[N][M]`.
     other: Vec<f64>,
     /// Its `[g·g, g·s]` per type.
@@ -291,7 +319,7 @@ struct WindowFit<'a> {
 
 impl<'a> WindowFit<'a> {
     fn new(tpl: &'a Templates, taps: &'a [f64], window: usize) -> Self {
-        WindowFit { tpl, taps, hood: Vec::with_capacity(window * window), other: vec![0.0; tpl.n * tpl.m], other_gram: vec![[0.0; 2]; tpl.n], other_tau: f64::NAN }
+        WindowFit { tpl, taps, hood: Vec::with_capacity(window * window), groups: Vec::with_capacity(tpl.n), other: vec![0.0; tpl.n * tpl.m], other_gram: vec![[0.0; 2]; tpl.n], other_tau: f64::NAN }
     }
 
     /// The window: each pixel as its subpixel type and where its taps start in `taps`.
@@ -300,7 +328,16 @@ impl<'a> WindowFit<'a> {
         self.hood.clear();
         for (n, at) in pixels {
             let yq = &self.taps[at..][..m];
-            self.hood.push(Neighbour { n, at, yy: dot(yq, yq), sy: dot(yq, tpl.s(n)), oy: 0.0 });
+            self.hood.push(Neighbour { n, at, yy: dot(yq, yq), sy: dot(yq, tpl.s(n)), oy: 0.0, other_cost: 0.0 });
+        }
+        self.hood.sort_by_key(|q| q.n);
+        self.groups.clear();
+        let mut start = 0;
+        for i in 1..=self.hood.len() {
+            if i == self.hood.len() || self.hood[i].n != self.hood[start].n {
+                self.groups.push((self.hood[start].n, start, i));
+                start = i;
+            }
         }
         self.other_tau = f64::NAN;
     }
@@ -326,6 +363,8 @@ impl<'a> WindowFit<'a> {
         }
         for q in &mut self.hood {
             q.oy = dot(&self.taps[q.at..][..m], &self.other[q.n * m..][..m]);
+            let [oo, os] = self.other_gram[q.n];
+            q.other_cost = nnls2(q.yy, [q.oy, q.sy], [oo, os, tpl.gram[q.n * tpl.candidates()][2]]);
         }
         self.other_tau = tau;
     }
@@ -339,12 +378,15 @@ impl<'a> WindowFit<'a> {
             return f64::INFINITY; // both returns within one pulse
         }
         let mut sum = 0.0;
-        for q in &self.hood {
-            let (g, yq, o) = (tpl.g(q.n, c), &self.taps[q.at..][..m], &self.other[q.n * m..][..m]);
-            let [gg, gs, ss] = tpl.gram[q.n * cands + c];
-            let [oo, os] = self.other_gram[q.n];
+        for &(n, lo, hi) in &self.groups {
+            let (g, o) = (tpl.g(n, c), &self.other[n * m..][..m]);
+            let [gg, gs, ss] = tpl.gram[n * cands + c];
+            let [oo, os] = self.other_gram[n];
             let go = dot(g, o);
-            sum += nnls3(q.yy, [dot(g, yq), q.oy, q.sy], [[gg, go, gs], [go, oo, os], [gs, os, ss]]);
+            let gram = Gram3::new([[gg, go, gs], [go, oo, os], [gs, os, ss]]);
+            for q in &self.hood[lo..hi] {
+                sum += nnls3(q.yy, [dot(g, &self.taps[q.at..][..m]), q.oy, q.sy], &gram, q.other_cost);
+            }
         }
         sum
     }
@@ -406,6 +448,7 @@ pub fn refine_ranges(y: ArrayView4<'_, f32>, sensor: &MeasurementMatrix, depth: 
             taps[(i * w + j) * m + mm] = v as f64;
         }
         let d = depth.index_axis(Axis(0), bi);
+        let est: Vec<[f64; 2]> = (0..h * w).map(|q| std::array::from_fn(|r| if r < k { d[(r, q / w, q % w)] as f64 / delta } else { f64::NAN })).collect();
         let rows: Vec<Vec<[f32; 2]>> = (0..h)
             .into_par_iter()
             .map(|i| {
@@ -414,7 +457,7 @@ pub fn refine_ranges(y: ArrayView4<'_, f32>, sensor: &MeasurementMatrix, depth: 
                 let mut out = Vec::with_capacity(w);
                 for j in 0..w {
                     let (j0, j1) = (j.saturating_sub(half), (j + half + 1).min(w));
-                    let est: [f64; 2] = std::array::from_fn(|r| if r < k { d[(r, i, j)] as f64 / delta } else { f64::NAN });
+                    let est = est[i * w + j];
                     let mut refined = est.map(|v| (v * delta) as f32);
                     let present = [0, 1].map(|r| est[r].is_finite());
                     if present.iter().any(|&p| p) {
