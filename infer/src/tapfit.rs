@@ -433,14 +433,12 @@ impl tcsense_models::decoder::Decoder for TapFitDecoder {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use tcsense_sensor::codes::{CodeShape, Constraints};
-    use tcsense_sensor::generate::random_codes;
+    use tcsense_sensor::generate::prototype_codes;
     use tcsense_sensor::{Irf, Sampling, SensorParams};
 
     /// The prototype's geometry (4 taps, 2×2, L = 32 at 607 MHz, heterodyne K = 8, physical IRF).
     fn sensor() -> MeasurementMatrix {
-        let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
-        let codes = random_codes(shape, 607e6, Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1).unwrap();
+        let codes = prototype_codes(1).unwrap();
         let p = SensorParams { sampling: Sampling::Heterodyne(8), irf: Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }, ..SensorParams::from_codes(&codes) };
         MeasurementMatrix::synthesize(&codes, &p.validate().unwrap()).unwrap()
     }

@@ -30,7 +30,7 @@ use tcsense_infer::selection::{select, EvalSetup};
 use tcsense_models::decoder::Control;
 use tcsense_models::runs::{self, ModelConfig, CODES_FILE, CONFIG_FILE};
 use tcsense_models::{AdmmNetConfig, Device, Prior, Tval3Options, UnetConfig};
-use tcsense_sensor::codes::{CodeShape, Codes, Constraints, DEFAULT_CLOCK_HZ};
+use tcsense_sensor::codes::{Codes, DEFAULT_CLOCK_HZ};
 use tcsense_sensor::measure::measure_batch;
 use tcsense_sensor::noise::derive_seed;
 use tcsense_sensor::npy::{read_npy, write_bytes, write_npy};
@@ -198,10 +198,6 @@ impl Request {
     }
 }
 
-/// The prototype's code shape and constraints.
-fn prototype() -> (CodeShape, Constraints) {
-    (CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false }, Constraints { tap: true, hamming: Some(2), window: Some(2) })
-}
 
 fn physical_irf() -> Irf {
     Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S }
@@ -269,7 +265,7 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
     let mut steps = Steps { obs, n: 0, of: if saved.is_some() { 11 } else { 12 }, times: Vec::new() };
     let seed = request.seed;
     let [h, w] = request.size;
-    let (shape, constraints) = prototype();
+    let constraints = generate::PROTOTYPE_CONSTRAINTS;
     obs.line(&format!(
         "tcsense demo: the prototype sensor (4 taps, 2x2 blocks, L = 32, 607 MHz, {}), {h}x{w} frames, budget {} min, into {}{}",
         constraints.label(),
@@ -311,7 +307,7 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
     let selection_path = dir.join("results/selection.json");
     steps.run("codes: random under the constraints, then the best of several by TVAL3 (noise-free), exported to the code memory", || {
         if !random_path.exists() {
-            generate::random_codes(shape, DEFAULT_CLOCK_HZ, constraints, seed)?.save(&random_path)?;
+            generate::prototype_codes(seed)?.save(&random_path)?;
         }
         if !selected_path.exists() || !selection_path.exists() {
             let x = lidar.load("val", "x")?.into_dimensionality::<Ix4>()?;
@@ -319,7 +315,7 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
             let g = lidar.manifest.grid;
             let setup = EvalSetup { base: SensorParams { sampling: g.sampling, irf: physical_irf(), length: g.length, clock_hz: g.clock_hz, ..Default::default() }, tval3: Tval3Options::default() };
             let mut on = |c: &tcsense_infer::selection::Candidate| obs.line(&format!("  candidate seed {:>3}: TVAL3 MSE {:.4e}", c.seed, c.mse));
-            let (best, all) = select(shape, DEFAULT_CLOCK_HZ, constraints, plan.candidates, seed, &setup, &cubes, &mut on, cancel)?;
+            let (best, all) = select(generate::PROTOTYPE_SHAPE, DEFAULT_CLOCK_HZ, constraints, plan.candidates, seed, &setup, &cubes, &mut on, cancel)?;
             let v = json!({ "items": cubes.len(), "split": "val", "noise": "none", "candidates": all.iter().map(|c| json!({"seed": c.seed, "mse": c.mse})).collect::<Vec<_>>() });
             write_bytes(&selection_path, (serde_json::to_string_pretty(&v)? + "\n").as_bytes())?;
             best.save(&selected_path)?;
@@ -489,8 +485,7 @@ fn make_plan(r: &Request, lidar: &Dataset, flim: &Dataset, obs: &dyn Observer) -
     let [h, w] = r.size;
     let crop = if h > 32 && w > 32 { Some([32, 32]) } else { None };
     let [ch, cw] = crop.unwrap_or(r.size);
-    let (shape, constraints) = prototype();
-    let codes = generate::random_codes(shape, DEFAULT_CLOCK_HZ, constraints, r.seed)?;
+    let codes = generate::prototype_codes(r.seed)?;
     let budget_s = r.budget_minutes * 60.0 * TRAINING_SHARE;
     let mut trainings = Vec::new();
     for (name, title, share) in TRAININGS {

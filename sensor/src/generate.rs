@@ -25,6 +25,19 @@ use rand::{RngExt, SeedableRng};
 /// Probability that an eligible unit changes state at a boundary.
 const P_CHANGE: f64 = 0.5;
 
+/// The paper's prototype: 4 taps, 2×2 subpixel blocks, `L = 32` masks, no drain.
+pub const PROTOTYPE_SHAPE: CodeShape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
+
+/// The prototype's hardware constraints: the tap constraint, Hamming distance 2, window 2.
+pub const PROTOTYPE_CONSTRAINTS: Constraints = Constraints { tap: true, hamming: Some(2), window: Some(2) };
+
+/// Random codes for the prototype ([`PROTOTYPE_SHAPE`], [`PROTOTYPE_CONSTRAINTS`], 607 MHz).
+/// Seed 1 gives the codes of the model zoo's entries, as `codes generate --taps 4 --block 2x2
+/// --length 32 --tap-constraint --hamming 2 --window 2 --seed 1` writes them.
+pub fn prototype_codes(seed: u64) -> Result<Codes> {
+    random_codes(PROTOTYPE_SHAPE, crate::codes::DEFAULT_CLOCK_HZ, PROTOTYPE_CONSTRAINTS, seed)
+}
+
 /// Generate a random code set satisfying `constraints`, reproducibly from `seed`.
 ///
 /// ```

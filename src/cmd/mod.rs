@@ -22,9 +22,7 @@ pub fn parse_run(s: &str) -> Result<std::path::PathBuf, String> {
 /// The paper's prototype codes (4 taps, 2×2 blocks, L = 32, 607 MHz, tap constraint, Hamming
 /// distance 2, window 2; seed 1), on which the benchmarks and fresh networks run.
 pub fn prototype_codes() -> anyhow::Result<tcsense_sensor::Codes> {
-    use tcsense_sensor::codes::{CodeShape, Constraints};
-    let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
-    Ok(tcsense_sensor::generate::random_codes(shape, 607e6, Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1)?)
+    Ok(tcsense_sensor::generate::prototype_codes(1)?)
 }
 
 /// Parse `HxW` (e.g. `2x2`, `188x212`).
