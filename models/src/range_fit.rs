@@ -201,7 +201,7 @@ fn nnls2(yy: f64, [gy, sy]: [f64; 2], [gg, gs, ss]: [f64; 3]) -> f64 {
     (yy - only(gy, gg).max(only(sy, ss))).max(0.0)
 }
 
-/// A symmetric 3×3 Gram matrix with its cofactors and determinant, shared by every pixel of
+/// A symmetric 3×3 Gram matrix with its cofactors and inverse determinant, shared by every pixel of
 /// one subpixel type at one candidate.
 struct Gram3 {
     g: [[f64; 3]; 3],
