@@ -378,7 +378,8 @@ fn unet(g: &mut Graph, net: &Unet, sensor: &SensorGraph, y: &str) -> Result<(Str
     let out = conv(g, net.head(), &z)?; // [B, 2K, H, W] or [B, K·T + K, H, W]
     let k = net.returns() as i64;
     if net.head_kind() == tcsense_models::UnetHead::ScoreVolume {
-        // soft-argmax of the scores [B, K, T, H, W] over the bin centres
+        // soft-argmax of the scores [B, K, T, H, W] over the bin centres within
+        // SOFT_ARGMAX_HALF_WIDTH bins of the most probable one (as Unet::local_soft_argmax)
         let centres = net.bin_centres_m();
         let t = centres.len() as i64;
         let split = g.ints("split", &[k * t, k]);
@@ -386,10 +387,22 @@ fn unet(g: &mut Graph, net: &Unet, sensor: &SensorGraph, y: &str) -> Result<(Str
         let shape5 = g.ints("score_shape", &[0, k, t, -1]);
         let flat = g.op("Reshape", &[&parts[0], &shape5]); // [B, K, T, H·W]
         let p = g.node("Softmax", &[&flat], &[Attr::Int("axis", 2)]);
+        let peak = g.node("ArgMax", &[&p], &[Attr::Int("axis", 2), Attr::Int("keepdims", 1)]); // [B, K, 1, H·W]
+        let peak = g.node("Cast", &[&peak], &[Attr::Int("to", onnx_protobuf::tensor_proto::DataType::FLOAT as i64)]);
+        let index: Vec<f32> = (0..centres.len()).map(|j| j as f32).collect();
+        let bins = g.weight("bin_index", &[1, 1, centres.len(), 1], &index);
+        let offset = g.op("Sub", &[&bins, &peak]);
+        let offset = g.node("Abs", &[&offset], &[]);
+        let half = g.scalar("soft_argmax_half_width", tcsense_models::unet::SOFT_ARGMAX_HALF_WIDTH as f32);
+        let near = g.node("LessOrEqual", &[&offset, &half], &[]);
+        let near = g.node("Cast", &[&near], &[Attr::Int("to", onnx_protobuf::tensor_proto::DataType::FLOAT as i64)]);
+        let p = g.op("Mul", &[&p, &near]);
         let c = g.weight("bin_centres_m", &[1, 1, centres.len(), 1], &centres);
         let pc = g.op("Mul", &[&p, &c]);
         let axis2 = g.ints("axis2", &[2]);
-        let d = g.node("ReduceSum", &[&pc, &axis2], &[Attr::Int("keepdims", 0)]); // [B, K, H·W]
+        let num = g.node("ReduceSum", &[&pc, &axis2], &[Attr::Int("keepdims", 0)]); // [B, K, H·W]
+        let mass = g.node("ReduceSum", &[&p, &axis2], &[Attr::Int("keepdims", 0)]);
+        let d = g.node("Div", &[&num, &mass], &[]);
         let yshape = g.op("Shape", &[y]);
         let (from, to) = (g.ints("from2", &[2]), g.ints("to4", &[4]));
         let hw = g.node("Slice", &[&yshape, &from, &to], &[]);
