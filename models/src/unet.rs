@@ -232,10 +232,14 @@ impl Unet {
     /// Per-pixel normalisation of `x₀ = Aᵀy`: divide each pixel's waveform by its L2 norm plus
     /// a floor of `NORM_FLOOR` times the frame's mean norm.
     ///
+    /// The norm is `√(Σ x₀² + 10⁻³⁰)`: the same value in f32 wherever a pixel has light, and a
+    /// finite gradient where it has none (`√` of 0 has an infinite one, which times the zero
+    /// of `∂Σx₀²/∂x₀` is NaN; deep sensing differentiates through `x₀` to the codes).
+    ///
     /// # Shapes
     /// - `x0`: `[B, T, H, W]` → `[B, T, H, W]`
     pub fn normalise(x0: Tensor<4>) -> Tensor<4> {
-        let norm = x0.clone().powi_scalar(2).sum_dim(1).sqrt(); // [B, 1, H, W]
+        let norm = x0.clone().powi_scalar(2).sum_dim(1).add_scalar(1e-30).sqrt(); // [B, 1, H, W]
         let mean = norm.clone().mean_dim(2).mean_dim(3); // [B, 1, 1, 1]
         x0 / (norm + mean * NORM_FLOOR + 1e-30)
     }
@@ -435,6 +439,20 @@ mod tests {
             + 18.0 * 4.0 * (8.0 * 16.0 + 256.0)
             + 2.0 * 64.0 * 4.0 * 4.0;
         assert_eq!(cfg.flops(8, 8), want);
+    }
+
+    #[test]
+    fn the_normalisation_has_a_finite_gradient_at_a_dark_pixel() {
+        // deep sensing differentiates through x₀ = Aᵀy: √0 once gave NaN there, and the codes
+        // became NaN within a few steps
+        let device = Device::flex().autodiff();
+        let x0 = Tensor::<4>::from_data(TensorData::new(vec![3.0f32, 0.0, 4.0, 0.0], [1, 2, 1, 2]), &device).require_grad();
+        let grads = (Unet::normalise(x0.clone()) * 0.5).sum().backward();
+        let g: Vec<f32> = x0.grad(&grads).expect("gradient").into_data().try_into_vec().unwrap();
+        assert!(g.iter().all(|v| v.is_finite()), "{g:?}");
+        // the lit pixel: ∂/∂x of Σ x/‖x‖ at (3, 4) is (‖x‖² − x·Σx)/‖x‖³ per entry, ×½
+        let want = [(25.0 - 3.0 * 7.0) / 125.0 * 0.5, (25.0 - 4.0 * 7.0) / 125.0 * 0.5];
+        assert!((g[0] - want[0]).abs() < 1e-2 && (g[2] - want[1]).abs() < 1e-2, "{g:?} against {want:?}");
     }
 
     #[test]

@@ -317,6 +317,10 @@ fn fit<M: Network>(
                 Some(learner) => step_learned(model, &mut optim, learner, cfg, lr, &sensor, &xb, &yb, target, &device),
                 None => step(model, &mut optim, cfg, lr, &sensor, &yb, target, &device),
             };
+            if !l.is_finite() {
+                // the step already moved the weights: stop before a NaN checkpoint is written
+                return Err(TrainError::Diverged { loss: l, epoch: epoch + 1, step: state.step + 1 });
+            }
             loss_sum += l;
             progress.step(epoch, bi + 1, steps_per_epoch, l);
         }

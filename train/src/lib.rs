@@ -50,6 +50,8 @@ pub enum TrainError {
     InvalidParam { field: &'static str, got: String, expected: String },
     #[error("interrupted; the last checkpoint is kept, continue with --resume")]
     Cancelled,
+    #[error("training diverged: the loss was {loss} at epoch {epoch}, step {step}; the last checkpoint is kept (a lower --lr, or --resume from it)")]
+    Diverged { loss: f64, epoch: usize, step: u64 },
 }
 
 /// Result alias of the training crate.
