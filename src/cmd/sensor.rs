@@ -159,6 +159,14 @@ pub fn run(cmd: SensorCmd) -> Result<ExitCode> {
                 spec.bin_width_s() * 1e12,
                 spec.cycle_s() * 1e9
             );
+            let alias = a.range_alias();
+            println!(
+                "closest returns in a block's taps: bins {} and {} ({} apart), unit signatures {:.3} apart (0: indistinguishable, 1.414: orthogonal)",
+                alias.bin,
+                (alias.bin + alias.shift) % a.bins(),
+                alias.shift,
+                alias.distance
+            );
         }
     }
     Ok(ExitCode::SUCCESS)
