@@ -73,7 +73,8 @@ pub struct Entry {
     pub learned_codes: bool,
     /// `M taps, block HxW, L = …` of the run's codes.
     pub codes: String,
-    /// Epochs logged in `metrics.csv`, and the last row's validation metrics by column name.
+    /// Epochs logged in `metrics.csv` (plus `relaxed/metrics.csv`, deep sensing's joint phase,
+    /// for learned codes), and the last row's validation metrics by column name.
     pub epochs: usize,
     pub validation: Vec<(String, f64)>,
     /// The first heading of PROVENANCE.md (empty when it has none).
@@ -107,6 +108,8 @@ fn read_entry(name: &str, dir: &Path) -> Result<Entry> {
     let (bh, bw) = codes.block();
     let codes = format!("{} taps, block {bh}x{bw}, L = {}", codes.taps(), codes.length());
     let (epochs, validation) = last_metrics(&file("metrics.csv"));
+    // learned codes: the relaxed phase's epochs come first, in a run of their own
+    let epochs = epochs + if learned_codes { last_metrics(&file("relaxed/metrics.csv")).0 } else { 0 };
     let title = std::fs::read_to_string(file(PROVENANCE_FILE)).ok().and_then(|t| t.lines().find_map(|l| l.strip_prefix("# ").map(str::to_string))).unwrap_or_default();
     let weights_bytes = std::fs::metadata(file(WEIGHTS_FILE)).map_err(|e| ModelError::File { path: file(WEIGHTS_FILE), msg: e.to_string() })?.len();
     Ok(Entry { name: name.to_string(), dir: dir.to_path_buf(), model, domain, learned_codes, codes, epochs, validation, title, weights_bytes })
