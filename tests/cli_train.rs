@@ -58,6 +58,9 @@ fn bad_inputs_exit_2() {
     fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "c16.json", "--epochs", "1", "-o", "run16"], &["T = "]);
     fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "0", "-o", "run0"], &["epochs"]);
     fails(d, &["train", "admm-net", "--resume", "-o", "nothing"], &["no run to resume"]);
+    // a loss that is not finite stops the training with a message, and no final weights are written
+    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--epochs", "2", "--lr", "1e30", "-o", "diverged"], &["training diverged", "lower --lr"]);
+    assert!(!d.join("diverged").join("model.bpk").exists());
     fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--pause-after", "0", "-o", "runp"], &["--pause-after 0", "at least one epoch"]);
     assert!(!d.join("runp").exists());
     fails(d, &["reconstruct", "admm-net", "--run", "nothing", "--measurements", "y.npy", "-o", "x.npy"], &["nothing", "config.json"]);
