@@ -147,12 +147,16 @@ impl LifetimeNet {
     /// Turn harmonic `k` by `e^{−ikφ}` (`φ` the phase of the frame's summed first harmonic),
     /// normalise each pixel and append its relative brightness.
     ///
+    /// Both norms are `√(Σ… + 10⁻³⁰)`: the same value in f32 wherever there is light, and a
+    /// finite gradient where there is none (`√` of 0 has an infinite one, which times the zero
+    /// of `∂Σz²/∂z` is NaN; deep sensing differentiates through `x₀` to the codes).
+    ///
     /// # Shapes
     /// - `spec`: `[B, 2K + 1, H, W]` (sum, real parts, imaginary parts) → `[B, 2K + 2, H, W]`
     pub fn reference(spec: Tensor<4>, k: usize) -> Tensor<4> {
         let total = spec.clone().sum_dim(2).sum_dim(3); // [B, 2K+1, 1, 1]
         let (re1, im1) = (total.clone().narrow(1, 1, 1), total.narrow(1, k + 1, 1)); // [B, 1, 1, 1]
-        let r = (re1.clone().powi_scalar(2) + im1.clone().powi_scalar(2)).sqrt().add_scalar(REF_FLOOR);
+        let r = (re1.clone().powi_scalar(2) + im1.clone().powi_scalar(2)).add_scalar(1e-30).sqrt().add_scalar(REF_FLOOR);
         let (c1, s1) = (re1 / r.clone(), im1 / r);
         // cos kφ, sin kφ by the angle-addition recursion
         let (mut cs, mut ss) = (vec![c1.clone()], vec![s1.clone()]);
@@ -167,7 +171,7 @@ impl LifetimeNet {
         let re_r = re.clone() * c.clone() + im.clone() * s.clone();
         let im_r = im * c - re * s;
         let z = Tensor::cat(vec![dc, re_r, im_r], 1); // [B, 2K+1, H, W]
-        let norm = z.clone().powi_scalar(2).sum_dim(1).sqrt(); // [B, 1, H, W]
+        let norm = z.clone().powi_scalar(2).sum_dim(1).add_scalar(1e-30).sqrt(); // [B, 1, H, W]
         let mean = norm.clone().mean_dim(2).mean_dim(3); // [B, 1, 1, 1]
         let rel = norm.clone() / (mean.clone() + 1e-30);
         Tensor::cat(vec![z / (norm + mean * NORM_FLOOR + 1e-30), rel], 1)
@@ -305,5 +309,32 @@ mod tests {
         let cfg = LifetimeNetConfig::new(4, 16).with_harmonics(2).with_base_width(4).with_levels(2);
         let want = 2.0 * 64.0 * 20.0 + 18.0 * 64.0 * (6.0 * 4.0 + 16.0) + 18.0 * 64.0 * (12.0 * 4.0 + 16.0) + 18.0 * 16.0 * (4.0 * 8.0 + 64.0) + 2.0 * 64.0 * 20.0;
         assert_eq!(cfg.flops(8, 8), want);
+    }
+
+    #[test]
+    fn the_features_have_a_finite_gradient_at_a_dark_pixel() {
+        // deep sensing differentiates through the features to the codes: √0 at a dark pixel
+        // gave NaN (`train lifetime --learn-codes` diverged at its second step)
+        let device = Device::flex().autodiff();
+        // K = 1: [sum, Re, Im] of two pixels, the second dark
+        let spec: Vec<f32> = vec![2.0, 0.0, 1.0, 0.0, 0.5, 0.0];
+        let weights = Tensor::<4>::from_floats([[[[0.3, -0.7]], [[1.1, 0.2]], [[-0.4, 0.9]], [[0.6, -0.5]]]], &device); // [1, 4, 1, 2]
+        let loss = |v: &[f32]| {
+            let t = Tensor::<4>::from_data(TensorData::new(v.to_vec(), [1, 3, 1, 2]), &device);
+            (LifetimeNet::reference(t, 1) * weights.clone()).sum()
+        };
+        let x = Tensor::<4>::from_data(TensorData::new(spec.clone(), [1, 3, 1, 2]), &device).require_grad();
+        let grads = (LifetimeNet::reference(x.clone(), 1) * weights.clone()).sum().backward();
+        let g: Vec<f32> = x.grad(&grads).expect("gradient").into_data().try_into_vec().unwrap();
+        assert!(g.iter().all(|v| v.is_finite()), "{g:?}");
+        // the lit pixel's gradient is the loss's slope (central differences)
+        for c in 0..3 {
+            let i = 2 * c;
+            let (mut up, mut down) = (spec.clone(), spec.clone());
+            up[i] += 1e-2;
+            down[i] -= 1e-2;
+            let slope = (loss(&up).into_scalar::<f32>() - loss(&down).into_scalar::<f32>()) / 2e-2;
+            assert!((g[i] - slope).abs() < 2e-2 * slope.abs().max(1.0), "channel {c}: {} against {slope}", g[i]);
+        }
     }
 }
