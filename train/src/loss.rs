@@ -115,7 +115,7 @@ mod tests {
         // 0.1) off by 0.01: the same shape error, ten times smaller in absolute terms
         let truth = Tensor::<4>::from_floats([[[[1.0, 0.1]], [[0.0, 0.0]]]], &device); // [1, 2, 1, 2]
         let pred = Tensor::<4>::from_floats([[[[1.1, 0.11]], [[0.0, 0.0]]]], &device);
-        let w: Vec<f32> = pixel_weights(truth.clone()).into_data().to_vec().unwrap();
+        let w: Vec<f32> = pixel_weights(truth.clone()).into_data().try_into_vec::<f32>().unwrap();
         assert!((w[0] - 1.0 / 1.05).abs() < 1e-6 && (w[1] - 1.0 / 0.15).abs() < 1e-5, "{w:?}");
         let l: f32 = loss_fn(Loss::RmseMaePixel, pred.clone(), truth.clone()).into_scalar();
         let plain: f32 = loss_fn(Loss::RmseMae, pred, truth).into_scalar();
