@@ -65,6 +65,9 @@ def test_ctrl_c_stops_a_long_call(tmp_path):
         """
         import faulthandler, signal, sys, time, numpy as np, tcsense
         faulthandler.register(signal.SIGUSR1, all_threads=True)  # the test's dump on a hang
+        # a shell's background job starts with SIGINT ignored, and Python then installs no
+        # KeyboardInterrupt handler (CI launched with `&` hung here): Ctrl-C as in a terminal
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         codes = tcsense.Codes.generate(seed=1)
         s = tcsense.Sensor(codes)
         y = s.forward(np.random.default_rng(0).random((32, 128, 128), dtype=np.float32))
