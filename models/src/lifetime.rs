@@ -33,7 +33,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::net::{Network, Prediction};
 use crate::sensor_tensors::SensorTensors;
-use crate::unet::{conv1x1, trunk, trunk_flops, Block, NORM_FLOOR};
+use crate::unet::{conv1x1, trunk, trunk_flops, Block, Unet, NORM_FLOOR};
 
 /// Channels of the prediction: `τ_m`, `τ₁`, `τ₂` (ns), `α₁`, confidence logit.
 pub const OUTPUTS: usize = 5;
@@ -147,9 +147,8 @@ impl LifetimeNet {
     /// Turn harmonic `k` by `e^{−ikφ}` (`φ` the phase of the frame's summed first harmonic),
     /// normalise each pixel and append its relative brightness.
     ///
-    /// Both norms are `√(Σ… + 10⁻³⁰)`: the same value in f32 wherever there is light, and a
-    /// finite gradient where there is none (`√` of 0 has an infinite one, which times the zero
-    /// of `∂Σz²/∂z` is NaN; deep sensing differentiates through `x₀` to the codes).
+    /// Both norms are `√(Σ… + 10⁻³⁰)` ([`Unet::pixel_norm`] per pixel): a finite gradient
+    /// where there is no light, which deep sensing differentiates through to the codes.
     ///
     /// # Shapes
     /// - `spec`: `[B, 2K + 1, H, W]` (sum, real parts, imaginary parts) → `[B, 2K + 2, H, W]`
@@ -171,7 +170,7 @@ impl LifetimeNet {
         let re_r = re.clone() * c.clone() + im.clone() * s.clone();
         let im_r = im * c - re * s;
         let z = Tensor::cat(vec![dc, re_r, im_r], 1); // [B, 2K+1, H, W]
-        let norm = z.clone().powi_scalar(2).sum_dim(1).add_scalar(1e-30).sqrt(); // [B, 1, H, W]
+        let norm = Unet::pixel_norm(z.clone()); // [B, 1, H, W]
         let mean = norm.clone().mean_dim(2).mean_dim(3); // [B, 1, 1, 1]
         let rel = norm.clone() / (mean.clone() + 1e-30);
         Tensor::cat(vec![z / (norm + mean * NORM_FLOOR + 1e-30), rel], 1)
@@ -319,12 +318,10 @@ mod tests {
         // K = 1: [sum, Re, Im] of two pixels, the second dark
         let spec: Vec<f32> = vec![2.0, 0.0, 1.0, 0.0, 0.5, 0.0];
         let weights = Tensor::<4>::from_floats([[[[0.3, -0.7]], [[1.1, 0.2]], [[-0.4, 0.9]], [[0.6, -0.5]]]], &device); // [1, 4, 1, 2]
-        let loss = |v: &[f32]| {
-            let t = Tensor::<4>::from_data(TensorData::new(v.to_vec(), [1, 3, 1, 2]), &device);
-            (LifetimeNet::reference(t, 1) * weights.clone()).sum()
-        };
-        let x = Tensor::<4>::from_data(TensorData::new(spec.clone(), [1, 3, 1, 2]), &device).require_grad();
-        let grads = (LifetimeNet::reference(x.clone(), 1) * weights.clone()).sum().backward();
+        let input = |v: &[f32]| Tensor::<4>::from_data(TensorData::new(v.to_vec(), [1, 3, 1, 2]), &device);
+        let loss = |t: Tensor<4>| (LifetimeNet::reference(t, 1) * weights.clone()).sum();
+        let x = input(&spec).require_grad();
+        let grads = loss(x.clone()).backward();
         let g: Vec<f32> = x.grad(&grads).expect("gradient").into_data().try_into_vec().unwrap();
         assert!(g.iter().all(|v| v.is_finite()), "{g:?}");
         // the lit pixel's gradient is the loss's slope (central differences)
@@ -333,7 +330,7 @@ mod tests {
             let (mut up, mut down) = (spec.clone(), spec.clone());
             up[i] += 1e-2;
             down[i] -= 1e-2;
-            let slope = (loss(&up).into_scalar::<f32>() - loss(&down).into_scalar::<f32>()) / 2e-2;
+            let slope = (loss(input(&up)).into_scalar::<f32>() - loss(input(&down)).into_scalar::<f32>()) / 2e-2;
             assert!((g[i] - slope).abs() < 2e-2 * slope.abs().max(1.0), "channel {c}: {} against {slope}", g[i]);
         }
     }

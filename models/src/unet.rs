@@ -229,17 +229,24 @@ pub(crate) fn trunk_flops(c_in: usize, levels: usize, width: impl Fn(usize) -> u
 }
 
 impl Unet {
-    /// Per-pixel normalisation of `x₀ = Aᵀy`: divide each pixel's waveform by its L2 norm plus
-    /// a floor of `NORM_FLOOR` times the frame's mean norm.
+    /// Each pixel's L2 norm over the channels, `√(Σ_c x² + 10⁻³⁰)`: the same value in f32
+    /// wherever a pixel has light, and a finite gradient where it has none (`√` of 0 has an
+    /// infinite one, which times the zero of `∂Σx²/∂x` is NaN; deep sensing differentiates
+    /// through it to the codes).
     ///
-    /// The norm is `√(Σ x₀² + 10⁻³⁰)`: the same value in f32 wherever a pixel has light, and a
-    /// finite gradient where it has none (`√` of 0 has an infinite one, which times the zero
-    /// of `∂Σx₀²/∂x₀` is NaN; deep sensing differentiates through `x₀` to the codes).
+    /// # Shapes
+    /// - `x`: `[B, C, H, W]` → `[B, 1, H, W]`
+    pub fn pixel_norm(x: Tensor<4>) -> Tensor<4> {
+        x.powi_scalar(2).sum_dim(1).add_scalar(1e-30).sqrt()
+    }
+
+    /// Per-pixel normalisation of `x₀ = Aᵀy`: divide each pixel's waveform by its L2 norm
+    /// ([`Self::pixel_norm`]) plus a floor of `NORM_FLOOR` times the frame's mean norm.
     ///
     /// # Shapes
     /// - `x0`: `[B, T, H, W]` → `[B, T, H, W]`
     pub fn normalise(x0: Tensor<4>) -> Tensor<4> {
-        let norm = x0.clone().powi_scalar(2).sum_dim(1).add_scalar(1e-30).sqrt(); // [B, 1, H, W]
+        let norm = Self::pixel_norm(x0.clone()); // [B, 1, H, W]
         let mean = norm.clone().mean_dim(2).mean_dim(3); // [B, 1, 1, 1]
         x0 / (norm + mean * NORM_FLOOR + 1e-30)
     }
