@@ -22,6 +22,7 @@
 //!
 //! Errors are [`InferError`]; this crate never depends on the training crate.
 
+pub mod bounds;
 pub mod calibration_report;
 pub mod error;
 pub mod figures;

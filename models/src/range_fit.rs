@@ -44,6 +44,10 @@ use rayon::prelude::*;
 use tcsense_sensor::{MeasurementMatrix, C};
 
 
+/// Golden-section steps of the continuous refinement of a single return (the bracket of two
+/// candidates shrinks to 0.618¹⁴ of itself: 0.0006 bins at 4 candidates per bin).
+const POLISH_STEPS: usize = 14;
+
 /// Rounds of coordinate descent over two returns (at most).
 const ROUNDS: usize = 3;
 
@@ -394,7 +398,60 @@ impl<'a> WindowFit<'a> {
     /// The best single return within `±half` of any of `centres`: (bins, cost at the best
     /// candidate).
     fn best_single(&self, centres: &[f64], half: f64) -> Option<(f64, f64)> {
-        centres.iter().filter_map(|&c| search(self.tpl, c, half, &mut |k| self.single(k))).min_by(|a, b| a.1.total_cmp(&b.1))
+        let (tau, cost) = centres.iter().filter_map(|&c| search(self.tpl, c, half, &mut |k| self.single(k))).min_by(|a, b| a.1.total_cmp(&b.1))?;
+        Some((self.polish(tau), cost))
+    }
+
+    /// The window's cost of one return at any `tau` (bins), off the candidate grid.
+    fn single_at(&self, tau: f64, g: &mut [f64]) -> f64 {
+        let (tpl, m) = (self.tpl, self.tpl.m);
+        let mut sum = 0.0;
+        for &(n, lo, hi) in &self.groups {
+            tpl.at(n, tau, g);
+            let s = tpl.s(n);
+            let gram = [dot(g, g), dot(g, s), dot(s, s)];
+            for q in &self.hood[lo..hi] {
+                sum += nnls2(q.yy, [dot(g, &self.taps[q.at..][..m]), q.sy], gram);
+            }
+        }
+        sum
+    }
+
+    /// The grid's estimate refined on the continuous cost: a golden-section search within one
+    /// candidate either side. The parabola through three candidates is biased where the cost
+    /// has a kink between them (the templates are piecewise linear in `τ`, with kinks at the
+    /// bins' centres): by up to 0.04 bins, ten times the Cramér–Rao bound at 20 000 e⁻.
+    fn polish(&self, tau: f64) -> f64 {
+        let mut g = [0.0f64; 8];
+        let g = &mut g[..self.tpl.m.min(8)];
+        if self.tpl.m > 8 {
+            return tau;
+        }
+        let step = 1.0 / self.tpl.os as f64;
+        let (mut lo, mut hi) = (tau - step, tau + step);
+        let r = 0.5 * (5f64.sqrt() - 1.0);
+        let (mut x1, mut x2) = (hi - r * (hi - lo), lo + r * (hi - lo));
+        let (mut f1, mut f2) = (self.single_at(x1, g), self.single_at(x2, g));
+        for _ in 0..POLISH_STEPS {
+            if f1 <= f2 {
+                hi = x2;
+                (x2, f2) = (x1, f1);
+                x1 = hi - r * (hi - lo);
+                f1 = self.single_at(x1, g);
+            } else {
+                lo = x1;
+                (x1, f1) = (x2, f2);
+                x2 = lo + r * (hi - lo);
+                f2 = self.single_at(x2, g);
+            }
+        }
+        let best = 0.5 * (lo + hi);
+        // keep the grid's estimate where the polish found nothing better (a flat cost)
+        if self.single_at(best, g) <= self.single_at(tau, g) {
+            best.rem_euclid(self.tpl.t as f64)
+        } else {
+            tau
+        }
     }
 
     /// Two returns from `(tau1, tau2)` by coordinate descent, each searched with the other

@@ -16,9 +16,11 @@
 
 pub mod calibration;
 pub mod codes;
+pub mod design;
 pub mod error;
 pub mod export;
 pub mod generate;
+pub mod identify;
 pub mod json;
 pub mod matrix;
 pub mod measure;

@@ -11,22 +11,35 @@ use tcsense_sensor::{export, generate};
 pub enum CodesCmd {
     /// Generate random codes under the chosen constraints.
     Generate(GenerateArgs),
-    /// Check codes against their declared constraints (exit 0 feasible, 1 with violations).
+    /// Check codes against their declared constraints (exit 0 feasible, 1 with violations),
+    /// and print what the taps can tell apart (alias, range bound; a warning below the alias
+    /// threshold).
     Check {
         /// Codes JSON file.
         codes: PathBuf,
         /// Print the violations as JSON.
         #[arg(long)]
         json: bool,
+        #[command(flatten)]
+        measure: super::analyze::MeasureArgs,
     },
-    /// Export codes to the sensor's code memory: chCC.bin, codes.bin, registers.json.
+    /// Export codes to the sensor's code memory: chCC.bin, codes.bin, registers.json. Codes
+    /// that alias (two ranges, or two decays, the taps cannot tell apart) are refused.
     Export {
         /// Codes JSON file.
         codes: PathBuf,
         /// Output directory.
         #[arg(short, long)]
         output: PathBuf,
+        #[command(flatten)]
+        measure: super::analyze::MeasureArgs,
+        /// Export even codes below the alias threshold.
+        #[arg(long)]
+        force: bool,
     },
+    /// What the taps can tell apart: range alias, range Cramér–Rao bound over the cycle, two
+    /// returns' resolution and, for FLIm (--heterodyne), the lifetime alias and bounds.
+    Analyze(super::analyze::AnalyzeArgs),
     /// Read an exported code memory back into a codes JSON file.
     Import {
         /// Export directory (with registers.json).
@@ -35,7 +48,9 @@ pub enum CodesCmd {
         #[arg(short, long)]
         output: PathBuf,
     },
-    /// Generate random candidates and keep the one with the lowest TVAL3 MSE on a dataset.
+    /// Design codes: the best of random candidates by a criterion (TVAL3 MSE on a dataset, or
+    /// the closed-form range / lifetime identifiability), then a local search that keeps every
+    /// constraint exact.
     Select(super::design::SelectArgs),
     /// Project code logits (e.g. learned elsewhere) exactly onto the constraints: the feasible
     /// codes of highest total log-probability.
@@ -131,13 +146,14 @@ pub fn run(cmd: CodesCmd) -> Result<ExitCode> {
             let hd: Vec<usize> = (0..codes.length()).map(|l| codes.hamming_at(l)).collect();
             println!("wrote {}: {}, max Hamming distance {}", a.output.display(), summary(&codes), hd.iter().max().unwrap_or(&0));
         }
-        CodesCmd::Check { codes, json } => {
+        CodesCmd::Check { codes, json, measure } => {
             let g = Codes::load_unchecked(&codes)?;
             let v = g.violations();
             if json {
                 println!("{}", serde_json::to_string_pretty(&v)?);
             } else if v.is_empty() {
                 println!("{}: feasible under {}", codes.display(), g.constraints.label());
+                super::analyze::check_measures(&codes, &measure)?;
             } else {
                 for x in &v {
                     println!("{x}");
@@ -146,8 +162,9 @@ pub fn run(cmd: CodesCmd) -> Result<ExitCode> {
             }
             return Ok(if v.is_empty() { ExitCode::SUCCESS } else { ExitCode::from(1) });
         }
-        CodesCmd::Export { codes, output } => {
+        CodesCmd::Export { codes, output, measure, force } => {
             let g = Codes::load(&codes)?;
+            super::analyze::export_gate(&codes, &measure, force)?;
             let regs = export::export(&g, &output).with_context(|| format!("cannot export {}", codes.display()))?;
             println!(
                 "wrote {} channels of {} bytes to {} (ECLEN = {})",
@@ -163,6 +180,7 @@ pub fn run(cmd: CodesCmd) -> Result<ExitCode> {
             println!("wrote {}", output.display());
         }
         CodesCmd::Select(a) => return super::design::select_cmd(a),
+        CodesCmd::Analyze(a) => return super::analyze::analyze_cmd(a),
         CodesCmd::Project(a) => {
             let d = &a.design;
             let logits = tcsense_sensor::npy::read_npy(&a.logits)?;

@@ -11,7 +11,11 @@ use tcsense_infer::figures::{log_chart, Series};
 use tcsense_infer::selection::{evaluate_candidates, select, table1_settings, Candidate, EvalSetup};
 use tcsense_sensor::codes::{CodeShape, Constraints};
 use tcsense_sensor::npy::write_bytes;
+use tcsense_sensor::design::{search, Criterion, Objective, Score, SearchOptions};
+use tcsense_sensor::generate::random_codes;
+use tcsense_sensor::identify::Light;
 use tcsense_sensor::SensorParams;
+use rayon::prelude::*;
 
 use super::codes::DesignArgs;
 use super::dataset::interrupt_flag;
@@ -20,18 +24,19 @@ use super::recon::Tval3Args;
 /// Dataset and evaluation flags.
 #[derive(Args, Clone)]
 pub struct EvalArgs {
-    /// Dataset directory.
+    /// Dataset directory (the MSE criterion).
     #[arg(long)]
-    dataset: PathBuf,
+    dataset: Option<PathBuf>,
     /// Split to evaluate on.
     #[arg(long, default_value = "test")]
     split: String,
     /// Use at most this many items of the split.
     #[arg(long, default_value_t = 2)]
     items: usize,
-    /// Instrument response: ideal or physical.
-    #[arg(long, default_value = "ideal")]
-    irf: String,
+    /// Instrument response: ideal or physical (default: ideal for the MSE, physical for the
+    /// identifiability criteria).
+    #[arg(long)]
+    irf: Option<String>,
     #[command(flatten)]
     tval3: Tval3Args,
 }
@@ -45,16 +50,19 @@ struct Loaded {
 }
 
 fn load(e: &EvalArgs) -> Result<Loaded> {
-    let ds = Dataset::open(&e.dataset)?;
+    let Some(dataset) = &e.dataset else {
+        bail!("--dataset DIR is required: the TVAL3 MSE is measured on a dataset's cubes");
+    };
+    let ds = Dataset::open(dataset)?;
     if e.items == 0 {
         bail!("--items 0: evaluate on at least one item");
     }
     let x = ds.load(&e.split, "x")?.into_dimensionality::<Ix4>()?;
     if x.dim().0 == 0 {
-        bail!("{}: split {:?} is empty", e.dataset.display(), e.split);
+        bail!("{}: split {:?} is empty", dataset.display(), e.split);
     }
     let cubes: Vec<Array3<f32>> = x.axis_iter(Axis(0)).take(e.items).map(|v| v.to_owned()).collect();
-    let irf = super::sensor::parse_irf(&e.irf)?;
+    let irf = super::sensor::parse_irf(e.irf.as_deref().unwrap_or("ideal"))?;
     let g = ds.manifest.grid;
     let base = SensorParams { sampling: g.sampling, irf, length: g.length, clock_hz: g.clock_hz, ..Default::default() };
     Ok(Loaded { cubes, setup: EvalSetup { base, tval3: e.tval3.options()? }, length: g.length, clock_hz: g.clock_hz, size: (ds.manifest.size[0], ds.manifest.size[1]) })
@@ -66,9 +74,36 @@ pub struct SelectArgs {
     design: DesignArgs,
     #[command(flatten)]
     eval: EvalArgs,
-    /// Number of random candidates (paper: 20).
-    #[arg(long, default_value_t = 20)]
-    candidates: usize,
+    /// What to select for: `mse` (TVAL3 over --dataset, the paper's method), `range` (LiDAR: no
+    /// range alias, the smallest worst-case range bound) or `lifetime` (FLIm: no range or
+    /// lifetime alias, the smallest worst-case relative lifetime bound).
+    #[arg(long, value_enum, default_value_t = SelectCriterion::Mse)]
+    criterion: SelectCriterion,
+    /// Number of random candidates (default: 20 for mse, as the paper; 2000 for range and
+    /// lifetime, which are closed-form).
+    #[arg(long)]
+    candidates: Option<usize>,
+    /// Moves of the local search from the best candidate (range and lifetime; default 20000).
+    #[arg(long)]
+    search: Option<usize>,
+    /// Grid: oversampling factor K (range and lifetime criteria).
+    #[arg(long, value_name = "K", conflicts_with = "heterodyne")]
+    oversample: Option<usize>,
+    /// Grid: heterodyne sweep with K steps (range and lifetime criteria).
+    #[arg(long, value_name = "K")]
+    heterodyne: Option<usize>,
+    /// Signal electrons per subpixel the bounds are stated at.
+    #[arg(long, default_value_t = 1000.0)]
+    photons: f64,
+    /// Ambient electrons per subpixel over the exposure.
+    #[arg(long, default_value_t = 100.0)]
+    ambient: f64,
+    /// Read noise σ per tap (electrons).
+    #[arg(long, default_value_t = 40.0)]
+    read_noise: f64,
+    /// Aliases below this distance rank below every code set above it.
+    #[arg(long, default_value_t = tcsense_sensor::identify::DEFAULT_ALIAS_THRESHOLD)]
+    alias_threshold: f64,
     /// Seed of the first candidate (the others follow).
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -77,28 +112,162 @@ pub struct SelectArgs {
     output: PathBuf,
 }
 
+/// What `codes select` selects for.
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum SelectCriterion {
+    Mse,
+    Range,
+    Lifetime,
+}
+
 pub fn select_cmd(a: SelectArgs) -> Result<ExitCode> {
+    let criterion = match a.criterion {
+        SelectCriterion::Mse => {
+            if a.search.is_some() {
+                bail!("--search: the local search scores thousands of code sets; use it with --criterion range or lifetime (closed-form), not mse");
+            }
+            return select_mse(a);
+        }
+        SelectCriterion::Range => Criterion::Range,
+        SelectCriterion::Lifetime => Criterion::Lifetime,
+    };
+    select_identifiable(a, criterion)
+}
+
+/// `codes select --criterion range|lifetime`: best of random candidates, then the local search.
+fn select_identifiable(a: SelectArgs, criterion: Criterion) -> Result<ExitCode> {
+    let d = &a.design;
+    let candidates = a.candidates.unwrap_or(2000);
+    if candidates == 0 {
+        bail!("--candidates 0: at least one candidate");
+    }
+    let iterations = a.search.unwrap_or(20_000);
+    let irf = super::sensor::parse_irf(a.eval.irf.as_deref().unwrap_or("physical"))?;
+    let sampling = tcsense_sensor::Sampling::from_factors(a.oversample, a.heterodyne, tcsense_sensor::Sampling::Oversample(1))?;
+    let spec = SensorParams { block: d.block, taps: d.taps, drain: d.drain, length: d.length, clock_hz: d.clock_hz(), sampling, irf, ..Default::default() }.validate()?;
+    let light = Light { photons: a.photons, ambient: a.ambient, read_noise_e: a.read_noise };
+    light.validate().map_err(|e| anyhow::anyhow!("--photons/--ambient/--read-noise: {e}"))?;
+    if !(a.alias_threshold.is_finite() && a.alias_threshold >= 0.0) {
+        bail!("--alias-threshold {}: expected a distance ≥ 0", a.alias_threshold);
+    }
+    let obj = Objective::new(criterion, &spec, light, a.alias_threshold);
+    let cancel = interrupt_flag();
+    let t0 = std::time::Instant::now();
+    let pb = ProgressBar::new(candidates as u64);
+    pb.set_style(ProgressStyle::with_template("candidates [{bar:30}] {pos}/{len} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
+    // candidates in parallel, in chunks so that Ctrl-C is seen; each a pure function of its seed
+    let mut scored: Vec<(u64, Score)> = Vec::with_capacity(candidates);
+    for chunk in (0..candidates as u64).collect::<Vec<_>>().chunks(64) {
+        if cancel.load(std::sync::atomic::Ordering::SeqCst) {
+            bail!("interrupted: no codes written");
+        }
+        let part: Vec<Result<(u64, Score)>> = chunk
+            .par_iter()
+            .map(|&i| {
+                let seed = a.seed.wrapping_add(i);
+                let codes = random_codes(d.shape(), d.clock_hz(), d.constraints(), seed)?;
+                Ok((seed, obj.score(&codes)))
+            })
+            .collect();
+        for r in part {
+            scored.push(r?);
+        }
+        pb.inc(chunk.len() as u64);
+    }
+    pb.finish_and_clear();
+    let (best_seed, best_score) = scored.iter().copied().fold((a.seed, scored[0].1), |acc, (s, sc)| if sc.value > acc.1.value { (s, sc) } else { acc });
+    let median_alias = {
+        let mut v: Vec<f64> = scored.iter().map(|x| x.1.alias).collect();
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let unit = match criterion {
+        Criterion::Range => "bins",
+        Criterion::Lifetime => "σ(τ)/τ",
+    };
+    println!(
+        "{candidates} candidates in {:.1} s: median alias {median_alias:.3}; best (seed {best_seed}): alias {:.3}, worst bound {:.4} {unit}, mean {:.4}",
+        t0.elapsed().as_secs_f64(),
+        best_score.alias,
+        best_score.worst,
+        best_score.mean
+    );
+    let start = random_codes(d.shape(), d.clock_hz(), d.constraints(), best_seed)?;
+    let t1 = std::time::Instant::now();
+    let pb = ProgressBar::new(iterations as u64);
+    pb.set_style(ProgressStyle::with_template("local search [{bar:30}] {pos}/{len} eta {eta} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
+    let stop = cancel.clone();
+    let out = search(
+        &obj,
+        start,
+        &SearchOptions { iterations, seed: a.seed },
+        &mut |s: &Score| {
+            pb.inc(100);
+            pb.set_message(format!("alias {:.3}, worst {:.4}", s.alias, s.worst));
+        },
+        &move || stop.load(std::sync::atomic::Ordering::SeqCst),
+    );
+    pb.finish_and_clear();
+    if cancel.load(std::sync::atomic::Ordering::SeqCst) {
+        bail!("interrupted: no codes written");
+    }
+    println!(
+        "local search: {} moves in {:.1} s ({} broke a constraint and were refused, {} kept): alias {:.3}, worst bound {:.4} {unit}, mean {:.4}",
+        out.tried,
+        t1.elapsed().as_secs_f64(),
+        out.infeasible,
+        out.kept,
+        out.score.alias,
+        out.score.worst,
+        out.score.mean
+    );
+    let mut codes = out.codes;
+    codes.ensure_feasible()?;
+    codes.provenance = serde_json::json!({
+        "method": "design",
+        "criterion": criterion.name(),
+        "candidates": candidates,
+        "first_seed": a.seed,
+        "best_candidate_seed": best_seed,
+        "search_moves": iterations,
+        "irf": a.eval.irf.as_deref().unwrap_or("physical"),
+        "sampling": format!("{:?}", sampling),
+        "light": light,
+        "alias_threshold": a.alias_threshold,
+        "score": out.score,
+    });
+    codes.save(&a.output)?;
+    if out.score.alias < a.alias_threshold {
+        eprintln!("warning: the best codes found still alias ({:.3} < {}): try more --candidates or --search, or relax the constraints", out.score.alias, a.alias_threshold);
+    }
+    println!("wrote {}", a.output.display());
+    Ok(ExitCode::SUCCESS)
+}
+
+fn select_mse(a: SelectArgs) -> Result<ExitCode> {
     let l = load(&a.eval)?;
+    let dataset = a.eval.dataset.clone().unwrap_or_default();
     let d = &a.design;
     if d.length != l.length {
-        bail!("--length {} differs from the dataset's L = {} ({})", d.length, l.length, a.eval.dataset.display());
+        bail!("--length {} differs from the dataset's L = {} ({})", d.length, l.length, dataset.display());
     }
-    if a.candidates == 0 {
+    let candidates = a.candidates.unwrap_or(20);
+    if candidates == 0 {
         bail!("--candidates 0: at least one candidate");
     }
     let (h, w) = l.size;
     if h % d.block.0 != 0 || w % d.block.1 != 0 {
-        bail!("{}: frame {h}x{w} is not a multiple of the {}x{} block", a.eval.dataset.display(), d.block.0, d.block.1);
+        bail!("{}: frame {h}x{w} is not a multiple of the {}x{} block", dataset.display(), d.block.0, d.block.1);
     }
     let cancel = interrupt_flag();
-    let pb = ProgressBar::new(a.candidates as u64);
+    let pb = ProgressBar::new(candidates as u64);
     pb.set_style(ProgressStyle::with_template("candidates [{bar:30}] {pos}/{len} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
     println!("candidate seed        MSE");
     let mut on = |c: &tcsense_infer::selection::Candidate| {
         pb.suspend(|| println!("{:>14} {:.4e}", c.seed, c.mse));
         pb.inc(1);
     };
-    let (best, all) = select(d.shape(), d.clock_hz(), d.constraints(), a.candidates, a.seed, &l.setup, &l.cubes, &mut on, &cancel)?;
+    let (best, all) = select(d.shape(), d.clock_hz(), d.constraints(), candidates, a.seed, &l.setup, &l.cubes, &mut on, &cancel)?;
     pb.finish_and_clear();
     best.save(&a.output)?;
     let bm = all.iter().map(|c| c.mse).fold(f64::INFINITY, f64::min);
@@ -197,7 +366,7 @@ pub fn sweep(cmd: SweepCmd) -> Result<ExitCode> {
         }
     }
     if h % 2 != 0 || w % 2 != 0 {
-        bail!("{}: frame {h}x{w} is not a multiple of the 2x2 block", a.eval.dataset.display());
+        bail!("{}: frame {h}x{w} is not a multiple of the 2x2 block", a.eval.dataset.clone().unwrap_or_default().display());
     }
     let cancel = interrupt_flag();
     let total = (points.len() * a.candidates) as u64;
