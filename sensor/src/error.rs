@@ -39,6 +39,9 @@ pub enum SensorError {
     /// Codes that break the constraints they were declared with.
     #[error("codes violate their declared constraints ({count} violation(s)); first: {first}. Run `tcsense codes check` for the full list")]
     Infeasible { count: usize, first: String },
+    /// Long work stopped by the user (Ctrl-C); nothing was written.
+    #[error("interrupted: nothing written")]
+    Cancelled,
 }
 
 impl SensorError {

@@ -151,9 +151,8 @@ fn print_report(name: &str, r: &Report, threshold: f64) {
         None => println!("  two returns      not resolved at any separation up to half the cycle"),
     }
     if let Some(la) = &r.lifetime_alias {
-        let warn = if la.distance < threshold { "  ← ALIAS: below the threshold" } else { "" };
         println!(
-            "  lifetime alias   {:.3} (τ {:.2} ns at onset bin {:.1} against τ {:.2} ns at bin {:.1}){warn}",
+            "  lifetime alias   {:.3} (τ {:.2} ns at onset bin {:.1} against τ {:.2} ns at bin {:.1}; a pixel fitting its own onset; the frame's onset is placed by the range alias)",
             la.distance,
             la.tau1_s * 1e9,
             la.onset1_bins,
@@ -275,17 +274,7 @@ fn aliased(r: &Report, threshold: f64) -> Option<String> {
             al.bin, al.other, al.distance
         ));
     }
-    match &r.lifetime_alias {
-        Some(la) if la.distance < threshold => Some(format!(
-            "decays of τ {:.2} ns at onset bin {:.1} and τ {:.2} ns at bin {:.1} give taps {:.3} apart (alias threshold {threshold})",
-            la.tau1_s * 1e9,
-            la.onset1_bins,
-            la.tau2_s * 1e9,
-            la.onset2_bins,
-            la.distance
-        )),
-        _ => None,
-    }
+    None
 }
 
 /// `codes export`'s gate: an error naming the bins where the codes alias (unless forced).

@@ -11,11 +11,9 @@ use tcsense_infer::figures::{log_chart, Series};
 use tcsense_infer::selection::{evaluate_candidates, select, table1_settings, Candidate, EvalSetup};
 use tcsense_sensor::codes::{CodeShape, Constraints};
 use tcsense_sensor::npy::write_bytes;
-use tcsense_sensor::design::{search, Criterion, Objective, Score, SearchOptions};
-use tcsense_sensor::generate::random_codes;
+use tcsense_sensor::design::{design, Criterion, DesignOptions, DesignProgress, Objective, Score};
 use tcsense_sensor::identify::Light;
 use tcsense_sensor::SensorParams;
-use rayon::prelude::*;
 
 use super::codes::DesignArgs;
 use super::dataset::interrupt_flag;
@@ -79,11 +77,11 @@ pub struct SelectArgs {
     /// lifetime alias, the smallest worst-case relative lifetime bound).
     #[arg(long, value_enum, default_value_t = SelectCriterion::Mse)]
     criterion: SelectCriterion,
-    /// Number of random candidates (default: 20 for mse, as the paper; 2000 for range and
+    /// Number of random candidates (default: 20 for mse, as the paper; 20000 for range and
     /// lifetime, which are closed-form).
     #[arg(long)]
     candidates: Option<usize>,
-    /// Moves of the local search from the best candidate (range and lifetime; default 20000).
+    /// Moves of each local search, from the 8 best candidates (range and lifetime; default 50000).
     #[arg(long)]
     search: Option<usize>,
     /// Grid: oversampling factor K (range and lifetime criteria).
@@ -112,6 +110,47 @@ pub struct SelectArgs {
     output: PathBuf,
 }
 
+/// Candidates and local-search moves of the closed-form criteria (about 10 s on 2 cores for
+/// the prototype's LiDAR codes; the lifetime criterion takes about 20× longer per candidate).
+const DEFAULT_CANDIDATES: usize = 20_000;
+const DEFAULT_SEARCH: usize = 50_000;
+
+/// Local searches run from the best candidates (one per start, in parallel).
+const SEARCH_STARTS: usize = 8;
+
+/// Progress bars of a design: candidates, then the local searches' moves.
+struct Bars {
+    candidates: ProgressBar,
+    moves: ProgressBar,
+}
+
+impl Bars {
+    fn new(candidates: usize, moves: usize) -> Bars {
+        let style = |what: &str| {
+            ProgressStyle::with_template(&format!("{what} [{{bar:30}}] {{pos}}/{{len}} eta {{eta}} {{msg}}")).unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> ")
+        };
+        Bars { candidates: ProgressBar::new(candidates as u64).with_style(style("candidates")), moves: ProgressBar::new(moves as u64).with_style(style("local search")) }
+    }
+
+    fn done(&self) {
+        self.candidates.finish_and_clear();
+        self.moves.finish_and_clear();
+    }
+}
+
+impl DesignProgress for Bars {
+    fn candidates(&self, done: usize, of: usize) {
+        self.candidates.set_position(done as u64);
+        if done == of {
+            self.candidates.finish_and_clear();
+        }
+    }
+    fn moves(&self, done: usize, score: &Score) {
+        self.moves.inc(done as u64);
+        self.moves.set_message(format!("alias {:.3}, worst {:.4}", score.alias, score.worst));
+    }
+}
+
 /// What `codes select` selects for.
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
 pub enum SelectCriterion {
@@ -137,11 +176,11 @@ pub fn select_cmd(a: SelectArgs) -> Result<ExitCode> {
 /// `codes select --criterion range|lifetime`: best of random candidates, then the local search.
 fn select_identifiable(a: SelectArgs, criterion: Criterion) -> Result<ExitCode> {
     let d = &a.design;
-    let candidates = a.candidates.unwrap_or(2000);
+    let candidates = a.candidates.unwrap_or(DEFAULT_CANDIDATES);
     if candidates == 0 {
         bail!("--candidates 0: at least one candidate");
     }
-    let iterations = a.search.unwrap_or(20_000);
+    let iterations = a.search.unwrap_or(DEFAULT_SEARCH);
     let irf = super::sensor::parse_irf(a.eval.irf.as_deref().unwrap_or("physical"))?;
     let sampling = tcsense_sensor::Sampling::from_factors(a.oversample, a.heterodyne, tcsense_sensor::Sampling::Oversample(1))?;
     let spec = SensorParams { block: d.block, taps: d.taps, drain: d.drain, length: d.length, clock_hz: d.clock_hz(), sampling, irf, ..Default::default() }.validate()?;
@@ -153,89 +192,34 @@ fn select_identifiable(a: SelectArgs, criterion: Criterion) -> Result<ExitCode> 
     let obj = Objective::new(criterion, &spec, light, a.alias_threshold);
     let cancel = interrupt_flag();
     let t0 = std::time::Instant::now();
-    let pb = ProgressBar::new(candidates as u64);
-    pb.set_style(ProgressStyle::with_template("candidates [{bar:30}] {pos}/{len} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
-    // candidates in parallel, in chunks so that Ctrl-C is seen; each a pure function of its seed
-    let mut scored: Vec<(u64, Score)> = Vec::with_capacity(candidates);
-    for chunk in (0..candidates as u64).collect::<Vec<_>>().chunks(64) {
-        if cancel.load(std::sync::atomic::Ordering::SeqCst) {
-            bail!("interrupted: no codes written");
-        }
-        let part: Vec<Result<(u64, Score)>> = chunk
-            .par_iter()
-            .map(|&i| {
-                let seed = a.seed.wrapping_add(i);
-                let codes = random_codes(d.shape(), d.clock_hz(), d.constraints(), seed)?;
-                Ok((seed, obj.score(&codes)))
-            })
-            .collect();
-        for r in part {
-            scored.push(r?);
-        }
-        pb.inc(chunk.len() as u64);
-    }
-    pb.finish_and_clear();
-    let (best_seed, best_score) = scored.iter().copied().fold((a.seed, scored[0].1), |acc, (s, sc)| if sc.value > acc.1.value { (s, sc) } else { acc });
-    let median_alias = {
-        let mut v: Vec<f64> = scored.iter().map(|x| x.1.alias).collect();
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
-    };
+    let progress = Bars::new(candidates, iterations * SEARCH_STARTS.min(candidates));
+    let opts = DesignOptions { candidates, starts: SEARCH_STARTS, moves: iterations, seed: a.seed };
+    let out = design(&obj, d.shape(), d.clock_hz(), d.constraints(), &opts, &progress, &cancel)?;
+    progress.done();
     let unit = match criterion {
         Criterion::Range => "bins",
         Criterion::Lifetime => "σ(τ)/τ",
     };
+    let (best_seed, best) = out.best_candidate;
     println!(
-        "{candidates} candidates in {:.1} s: median alias {median_alias:.3}; best (seed {best_seed}): alias {:.3}, worst bound {:.4} {unit}, mean {:.4}",
-        t0.elapsed().as_secs_f64(),
-        best_score.alias,
-        best_score.worst,
-        best_score.mean
+        "{candidates} candidates: median alias {:.3}; best (seed {best_seed}): alias {:.3}, worst bound {:.4} {unit}, mean {:.4}",
+        out.median_alias, best.alias, best.worst, best.mean
     );
-    let start = random_codes(d.shape(), d.clock_hz(), d.constraints(), best_seed)?;
-    let t1 = std::time::Instant::now();
-    let pb = ProgressBar::new(iterations as u64);
-    pb.set_style(ProgressStyle::with_template("local search [{bar:30}] {pos}/{len} eta {eta} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
-    let stop = cancel.clone();
-    let out = search(
-        &obj,
-        start,
-        &SearchOptions { iterations, seed: a.seed },
-        &mut |s: &Score| {
-            pb.inc(100);
-            pb.set_message(format!("alias {:.3}, worst {:.4}", s.alias, s.worst));
-        },
-        &move || stop.load(std::sync::atomic::Ordering::SeqCst),
-    );
-    pb.finish_and_clear();
-    if cancel.load(std::sync::atomic::Ordering::SeqCst) {
-        bail!("interrupted: no codes written");
+    for (seed, s) in &out.searches {
+        println!(
+            "local search from seed {seed}: {} moves ({} broke a constraint and were refused, {} kept): alias {:.3}, worst bound {:.4} {unit}, mean {:.4}",
+            s.tried, s.infeasible, s.kept, s.score.alias, s.score.worst, s.score.mean
+        );
     }
-    println!(
-        "local search: {} moves in {:.1} s ({} broke a constraint and were refused, {} kept): alias {:.3}, worst bound {:.4} {unit}, mean {:.4}",
-        out.tried,
-        t1.elapsed().as_secs_f64(),
-        out.infeasible,
-        out.kept,
-        out.score.alias,
-        out.score.worst,
-        out.score.mean
-    );
+    println!("{:.1} s in all; kept the search from seed {}", t0.elapsed().as_secs_f64(), out.start_seed);
     let mut codes = out.codes;
-    codes.ensure_feasible()?;
-    codes.provenance = serde_json::json!({
-        "method": "design",
-        "criterion": criterion.name(),
-        "candidates": candidates,
-        "first_seed": a.seed,
-        "best_candidate_seed": best_seed,
-        "search_moves": iterations,
-        "irf": a.eval.irf.as_deref().unwrap_or("physical"),
-        "sampling": format!("{:?}", sampling),
-        "light": light,
-        "alias_threshold": a.alias_threshold,
-        "score": out.score,
-    });
+    if let serde_json::Value::Object(m) = &mut codes.provenance {
+        m.insert("irf".into(), serde_json::json!(a.eval.irf.as_deref().unwrap_or("physical")));
+        m.insert("sampling".into(), serde_json::json!(format!("{sampling:?}")));
+    }
+    if out.score.alias < a.alias_threshold {
+        eprintln!("warning: the best codes found still alias ({:.3} < {}): try more --candidates or --search, or relax the constraints", out.score.alias, a.alias_threshold);
+    }
     codes.save(&a.output)?;
     if out.score.alias < a.alias_threshold {
         eprintln!("warning: the best codes found still alias ({:.3} < {}): try more --candidates or --search, or relax the constraints", out.score.alias, a.alias_threshold);

@@ -213,6 +213,14 @@ pub struct TrainArgs {
     /// Learned codes: Adam learning rate of the code logits.
     #[arg(long, requires = "learn_codes")]
     codes_lr: Option<f64>,
+    /// Learned codes: weight of the identifiability term, a squared hinge on the range alias
+    /// (pairs of ranges two masks or more apart whose taps are closer than --alias-threshold);
+    /// 0 leaves it out (default 1).
+    #[arg(long, requires = "learn_codes")]
+    alias_weight: Option<f64>,
+    /// Learned codes: the alias distance the identifiability term enforces (default 0.5).
+    #[arg(long, requires = "learn_codes")]
+    alias_threshold: Option<f64>,
     /// Run directory.
     #[arg(short, long)]
     output: PathBuf,
@@ -458,6 +466,12 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
         if let Some(v) = a.codes_lr {
             lc.codes_lr = v;
         }
+        if let Some(v) = a.alias_weight {
+            lc.alias_weight = v;
+        }
+        if let Some(v) = a.alias_threshold {
+            lc.alias_threshold = v;
+        }
         cfg.learn_codes = Some(lc);
     }
     if codes.taps() != cfg.run.model.taps() {
@@ -511,12 +525,14 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     }
     if let Some(lc) = &cfg.learn_codes {
         println!(
-            "learning the codes: {} relaxed epochs (τ {} → {}, codes lr {}, penalty weight {}), then {} epochs on the codes projected onto {}",
+            "learning the codes: {} relaxed epochs (τ {} → {}, codes lr {}, penalty weight {}, alias weight {} at {}), then {} epochs on the codes projected onto {}",
             lc.relaxed_epochs,
             lc.tau_start,
             lc.tau_end,
             lc.codes_lr,
             lc.penalty_weight,
+            lc.alias_weight,
+            lc.alias_threshold,
             cfg.epochs.saturating_sub(lc.relaxed_epochs),
             lc.constraints.label()
         );

@@ -27,7 +27,7 @@ use burn::tensor::{Device, Tensor};
 use ndarray::Array4;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
-use tcsense_models::learned_codes::{basis_tensor, forward, hamming_penalty, hard_codes, matrix, window_penalty, CodeLogits, CodeRelaxation};
+use tcsense_models::learned_codes::{alias_penalty, basis_tensor, forward, hamming_penalty, hard_codes, matrix, window_penalty, CodeLogits, CodeRelaxation};
 use tcsense_models::net::to_tensor;
 use tcsense_models::runs::RunSpec;
 use tcsense_sensor::params::SensorParams;
@@ -51,12 +51,36 @@ pub struct LearnCodes {
     pub penalty_weight: f64,
     /// Initial logits: ±margin around the starting codes.
     pub init_margin: f32,
+    /// Weight of the identifiability term ([`alias_penalty`]) throughout the relaxed phase; 0
+    /// (the runs written before it) leaves it out.
+    #[serde(default)]
+    pub alias_weight: f64,
+    /// The alias distance below which a pair of ranges is pushed apart.
+    #[serde(default = "default_alias_threshold")]
+    pub alias_threshold: f64,
 }
+
+fn default_alias_threshold() -> f64 {
+    tcsense_sensor::identify::DEFAULT_ALIAS_THRESHOLD
+}
+
+/// Default weight of the identifiability term of new runs.
+pub const DEFAULT_ALIAS_WEIGHT: f64 = 1.0;
 
 impl LearnCodes {
     /// Defaults for `epochs` in all: two thirds relaxed.
     pub fn new(constraints: Constraints, epochs: usize) -> Self {
-        LearnCodes { constraints, relaxed_epochs: (2 * epochs).div_ceil(3).max(1), tau_start: 1.0, tau_end: 0.1, codes_lr: 5e-2, penalty_weight: 1e-2, init_margin: 0.1 }
+        LearnCodes {
+            constraints,
+            relaxed_epochs: (2 * epochs).div_ceil(3).max(1),
+            tau_start: 1.0,
+            tau_end: 0.1,
+            codes_lr: 5e-2,
+            penalty_weight: 1e-2,
+            init_margin: 0.1,
+            alias_weight: DEFAULT_ALIAS_WEIGHT,
+            alias_threshold: default_alias_threshold(),
+        }
     }
 
     pub fn validate(&self, epochs: usize) -> Result<()> {
@@ -72,6 +96,12 @@ impl LearnCodes {
         }
         if !(self.penalty_weight >= 0.0 && self.penalty_weight.is_finite() && self.init_margin.is_finite()) {
             return bad("learn_codes.penalty_weight", self.penalty_weight.to_string(), "a non-negative weight and a finite margin");
+        }
+        if !(self.alias_weight >= 0.0 && self.alias_weight.is_finite()) {
+            return bad("learn_codes.alias_weight", self.alias_weight.to_string(), "a non-negative weight (0: no identifiability term)");
+        }
+        if !(self.alias_threshold >= 0.0 && self.alias_threshold <= 2f64.sqrt()) {
+            return bad("learn_codes.alias_threshold", self.alias_threshold.to_string(), "a distance in [0, 1.414] between unit signatures");
         }
         Ok(())
     }
@@ -92,6 +122,8 @@ pub(crate) struct Learner {
     optim: ModuleOptimizer,
     basis: Tensor<2>,
     block: (usize, usize),
+    /// Bins two returns must be apart to count as an alias (two masks).
+    min_shift: usize,
     /// The hard codes of the logits (no constraints declared).
     pub hard: Codes,
     pub tau: f64,
@@ -107,7 +139,8 @@ impl Learner {
         let mut logits = CodeLogits::from_codes(start, &relax, lc.init_margin, device);
         logits.theta.id = ParamId::from(LOGITS_ID);
         let hard = hard_codes(&logits.to_array(), &relax, start)?;
-        Ok(Learner { lc: lc.clone(), relax, logits, optim: AdamConfig::new().init(), basis, block: start.block(), hard, tau: lc.tau_start, weight: 0.0 })
+        let min_shift = (tcsense_sensor::identify::ALIAS_MIN_MASKS * spec.sampling.k()).min(start.length() * spec.sampling.k() / 2).max(1);
+        Ok(Learner { lc: lc.clone(), relax, logits, optim: AdamConfig::new().init(), basis, block: start.block(), min_shift, hard, tau: lc.tau_start, weight: 0.0 })
     }
 
     /// Temperature and penalty weight at `frac` ∈ [0, 1] of the relaxed phase.
@@ -149,7 +182,11 @@ impl Learner {
         if let Some(w) = self.lc.constraints.window {
             penalty = penalty + window_penalty(soft, w);
         }
-        (y, a, penalty.mul_scalar(self.weight))
+        let mut penalty = penalty.mul_scalar(self.weight);
+        if self.lc.alias_weight > 0.0 {
+            penalty = penalty + alias_penalty(a.clone(), self.min_shift, self.lc.alias_threshold as f32).mul_scalar(self.lc.alias_weight);
+        }
+        (y, a, penalty)
     }
 
     /// One Adam step of the logits.
