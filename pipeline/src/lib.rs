@@ -12,6 +12,7 @@
 
 pub mod demo;
 pub mod error;
+pub mod identifiability;
 
 pub use demo::{DemoOptions, DemoSummary, Observer};
 pub use error::{PipelineError, Result};
