@@ -71,6 +71,8 @@ pub struct Entry {
     pub domain: &'static str,
     /// Whether the codes were learned with the decoder (deep sensing) or given.
     pub learned_codes: bool,
+    /// Whether the given codes were designed by identifiability (`codes select --criterion`).
+    pub designed_codes: bool,
     /// `M taps, block HxW, L = …` of the run's codes.
     pub codes: String,
     /// Epochs logged in `metrics.csv` (plus `relaxed/metrics.csv`, deep sensing's joint phase,
@@ -81,6 +83,10 @@ pub struct Entry {
     pub title: String,
     /// Bytes of the weights file.
     pub weights_bytes: u64,
+    /// The range alias of its codes on its sensor (sampling and IRF of the run;
+    /// [`tcsense_sensor::identify`]): below 0.5 two ranges (or two onsets) two masks or more
+    /// apart give nearly the same taps. `None` where the config names no sensor.
+    pub range_alias: Option<f64>,
 }
 
 /// Every entry of the zoo, by name.
@@ -105,6 +111,8 @@ fn read_entry(name: &str, dir: &Path) -> Result<Entry> {
     let domain = if heterodyne || matches!(model, ModelConfig::Lifetime(_)) { "FLIm" } else { "LiDAR" };
     let learned_codes = json.get("learn_codes").is_some_and(|v| !v.is_null());
     let codes = tcsense_sensor::Codes::load(&file(CODES_FILE))?;
+    let range_alias = alias_of(&codes, &json);
+    let designed_codes = codes.provenance.get("method").and_then(|m| m.as_str()) == Some("design");
     let (bh, bw) = codes.block();
     let codes = format!("{} taps, block {bh}x{bw}, L = {}", codes.taps(), codes.length());
     let (epochs, validation) = last_metrics(&file("metrics.csv"));
@@ -112,7 +120,16 @@ fn read_entry(name: &str, dir: &Path) -> Result<Entry> {
     let epochs = epochs + if learned_codes { last_metrics(&file("relaxed/metrics.csv")).0 } else { 0 };
     let title = std::fs::read_to_string(file(PROVENANCE_FILE)).ok().and_then(|t| t.lines().find_map(|l| l.strip_prefix("# ").map(str::to_string))).unwrap_or_default();
     let weights_bytes = std::fs::metadata(file(WEIGHTS_FILE)).map_err(|e| ModelError::File { path: file(WEIGHTS_FILE), msg: e.to_string() })?.len();
-    Ok(Entry { name: name.to_string(), dir: dir.to_path_buf(), model, domain, learned_codes, codes, epochs, validation, title, weights_bytes })
+    Ok(Entry { name: name.to_string(), dir: dir.to_path_buf(), model, domain, learned_codes, designed_codes, codes, epochs, validation, title, weights_bytes, range_alias })
+}
+
+/// The range alias of `codes` on the sensor of a run config (its `sampling` and `irf`).
+fn alias_of(codes: &tcsense_sensor::Codes, json: &serde_json::Value) -> Option<f64> {
+    let sampling: tcsense_sensor::Sampling = serde_json::from_value(json.get("sampling")?.clone()).ok()?;
+    let irf: tcsense_sensor::Irf = serde_json::from_value(json.get("irf")?.clone()).ok()?;
+    let spec = tcsense_sensor::SensorParams { sampling, irf, ..tcsense_sensor::SensorParams::from_codes(codes) }.validate().ok()?;
+    let a = tcsense_sensor::MeasurementMatrix::synthesize(codes, &spec).ok()?;
+    Some(tcsense_sensor::identify::range_alias(&tcsense_sensor::identify::Columns::new(&a, sampling.k())).distance)
 }
 
 /// The number of rows of a `metrics.csv` and its last row's validation columns (none when

@@ -24,9 +24,12 @@ pub fn run(cmd: ZooCmd) -> Result<ExitCode> {
         ZooCmd::List => {
             let entries = zoo::list()?;
             println!("zoo: {} ({} entries)", zoo::root().display(), entries.len());
-            println!("{:<28} {:<9} {:<6} {:<8} {:>6}  {}", "NAME", "DECODER", "DOMAIN", "CODES", "EPOCHS", "VALIDATION");
+            println!("{:<28} {:<9} {:<6} {:<8} {:>6}  {:<6} {}", "NAME", "DECODER", "DOMAIN", "CODES", "EPOCHS", "ALIAS", "VALIDATION");
             for e in &entries {
-                println!("{:<28} {:<9} {:<6} {:<8} {:>6}  {}", e.name, e.model.name(), e.domain, codes_kind(e), e.epochs, validation(e));
+                println!("{:<28} {:<9} {:<6} {:<8} {:>6}  {:<6} {}", e.name, e.model.name(), e.domain, codes_kind(e), e.epochs, alias(e), validation(e));
+            }
+            if entries.iter().any(|e| e.range_alias.is_some_and(|a| a < tcsense_sensor::identify::DEFAULT_ALIAS_THRESHOLD)) {
+                println!("ALIAS: the range alias of the entry's codes on its sensor; below 0.5 (*) two ranges two masks or more apart give nearly the same taps (`tcsense codes analyze`)");
             }
         }
         ZooCmd::Show { name } => {
@@ -35,7 +38,7 @@ pub fn run(cmd: ZooCmd) -> Result<ExitCode> {
             println!("  directory   {}", e.dir.display());
             println!("  decoder     {} ({} taps, {} bins, {:.2} GFLOP per 188x212 frame)", e.model.name(), e.model.taps(), e.model.bins(), e.model.flops(188, 212) / 1e9);
             println!("  domain      {}", e.domain);
-            println!("  codes       {} ({})", e.codes, codes_kind(&e));
+            println!("  codes       {} ({}), range alias {}", e.codes, codes_kind(&e), alias(&e));
             println!("  trained     {} epochs; last validation {}", e.epochs, validation(&e));
             println!("  weights     {:.2} MB", e.weights_bytes as f64 / 1e6);
             println!();
@@ -48,9 +51,20 @@ pub fn run(cmd: ZooCmd) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// `0.773`, or `0.011*` below the alias threshold.
+fn alias(e: &Entry) -> String {
+    match e.range_alias {
+        Some(a) if a < tcsense_sensor::identify::DEFAULT_ALIAS_THRESHOLD => format!("{a:.3}*"),
+        Some(a) => format!("{a:.3}"),
+        None => "–".into(),
+    }
+}
+
 fn codes_kind(e: &Entry) -> &'static str {
     if e.learned_codes {
         "learned"
+    } else if e.designed_codes {
+        "designed"
     } else {
         "given"
     }
