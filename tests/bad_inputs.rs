@@ -378,7 +378,7 @@ fn unwritable_outputs_are_refused() {
     std::fs::write(c.dir.join("file.txt"), "a regular file, not a directory").unwrap();
     let slots: &[&[&str]] = &[
         &["codes", "generate", "--length", "8", "-o", "@/c.json"],
-        &["codes", "export", "codes.json", "-o", "@/mem"],
+        &["codes", "export", "codes.json", "--force", "-o", "@/mem"],
         &["codes", "show", "codes.json", "-o", "@/c.png"],
         &["sensor", "matrix", "--codes", "codes.json", "-o", "@/A.npy"],
         &["simulate", "--codes", "codes.json", "--cube", "x.npy", "-o", "@/y.npy"],
