@@ -216,7 +216,7 @@ pub struct SearchResult {
 }
 
 /// Local search from `start` (feasible) for the highest score; `on_step` is called every 100
-/// moves with the best so far; `cancel` stops it early (the best so far is returned).
+/// moves tried with the best so far; `cancel` stops it early (the best so far is returned).
 pub fn search(obj: &Objective, start: Codes, opts: &SearchOptions, on_step: &mut dyn FnMut(&Score), cancel: &dyn Fn() -> bool) -> SearchResult {
     let mut rng = StdRng::seed_from_u64(opts.seed);
     let mut best = start;
@@ -227,6 +227,9 @@ pub fn search(obj: &Objective, start: Codes, opts: &SearchOptions, on_step: &mut
     for it in 0..opts.iterations {
         if cancel() {
             break;
+        }
+        if it % 100 == 99 {
+            on_step(&score);
         }
         tried += 1;
         let mut cand = best.clone();
@@ -275,9 +278,6 @@ pub fn search(obj: &Objective, start: Codes, opts: &SearchOptions, on_step: &mut
             best = cand;
             score = s;
             kept += 1;
-        }
-        if it % 100 == 99 {
-            on_step(&score);
         }
     }
     SearchResult { codes: best, score, tried, infeasible, kept }
