@@ -43,6 +43,10 @@ const WEAK_CLASS: f64 = 1e-3;
 /// Frames at or above this share of the full scale count as saturated.
 const SATURATED: f64 = 0.999;
 
+/// A sweep delay within this share of a bin below the bin's start is assigned to that bin
+/// (floating-point rounding of delays set on the bins' edges must not decide the bin).
+pub const BIN_EDGE_TOLERANCE: f64 = 1e-6;
+
 /// `calibration.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -181,7 +185,9 @@ pub fn calibrate(sweep: &Sweep, nominal: &MeasurementMatrix, codes: &Codes, samp
         if !(0.0..cycle).contains(&d) {
             return Err(err(&manifest_path, format!("field delays_s[{i}] = {:.4} ns lies outside the code cycle [0, {:.4}) ns", d * 1e9, cycle * 1e9)));
         }
-        let j = ((d / dt).floor() as usize).min(t - 1);
+        // a delay a rounding error below a bin's start belongs to that bin: settings on bin
+        // edges (j·Δt computed in floating point) must not land in the bin before
+        let j = ((d / dt + BIN_EDGE_TOLERANCE).floor() as usize).min(t - 1);
         count[j] += 1;
         bin_of.push(j);
     }
@@ -476,6 +482,33 @@ mod tests {
         cal.save(&out).unwrap();
         let back = Calibration::load(&out, &a, &codes).unwrap();
         assert_eq!((back.matrix, back.gain, back.dark), (cal.matrix.clone(), cal.gain.clone(), cal.dark.clone()));
+    }
+
+    /// Delays on the bins' edges, one ulp low (as `j·Δt` in floating point can come out), and
+    /// two delays per bin: each bin gets its own (the old `floor` put bin j's delay in bin j − 1
+    /// and refused the sweep: "bins have no delay"), and the two frames of a bin are averaged.
+    #[test]
+    fn delays_a_rounding_error_below_a_bin_edge_belong_to_that_bin() {
+        let (codes, a) = sensor();
+        let dir = tempfile::tempdir().unwrap();
+        let settings = SweepSettings { size: (4, 4), average: 1, noise: NoiseParams::default(), noisy: false, adc: false, png: false, level: 0.7, seed: 0 };
+        simulate_sweep(&a, &codes, &NonIdeal::default(), &settings, dir.path()).unwrap();
+        let centred = Sweep::load(dir.path()).unwrap();
+        let want = calibrate(&centred, &a, &codes, Sampling::Oversample(1)).unwrap();
+        let dt = a.bin_width_s();
+        let mut edges = centred.clone();
+        edges.manifest.delays_s = (0..a.bins()).map(|j| if j == 0 { 0.0 } else { f64::from_bits((j as f64 * dt).to_bits() - 1) }).collect();
+        let got = calibrate(&edges, &a, &codes, Sampling::Oversample(1)).unwrap();
+        assert_eq!(got.matrix, want.matrix, "each frame in its own bin");
+        // two frames per bin (the same frame twice): averaged, the same calibration
+        let mut twice = centred.clone();
+        twice.manifest.delays_s = centred.manifest.delays_s.iter().flat_map(|&d| [d, d]).collect();
+        twice.frames = ndarray::concatenate(Axis(0), &[centred.frames.view(), centred.frames.view()]).unwrap();
+        let order: Vec<usize> = (0..a.bins()).flat_map(|j| [j, j + a.bins()]).collect();
+        twice.frames = twice.frames.select(Axis(0), &order);
+        let got = calibrate(&twice, &a, &codes, Sampling::Oversample(1)).unwrap();
+        let diff = (&got.matrix.a() - &want.matrix.a()).mapv(f32::abs).iter().fold(0f32, |m, &v| m.max(v));
+        assert!(diff < 1e-6, "{diff}");
     }
 
     #[test]

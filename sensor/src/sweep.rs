@@ -16,6 +16,9 @@
 //! }
 //! ```
 //!
+//! `delays_s` are the laser delays (s) from the start of the code cycle, in `[0, cycle)`; a delay
+//! in `[jΔt, (j+1)Δt)` belongs to bin `j`, one within [`crate::calibration::BIN_EDGE_TOLERANCE`]
+//! of a bin below the bin's start to that bin, and the frames of one bin are averaged.
 //! `frames` is a `.npy` of `[K, M, H, W]` (one frame per delay, usually an average of many),
 //! or a list of `K` frames each listing its `M` tap images as 8/16-bit grayscale PNGs. `dark`
 //! and `flat` are the same with any number of frames (`[F, M, H, W]` or `[M, H, W]`); they are
