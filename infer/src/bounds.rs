@@ -52,13 +52,14 @@ fn noise_of(light: &Light) -> NoiseParams {
     NoiseParams { full_well_e: 1e12, read_noise_e: light.read_noise_e, signal_fraction: 1.0, adc_bits: 0 }
 }
 
-/// `y = A x` of a flat frame `[M, H, W]` whose every pixel holds the transient `x [T]`.
-fn flat_frame(a: &MeasurementMatrix, x: &[f64], size: usize) -> Array3<f32> {
-    let av = a.a();
-    let (n_sub, m, t) = av.dim();
-    let (bh, bw) = a.block();
-    let sig: Vec<f64> = (0..n_sub * m).map(|c| (0..t).map(|j| av[(c / m, c % m, j)] as f64 * x[j]).sum()).collect();
-    Array3::from_shape_fn((m, size, size), |(k, i, j)| sig[((i % bh) * bw + j % bw) * m + k] as f32)
+/// `y = A x` of a flat `size × size` frame whose every pixel holds the transient `x [T]`,
+/// through the sensor's operator.
+///
+/// # Shapes
+/// - `x`: `[T]` → `[M, size, size]`
+fn flat_frame(a: &MeasurementMatrix, x: &[f64], size: usize) -> Result<Array3<f32>> {
+    let cube = Array4::from_shape_fn((1, x.len(), size, size), |(_, j, _, _)| x[j] as f32);
+    Ok(a.plan(size, size)?.forward_batch(&cube.view())?.index_axis_move(Axis(0), 0))
 }
 
 /// The inner pixels `(i, j)` of a frame, with the bound weights of their window.
@@ -92,7 +93,7 @@ pub fn validate_range(a: &MeasurementMatrix, light: &Light, delays_bins: &[f64],
         let mut x = vec![light.ambient / t as f64; t];
         x[t0] += light.photons * (1.0 - f);
         x[(t0 + 1) % t] += light.photons * f;
-        let y = flat_frame(a, &x, size);
+        let y = flat_frame(a, &x, size)?;
         let noisy = add_noise(&y.view().into_dyn(), &noise_of(light), Exposure::ElectronsPerUnit(1.0), tcsense_sensor::noise::derive_seed(seed, di as u64))?;
         let y4 = noisy.electrons.into_dimensionality::<ndarray::Ix3>().map_err(|e| crate::InferError::InvalidParam { field: "frame", got: e.to_string(), expected: "[M, H, W]".into() })?.insert_axis(Axis(0));
         let mut depth = Array4::from_elem((1, 1, size, size), (tau * metres_per_bin) as f32);
@@ -124,7 +125,7 @@ pub fn validate_lifetime(a: &MeasurementMatrix, k: usize, light: &Light, taus_s:
     for (ti, &tau) in taus_s.iter().enumerate() {
         let d = periodic_decay(t, a.bin_width_s(), tau, onset_s);
         let x: Vec<f64> = d.iter().map(|v| light.photons * v + light.ambient / t as f64).collect();
-        let y = flat_frame(a, &x, size);
+        let y = flat_frame(a, &x, size)?;
         let noisy = add_noise(&y.view().into_dyn(), &noise_of(light), Exposure::ElectronsPerUnit(1.0), tcsense_sensor::noise::derive_seed(seed, ti as u64))?;
         let y3 = noisy.electrons.into_dimensionality::<ndarray::Ix3>().map_err(|e| crate::InferError::InvalidParam { field: "frame", got: e.to_string(), expected: "[M, H, W]".into() })?;
         let fit = fit_taps(&y3.view(), a, &opts);

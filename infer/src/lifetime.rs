@@ -99,24 +99,8 @@ impl Cycle {
 
 /// Bin averages of the periodic unit decay with onset `t0` (`D_τ` above).
 pub(crate) fn periodic_decay(c: Cycle, tau: f64, t0: f64) -> Vec<f64> {
-    let p = c.period();
-    let t0 = t0.rem_euclid(p);
-    let norm = 1.0 / (1.0 - (-p / tau).exp());
-    // ∫_a^b e^{−(t−s)/τ} dt, a ≥ s
-    let seg = |a: f64, b: f64, s: f64| tau * ((-(a - s) / tau).exp() - (-(b - s) / tau).exp());
-    (0..c.bins)
-        .map(|j| {
-            let (a, b) = (j as f64 * c.dt, (j + 1) as f64 * c.dt);
-            let mut v = 0.0;
-            if b > t0 {
-                v += seg(a.max(t0), b, t0);
-            }
-            if a < t0 {
-                v += seg(a, b.min(t0), t0 - p);
-            }
-            v * norm / c.dt
-        })
-        .collect()
+    let norm = 1.0 / (1.0 - (-c.period() / tau).exp());
+    tcsense_sensor::identify::decay_integrals(c.bins, c.dt, tau, t0).into_iter().map(|v| v * norm / c.dt).collect()
 }
 
 /// Standard normal CDF.

@@ -296,7 +296,7 @@ pub struct DesignOptions {
 }
 
 impl Default for DesignOptions {
-    /// 20 000 candidates, 8 searches of 50 000 moves: about 3 s for the prototype's LiDAR codes
+    /// 20 000 candidates, 8 searches of 50 000 moves: about 6 s for the prototype's LiDAR codes
     /// and 40 s for its FLIm codes (`Criterion::Lifetime`, heterodyne K = 8) on two cores.
     fn default() -> Self {
         DesignOptions { candidates: 20_000, starts: 8, moves: 50_000, seed: 0 }

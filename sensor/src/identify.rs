@@ -385,8 +385,9 @@ pub struct TwoReturns {
 }
 
 /// The bound on two returns of equal amplitude (half the photons each, amplitudes and a
-/// background fitted per subpixel) against their separation, in steps of a quarter mask up to
-/// half the cycle, with the first return at `per_bin` positions per mask.
+/// background fitted per subpixel) against their separation, from one bin (or a quarter mask,
+/// whichever is more) in steps of a quarter mask up to half the cycle, the worst over the first
+/// return at two positions per bin.
 pub fn two_returns(a: &Columns, light: &Light, weights: &[f64]) -> TwoReturns {
     let (t, m) = (a.t, a.m);
     let step = (a.k as f64 / 4.0).max(0.25);
@@ -406,8 +407,7 @@ pub fn two_returns(a: &Columns, light: &Light, weights: &[f64]) -> TwoReturns {
         for &p in &positions {
             a.return_at(p, &mut g1, &mut d1);
             a.return_at(p + delta, &mut g2, &mut d2);
-            // shared: τ₁, τ₂; nuisance per subpixel: a₁, a₂, b — the 3-parameter nuisance
-            // block is folded as a₁ (amplitude) with a₂ and b combined through a full 5×5 solve.
+            // shared: τ₁, τ₂; nuisance per subpixel: a₁, a₂, b (profiled out by [`schur_2`])
             let mut info = [[0.0f64; 5]; 5];
             for (sub, &w) in weights.iter().enumerate() {
                 if w == 0.0 {
@@ -511,10 +511,21 @@ fn inverse_3(m: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
 /// - returns `[T]`
 pub fn periodic_decay(t: usize, dt_s: f64, tau_s: f64, onset_s: f64) -> Vec<f64> {
     let p = t as f64 * dt_s;
+    let norm = 1.0 / (tau_s * (1.0 - (-p / tau_s).exp()));
+    decay_integrals(t, dt_s, tau_s, onset_s).into_iter().map(|v| v * norm).collect()
+}
+
+/// `∫_bin j e^{−(u − t₀)/τ} du` over each of `t` bins of `dt_s`, for a decay starting at
+/// `onset_s` and the tail of the previous cycle's (period `t·dt`), unnormalised: the one integral
+/// behind [`periodic_decay`] (unit sum) and the fits' bin averages (`tcsense_infer::lifetime`).
+///
+/// # Shapes
+/// - returns `[T]`
+pub fn decay_integrals(t: usize, dt_s: f64, tau_s: f64, onset_s: f64) -> Vec<f64> {
+    let p = t as f64 * dt_s;
     let t0 = onset_s.rem_euclid(p);
     // ∫_a^b e^{−(u−s)/τ} du for a ≥ s
     let seg = |a: f64, b: f64, s: f64| tau_s * ((-(a - s) / tau_s).exp() - (-(b - s) / tau_s).exp());
-    let norm = 1.0 / (tau_s * (1.0 - (-p / tau_s).exp()));
     (0..t)
         .map(|j| {
             let (a, b) = (j as f64 * dt_s, (j + 1) as f64 * dt_s);
@@ -525,7 +536,7 @@ pub fn periodic_decay(t: usize, dt_s: f64, tau_s: f64, onset_s: f64) -> Vec<f64>
             if a < t0 {
                 v += seg(a, b.min(t0), t0 - p);
             }
-            v * norm
+            v
         })
         .collect()
 }
@@ -728,15 +739,26 @@ mod tests {
         MeasurementMatrix::synthesize(&codes, &spec).unwrap()
     }
 
+    /// The range alias finds a planted pair of proportional signatures, and nothing closer.
     #[test]
-    fn alias_agrees_with_the_matrix_on_a_one_bin_grid() {
-        // K = 1: two masks are two bins, the rule of MeasurementMatrix::range_alias
-        for seed in [1, 2, 3] {
-            let a = matrix(seed, Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 });
-            let ours = range_alias(&Columns::new(&a, 1));
-            let theirs = a.range_alias();
-            assert!((ours.distance - theirs.distance).abs() < 1e-6, "{ours:?} {theirs:?}");
+    fn range_alias_finds_proportional_block_signatures() {
+        let codes = generate::prototype_codes(1).unwrap();
+        let spec = SensorParams { length: 16, ..SensorParams::from_codes(&codes) }.validate().unwrap();
+        // every bin its own direction (a distinct tap lit per subpixel pattern), then bin 11
+        // made 3 × bin 4: the same taps up to scale, 7 bins apart
+        let mut a = ndarray::Array3::<f32>::zeros((4, 4, 16));
+        for l in 0..16 {
+            a[(l % 4, l / 4, l)] = 1.0;
+            a[((l + 1) % 4, (l / 4 + 1) % 4, l)] = 0.5;
         }
+        let fresh = range_alias(&Columns::new(&MeasurementMatrix::from_array(a.clone(), &spec).unwrap(), 1));
+        assert!(fresh.distance > 1.0, "{fresh:?}");
+        for i in 0..16 {
+            a[(i / 4, i % 4, 11)] = 3.0 * a[(i / 4, i % 4, 4)];
+        }
+        let alias = range_alias(&Columns::new(&MeasurementMatrix::from_array(a, &spec).unwrap(), 1));
+        assert_eq!((alias.bin, alias.other), (4, 11), "{alias:?}");
+        assert!(alias.distance < 1e-6, "{alias:?}");
     }
 
     #[test]

@@ -37,6 +37,6 @@ pub mod sweep;
 
 pub use codes::{CodeShape, Codes, Constraints, Violation};
 pub use error::{Result, SensorError};
-pub use matrix::{MeasurementMatrix, RangeAlias};
+pub use matrix::MeasurementMatrix;
 pub use operator::FramePlan;
 pub use params::{Irf, NoiseParams, Sampling, SensorParams, SensorSpec, C};

@@ -177,38 +177,6 @@ impl MeasurementMatrix {
     pub fn max_gram_eigenvalue(&self) -> f64 {
         self.gram_eigen().0.iter().fold(0f64, |a, &b| a.max(b))
     }
-
-    /// The range alias of these codes: the two bins at least [`RangeAlias::MIN_SHIFT`] apart
-    /// (cyclically) whose **block signatures** are closest. A return in bin `t` gives the
-    /// `N·M` numbers `A[·][·][t]` in a block of `N` subpixels (the instrument response
-    /// included); normalised, two returns whose signatures differ by little give the same taps
-    /// up to scale, and no decoder tells them apart from the taps alone — only a scene prior
-    /// can, and on scenes unlike its training set it guesses. Measured: the paper prototype's
-    /// codes of `codes generate … --seed 1` (physical IRF) have a near-exact alias 13 bins
-    /// apart (distance 0.011, where orthogonal signatures are √2 apart); the codes learned from
-    /// them by deep sensing (`zoo:admm-lidar-learned`) are 0.544 apart at best (2 bins).
-    pub fn range_alias(&self) -> RangeAlias {
-        let (n, m, t) = self.a.dim();
-        // unit signatures, one per bin (zero where a bin is never exposed)
-        let sig: Vec<Vec<f64>> = (0..t)
-            .map(|l| {
-                let v: Vec<f64> = (0..n * m).map(|i| self.a[(i / m, i % m, l)] as f64).collect();
-                let norm = v.iter().map(|x| x * x).sum::<f64>().sqrt();
-                v.iter().map(|x| if norm > 0.0 { x / norm } else { 0.0 }).collect()
-            })
-            .collect();
-        let mut best = RangeAlias { distance: f64::INFINITY, bin: 0, shift: 0 };
-        for shift in RangeAlias::MIN_SHIFT..=t.saturating_sub(RangeAlias::MIN_SHIFT) {
-            for l in 0..t {
-                let (a, b) = (&sig[l], &sig[(l + shift) % t]);
-                let d = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum::<f64>().sqrt();
-                if d < best.distance {
-                    best = RangeAlias { distance: d, bin: l, shift };
-                }
-            }
-        }
-        best
-    }
 }
 
 /// Eigen-decomposition of a symmetric `n × n` matrix (row-major) by cyclic Jacobi rotations:
@@ -404,22 +372,6 @@ fn laser_kernel(sigma: f64, delta: f64, p: usize) -> Vec<(isize, f64)> {
     k
 }
 
-/// The closest pair of returns in a block's taps ([`MeasurementMatrix::range_alias`]).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct RangeAlias {
-    /// Distance between their unit block signatures (0: the same taps; √2: orthogonal).
-    pub distance: f64,
-    /// The earlier bin of the pair.
-    pub bin: usize,
-    /// Bins from it to the later one (cyclic).
-    pub shift: usize,
-}
-
-impl RangeAlias {
-    /// Returns closer than this (bins) are one pulse's neighbouring bins, not an alias.
-    pub const MIN_SHIFT: usize = 2;
-}
-
 /// `A_het[n][m][j] = Σ_{k<K} A[n][m][(j + k) mod T]`.
 ///
 /// # Shapes
@@ -447,28 +399,6 @@ mod tests {
 
     fn spec(c: &Codes, sampling: Sampling, irf: Irf) -> SensorSpec {
         SensorParams { sampling, irf, ..SensorParams::from_codes(c) }.validate().unwrap()
-    }
-
-    /// The range alias finds a planted pair of proportional signatures, and nothing closer.
-    #[test]
-    fn range_alias_finds_proportional_block_signatures() {
-        let c = codes();
-        let sp = spec(&c, Sampling::Oversample(1), Irf::Ideal);
-        // every bin its own direction (a distinct tap lit per subpixel pattern), then bin 11
-        // made 3 × bin 4: the same taps up to scale, 7 bins apart
-        let mut a = Array3::<f32>::zeros((4, 4, 16));
-        for l in 0..16 {
-            a[(l % 4, l / 4, l)] = 1.0;
-            a[((l + 1) % 4, (l / 4 + 1) % 4, l)] = 0.5;
-        }
-        let fresh = MeasurementMatrix::from_array(a.clone(), &sp).unwrap().range_alias();
-        assert!(fresh.distance > 1.0, "{fresh:?}");
-        for i in 0..16 {
-            a[(i / 4, i % 4, 11)] = 3.0 * a[(i / 4, i % 4, 4)];
-        }
-        let alias = MeasurementMatrix::from_array(a, &sp).unwrap().range_alias();
-        assert_eq!((alias.bin, alias.shift), (4, 7), "{alias:?}");
-        assert!(alias.distance < 1e-6, "{alias:?}");
     }
 
     /// `A` is the code bits times the code basis, for every IRF and sampling.

@@ -29,6 +29,14 @@ pub struct MeasureArgs {
     /// First-order tap time constant in ns (physical IRF).
     #[arg(long, default_value_t = 0.3)]
     pub tap_tau_ns: f64,
+    #[command(flatten)]
+    pub light: LightArgs,
+}
+
+/// The light the bounds are stated at and the alias threshold (`codes analyze`, `check`,
+/// `export`, `select`).
+#[derive(Args, Clone)]
+pub struct LightArgs {
     /// Signal electrons per subpixel from one return (or decay).
     #[arg(long, default_value_t = 1000.0)]
     pub photons: f64,
@@ -38,9 +46,22 @@ pub struct MeasureArgs {
     /// Read noise σ per tap (electrons).
     #[arg(long, default_value_t = 40.0)]
     pub read_noise: f64,
-    /// Aliases below this distance are warned about (check) or refused (export).
+    /// Aliases below this distance are warned about (check), refused (export) or ranked below
+    /// every set above it (select).
     #[arg(long, default_value_t = DEFAULT_ALIAS_THRESHOLD)]
     pub alias_threshold: f64,
+}
+
+impl LightArgs {
+    /// The checked light (and threshold).
+    pub fn light(&self) -> Result<Light> {
+        let l = Light { photons: self.photons, ambient: self.ambient, read_noise_e: self.read_noise };
+        l.validate().map_err(|e| anyhow::anyhow!("--photons/--ambient/--read-noise: {e}"))?;
+        if !(self.alias_threshold.is_finite() && self.alias_threshold >= 0.0) {
+            bail!("--alias-threshold {}: expected a distance ≥ 0 (unit signatures are 0 to 1.414 apart)", self.alias_threshold);
+        }
+        Ok(l)
+    }
 }
 
 impl MeasureArgs {
@@ -55,15 +76,6 @@ impl MeasureArgs {
             tap_tau_ns: self.tap_tau_ns,
             calibration: None,
         }
-    }
-    /// The checked light.
-    pub fn light(&self) -> Result<Light> {
-        let l = Light { photons: self.photons, ambient: self.ambient, read_noise_e: self.read_noise };
-        l.validate().map_err(|e| anyhow::anyhow!("--photons/--ambient/--read-noise: {e}"))?;
-        if !(self.alias_threshold.is_finite() && self.alias_threshold >= 0.0) {
-            bail!("--alias-threshold {}: expected a distance ≥ 0 (unit signatures are 0 to 1.414 apart)", self.alias_threshold);
-        }
-        Ok(l)
     }
     fn k(&self) -> usize {
         self.heterodyne.or(self.oversample).unwrap_or(1)
@@ -115,7 +127,7 @@ struct Analysed {
 /// Analyse one code set on the sensor of `m`.
 fn analyse(path: &Path, m: &MeasureArgs, lifetime: bool) -> Result<(Codes, MeasurementMatrix, Report)> {
     let (codes, _spec, a) = m.sensor(path).matrix()?;
-    let light = m.light()?;
+    let light = m.light.light()?;
     let opts = AnalyzeOptions { lifetime, ..Default::default() };
     let report = identify::analyze(&a, m.k(), &light, &opts);
     Ok((codes, a, report))
@@ -188,7 +200,7 @@ pub fn analyze_cmd(a: AnalyzeArgs) -> Result<ExitCode> {
     for path in &a.codes {
         let (_, matrix, report) = analyse(path, &a.measure, lifetime)?;
         if a.validate {
-            let light = a.measure.light()?;
+            let light = a.measure.light.light()?;
             let t = matrix.bins() as f64;
             // delays spread over the cycle, off the bins' centres
             let delays: Vec<f64> = (0..8).map(|i| (i as f64 + 0.37) * t / 8.0).collect();
@@ -209,7 +221,7 @@ pub fn analyze_cmd(a: AnalyzeArgs) -> Result<ExitCode> {
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
         for (i, x) in all.iter().enumerate() {
-            print_report(&x.name, &x.report, a.measure.alias_threshold);
+            print_report(&x.name, &x.report, a.measure.light.alias_threshold);
             if let Some((range, life)) = checks.get(i) {
                 print_checks("range fit (3×3 window, started at the truth)", "bins", 1.0, range);
                 if let Some(life) = life {
@@ -257,8 +269,8 @@ pub fn analyze_cmd(a: AnalyzeArgs) -> Result<ExitCode> {
 /// threshold. Returns whether the codes alias.
 pub fn check_measures(path: &Path, m: &MeasureArgs) -> Result<bool> {
     let (_, _, report) = analyse(path, m, m.heterodyne.is_some())?;
-    print_report(&path.display().to_string(), &report, m.alias_threshold);
-    let aliased = aliased(&report, m.alias_threshold);
+    print_report(&path.display().to_string(), &report, m.light.alias_threshold);
+    let aliased = aliased(&report, m.light.alias_threshold);
     if let Some(msg) = &aliased {
         eprintln!("warning: {}: {msg}", path.display());
     }
@@ -283,7 +295,7 @@ pub fn export_gate(path: &Path, m: &MeasureArgs, force: bool) -> Result<()> {
         return Ok(());
     }
     let (_, _, report) = analyse(path, m, m.heterodyne.is_some())?;
-    if let Some(msg) = aliased(&report, m.alias_threshold) {
+    if let Some(msg) = aliased(&report, m.light.alias_threshold) {
         bail!("{}: {msg}; refusing to export aliased codes (design better ones with `tcsense codes select --criterion range`, or pass --force)", path.display());
     }
     Ok(())

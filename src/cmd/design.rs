@@ -12,7 +12,6 @@ use tcsense_infer::selection::{evaluate_candidates, select, table1_settings, Can
 use tcsense_sensor::codes::{CodeShape, Constraints};
 use tcsense_sensor::npy::write_bytes;
 use tcsense_sensor::design::{design, Criterion, DesignOptions, DesignProgress, Objective, Score};
-use tcsense_sensor::identify::Light;
 use tcsense_sensor::SensorParams;
 
 use super::codes::DesignArgs;
@@ -73,8 +72,8 @@ pub struct SelectArgs {
     #[command(flatten)]
     eval: EvalArgs,
     /// What to select for: `mse` (TVAL3 over --dataset, the paper's method), `range` (LiDAR: no
-    /// range alias, the smallest worst-case range bound) or `lifetime` (FLIm: no range or
-    /// lifetime alias, the smallest worst-case relative lifetime bound).
+    /// range alias, the smallest worst-case range bound) or `lifetime` (FLIm, with
+    /// --heterodyne: no range alias, the smallest worst-case relative lifetime bound).
     #[arg(long, value_enum, default_value_t = SelectCriterion::Mse)]
     criterion: SelectCriterion,
     /// Number of random candidates (default: 20 for mse, as the paper; 20000 for range and
@@ -90,18 +89,8 @@ pub struct SelectArgs {
     /// Grid: heterodyne sweep with K steps (range and lifetime criteria).
     #[arg(long, value_name = "K")]
     heterodyne: Option<usize>,
-    /// Signal electrons per subpixel the bounds are stated at.
-    #[arg(long, default_value_t = 1000.0)]
-    photons: f64,
-    /// Ambient electrons per subpixel over the exposure.
-    #[arg(long, default_value_t = 100.0)]
-    ambient: f64,
-    /// Read noise σ per tap (electrons).
-    #[arg(long, default_value_t = 40.0)]
-    read_noise: f64,
-    /// Aliases below this distance rank below every code set above it.
-    #[arg(long, default_value_t = tcsense_sensor::identify::DEFAULT_ALIAS_THRESHOLD)]
-    alias_threshold: f64,
+    #[command(flatten)]
+    light: super::analyze::LightArgs,
     /// Seed of the first candidate (the others follow).
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -109,14 +98,6 @@ pub struct SelectArgs {
     #[arg(short, long)]
     output: PathBuf,
 }
-
-/// Candidates and local-search moves of the closed-form criteria (about 10 s on 2 cores for
-/// the prototype's LiDAR codes; the lifetime criterion takes about 20× longer per candidate).
-const DEFAULT_CANDIDATES: usize = 20_000;
-const DEFAULT_SEARCH: usize = 50_000;
-
-/// Local searches run from the best candidates (one per start, in parallel).
-const SEARCH_STARTS: usize = 8;
 
 /// Progress bars of a design: candidates, then the local searches' moves.
 struct Bars {
@@ -176,24 +157,23 @@ pub fn select_cmd(a: SelectArgs) -> Result<ExitCode> {
 /// `codes select --criterion range|lifetime`: best of random candidates, then the local search.
 fn select_identifiable(a: SelectArgs, criterion: Criterion) -> Result<ExitCode> {
     let d = &a.design;
-    let candidates = a.candidates.unwrap_or(DEFAULT_CANDIDATES);
+    // the sensor crate's defaults: 20 000 candidates, 8 searches of 50 000 moves
+    let defaults = DesignOptions::default();
+    let candidates = a.candidates.unwrap_or(defaults.candidates);
     if candidates == 0 {
         bail!("--candidates 0: at least one candidate");
     }
-    let iterations = a.search.unwrap_or(DEFAULT_SEARCH);
+    let iterations = a.search.unwrap_or(defaults.moves);
     let irf = super::sensor::parse_irf(a.eval.irf.as_deref().unwrap_or("physical"))?;
     let sampling = tcsense_sensor::Sampling::from_factors(a.oversample, a.heterodyne, tcsense_sensor::Sampling::Oversample(1))?;
     let spec = SensorParams { block: d.block, taps: d.taps, drain: d.drain, length: d.length, clock_hz: d.clock_hz(), sampling, irf, ..Default::default() }.validate()?;
-    let light = Light { photons: a.photons, ambient: a.ambient, read_noise_e: a.read_noise };
-    light.validate().map_err(|e| anyhow::anyhow!("--photons/--ambient/--read-noise: {e}"))?;
-    if !(a.alias_threshold.is_finite() && a.alias_threshold >= 0.0) {
-        bail!("--alias-threshold {}: expected a distance ≥ 0", a.alias_threshold);
-    }
-    let obj = Objective::new(criterion, &spec, light, a.alias_threshold);
+    let light = a.light.light()?;
+    let threshold = a.light.alias_threshold;
+    let obj = Objective::new(criterion, &spec, light, threshold);
     let cancel = interrupt_flag();
     let t0 = std::time::Instant::now();
-    let progress = Bars::new(candidates, iterations * SEARCH_STARTS.min(candidates));
-    let opts = DesignOptions { candidates, starts: SEARCH_STARTS, moves: iterations, seed: a.seed };
+    let opts = DesignOptions { candidates, moves: iterations, seed: a.seed, ..defaults };
+    let progress = Bars::new(candidates, iterations * opts.starts.min(candidates));
     let out = design(&obj, d.shape(), d.clock_hz(), d.constraints(), &opts, &progress, &cancel)?;
     progress.done();
     let unit = match criterion {
@@ -217,12 +197,12 @@ fn select_identifiable(a: SelectArgs, criterion: Criterion) -> Result<ExitCode> 
         m.insert("irf".into(), serde_json::json!(a.eval.irf.as_deref().unwrap_or("physical")));
         m.insert("sampling".into(), serde_json::json!(format!("{sampling:?}")));
     }
-    if out.score.alias < a.alias_threshold {
-        eprintln!("warning: the best codes found still alias ({:.3} < {}): try more --candidates or --search, or relax the constraints", out.score.alias, a.alias_threshold);
+    if out.score.alias < threshold {
+        eprintln!("warning: the best codes found still alias ({:.3} < {threshold}): try more --candidates or --search, or relax the constraints", out.score.alias);
     }
     codes.save(&a.output)?;
-    if out.score.alias < a.alias_threshold {
-        eprintln!("warning: the best codes found still alias ({:.3} < {}): try more --candidates or --search, or relax the constraints", out.score.alias, a.alias_threshold);
+    if out.score.alias < threshold {
+        eprintln!("warning: the best codes found still alias ({:.3} < {threshold}): try more --candidates or --search, or relax the constraints", out.score.alias);
     }
     println!("wrote {}", a.output.display());
     Ok(ExitCode::SUCCESS)

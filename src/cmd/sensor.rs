@@ -159,12 +159,13 @@ pub fn run(cmd: SensorCmd) -> Result<ExitCode> {
                 spec.bin_width_s() * 1e12,
                 spec.cycle_s() * 1e9
             );
-            let alias = a.range_alias();
+            let k = spec.sampling().k();
+            let alias = tcsense_sensor::identify::range_alias(&tcsense_sensor::identify::Columns::new(&a, k));
             println!(
-                "closest returns in a block's taps: bins {} and {} ({} apart), unit signatures {:.3} apart (0: indistinguishable, 1.414: orthogonal)",
+                "closest returns in a block's taps: bins {} and {} ({} apart), unit signatures {:.3} apart (0: indistinguishable, 1.414: orthogonal; `tcsense codes analyze` for the bounds)",
                 alias.bin,
-                (alias.bin + alias.shift) % a.bins(),
-                alias.shift,
+                alias.other,
+                (alias.other - alias.bin).min(a.bins() + alias.bin - alias.other),
                 alias.distance
             );
         }
