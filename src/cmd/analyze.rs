@@ -258,7 +258,8 @@ pub fn analyze_cmd(a: AnalyzeArgs) -> Result<ExitCode> {
                 }
             }
             let png = dir.join("lifetime-bound.png");
-            log_chart(&png, "Lifetime Cramér–Rao bound, worst over the onsets", "lifetime τ (ns)", "σ of τ (ns)", &series)?;
+            let title = format!("Lifetime bound, worst over the onsets ({} e⁻ signal, {} e⁻ ambient)", light.photons, light.ambient);
+            log_chart(&png, &title, "lifetime τ (ns)", "σ of τ (ns)", &series)?;
             println!("wrote {}", png.display());
         }
     }
