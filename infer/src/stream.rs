@@ -29,6 +29,7 @@ use std::time::Instant;
 use tcsense_sensor::npy::{f32_header, parse_header, read_npy, NpyHeader};
 
 use crate::products::{depth_map, write_ply, PeakOptions};
+use crate::tapfit::{estimate_instrument, LifetimeTemplates, TapFit, TapFitOptions};
 use crate::runtime::OnnxModel;
 use tcsense_models::net::mask_depth;
 use crate::{InferError, Result};
@@ -284,13 +285,17 @@ pub struct Products {
     pub returns: usize,
     /// Camera field of view for point clouds (degrees).
     pub fov_deg: f64,
+    /// Lifetimes (and intensity, phasor) by the fit to the taps through the model's sensor
+    /// ([`crate::tapfit::LifetimeTemplates`], the instrument estimated once on the first frame
+    /// unless its `onset_s` is given) instead of the model's own; `None`: the model's.
+    pub lifetime_fit: Option<TapFitOptions>,
 }
 
 impl Products {
     /// Parse a comma-separated list (`cube,depth,peaks,ply,lifetime,intensity,phasor`) for a
     /// model of `kind`.
     pub fn parse(list: &str, kind: ModelKind) -> Result<Self> {
-        let mut p = Products { cube: false, depth: false, peaks: false, ply: false, lifetime: false, intensity: false, phasor: false, returns: 2, fov_deg: 40.0 };
+        let mut p = Products { cube: false, depth: false, peaks: false, ply: false, lifetime: false, intensity: false, phasor: false, returns: 2, fov_deg: 40.0, lifetime_fit: None };
         let (allowed, _) = kind.products();
         for item in list.split(',').map(str::trim).filter(|s| !s.is_empty()) {
             let (known, _) = ModelKind::Cube.products(); // a cube model gives every product
@@ -319,6 +324,12 @@ impl Products {
             return Err(InferError::InvalidParam { field: "--products", got: list.into(), expected: "at least one product".into() });
         }
         Ok(p)
+    }
+
+    /// Whether the model must run: a product asked for comes from it (not every product comes
+    /// from the fit to the taps).
+    pub fn need_model(&self) -> bool {
+        self.lifetime_fit.is_none() || self.cube || self.depth || self.peaks || self.ply
     }
 }
 
@@ -390,10 +401,28 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
     let bin_s = model.meta.bin_s;
     let peak_opts = PeakOptions { max_peaks: k, ..Default::default() };
     let t0 = Instant::now();
+    // the fit to the taps: the instrument from the first frame (or its given onset), once
+    let templates = match &products.lifetime_fit {
+        Some(opts) => {
+            if model.meta.calibration.is_some() {
+                return Err(InferError::InvalidParam {
+                    field: "--lifetime-fit",
+                    got: format!("{} (a calibration built into the graph)", model.path().display()),
+                    expected: "a model exported without --calibration: the fit to the taps needs corrected tap images, and the correction is inside the graph".into(),
+                });
+            }
+            opts.validate().map_err(|e| InferError::InvalidParam { field: "--lifetime-fit", got: format!("{opts:?}"), expected: e })?;
+            let instrument = estimate_instrument(&first.view(), &model.sensor, opts);
+            Some(LifetimeTemplates::new(&model.sensor, instrument, opts))
+        }
+        None => None,
+    };
+    let templates = templates.as_ref();
+    let need_model = products.need_model();
     let mut infer_seconds = 0.0;
     let result: Result<()> = std::thread::scope(|scope| {
         let (ftx, frx) = sync_channel::<Result<(usize, Array3<f32>, PathBuf)>>(2);
-        let (otx, orx) = sync_channel::<(usize, Vec<Array4<f32>>)>(2);
+        let (otx, orx) = sync_channel::<(usize, Vec<Array4<f32>>, Option<Array3<f32>>)>(2);
         // reader
         let reader = scope.spawn(move || {
             if ftx.send(Ok((0, first, first_path))).is_err() {
@@ -413,8 +442,9 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
         // products + writer
         let writer = scope.spawn(move || -> Result<()> {
             let mut done = 0;
-            for (i, outs) in orx {
-                write_frame(i, outs, &mut writers, products, kind, bin_s, t, &peak_opts, out)?;
+            for (i, outs, y) in orx {
+                let fitted = templates.zip(y).map(|(tpl, y)| tpl.fit(&y.view()));
+                write_frame(i, outs, fitted, &mut writers, products, kind, bin_s, t, &peak_opts, out)?;
                 done += 1;
                 on_frame(i + 1, frames);
             }
@@ -445,7 +475,12 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
                 break;
             }
             let ti = Instant::now();
-            let outs = match model.run(y.insert_axis(Axis(0)).view()) {
+            let run = if need_model {
+                model.run(y.view().insert_axis(Axis(0)))
+            } else {
+                model.check(&y.view().insert_axis(Axis(0)), &path.display().to_string()).map(|_| Vec::new())
+            };
+            let outs = match run {
                 Ok(o) => o,
                 Err(e) => {
                     status = Err(match e {
@@ -456,7 +491,7 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
                 }
             };
             infer_seconds += ti.elapsed().as_secs_f64();
-            if otx.send((i, outs)).is_err() {
+            if otx.send((i, outs, templates.map(|_| y))).is_err() {
                 break;
             }
         }
@@ -476,7 +511,23 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
 
 /// The products of frame `i` from the model's outputs (`[1, C, H, W]` each).
 #[allow(clippy::too_many_arguments)]
-fn write_frame(i: usize, outs: Vec<Array4<f32>>, wr: &mut Writers, p: &Products, kind: ModelKind, bin_s: f64, bins: usize, peak_opts: &PeakOptions, out: &Path) -> Result<()> {
+fn write_frame(i: usize, outs: Vec<Array4<f32>>, fitted: Option<TapFit>, wr: &mut Writers, p: &Products, kind: ModelKind, bin_s: f64, bins: usize, peak_opts: &PeakOptions, out: &Path) -> Result<()> {
+    let omega = 2.0 * std::f64::consts::PI / (bins as f64 * bin_s);
+    if let Some(fit) = &fitted {
+        // lifetime, intensity and phasor (one exponential) by the fit to the taps
+        if let Some(w) = wr.lifetime.as_mut() {
+            w.push(fit.lifetime.iter())?;
+        }
+        if let Some(w) = wr.intensity.as_mut() {
+            w.push(fit.intensity.iter())?;
+        }
+        if let Some(w) = wr.phasor.as_mut() {
+            let ph: Vec<(f32, f32)> = fit.lifetime.iter().map(|&t| phasor_of_components(t, t, 1.0, omega)).collect();
+            let planes: Vec<f32> = ph.iter().map(|v| v.0).chain(ph.iter().map(|v| v.1)).collect();
+            w.push(planes.iter())?;
+        }
+    }
+    let by_model = fitted.is_none();
     match kind {
         ModelKind::Cube => {
             let cube: ArrayView3<'_, f32> = outs[0].index_axis(Axis(0), 0);
@@ -495,7 +546,7 @@ fn write_frame(i: usize, outs: Vec<Array4<f32>>, wr: &mut Writers, p: &Products,
                     write_ply(&out.join("ply").join(format!("frame_{i:05}.ply")), &depth.view(), &amp.view(), p.fov_deg)?;
                 }
             }
-            if p.lifetime || p.phasor {
+            if by_model && (p.lifetime || p.phasor) {
                 // the reconvolution fit (IRF fitted to the frame)
                 let fit = crate::lifetime::fit_cube(&cube, bin_s, &crate::lifetime::FitOptions::default());
                 if let Some(w) = wr.lifetime.as_mut() {
@@ -505,7 +556,7 @@ fn write_frame(i: usize, outs: Vec<Array4<f32>>, wr: &mut Writers, p: &Products,
                     w.push(fit.phasor.iter())?;
                 }
             }
-            if let Some(w) = wr.intensity.as_mut() {
+            if let Some(w) = wr.intensity.as_mut().filter(|_| by_model) {
                 w.push(cube.sum_axis(Axis(0)).iter())?;
             }
         }
@@ -522,7 +573,7 @@ fn write_frame(i: usize, outs: Vec<Array4<f32>>, wr: &mut Writers, p: &Products,
                 write_ply(&out.join("ply").join(format!("frame_{i:05}.ply")), &depth.index_axis(Axis(0), 0), &outs[1].index_axis(Axis(0), 0), p.fov_deg)?;
             }
         }
-        ModelKind::Lifetime => {
+        ModelKind::Lifetime if by_model => {
             // lifetime [1, 4, H, W] (τ_m, τ₁, τ₂ in s, α₁), confidence and intensity [1, 1, H, W]
             let mut lifetime = outs[0].clone();
             tcsense_models::net::mask_lifetime(&mut lifetime, &outs[1]);
@@ -534,13 +585,13 @@ fn write_frame(i: usize, outs: Vec<Array4<f32>>, wr: &mut Writers, p: &Products,
                 w.push(outs[2].iter())?;
             }
             if let Some(w) = wr.phasor.as_mut() {
-                let omega = 2.0 * std::f64::consts::PI / (bins as f64 * bin_s);
                 let (_, h, wd) = l.dim();
                 let ph: Vec<(f32, f32)> = (0..h * wd).map(|q| phasor_of_components(l[(1, q / wd, q % wd)], l[(2, q / wd, q % wd)], l[(3, q / wd, q % wd)], omega)).collect();
                 let planes: Vec<f32> = ph.iter().map(|v| v.0).chain(ph.iter().map(|v| v.1)).collect();
                 w.push(planes.iter())?;
             }
         }
+        ModelKind::Lifetime => {}
     }
     Ok(())
 }

@@ -90,6 +90,17 @@ pub struct InferArgs {
     /// ONNX Runtime intra-op threads (default: --threads, else all cores).
     #[arg(long)]
     ort_threads: Option<usize>,
+    /// Lifetimes, intensity and phasor by the fit to the taps through the model's codes and
+    /// sensor (the template fit: onset and IRF width estimated once on the first frame), not
+    /// by the network; the network is not run when no other product is asked for.
+    #[arg(long)]
+    lifetime_fit: bool,
+    /// The onset (ns) of the decays, when known (a calibration): only the IRF width is fitted.
+    #[arg(long, requires = "lifetime_fit")]
+    onset_ns: Option<f64>,
+    /// Side of the square window of pixels whose costs the fit to the taps sums (odd).
+    #[arg(long, requires = "lifetime_fit", default_value_t = 3)]
+    window: usize,
     /// Output directory.
     #[arg(short, long)]
     output: PathBuf,
@@ -105,6 +116,12 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
     let mut products = Products::parse(&list, kind)?;
     products.returns = a.returns;
     products.fov_deg = a.fov;
+    if a.lifetime_fit {
+        if !(products.lifetime || products.intensity || products.phasor) {
+            bail!("--lifetime-fit with --products {list}: the fit gives lifetime, intensity and phasor; ask for one of them");
+        }
+        products.lifetime_fit = Some(tcsense_infer::tapfit::TapFitOptions { onset_s: a.onset_ns.map(|t| t * 1e-9), window: a.window, ..Default::default() });
+    }
     // a recalibrated sensor matrix, read once: given to the model and checked against the sidecar
     let recalibrated = match &a.sensor_matrix {
         Some(p) => {
@@ -129,7 +146,7 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
     let cancel = interrupt_flag();
     let pb = ProgressBar::new(frames as u64);
     pb.set_style(ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} {per_sec} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
-    pb.set_message(format!("onnx {}", model.meta.decoder));
+    pb.set_message(if a.lifetime_fit { format!("onnx {} + fit to the taps", model.meta.decoder) } else { format!("onnx {}", model.meta.decoder) });
     let on_frame = |done: usize, _total: usize| pb.set_position(done as u64);
     let report = run_stream(&mut model, source, &a.output, &products, &cancel, &on_frame);
     pb.finish_and_clear();
