@@ -124,10 +124,11 @@ impl Templates {
     fn new(a: &ArrayView3<'_, f32>, curves: &[Vec<f64>]) -> Templates {
         let (n, m, t) = a.dim();
         let nm = n * m;
+        let rows: Vec<Vec<f64>> = (0..nm).map(|q| (0..t).map(|j| a[(q / m, q % m, j)] as f64).collect()).collect();
         let project = |d: &[f64]| -> Vec<f64> {
             let mut g = vec![0.0; nm];
             for ni in 0..n {
-                let row: Vec<f64> = (0..m).map(|mi| (0..t).map(|j| a[(ni, mi, j)] as f64 * d[j]).sum()).collect();
+                let row: Vec<f64> = (0..m).map(|mi| rows[ni * m + mi].iter().zip(d).map(|(a, d)| a * d).sum()).collect();
                 let s: f64 = row.iter().sum::<f64>().max(1e-300);
                 for mi in 0..m {
                     g[ni * m + mi] = row[mi] / s;
@@ -144,6 +145,7 @@ impl Templates {
         self.g.len() / self.nm
     }
 
+    #[cfg(test)]
     /// Cost of lifetime `i` for normalised taps `r` of subpixel type `n` weighted by `w`, and
     /// the background share it takes.
     #[inline]
@@ -151,6 +153,7 @@ impl Templates {
         self.cost_of(&self.g[i * self.nm + n * self.m..i * self.nm + (n + 1) * self.m], n, r, w, background)
     }
 
+    #[cfg(test)]
     /// The template of type `n` at the fractional grid position `u` (Catmull-Rom between the
     /// grid's templates, which are smooth in `ln τ`), into `out` `[M]`.
     #[inline]
@@ -166,6 +169,7 @@ impl Templates {
         }
     }
 
+    #[cfg(test)]
     /// [`Self::cost`] for a given template `g` `[M]` of type `n`.
     #[inline]
     fn cost_of(&self, g: &[f64], n: usize, r: &[f64], w: f64, background: bool) -> (f64, f64) {
@@ -304,6 +308,32 @@ impl TypeTable {
             .collect()
     }
 
+    /// The tables from raw projections `proj` `[N][M][G]` of the curves through the sensor's
+    /// rows and the rows' sums `[N·M]` (the background's projection).
+    fn from_projections(proj: &[f64], sums: &[f64], types: usize, m: usize, points: usize) -> Vec<TypeTable> {
+        (0..types)
+            .map(|n| {
+                let mut g = vec![0f32; m * points];
+                let mut d = vec![0f32; m * points];
+                let mut inv_dd = vec![0f32; points];
+                let bs: f64 = sums[n * m..(n + 1) * m].iter().sum::<f64>().max(1e-300);
+                for i in 0..points {
+                    let s: f64 = (0..m).map(|k| proj[(n * m + k) * points + i]).sum::<f64>().max(1e-300);
+                    let mut dd = 0.0;
+                    for k in 0..m {
+                        let gi = proj[(n * m + k) * points + i] / s;
+                        let e = sums[n * m + k] / bs - gi;
+                        g[k * points + i] = gi as f32;
+                        d[k * points + i] = e as f32;
+                        dd += e * e;
+                    }
+                    inv_dd[i] = if dd > 1e-300 { (1.0 / dd) as f32 } else { 0.0 };
+                }
+                TypeTable { g, d, inv_dd, points }
+            })
+            .collect()
+    }
+
     /// The cost of every lifetime for normalised taps `r` `[M]` weighted by `w`, into
     /// `out` `[G]`; `beta` `[G]` is scratch. Loops over the lifetimes innermost (vectorised).
     fn costs(&self, r: &[f32], w: f32, background: bool, beta: &mut [f32], out: &mut [f32]) {
@@ -378,8 +408,16 @@ impl Between {
 
     /// The templates at grid position `u` of `tables` (one per type).
     fn set(&mut self, tables: &[TypeTable], u: f64) {
+        for t in 0..tables.len() {
+            self.set_one(tables, t, u);
+        }
+    }
+
+    /// [`Self::set`] for type `t` alone.
+    fn set_one(&mut self, tables: &[TypeTable], t: usize, u: f64) {
         let m = self.m;
-        for (t, table) in tables.iter().enumerate() {
+        {
+            let table = &tables[t];
             let n = table.points;
             let u = u.clamp(0.0, (n - 1) as f64);
             let i = (u as usize).min(n - 2);
@@ -641,79 +679,114 @@ fn golden(best: usize, last: usize, iterations: usize, cost: &mut dyn FnMut(f64)
 }
 
 /// The frame's onset and IRF width: the cost of the brightest pixels, each at its best
-/// lifetime of a coarse grid, over every bin of the cycle and every candidate width, then
-/// refined to a quarter bin around the best.
+/// lifetime of a coarse grid, over every bin of the cycle and every candidate width (the
+/// templates of every shift at once, as a cyclic correlation of the sensor's rows with the
+/// decays), then refined to a quarter bin around the best and by golden sections.
 #[allow(clippy::too_many_arguments)]
 fn instrument(a: &ArrayView3<'_, f32>, c: Cycle, opts: &TapFitOptions, r: &[f64], weight: &[f64], signal: &[usize], m: usize, kind: &(dyn Fn(usize) -> usize + Sync)) -> (f64, f64) {
     let mut bright = signal.to_vec();
     bright.sort_by(|&p, &q| weight[q].total_cmp(&weight[p]).then(p.cmp(&q)));
     bright.truncate(opts.brightest);
-    // the cost of a frame at its first `pixels` pixels' best lifetimes, refined between the grid's
-    // points by `refine` golden-section steps (a grid's steps would bias the onset)
-    let cost_on = |tpl: &Templates, pixels: usize, refine: usize| -> f64 {
-        let mut cost = vec![0.0; tpl.points()];
-        let mut g = vec![0.0; m];
-        let mut total = 0.0;
-        for &p in bright.iter().take(pixels) {
-            let rp = &r[p * m..(p + 1) * m];
-            for (i, v) in cost.iter_mut().enumerate() {
-                *v = tpl.cost(i, kind(p), rp, weight[p], opts.background).0;
-            }
-            let best = (0..cost.len()).min_by(|&x, &y| cost[x].total_cmp(&cost[y])).unwrap_or(0);
-            total += if refine > 0 {
-                let between = golden(best, cost.len() - 1, refine, &mut |u| {
-                    tpl.at(u, kind(p), &mut g);
-                    tpl.cost_of(&g, kind(p), rp, weight[p], opts.background).0
-                });
-                between.1.min(cost[best])
-            } else {
-                cost[best]
-            };
-        }
-        total
-    };
-    let frame_cost = |taus: &[f64], t0: f64, fwhm: f64| -> f64 { cost_on(&Templates::new(a, &decays(c, taus, t0, fwhm)), usize::MAX, 24) };
-    let full = grid(opts, opts.points);
-    if bright.is_empty() {
-        return (opts.onset_s.unwrap_or(0.0).rem_euclid(c.period()), opts.irf_fwhm_s[0]);
-    }
     let widths = &opts.irf_fwhm_s;
-    let score = |taus: &[f64], cands: &[(f64, f64)]| -> (f64, f64, f64) {
-        cands.par_iter().map(|&(t0, f)| (frame_cost(taus, t0, f), t0, f)).min_by(|x, y| x.0.total_cmp(&y.0).then(x.1.total_cmp(&y.1)).then(x.2.total_cmp(&y.2))).unwrap_or((0.0, 0.0, widths[0]))
+    if bright.is_empty() {
+        return (opts.onset_s.unwrap_or(0.0).rem_euclid(c.period()), widths[0]);
+    }
+    // the brightest pixels' normalised taps (f32), weights and types
+    let pixels: Vec<(Vec<f32>, f32, usize)> = bright.iter().map(|&p| (r[p * m..(p + 1) * m].iter().map(|&v| v as f32).collect(), weight[p] as f32, kind(p))).collect();
+    // (on the grid of half steps: the templates are linear between its points)
+    let full = grid(opts, 2 * opts.points - 1);
+    let frame_cost = |t0: f64, fwhm: f64| -> f64 { brightest_cost(&TypeTable::of(&Templates::new(a, &decays(c, &full, t0, fwhm))), &pixels, usize::MAX, true, opts.background) };
+    let score = |cands: &[(f64, f64)]| -> (f64, f64, f64) {
+        cands.par_iter().map(|&(t0, f)| (frame_cost(t0, f), t0, f)).min_by(|x, y| x.0.total_cmp(&y.0).then(x.1.total_cmp(&y.1)).then(x.2.total_cmp(&y.2))).unwrap_or((0.0, 0.0, widths[0]))
     };
     if let Some(t0) = opts.onset_s {
         let known: Vec<(f64, f64)> = widths.iter().map(|&f| (t0.rem_euclid(c.period()), f)).collect();
-        let (_, t0, f) = score(&full, &known);
+        let (_, t0, f) = score(&known);
         return (t0, f);
     }
-    // every bin of the cycle: the decays at onset 0, shifted (exact for whole bins)
-    let coarse_cands: Vec<(usize, usize)> = (0..widths.len()).flat_map(|wi| (0..c.bins).map(move |j| (wi, j))).collect();
+    // every bin of the cycle: the decays at onset 0 shifted by whole bins, through every row of
+    // the sensor at once: corr[w][n·M + k][i][j] = Σ_t A[n][k][t]·D_i(t − j)
+    let (n_types, _, bins) = a.dim();
     let coarse = grid(opts, 32);
-    let at_zero: Vec<Vec<Vec<f64>>> = widths.iter().map(|&f| decays(c, &coarse, 0.0, f)).collect();
+    let g = coarse.len();
+    let rows: Vec<Vec<f32>> = (0..n_types * m).map(|nk| (0..bins).map(|t| a[(nk / m, nk % m, t)]).collect()).collect();
+    let corr: Vec<Vec<f32>> = widths
+        .par_iter()
+        .map(|&f| {
+            let curves = decays(c, &coarse, 0.0, f);
+            let mut out = vec![0f32; n_types * m * g * bins];
+            for (i, d) in curves.iter().enumerate() {
+                // e[s] = D_i(−s), doubled so that e[j − t + T] needs no wrap: D_i(t − j) = e[j − t]
+                let e: Vec<f32> = (0..2 * bins).map(|s| d[(2 * bins - s) % bins] as f32).collect();
+                for (nk, row) in rows.iter().enumerate() {
+                    let o = &mut out[(nk * g + i) * bins..(nk * g + i + 1) * bins];
+                    for (t, &at) in row.iter().enumerate() {
+                        if at != 0.0 {
+                            o.iter_mut().zip(&e[bins - t..2 * bins - t]).for_each(|(o, &ev)| *o += at * ev);
+                        }
+                    }
+                }
+            }
+            out
+        })
+        .collect();
+    let sums: Vec<f64> = rows.iter().map(|row| row.iter().map(|&v| v as f64).sum()).collect();
+    let coarse_cands: Vec<(usize, usize)> = (0..widths.len()).flat_map(|wi| (0..bins).map(move |j| (wi, j))).collect();
     let (_, _, j) = coarse_cands
         .par_iter()
         .map(|&(wi, j)| {
-            let shifted: Vec<Vec<f64>> = at_zero[wi].iter().map(|d| (0..c.bins).map(|t| d[(t + c.bins - j) % c.bins]).collect()).collect();
-            (cost_on(&Templates::new(a, &shifted), 128, 10), wi, j)
+            let proj: Vec<f64> = (0..n_types * m * g).map(|q| corr[wi][q * bins + j] as f64).collect();
+            (brightest_cost(&TypeTable::from_projections(&proj, &sums, n_types, m, g), &pixels, 128, false, opts.background), wi, j)
         })
         .min_by(|x, y| x.0.total_cmp(&y.0).then(x.2.cmp(&y.2)).then(x.1.cmp(&y.1)))
         .unwrap_or((0.0, 0, 0));
-    // then every width within a bin of the best, a quarter bin apart, between grid points
+    // then every width within a bin of the best, a quarter bin apart
     let t0 = j as f64 * c.dt;
     let fine: Vec<(f64, f64)> = (-4..=4).flat_map(|q| widths.iter().map(move |&w| ((t0 + q as f64 * 0.25 * c.dt).rem_euclid(c.period()), w))).collect();
-    let (_, t0, f) = score(&full, &fine);
+    let (_, t0, f) = score(&fine);
     // then continuously, by golden sections: the onset within a quarter bin, the width within a
     // quarter nanosecond
     let q = 0.25 * c.dt;
-    let t0 = (t0 + (golden(1, 2, 24, &mut |u| frame_cost(&full, t0 + (u - 1.0) * q, f)).0 - 1.0) * q).rem_euclid(c.period());
+    let t0 = (t0 + (golden(1, 2, 12, &mut |u| frame_cost(t0 + (u - 1.0) * q, f)).0 - 1.0) * q).rem_euclid(c.period());
     let max_w = widths.iter().fold(0f64, |a, &b| a.max(b));
     let f = if widths.len() > 1 {
         let (lo, hi) = ((f - 0.25e-9).max(0.0), (f + 0.25e-9).min(max_w));
-        lo + (hi - lo) * 0.5 * golden(1, 2, 24, &mut |u| frame_cost(&full, t0, lo + (hi - lo) * 0.5 * u)).0
+        lo + (hi - lo) * 0.5 * golden(1, 2, 12, &mut |u| frame_cost(t0, lo + (hi - lo) * 0.5 * u)).0
     } else {
         f
     };
     (t0, f)
+}
+
+/// The cost of the first `count` of `pixels` (normalised taps, weight, type), each at its best
+/// lifetime of `tables`: between the grid's points by golden sections (`refine`; a grid's steps
+/// would bias the onset), else at the bottom of the parabola through the grid's best and its
+/// neighbours.
+fn brightest_cost(tables: &[TypeTable], pixels: &[(Vec<f32>, f32, usize)], count: usize, refine: bool, background: bool) -> f64 {
+    let g = tables[0].points;
+    let mut cost = vec![0f32; g];
+    let mut beta = vec![0f32; g];
+    let mut between = Between::new(tables.len(), pixels.first().map_or(0, |p| p.0.len()));
+    let mut total = 0.0;
+    for (r, w, n) in pixels.iter().take(count) {
+        tables[*n].costs(r, *w, background, &mut beta, &mut cost);
+        let best = argmin(&cost);
+        let c0 = cost[best] as f64;
+        total += if best == 0 || best + 1 == g {
+            c0
+        } else if refine {
+            let (_, v) = golden(best, g - 1, 16, &mut |u| {
+                between.set_one(tables, *n, u);
+                between.cost(*n, r, *w, background).0 as f64
+            });
+            v.min(c0)
+        } else {
+            let (lo, hi) = (cost[best - 1] as f64, cost[best + 1] as f64);
+            let curv = lo - 2.0 * c0 + hi;
+            if curv > 0.0 { (c0 - (lo - hi) * (lo - hi) / (8.0 * curv)).clamp(0.0, c0) } else { c0 }
+        };
+    }
+    total
 }
 
 /// [`fit_taps`] behind the decoder contract: lifetimes `[B, 4, H, W]` (`τ_m = τ₁ = τ₂`, `α₁ = 1`:
