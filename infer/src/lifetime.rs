@@ -315,6 +315,17 @@ fn refine_two(b: &Basis, x: &[f64], s: &Stats, start: (f64, f64), fit: PixelFit)
 
 /// Fit one waveform: the best single exponential (parabola-refined on the grid) and, if asked,
 /// the best pair (coarse pairs, then the fine neighbourhood).
+/// Whether every component of `f` lies strictly inside the lifetimes searched (an optimum on
+/// the grid's first or last point is on the bound, or beyond it).
+fn inside(b: &Basis, f: &PixelFit) -> bool {
+    let (lo, hi) = (b.log_tau[0], b.log_tau[b.log_tau.len() - 1]);
+    let step = b.log_tau[1] - b.log_tau[0];
+    f.comps.iter().filter(|c| c.1 > 0.0).all(|c| {
+        let l = c.0.ln();
+        l > lo + 0.01 * step && l < hi - 0.01 * step
+    })
+}
+
 fn fit_pixel(b: &Basis, x: &[f64], comps: Components, aic: f64) -> Option<PixelFit> {
     let g = b.log_tau.len();
     let s = Stats::new(b, x);
@@ -347,6 +358,8 @@ fn fit_pixel(b: &Basis, x: &[f64], comps: Components, aic: f64) -> Option<PixelF
         }
         Some(best)
     });
+    // an optimum on a bound of the lifetimes searched is not an estimate
+    let one = one.filter(|f| inside(b, f));
     if comps == Components::One {
         return one;
     }
@@ -378,6 +391,7 @@ fn fit_pixel(b: &Basis, x: &[f64], comps: Components, aic: f64) -> Option<PixelF
         }
     }
     let two = best.map(|(i, j, (ai, aj, bg, sse))| refine_two(b, x, &s, (i as f64, j as f64), PixelFit { comps: [(b.log_tau[i].exp(), ai), (b.log_tau[j].exp(), aj)], background: bg, sse }));
+    let two = two.filter(|f| inside(b, f));
     match (one, two, comps) {
         (o, Some(t), Components::Two) => Some(t).or(o),
         (Some(o), Some(t), _) => {
@@ -589,6 +603,19 @@ mod tests {
                 assert!((g - 1.0 / (1.0 + wt * wt)).abs() < 2e-3 && (s - wt / (1.0 + wt * wt)).abs() < 2e-3, "pixel {p}: ({g}, {s}) for τ {tau:e}");
             }
         }
+    }
+
+    /// A decay outside the lifetimes searched is not placed on the bound: NaN, while a pixel
+    /// inside keeps its lifetime (a poor cube gave most pixels the 60 ns bound).
+    #[test]
+    fn an_optimum_on_a_bound_is_no_lifetime() {
+        // (most of the frame's light in 2 ns decays: the onset is fitted on the frame's sum)
+        let pixels: [&[(f64, f64)]; 4] = [&[(2e-9, 1.0)], &[(30e-9, 0.2)], &[(0.05e-9, 0.2)], &[(2e-9, 1.0)]];
+        let x = cube(&pixels, 5e-9, 0.5e-9, 0.0);
+        let fit = fit_cube(&x.view(), DT, &FitOptions { irf: IrfModel::Gaussian(Some(0.5e-9)), components: Components::One, tau_range_s: [0.5e-9, 10e-9], ..Default::default() });
+        assert!((fit.lifetimes[(0, 0, 0)] as f64 / 2e-9 - 1.0).abs() < 0.01, "{}", fit.lifetimes[(0, 0, 0)]);
+        assert!(fit.lifetimes[(0, 0, 1)].is_nan(), "30 ns searched up to 10 ns: {}", fit.lifetimes[(0, 0, 1)]);
+        assert!(fit.lifetimes[(0, 0, 2)].is_nan(), "0.05 ns searched from 0.5 ns: {}", fit.lifetimes[(0, 0, 2)]);
     }
 
     #[test]
