@@ -36,7 +36,7 @@ fn export_check_and_stream_a_trained_unet() {
     let views: Vec<_> = frames.iter().map(|f| f.view()).collect();
     let stack = ndarray::stack(ndarray::Axis(0), &views).unwrap();
     write_npy(&d.join("stack.npy"), &stack.view()).unwrap();
-    let out = ok(d, &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--products", "depth,ply", "-o", "out"]);
+    let out = ok(d, &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--products", "depth,ply", "--no-range-fit", "-o", "out"]);
     assert!(out.contains("3 frames") && out.contains("frames/s"), "{out}");
     let depth = read_npy(&d.join("out/depth.npy")).unwrap();
     let conf = read_npy(&d.join("out/confidence.npy")).unwrap();
@@ -51,6 +51,15 @@ fn export_check_and_stream_a_trained_unet() {
     ok(d, &["reconstruct", "unet", "--run", "unet", "--measurements", "y0.npy", "--no-range-fit", "-o", "burn.npy"]);
     let burn = read_npy(&d.join("burn.npy")).unwrap();
     assert!(burn.iter().zip(f0.iter()).all(|(a, b)| (a.is_nan() && b.is_nan()) || (a - b).abs() < 1e-4 * 12.0), "burn and ort depth differ");
+    // by default infer refines the ranges in the tap domain as reconstruct does: the same product
+    ok(d, &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "-o", "out-fit"]);
+    ok(d, &["reconstruct", "unet", "--run", "unet", "--measurements", "y0.npy", "-o", "burn-fit.npy"]);
+    let (fitted, burn_fit) = (read_npy(&d.join("out-fit/depth.npy")).unwrap(), read_npy(&d.join("burn-fit.npy")).unwrap());
+    let fitted0 = fitted.index_axis(ndarray::Axis(0), 0);
+    let moved = fitted0.iter().zip(f0.iter()).filter(|(a, b)| a.is_finite() && b.is_finite() && (*a - *b).abs() > 1e-3).count();
+    assert!(moved > 0, "the range fit moved no return");
+    let far = burn_fit.iter().zip(fitted0.iter()).filter(|(a, b)| a.is_nan() != b.is_nan() || (a.is_finite() && (*a - *b).abs() > 1e-2)).count();
+    assert!(far == 0, "{far} ranges of infer differ from reconstruct unet's (both with the range fit)");
     // onnx full checker, shape inference, onnxruntime-Python equal to tcsense infer
     let out = check_onnx(d, &["unet.onnx", "--measurements", "stack.npy", "--compare", "out"]);
     assert!(out.contains("checker (full)") && out.contains("ok  depth") && out.contains("ok  confidence"), "{out}");
@@ -58,7 +67,7 @@ fn export_check_and_stream_a_trained_unet() {
     // the same trained U-Net with the sensor matrix as an input gives the same depth
     ok(d, &["export", "onnx", "--run", "unet", "--matrix-input", "-o", "unet_m.onnx"]);
     ok(d, &["sensor", "matrix", "--codes", "unet/codes.json", "-o", "A.npy"]);
-    ok(d, &["infer", "--model", "unet_m.onnx", "--measurements", "stack.npy", "--sensor-matrix", "A.npy", "-o", "out_m"]);
+    ok(d, &["infer", "--model", "unet_m.onnx", "--measurements", "stack.npy", "--sensor-matrix", "A.npy", "--no-range-fit", "-o", "out_m"]);
     let dm = read_npy(&d.join("out_m/confidence.npy")).unwrap();
     let cb = read_npy(&d.join("out/confidence.npy")).unwrap();
     assert!(dm.iter().zip(cb.iter()).all(|(a, b)| (a - b).abs() < 1e-4), "matrix input vs baked confidence");
@@ -84,7 +93,7 @@ fn export_check_and_stream_a_trained_unet() {
     enc.set_color(png::ColorType::Grayscale);
     enc.set_depth(png::BitDepth::Sixteen);
     enc.write_header().unwrap().write_image_data(&pixels).unwrap();
-    ok(d, &["infer", "--model", "unet.onnx", "--measurements", "frames", "-o", "out2"]);
+    ok(d, &["infer", "--model", "unet.onnx", "--measurements", "frames", "--no-range-fit", "-o", "out2"]);
     let depth = read_npy(&d.join("out2/depth.npy")).unwrap();
     assert_eq!(depth.shape(), &[2, 2, 8, 8]);
     let (a, b) = (depth.index_axis(ndarray::Axis(0), 0), depth.index_axis(ndarray::Axis(0), 1));
@@ -116,6 +125,39 @@ fn export_check_and_stream_a_trained_unet() {
         let left: Vec<_> = std::fs::read_dir(d.join(bad)).map(|r| r.flatten().map(|e| e.path()).collect()).unwrap_or_default();
         assert!(left.is_empty(), "{bad}: {left:?} left behind");
     }
+}
+
+/// `infer --lifetime-fit`: lifetimes by the fit to the taps through an exported model's sensor,
+/// the network skipped, equal to `reconstruct lifetime-fit` on the same frame and the same on a
+/// brighter copy (the instrument estimated once, on the first frame).
+#[test]
+fn a_lifetime_model_streams_the_fit_to_the_taps() {
+    let d = tempdir();
+    let d = d.path();
+    tiny_lidar_and_codes(d);
+    ok(d, &["dataset", "flim", "--count", "4", "--size", "8x8", "--length", "8", "--heterodyne", "4", "--seed", "5", "-o", "f"]);
+    ok(d, &["train", "lifetime", "--dataset", "f", "--codes", "codes.json", "--harmonics", "3", "--base-width", "4", "--levels", "2", "--epochs", "1", "--seed", "3", "-o", "lt"]);
+    ok(d, &["export", "onnx", "--run", "lt", "-o", "lt.onnx"]);
+    ok(d, &["simulate", "--codes", "codes.json", "--heterodyne", "4", "--cube", "f/test/x_000.npy", "--noise", "--seed", "1", "-o", "y0.npy"]);
+    let y0 = read_npy(&d.join("y0.npy")).unwrap().index_axis_move(ndarray::Axis(0), 0);
+    let frames = [y0.clone(), y0.mapv(|v| 2.0 * v)];
+    let views: Vec<_> = frames.iter().map(|f| f.view()).collect();
+    write_npy(&d.join("stack.npy"), &ndarray::stack(ndarray::Axis(0), &views).unwrap().view()).unwrap();
+    let out = ok(d, &["infer", "--model", "lt.onnx", "--measurements", "stack.npy", "--lifetime-fit", "--products", "lifetime,intensity,phasor", "-o", "out"]);
+    assert!(out.contains("2 frames") && out.contains("0.0 ms per frame in ONNX Runtime"), "the network ran: {out}");
+    ok(d, &["reconstruct", "lifetime-fit", "--codes", "codes.json", "--heterodyne", "4", "--measurements", "y0.npy", "-o", "fit.npy"]);
+    let (streamed, fitted) = (read_npy(&d.join("out/lifetime.npy")).unwrap(), read_npy(&d.join("fit.npy")).unwrap());
+    assert_eq!((streamed.shape(), read_npy(&d.join("out/phasor.npy")).unwrap().shape()), (&[2, 8, 8][..], &[2, 2, 8, 8][..]));
+    let fitted0 = fitted.slice(ndarray::s![0, 0, .., ..]);
+    assert!(fitted0.iter().any(|v| v.is_finite()), "no lifetime fitted");
+    for f in 0..2 {
+        let s = streamed.index_axis(ndarray::Axis(0), f);
+        let bad = s.iter().zip(fitted0.iter()).filter(|(a, b)| a.is_nan() != b.is_nan() || (a.is_finite() && (*a - *b).abs() > 1e-3 * b.abs())).count();
+        assert_eq!(bad, 0, "frame {f}: {bad} lifetimes differ from reconstruct lifetime-fit's\n{s:?}\n{fitted0:?}");
+    }
+    // the fit gives lifetime, intensity and phasor only; its settings need --lifetime-fit
+    fails(d, &["infer", "--model", "lt.onnx", "--measurements", "stack.npy", "--onset-ns", "2", "-o", "bad"], &["--onset-ns", "--lifetime-fit"]);
+    assert!(!d.join("bad").exists());
 }
 
 #[test]

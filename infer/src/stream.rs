@@ -32,6 +32,7 @@ use crate::products::{depth_map, write_ply, PeakOptions};
 use crate::tapfit::{estimate_instrument, LifetimeTemplates, TapFit, TapFitOptions};
 use crate::runtime::OnnxModel;
 use tcsense_models::net::mask_depth;
+use tcsense_models::range_fit::{refine_ranges, RangeFitOptions};
 use crate::{InferError, Result};
 
 fn file_err(path: &Path, msg: impl ToString) -> InferError {
@@ -289,13 +290,16 @@ pub struct Products {
     /// ([`crate::tapfit::LifetimeTemplates`], the instrument estimated once on the first frame
     /// unless its `onset_s` is given) instead of the model's own; `None`: the model's.
     pub lifetime_fit: Option<TapFitOptions>,
+    /// A depth model's ranges refined by the fit in the tap domain, as `reconstruct unet`
+    /// applies it ([`tcsense_models::range_fit`]); `None`: as the network gives them.
+    pub range_fit: Option<RangeFitOptions>,
 }
 
 impl Products {
     /// Parse a comma-separated list (`cube,depth,peaks,ply,lifetime,intensity,phasor`) for a
     /// model of `kind`.
     pub fn parse(list: &str, kind: ModelKind) -> Result<Self> {
-        let mut p = Products { cube: false, depth: false, peaks: false, ply: false, lifetime: false, intensity: false, phasor: false, returns: 2, fov_deg: 40.0, lifetime_fit: None };
+        let mut p = Products { cube: false, depth: false, peaks: false, ply: false, lifetime: false, intensity: false, phasor: false, returns: 2, fov_deg: 40.0, lifetime_fit: None, range_fit: Some(RangeFitOptions::default()) };
         let (allowed, _) = kind.products();
         for item in list.split(',').map(str::trim).filter(|s| !s.is_empty()) {
             let (known, _) = ModelKind::Cube.products(); // a cube model gives every product
@@ -419,6 +423,8 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
     };
     let templates = templates.as_ref();
     let need_model = products.need_model();
+    let range_fit = products.range_fit.as_ref().filter(|_| kind == ModelKind::Depth && (products.depth || products.ply));
+    let sensor = &model.sensor.clone();
     let mut infer_seconds = 0.0;
     let result: Result<()> = std::thread::scope(|scope| {
         let (ftx, frx) = sync_channel::<Result<(usize, Array3<f32>, PathBuf)>>(2);
@@ -442,8 +448,15 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
         // products + writer
         let writer = scope.spawn(move || -> Result<()> {
             let mut done = 0;
-            for (i, outs, y) in orx {
-                let fitted = templates.zip(y).map(|(tpl, y)| tpl.fit(&y.view()));
+            for (i, mut outs, y) in orx {
+                let fitted = templates.zip(y.as_ref()).map(|(tpl, y)| tpl.fit(&y.view()));
+                if let (Some(opts), Some(y)) = (range_fit, y.as_ref()) {
+                    // the network's ranges refined in the tap domain (masked first, as the
+                    // decoder contract gives them to the fit)
+                    let (depth, conf) = outs.split_at_mut(1);
+                    mask_depth(&mut depth[0], &conf[0]);
+                    refine_ranges(y.view().insert_axis(Axis(0)), sensor, &mut depth[0], opts);
+                }
                 write_frame(i, outs, fitted, &mut writers, products, kind, bin_s, t, &peak_opts, out)?;
                 done += 1;
                 on_frame(i + 1, frames);
@@ -491,7 +504,7 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
                 }
             };
             infer_seconds += ti.elapsed().as_secs_f64();
-            if otx.send((i, outs, templates.map(|_| y))).is_err() {
+            if otx.send((i, outs, (templates.is_some() || range_fit.is_some()).then_some(y))).is_err() {
                 break;
             }
         }

@@ -90,6 +90,10 @@ pub struct InferArgs {
     /// ONNX Runtime intra-op threads (default: --threads, else all cores).
     #[arg(long)]
     ort_threads: Option<usize>,
+    /// A depth model's ranges as the network gives them, without the range fit in the tap
+    /// domain that `reconstruct unet` (and by default `infer`) applies after it.
+    #[arg(long)]
+    no_range_fit: bool,
     /// Lifetimes, intensity and phasor by the fit to the taps through the model's codes and
     /// sensor (the template fit: onset and IRF width estimated once on the first frame), not
     /// by the network; the network is not run when no other product is asked for.
@@ -116,6 +120,9 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
     let mut products = Products::parse(&list, kind)?;
     products.returns = a.returns;
     products.fov_deg = a.fov;
+    if a.no_range_fit {
+        products.range_fit = None;
+    }
     if a.lifetime_fit {
         if !(products.lifetime || products.intensity || products.phasor) {
             bail!("--lifetime-fit with --products {list}: the fit gives lifetime, intensity and phasor; ask for one of them");
