@@ -202,7 +202,8 @@ pub struct NamedDecoder {
 }
 
 /// Open a decoder by name: `tval3` (with `tval3` options), `lifetime-fit` (lifetimes fitted
-/// to the tap images, [`crate::tapfit`]) or `KIND:RUN`, a training run
+/// to the tap images, [`crate::tapfit`]), `depth-fit` (ranges fitted to the tap images,
+/// [`tcsense_models::range_templates`]) or `KIND:RUN`, a training run
 /// directory of a learned decoder of that kind (`admm-net:RUN`, `unet:RUN`, `lifetime:RUN`;
 /// RUN may be `zoo:NAME`; `unet-raw:RUN`: the U-Net's ranges without the fit in the tap
 /// domain), on `device`, `zoo:NAME`, the zoo's entry whatever its kind, or
@@ -220,6 +221,7 @@ pub fn open_decoder(name: &str, tval3: &Tval3Options, device: &Device) -> Result
     match name.split_once(':') {
         None if name == "tval3" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(Tval3Decoder::new(*tval3)?), codes: None }),
         None if name == "lifetime-fit" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::tapfit::TapFitDecoder::default()), codes: None }),
+        None if name == "depth-fit" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::ranged::DepthFitDecoder::default()), codes: None }),
         Some(("zoo", _)) => {
             let run = runs::open(&tcsense_models::zoo::resolve(name)?, device)?;
             Ok(NamedDecoder { label: name.into(), decoder: run.decoder, codes: Some(run.codes) })

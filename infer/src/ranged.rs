@@ -19,10 +19,48 @@
 use ndarray::{Array4, ArrayView4, Axis};
 use tcsense_models::decoder::{Control, Decoded, Decoder};
 use tcsense_models::range_fit::{refine_ranges, RangeFitOptions};
+use tcsense_models::range_templates::{fit_ranges, DepthFitOptions};
 use tcsense_models::{ModelError, Result};
 use tcsense_sensor::MeasurementMatrix;
 
 use crate::products::{depth_map, PeakOptions};
+
+/// Ranges with no decoder before them: the template fit of [`tcsense_models::range_templates`]
+/// behind the decoder contract (`depth-fit`): depth `[B, K, H, W]` with a confidence of 1 where
+/// a return was placed, 0 elsewhere.
+#[derive(Debug, Clone, Default)]
+pub struct DepthFitDecoder {
+    pub options: DepthFitOptions,
+}
+
+impl DepthFitDecoder {
+    /// A decoder with checked options.
+    pub fn new(options: DepthFitOptions) -> crate::Result<Self> {
+        options.validate().map_err(|e| crate::InferError::InvalidParam { field: "depth-fit", got: format!("{options:?}"), expected: e })?;
+        Ok(DepthFitDecoder { options })
+    }
+}
+
+impl Decoder for DepthFitDecoder {
+    fn name(&self) -> &str {
+        "depth-fit"
+    }
+
+    fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &MeasurementMatrix, ctl: &Control<'_>) -> Result<Decoded> {
+        tcsense_models::decoder::check_measurements(&y, sensor)?;
+        let (b, _, h, w) = y.dim();
+        let k = self.options.returns;
+        let mut depth = Array4::<f32>::from_elem((b, k, h, w), f32::NAN);
+        for (f, frame) in y.outer_iter().enumerate() {
+            ctl.check()?;
+            (ctl.progress)(tcsense_models::decoder::Step { frame: f, frames: b, done: 0, total: 1 });
+            depth.index_axis_mut(Axis(0), f).assign(&fit_ranges(&frame, sensor, &self.options));
+            (ctl.progress)(tcsense_models::decoder::Step { frame: f, frames: b, done: 1, total: 1 });
+        }
+        let confidence = depth.mapv(|d| if d.is_finite() { 1.0 } else { 0.0 });
+        Ok(Decoded { depth: Some(depth), confidence: Some(confidence), ..Default::default() })
+    }
+}
 
 /// A cube decoder whose output also carries ranges: peaks of the cube, refined by the fit.
 pub struct PeaksThenFit {

@@ -31,6 +31,7 @@ pub mod lifetime;
 pub mod metrics;
 pub mod net;
 pub mod range_fit;
+pub mod range_templates;
 pub mod runs;
 pub mod sensor_tensors;
 pub mod tval3;

@@ -54,15 +54,15 @@ const ROUNDS: usize = 3;
 /// A window whose single-return residual is at most this share of `Σ y·y` is explained by
 /// one return (a 0.1 % RMS misfit, below the shot noise of any pixel): a
 /// second return there would fit the rounding of the first's position.
-const EXPLAINED: f64 = 1e-6;
+pub(crate) const EXPLAINED: f64 = 1e-6;
 
 /// Two returns closer than this (bins) are not told apart: the joint fit would split one
 /// return's pulse into two. Peak detection's minimal separation (`PeakOptions::min_sep`) is
 /// the same.
-const MIN_GAP: f64 = 2.0;
+pub(crate) const MIN_GAP: f64 = 2.0;
 
 /// Distance between two positions on a cycle of `t` bins.
-fn cyclic_gap(a: f64, b: f64, t: usize) -> f64 {
+pub(crate) fn cyclic_gap(a: f64, b: f64, t: usize) -> f64 {
     let g = (a - b).rem_euclid(t as f64);
     g.min(t as f64 - g)
 }
@@ -116,32 +116,40 @@ impl RangeFitOptions {
 }
 
 /// The templates of one sensor: `g_n(τ)` on the candidate grid and `s_n`.
-struct Templates {
+pub(crate) struct Templates {
     /// Subpixel types `N`, taps `M`, bins `T`, candidates per bin.
-    n: usize,
-    m: usize,
-    t: usize,
-    os: usize,
-    /// `[N][T·os][M]`, candidate `c` at `τ = (c + ½)/os` bins.
+    pub(crate) n: usize,
+    pub(crate) m: usize,
+    pub(crate) t: usize,
+    pub(crate) os: usize,
+    /// Candidate `c` sits at `τ = (c + offset)/os` bins: ½ for the range fit, `os/2` to put
+    /// every `os`-th candidate on a bin's centre (the templates' kinks).
+    pub(crate) offset: f64,
+    /// `[N][T·os][M]`, candidate `c` at `τ = (c + offset)/os` bins.
     g: Vec<f64>,
     /// `[N][M]`.
     s: Vec<f64>,
     /// `A` as f64, `[N][M][T]`, for templates off the grid.
     a: Vec<f64>,
     /// Gram entries `[g·g, g·s, s·s]` of every type and candidate, `[N][T·os]`.
-    gram: Vec<[f64; 3]>,
+    pub(crate) gram: Vec<[f64; 3]>,
 }
 
 impl Templates {
-    fn new(sensor: &MeasurementMatrix, os: usize) -> Templates {
+    pub(crate) fn new(sensor: &MeasurementMatrix, os: usize) -> Templates {
+        Templates::with_offset(sensor, os, 0.5)
+    }
+
+    /// [`Self::new`] with the candidates at `(c + offset)/os` bins.
+    pub(crate) fn with_offset(sensor: &MeasurementMatrix, os: usize, offset: f64) -> Templates {
         let a3 = sensor.a();
         let (n, m, t) = a3.dim();
         let a: Vec<f64> = a3.iter().map(|&v| v as f64).collect();
         let s = (0..n * m).map(|i| a[i * t..(i + 1) * t].iter().sum()).collect();
-        let mut tpl = Templates { n, m, t, os, g: vec![0.0; n * t * os * m], s, a, gram: Vec::with_capacity(n * t * os) };
+        let mut tpl = Templates { n, m, t, os, offset, g: vec![0.0; n * t * os * m], s, a, gram: Vec::with_capacity(n * t * os) };
         for k in 0..n {
             for c in 0..t * os {
-                let tau = (c as f64 + 0.5) / os as f64;
+                let tau = (c as f64 + offset) / os as f64;
                 let mut out = vec![0.0; m];
                 tpl.at(k, tau, &mut out);
                 tpl.g[(k * t * os + c) * m..][..m].copy_from_slice(&out);
@@ -157,8 +165,13 @@ impl Templates {
         tpl
     }
 
-    fn candidates(&self) -> usize {
+    pub(crate) fn candidates(&self) -> usize {
         self.t * self.os
+    }
+
+    /// Where candidate `c` sits (bins).
+    pub(crate) fn tau(&self, c: usize) -> f64 {
+        (c as f64 + self.offset) / self.os as f64
     }
 
     /// `g_n(τ)` for any `τ` (bins), cyclic.
@@ -173,11 +186,11 @@ impl Templates {
         }
     }
 
-    fn g(&self, n: usize, c: usize) -> &[f64] {
+    pub(crate) fn g(&self, n: usize, c: usize) -> &[f64] {
         &self.g[(n * self.candidates() + c) * self.m..][..self.m]
     }
 
-    fn s(&self, n: usize) -> &[f64] {
+    pub(crate) fn s(&self, n: usize) -> &[f64] {
         &self.s[n * self.m..][..self.m]
     }
 }
@@ -252,9 +265,9 @@ fn nnls3(yy: f64, r: [f64; 3], gram: &Gram3, face12: f64) -> f64 {
 fn search(tpl: &Templates, centre: f64, half: f64, cost: &mut dyn FnMut(usize) -> f64) -> Option<(f64, f64)> {
     let cands = tpl.candidates() as i64;
     let os = tpl.os as f64;
-    // candidate c sits at (c + ½)/os; those within the window around `centre`
-    let lo = ((centre - half) * os - 0.5).ceil() as i64;
-    let hi = ((centre + half) * os - 0.5).floor() as i64;
+    // candidate c sits at (c + offset)/os; those within the window around `centre`
+    let lo = ((centre - half) * os - tpl.offset).ceil() as i64;
+    let hi = ((centre + half) * os - tpl.offset).floor() as i64;
     if hi < lo {
         return None;
     }
@@ -287,7 +300,7 @@ fn search(tpl: &Templates, centre: f64, half: f64, cost: &mut dyn FnMut(usize) -
     let (rm, rp) = (cost(wrap(c - 1)), cost(wrap(c + 1)));
     let den = rm - 2.0 * r0 + rp;
     let off = if den > 0.0 && rm.is_finite() && rp.is_finite() { (0.5 * (rm - rp) / den).clamp(-0.5, 0.5) } else { 0.0 };
-    Some((((c as f64 + 0.5 + off) / os).rem_euclid(tpl.t as f64), r0))
+    Some((((c as f64 + tpl.offset + off) / os).rem_euclid(tpl.t as f64), r0))
 }
 
 /// One neighbour of the window: its subpixel type, where its taps start, `y·y`, `y·s`, and
@@ -305,7 +318,7 @@ struct Neighbour {
 
 /// The costs of one window, with buffers reused from pixel to pixel (no allocation per
 /// candidate or per pixel).
-struct WindowFit<'a> {
+pub(crate) struct WindowFit<'a> {
     tpl: &'a Templates,
     /// Taps of the frame, `[H·W][M]`.
     taps: &'a [f64],
@@ -322,12 +335,12 @@ struct WindowFit<'a> {
 }
 
 impl<'a> WindowFit<'a> {
-    fn new(tpl: &'a Templates, taps: &'a [f64], window: usize) -> Self {
+    pub(crate) fn new(tpl: &'a Templates, taps: &'a [f64], window: usize) -> Self {
         WindowFit { tpl, taps, hood: Vec::with_capacity(window * window), groups: Vec::with_capacity(tpl.n), other: vec![0.0; tpl.n * tpl.m], other_gram: vec![[0.0; 2]; tpl.n], other_tau: f64::NAN }
     }
 
     /// The window: each pixel as its subpixel type and where its taps start in `taps`.
-    fn set_window(&mut self, pixels: impl Iterator<Item = (usize, usize)>) {
+    pub(crate) fn set_window(&mut self, pixels: impl Iterator<Item = (usize, usize)>) {
         let (tpl, m) = (self.tpl, self.tpl.m);
         self.hood.clear();
         for (n, at) in pixels {
@@ -347,7 +360,7 @@ impl<'a> WindowFit<'a> {
     }
 
     /// `Σ y·y` over the window.
-    fn energy(&self) -> f64 {
+    pub(crate) fn energy(&self) -> f64 {
         self.hood.iter().map(|q| q.yy).sum()
     }
 
@@ -358,7 +371,7 @@ impl<'a> WindowFit<'a> {
     }
 
     /// Hold a return fixed at `tau` (bins) for [`Self::joint`].
-    fn fix_other(&mut self, tau: f64) {
+    pub(crate) fn fix_other(&mut self, tau: f64) {
         let (tpl, m) = (self.tpl, self.tpl.m);
         for n in 0..tpl.n {
             let o = &mut self.other[n * m..][..m];
@@ -375,9 +388,9 @@ impl<'a> WindowFit<'a> {
 
     /// The window's cost of a return at candidate `c` jointly with the one held fixed:
     /// `a₁·g(other) + a₂·g(τ_c) + b·s`, all non-negative.
-    fn joint(&self, c: usize) -> f64 {
+    pub(crate) fn joint(&self, c: usize) -> f64 {
         let (tpl, m, cands) = (self.tpl, self.tpl.m, self.tpl.candidates());
-        let tau_c = (c as f64 + 0.5) / tpl.os as f64;
+        let tau_c = tpl.tau(c);
         if cyclic_gap(tau_c, self.other_tau, tpl.t) < MIN_GAP {
             return f64::INFINITY; // both returns within one pulse
         }
@@ -403,7 +416,7 @@ impl<'a> WindowFit<'a> {
     }
 
     /// The window's cost of one return at any `tau` (bins), off the candidate grid.
-    fn single_at(&self, tau: f64, g: &mut [f64]) -> f64 {
+    pub(crate) fn single_at(&self, tau: f64, g: &mut [f64]) -> f64 {
         let (tpl, m) = (self.tpl, self.tpl.m);
         let mut sum = 0.0;
         for &(n, lo, hi) in &self.groups {
@@ -421,7 +434,12 @@ impl<'a> WindowFit<'a> {
     /// candidate either side. The parabola through three candidates is biased where the cost
     /// has a kink between them (the templates are piecewise linear in `τ`, with kinks at the
     /// bins' centres): by up to 0.04 bins, ten times the Cramér–Rao bound at 20 000 e⁻.
-    fn polish(&self, tau: f64) -> f64 {
+    pub(crate) fn polish(&self, tau: f64) -> f64 {
+        self.polish_in(tau, POLISH_STEPS)
+    }
+
+    /// [`Self::polish`] in `steps` golden sections.
+    pub(crate) fn polish_in(&self, tau: f64, steps: usize) -> f64 {
         let mut g = [0.0f64; 8];
         let g = &mut g[..self.tpl.m.min(8)];
         if self.tpl.m > 8 {
@@ -432,7 +450,7 @@ impl<'a> WindowFit<'a> {
         let r = 0.5 * (5f64.sqrt() - 1.0);
         let (mut x1, mut x2) = (hi - r * (hi - lo), lo + r * (hi - lo));
         let (mut f1, mut f2) = (self.single_at(x1, g), self.single_at(x2, g));
-        for _ in 0..POLISH_STEPS {
+        for _ in 0..steps {
             if f1 <= f2 {
                 hi = x2;
                 (x2, f2) = (x1, f1);
@@ -454,9 +472,35 @@ impl<'a> WindowFit<'a> {
         }
     }
 
+    /// The window's summed amplitudes of single returns at `tau1` and `tau2` (bins) in the
+    /// joint fit `a₁·g(τ₁) + a₂·g(τ₂) + b·s` (each neighbour's least squares, its negative
+    /// coefficients set to 0): how bright each return is.
+    pub(crate) fn amplitudes(&self, tau1: f64, tau2: f64) -> (f64, f64) {
+        let (tpl, m) = (self.tpl, self.tpl.m);
+        let (mut g1, mut g2) = (vec![0.0; m], vec![0.0; m]);
+        let (mut a1, mut a2) = (0.0, 0.0);
+        for &(n, lo, hi) in &self.groups {
+            tpl.at(n, tau1, &mut g1);
+            tpl.at(n, tau2, &mut g2);
+            let s = tpl.s(n);
+            let gram = Gram3::new([[dot(&g1, &g1), dot(&g1, &g2), dot(&g1, s)], [dot(&g2, &g1), dot(&g2, &g2), dot(&g2, s)], [dot(s, &g1), dot(s, &g2), dot(s, s)]]);
+            if !gram.regular {
+                continue;
+            }
+            for q in &self.hood[lo..hi] {
+                let y = &self.taps[q.at..][..m];
+                let r = [dot(&g1, y), dot(&g2, y), q.sy];
+                let x: [f64; 3] = std::array::from_fn(|i| (gram.cof[i][0] * r[0] + gram.cof[i][1] * r[1] + gram.cof[i][2] * r[2]) * gram.inv_det);
+                a1 += x[0].max(0.0);
+                a2 += x[1].max(0.0);
+            }
+        }
+        (a1, a2)
+    }
+
     /// Two returns from `(tau1, tau2)` by coordinate descent, each searched with the other
     /// fixed: the two (bins) and the joint cost.
-    fn two_returns(&mut self, (mut tau1, mut tau2): (f64, f64), half: f64) -> ((f64, f64), f64) {
+    pub(crate) fn two_returns(&mut self, (mut tau1, mut tau2): (f64, f64), half: f64) -> ((f64, f64), f64) {
         // the descent stops when neither return moves by more than half a candidate
         let mut cost = f64::INFINITY;
         let settled = 0.5 / self.tpl.os as f64;

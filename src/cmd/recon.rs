@@ -149,6 +149,28 @@ pub enum ReconstructCmd {
         #[arg(long)]
         png: Option<PathBuf>,
     },
+    /// Ranges fitted to the tap images themselves (no network, no cube): every candidate range
+    /// of the cycle at once, the window's best, polished, and a second return where the taps
+    /// call for one. Needs codes that do not alias (`codes analyze`: alias ≥ 0.5). Writes depth
+    /// [K, H, W] (m, NaN where none) and the confidence next to it.
+    DepthFit {
+        #[command(flatten)]
+        sensor: SensorArgs,
+        /// Tap images .npy, [M, H, W] or [B, M, H, W].
+        #[arg(long)]
+        measurements: PathBuf,
+        /// Returns per pixel: 1, or 2 (a second where the taps call for it).
+        #[arg(long, default_value_t = 2)]
+        returns: usize,
+        /// Side of the square window of pixels whose costs are summed (odd).
+        #[arg(long, default_value_t = 3)]
+        window: usize,
+        /// Output depth .npy, [K, H, W] (or [B, K, H, W]).
+        #[arg(short, long)]
+        output: PathBuf,
+        #[command(flatten)]
+        products: DepthProductArgs,
+    },
     /// Aᵀ + U-Net from a trained run directory: depth of K returns [K, H, W] (m, NaN where the
     /// confidence is below ½), the confidence next to it (`OUTPUT.confidence.npy`).
     Unet {
@@ -168,7 +190,7 @@ pub enum ReconstructCmd {
         #[arg(long, value_name = "DIR")]
         calibration: Option<PathBuf>,
         /// The network's own ranges, without the fit of the pulse template to the tap images
-        /// (what `tcsense infer` gives from the exported model).
+        /// (what `tcsense infer --no-range-fit` gives from the exported model).
         #[arg(long)]
         no_range_fit: bool,
         #[command(flatten)]
@@ -240,6 +262,12 @@ pub fn reconstruct(cmd: ReconstructCmd) -> Result<ExitCode> {
             let mut decoder = tcsense_infer::tapfit::TapFitDecoder::new(fit.options()?)?;
             let (codes, _, a, cal) = sensor.decoding()?;
             let products = DepthProductArgs { png, ..DepthProductArgs::default() };
+            decode_file(&mut decoder, &a, cal.as_ref(), &codes, &measurements, &output, &products)
+        }
+        ReconstructCmd::DepthFit { sensor, measurements, returns, window, output, products } => {
+            let fit = tcsense_models::range_fit::RangeFitOptions { window, ..Default::default() };
+            let mut decoder = tcsense_infer::ranged::DepthFitDecoder::new(tcsense_models::range_templates::DepthFitOptions { fit, returns, ..Default::default() })?;
+            let (codes, _, a, cal) = sensor.decoding()?;
             decode_file(&mut decoder, &a, cal.as_ref(), &codes, &measurements, &output, &products)
         }
         ReconstructCmd::Tval3 { sensor, measurements, tval3: targs, output } => {
