@@ -37,7 +37,7 @@ flim_sets() {
   touch "$OUT/.flim-sets"
 }
 
-[ -f "$OUT/zoo-ood.csv" ] || echo "entry,set,decoder,items,mse,psnr_db,bounce1_rmse_m,bounce1_mae_m,bounce1_detection,bounce2_rmse_m,bounce2_mae_m,bounce2_detection,lifetime_mae_s,seconds_per_frame,lifetime_mae_weighted_s,lifetime_within_02ns,lifetime_coverage,bounce1_false_alarm,bounce2_false_alarm" > "$OUT/zoo-ood.csv"
+[ -f "$OUT/zoo-ood.csv" ] || echo "entry,set,decoder,items,mse,psnr_db,bounce1_rmse_m,bounce1_mae_m,bounce1_detection,bounce2_rmse_m,bounce2_mae_m,bounce2_detection,lifetime_mae_s,seconds_per_frame,lifetime_mae_weighted_s,lifetime_within_02ns,lifetime_coverage,bounce1_false_alarm,bounce2_false_alarm,bounce1_median_m,bounce2_median_m" > "$OUT/zoo-ood.csv"
 for name in "${NAMES[@]}"; do
   kind=$(field "$name" "c['decoder']")
   mode=$(field "$name" "c['sampling']['mode']")

@@ -42,9 +42,14 @@ pub struct EvalRow {
     /// Share of the fluorophore pixels that got a lifetime.
     pub lifetime_coverage: Option<f64>,
     pub seconds_per_frame: f64,
+    /// Per bounce: the median absolute range error (m) over the detected returns of every item.
+    pub depth_median_m: Vec<f64>,
     #[serde(skip)]
     /// Per bounce: the counts summed over items, Σ squared and Σ absolute errors.
     depth_sums: Vec<(DepthErrors, f64, f64)>,
+    #[serde(skip)]
+    /// Per bounce: every detected return's absolute error (m).
+    depth_abs: Vec<Vec<f32>>,
     #[serde(skip)]
     lt_sum: LifetimeErrors,
     #[serde(skip)]
@@ -95,11 +100,26 @@ impl EvalRow {
         self.items += 1;
         self.seconds_per_frame = self.time_sum / self.items as f64;
         if let Some(d) = depth {
-            let errs = match (depth_est, xh) {
-                (Some(est), _) => depth_errors(est, d),
-                (None, Some(xh)) => depth_errors(&depth_map(xh, bin_width_s, &PeakOptions { max_peaks: d.dim().0, ..Default::default() }).0.view(), d),
-                (None, None) => Vec::new(),
+            let peaks;
+            let est = match (depth_est, xh) {
+                (Some(est), _) => Some(est.view()),
+                (None, Some(xh)) => {
+                    peaks = depth_map(xh, bin_width_s, &PeakOptions { max_peaks: d.dim().0, ..Default::default() }).0;
+                    Some(peaks.view())
+                }
+                (None, None) => None,
             };
+            let errs = est.map_or_else(Vec::new, |est| depth_errors(&est, d));
+            if let Some(est) = est {
+                let k = d.dim().0.min(est.dim().0);
+                if self.depth_abs.len() < k {
+                    self.depth_abs.resize(k, Vec::new());
+                }
+                for (b, abs) in self.depth_abs.iter_mut().enumerate().take(k) {
+                    abs.extend(d.index_axis(Axis(0), b).iter().zip(est.index_axis(Axis(0), b).iter()).filter(|(t, e)| t.is_finite() && e.is_finite()).map(|(t, e)| (e - t).abs()));
+                }
+                self.depth_median_m = self.depth_abs.iter().map(|v| median(v)).collect();
+            }
             if self.depth_sums.len() < errs.len() {
                 self.depth_sums.resize(errs.len(), (DepthErrors::default(), 0.0, 0.0));
             }
@@ -147,7 +167,7 @@ impl EvalRow {
         let mut s = format!("{:<24} {:>5} {:>11.4e} {:>8.2}", self.decoder, self.items, self.mse, self.psnr_db);
         for (b, d) in self.depth.iter().enumerate() {
             if d.truth > 0 {
-                s.push_str(&format!("  b{}: rmse {:.3} m mae {:.3} m det {:.0}%", b + 1, d.rmse_m, d.mae_m, 100.0 * d.detection_rate()));
+                s.push_str(&format!("  b{}: rmse {:.3} m mae {:.3} m median {:.3} m det {:.0}%", b + 1, d.rmse_m, d.mae_m, self.depth_median_m.get(b).copied().unwrap_or(f64::NAN), 100.0 * d.detection_rate()));
             }
             if d.false_alarms > 0 {
                 let lead = if d.truth > 0 { " ".to_string() } else { format!("  b{}: ", b + 1) };
@@ -166,13 +186,14 @@ impl EvalRow {
 
     /// The rows as CSV, one line per decoder after a header.
     pub fn csv(rows: &[EvalRow]) -> String {
-        let mut csv = String::from("decoder,items,mse,psnr_db,bounce1_rmse_m,bounce1_mae_m,bounce1_detection,bounce2_rmse_m,bounce2_mae_m,bounce2_detection,lifetime_mae_s,seconds_per_frame,lifetime_mae_weighted_s,lifetime_within_02ns,lifetime_coverage,bounce1_false_alarm,bounce2_false_alarm\n");
+        let mut csv = String::from("decoder,items,mse,psnr_db,bounce1_rmse_m,bounce1_mae_m,bounce1_detection,bounce2_rmse_m,bounce2_mae_m,bounce2_detection,lifetime_mae_s,seconds_per_frame,lifetime_mae_weighted_s,lifetime_within_02ns,lifetime_coverage,bounce1_false_alarm,bounce2_false_alarm,bounce1_median_m,bounce2_median_m\n");
         for r in rows {
             let b = |k: usize| r.depth.get(k).map_or(",,".to_string(), |d| format!("{},{},{}", d.rmse_m, d.mae_m, d.detection_rate()));
             let o = |v: Option<f64>| v.map_or(String::new(), |v| v.to_string());
             let fa = |k: usize| o(r.depth.get(k).map(|d| d.false_alarm_rate()));
+            let med = |k: usize| o(r.depth_median_m.get(k).copied());
             csv.push_str(&format!(
-                "{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
+                "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
                 r.decoder,
                 r.items,
                 r.mse,
@@ -185,11 +206,24 @@ impl EvalRow {
                 o(r.lifetime_within_02ns),
                 o(r.lifetime_coverage),
                 fa(0),
-                fa(1)
+                fa(1),
+                med(0),
+                med(1)
             ));
         }
         csv
     }
+}
+
+/// The median of `v` (NaN when empty).
+fn median(v: &[f32]) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    let mut s = v.to_vec();
+    let k = s.len() / 2;
+    let (_, m, _) = s.select_nth_unstable_by(k, f32::total_cmp);
+    *m as f64
 }
 
 /// A decoder chosen by name, with the codes it was trained with (learned decoders).

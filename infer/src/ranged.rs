@@ -19,7 +19,7 @@
 use ndarray::{Array4, ArrayView4, Axis};
 use tcsense_models::decoder::{Control, Decoded, Decoder};
 use tcsense_models::range_fit::{refine_ranges, RangeFitOptions};
-use tcsense_models::range_templates::{fit_ranges, DepthFitOptions};
+use tcsense_models::range_templates::{DepthFitOptions, RangeTemplates};
 use tcsense_models::{ModelError, Result};
 use tcsense_sensor::MeasurementMatrix;
 
@@ -51,10 +51,11 @@ impl Decoder for DepthFitDecoder {
         let (b, _, h, w) = y.dim();
         let k = self.options.returns;
         let mut depth = Array4::<f32>::from_elem((b, k, h, w), f32::NAN);
+        let mut templates = RangeTemplates::new(sensor, &self.options);
         for (f, frame) in y.outer_iter().enumerate() {
             ctl.check()?;
             (ctl.progress)(tcsense_models::decoder::Step { frame: f, frames: b, done: 0, total: 1 });
-            depth.index_axis_mut(Axis(0), f).assign(&fit_ranges(&frame, sensor, &self.options));
+            depth.index_axis_mut(Axis(0), f).assign(&templates.fit(&frame));
             (ctl.progress)(tcsense_models::decoder::Step { frame: f, frames: b, done: 1, total: 1 });
         }
         let confidence = depth.mapv(|d| if d.is_finite() { 1.0 } else { 0.0 });

@@ -39,7 +39,7 @@ use crate::range_fit::{cyclic_gap, RangeFitOptions, Templates, WindowFit, EXPLAI
 /// The screen of a second return: the joint cost with the first held where the single fit put
 /// it and the second at a seed must be at most this share of the single return's before the
 /// joint fit is run.
-const SCREEN: f64 = 0.5;
+const SCREEN: f64 = 0.3;
 
 /// Local minima of the single-return cost tried as the second return's seed.
 const SEEDS: usize = 2;
@@ -202,170 +202,197 @@ fn argmin(v: &[f32]) -> usize {
 }
 
 /// Ranges (m) of up to two returns per pixel from one frame of taps, with no estimate to start
-/// from (see the module's notes).
+/// from (see the module's notes): [`RangeTemplates`] built for this one frame.
 ///
 /// # Shapes
 /// - `y`: `[M, H, W]` tap images (H, W multiples of the sensor's block), `sensor`: `A [N, M, T]`
 ///   → `[returns, H, W]` (m from the start of the code cycle, arrival order, NaN where none)
 pub fn fit_ranges(y: &ArrayView3<'_, f32>, sensor: &MeasurementMatrix, opts: &DepthFitOptions) -> Array3<f32> {
-    let (m, h, w) = y.dim();
-    let fit = &opts.fit;
-    // every os-th candidate on a bin's centre, where the templates have their kinks
-    let templates = Templates::with_offset(sensor, fit.oversample, 0.5 * fit.oversample as f64);
-    let tpl = &templates;
-    // the range fit's own grid (candidates between the kinks) for the joint fit of two returns,
-    // whose searches end in a parabola
-    let joint_templates = Templates::new(sensor, fit.oversample);
-    let jtpl = &joint_templates;
-    let dense = Dense::of(tpl);
-    let cands = tpl.candidates();
-    let (bh, bw) = sensor.block();
-    let kind = |p: usize| (p / w % bh) * bw + (p % w % bw);
-    let delta = C * sensor.bin_width_s() / 2.0; // metres per bin
-    let os = fit.oversample as f64;
-    let half = fit.window / 2;
-    let mut out = Array3::from_elem((opts.returns, h, w), f32::NAN);
-    if m != tpl.m || h == 0 || w == 0 {
-        return out;
-    }
-    // taps [H·W][M] (f32 for the dense pass, f64 for the window fits) and who has light
-    let mut y32 = vec![0f32; h * w * m];
-    for ((k, i, j), &v) in y.indexed_iter() {
-        y32[(i * w + j) * m + k] = v;
-    }
-    let taps: Vec<f64> = y32.iter().map(|&v| v as f64).collect();
-    let charge: Vec<f32> = (0..h * w).map(|p| y32[p * m..(p + 1) * m].iter().sum()).collect();
-    let floor = opts.min_intensity * charge.iter().fold(0f32, |a, &b| a.max(b));
-    let lit: Vec<bool> = charge.iter().map(|&c| c > 0.0 && c > floor).collect();
+    RangeTemplates::new(sensor, opts).fit(y)
+}
 
-    // 1. every pixel's cost at every candidate, [H·W][C]
-    let mut cost = vec![0f32; h * w * cands];
-    cost.par_chunks_mut(w * cands).enumerate().for_each(|(i, row)| {
-        let mut gy = vec![0f32; cands];
-        for j in 0..w {
-            let p = i * w + j;
-            dense[kind(p)].costs(&y32[p * m..(p + 1) * m], &mut gy, &mut row[j * cands..(j + 1) * cands]);
+/// The template fit of ranges for one sensor, built once and applied to every frame of a
+/// stream (its cost volume reused from frame to frame).
+pub struct RangeTemplates {
+    /// Candidates with every `os`-th on a bin's centre (the templates' kinks), for the dense pass.
+    tpl: Templates,
+    /// The range fit's own grid (candidates between the kinks) for the joint fit of two returns,
+    /// whose searches end in a parabola.
+    jtpl: Templates,
+    dense: Vec<Dense>,
+    block: (usize, usize),
+    /// Metres per bin.
+    delta: f64,
+    opts: DepthFitOptions,
+    /// Every pixel's single-return cost at every candidate, `[H·W][C]` (scratch).
+    cost: Vec<f32>,
+}
+
+impl RangeTemplates {
+    /// The templates of `sensor` with `opts` (checked by the caller: [`DepthFitOptions::validate`]).
+    pub fn new(sensor: &MeasurementMatrix, opts: &DepthFitOptions) -> RangeTemplates {
+        let os = opts.fit.oversample;
+        let tpl = Templates::with_offset(sensor, os, 0.5 * os as f64);
+        let dense = Dense::of(&tpl);
+        RangeTemplates { jtpl: Templates::new(sensor, os), dense, tpl, block: sensor.block(), delta: C * sensor.bin_width_s() / 2.0, opts: opts.clone(), cost: Vec::new() }
+    }
+
+    /// The ranges of one frame.
+    ///
+    /// # Shapes
+    /// - `y`: `[M, H, W]` → `[returns, H, W]` (m, arrival order, NaN where none)
+    pub fn fit(&mut self, y: &ArrayView3<'_, f32>) -> Array3<f32> {
+        let (m, h, w) = y.dim();
+        let opts = &self.opts;
+        let fit = &opts.fit;
+        let (tpl, jtpl, dense) = (&self.tpl, &self.jtpl, &self.dense);
+        let cands = tpl.candidates();
+        let (bh, bw) = self.block;
+        let kind = |p: usize| (p / w % bh) * bw + (p % w % bw);
+        let delta = self.delta;
+        let os = fit.oversample as f64;
+        let half = fit.window / 2;
+        let mut out = Array3::from_elem((opts.returns, h, w), f32::NAN);
+        if m != tpl.m || h == 0 || w == 0 {
+            return out;
         }
-    });
-    // 2. summed over the window (rows, then columns), the argmin over the cycle
-    let mut across = vec![0f32; h * w * cands];
-    across.par_chunks_mut(w * cands).enumerate().for_each(|(i, row)| {
-        for j in 0..w {
-            let o = &mut row[j * cands..(j + 1) * cands];
-            for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
-                o.iter_mut().zip(&cost[(i * w + jj) * cands..(i * w + jj + 1) * cands]).for_each(|(a, b)| *a += b);
+        // taps [H·W][M] (f32 for the dense pass, f64 for the window fits) and who has light
+        let mut y32 = vec![0f32; h * w * m];
+        for ((k, i, j), &v) in y.indexed_iter() {
+            y32[(i * w + j) * m + k] = v;
+        }
+        let taps: Vec<f64> = y32.iter().map(|&v| v as f64).collect();
+        let charge: Vec<f32> = (0..h * w).map(|p| y32[p * m..(p + 1) * m].iter().sum()).collect();
+        let floor = opts.min_intensity * charge.iter().fold(0f32, |a, &b| a.max(b));
+        let lit: Vec<bool> = charge.iter().map(|&c| c > 0.0 && c > floor).collect();
+
+        // 1. every lit pixel's cost at every candidate, [H·W][C] (the others are never read)
+        self.cost.resize(h * w * cands, 0.0);
+        self.cost.par_chunks_mut(w * cands).enumerate().for_each(|(i, row)| {
+            let mut gy = vec![0f32; cands];
+            for j in 0..w {
+                let p = i * w + j;
+                if lit[p] {
+                    dense[kind(p)].costs(&y32[p * m..(p + 1) * m], &mut gy, &mut row[j * cands..(j + 1) * cands]);
+                }
             }
-        }
-    });
-    let first: Vec<f64> = (0..h)
-        .into_par_iter()
-        .flat_map_iter(|i| {
-            let mut total = vec![0f32; cands];
-            let (across, lit) = (&across, &lit);
-            (0..w).map(move |j| {
-                if !lit[i * w + j] {
-                    return f64::NAN;
-                }
-                total.fill(0.0);
-                for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
-                    total.iter_mut().zip(&across[(ii * w + j) * cands..(ii * w + j + 1) * cands]).for_each(|(a, b)| *a += b);
-                }
-                tpl.tau(argmin(&total))
-            })
-            .collect::<Vec<_>>()
-        })
-        .collect();
-    drop(across);
-
-    // 3. the window on the pixel's surface: search near the first estimate, polish; 4. a
-    // second return where a joint fit explains the taps far better than one return
-    let t = tpl.t;
-    let cells: Vec<(f64, f64)> = (0..h)
-        .into_par_iter()
-        .flat_map_iter(|i| {
-            let mut win = WindowFit::new(jtpl, &taps, fit.window);
-            let mut total = vec![0f32; cands];
-            let mut g = vec![0.0f64; m];
-            let mut hood: Vec<usize> = Vec::with_capacity(fit.window * fit.window);
-            let (first, cost, lit) = (&first, &cost, &lit);
-            (0..w)
-                .map(move |j| {
-                    let p = i * w + j;
-                    let own = first[p];
-                    if !lit[p] || !own.is_finite() {
-                        return (f64::NAN, f64::NAN);
+        });
+        let cost = &self.cost;
+        // 2. summed over the window's lit pixels, the argmin over the cycle
+        let first: Vec<f64> = (0..h)
+            .into_par_iter()
+            .flat_map_iter(|i| {
+                let mut total = vec![0f32; cands];
+                let lit = &lit;
+                (0..w).map(move |j| {
+                    if !lit[i * w + j] {
+                        return f64::NAN;
                     }
-                    hood.clear();
+                    total.fill(0.0);
                     for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
                         for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
                             let q = ii * w + jj;
-                            if q == p || (lit[q] && cyclic_gap(first[q], own, t) <= fit.edge_bins) {
-                                hood.push(q);
+                            if lit[q] {
+                                total.iter_mut().zip(&cost[q * cands..(q + 1) * cands]).for_each(|(a, b)| *a += b);
                             }
                         }
                     }
-                    total.fill(0.0);
-                    for &q in &hood {
-                        total.iter_mut().zip(&cost[q * cands..(q + 1) * cands]).for_each(|(a, b)| *a += b);
-                    }
-                    // the best candidate within ±search_bins of the first estimate (cyclic)
-                    let centre = (own * os - tpl.offset).round() as i64;
-                    let reach = (fit.search_bins * os).floor() as i64;
-                    let at = |d: i64| (centre + d).rem_euclid(cands as i64) as usize;
-                    let d = (-reach..=reach).min_by(|&a, &b| total[at(a)].total_cmp(&total[at(b)]).then(a.abs().cmp(&b.abs()))).unwrap_or(0);
-                    if d.abs() == reach && reach > 0 {
-                        return (f64::NAN, f64::NAN); // on the bound of the search
-                    }
-                    let best = at(d);
-                    win.set_window(hood.iter().map(|&q| (kind(q), q * m)));
-                    let offset = refine(&total, best, fit.oversample, &mut |x| win.single_at(tpl.tau(best) + x / os, &mut g));
-                    let tau = (tpl.tau(best) + offset / os).rem_euclid(t as f64);
-                    if opts.returns < 2 {
-                        return (tau, f64::NAN);
-                    }
-                    let single = win.single_at(tau, &mut g);
-                    if single <= EXPLAINED * win.energy() {
-                        return (tau, f64::NAN);
-                    }
-                    // seeds: the deepest local minima of the single cost two bins or more away,
-                    // screened by one joint evaluation with the first held where it is
-                    let mut seeds = [(f32::INFINITY, 0usize); SEEDS];
-                    for c in 0..cands {
-                        let v = total[c];
-                        if v <= total[(c + cands - 1) % cands] && v <= total[(c + 1) % cands] && v < seeds[SEEDS - 1].0 && cyclic_gap(tpl.tau(c), tau, t) >= MIN_GAP {
-                            seeds[SEEDS - 1] = (v, c);
-                            seeds.sort_by(|a, b| a.0.total_cmp(&b.0));
-                        }
-                    }
-                    win.fix_other(tau);
-                    // (the seed's candidate on the joint fit's grid)
-                    let on_joint = |c: usize| ((tpl.tau(c) * os - jtpl.offset).round() as i64).rem_euclid(cands as i64) as usize;
-                    let Some((screen, seed)) = seeds.iter().filter(|s| s.0.is_finite()).map(|s| (win.joint(on_joint(s.1)), s.1)).min_by(|a, b| a.0.total_cmp(&b.0)) else {
-                        return (tau, f64::NAN);
-                    };
-                    if screen > SCREEN * single {
-                        return (tau, f64::NAN);
-                    }
-                    let ((t1, t2), joint) = win.two_returns((tau, tpl.tau(seed)), 1.0);
-                    let (a1, a2) = win.amplitudes(t1, t2);
-                    let keep = cyclic_gap(t1, t2, t) >= MIN_GAP && joint <= opts.second_residual * single && a1.min(a2) >= opts.second_amplitude * a1.max(a2);
-                    if keep {
-                        (t1.min(t2), t1.max(t2)) // arrival order
-                    } else {
-                        (tau, f64::NAN)
-                    }
+                    tpl.tau(argmin(&total))
                 })
                 .collect::<Vec<_>>()
-        })
-        .collect();
-    let k = out.dim().0;
-    for (p, c) in cells.iter().enumerate() {
-        out[(0, p / w, p % w)] = (c.0 * delta) as f32;
-        if k > 1 {
-            out[(1, p / w, p % w)] = (c.1 * delta) as f32;
+            })
+            .collect();
+
+        // 3. the window on the pixel's surface: search near the first estimate, polish; 4. a
+        // second return where a joint fit explains the taps far better than one return
+        let t = tpl.t;
+        let cells: Vec<(f64, f64)> = (0..h)
+            .into_par_iter()
+            .flat_map_iter(|i| {
+                let mut win = WindowFit::new(jtpl, &taps, fit.window);
+                let mut total = vec![0f32; cands];
+                let mut g = vec![0.0f64; m];
+                let mut hood: Vec<usize> = Vec::with_capacity(fit.window * fit.window);
+                let (first, cost, lit) = (&first, &cost, &lit);
+                (0..w)
+                    .map(move |j| {
+                        let p = i * w + j;
+                        let own = first[p];
+                        if !lit[p] || !own.is_finite() {
+                            return (f64::NAN, f64::NAN);
+                        }
+                        hood.clear();
+                        for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
+                            for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
+                                let q = ii * w + jj;
+                                if q == p || (lit[q] && cyclic_gap(first[q], own, t) <= fit.edge_bins) {
+                                    hood.push(q);
+                                }
+                            }
+                        }
+                        total.fill(0.0);
+                        for &q in &hood {
+                            total.iter_mut().zip(&cost[q * cands..(q + 1) * cands]).for_each(|(a, b)| *a += b);
+                        }
+                        // the best candidate within ±search_bins of the first estimate (cyclic)
+                        let centre = (own * os - tpl.offset).round() as i64;
+                        let reach = (fit.search_bins * os).floor() as i64;
+                        let at = |d: i64| (centre + d).rem_euclid(cands as i64) as usize;
+                        let d = (-reach..=reach).min_by(|&a, &b| total[at(a)].total_cmp(&total[at(b)]).then(a.abs().cmp(&b.abs()))).unwrap_or(0);
+                        if d.abs() == reach && reach > 0 {
+                            return (f64::NAN, f64::NAN); // on the bound of the search
+                        }
+                        let best = at(d);
+                        win.set_window(hood.iter().map(|&q| (kind(q), q * m)));
+                        let offset = refine(&total, best, fit.oversample, &mut |x| win.single_at(tpl.tau(best) + x / os, &mut g));
+                        let tau = (tpl.tau(best) + offset / os).rem_euclid(t as f64);
+                        if opts.returns < 2 {
+                            return (tau, f64::NAN);
+                        }
+                        let single = win.single_at(tau, &mut g);
+                        if single <= EXPLAINED * win.energy() {
+                            return (tau, f64::NAN);
+                        }
+                        // seeds: the deepest local minima of the single cost two bins or more away,
+                        // screened by one joint evaluation with the first held where it is
+                        let mut seeds = [(f32::INFINITY, 0usize); SEEDS];
+                        for c in 0..cands {
+                            let v = total[c];
+                            if v <= total[(c + cands - 1) % cands] && v <= total[(c + 1) % cands] && v < seeds[SEEDS - 1].0 && cyclic_gap(tpl.tau(c), tau, t) >= MIN_GAP {
+                                seeds[SEEDS - 1] = (v, c);
+                                seeds.sort_by(|a, b| a.0.total_cmp(&b.0));
+                            }
+                        }
+                        win.fix_other(tau);
+                        // (the seed's candidate on the joint fit's grid)
+                        let on_joint = |c: usize| ((tpl.tau(c) * os - jtpl.offset).round() as i64).rem_euclid(cands as i64) as usize;
+                        let Some((screen, seed)) = seeds.iter().filter(|s| s.0.is_finite()).map(|s| (win.joint(on_joint(s.1)), s.1)).min_by(|a, b| a.0.total_cmp(&b.0)) else {
+                            return (tau, f64::NAN);
+                        };
+                        if screen > SCREEN * single {
+                            return (tau, f64::NAN);
+                        }
+                        let ((t1, t2), joint) = win.two_returns((tau, tpl.tau(seed)), 1.0);
+                        let (a1, a2) = win.amplitudes(t1, t2);
+                        let keep = cyclic_gap(t1, t2, t) >= MIN_GAP && joint <= opts.second_residual * single && a1.min(a2) >= opts.second_amplitude * a1.max(a2);
+                        if keep {
+                            (t1.min(t2), t1.max(t2)) // arrival order
+                        } else {
+                            (tau, f64::NAN)
+                        }
+                    })
+                    .collect::<Vec<_>>()
+            })
+            .collect();
+        let k = out.dim().0;
+        for (p, c) in cells.iter().enumerate() {
+            out[(0, p / w, p % w)] = (c.0 * delta) as f32;
+            if k > 1 {
+                out[(1, p / w, p % w)] = (c.1 * delta) as f32;
+            }
         }
+        out
     }
-    out
 }
 
 #[cfg(test)]
