@@ -175,7 +175,7 @@ impl Templates {
     }
 
     /// `g_n(τ)` for any `τ` (bins), cyclic.
-    fn at(&self, n: usize, tau: f64, out: &mut [f64]) {
+    pub(crate) fn at(&self, n: usize, tau: f64, out: &mut [f64]) {
         let p = (tau - 0.5).rem_euclid(self.t as f64);
         let t0 = p.floor() as usize % self.t;
         let f = p - p.floor();
