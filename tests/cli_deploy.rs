@@ -60,6 +60,18 @@ fn export_check_and_stream_a_trained_unet() {
     assert!(moved > 0, "the range fit moved no return");
     let far = burn_fit.iter().zip(fitted0.iter()).filter(|(a, b)| a.is_nan() != b.is_nan() || (a.is_finite() && (*a - *b).abs() > 1e-2)).count();
     assert!(far == 0, "{far} ranges of infer differ from reconstruct unet's (both with the range fit)");
+    // --depth-fit: the template fit through the model's sensor, the network skipped, equal to
+    // reconstruct depth-fit on the same frame
+    let out = ok(d, &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--depth-fit", "-o", "out-df"]);
+    assert!(out.contains("0.0 ms per frame in ONNX Runtime"), "the network ran: {out}");
+    ok(d, &["reconstruct", "depth-fit", "--codes", "unet/codes.json", "--measurements", "y0.npy", "-o", "df.npy"]);
+    let (streamed, fitted) = (read_npy(&d.join("out-df/depth.npy")).unwrap(), read_npy(&d.join("df.npy")).unwrap());
+    assert_eq!(streamed.shape(), &[3, 2, 8, 8]);
+    let s0 = streamed.index_axis(ndarray::Axis(0), 0);
+    assert!(s0.iter().any(|v| v.is_finite()), "no range fitted");
+    assert!(s0.iter().zip(fitted.iter()).all(|(a, b)| (a.is_nan() && b.is_nan()) || (a - b).abs() < 1e-6), "infer --depth-fit and reconstruct depth-fit differ");
+    fails(d, &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--depth-fit", "--returns", "3", "-o", "bad-df"], &["--depth-fit", "--returns 3"]);
+    assert!(!d.join("bad-df").exists());
     // onnx full checker, shape inference, onnxruntime-Python equal to tcsense infer
     let out = check_onnx(d, &["unet.onnx", "--measurements", "stack.npy", "--compare", "out"]);
     assert!(out.contains("checker (full)") && out.contains("ok  depth") && out.contains("ok  confidence"), "{out}");

@@ -33,6 +33,7 @@ use crate::tapfit::{estimate_instrument, LifetimeTemplates, TapFit, TapFitOption
 use crate::runtime::OnnxModel;
 use tcsense_models::net::mask_depth;
 use tcsense_models::range_fit::{refine_ranges, RangeFitOptions};
+use tcsense_models::range_templates::{DepthFitOptions, RangeTemplates};
 use crate::{InferError, Result};
 
 fn file_err(path: &Path, msg: impl ToString) -> InferError {
@@ -293,13 +294,17 @@ pub struct Products {
     /// A depth model's ranges refined by the fit in the tap domain, as `reconstruct unet`
     /// applies it ([`tcsense_models::range_fit`]); `None`: as the network gives them.
     pub range_fit: Option<RangeFitOptions>,
+    /// Depth (and the point cloud, the confidence) by the template fit of ranges to the taps
+    /// through the model's sensor ([`tcsense_models::range_templates`]) instead of the model's;
+    /// `None`: the model's.
+    pub depth_fit: Option<DepthFitOptions>,
 }
 
 impl Products {
     /// Parse a comma-separated list (`cube,depth,peaks,ply,lifetime,intensity,phasor`) for a
     /// model of `kind`.
     pub fn parse(list: &str, kind: ModelKind) -> Result<Self> {
-        let mut p = Products { cube: false, depth: false, peaks: false, ply: false, lifetime: false, intensity: false, phasor: false, returns: 2, fov_deg: 40.0, lifetime_fit: None, range_fit: Some(RangeFitOptions::default()) };
+        let mut p = Products { cube: false, depth: false, peaks: false, ply: false, lifetime: false, intensity: false, phasor: false, returns: 2, fov_deg: 40.0, lifetime_fit: None, range_fit: Some(RangeFitOptions::default()), depth_fit: None };
         let (allowed, _) = kind.products();
         for item in list.split(',').map(str::trim).filter(|s| !s.is_empty()) {
             let (known, _) = ModelKind::Cube.products(); // a cube model gives every product
@@ -333,7 +338,7 @@ impl Products {
     /// Whether the model must run: a product asked for comes from it (not every product comes
     /// from the fit to the taps).
     pub fn need_model(&self) -> bool {
-        self.lifetime_fit.is_none() || self.cube || self.depth || self.peaks || self.ply
+        self.cube || self.peaks || ((self.depth || self.ply) && self.depth_fit.is_none()) || ((self.lifetime || self.intensity || self.phasor) && self.lifetime_fit.is_none())
     }
 }
 
@@ -383,7 +388,14 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
     model.check(&first.view().insert_axis(Axis(0)), &first_path.display().to_string())?;
     let kind = ModelKind::of(&model.meta.decoder);
     let cube_model = kind == ModelKind::Cube;
-    let (t, k) = (model.meta.bins, if cube_model { products.returns } else { model.meta.returns });
+    let (t, k) = (
+        model.meta.bins,
+        match &products.depth_fit {
+            Some(f) => f.returns,
+            None if cube_model => products.returns,
+            None => model.meta.returns,
+        },
+    );
     std::fs::create_dir_all(out).map_err(|e| file_err(out, e))?;
     let lead: Vec<usize> = if source.single() { vec![] } else { vec![frames] };
     let shape = |rest: &[usize]| -> Vec<usize> { lead.iter().chain(rest).copied().collect() };
@@ -423,7 +435,28 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
     };
     let templates = templates.as_ref();
     let need_model = products.need_model();
-    let range_fit = products.range_fit.as_ref().filter(|_| kind == ModelKind::Depth && (products.depth || products.ply));
+    let range_fit = products.range_fit.as_ref().filter(|_| kind == ModelKind::Depth && (products.depth || products.ply) && products.depth_fit.is_none());
+    let mut range_templates = match &products.depth_fit {
+        Some(opts) => {
+            if kind == ModelKind::Lifetime {
+                return Err(InferError::InvalidParam { field: "--depth-fit", got: model.meta.decoder.clone(), expected: "a depth or cube model (the fit gives depth)".into() });
+            }
+            if model.meta.calibration.is_some() {
+                return Err(InferError::InvalidParam {
+                    field: "--depth-fit",
+                    got: format!("{} (a calibration built into the graph)", model.path().display()),
+                    expected: "a model exported without --calibration: the fit needs corrected tap images, and the correction is inside the graph".into(),
+                });
+            }
+            if products.peaks {
+                return Err(InferError::InvalidParam { field: "--products", got: "peaks with --depth-fit".into(), expected: "depth, ply (the fit gives ranges, not the cube's peaks)".into() });
+            }
+            opts.validate().map_err(|e| InferError::InvalidParam { field: "--depth-fit", got: format!("{opts:?}"), expected: e })?;
+            Some(RangeTemplates::new(&model.sensor, opts))
+        }
+        None => None,
+    };
+    let depth_fit = range_templates.is_some();
     let sensor = &model.sensor.clone();
     let mut infer_seconds = 0.0;
     let result: Result<()> = std::thread::scope(|scope| {
@@ -450,6 +483,7 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
             let mut done = 0;
             for (i, mut outs, y) in orx {
                 let fitted = templates.zip(y.as_ref()).map(|(tpl, y)| tpl.fit(&y.view()));
+                let ranges = range_templates.as_mut().zip(y.as_ref()).map(|(tpl, y)| tpl.fit(&y.view()));
                 if let (Some(opts), Some(y)) = (range_fit, y.as_ref()) {
                     // the network's ranges refined in the tap domain (masked first, as the
                     // decoder contract gives them to the fit)
@@ -457,7 +491,7 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
                     mask_depth(&mut depth[0], &conf[0]);
                     refine_ranges(y.view().insert_axis(Axis(0)), sensor, &mut depth[0], opts);
                 }
-                write_frame(i, outs, fitted, &mut writers, products, kind, bin_s, t, &peak_opts, out)?;
+                write_frame(i, outs, fitted, ranges, &mut writers, products, kind, bin_s, t, &peak_opts, out)?;
                 done += 1;
                 on_frame(i + 1, frames);
             }
@@ -504,7 +538,7 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
                 }
             };
             infer_seconds += ti.elapsed().as_secs_f64();
-            if otx.send((i, outs, (templates.is_some() || range_fit.is_some()).then_some(y))).is_err() {
+            if otx.send((i, outs, (templates.is_some() || range_fit.is_some() || depth_fit).then_some(y))).is_err() {
                 break;
             }
         }
@@ -524,7 +558,7 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
 
 /// The products of frame `i` from the model's outputs (`[1, C, H, W]` each).
 #[allow(clippy::too_many_arguments)]
-fn write_frame(i: usize, outs: Vec<Array4<f32>>, fitted: Option<TapFit>, wr: &mut Writers, p: &Products, kind: ModelKind, bin_s: f64, bins: usize, peak_opts: &PeakOptions, out: &Path) -> Result<()> {
+fn write_frame(i: usize, outs: Vec<Array4<f32>>, fitted: Option<TapFit>, ranges: Option<Array3<f32>>, wr: &mut Writers, p: &Products, kind: ModelKind, bin_s: f64, bins: usize, peak_opts: &PeakOptions, out: &Path) -> Result<()> {
     let omega = 2.0 * std::f64::consts::PI / (bins as f64 * bin_s);
     if let Some(fit) = &fitted {
         // lifetime, intensity and phasor (one exponential) by the fit to the taps
@@ -541,13 +575,27 @@ fn write_frame(i: usize, outs: Vec<Array4<f32>>, fitted: Option<TapFit>, wr: &mu
         }
     }
     let by_model = fitted.is_none();
+    if let Some(depth) = &ranges {
+        // depth by the template fit: a confidence of 1 where a return was placed
+        let confidence = depth.mapv(|d| if d.is_finite() { 1.0f32 } else { 0.0 });
+        if let Some(w) = wr.depth.as_mut() {
+            w.push(depth.iter())?;
+        }
+        if let Some(w) = wr.second.as_mut() {
+            w.push(confidence.iter())?;
+        }
+        if p.ply {
+            write_ply(&out.join("ply").join(format!("frame_{i:05}.ply")), &depth.view(), &confidence.view(), p.fov_deg)?;
+        }
+    }
+    let depth_by_model = ranges.is_none();
     match kind {
         ModelKind::Cube => {
             let cube: ArrayView3<'_, f32> = outs[0].index_axis(Axis(0), 0);
             if let Some(w) = wr.cube.as_mut() {
                 w.push(cube.iter())?;
             }
-            if p.depth || p.peaks || p.ply {
+            if depth_by_model && (p.depth || p.peaks || p.ply) {
                 let (depth, amp) = depth_map(&cube, bin_s, peak_opts);
                 if let Some(w) = wr.depth.as_mut() {
                     w.push(depth.iter())?;
@@ -573,7 +621,7 @@ fn write_frame(i: usize, outs: Vec<Array4<f32>>, fitted: Option<TapFit>, wr: &mu
                 w.push(cube.sum_axis(Axis(0)).iter())?;
             }
         }
-        ModelKind::Depth => {
+        ModelKind::Depth if depth_by_model => {
             let mut depth = outs[0].clone();
             mask_depth(&mut depth, &outs[1]);
             if let Some(w) = wr.depth.as_mut() {
@@ -604,7 +652,7 @@ fn write_frame(i: usize, outs: Vec<Array4<f32>>, fitted: Option<TapFit>, wr: &mu
                 w.push(planes.iter())?;
             }
         }
-        ModelKind::Lifetime => {}
+        ModelKind::Lifetime | ModelKind::Depth => {}
     }
     Ok(())
 }

@@ -78,7 +78,7 @@ pub struct InferArgs {
     /// intensity, phasor, default lifetime,intensity).
     #[arg(long)]
     products: Option<String>,
-    /// Returns per pixel found in a cube (depth, peaks, ply of a cube model).
+    /// Returns per pixel found in a cube (depth, peaks, ply of a cube model) or by --depth-fit.
     #[arg(long, default_value_t = 2)]
     returns: usize,
     /// Horizontal field of view of the camera for point clouds (degrees).
@@ -94,6 +94,13 @@ pub struct InferArgs {
     /// domain that `reconstruct unet` (and by default `infer`) applies after it.
     #[arg(long)]
     no_range_fit: bool,
+    /// Depth (and ply, confidence) by the template fit of ranges to the taps through the model's
+    /// codes and sensor (every range of the cycle at once, no network; needs codes that do not
+    /// alias), not by the network, which is not run when no other product is asked for.
+    /// `--returns 1` for one return per pixel (the fastest), 2 for a second where the taps call
+    /// for one.
+    #[arg(long)]
+    depth_fit: bool,
     /// Lifetimes, intensity and phasor by the fit to the taps through the model's codes and
     /// sensor (the template fit: onset and IRF width estimated once on the first frame), not
     /// by the network; the network is not run when no other product is asked for.
@@ -122,6 +129,15 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
     products.fov_deg = a.fov;
     if a.no_range_fit {
         products.range_fit = None;
+    }
+    if a.depth_fit {
+        if !(products.depth || products.ply) {
+            bail!("--depth-fit with --products {list}: the fit gives depth and ply; ask for one of them");
+        }
+        if a.returns > 2 {
+            bail!("--depth-fit with --returns {}: the fit gives 1 or 2 returns per pixel", a.returns);
+        }
+        products.depth_fit = Some(tcsense_models::range_templates::DepthFitOptions { returns: a.returns, ..Default::default() });
     }
     if a.lifetime_fit {
         if !(products.lifetime || products.intensity || products.phasor) {
@@ -153,7 +169,7 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
     let cancel = interrupt_flag();
     let pb = ProgressBar::new(frames as u64);
     pb.set_style(ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} {per_sec} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
-    pb.set_message(if a.lifetime_fit { format!("onnx {} + fit to the taps", model.meta.decoder) } else { format!("onnx {}", model.meta.decoder) });
+    pb.set_message(if a.lifetime_fit || a.depth_fit { format!("onnx {} + fit to the taps", model.meta.decoder) } else { format!("onnx {}", model.meta.decoder) });
     let on_frame = |done: usize, _total: usize| pb.set_position(done as u64);
     let report = run_stream(&mut model, source, &a.output, &products, &cancel, &on_frame);
     pb.finish_and_clear();
