@@ -237,7 +237,7 @@ pub struct NamedDecoder {
 
 /// Open a decoder by name: `tval3` (with `tval3` options), `lifetime-fit` (lifetimes fitted
 /// to the tap images, [`crate::tapfit`]), `depth-fit` (ranges fitted to the tap images,
-/// [`tcsense_models::range_templates`]) or `KIND:RUN`, a training run
+/// [`tcsense_models::range_templates`]; `depth-fit:1` one return per pixel) or `KIND:RUN`, a training run
 /// directory of a learned decoder of that kind (`admm-net:RUN`, `unet:RUN`, `lifetime:RUN`;
 /// RUN may be `zoo:NAME`; `unet-raw:RUN`: the U-Net's ranges without the fit in the tap
 /// domain), on `device`, `zoo:NAME`, the zoo's entry whatever its kind, or
@@ -256,6 +256,11 @@ pub fn open_decoder(name: &str, tval3: &Tval3Options, device: &Device) -> Result
         None if name == "tval3" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(Tval3Decoder::new(*tval3)?), codes: None }),
         None if name == "lifetime-fit" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::tapfit::TapFitDecoder::default()), codes: None }),
         None if name == "depth-fit" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::ranged::DepthFitDecoder::default()), codes: None }),
+        Some(("depth-fit", r)) => {
+            let returns: usize = r.parse().ok().filter(|r| (1..=2).contains(r)).ok_or_else(|| InferError::InvalidParam { field: "decoder", got: name.into(), expected: "depth-fit:1 or depth-fit:2 (returns per pixel)".into() })?;
+            let opts = tcsense_models::range_templates::DepthFitOptions { returns, ..Default::default() };
+            Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::ranged::DepthFitDecoder::new(opts)?), codes: None })
+        }
         Some(("zoo", _)) => {
             let run = runs::open(&tcsense_models::zoo::resolve(name)?, device)?;
             Ok(NamedDecoder { label: name.into(), decoder: run.decoder, codes: Some(run.codes) })

@@ -17,6 +17,14 @@
 //! `lifetime.npy [F, H, W]` (s; the amplitude-weighted mean — a cube's by the reconvolution
 //! fit, the lifetime decoder's own), `intensity.npy [F, H, W]`, `phasor.npy [F, 2, H, W]`
 //! (IRF-referenced `g, s`) and `ply/frame_NNNNN.ply`.
+//!
+//! What `reconstruct` applies after a network, the stream applies too: a depth model's ranges
+//! refined in the tap domain ([`Products::range_fit`], on by default). The fits to the taps
+//! replace a product where asked for, through the model's codes and sensor (its metadata):
+//! lifetimes by [`crate::tapfit::LifetimeTemplates`] ([`Products::lifetime_fit`], the onset and
+//! IRF width estimated once on the first frame) and depth by
+//! [`tcsense_models::range_templates::RangeTemplates`] ([`Products::depth_fit`]); the network is
+//! then not run unless another product needs it.
 
 use ndarray::{Array3, Array4, ArrayView3, Axis};
 use std::fs::File;
