@@ -11,7 +11,8 @@
 #   return's median error (m) and the second return's detection for LiDAR, the lifetime MAE (ns)
 #   for FLIm.
 #
-# FRAME (188x212), FRAMES (30), SIZE (64x64) and ITEMS (8) come from the environment.
+# FRAME (188x212), FRAMES (30), SIZE (64x64), ITEMS (8) and ACCURACY (1) come from the
+# environment.
 # Writes OUT/speed.csv, OUT/accuracy.csv and OUT/decoders.md.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -27,8 +28,10 @@ mkdir -p "$OUT"
 LIDAR=zoo/unet-lidar-designed
 FLIM=zoo/lifetime-flim-designed
 
-# the OOD sets (SIZE pixels) and the motorcycle
+# the OOD sets (SIZE pixels) and the motorcycle; ACCURACY=0 keeps OUT/accuracy.csv of an
+# earlier run and measures the speed only
 SIZE=${SIZE:-64x64}
+if [ "${ACCURACY:-1}" != 0 ]; then
 . scripts/ood_sets.sh
 lidar_test_sets "$OUT/lidar-" 80 >/dev/null
 flim_test_sets "$OUT/flim-" 80 >/dev/null
@@ -51,6 +54,7 @@ for s in standard far near textures dense-sheet; do accuracy "lidar-$s" "$OUT/li
 accuracy lidar-motorcycle "$OUT/lidar-test-motorcycle" "$LIDAR/codes.json" "${lidar_decoders[@]}"
 flim_decoders=(--heterodyne 8 --decoder lifetime-fit --decoder "lifetime:zoo:lifetime-flim-designed" --decoder tval3)
 for s in standard onset-0ns onset-30ns irf-1.5ns long-lifetimes background; do accuracy "flim-$s" "$OUT/flim-$s" "$FLIM/codes.json" "${flim_decoders[@]}"; done
+fi
 
 # speed: stacks of FRAMES noisy frames of FRAME pixels (a few scenes, repeated)
 $B dataset lidar --size "$FRAME" --count 12 --seed 41 --force -o "$OUT/lidar-frame" >/dev/null

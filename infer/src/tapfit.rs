@@ -347,8 +347,8 @@ impl TypeTable {
                     beta[i] += (rk - gk[i]) * dk[i];
                 }
             }
-            for i in 0..g {
-                beta[i] = (beta[i] * self.inv_dd[i]).clamp(0.0, 1.0);
+            for (b, &inv) in beta.iter_mut().zip(&self.inv_dd) {
+                *b = (*b * inv).clamp(0.0, 1.0);
             }
         }
         out.fill(0.0);

@@ -500,7 +500,12 @@ impl<'a> WindowFit<'a> {
 
     /// Two returns from `(tau1, tau2)` by coordinate descent, each searched with the other
     /// fixed: the two (bins) and the joint cost.
-    pub(crate) fn two_returns(&mut self, (mut tau1, mut tau2): (f64, f64), half: f64) -> ((f64, f64), f64) {
+    pub(crate) fn two_returns(&mut self, taus: (f64, f64), half: f64) -> ((f64, f64), f64) {
+        self.two_returns_until(taus, half, f64::INFINITY)
+    }
+
+    /// [`Self::two_returns`], given up after a round whose joint cost is still above `give_up`.
+    pub(crate) fn two_returns_until(&mut self, (mut tau1, mut tau2): (f64, f64), half: f64, give_up: f64) -> ((f64, f64), f64) {
         // the descent stops when neither return moves by more than half a candidate
         let mut cost = f64::INFINITY;
         let settled = 0.5 / self.tpl.os as f64;
@@ -514,7 +519,7 @@ impl<'a> WindowFit<'a> {
             if let Some((v, r)) = search(self.tpl, tau2, half, &mut |k| self.joint(k)) {
                 (tau2, cost) = (v, r);
             }
-            if cyclic_gap(tau1, before.0, self.tpl.t) <= settled && cyclic_gap(tau2, before.1, self.tpl.t) <= settled {
+            if cost > give_up || (cyclic_gap(tau1, before.0, self.tpl.t) <= settled && cyclic_gap(tau2, before.1, self.tpl.t) <= settled) {
                 break;
             }
         }

@@ -60,7 +60,7 @@ const SCREEN: f64 = 0.5;
 fn refine(cost: &[f32], c: usize, os: usize, at: &mut dyn FnMut(f64) -> f64) -> f64 {
     let n = cost.len();
     let v = |k: isize| cost[(c as isize + k).rem_euclid(n as isize) as usize] as f64;
-    if c % os != 0 || os < 2 {
+    if !c.is_multiple_of(os) || os < 2 {
         let (lo, mid, hi) = (v(-1), v(0), v(1));
         let curv = lo - 2.0 * mid + hi;
         return if curv > 0.0 { (0.5 * (lo - hi) / curv).clamp(-0.5, 0.5) } else { 0.0 };
@@ -497,7 +497,8 @@ impl RangeTemplates {
                             if screened > SCREEN * single {
                                 return None;
                             }
-                            let ((t1, t2), joint) = win.two_returns((tau, tpl.tau(c2)), 1.0);
+                            // (a round that leaves twice the residual kept is given up)
+                            let ((t1, t2), joint) = win.two_returns_until((tau, tpl.tau(c2)), 1.0, 2.0 * opts.second_residual * single);
                             let (a1, a2) = win.amplitudes(t1, t2);
                             let keep = cyclic_gap(t1, t2, t) >= MIN_GAP && joint <= opts.second_residual * single && a1.min(a2) >= opts.second_amplitude * a1.max(a2);
                             keep.then_some((p, t1.min(t2), t1.max(t2))) // arrival order
