@@ -25,6 +25,21 @@ use tcsense_sensor::MeasurementMatrix;
 
 use crate::products::{depth_map, PeakOptions};
 
+/// A warning where `sensor`'s codes alias (`tcsense codes analyze`'s alias distance below
+/// [`tcsense_sensor::identify::DEFAULT_ALIAS_THRESHOLD`]): the template fit searches the whole
+/// cycle, and there it may place a return at its alias. `code_length`: masks per cycle `L`.
+pub fn alias_warning(sensor: &MeasurementMatrix, code_length: usize) -> Option<String> {
+    use tcsense_sensor::identify::{range_alias, Columns, DEFAULT_ALIAS_THRESHOLD};
+    let k = (sensor.bins() / code_length.max(1)).max(1);
+    let alias = range_alias(&Columns::new(sensor, k));
+    (alias.distance < DEFAULT_ALIAS_THRESHOLD).then(|| {
+        format!(
+            "warning: these codes alias: returns at bins {} and {} give taps {:.3} apart (below {DEFAULT_ALIAS_THRESHOLD}); the template fit searches the whole cycle and may place a return at its alias. Codes designed for range do not: tcsense codes select --criterion range",
+            alias.bin, alias.other, alias.distance
+        )
+    })
+}
+
 /// Ranges with no decoder before them: the template fit of [`tcsense_models::range_templates`]
 /// behind the decoder contract (`depth-fit`): depth `[B, K, H, W]` with a confidence of 1 where
 /// a return was placed, 0 elsewhere.

@@ -166,7 +166,7 @@ fn open_run(py: Python<'_>, run: &Bound<'_, PyAny>, calibration: Option<&Bound<'
     Ok(PyDecoder { label: spec, kind, inner: Mutex::new(r.decoder), codes: Some(r.codes), sensor: Some(sensor), run: Some(r.dir) })
 }
 
-/// Open a decoder by its command-line name: `tval3`, `lifetime-fit`, `admm-net:RUN`,
+/// Open a decoder by its command-line name: `tval3`, `lifetime-fit`, `depth-fit`, `admm-net:RUN`,
 /// `unet:RUN`, `lifetime:RUN`, `zoo:NAME` or `onnx:MODEL.onnx` (through ONNX Runtime); a
 /// decoder of cubes followed by `+fit` also gives `depth`, the cube's peaks refined in the tap
 /// domain (`tval3+fit`, `zoo:admm-lidar-delay+fit`). `tval3` takes TVAL3's settings as keyword arguments (`mu`, `beta`, `maxit`, `tol`, …).

@@ -138,6 +138,9 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
             bail!("--depth-fit with --returns {}: the fit gives 1 or 2 returns per pixel", a.returns);
         }
         products.depth_fit = Some(tcsense_models::range_templates::DepthFitOptions { returns: a.returns, ..Default::default() });
+        if let Some(w) = tcsense_infer::ranged::alias_warning(&model.sensor, model.meta.codes.length()) {
+            eprintln!("{w}");
+        }
     }
     if a.lifetime_fit {
         if !(products.lifetime || products.intensity || products.phasor) {

@@ -268,6 +268,9 @@ pub fn reconstruct(cmd: ReconstructCmd) -> Result<ExitCode> {
             let fit = tcsense_models::range_fit::RangeFitOptions { window, ..Default::default() };
             let mut decoder = tcsense_infer::ranged::DepthFitDecoder::new(tcsense_models::range_templates::DepthFitOptions { fit, returns, ..Default::default() })?;
             let (codes, _, a, cal) = sensor.decoding()?;
+            if let Some(w) = tcsense_infer::ranged::alias_warning(&a, codes.length()) {
+                eprintln!("{w}");
+            }
             decode_file(&mut decoder, &a, cal.as_ref(), &codes, &measurements, &output, &products)
         }
         ReconstructCmd::Tval3 { sensor, measurements, tval3: targs, output } => {
