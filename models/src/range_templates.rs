@@ -19,17 +19,22 @@
 //!    it would be biased (each side's parabola through the kink and half a candidate off).
 //!    Every `os`-th candidate sits on a bin's centre for this.
 //! 4. **A second return.** Each pixel's residual after its single return is matched against
-//!    every candidate (what a second template would remove of it, out of the first's and the
-//!    ambient's span: one more `[M] × [M, C]` product and a table); the window's highest local
-//!    maxima at least two bins from the first seed the joint fit, each screened by one joint
-//!    evaluation with the first held where it is; where the best halves the residual, the
-//!    joint fit of two returns (the range fit's coordinate descent, within a bin) runs, and is
-//!    kept where it leaves at most [`DepthFitOptions::second_residual`] of the single return's
-//!    residual and the weaker return holds [`DepthFitOptions::second_amplitude`] of the
-//!    stronger's amplitude. With no decoder to propose a second return, the rule is stricter
-//!    than the range fit's: a free second return also fits the noise and what the template
-//!    lacks (measured on the standard set: a joint fit leaves a median 5 % of the single
-//!    residual where there are two returns, 48 % where there is one).
+//!    every candidate (its product with each template, and the part of each template outside
+//!    the first's and the ambient's span: one more `[M] × [M, C]` product and a table). Summed
+//!    over the window with **one amplitude** for the second return — a sheet's amplitude varies
+//!    slowly, so the products add coherently and the noise does not — it says how much of the
+//!    window's residual a second return could remove: where less than
+//!    40 % ([`PRESCREEN`]), there is none (on the standard set this keeps 99 % of the pixels that
+//!    have two returns and 20 % of those with one). Elsewhere its highest local maxima at least
+//!    two bins from the first seed the joint fit, each screened by one joint evaluation with the
+//!    first held where it is; where the best halves the residual, the joint fit of two returns
+//!    (the range fit's coordinate descent, within a bin) runs, and is kept where it leaves at
+//!    most [`DepthFitOptions::second_residual`] of the single return's residual and the weaker
+//!    return holds [`DepthFitOptions::second_amplitude`] of the stronger's amplitude. With no
+//!    decoder to propose a second return, the rule is stricter than the range fit's: a free
+//!    second return also fits the noise and what the template lacks (measured on the standard
+//!    set: a joint fit leaves a median 5 % of the single residual where there are two returns,
+//!    48 % where there is one).
 //!
 //! Time at 188×212 on 2 cores (designed codes, T = 32, 4 candidates per bin): one return 25 ms
 //! per frame, two 160 ms (the joint fits).
@@ -42,6 +47,10 @@ use rayon::prelude::*;
 use tcsense_sensor::{MeasurementMatrix, C};
 
 use crate::range_fit::{cyclic_gap, RangeFitOptions, Templates, WindowFit, EXPLAINED, MIN_GAP};
+
+/// The pre-screen of a second return: one return of one amplitude over the window must remove at
+/// least this share of the window's single-return residual.
+pub const PRESCREEN: f64 = 0.4;
 
 /// Local maxima of the matched residual tried as the second return's seed.
 const SEEDS: usize = 4;
@@ -172,8 +181,8 @@ impl Dense {
 
     /// What a second return at every candidate removes of the residual `r` `[M]`:
     /// `(r·g(c))²·inv_perp[c]` into `out` `[C]` (`z` `[C]` scratch).
-    fn matched(&self, r: &[f32], inv_perp: &[f32], z: &mut [f32], out: &mut [f32]) {
-        let cands = out.len();
+    fn matched(&self, r: &[f32], inv_perp: &[f32], z: &mut [f32], perp: &mut [f32]) {
+        let cands = z.len();
         z.fill(0.0);
         for (k, &rk) in r.iter().enumerate() {
             for (o, &g) in z.iter_mut().zip(&self.g[k * cands..(k + 1) * cands]) {
@@ -181,7 +190,7 @@ impl Dense {
             }
         }
         for c in 0..cands {
-            out[c] = z[c] * z[c] * inv_perp[c];
+            perp[c] = if inv_perp[c] > 0.0 { 1.0 / inv_perp[c] } else { f32::INFINITY };
         }
     }
 
@@ -293,9 +302,13 @@ pub struct RangeTemplates {
     /// `1/‖P⊥g_n(c)‖²`, `[N][C₁][C]`: a second return at `c` beside a first at `c₁`, the part of
     /// its template outside the first's and the ambient's columns (0 where nothing is left).
     inv_perp: Vec<f32>,
-    /// Every pixel's single-return cost at every candidate, then what a second return at each
-    /// removes of its residual, `[H·W][C]` (scratch).
+    /// Every pixel's single-return cost at every candidate, then its residual's product with
+    /// every candidate's template, `[H·W][C]` (scratch).
     cost: Vec<f32>,
+    /// `‖P⊥g(c)‖²` of every pixel and candidate, `[H·W][C]` (scratch).
+    perp: Vec<f32>,
+    /// Every pixel's residual after its single return, `[H·W]` (scratch).
+    rr: Vec<f32>,
 }
 
 impl RangeTemplates {
@@ -305,7 +318,7 @@ impl RangeTemplates {
         let tpl = Templates::with_offset(sensor, os, 0.5 * os as f64);
         let dense = Dense::of(&tpl);
         let inv_perp = perpendicular(&tpl);
-        RangeTemplates { jtpl: Templates::new(sensor, os), dense, tpl, inv_perp, block: sensor.block(), delta: C * sensor.bin_width_s() / 2.0, opts: opts.clone(), cost: Vec::new() }
+        RangeTemplates { jtpl: Templates::new(sensor, os), dense, tpl, inv_perp, block: sensor.block(), delta: C * sensor.bin_width_s() / 2.0, opts: opts.clone(), cost: Vec::new(), perp: Vec::new(), rr: Vec::new() }
     }
 
     /// The ranges of one frame.
@@ -432,14 +445,16 @@ impl RangeTemplates {
             // of the first return's and the ambient's columns (the table `inv_perp`); summed
             // over the window, its highest local maxima two bins or more from the first are the
             // seeds of the joint fit.
-            let cost = {
+            let (zvol, perp, rr) = {
                 let inv_perp = &self.inv_perp;
-                self.cost.par_chunks_mut(w * cands).enumerate().for_each(|(i, row)| {
-                    let mut z = vec![0f32; cands];
+                self.perp.resize(h * w * cands, 0.0);
+                self.rr.resize(h * w, 0.0);
+                self.cost.par_chunks_mut(w * cands).zip(self.perp.par_chunks_mut(w * cands)).zip(self.rr.par_chunks_mut(w)).enumerate().for_each(|(i, ((row, prow), rrow))| {
                     let mut g1 = vec![0.0f64; m];
                     for j in 0..w {
                         let p = i * w + j;
                         let out = &mut row[j * cands..(j + 1) * cands];
+                        let pout = &mut prow[j * cands..(j + 1) * cands];
                         if !tau1[p].is_finite() {
                             continue;
                         }
@@ -449,16 +464,19 @@ impl RangeTemplates {
                         let r = residual(y, &g1, jtpl.s(n));
                         let r32: Vec<f32> = r.iter().map(|&v| v as f32).collect();
                         let c1 = ((tau1[p] * os - tpl.offset).round() as i64).rem_euclid(cands as i64) as usize;
-                        dense[n].matched(&r32, &inv_perp[(n * cands + c1) * cands..(n * cands + c1 + 1) * cands], &mut z, out);
+                        dense[n].matched(&r32, &inv_perp[(n * cands + c1) * cands..(n * cands + c1 + 1) * cands], out, pout);
+                        rrow[j] = r.iter().map(|v| v * v).sum::<f64>() as f32;
                     }
                 });
-                &self.cost
+                (&self.cost, &self.perp, &self.rr)
             };
             let seconds: Vec<Option<(usize, f64, f64)>> = (0..h)
                 .into_par_iter()
                 .flat_map_iter(|i| {
                     let mut win = WindowFit::new(jtpl, &taps, fit.window);
                     let mut total = vec![0f32; cands];
+                    let mut zsum = vec![0f32; cands];
+                    let mut psum = vec![0f32; cands];
                     let mut g = vec![0.0f64; m];
                     let mut hood: Vec<usize> = Vec::with_capacity(fit.window * fit.window);
                     let (first, tau1) = (&first, &tau1);
@@ -471,9 +489,22 @@ impl RangeTemplates {
                             }
                             hood_of(i, j, first, &mut hood);
                             hood.retain(|&q| tau1[q].is_finite());
-                            total.fill(0.0);
+                            // one amplitude of the second return over the window: the matched
+                            // products add coherently, the noise does not
+                            zsum.fill(0.0);
+                            psum.fill(0.0);
+                            let mut left = 0.0f64;
                             for &q in &hood {
-                                total.iter_mut().zip(&cost[q * cands..(q + 1) * cands]).for_each(|(a, b)| *a += b);
+                                zsum.iter_mut().zip(&zvol[q * cands..(q + 1) * cands]).for_each(|(a, b)| *a += b);
+                                psum.iter_mut().zip(&perp[q * cands..(q + 1) * cands]).for_each(|(a, b)| *a += b);
+                                left += rr[q] as f64;
+                            }
+                            for c in 0..cands {
+                                total[c] = zsum[c] * zsum[c] / psum[c];
+                            }
+                            let best = (0..cands).filter(|&c| cyclic_gap(tpl.tau(c), tau, t) >= MIN_GAP).map(|c| total[c]).fold(0f32, f32::max);
+                            if (best as f64) < PRESCREEN * left {
+                                return None;
                             }
                             win.set_window(hood.iter().map(|&q| (kind(q), q * m)));
                             let single = win.single_at(tau, &mut g);
