@@ -11,8 +11,8 @@
 #   return's median error (m) and the second return's detection for LiDAR, the lifetime MAE (ns)
 #   for FLIm.
 #
-# FRAME (188x212), FRAMES (30), SIZE (64x64), ITEMS (8) and ACCURACY (1) come from the
-# environment.
+# FRAME (188x212), FRAMES (30), SIZE (64x64), ITEMS (8), ACCURACY (1) and SPEED (1) come from
+# the environment.
 # Writes OUT/speed.csv, OUT/accuracy.csv and OUT/decoders.md.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -56,7 +56,9 @@ flim_decoders=(--heterodyne 8 --decoder lifetime-fit --decoder "lifetime:zoo:lif
 for s in standard onset-0ns onset-30ns irf-1.5ns long-lifetimes background; do accuracy "flim-$s" "$OUT/flim-$s" "$FLIM/codes.json" "${flim_decoders[@]}"; done
 fi
 
-# speed: stacks of FRAMES noisy frames of FRAME pixels (a few scenes, repeated)
+# speed: stacks of FRAMES noisy frames of FRAME pixels (a few scenes, repeated); SPEED=0 keeps
+# OUT/speed.csv of an earlier run
+if [ "${SPEED:-1}" != 0 ]; then
 $B dataset lidar --size "$FRAME" --count 12 --seed 41 --force -o "$OUT/lidar-frame" >/dev/null
 $B dataset flim --size "$FRAME" --count 12 --heterodyne 8 --seed 42 --force -o "$OUT/flim-frame" >/dev/null
 $B simulate --codes "$LIDAR/codes.json" --irf physical --cube "$OUT/lidar-frame/train/x_000.npy" --noise --seed 1 -o "$OUT/lidar-y.npy" >/dev/null
@@ -91,6 +93,7 @@ timed "tval3 + peaks (reconstruct tval3 then depth)" 2 bash -c "$B reconstruct t
 timed "lifetime-fit (infer --lifetime-fit)" "$FRAMES" $B infer --model "$L" --measurements "$OUT/flim-stack.npy" --lifetime-fit --products lifetime,intensity -o "$OUT/o5"
 timed "lifetime network (infer)" "$FRAMES" $B infer --model "$L" --measurements "$OUT/flim-stack.npy" -o "$OUT/o6"
 timed "tval3 + reconvolution fit (reconstruct tval3 then lifetime)" 2 bash -c "$B reconstruct tval3 --codes $FLIM/codes.json --heterodyne 8 --irf physical --measurements $OUT/flim-two.npy -o $OUT/tvf.npy && $B lifetime $OUT/tvf.npy -o $OUT/tvl.npy"
+fi
 
 $PY - "$OUT" > "$OUT/decoders.md" <<'PY'
 import csv, sys
