@@ -118,7 +118,7 @@ pub struct DepthFitOptions {
 
 impl Default for DepthFitOptions {
     fn default() -> Self {
-        DepthFitOptions { fit: RangeFitOptions::default(), min_intensity: 0.02, returns: 2, second_residual: 0.2, second_amplitude: 0.1 }
+        DepthFitOptions { fit: RangeFitOptions::default(), min_intensity: 0.02, returns: 2, second_residual: 0.3, second_amplitude: 0.1 }
     }
 }
 
