@@ -24,6 +24,7 @@
 
 use ndarray::{Array2, ArrayView3, Axis};
 use rayon::prelude::*;
+use tcsense_models::range_templates::argmin;
 use tcsense_sensor::MeasurementMatrix;
 
 use crate::lifetime::{periodic_decay, Cycle, Kernel};
@@ -286,43 +287,31 @@ struct TypeTable {
 impl TypeTable {
     /// The tables of every subpixel type from `Templates` (`[G][N·M]`).
     fn of(t: &Templates) -> Vec<TypeTable> {
-        let (points, m) = (t.points(), t.m);
-        (0..t.nm / m)
-            .map(|n| {
-                let mut g = vec![0f32; m * points];
-                let mut d = vec![0f32; m * points];
-                let mut inv_dd = vec![0f32; points];
-                for i in 0..points {
-                    let mut dd = 0.0;
-                    for k in 0..m {
-                        let gi = t.g[i * t.nm + n * m + k];
-                        let e = t.bg[n * m + k] - gi;
-                        g[k * points + i] = gi as f32;
-                        d[k * points + i] = e as f32;
-                        dd += e * e;
-                    }
-                    inv_dd[i] = if dd > 1e-300 { (1.0 / dd) as f32 } else { 0.0 };
-                }
-                TypeTable { g, d, inv_dd, points }
-            })
-            .collect()
+        let m = t.m;
+        TypeTable::build(t.nm / m, m, t.points(), |n, k, i| t.g[i * t.nm + n * m + k], |n, k| t.bg[n * m + k])
     }
 
     /// The tables from raw projections `proj` `[N][M][G]` of the curves through the sensor's
     /// rows and the rows' sums `[N·M]` (the background's projection).
     fn from_projections(proj: &[f64], sums: &[f64], types: usize, m: usize, points: usize) -> Vec<TypeTable> {
+        let curve_sum = |n: usize, i: usize| (0..m).map(|k| proj[(n * m + k) * points + i]).sum::<f64>().max(1e-300);
+        let bg_sum = |n: usize| sums[n * m..(n + 1) * m].iter().sum::<f64>().max(1e-300);
+        TypeTable::build(types, m, points, |n, k, i| proj[(n * m + k) * points + i] / curve_sum(n, i), |n, k| sums[n * m + k] / bg_sum(n))
+    }
+
+    /// The tables of `types` subpixel types from the normalised template of type `n`, tap `k`,
+    /// point `i` and the normalised background's of type `n`, tap `k`.
+    fn build(types: usize, m: usize, points: usize, g_at: impl Fn(usize, usize, usize) -> f64, bg_at: impl Fn(usize, usize) -> f64) -> Vec<TypeTable> {
         (0..types)
             .map(|n| {
                 let mut g = vec![0f32; m * points];
                 let mut d = vec![0f32; m * points];
                 let mut inv_dd = vec![0f32; points];
-                let bs: f64 = sums[n * m..(n + 1) * m].iter().sum::<f64>().max(1e-300);
                 for i in 0..points {
-                    let s: f64 = (0..m).map(|k| proj[(n * m + k) * points + i]).sum::<f64>().max(1e-300);
                     let mut dd = 0.0;
                     for k in 0..m {
-                        let gi = proj[(n * m + k) * points + i] / s;
-                        let e = sums[n * m + k] / bs - gi;
+                        let gi = g_at(n, k, i);
+                        let e = bg_at(n, k) - gi;
                         g[k * points + i] = gi as f32;
                         d[k * points + i] = e as f32;
                         dd += e * e;
@@ -600,16 +589,6 @@ impl LifetimeTemplates {
     }
 }
 
-/// The index of the smallest value (the first of equals).
-fn argmin(v: &[f32]) -> usize {
-    let mut best = 0;
-    for (i, &x) in v.iter().enumerate() {
-        if x < v[best] {
-            best = i;
-        }
-    }
-    best
-}
 
 /// Golden-section steps of the refinement within a half step of the best (the bracket of one
 /// grid step shrinks to 0.618⁸ of itself: 0.02 steps, 0.001 in `ln τ` on the default grid).

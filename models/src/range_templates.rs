@@ -265,8 +265,8 @@ fn residual(y: &[f64], g: &[f64], s: &[f64]) -> Vec<f64> {
     y.iter().zip(g).zip(s).map(|((y, g), s)| y - a * g - b * s).collect()
 }
 
-/// The index of the smallest value (the first of equals).
-fn argmin(v: &[f32]) -> usize {
+/// The index of the smallest value (the first of equals; 0 for an empty slice).
+pub fn argmin(v: &[f32]) -> usize {
     let mut best = 0;
     for (i, &x) in v.iter().enumerate() {
         if x < v[best] {
