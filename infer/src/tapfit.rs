@@ -221,10 +221,13 @@ pub struct Instrument {
     pub irf_fwhm_s: f64,
 }
 
-/// The frame's taps normalised by their sum, the sum as weight (0: below the floor).
+/// A frame's taps normalised by their sum `r` `[H·W][M]`, the sum as weight `[H·W]` (0 below the
+/// floor of `min_intensity` of the brightest pixel's, and where no lifetime is fitted) and the
+/// sum as the intensity map `[H, W]`.
 struct Normalised {
-    r: Vec<f64>,
-    weight: Vec<f64>,
+    r: Vec<f32>,
+    weight: Vec<f32>,
+    intensity: Array2<f32>,
 }
 
 fn normalise(y: &ArrayView3<'_, f32>, min_intensity: f32) -> Normalised {
@@ -232,21 +235,20 @@ fn normalise(y: &ArrayView3<'_, f32>, min_intensity: f32) -> Normalised {
     let intensity = y.sum_axis(Axis(0));
     let peak = intensity.iter().fold(0f32, |p, &v| p.max(v));
     let floor = min_intensity * peak;
-    let mut r = vec![0.0f64; h * w * m];
-    let mut weight = vec![0.0f64; h * w];
-    for i in 0..h {
+    let mut r = vec![0f32; h * w * m];
+    let mut weight = vec![0f32; h * w];
+    r.par_chunks_mut(w * m).zip(weight.par_chunks_mut(w)).enumerate().for_each(|(i, (rr, ww))| {
         for j in 0..w {
-            let s = intensity[(i, j)] as f64;
-            let p = i * w + j;
-            if s > 0.0 && intensity[(i, j)] > floor {
-                weight[p] = s;
+            let s = intensity[(i, j)];
+            if s > 0.0 && s > floor {
+                ww[j] = s;
                 for k in 0..m {
-                    r[p * m + k] = y[(k, i, j)] as f64 / s;
+                    rr[j * m + k] = y[(k, i, j)] / s;
                 }
             }
         }
-    }
-    Normalised { r, weight }
+    });
+    Normalised { r, weight, intensity }
 }
 
 /// The onset and IRF width of one frame (see the module's notes): searched over every bin of
@@ -255,10 +257,13 @@ fn normalise(y: &ArrayView3<'_, f32>, min_intensity: f32) -> Normalised {
 /// # Shapes
 /// - `y`: `[M, H, W]`, `a`: `A [N, M, T]`
 pub fn estimate_instrument(y: &ArrayView3<'_, f32>, a: &MeasurementMatrix, opts: &TapFitOptions) -> Instrument {
-    let (m, _, w) = y.dim();
+    instrument_of(&normalise(y, opts.min_intensity), y.dim(), a, opts)
+}
+
+/// [`estimate_instrument`] of a normalised frame of `[M, H, W]`.
+fn instrument_of(f: &Normalised, (m, _, w): (usize, usize, usize), a: &MeasurementMatrix, opts: &TapFitOptions) -> Instrument {
     let (bh, bw) = a.block();
     let c = Cycle { bins: a.bins(), dt: a.bin_width_s() };
-    let f = normalise(y, opts.min_intensity);
     let kind = |p: usize| (p / w % bh) * bw + (p % w % bw);
     let signal: Vec<usize> = (0..f.weight.len()).filter(|&p| f.weight[p] > 0.0).collect();
     let (onset_s, irf_fwhm_s) = instrument(&a.a(), c, opts, &f.r, &f.weight, &signal, m, &kind);
@@ -271,8 +276,9 @@ pub fn estimate_instrument(y: &ArrayView3<'_, f32>, a: &MeasurementMatrix, opts:
 /// # Shapes
 /// - `y`: `[M, H, W]` (H, W multiples of `A`'s block), `a`: `A [N, M, T]` → maps `[H, W]`
 pub fn fit_taps(y: &ArrayView3<'_, f32>, a: &MeasurementMatrix, opts: &TapFitOptions) -> TapFit {
-    let instrument = estimate_instrument(y, a, opts);
-    LifetimeTemplates::new(a, instrument, opts).fit(y)
+    let f = normalise(y, opts.min_intensity);
+    let instrument = instrument_of(&f, y.dim(), a, opts);
+    LifetimeTemplates::new(a, instrument, opts).fit_normalised(f, y.dim())
 }
 
 /// The normalised templates of one subpixel type on a lifetime grid, struct of arrays:
@@ -327,7 +333,6 @@ impl TypeTable {
     /// `out` `[G]`; `beta` `[G]` is scratch. Loops over the lifetimes innermost (vectorised).
     fn costs(&self, r: &[f32], w: f32, background: bool, beta: &mut [f32], out: &mut [f32]) {
         let g = self.points;
-        let m = r.len();
         if background {
             beta.fill(0.0);
             for (k, &rk) in r.iter().enumerate() {
@@ -341,7 +346,7 @@ impl TypeTable {
             }
         }
         out.fill(0.0);
-        for (k, &rk) in r.iter().enumerate().take(m) {
+        for (k, &rk) in r.iter().enumerate() {
             let (gk, dk) = (&self.g[k * g..(k + 1) * g], &self.d[k * g..(k + 1) * g]);
             if background {
                 for i in 0..g {
@@ -404,24 +409,21 @@ impl Between {
 
     /// [`Self::set`] for type `t` alone.
     fn set_one(&mut self, tables: &[TypeTable], t: usize, u: f64) {
-        let m = self.m;
-        {
-            let table = &tables[t];
-            let n = table.points;
-            let u = u.clamp(0.0, (n - 1) as f64);
-            let i = (u as usize).min(n - 2);
-            let f = (u - i as f64) as f32;
-            let mut dd = 0.0;
-            for k in 0..m {
-                let (g0, g1) = (table.g[k * n + i], table.g[k * n + i + 1]);
-                let (d0, d1) = (table.d[k * n + i], table.d[k * n + i + 1]);
-                let d = d0 + f * (d1 - d0);
-                self.g[t * m + k] = g0 + f * (g1 - g0);
-                self.d[t * m + k] = d;
-                dd += d * d;
-            }
-            self.inv_dd[t] = if dd > 0.0 { 1.0 / dd } else { 0.0 };
+        let (m, table) = (self.m, &tables[t]);
+        let n = table.points;
+        let u = u.clamp(0.0, (n - 1) as f64);
+        let i = (u as usize).min(n - 2);
+        let f = (u - i as f64) as f32;
+        let mut dd = 0.0;
+        for k in 0..m {
+            let (g0, g1) = (table.g[k * n + i], table.g[k * n + i + 1]);
+            let (d0, d1) = (table.d[k * n + i], table.d[k * n + i + 1]);
+            let d = d0 + f * (d1 - d0);
+            self.g[t * m + k] = g0 + f * (g1 - g0);
+            self.d[t * m + k] = d;
+            dd += d * d;
         }
+        self.inv_dd[t] = if dd > 0.0 { 1.0 / dd } else { 0.0 };
     }
 
     /// The cost of normalised taps `r` `[M]` of type `n` weighted by `w`, and the background
@@ -475,37 +477,20 @@ impl LifetimeTemplates {
         LifetimeTemplates { coarse, fine, block: a.block(), taps: av.dim().1, log_tau, instrument, window: opts.window, min_intensity: opts.min_intensity, background: opts.background }
     }
 
-    /// The instrument the templates are at.
-    pub fn instrument(&self) -> Instrument {
-        self.instrument
-    }
-
     /// Lifetimes of one frame.
     ///
     /// # Shapes
     /// - `y`: `[M, H, W]` → maps `[H, W]`
     pub fn fit(&self, y: &ArrayView3<'_, f32>) -> TapFit {
-        let (m, h, w) = y.dim();
+        self.fit_normalised(normalise(y, self.min_intensity), y.dim())
+    }
+
+    /// [`Self::fit`] of a normalised frame of `[M, H, W]`.
+    fn fit_normalised(&self, f: Normalised, (m, h, w): (usize, usize, usize)) -> TapFit {
         assert_eq!(m, self.taps, "taps of the frame and the templates");
         let (bh, bw) = self.block;
         let g = self.coarse[0].points;
-        let intensity = y.sum_axis(Axis(0));
-        let peak = intensity.iter().fold(0f32, |p, &v| p.max(v));
-        let floor = self.min_intensity * peak;
-        // normalised taps [H·W][M] and charge weights (0: no lifetime)
-        let mut r = vec![0f32; h * w * m];
-        let mut weight = vec![0f32; h * w];
-        r.par_chunks_mut(w * m).zip(weight.par_chunks_mut(w)).enumerate().for_each(|(i, (rr, ww))| {
-            for j in 0..w {
-                let s = intensity[(i, j)];
-                if s > 0.0 && s > floor {
-                    ww[j] = s;
-                    for k in 0..m {
-                        rr[j * m + k] = y[(k, i, j)] / s;
-                    }
-                }
-            }
-        });
+        let Normalised { r, weight, intensity } = f;
         let kind = |p: usize| (p / w % bh) * bw + (p % w % bw);
         // every pixel's cost on the grid, summed along the rows of the window
         let half = self.window / 2;
@@ -602,6 +587,8 @@ fn fit_taps_reference(y: &ArrayView3<'_, f32>, a: &MeasurementMatrix, opts: &Tap
     let (bh, bw) = a.block();
     let c = Cycle { bins: a.bins(), dt: a.bin_width_s() };
     let Normalised { r, weight, .. } = normalise(y, opts.min_intensity);
+    let r: Vec<f64> = r.iter().map(|&v| v as f64).collect();
+    let weight: Vec<f64> = weight.iter().map(|&v| v as f64).collect();
     let kind = |p: usize| (p / w % bh) * bw + (p % w % bw);
     let taus = grid(opts, opts.points);
     let tpl = Templates::new(&a.a(), &decays(c, &taus, inst.onset_s, inst.irf_fwhm_s));
@@ -662,7 +649,7 @@ fn golden(best: usize, last: usize, iterations: usize, cost: &mut dyn FnMut(f64)
 /// templates of every shift at once, as a cyclic correlation of the sensor's rows with the
 /// decays), then refined to a quarter bin around the best and by golden sections.
 #[allow(clippy::too_many_arguments)]
-fn instrument(a: &ArrayView3<'_, f32>, c: Cycle, opts: &TapFitOptions, r: &[f64], weight: &[f64], signal: &[usize], m: usize, kind: &(dyn Fn(usize) -> usize + Sync)) -> (f64, f64) {
+fn instrument(a: &ArrayView3<'_, f32>, c: Cycle, opts: &TapFitOptions, r: &[f32], weight: &[f32], signal: &[usize], m: usize, kind: &(dyn Fn(usize) -> usize + Sync)) -> (f64, f64) {
     let mut bright = signal.to_vec();
     bright.sort_by(|&p, &q| weight[q].total_cmp(&weight[p]).then(p.cmp(&q)));
     bright.truncate(opts.brightest);
@@ -670,8 +657,8 @@ fn instrument(a: &ArrayView3<'_, f32>, c: Cycle, opts: &TapFitOptions, r: &[f64]
     if bright.is_empty() {
         return (opts.onset_s.unwrap_or(0.0).rem_euclid(c.period()), widths[0]);
     }
-    // the brightest pixels' normalised taps (f32), weights and types
-    let pixels: Vec<(Vec<f32>, f32, usize)> = bright.iter().map(|&p| (r[p * m..(p + 1) * m].iter().map(|&v| v as f32).collect(), weight[p] as f32, kind(p))).collect();
+    // the brightest pixels' normalised taps, weights and types
+    let pixels: Vec<(Vec<f32>, f32, usize)> = bright.iter().map(|&p| (r[p * m..(p + 1) * m].to_vec(), weight[p], kind(p))).collect();
     // (on the grid of half steps: the templates are linear between its points)
     let full = grid(opts, 2 * opts.points - 1);
     let frame_cost = |t0: f64, fwhm: f64| -> f64 { brightest_cost(&TypeTable::of(&Templates::new(a, &decays(c, &full, t0, fwhm))), &pixels, usize::MAX, 16, opts.background) };
