@@ -174,6 +174,11 @@ impl Templates {
         (c as f64 + self.offset) / self.os as f64
     }
 
+    /// The candidate nearest `tau` (bins, cyclic).
+    pub(crate) fn nearest(&self, tau: f64) -> usize {
+        ((tau * self.os as f64 - self.offset).round() as i64).rem_euclid(self.candidates() as i64) as usize
+    }
+
     /// `g_n(τ)` for any `τ` (bins), cyclic.
     pub(crate) fn at(&self, n: usize, tau: f64, out: &mut [f64]) {
         let p = (tau - 0.5).rem_euclid(self.t as f64);

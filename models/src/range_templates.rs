@@ -179,18 +179,15 @@ impl Dense {
             .collect()
     }
 
-    /// What a second return at every candidate removes of the residual `r` `[M]`:
-    /// `(r·g(c))²·inv_perp[c]` into `out` `[C]` (`z` `[C]` scratch).
-    fn matched(&self, r: &[f32], inv_perp: &[f32], z: &mut [f32], perp: &mut [f32]) {
-        let cands = z.len();
-        z.fill(0.0);
-        for (k, &rk) in r.iter().enumerate() {
-            for (o, &g) in z.iter_mut().zip(&self.g[k * cands..(k + 1) * cands]) {
-                *o += g * rk;
+    /// The products `g(c)·v` of `v` `[M]` with every candidate's template, into `out` `[C]`:
+    /// one `[M] × [M, C]` product, the loop over the candidates innermost (vectorised).
+    fn products(&self, v: &[f32], out: &mut [f32]) {
+        let cands = out.len();
+        out.fill(0.0);
+        for (k, &vk) in v.iter().enumerate() {
+            for (o, &g) in out.iter_mut().zip(&self.g[k * cands..(k + 1) * cands]) {
+                *o += g * vk;
             }
-        }
-        for c in 0..cands {
-            perp[c] = if inv_perp[c] > 0.0 { 1.0 / inv_perp[c] } else { f32::INFINITY };
         }
     }
 
@@ -198,12 +195,7 @@ impl Dense {
     /// scratch): `yy − max fit` over `a, b ≥ 0`, as `range_fit::nnls2`.
     fn costs(&self, y: &[f32], gy: &mut [f32], out: &mut [f32]) {
         let cands = out.len();
-        gy.fill(0.0);
-        for (k, &yk) in y.iter().enumerate() {
-            for (o, &g) in gy.iter_mut().zip(&self.g[k * cands..(k + 1) * cands]) {
-                *o += g * yk;
-            }
-        }
+        self.products(y, gy);
         let yy: f32 = y.iter().map(|v| v * v).sum();
         let sy: f32 = y.iter().zip(&self.s).map(|(a, b)| a * b).sum();
         let (ss, inv_ss) = (self.ss, if self.ss > 0.0 { 1.0 / self.ss } else { 0.0 });
@@ -221,13 +213,13 @@ impl Dense {
     }
 }
 
-/// `1/‖P⊥g_n(c)‖²` for every type, first candidate `c₁` and candidate `c` (see
+/// `‖P⊥g_n(c)‖²` for every type, first candidate `c₁` and candidate `c` (see
 /// [`RangeTemplates`]): `‖g‖² − [g·g₁, g·s] G⁻¹ [g·g₁, g·s]ᵀ` with `G` the Gram matrix of `g₁`
-/// and `s`.
+/// and `s`; infinite where nothing is left.
 fn perpendicular(tpl: &Templates) -> Vec<f32> {
     let cands = tpl.candidates();
     let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(x, y)| x * y).sum::<f64>();
-    let mut out = vec![0f32; tpl.n * cands * cands];
+    let mut out = vec![f32::INFINITY; tpl.n * cands * cands];
     for n in 0..tpl.n {
         let s = tpl.s(n);
         let ss = dot(s, s);
@@ -243,7 +235,7 @@ fn perpendicular(tpl: &Templates) -> Vec<f32> {
                 let (a, b) = (dot(g, g1), dot(g, s));
                 let perp = dot(g, g) - (a * a * ss - 2.0 * a * b * q + b * b * p) / det;
                 if perp > 1e-6 * dot(g, g) {
-                    out[(n * cands + c1) * cands + c] = (1.0 / perp) as f32;
+                    out[(n * cands + c1) * cands + c] = perp as f32;
                 }
             }
         }
@@ -299,14 +291,13 @@ pub struct RangeTemplates {
     /// Metres per bin.
     delta: f64,
     opts: DepthFitOptions,
-    /// `1/‖P⊥g_n(c)‖²`, `[N][C₁][C]`: a second return at `c` beside a first at `c₁`, the part of
-    /// its template outside the first's and the ambient's columns (0 where nothing is left).
-    inv_perp: Vec<f32>,
+    /// `‖P⊥g_n(c)‖²`, `[N][C₁][C]`: a second return at `c` beside a first at `c₁`, the part of
+    /// its template outside the first's and the ambient's columns (infinite where nothing is
+    /// left).
+    perp: Vec<f32>,
     /// Every pixel's single-return cost at every candidate, then its residual's product with
     /// every candidate's template, `[H·W][C]` (scratch).
     cost: Vec<f32>,
-    /// `‖P⊥g(c)‖²` of every pixel and candidate, `[H·W][C]` (scratch).
-    perp: Vec<f32>,
     /// Every pixel's residual after its single return, `[H·W]` (scratch).
     rr: Vec<f32>,
 }
@@ -317,8 +308,8 @@ impl RangeTemplates {
         let os = opts.fit.oversample;
         let tpl = Templates::with_offset(sensor, os, 0.5 * os as f64);
         let dense = Dense::of(&tpl);
-        let inv_perp = perpendicular(&tpl);
-        RangeTemplates { jtpl: Templates::new(sensor, os), dense, tpl, inv_perp, block: sensor.block(), delta: C * sensor.bin_width_s() / 2.0, opts: opts.clone(), cost: Vec::new(), perp: Vec::new(), rr: Vec::new() }
+        let perp = perpendicular(&tpl);
+        RangeTemplates { jtpl: Templates::new(sensor, os), dense, tpl, perp, block: sensor.block(), delta: C * sensor.bin_width_s() / 2.0, opts: opts.clone(), cost: Vec::new(), rr: Vec::new() }
     }
 
     /// The ranges of one frame.
@@ -422,7 +413,7 @@ impl RangeTemplates {
                             total.iter_mut().zip(&cost[q * cands..(q + 1) * cands]).for_each(|(a, b)| *a += b);
                         }
                         // the best candidate within ±search_bins of the first estimate (cyclic)
-                        let centre = (own * os - tpl.offset).round() as i64;
+                        let centre = tpl.nearest(own) as i64;
                         let reach = (fit.search_bins * os).floor() as i64;
                         let at = |d: i64| (centre + d).rem_euclid(cands as i64) as usize;
                         let d = (-reach..=reach).min_by(|&a, &b| total[at(a)].total_cmp(&total[at(b)]).then(a.abs().cmp(&b.abs()))).unwrap_or(0);
@@ -440,36 +431,28 @@ impl RangeTemplates {
         let mut cells: Vec<(f64, f64)> = tau1.iter().map(|&t| (t, f64::NAN)).collect();
         if opts.returns > 1 {
             // 4. a second return. Each pixel's residual `r` after its single return (amplitude
-            // and ambient refitted), matched against every candidate: the least squares a
-            // second column g(c) removes, `(r·g(c))² / ‖P⊥g(c)‖²` with `P⊥` the projection out
-            // of the first return's and the ambient's columns (the table `inv_perp`); summed
-            // over the window, its highest local maxima two bins or more from the first are the
-            // seeds of the joint fit.
-            let (zvol, perp, rr) = {
-                let inv_perp = &self.inv_perp;
-                self.perp.resize(h * w * cands, 0.0);
-                self.rr.resize(h * w, 0.0);
-                self.cost.par_chunks_mut(w * cands).zip(self.perp.par_chunks_mut(w * cands)).zip(self.rr.par_chunks_mut(w)).enumerate().for_each(|(i, ((row, prow), rrow))| {
-                    let mut g1 = vec![0.0f64; m];
-                    for j in 0..w {
-                        let p = i * w + j;
-                        let out = &mut row[j * cands..(j + 1) * cands];
-                        let pout = &mut prow[j * cands..(j + 1) * cands];
-                        if !tau1[p].is_finite() {
-                            continue;
-                        }
-                        let n = kind(p);
-                        let y = &taps[p * m..(p + 1) * m];
-                        jtpl.at(n, tau1[p], &mut g1);
-                        let r = residual(y, &g1, jtpl.s(n));
-                        let r32: Vec<f32> = r.iter().map(|&v| v as f32).collect();
-                        let c1 = ((tau1[p] * os - tpl.offset).round() as i64).rem_euclid(cands as i64) as usize;
-                        dense[n].matched(&r32, &inv_perp[(n * cands + c1) * cands..(n * cands + c1 + 1) * cands], out, pout);
-                        rrow[j] = r.iter().map(|v| v * v).sum::<f64>() as f32;
+            // and ambient refitted), matched against every candidate: `r·g(c)`, and `‖P⊥g(c)‖²`
+            // with `P⊥` the projection out of the first return's and the ambient's columns (the
+            // table `perp`); with one amplitude over the window, a second return at `c` removes
+            // `(Σ r·g(c))² / Σ ‖P⊥g(c)‖²` of the residual. Its highest local maxima two bins or
+            // more from the first are the seeds of the joint fit.
+            self.rr.resize(h * w, 0.0);
+            self.cost.par_chunks_mut(w * cands).zip(self.rr.par_chunks_mut(w)).enumerate().for_each(|(i, (row, rrow))| {
+                let mut g1 = vec![0.0f64; m];
+                for j in 0..w {
+                    let p = i * w + j;
+                    if !tau1[p].is_finite() {
+                        continue;
                     }
-                });
-                (&self.cost, &self.perp, &self.rr)
-            };
+                    let n = kind(p);
+                    jtpl.at(n, tau1[p], &mut g1);
+                    let r = residual(&taps[p * m..(p + 1) * m], &g1, jtpl.s(n));
+                    let r32: Vec<f32> = r.iter().map(|&v| v as f32).collect();
+                    dense[n].products(&r32, &mut row[j * cands..(j + 1) * cands]);
+                    rrow[j] = r.iter().map(|v| v * v).sum::<f64>() as f32;
+                }
+            });
+            let (zvol, perp, rr) = (&self.cost, &self.perp, &self.rr);
             let seconds: Vec<Option<(usize, f64, f64)>> = (0..h)
                 .into_par_iter()
                 .flat_map_iter(|i| {
@@ -495,8 +478,9 @@ impl RangeTemplates {
                             psum.fill(0.0);
                             let mut left = 0.0f64;
                             for &q in &hood {
+                                let row = (kind(q) * cands + tpl.nearest(tau1[q])) * cands;
                                 zsum.iter_mut().zip(&zvol[q * cands..(q + 1) * cands]).for_each(|(a, b)| *a += b);
-                                psum.iter_mut().zip(&perp[q * cands..(q + 1) * cands]).for_each(|(a, b)| *a += b);
+                                psum.iter_mut().zip(&perp[row..row + cands]).for_each(|(a, b)| *a += b);
                                 left += rr[q] as f64;
                             }
                             for c in 0..cands {
@@ -522,9 +506,8 @@ impl RangeTemplates {
                                 }
                             }
                             win.fix_other(tau);
-                            // (the seed's candidate on the joint fit's grid)
-                            let on_joint = |c: usize| ((tpl.tau(c) * os - jtpl.offset).round() as i64).rem_euclid(cands as i64) as usize;
-                            let (screened, c2) = seeds.iter().filter(|s| s.0.is_finite()).map(|s| (win.joint(on_joint(s.1)), s.1)).min_by(|a, b| a.0.total_cmp(&b.0))?;
+                            // (each seed at its candidate on the joint fit's grid)
+                            let (screened, c2) = seeds.iter().filter(|s| s.0.is_finite()).map(|s| (win.joint(jtpl.nearest(tpl.tau(s.1))), s.1)).min_by(|a, b| a.0.total_cmp(&b.0))?;
                             if screened > SCREEN * single {
                                 return None;
                             }
