@@ -425,16 +425,21 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
     let bin_s = model.meta.bin_s;
     let peak_opts = PeakOptions { max_peaks: k, ..Default::default() };
     let t0 = Instant::now();
+    // the fits to the taps need corrected tap images, and a built-in correction is in the graph
+    let uncalibrated = |field: &'static str| -> Result<()> {
+        match model.meta.calibration {
+            Some(_) => Err(InferError::InvalidParam {
+                field,
+                got: format!("{} (a calibration built into the graph)", model.path().display()),
+                expected: "a model exported without --calibration: the fit to the taps needs corrected tap images, and the correction is inside the graph".into(),
+            }),
+            None => Ok(()),
+        }
+    };
     // the fit to the taps: the instrument from the first frame (or its given onset), once
     let templates = match &products.lifetime_fit {
         Some(opts) => {
-            if model.meta.calibration.is_some() {
-                return Err(InferError::InvalidParam {
-                    field: "--lifetime-fit",
-                    got: format!("{} (a calibration built into the graph)", model.path().display()),
-                    expected: "a model exported without --calibration: the fit to the taps needs corrected tap images, and the correction is inside the graph".into(),
-                });
-            }
+            uncalibrated("--lifetime-fit")?;
             opts.validate().map_err(|e| InferError::InvalidParam { field: "--lifetime-fit", got: format!("{opts:?}"), expected: e })?;
             let instrument = estimate_instrument(&first.view(), &model.sensor, opts);
             Some(LifetimeTemplates::new(&model.sensor, instrument, opts))
@@ -449,13 +454,7 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
             if kind == ModelKind::Lifetime {
                 return Err(InferError::InvalidParam { field: "--depth-fit", got: model.meta.decoder.clone(), expected: "a depth or cube model (the fit gives depth)".into() });
             }
-            if model.meta.calibration.is_some() {
-                return Err(InferError::InvalidParam {
-                    field: "--depth-fit",
-                    got: format!("{} (a calibration built into the graph)", model.path().display()),
-                    expected: "a model exported without --calibration: the fit needs corrected tap images, and the correction is inside the graph".into(),
-                });
-            }
+            uncalibrated("--depth-fit")?;
             if products.peaks {
                 return Err(InferError::InvalidParam { field: "--products", got: "peaks with --depth-fit".into(), expected: "depth, ply (the fit gives ranges, not the cube's peaks)".into() });
             }
@@ -564,6 +563,12 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
     Ok(StreamReport { frames, seconds: t0.elapsed().as_secs_f64(), infer_seconds, written })
 }
 
+/// Phasors `(g, s)` of every pixel as two planes `[2, H·W]`, flat.
+fn planes(phasors: impl Iterator<Item = (f32, f32)>) -> Vec<f32> {
+    let (g, s): (Vec<f32>, Vec<f32>) = phasors.unzip();
+    g.into_iter().chain(s).collect()
+}
+
 /// The products of frame `i` from the model's outputs (`[1, C, H, W]` each).
 #[allow(clippy::too_many_arguments)]
 fn write_frame(i: usize, outs: Vec<Array4<f32>>, fitted: Option<TapFit>, ranges: Option<Array3<f32>>, wr: &mut Writers, p: &Products, kind: ModelKind, bin_s: f64, bins: usize, peak_opts: &PeakOptions, out: &Path) -> Result<()> {
@@ -577,9 +582,7 @@ fn write_frame(i: usize, outs: Vec<Array4<f32>>, fitted: Option<TapFit>, ranges:
             w.push(fit.intensity.iter())?;
         }
         if let Some(w) = wr.phasor.as_mut() {
-            let ph: Vec<(f32, f32)> = fit.lifetime.iter().map(|&t| phasor_of_components(t, t, 1.0, omega)).collect();
-            let planes: Vec<f32> = ph.iter().map(|v| v.0).chain(ph.iter().map(|v| v.1)).collect();
-            w.push(planes.iter())?;
+            w.push(planes(fit.lifetime.iter().map(|&t| phasor_of_components(t, t, 1.0, omega))).iter())?;
         }
     }
     let by_model = fitted.is_none();
@@ -655,9 +658,7 @@ fn write_frame(i: usize, outs: Vec<Array4<f32>>, fitted: Option<TapFit>, ranges:
             }
             if let Some(w) = wr.phasor.as_mut() {
                 let (_, h, wd) = l.dim();
-                let ph: Vec<(f32, f32)> = (0..h * wd).map(|q| phasor_of_components(l[(1, q / wd, q % wd)], l[(2, q / wd, q % wd)], l[(3, q / wd, q % wd)], omega)).collect();
-                let planes: Vec<f32> = ph.iter().map(|v| v.0).chain(ph.iter().map(|v| v.1)).collect();
-                w.push(planes.iter())?;
+                w.push(planes((0..h * wd).map(|q| phasor_of_components(l[(1, q / wd, q % wd)], l[(2, q / wd, q % wd)], l[(3, q / wd, q % wd)], omega))).iter())?;
             }
         }
         ModelKind::Lifetime | ModelKind::Depth => {}
