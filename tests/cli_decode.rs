@@ -195,3 +195,31 @@ fn bench_bad_inputs_exit_2() {
     fails(d, &["bench", "kernels", "--size", "5x5"], &["5x5", "even"]);
     fails(d, &["bench", "kernels", "--bins", "20"], &["--bins 20", "multiple of 32"]);
 }
+
+/// `reconstruct depth-fit` and `eval --decoder depth-fit[:K]`: ranges fitted to the taps with no
+/// network, a warning on codes that alias, and bad settings refused (exit 2, nothing written).
+#[test]
+fn depth_fit_to_the_taps() {
+    let d = tempdir();
+    let d = d.path();
+    lidar(d);
+    ok(d, &["simulate", "--codes", "codes.json", "--cube", "ds/test/x_000.npy", "-o", "y.npy"]);
+    let out = run(d, &["reconstruct", "depth-fit", "--codes", "codes.json", "--measurements", "y.npy", "--returns", "1", "-o", "depth.npy"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    // random codes through the ideal gates alias exactly (bins 8 and 26): the whole-cycle search
+    // is warned about
+    assert!(err.contains("warning: these codes alias") && err.contains("bins 8 and 26"), "{err}");
+    let depth = read_npy(&d.join("depth.npy")).unwrap();
+    assert_eq!(&depth.shape()[1..], &[1, 8, 8]);
+    let truth = read_npy(&d.join("ds/test/depth_000.npy")).unwrap();
+    let (est, first) = (depth.index_axis(ndarray::Axis(0), 0), truth.index_axis(ndarray::Axis(0), 0));
+    let placed = est.iter().zip(first.index_axis(ndarray::Axis(0), 0).iter()).filter(|(e, t)| e.is_finite() && t.is_finite()).count();
+    assert!(placed > 32, "{placed} of 64 pixels got a range");
+    let out = ok(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "depth-fit", "--decoder", "depth-fit:1", "-o", "rep.json"]);
+    assert!(out.contains("depth-fit:1") && out.contains("median"), "{out}");
+    fails(d, &["reconstruct", "depth-fit", "--codes", "codes.json", "--measurements", "y.npy", "--window", "2", "-o", "bad.npy"], &["window 2", "odd"]);
+    fails(d, &["reconstruct", "depth-fit", "--codes", "codes.json", "--measurements", "y.npy", "--returns", "3", "-o", "bad.npy"], &["returns 3", "1 or 2"]);
+    assert!(!d.join("bad.npy").exists());
+    fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "depth-fit:3"], &["depth-fit:3", "depth-fit:1 or depth-fit:2"]);
+}
