@@ -168,6 +168,9 @@ fn a_lifetime_model_streams_the_fit_to_the_taps() {
         let bad = s.iter().zip(fitted0.iter()).filter(|(a, b)| a.is_nan() != b.is_nan() || (a.is_finite() && (*a - *b).abs() > 1e-3 * b.abs())).count();
         assert_eq!(bad, 0, "frame {f}: {bad} lifetimes differ from reconstruct lifetime-fit's\n{s:?}\n{fitted0:?}");
     }
+    // a second stream into the same directory names only what it wrote, not the first's files
+    let out = ok(d, &["infer", "--model", "lt.onnx", "--measurements", "stack.npy", "--lifetime-fit", "--products", "lifetime", "-o", "out"]);
+    assert!(out.contains("lifetime.npy") && !out.contains("intensity.npy") && !out.contains("phasor.npy"), "{out}");
     // the fit gives lifetime, intensity and phasor only; its settings need --lifetime-fit
     fails(d, &["infer", "--model", "lt.onnx", "--measurements", "stack.npy", "--onset-ns", "2", "-o", "bad"], &["--onset-ns", "--lifetime-fit"]);
     // a lifetime model gives no depth for the range fit to replace

@@ -422,6 +422,11 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
     if products.ply {
         std::fs::create_dir_all(out.join("ply")).map_err(|e| file_err(out, e))?;
     }
+    // what this stream writes (not whatever an earlier run left in `out`)
+    let mut written: Vec<PathBuf> = [&writers.cube, &writers.depth, &writers.second, &writers.lifetime, &writers.intensity, &writers.phasor].into_iter().flatten().map(|w| w.path.clone()).collect();
+    if products.ply {
+        written.push(out.join("ply"));
+    }
     let bin_s = model.meta.bin_s;
     let peak_opts = PeakOptions { max_peaks: k, ..Default::default() };
     let t0 = Instant::now();
@@ -556,10 +561,6 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
         status.and(written)
     });
     result?;
-    let mut written: Vec<PathBuf> = ["cube.npy", "depth.npy", "peaks.npy", "confidence.npy", "lifetime.npy", "intensity.npy", "phasor.npy"].iter().map(|n| out.join(n)).filter(|p| p.exists()).collect();
-    if products.ply {
-        written.push(out.join("ply"));
-    }
     Ok(StreamReport { frames, seconds: t0.elapsed().as_secs_f64(), infer_seconds, written })
 }
 
