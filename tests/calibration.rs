@@ -122,8 +122,8 @@ fn a_sweep_calibrates_and_decoders_use_it() {
     ok(dir, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--calibration", "cal", "--init-from", "run", "--epochs", "1", "--stages", "2", "--channels", "4", "--no-augment", "-o", "tuned"]);
     let tuned = runs::load(&dir.join("tuned"), &tcsense_models::Device::flex()).unwrap();
     let cal_a = read_npy(&dir.join("cal/A.npy")).unwrap().into_dimensionality::<Ix3>().unwrap();
-    assert_eq!(tuned.sensor.a(), cal_a.view());
-    let c = Calibration::load(&dir.join("cal"), &tuned.sensor, &tuned.codes).unwrap();
+    assert_eq!(tuned.sensor.matrix().a(), cal_a.view());
+    let c = Calibration::load(&dir.join("cal"), tuned.sensor.nominal(), tuned.sensor.codes()).unwrap();
     assert_eq!(c.matrix.a(), cal_a.view());
 }
 

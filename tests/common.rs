@@ -54,7 +54,7 @@ pub fn tiny_lidar_and_codes(dir: &Path) {
 pub fn burn_outputs(run: &LoadedRun, y: &Array4<f32>) -> Vec<Array4<f32>> {
     let device = Device::flex();
     let (_, _, h, w) = y.dim();
-    let st = SensorTensors::new(&run.sensor, h, w, &device).unwrap();
+    let st = SensorTensors::new(run.sensor.matrix(), h, w, &device).unwrap();
     let yt = to_tensor(&y.view(), &device);
     match &run.net {
         TrainedNet::AdmmNet(net) => vec![to_array(net.predict(yt, &st)).unwrap()],

@@ -1,4 +1,4 @@
-//! Every decoder through the one contract (`Decoder::decode(y [B, M, H, W], A)`) on the same
+//! Every decoder through the one contract (`Decoder::decode(y [B, M, H, W], &Sensor)`) on the same
 //! measurements, and a run directory written by an earlier build (tests/fixtures) opened
 //! with one call and reconstructing exactly what that build reconstructed.
 
@@ -12,7 +12,7 @@ use tcsense_models::metrics::mse;
 use tcsense_models::{runs, tval3, Device, ModelError, Tval3Options};
 use tcsense_sensor::measure::measure_batch;
 use tcsense_sensor::npy::read_npy;
-use tcsense_sensor::{MeasurementMatrix, SensorError};
+use tcsense_sensor::{Sensor, SensorError};
 
 /// An ADMM-Net run (S = 2, CN = 4, 8×8 LiDAR, T = 8, 2 epochs) written before the decoder
 /// contract existed, with noisy measurements `y.npy` [1, 4, 8, 8] and that build's
@@ -21,7 +21,7 @@ fn fixture() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/admm-net-run-v1")
 }
 
-fn decode(d: &mut dyn Decoder, y: &Array4<f32>, a: &MeasurementMatrix) -> Array4<f32> {
+fn decode(d: &mut dyn Decoder, y: &Array4<f32>, a: &Sensor) -> Array4<f32> {
     let never = AtomicBool::new(false);
     d.decode(y.view(), a, &Control::quiet(&never)).unwrap().cube.unwrap()
 }
@@ -100,7 +100,7 @@ fn every_decoder_through_the_contract_on_the_same_measurements() {
     // the TVAL3 decoder is the solver itself, frame by frame
     let plan = a.plan(8, 8).unwrap();
     let never = AtomicBool::new(false);
-    let (direct, _) = tval3(&a, &plan, &y.index_axis(Axis(0), 1), &opts, &|_, _| {}, &never).unwrap();
+    let (direct, _) = tval3(a.matrix(), &plan, &y.index_axis(Axis(0), 1), &opts, &|_, _| {}, &never).unwrap();
     let via = decode(decoders[0].as_mut(), &y, &a);
     assert_eq!(via.index_axis(Axis(0), 1).into_dimensionality::<Ix3>().unwrap(), direct);
 }

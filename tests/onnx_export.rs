@@ -33,16 +33,16 @@ fn random_run_of_length(model: impl Fn(usize, usize) -> ModelConfig, block: (usi
     let shape = CodeShape { bh: block.0, bw: block.1, taps: 4, length, drain: false };
     let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, seed).unwrap();
     let probe = RunSpec { model: model(4, 8), sampling, irf, measured: false };
-    let bins = probe.matrix(&codes).unwrap().bins();
+    let bins = probe.sensor(Path::new("."), codes.clone()).unwrap().bins();
     let spec = RunSpec { model: model(4, bins), sampling, irf, measured: false };
-    let sensor = spec.matrix(&codes).unwrap();
+    let sensor = spec.sensor(Path::new("."), codes).unwrap();
     let device = Device::flex();
     let net = match &spec.model {
         ModelConfig::AdmmNet(c) => TrainedNet::AdmmNet(c.init(&device)),
         ModelConfig::Unet(c) => TrainedNet::Unet(c.init(&device)),
         ModelConfig::Lifetime(c) => TrainedNet::Lifetime(c.init(&device)),
     };
-    LoadedRun { dir: PathBuf::from("."), spec, codes, sensor, net }
+    LoadedRun { dir: PathBuf::from("."), spec, sensor, net }
 }
 
 /// ONNX Runtime's outputs of `run` exported with `opts`, on `y`.
@@ -212,7 +212,7 @@ fn measurements_that_break_the_metadata_are_refused() {
     std::fs::write(&path, export(&run, ExportOptions::default()).unwrap()).unwrap();
     let mut model = OnnxModel::open(&path, 1).unwrap();
     assert_eq!(model.meta.frame_multiple, (4, 4), "lcm of the 2x2 block and the stride 4");
-    assert_eq!(model.meta.codes, run.codes);
+    assert_eq!(&model.meta.codes, run.sensor.codes());
     for (y, needle) in [(random_y(3, 8, 8, 1), "M = 4 taps"), (random_y(4, 8, 6, 1), "multiples of 4x4")] {
         let e = model.run(y.view()).unwrap_err().to_string();
         assert!(e.contains(needle) && e.contains("u.onnx"), "{e}");
@@ -221,7 +221,7 @@ fn measurements_that_break_the_metadata_are_refused() {
     y[(0, 0, 0, 0)] = f32::NAN;
     assert!(model.run(y.view()).unwrap_err().to_string().contains("finite"));
     // a baked model takes no other sensor matrix
-    assert!(model.set_matrix(&run.sensor).unwrap_err().to_string().contains("--matrix-input"));
+    assert!(model.set_matrix(run.sensor.matrix()).unwrap_err().to_string().contains("--matrix-input"));
     // a truncated file and a foreign one
     let bytes = std::fs::read(&path).unwrap();
     std::fs::write(dir.path().join("cut.onnx"), &bytes[..bytes.len() / 2]).unwrap();

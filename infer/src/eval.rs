@@ -11,12 +11,11 @@ use std::time::Instant;
 use tcsense_datasets::Dataset;
 use tcsense_models::decoder::{Control, Decoded, Decoder, Tval3Decoder};
 use tcsense_models::{runs, Device, ModelError, Tval3Options};
-use tcsense_sensor::calibration::Calibration;
 use tcsense_sensor::noise::Exposure;
 use tcsense_sensor::nonideal::NonIdeal;
 use tcsense_sensor::measure::measure_batch;
 use tcsense_sensor::noise::derive_seed;
-use tcsense_sensor::{Codes, MeasurementMatrix, NoiseParams};
+use tcsense_sensor::{Codes, NoiseParams, Sensor};
 
 use crate::metrics::{depth_errors, mse, psnr, DepthErrors, LifetimeErrors};
 use crate::products::{depth_map, PeakOptions};
@@ -225,13 +224,22 @@ fn median(v: &mut [f32]) -> f64 {
     *m as f64
 }
 
-/// A decoder chosen by name, with the codes it was trained with (learned decoders).
+/// A decoder chosen by name, with the sensor it was trained for (learned decoders and
+/// exported models).
 pub struct NamedDecoder {
     /// The name as given (`tval3`, `admm-net:RUN`).
     pub label: String,
     pub decoder: Box<dyn Decoder>,
-    /// The run's codes: a learned decoder is evaluated with its own codes only.
-    pub codes: Option<Codes>,
+    /// The run's or model's sensor (its codes, sampling, IRF and matrix): a learned decoder is
+    /// evaluated with its own codes only. `None` for decoders of any sensor (TVAL3, the fits).
+    pub sensor: Option<Sensor>,
+}
+
+impl NamedDecoder {
+    /// The codes it was trained with (learned decoders).
+    pub fn codes(&self) -> Option<&Codes> {
+        self.sensor.as_ref().map(Sensor::codes)
+    }
 }
 
 /// Open a decoder by name: `tval3` (with `tval3` options), `lifetime-fit` (lifetimes fitted
@@ -249,20 +257,20 @@ pub fn open_decoder(name: &str, tval3: &Tval3Options, device: &Device) -> Result
             return Err(InferError::InvalidParam { field: "decoder", got: name.into(), expected: "+fit after a decoder of cubes: tval3+fit, admm-net:RUN+fit, zoo:NAME+fit or onnx:MODEL.onnx+fit of an ADMM-Net".into() });
         }
         let d = open_decoder(inner, tval3, device)?;
-        return Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::ranged::PeaksThenFit::new(d.decoder)), codes: d.codes });
+        return Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::ranged::PeaksThenFit::new(d.decoder)), sensor: d.sensor });
     }
     match name.split_once(':') {
-        None if name == "tval3" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(Tval3Decoder::new(*tval3)?), codes: None }),
-        None if name == "lifetime-fit" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::tapfit::TapFitDecoder::default()), codes: None }),
-        None if name == "depth-fit" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::ranged::DepthFitDecoder::default()), codes: None }),
+        None if name == "tval3" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(Tval3Decoder::new(*tval3)?), sensor: None }),
+        None if name == "lifetime-fit" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::tapfit::TapFitDecoder::default()), sensor: None }),
+        None if name == "depth-fit" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::ranged::DepthFitDecoder::default()), sensor: None }),
         Some(("depth-fit", r)) => {
             let returns: usize = r.parse().ok().filter(|r| (1..=2).contains(r)).ok_or_else(|| InferError::InvalidParam { field: "decoder", got: name.into(), expected: "depth-fit:1 or depth-fit:2 (returns per pixel)".into() })?;
             let opts = tcsense_models::range_templates::DepthFitOptions { returns, ..Default::default() };
-            Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::ranged::DepthFitDecoder::new(opts)?), codes: None })
+            Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::ranged::DepthFitDecoder::new(opts)?), sensor: None })
         }
         Some(("zoo", _)) => {
             let run = runs::open(&tcsense_models::zoo::resolve(name)?, device)?;
-            Ok(NamedDecoder { label: name.into(), decoder: run.decoder, codes: Some(run.codes) })
+            Ok(NamedDecoder { label: name.into(), decoder: run.decoder, sensor: Some(run.sensor) })
         }
         Some((kind, dir)) if ["admm-net", "unet", "unet-raw", "lifetime"].contains(&kind) => {
             // unet-raw: the U-Net's own ranges, without the fit in the tap domain
@@ -271,12 +279,12 @@ pub fn open_decoder(name: &str, tval3: &Tval3Options, device: &Device) -> Result
             if run.spec.model.name() != kind {
                 return Err(InferError::File { path: run.dir.join(runs::CONFIG_FILE), msg: format!("a {} run, not {kind}; name it {}:{dir}", run.spec.model.name(), run.spec.model.name()) });
             }
-            Ok(NamedDecoder { label: name.into(), decoder: run.decoder, codes: Some(run.codes) })
+            Ok(NamedDecoder { label: name.into(), decoder: run.decoder, sensor: Some(run.sensor) })
         }
         Some(("onnx", file)) => {
             let model = crate::runtime::OnnxModel::open(Path::new(file), 0)?;
-            let codes = model.meta.codes.clone();
-            Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::runtime::OnnxDecoder::new(model)), codes: Some(codes) })
+            let sensor = model.meta.sensor()?;
+            Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::runtime::OnnxDecoder::new(model)), sensor: Some(sensor) })
         }
         _ => Err(InferError::UnknownDecoder(name.into())),
     }
@@ -296,15 +304,13 @@ pub struct EvalSettings {
     /// The sensor the measurements come from, when it is not the ideal model: its
     /// non-idealities (gains, dark offset, crosstalk, tail, drift), realised at the items' size.
     pub sensor: Option<NonIdeal>,
-    /// What the decoders know of that sensor: a calibration (its dark and gain maps correct the
-    /// tap images, its matrix replaces the nominal one). `None`: the nominal model.
-    pub calibration: Option<Calibration>,
 }
 
-/// Evaluate `decoders` on a dataset split with the sensor `a`: the same measurements of each
-/// item (`measure`, noise seeded per item) go to every decoder. `on_item(decoder, done, of)`
-/// is called after each item.
-pub fn evaluate(ds: &Dataset, a: &MeasurementMatrix, decoders: &mut [NamedDecoder], settings: &EvalSettings, on_item: &dyn Fn(&str, usize, usize), cancel: &AtomicBool) -> Result<Vec<EvalRow>> {
+/// Evaluate `decoders` on a dataset split with `sensor`, what the decoders know of the sensor
+/// (its nominal `A` measures the items; a calibration's dark and gain maps correct the tap
+/// images and its matrix decodes them): the same measurements of each item (`measure`, noise
+/// seeded per item) go to every decoder. `on_item(decoder, done, of)` is called after each item.
+pub fn evaluate(ds: &Dataset, sensor: &Sensor, decoders: &mut [NamedDecoder], settings: &EvalSettings, on_item: &dyn Fn(&str, usize, usize), cancel: &AtomicBool) -> Result<Vec<EvalRow>> {
     let x = ds.load(&settings.split, "x")?.into_dimensionality::<Ix4>().map_err(|e| file_err(&ds.dir, format!("field x of split {}: {e}", settings.split)))?;
     let n = settings.items.unwrap_or(x.dim().0).min(x.dim().0);
     if n == 0 {
@@ -315,10 +321,11 @@ pub fn evaluate(ds: &Dataset, a: &MeasurementMatrix, decoders: &mut [NamedDecode
     let lifetime = field("lifetime")?.map(|d| d.into_dimensionality::<Ix3>()).transpose().map_err(|e| file_err(&ds.dir, format!("field lifetime: {e}")))?;
     let intensity = field("intensity")?.map(|d| d.into_dimensionality::<Ix3>()).transpose().map_err(|e| file_err(&ds.dir, format!("field intensity: {e}")))?;
     let (_, _, h, w) = x.dim();
+    let a = sensor.nominal();
     let plan = a.plan(h, w)?;
     // a non-ideal sensor, or any sensor whose raw tap images a calibration corrects (its dark
     // offsets are in electrons), is measured in electrons
-    let real = match (&settings.sensor, &settings.calibration) {
+    let real = match (&settings.sensor, sensor.calibration()) {
         (Some(s), _) if !s.is_ideal() => Some(s.realise(a, h, w)?),
         (_, Some(_)) => Some(NonIdeal::default().realise(a, h, w)?),
         _ => None,
@@ -336,21 +343,16 @@ pub fn evaluate(ds: &Dataset, a: &MeasurementMatrix, decoders: &mut [NamedDecode
             let m = real.measure(&xi, &noise_model, settings.noise.is_some(), Exposure::Auto, seed)?;
             let s = m.electrons_per_unit as f32;
             let e: Array4<f32> = m.electrons.into_dimensionality().map_err(|e| file_err(&ds.dir, e.to_string()))?;
-            Ok(match &settings.calibration {
-                Some(c) => c.correct(&e.view())?.mapv(|v| v / s),
-                None => e.mapv(|v| v / s),
-            })
+            Ok(sensor.correct(e.view())?.mapv(|v| v / s))
         })
         .collect::<Result<_>>()?;
-    // the decoders' model of the sensor
-    let a = settings.calibration.as_ref().map_or(a, |c| &c.matrix);
     let ctl = Control::quiet(cancel);
     let mut rows = Vec::new();
     for d in decoders.iter_mut() {
         let mut row = EvalRow::new(&d.label);
         for (i, y) in ys.iter().enumerate() {
             let t0 = Instant::now();
-            let out: Decoded = d.decoder.decode(y.view(), a, &ctl).map_err(|e| match e {
+            let out: Decoded = d.decoder.decode(y.view(), sensor, &ctl).map_err(|e| match e {
                 ModelError::Cancelled => InferError::Cancelled,
                 e => e.into(),
             })?;

@@ -24,6 +24,7 @@
 
 pub mod bounds;
 pub mod calibration_report;
+pub mod decode;
 pub mod error;
 pub mod figures;
 pub mod eval;

@@ -61,7 +61,8 @@ impl Decoder for DepthFitDecoder {
         "depth-fit"
     }
 
-    fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &MeasurementMatrix, ctl: &Control<'_>) -> Result<Decoded> {
+    fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &tcsense_sensor::Sensor, ctl: &Control<'_>) -> Result<Decoded> {
+        let sensor = sensor.matrix();
         tcsense_models::decoder::check_measurements(&y, sensor)?;
         let (b, _, h, w) = y.dim();
         let k = self.options.returns;
@@ -105,7 +106,7 @@ impl Decoder for PeaksThenFit {
     /// - `y`: `[B, M, H, W]` → the inner decoder's cube `[B, T, H, W]`, depth and confidence
     ///   `[B, K, H, W]` (`K = peaks.max_peaks`; the confidence is each peak's amplitude over
     ///   the pixel's strongest)
-    fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &MeasurementMatrix, ctl: &Control<'_>) -> Result<Decoded> {
+    fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &tcsense_sensor::Sensor, ctl: &Control<'_>) -> Result<Decoded> {
         let out = self.inner.decode(y, sensor, ctl)?;
         let Some(cube) = &out.cube else {
             return Err(ModelError::InvalidParam { field: "decoder", got: self.inner.name().into(), expected: "a decoder that reconstructs cubes (NAME+fit refines the peaks of a cube)".into() });
@@ -116,7 +117,7 @@ impl Decoder for PeaksThenFit {
         let mut depth = Array4::<f32>::from_elem((b, k, h, w), f32::NAN);
         let mut confidence = Array4::<f32>::zeros((b, k, h, w));
         for (i, x) in cube.axis_iter(Axis(0)).enumerate() {
-            let (d, amp) = depth_map(&x, sensor.bin_width_s(), &self.peaks);
+            let (d, amp) = depth_map(&x, sensor.matrix().bin_width_s(), &self.peaks);
             depth.index_axis_mut(Axis(0), i).assign(&d);
             // each return's amplitude relative to the pixel's strongest
             let top = amp.fold_axis(Axis(0), 0.0f32, |m, &v| m.max(v));
@@ -126,7 +127,7 @@ impl Decoder for PeaksThenFit {
                 *v = if t > 0.0 { (amp[(r, p, q)] / t).clamp(0.0, 1.0) } else { 0.0 };
             }
         }
-        refine_ranges(y, sensor, &mut depth, &self.fit);
+        refine_ranges(y, sensor.matrix(), &mut depth, &self.fit);
         // a return the fit dropped has no confidence
         ndarray::Zip::from(&mut confidence).and(&depth).for_each(|c, d| {
             if !d.is_finite() {
@@ -144,14 +145,13 @@ mod tests {
     use tcsense_sensor::codes::{CodeShape, Constraints};
     use tcsense_sensor::generate::random_codes;
     use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
-    use tcsense_sensor::{Irf, SensorParams, C};
+    use tcsense_sensor::{Irf, Sampling, Sensor, C};
 
     /// The prototype's shape (4 taps, 2×2, L = 32) with the physical IRF.
-    fn sensor() -> MeasurementMatrix {
+    fn sensor() -> Sensor {
         let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
         let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 1).unwrap();
-        let params = SensorParams { irf: Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S }, ..SensorParams::from_codes(&codes) };
-        MeasurementMatrix::synthesize(&codes, &params.validate().unwrap()).unwrap()
+        Sensor::ideal(codes, Sampling::Oversample(1), Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S }).unwrap()
     }
 
     /// An 8×8 cube `[1, T, 8, 8]` of one return at `tau` bins (split linearly between the
@@ -169,7 +169,7 @@ mod tests {
         fn name(&self) -> &str {
             "fixed"
         }
-        fn decode(&mut self, _: ArrayView4<'_, f32>, _: &MeasurementMatrix, _: &Control<'_>) -> Result<Decoded> {
+        fn decode(&mut self, _: ArrayView4<'_, f32>, _: &tcsense_sensor::Sensor, _: &Control<'_>) -> Result<Decoded> {
             Ok(self.0.clone())
         }
     }

@@ -228,7 +228,8 @@ impl Decoder for OnnxDecoder {
         &self.name
     }
 
-    fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &MeasurementMatrix, ctl: &Control<'_>) -> tcsense_models::Result<Decoded> {
+    fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &tcsense_sensor::Sensor, ctl: &Control<'_>) -> tcsense_models::Result<Decoded> {
+        let sensor = sensor.matrix();
         check_measurements(&y, sensor)?;
         let to_model = |e: InferError| tcsense_models::ModelError::InvalidParam { field: "onnx decoder", got: e.to_string(), expected: "a successful ONNX Runtime run".into() };
         if self.model.meta.matrix_input {

@@ -773,7 +773,8 @@ impl tcsense_models::decoder::Decoder for TapFitDecoder {
         "lifetime-fit"
     }
 
-    fn decode(&mut self, y: ndarray::ArrayView4<'_, f32>, sensor: &MeasurementMatrix, ctl: &tcsense_models::decoder::Control<'_>) -> tcsense_models::Result<tcsense_models::decoder::Decoded> {
+    fn decode(&mut self, y: ndarray::ArrayView4<'_, f32>, sensor: &tcsense_sensor::Sensor, ctl: &tcsense_models::decoder::Control<'_>) -> tcsense_models::Result<tcsense_models::decoder::Decoded> {
+        let sensor = sensor.matrix();
         tcsense_models::decoder::check_measurements(&y, sensor)?;
         let (b, _, h, w) = y.dim();
         let mut lifetime = ndarray::Array4::<f32>::from_elem((b, 4, h, w), f32::NAN);
@@ -799,13 +800,15 @@ impl tcsense_models::decoder::Decoder for TapFitDecoder {
 mod tests {
     use super::*;
     use tcsense_sensor::generate::prototype_codes;
-    use tcsense_sensor::{Irf, Sampling, SensorParams};
+    use tcsense_sensor::{Irf, Sampling};
 
     /// The prototype's geometry (4 taps, 2×2, L = 32 at 607 MHz, heterodyne K = 8, physical IRF).
+    fn sensor_object() -> tcsense_sensor::Sensor {
+        tcsense_sensor::Sensor::ideal(prototype_codes(1).unwrap(), Sampling::Heterodyne(8), Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }).unwrap()
+    }
+
     fn sensor() -> MeasurementMatrix {
-        let codes = prototype_codes(1).unwrap();
-        let p = SensorParams { sampling: Sampling::Heterodyne(8), irf: Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }, ..SensorParams::from_codes(&codes) };
-        MeasurementMatrix::synthesize(&codes, &p.validate().unwrap()).unwrap()
+        sensor_object().matrix().clone()
     }
 
     /// Noise-free taps `[M, H, W]` of a scene whose pixel `(i, j)` decays with `tau(i, j)` (by
@@ -948,7 +951,7 @@ mod tests {
             }
         }
         let mut dec = TapFitDecoder::new(TapFitOptions { onset_s: Some(3e-9), irf_fwhm_s: vec![0.0], ..opts }).unwrap();
-        let out = tcsense_models::decoder::Decoder::decode(&mut dec, y.view().insert_axis(Axis(0)), &a, &tcsense_models::decoder::Control::quiet(&std::sync::atomic::AtomicBool::new(false))).unwrap();
+        let out = tcsense_models::decoder::Decoder::decode(&mut dec, y.view().insert_axis(Axis(0)), &sensor_object(), &tcsense_models::decoder::Control::quiet(&std::sync::atomic::AtomicBool::new(false))).unwrap();
         let conf = out.confidence.unwrap();
         assert_eq!(conf[(0, 0, 0, 0)], 1.0);
         assert_eq!(conf[(0, 0, 0, 7)], 0.0);

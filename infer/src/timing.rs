@@ -71,7 +71,7 @@ pub fn time_decoder(run: Option<&LoadedRun>, model: &Path, (h, w): (usize, usize
         ((seed >> 33) % 4096) as f32
     });
     let device = Device::flex();
-    let st = run.map(|r| SensorTensors::new(&r.sensor, h, w, &device)).transpose()?;
+    let st = run.map(|r| SensorTensors::new(r.sensor.matrix(), h, w, &device)).transpose()?;
     let burn_step = |r: &LoadedRun, st: &SensorTensors| -> f64 {
         let t0 = Instant::now();
         let yt = to_tensor(&y.view(), &device);

@@ -1,5 +1,5 @@
 //! The decoder contract (DESIGN §5, deepinv's `model(y, physics)`): every decoder maps tap
-//! images `y [B, M, H, W]` plus the sensor `A [N, M, T]` to transient cubes `[B, T, H, W]`
+//! images `y [B, M, H, W]` plus the [`Sensor`] (its `A [N, M, T]`, codes and spec) to transient cubes `[B, T, H, W]`
 //! and/or the range of `K` returns `[B, K, H, W]`.
 //!
 //! Evaluation, `reconstruct`, inference and the demo see only [`Decoder`], so TVAL3, ADMM-Net
@@ -15,20 +15,20 @@
 //! use tcsense_models::Tval3Options;
 //! use tcsense_sensor::codes::{CodeShape, Constraints};
 //! use tcsense_sensor::generate::random_codes;
-//! use tcsense_sensor::{MeasurementMatrix, SensorParams};
+//! use tcsense_sensor::{Irf, Sampling, Sensor};
 //!
 //! let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 8, drain: false };
 //! let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 1).unwrap();
-//! let a = MeasurementMatrix::synthesize(&codes, &SensorParams::from_codes(&codes).validate().unwrap()).unwrap();
+//! let sensor = Sensor::ideal(codes, Sampling::Oversample(1), Irf::Ideal).unwrap();
 //! let y = Array4::<f32>::from_elem((1, 4, 4, 4), 1.0); // [B, M, H, W]
 //! let mut tval3 = Tval3Decoder::new(Tval3Options { maxit: 5, ..Default::default() }).unwrap();
-//! let out = tval3.decode(y.view(), &a, &Control::quiet(&AtomicBool::new(false))).unwrap();
+//! let out = tval3.decode(y.view(), &sensor, &Control::quiet(&AtomicBool::new(false))).unwrap();
 //! assert_eq!(out.cube.unwrap().dim(), (1, 8, 4, 4)); // [B, T, H, W]
 //! ```
 
 use ndarray::{Array4, ArrayView4, Axis};
 use std::sync::atomic::{AtomicBool, Ordering};
-use tcsense_sensor::{MeasurementMatrix, SensorError};
+use tcsense_sensor::{MeasurementMatrix, Sensor, SensorError};
 
 use crate::tval3::{tval3, Tval3Options};
 use crate::{ModelError, Result};
@@ -97,9 +97,9 @@ pub trait Decoder: Send {
     /// Reconstruct a batch. Implementations check `y` with [`check_measurements`] first.
     ///
     /// # Shapes
-    /// - `y`: `[B, M, H, W]`, `sensor`: `A [N, M, T]` → cube `[B, T, H, W]` and/or depth and
-    ///   confidence `[B, K, H, W]`
-    fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &MeasurementMatrix, ctl: &Control<'_>) -> Result<Decoded>;
+    /// - `y`: `[B, M, H, W]`, `sensor.matrix()`: `A [N, M, T]` → cube `[B, T, H, W]` and/or
+    ///   depth and confidence `[B, K, H, W]`
+    fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &Sensor, ctl: &Control<'_>) -> Result<Decoded>;
 }
 
 /// The checks every decoder makes on its input: `M` tap images for this sensor, a frame that
@@ -140,7 +140,8 @@ impl Decoder for Tval3Decoder {
         "tval3"
     }
 
-    fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &MeasurementMatrix, ctl: &Control<'_>) -> Result<Decoded> {
+    fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &Sensor, ctl: &Control<'_>) -> Result<Decoded> {
+        let sensor = sensor.matrix();
         check_measurements(&y, sensor)?;
         let (b, _, h, w) = y.dim();
         let plan = sensor.plan(h, w)?;

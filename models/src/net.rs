@@ -171,7 +171,8 @@ impl<M: Network> Decoder for NetDecoder<M> {
         &self.name
     }
 
-    fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &MeasurementMatrix, ctl: &Control<'_>) -> Result<Decoded> {
+    fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &tcsense_sensor::Sensor, ctl: &Control<'_>) -> Result<Decoded> {
+        let sensor = sensor.matrix();
         check_measurements(&y, sensor)?;
         let (b, _, h, w) = y.dim();
         let device = self.device.clone();

@@ -18,7 +18,7 @@ use burn::module::Module;
 use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
-use tcsense_sensor::{Codes, Irf, MeasurementMatrix, Sampling, SensorParams};
+use tcsense_sensor::{Codes, Irf, Sampling, Sensor, SensorModel};
 
 use crate::admm::{AdmmNet, AdmmNetConfig};
 use crate::decoder::Decoder;
@@ -174,20 +174,17 @@ pub struct RunSpec {
 pub const SENSOR_MATRIX_FILE: &str = "sensor_matrix.npy";
 
 impl RunSpec {
-    /// The measurement matrix of `codes` under this run's sampling and IRF.
-    pub fn matrix(&self, codes: &Codes) -> Result<MeasurementMatrix> {
-        let spec = SensorParams { sampling: self.sampling, irf: self.irf, ..SensorParams::from_codes(codes) }.validate()?;
-        Ok(MeasurementMatrix::synthesize(codes, &spec)?)
+    /// The sensor model of this run: its sampling and IRF, and the measured matrix in the run
+    /// directory `dir` when it has one.
+    pub fn sensor_model(&self, dir: &Path) -> SensorModel {
+        SensorModel { sampling: self.sampling, irf: self.irf, measured: self.measured.then(|| dir.join(SENSOR_MATRIX_FILE)), ..Default::default() }
     }
 
-    /// The run's sensor: the measured matrix in the run directory `dir` when it has one (its
-    /// shape checked against the codes and sampling), else [`Self::matrix`].
-    pub fn matrix_in(&self, dir: &Path, codes: &Codes) -> Result<MeasurementMatrix> {
-        if !self.measured {
-            return self.matrix(codes);
-        }
-        let spec = SensorParams { sampling: self.sampling, irf: self.irf, ..SensorParams::from_codes(codes) }.validate()?;
-        Ok(MeasurementMatrix::load(&dir.join(SENSOR_MATRIX_FILE), &spec)?)
+    /// The run's sensor for `codes`: the measured matrix in the run directory `dir` when it
+    /// has one (its shape checked against the codes and sampling), else the one synthesised
+    /// from the codes under the run's sampling and IRF.
+    pub fn sensor(&self, dir: &Path, codes: Codes) -> Result<Sensor> {
+        Ok(Sensor::build(codes, &self.sensor_model(dir))?)
     }
 }
 
@@ -225,10 +222,9 @@ pub fn read_config_json(path: &Path) -> Result<serde_json::Value> {
 pub struct Run {
     pub dir: PathBuf,
     pub spec: RunSpec,
-    /// The codes it was trained with.
-    pub codes: Codes,
-    /// `A` of those codes under the run's sampling and IRF.
-    pub sensor: MeasurementMatrix,
+    /// The sensor it was trained for: the codes it was trained with, `A` of those codes under
+    /// the run's sampling and IRF (or the run's measured matrix).
+    pub sensor: Sensor,
     /// The trained network behind the decoder contract.
     pub decoder: Box<dyn Decoder>,
 }
@@ -256,8 +252,7 @@ pub enum TrainedNet {
 pub struct LoadedRun {
     pub dir: PathBuf,
     pub spec: RunSpec,
-    pub codes: Codes,
-    pub sensor: MeasurementMatrix,
+    pub sensor: Sensor,
     pub net: TrainedNet,
 }
 
@@ -277,11 +272,12 @@ pub fn load(dir: &Path, device: &Device) -> Result<LoadedRun> {
     tcsense_sensor::json::reject_unknown_keys(&v, &known).map_err(|e| file_err(&cfg_path, e))?;
     spec.model.validate().map_err(|e| file_err(&cfg_path, e))?;
     let codes = Codes::load(&dir.join(CODES_FILE))?;
-    let sensor = spec.matrix_in(dir, &codes)?;
-    if sensor.taps() != spec.model.taps() || sensor.bins() != spec.model.bins() {
+    let sensor = spec.sensor(dir, codes)?;
+    let a = sensor.matrix();
+    if a.taps() != spec.model.taps() || a.bins() != spec.model.bins() {
         return Err(file_err(
             &cfg_path,
-            format!("the model takes M = {} taps and T = {} bins, but its codes give M = {}, T = {}", spec.model.taps(), spec.model.bins(), sensor.taps(), sensor.bins()),
+            format!("the model takes M = {} taps and T = {} bins, but its codes give M = {}, T = {}", spec.model.taps(), spec.model.bins(), a.taps(), a.bins()),
         ));
     }
     let net = match &spec.model {
@@ -289,7 +285,7 @@ pub fn load(dir: &Path, device: &Device) -> Result<LoadedRun> {
         ModelConfig::Unet(c) => TrainedNet::Unet(load_network(dir, c.init(device))?),
         ModelConfig::Lifetime(c) => TrainedNet::Lifetime(load_network(dir, c.init(device))?),
     };
-    Ok(LoadedRun { dir: dir.to_path_buf(), spec, codes, sensor, net })
+    Ok(LoadedRun { dir: dir.to_path_buf(), spec, sensor, net })
 }
 
 /// Open a run directory as a decoder on `device`: its config, codes, sensor model and latest
@@ -301,7 +297,7 @@ pub fn open(dir: &Path, device: &Device) -> Result<Run> {
 /// [`open`], with a U-Net's ranges refined in the tap domain ([`crate::range_fit`], the
 /// default) or as the network outputs them (`range_fit: false`).
 pub fn open_with(dir: &Path, device: &Device, range_fit: bool) -> Result<Run> {
-    let LoadedRun { dir, spec, codes, sensor, net } = load(dir, device)?;
+    let LoadedRun { dir, spec, sensor, net } = load(dir, device)?;
     let name = spec.model.name();
     let decoder: Box<dyn Decoder> = match net {
         TrainedNet::AdmmNet(net) => Box::new(NetDecoder::new(name, net, device.clone())),
@@ -309,5 +305,5 @@ pub fn open_with(dir: &Path, device: &Device, range_fit: bool) -> Result<Run> {
         TrainedNet::Unet(net) => Box::new(NetDecoder::new(name, net, device.clone())),
         TrainedNet::Lifetime(net) => Box::new(NetDecoder::new(name, net, device.clone())),
     };
-    Ok(Run { dir, spec, codes, sensor, decoder })
+    Ok(Run { dir, spec, sensor, decoder })
 }

@@ -37,7 +37,7 @@ use tcsense_sensor::measure::measure_batch;
 use tcsense_sensor::noise::derive_seed;
 use tcsense_sensor::npy::{read_npy, write_bytes, write_npy};
 use tcsense_sensor::params::{C, DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
-use tcsense_sensor::{export, generate, Irf, MeasurementMatrix, NoiseParams, Sampling, SensorParams};
+use tcsense_sensor::{export, generate, Irf, NoiseParams, Sampling, Sensor, SensorParams};
 use tcsense_train::deep_sensing::LearnCodes;
 use tcsense_train::{train, Progress, TrainConfig, TrainError};
 
@@ -206,9 +206,8 @@ fn physical_irf() -> Irf {
 }
 
 /// The sensor of a dataset's grid with these codes (physical IRF).
-fn sensor(codes: &Codes, ds: &Dataset) -> Result<MeasurementMatrix> {
-    let spec = SensorParams { sampling: ds.manifest.grid.sampling, irf: physical_irf(), ..SensorParams::from_codes(codes) }.validate()?;
-    Ok(MeasurementMatrix::synthesize(codes, &spec)?)
+fn sensor(codes: &Codes, ds: &Dataset) -> Result<Sensor> {
+    Ok(Sensor::ideal(codes.clone(), ds.manifest.grid.sampling, physical_irf())?)
 }
 
 /// Numbered steps with their wall times.
@@ -383,10 +382,10 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
     let lidar_json = dir.join("results/lidar.json");
     let flim_json = dir.join("results/flim.json");
     steps.run("evaluation on the test splits (same noisy measurements for every decoder): TVAL3, burn and ONNX Runtime", || {
-        let settings = |items| EvalSettings { split: "test".into(), items: Some(items), noise: Some(eval_noise), seed, sensor: None, calibration: None };
+        let settings = |items| EvalSettings { split: "test".into(), items: Some(items), noise: Some(eval_noise), seed, sensor: None };
         let on_item = |label: &str, done: usize, of: usize| obs.items(label.rsplit('/').next().unwrap_or(label), done, of);
         // decoders as (table name, decoder spec), evaluated on one sensor; a row per decoder
-        let rows_of = |ds: &Dataset, a: &MeasurementMatrix, decoders: &[(&str, String)], items, row: &dyn Fn(&EvalRow, &str, &str) -> Value| -> Result<Vec<Value>> {
+        let rows_of = |ds: &Dataset, a: &Sensor, decoders: &[(&str, String)], items, row: &dyn Fn(&EvalRow, &str, &str) -> Value| -> Result<Vec<Value>> {
             let mut dec = decoders.iter().map(|(_, spec)| open_decoder(spec, &Tval3Options::default(), &Device::flex())).collect::<std::result::Result<Vec<_>, _>>()?;
             let r = evaluate(ds, a, &mut dec, &settings(items), &on_item, cancel)?;
             Ok(r.iter().zip(decoders).map(|(r, (name, spec))| row(r, name, engine(spec))).collect())
@@ -520,7 +519,7 @@ fn make_plan(r: &Request, lidar: &Dataset, flim: &Dataset, obs: &dyn Observer) -
             continue;
         }
         let a = sensor(&codes, ds)?;
-        let step = tcsense_train::bench::bench_step(&a, &model_of(name, ds), ch, cw, 3)?.step_ms;
+        let step = tcsense_train::bench::bench_step(a.matrix(), &model_of(name, ds), ch, cw, 3)?.step_ms;
         // learning the codes adds the operators' rebuild from A(θ) and the logits' step
         let step = if name.starts_with("learned") { step * 1.3 } else { step } + STEP_OVERHEAD_MS;
         let train_items = ds.manifest.splits.iter().find(|s| s.name == "train").map_or(0, |s| s.count);

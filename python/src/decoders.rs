@@ -9,12 +9,11 @@ use ndarray::{Array4, Axis, Ix4};
 use numpy::{IntoPyArray, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
+use tcsense_infer::decode::{check_codes, decode_batch};
 use tcsense_infer::eval::open_decoder;
 use tcsense_infer::tapfit::{TapFitDecoder, TapFitOptions};
 use tcsense_models::decoder::{Control, Decoded, Decoder, Tval3Decoder};
 use tcsense_models::{runs, zoo, Device, Tval3Options};
-use tcsense_sensor::calibration::Calibration;
-use tcsense_sensor::{Codes, SensorParams};
 
 use crate::codes::PyCodes;
 use crate::sensor::PySensor;
@@ -26,9 +25,8 @@ pub struct PyDecoder {
     label: String,
     kind: String,
     inner: Mutex<Box<dyn Decoder>>,
-    /// The codes it was trained with (learned decoders, ONNX models).
-    codes: Option<Codes>,
-    /// The sensor it decodes with when `decode` is given none (runs and ONNX models).
+    /// The sensor it was trained for and decodes with when `decode` is given none (runs and
+    /// ONNX models); its codes are the only ones it decodes.
     sensor: Option<Py<PySensor>>,
     run: Option<PathBuf>,
 }
@@ -51,25 +49,18 @@ fn decoded_dict<'py>(py: Python<'py>, d: Decoded, batched: bool) -> PyResult<Bou
     Ok(out)
 }
 
-/// Decode `y` (`[M, H, W]` or `[B, M, H, W]`) with `decoder` on `sensor`: a calibrated
-/// sensor's raw frames are corrected first, then decoded with its matrix.
+/// Decode `y` (`[M, H, W]` or `[B, M, H, W]`) with `decoder` on `sensor`
+/// ([`tcsense_infer::decode::decode_batch`]: a calibrated sensor's raw frames are corrected
+/// first, then decoded with its matrix).
 fn decode_with<'py>(py: Python<'py>, decoder: &Mutex<Box<dyn Decoder>>, sensor: &PySensor, y: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyDict>> {
     let arr = f32_array(y, "y")?;
     check_rank(arr.shape(), &[3, 4], "y", "[M, H, W] or [B, M, H, W]")?;
     let v = arr.as_array();
     let batched = v.ndim() == 4;
     let v = if batched { v.into_dimensionality::<Ix4>() } else { v.insert_axis(Axis(0)).into_dimensionality::<Ix4>() }.map_err(err)?;
-    let corrected;
-    let v = if sensor.calibration.is_some() {
-        corrected = sensor.corrected(v)?;
-        corrected.view()
-    } else {
-        v
-    };
-    let a = sensor.matrix_ref();
     let out = run_long(py, |cancel| {
         let mut d = decoder.lock().unwrap_or_else(|e| e.into_inner());
-        d.decode(v, a, &Control::quiet(cancel))
+        decode_batch(d.as_mut(), &sensor.inner, v, &Control::quiet(cancel))
     })?
     .map_err(err)?;
     decoded_dict(py, out, batched)
@@ -89,16 +80,8 @@ impl PyDecoder {
             return Err(err(format!("{}: give the sensor the measurements come from: decode(y, sensor)", self.label)));
         };
         let s = s.get();
-        if let Some(c) = &self.codes {
-            if c.digest() != s.codes.digest() {
-                return Err(err(format!(
-                    "{}: the decoder was trained with codes {} but the sensor has codes {}; a learned decoder decodes its own codes only (fine-tune it to new codes with `tcsense train --init-from`)",
-                    self.label,
-                    c.digest(),
-                    s.codes.digest()
-                )));
-            }
-        }
+        let trained = self.sensor.as_ref().map(|t| t.get().inner.codes());
+        check_codes(&self.label, trained, &s.inner).map_err(err)?;
         decode_with(py, &self.inner, s, y)
     }
 
@@ -115,7 +98,7 @@ impl PyDecoder {
     /// The codes it was trained with (None for TVAL3 and the fit).
     #[getter]
     fn codes(&self) -> Option<PyCodes> {
-        self.codes.clone().map(|inner| PyCodes { inner })
+        self.sensor.as_ref().map(|s| PyCodes { inner: s.get().inner.codes().clone() })
     }
     /// The sensor it decodes with by default (None for TVAL3 and the fit).
     #[getter]
@@ -133,23 +116,6 @@ impl PyDecoder {
     }
 }
 
-/// The sensor of an opened run or model: its codes, sampling, IRF and matrix.
-fn run_sensor(py: Python<'_>, codes: &Codes, sampling: tcsense_sensor::Sampling, irf: tcsense_sensor::Irf, a: tcsense_sensor::MeasurementMatrix, calibration: Option<PathBuf>) -> PyResult<Py<PySensor>> {
-    let spec = SensorParams { sampling, irf, ..SensorParams::from_codes(codes) }.validate().map_err(err)?;
-    let cal = match calibration {
-        Some(d) => {
-            existing(&d, "calibration")?;
-            Some(Calibration::load(&d, &a, codes).map_err(err)?)
-        }
-        None => None,
-    };
-    let label = match irf {
-        tcsense_sensor::Irf::Ideal => "ideal",
-        tcsense_sensor::Irf::Physical { .. } => "physical",
-    };
-    Py::new(py, PySensor::new(codes.clone(), spec, a, cal, label.into()))
-}
-
 /// Open a trained run directory (or `zoo:NAME`) as a decoder, with its codes and sensor;
 /// `calibration` (a `tcsense calibrate` directory) makes it decode a calibrated sensor's raw
 /// frames (`tcsense reconstruct … --calibration`).
@@ -160,10 +126,16 @@ fn open_run(py: Python<'_>, run: &Bound<'_, PyAny>, calibration: Option<&Bound<'
     let dir = zoo::resolve(&spec).map_err(err)?;
     existing(&dir, "run")?;
     let cal = calibration.map(path_of).transpose()?;
+    if let Some(d) = &cal {
+        existing(d, "calibration")?;
+    }
     let r = run_long(py, |_| runs::open(&dir, &Device::flex()))?.map_err(err)?;
     let kind = r.spec.model.name().to_string();
-    let sensor = run_sensor(py, &r.codes, r.spec.sampling, r.spec.irf, r.sensor.clone(), cal)?;
-    Ok(PyDecoder { label: spec, kind, inner: Mutex::new(r.decoder), codes: Some(r.codes), sensor: Some(sensor), run: Some(r.dir) })
+    let sensor = match &cal {
+        Some(d) => r.sensor.calibrated_from(d).map_err(err)?,
+        None => r.sensor,
+    };
+    Ok(PyDecoder { label: spec, kind, inner: Mutex::new(r.decoder), sensor: Some(Py::new(py, PySensor::of(sensor))?), run: Some(r.dir) })
 }
 
 /// Open a decoder by its command-line name: `tval3`, `lifetime-fit`, `depth-fit`, `admm-net:RUN`,
@@ -180,21 +152,19 @@ fn open_decoder_py(py: Python<'_>, name: &str, tval3: Option<&Bound<'_, PyDict>>
         existing(std::path::Path::new(file), "onnx model")?;
     }
     let d = run_long(py, |_| open_decoder(name, &opts, &Device::flex()))?.map_err(err)?;
-    let (kind, sensor, run) = match base.split_once(':') {
-        None => (base.to_string(), None, None),
-        Some(("onnx", file)) => {
-            let m = crate::onnx::open_model(std::path::Path::new(file), 0)?;
-            let s = run_sensor(py, &m.meta.codes, m.meta.sampling, m.meta.irf, m.sensor.clone(), None)?;
-            ("onnx".to_string(), Some(s), None)
-        }
-        Some((_, dir)) => {
-            let path = zoo::resolve(if base.starts_with("zoo:") { base } else { dir }).map_err(err)?;
-            let loaded = runs::load(&path, &Device::flex()).map_err(err)?;
-            let s = run_sensor(py, &loaded.codes, loaded.spec.sampling, loaded.spec.irf, loaded.sensor.clone(), None)?;
-            (loaded.spec.model.name().to_string(), Some(s), Some(loaded.dir))
-        }
+    // the kind: the network of a run or model, else the name (`tval3`, `lifetime-fit`, `depth-fit`)
+    let kind = match base.split_once(':') {
+        None => base.to_string(),
+        Some(("onnx", _)) => "onnx".to_string(),
+        Some(("depth-fit", _)) => "depth-fit".to_string(),
+        Some(_) => d.decoder.name().trim_end_matches("+fit").to_string(),
     };
-    Ok(PyDecoder { label: name.into(), kind, inner: Mutex::new(d.decoder), codes: d.codes, sensor, run })
+    let run = match base.split_once(':') {
+        Some(("onnx" | "depth-fit", _)) | None => None,
+        Some((_, dir)) => Some(zoo::resolve(if base.starts_with("zoo:") { base } else { dir }).map_err(err)?),
+    };
+    let sensor = d.sensor.map(|s| Py::new(py, PySensor::of(s))).transpose()?;
+    Ok(PyDecoder { label: name.into(), kind, inner: Mutex::new(d.decoder), sensor, run })
 }
 
 /// TVAL3 (`tcsense reconstruct tval3`): y `[M, H, W]` or `[B, M, H, W]` → cube `[T, H, W]` or

@@ -38,7 +38,7 @@ fn export_onnx(py: Python<'_>, run: &Bound<'_, PyAny>, out: &Bound<'_, PyAny>, m
     }
     run_long(py, |_| -> PyResult<usize> {
         let loaded = runs::load(&dir, &Device::flex()).map_err(err)?;
-        let cal = cal_dir.as_ref().map(|d| Calibration::load(d, &loaded.sensor, &loaded.codes)).transpose().map_err(err)?;
+        let cal = cal_dir.as_ref().map(|d| Calibration::load(d, loaded.sensor.nominal(), loaded.sensor.codes())).transpose().map_err(err)?;
         export_to(&loaded, ExportOptions { matrix_input, calibration: cal.as_ref() }, &out).map_err(err)
     })?
 }

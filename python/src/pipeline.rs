@@ -70,16 +70,17 @@ fn calibrate<'py>(py: Python<'py>, codes: &Bound<'py, PyAny>, sweep: &Bound<'py,
         Some(i) => IrfArgOwned::parse(i, tcsense_sensor::params::DEFAULT_LASER_FWHM_S * 1e9, tcsense_sensor::params::DEFAULT_TAP_TAU_S * 1e9)?,
         None => IrfArgOwned::parse(&pyo3::types::PyString::new(py, "ideal").into_any(), 0.0, 0.0)?,
     };
-    let (spec, nominal, _) = build(&codes, irf, oversample, heterodyne)?;
+    let sensor = build(codes, irf, oversample, heterodyne, None)?.inner;
+    let nominal = sensor.nominal();
     let sweep_dir = path_of(sweep)?;
     existing(&sweep_dir, "sweep")?;
     let out = path_of(out)?;
     let cal = run_long(py, |_| -> PyResult<_> {
         let sw = Sweep::load(&sweep_dir).map_err(err)?;
-        let cal = calibrate_sweep(&sw, &nominal, &codes, spec.sampling()).map_err(err)?;
+        let cal = calibrate_sweep(&sw, nominal, sensor.codes(), sensor.spec().sampling()).map_err(err)?;
         cal.save(&out).map_err(err)?;
         if report {
-            if let Err(e) = tcsense_infer::calibration_report::write_calibration_report(&cal, &nominal, &out) {
+            if let Err(e) = tcsense_infer::calibration_report::write_calibration_report(&cal, nominal, &out) {
                 let _ = std::fs::remove_dir_all(&out);
                 return Err(err(format!("{}: writing the report failed ({e}); nothing was written", out.display())));
             }

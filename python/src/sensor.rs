@@ -7,39 +7,43 @@ use ndarray::{ArrayD, Axis, Ix3, Ix4};
 use numpy::{IntoPyArray, PyArray3, PyArrayDyn, PyReadwriteArrayDyn, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
-use tcsense_sensor::calibration::{check_measurements_file, Calibration};
-use tcsense_sensor::measure::{measure, Measurement};
+use std::path::PathBuf;
 use tcsense_sensor::noise::Exposure;
 use tcsense_sensor::nonideal::NonIdeal;
-use tcsense_sensor::npy::{ensure_finite, read_npy, write_npy};
+use tcsense_sensor::npy::{ensure_finite, write_npy};
 use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
-use tcsense_sensor::sidecar::Sidecar;
-use tcsense_sensor::{Codes, FramePlan, Irf, MeasurementMatrix, NoiseParams, Sampling, SensorParams, SensorSpec};
+use tcsense_sensor::{Codes, FramePlan, Irf, MeasurementMatrix, NoiseParams, Sampling, Sensor, SensorModel, SensorParams, Units};
 
 use crate::codes::{codes_of, PyCodes};
 use crate::{check_rank, err, existing, f32_array, merged, path_of, to_python};
 
-/// The sensor as a decoder knows it: codes, the checked spec, the nominal `A [N, M, T]`, and a
-/// calibration (measured `A`, dark and gain maps) when one was given.
+/// The crate's [`Sensor`] (codes, spec, nominal `A [N, M, T]`, a calibration when one was
+/// given), with the name its IRF was given under and a cached plan.
 #[pyclass(name = "Sensor", module = "tcsense", frozen)]
 pub struct PySensor {
-    pub codes: Codes,
-    pub spec: SensorSpec,
-    pub nominal: MeasurementMatrix,
-    pub calibration: Option<Calibration>,
+    pub inner: Sensor,
     irf_label: String,
     /// The last frame size's plan (forward/adjoint coefficients), reused while the size stays.
     plan: Mutex<Option<Arc<FramePlan>>>,
 }
 
 impl PySensor {
-    pub fn new(codes: Codes, spec: SensorSpec, nominal: MeasurementMatrix, calibration: Option<Calibration>, irf_label: String) -> Self {
-        PySensor { codes, spec, nominal, calibration, irf_label, plan: Mutex::new(None) }
+    pub fn new(inner: Sensor, irf_label: String) -> Self {
+        PySensor { inner, irf_label, plan: Mutex::new(None) }
+    }
+
+    /// The label of a sensor's IRF: `ideal` or `physical`.
+    pub fn of(inner: Sensor) -> Self {
+        let label = match inner.spec().irf() {
+            Irf::Ideal => "ideal",
+            Irf::Physical { .. } => "physical",
+        };
+        PySensor::new(inner, label.into())
     }
 
     /// The matrix the sensor decodes with: the calibration's, else the nominal one.
     pub fn matrix_ref(&self) -> &MeasurementMatrix {
-        self.calibration.as_ref().map_or(&self.nominal, |c| &c.matrix)
+        self.inner.matrix()
     }
 
     /// The plan for `h × w` frames, cached while the size stays the same.
@@ -86,16 +90,6 @@ impl PySensor {
         Ok(unbatch(batched, fresh).into_pyarray(py).into_any())
     }
 
-    /// `(y − d) / G` of a calibrated sensor; `y` as is otherwise.
-    ///
-    /// # Shapes
-    /// - `y`: `[B, M, H, W]`
-    pub fn corrected(&self, y: ndarray::ArrayView4<'_, f32>) -> PyResult<ndarray::Array4<f32>> {
-        match &self.calibration {
-            Some(c) => c.correct(&y).map_err(err),
-            None => Ok(y.to_owned()),
-        }
-    }
 }
 
 /// `Sensor(…)`'s `irf`: a name, a path to `A.npy`, or an array.
@@ -123,25 +117,32 @@ fn irf_arg(obj: &Bound<'_, PyAny>, laser_fwhm_ns: f64, tap_tau_ns: f64) -> PyRes
     Ok(IrfArg::File(p))
 }
 
-/// The spec and nominal matrix of `codes` under these settings (what `--irf`, `--oversample`,
-/// `--heterodyne`, `--laser-fwhm-ns` and `--tap-tau-ns` give on the command line).
-pub fn build(codes: &Codes, irf: IrfArgOwned, oversample: Option<usize>, heterodyne: Option<usize>) -> PyResult<(SensorSpec, MeasurementMatrix, String)> {
+/// The sensor of `codes` under these settings (what `--irf`, `--oversample`, `--heterodyne`,
+/// `--laser-fwhm-ns`, `--tap-tau-ns` and `--calibration` give on the command line).
+pub fn build(codes: Codes, irf: IrfArgOwned, oversample: Option<usize>, heterodyne: Option<usize>, calibration: Option<PathBuf>) -> PyResult<PySensor> {
     let sampling = Sampling::from_factors(oversample, heterodyne, Sampling::Oversample(1)).map_err(err)?;
-    let (irf_spec, label) = match &irf.0 {
-        IrfArg::Named(i, s) => (*i, s.clone()),
-        IrfArg::File(p) => (Irf::Ideal, p.display().to_string()),
-        IrfArg::Array(_) => (Irf::Ideal, "array".to_string()),
-    };
-    let spec = SensorParams { sampling, irf: irf_spec, ..SensorParams::from_codes(codes) }.validate().map_err(err)?;
-    let a = match irf.0 {
-        IrfArg::Named(..) => MeasurementMatrix::synthesize(codes, &spec).map_err(err)?,
+    if let Some(d) = &calibration {
+        existing(d, "calibration")?;
+    }
+    let model = |irf: Irf, measured: Option<PathBuf>| SensorModel { sampling, irf, measured, calibration: calibration.clone(), ..Default::default() };
+    let (sensor, label) = match irf.0 {
+        IrfArg::Named(i, label) => (Sensor::build(codes, &model(i, None)), label),
         IrfArg::File(p) => {
             existing(&p, "irf")?;
-            MeasurementMatrix::load(&p, &spec).map_err(err)?
+            let label = p.display().to_string();
+            (Sensor::build(codes, &model(Irf::Ideal, Some(p))), label)
         }
-        IrfArg::Array(a) => MeasurementMatrix::from_array(a, &spec).map_err(err)?,
+        IrfArg::Array(a) => {
+            let spec = SensorParams { sampling, ..SensorParams::from_codes(&codes) }.validate().map_err(err)?;
+            let nominal = MeasurementMatrix::from_array(a, &spec).map_err(err)?;
+            let s = Sensor::with_matrix(codes, spec, nominal).and_then(|s| match &calibration {
+                Some(d) => s.calibrated_from(d),
+                None => Ok(s),
+            });
+            (s, "array".to_string())
+        }
     };
-    Ok((spec, a, label))
+    Ok(PySensor::new(sensor.map_err(err)?, label))
 }
 
 /// An `irf` argument resolved (kept opaque outside this module).
@@ -207,16 +208,7 @@ impl PySensor {
             Some(i) => IrfArgOwned::parse(i, laser_fwhm_ns, tap_tau_ns)?,
             None => IrfArgOwned(IrfArg::Named(Irf::Ideal, "ideal".into())),
         };
-        let (spec, a, label) = build(&codes, irf, oversample, heterodyne)?;
-        let cal = match calibration {
-            Some(dir) => {
-                let d = path_of(dir)?;
-                existing(&d, "calibration")?;
-                Some(Calibration::load(&d, &a, &codes).map_err(err)?)
-            }
-            None => None,
-        };
-        Ok(PySensor::new(codes, spec, a, cal, label))
+        build(codes, irf, oversample, heterodyne, calibration.map(path_of).transpose()?)
     }
 
     /// `y = A x`: x `[T, H, W]` or `[B, T, H, W]` → y `[M, H, W]` or `[B, M, H, W]`. With
@@ -256,59 +248,30 @@ impl PySensor {
         nonideal: Option<&Bound<'py, PyDict>>,
     ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
         let params = NoiseParams { full_well_e: full_well, read_noise_e: read_noise, signal_fraction, adc_bits }.validate().map_err(err)?;
-        if !["input", "electrons", "adc"].contains(&units) {
-            return Err(err(format!("units {units:?}: expected \"input\", \"electrons\" or \"adc\"")));
-        }
+        let units = Units::parse(units).map_err(err)?;
         let ni: NonIdeal = merged(&NonIdeal::default(), nonideal, "nonideal")?;
-        let ni = ni.validate().map_err(|e| err(format!("nonideal: {e}")))?;
+        let real = self.inner.clone().with_nonideal(ni).map_err(|e| err(format!("nonideal: {e}")))?;
         let arr = f32_array(x, "x")?;
-        let (batched, v) = batch_view(&arr, "x", "[T, H, W] or [B, T, H, W]")?;
-        ensure_finite(&v.view().into_dyn(), "x").map_err(err)?;
-        let (_, t, h, w) = v.dim();
-        if t != self.spec.bins() {
-            return Err(err(format!("x: {t} time bins, but the sensor grid has T = L·K = {} bins", self.spec.bins())));
-        }
+        check_rank(arr.shape(), &[3, 4], "x", "[T, H, W] or [B, T, H, W]")?;
+        let v = arr.as_array();
+        ensure_finite(&v, "x").map_err(err)?;
         let exposure = match electrons_per_unit {
             Some(s) => Exposure::ElectronsPerUnit(s),
             None => Exposure::Auto,
         };
-        let a = self.matrix_ref();
-        let plan = self.plan(h, w)?;
-        let measured = py
-            .detach(|| -> tcsense_sensor::Result<Measurement> {
-                if ni.is_ideal() {
-                    let xd = if batched { v.view().into_dyn() } else { v.index_axis(Axis(0), 0).into_dyn() };
-                    measure(&plan, &xd, noise.then_some(&params), exposure, seed)
-                } else {
-                    let real = ni.realise(a, h, w)?;
-                    let mut e = real.measure(&v, &params, noise, exposure, seed)?;
-                    if !batched {
-                        e.electrons = e.electrons.index_axis_move(Axis(0), 0);
-                    }
-                    Ok(Measurement::Noisy(e))
-                }
-            })
-            .map_err(err)?;
-        let y = match measured {
-            Measurement::Noiseless(y) => y,
-            Measurement::Noisy(n) => match units {
-                "electrons" => n.electrons,
-                "adc" => n.in_adc_codes(&params),
-                _ => n.in_input_units(),
-            },
-        };
-        Ok(y.into_pyarray(py))
+        let measured = py.detach(|| real.measure(&v, &params, noise, exposure, seed)).map_err(err)?;
+        Ok(measured.in_units(units, &params).into_pyarray(py))
     }
 
     /// `(y − d) / G`: raw tap images of a calibrated sensor corrected by its dark and gain maps.
     /// y `[M, H, W]` or `[B, M, H, W]`, in the sweep's units.
     fn correct<'py>(&self, py: Python<'py>, y: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
-        if self.calibration.is_none() {
+        if self.inner.calibration().is_none() {
             return Err(err("correct: this sensor has no calibration; pass calibration=DIR to Sensor(…)"));
         }
         let arr = f32_array(y, "y")?;
         let (batched, v) = batch_view(&arr, "y", "[M, H, W] or [B, M, H, W]")?;
-        Ok(unbatch(batched, self.corrected(v)?).into_pyarray(py))
+        Ok(unbatch(batched, self.inner.correct(v).map_err(err)?).into_pyarray(py))
     }
 
     /// Write `y` to `path` (.npy) with its sidecar (`NAME.meta.json` beside it), which names this
@@ -319,7 +282,7 @@ impl PySensor {
         let arr = f32_array(y, "y")?;
         check_rank(arr.shape(), &[3, 4], "y", "[M, H, W] or [B, M, H, W]")?;
         let noise = noise.map(|d| merged(&NoiseParams::default(), Some(d), "noise")).transpose()?;
-        let sidecar = Sidecar::new(&self.codes, &self.nominal, self.spec.sampling(), noise, seed, units);
+        let sidecar = self.inner.sidecar(noise, seed, units);
         write_npy(&p, &arr.as_array()).map_err(err)?;
         sidecar.write_for(&p).map_err(err)?;
         Ok(())
@@ -331,12 +294,8 @@ impl PySensor {
     fn load_measurements<'py>(&self, py: Python<'py>, path: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
         let p = path_of(path)?;
         existing(&p, "path")?;
-        let y = read_npy(&p).map_err(err)?;
-        check_measurements_file(&p, &self.nominal, &self.codes, self.calibration.as_ref()).map_err(err)?;
-        if !(y.ndim() == 3 || y.ndim() == 4) || y.shape()[y.ndim() - 3] != self.nominal.taps() {
-            return Err(err(format!("{}: measurements have shape {:?}, expected [M, H, W] or [B, M, H, W] with M = {} taps", p.display(), y.shape(), self.nominal.taps())));
-        }
-        Ok(y.into_pyarray(py))
+        let (batched, y) = tcsense_infer::decode::read_measurements(&p, &self.inner).map_err(err)?;
+        Ok(unbatch(batched, y).into_pyarray(py))
     }
 
     /// The matrix it decodes with, `A [N, M, T]` (the calibration's when calibrated).
@@ -346,43 +305,43 @@ impl PySensor {
 
     /// The nominal (synthesised or given) `A [N, M, T]`.
     fn nominal_matrix<'py>(&self, py: Python<'py>) -> Bound<'py, PyArray3<f32>> {
-        self.nominal.a().to_owned().into_pyarray(py)
+        self.inner.nominal().a().to_owned().into_pyarray(py)
     }
 
     #[getter]
     fn codes(&self) -> PyCodes {
-        PyCodes { inner: self.codes.clone() }
+        PyCodes { inner: self.inner.codes().clone() }
     }
     #[getter]
     fn taps(&self) -> usize {
-        self.nominal.taps()
+        self.inner.taps()
     }
     #[getter]
     fn bins(&self) -> usize {
-        self.nominal.bins()
+        self.inner.bins()
     }
     #[getter]
     fn subpixels(&self) -> usize {
-        self.nominal.subpixels()
+        self.inner.spec().subpixels()
     }
     #[getter]
     fn block(&self) -> (usize, usize) {
-        self.nominal.block()
+        self.inner.block()
     }
     /// Width of one time bin (s).
     #[getter]
     fn bin_width_s(&self) -> f64 {
-        self.spec.bin_width_s()
+        self.inner.bin_width_s()
     }
     /// One code cycle (s).
     #[getter]
     fn cycle_s(&self) -> f64 {
-        self.spec.cycle_s()
+        self.inner.spec().cycle_s()
     }
     /// `("oversample" | "heterodyne", K)`.
     #[getter]
     fn sampling(&self) -> (&'static str, usize) {
-        match self.spec.sampling() {
+        match self.inner.spec().sampling() {
             Sampling::Oversample(k) => ("oversample", k),
             Sampling::Heterodyne(k) => ("heterodyne", k),
         }
@@ -394,7 +353,7 @@ impl PySensor {
     /// The calibration's `calibration.json` as a dict (None when not calibrated).
     #[getter]
     fn calibration<'py>(&self, py: Python<'py>) -> PyResult<Option<Bound<'py, PyAny>>> {
-        self.calibration.as_ref().map(|c| to_python(py, &serde_json::to_value(&c.meta).map_err(err)?)).transpose()
+        self.inner.calibration().map(|c| to_python(py, &serde_json::to_value(&c.meta).map_err(err)?)).transpose()
     }
 
     fn __repr__(&self) -> String {
@@ -406,7 +365,7 @@ impl PySensor {
             self.bins(),
             self.irf_label,
             self.bin_width_s() * 1e12,
-            if self.calibration.is_some() { ", calibrated" } else { "" }
+            if self.inner.calibration().is_some() { ", calibrated" } else { "" }
         )
     }
 }

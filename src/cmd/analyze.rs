@@ -126,11 +126,11 @@ struct Analysed {
 
 /// Analyse one code set on the sensor of `m`.
 fn analyse(path: &Path, m: &MeasureArgs, lifetime: bool) -> Result<(Codes, MeasurementMatrix, Report)> {
-    let (codes, _spec, a) = m.sensor(path).matrix()?;
+    let sensor = m.sensor(path).sensor()?;
     let light = m.light.light()?;
     let opts = AnalyzeOptions { lifetime, ..Default::default() };
-    let report = identify::analyze(&a, m.k(), &light, &opts);
-    Ok((codes, a, report))
+    let report = identify::analyze(sensor.matrix(), m.k(), &light, &opts);
+    Ok((sensor.codes().clone(), sensor.matrix().clone(), report))
 }
 
 fn metres(bins: f64, r: &Report) -> f64 {

@@ -9,7 +9,7 @@ use tcsense_kernels::timing::{median_by, median_ms};
 use tcsense_sensor::codes::{CodeShape, Constraints};
 use tcsense_sensor::generate::random_codes;
 use tcsense_models::runs::ModelConfig;
-use tcsense_sensor::{MeasurementMatrix, Sampling, SensorParams};
+use tcsense_sensor::{Irf, MeasurementMatrix, Sampling, Sensor};
 
 #[derive(Subcommand)]
 pub enum BenchCmd {
@@ -132,9 +132,9 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             for (length, k) in [(32usize, 1usize), (32, 4)] {
                 let shape = CodeShape { bh: 2, bw: 2, taps: 4, length, drain: false };
                 let codes = random_codes(shape, 607e6, Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1)?;
-                let spec = SensorParams { sampling: Sampling::Oversample(k), ..SensorParams::from_codes(&codes) }.validate()?;
-                let plan = MeasurementMatrix::synthesize(&codes, &spec)?.plan(h, w)?;
-                let t = spec.bins();
+                let sensor = Sensor::ideal(codes.clone(), Sampling::Oversample(k), Irf::Ideal)?;
+                let plan = sensor.plan(h, w)?;
+                let t = sensor.bins();
                 let x = Array3::from_shape_fn((t, h, w), |(j, r, c)| ((j * 7 + r * 3 + c) % 11) as f32);
                 let mut y = Array3::zeros((4, h, w));
                 let mut xa = Array3::zeros((t, h, w));
@@ -168,10 +168,10 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             let codes = super::prototype_codes()?;
             let mut inference = Vec::new();
             for &t in &bins {
-                let spec = SensorParams { sampling: Sampling::Oversample(t / 32), ..SensorParams::from_codes(&codes) }.validate()?;
-                let a = MeasurementMatrix::synthesize(&codes, &spec)?;
+                let sensor = Sensor::ideal(codes.clone(), Sampling::Oversample(t / 32), Irf::Ideal)?;
+                let a = sensor.matrix();
                 let admm = |prior: Prior, cn: usize| tcsense_models::AdmmNetConfig::new(4, t).with_stages(stages).with_channels(cn).with_prior(prior);
-                let range_m = tcsense_sensor::C * spec.cycle_s() / 2.0;
+                let range_m = tcsense_sensor::C * sensor.spec().cycle_s() / 2.0;
                 let bins_prior = ModelConfig::AdmmNet(admm(Prior::Bins, channels));
                 // (label, network, whether it learns its codes)
                 let nets = [
@@ -200,7 +200,7 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
                         100.0 * r.outside_conv()
                     );
                     if let (Some((ih, iw)), false) = (infer_size, *learn) {
-                        let f = tcsense_train::bench::bench_forward(&a, cfg, ih, iw, 2)?;
+                        let f = tcsense_train::bench::bench_forward(&sensor, cfg, ih, iw, 2)?;
                         let flop = cfg.flops(ih, iw);
                         inference.push(format!(
                             "{label:<36} {t:>5} {f:>10.1} {:>10.2} {:>8.1} {:>10}",
@@ -227,8 +227,8 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
                 anyhow::bail!("--size {h}x{w}, --batch {batch}, --channels {channels}: expected non-zero sizes and an even frame (2x2 blocks)");
             }
             let codes = super::prototype_codes()?;
-            let spec = SensorParams { sampling: Sampling::Oversample(bins / 32), ..SensorParams::from_codes(&codes) }.validate()?;
-            let a = MeasurementMatrix::synthesize(&codes, &spec)?;
+            let sensor = Sensor::ideal(codes.clone(), Sampling::Oversample(bins / 32), Irf::Ideal)?;
+            let a = sensor.matrix();
             println!("kernels: batch {batch}, {h}x{w}, conv {channels}->{channels}, DC with T = {bins}, M = 4, 2x2 blocks, {} threads", rayon::current_num_threads());
             println!("{:<22} {:>10} {:>10} {:>10} {:>10} {:>8}", "op", "ours ms", "GFLOP/s", "burn ms", "GFLOP/s", "speedup");
             for r in tcsense_models::bench::bench_kernels(&a, batch, channels, h, w, reps)? {
@@ -251,11 +251,11 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             }
             let codes = super::prototype_codes()?;
             use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
-            let spec = SensorParams { irf: tcsense_sensor::Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S }, ..SensorParams::from_codes(&codes) }.validate()?;
-            let a = MeasurementMatrix::synthesize(&codes, &spec)?;
+            let sensor = Sensor::ideal(codes.clone(), Sampling::Oversample(1), Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S })?;
+            let a = sensor.matrix();
             let plan = a.plan(h, w)?;
             let gen = LidarParams { height: h, width: w, ..LidarParams::paper() };
-            let dz = tcsense_sensor::C * spec.bin_width_s() / 2.0;
+            let dz = tcsense_sensor::C * sensor.bin_width_s() / 2.0;
             println!("range fit {h}x{w}, prototype codes (T = 32), physical IRF, default settings, {} threads; estimates: the true ranges + 0.7 bin (first) and − 0.6 bin (second)", rayon::current_num_threads());
             println!("{:<28} {:>10} {:>16} {:>16}", "case", "ms/frame", "first MAE (bin)", "second MAE (bin)");
             let cases = ["one return per pixel", "two where the scene has"];
@@ -295,8 +295,8 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             let k = bins / 32;
             let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
             let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 1)?;
-            let spec = SensorParams { sampling: Sampling::Oversample(k), ..SensorParams::from_codes(&codes) }.validate()?;
-            let a = MeasurementMatrix::synthesize(&codes, &spec)?;
+            let sensor = Sensor::ideal(codes.clone(), Sampling::Oversample(k), Irf::Ideal)?;
+            let a = sensor.matrix();
             let plan = a.plan(h, w)?;
             let grid = TimeGrid { sampling: Sampling::Oversample(k), ..TimeGrid::default() };
             let gen = LidarParams { height: h, width: w, ..Default::default() };

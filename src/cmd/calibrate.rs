@@ -32,12 +32,13 @@ pub fn run(a: CalibrateArgs) -> Result<ExitCode> {
     if a.sensor.calibration.is_some() {
         bail!("--calibration: calibrate writes a calibration (-o DIR); it does not read one");
     }
-    let (codes, spec, nominal) = a.sensor.matrix()?;
+    let sensor = a.sensor.sensor()?;
+    let nominal = sensor.nominal();
     let sweep = Sweep::load(&a.sweep)?;
-    let cal = calibrate(&sweep, &nominal, &codes, spec.sampling())?;
+    let cal = calibrate(&sweep, nominal, sensor.codes(), sensor.spec().sampling())?;
     cal.save(&a.output)?;
     if !a.no_report {
-        if let Err(e) = tcsense_infer::calibration_report::write_calibration_report(&cal, &nominal, &a.output) {
+        if let Err(e) = tcsense_infer::calibration_report::write_calibration_report(&cal, nominal, &a.output) {
             let _ = std::fs::remove_dir_all(&a.output);
             bail!("{}: writing the report failed ({e}); nothing was written", a.output.display());
         }

@@ -3,7 +3,7 @@
 use anyhow::{bail, Result};
 use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use tcsense_infer::onnx::{export_to, ExportOptions};
 use tcsense_infer::runtime::OnnxModel;
@@ -40,7 +40,7 @@ pub fn export(cmd: ExportCmd) -> Result<ExitCode> {
     match cmd {
         ExportCmd::Onnx { run, matrix_input, calibration, output } => {
             let loaded = runs::load(&run, &Device::flex())?;
-            let cal = calibration.as_ref().map(|d| tcsense_sensor::calibration::Calibration::load(d, &loaded.sensor, &loaded.codes)).transpose()?;
+            let cal = calibration.as_ref().map(|d| tcsense_sensor::calibration::Calibration::load(d, loaded.sensor.nominal(), loaded.sensor.codes())).transpose()?;
             let opts = ExportOptions { matrix_input, calibration: cal.as_ref() };
             let bytes = export_to(&loaded, opts, &output)?;
             let meta = tcsense_infer::onnx::OnnxMeta::of_run(&loaded, opts);
@@ -54,7 +54,7 @@ pub fn export(cmd: ExportCmd) -> Result<ExitCode> {
                 meta.frame_multiple.1,
                 match (&meta.calibration, matrix_input) {
                     (Some(c), _) => format!(" (raw {} tap images of {}x{} only: calibration {} built in)", c.units, c.size[0], c.size[1], calibration.as_ref().map(|d| d.display().to_string()).unwrap_or_default()),
-                    (None, true) => format!(" and sensor_matrix [{}, {}, {}]", loaded.sensor.subpixels(), meta.taps, meta.bins),
+                    (None, true) => format!(" and sensor_matrix [{}, {}, {}]", loaded.sensor.spec().subpixels(), meta.taps, meta.bins),
                     (None, false) => String::new(),
                 },
                 meta.outputs().join(", ")
@@ -258,14 +258,14 @@ fn fresh_run(a: &BenchInferArgs) -> Result<runs::LoadedRun> {
         other => bail!("--decoder {other:?}: expected unet, admm-net or lifetime"),
     };
     let spec = runs::RunSpec { model, sampling, irf: Irf::Ideal, measured: false };
-    let sensor = spec.matrix(&codes)?;
+    let sensor = spec.sensor(Path::new("."), codes)?;
     let device = Device::flex();
     let net = match &spec.model {
         runs::ModelConfig::AdmmNet(c) => runs::TrainedNet::AdmmNet(c.init(&device)),
         runs::ModelConfig::Unet(c) => runs::TrainedNet::Unet(c.init(&device)),
         runs::ModelConfig::Lifetime(c) => runs::TrainedNet::Lifetime(c.init(&device)),
     };
-    Ok(runs::LoadedRun { dir: PathBuf::from("."), spec, codes, sensor, net })
+    Ok(runs::LoadedRun { dir: PathBuf::from("."), spec, sensor, net })
 }
 
 pub fn bench_infer(a: BenchInferArgs) -> Result<()> {

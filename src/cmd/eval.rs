@@ -55,7 +55,8 @@ pub struct EvalArgs {
 
 pub fn run(a: EvalArgs) -> Result<ExitCode> {
     let ds = Dataset::open(&a.dataset)?;
-    let (codes, spec, matrix, calibration) = a.sensor.decoding()?;
+    let sensor = a.sensor.sensor()?;
+    let (codes, spec) = (sensor.codes(), sensor.spec());
     let nonideal = a.nonideal.nonideal()?;
     let g = ds.manifest.grid;
     if spec.bins() != ds.manifest.bins || (spec.bin_width_s() - ds.manifest.bin_width_s).abs() > 1e-6 * spec.bin_width_s() {
@@ -77,7 +78,7 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     let device = if a.decoder.iter().any(|d| ["admm-net:", "unet:", "lifetime:", "zoo:"].iter().any(|k| d.starts_with(k))) { a.device.device()? } else { tcsense_models::Device::flex() };
     for name in &a.decoder {
         let d = open_decoder(name, &opts, &device)?;
-        if let (Some(run_codes), Some((_, run))) = (&d.codes, name.split_once(':')) {
+        if let (Some(run_codes), Some((_, run))) = (d.codes(), name.split_once(':')) {
             if run_codes.shape() != codes.shape() || (0..codes.subpixels() * codes.taps()).any(|c| run_codes.channel(c) != codes.channel(c)) {
                 let run = tcsense_models::zoo::resolve(if name.starts_with("zoo:") { name } else { run })?;
                 bail!("{}: the run was trained with other codes than {}; evaluate it with its own {}", run.display(), a.sensor.codes.display(), run.join("codes.json").display());
@@ -87,7 +88,7 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     }
     let noise = NoiseParams { signal_fraction: NoiseParams::default().signal_fraction * a.brightness, ..NoiseParams::default() };
     let noise = noise.validate().map_err(|e| anyhow::anyhow!("--brightness {}: {e}", a.brightness))?;
-    let settings = EvalSettings { split: a.split.clone(), items: a.items, noise: a.noise.then_some(noise), seed: a.seed, sensor: Some(nonideal), calibration };
+    let settings = EvalSettings { split: a.split.clone(), items: a.items, noise: a.noise.then_some(noise), seed: a.seed, sensor: Some(nonideal) };
     let cancel = interrupt_flag();
     let pb = ProgressBar::new(0);
     pb.set_style(ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
@@ -99,7 +100,7 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
         }
         pb.set_position(done as u64);
     };
-    let rows = evaluate(&ds, &matrix, &mut decoders, &settings, &on_item, &cancel);
+    let rows = evaluate(&ds, &sensor, &mut decoders, &settings, &on_item, &cancel);
     pb.finish_and_clear();
     let rows = rows?;
     println!("{:<24} {:>5} {:>11} {:>8}", "decoder", "items", "MSE", "PSNR dB");

@@ -3,19 +3,17 @@
 use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
-use ndarray::{Array4, ArrayD, Axis, Ix3, Ix4};
+use ndarray::{Array4, ArrayD, Axis, Ix3};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use tcsense_infer::figures;
 use tcsense_infer::products::{depth_map, plot_waveforms, write_ply, PeakOptions};
 use tcsense_models::decoder::{Control, Decoder, Step, Tval3Decoder};
-use tcsense_models::{runs, ModelError, Tval3Options, TvNorm};
-use tcsense_sensor::npy::{read_npy, write_bytes, write_npy};
-use tcsense_sensor::MeasurementMatrix;
+use tcsense_models::{runs, Tval3Options, TvNorm};
+use tcsense_sensor::npy::{write_bytes, write_npy};
 
 use super::dataset::interrupt_flag;
 use super::sensor::SensorArgs;
-use tcsense_sensor::calibration::{check_measurements_file, Calibration};
 
 /// TVAL3 options (defaults: the paper's §IV settings).
 #[derive(Args, Clone)]
@@ -243,140 +241,104 @@ pub enum ReconstructCmd {
 pub fn reconstruct(cmd: ReconstructCmd) -> Result<ExitCode> {
     match cmd {
         ReconstructCmd::AdmmNet { run, measurements, output, calibration, device } => {
-            let mut r = open_kind(&run, "admm-net", &device, false)?;
-            let cal = load_calibration(calibration.as_deref(), &r)?;
-            decode_file(r.decoder.as_mut(), &r.sensor, cal.as_ref(), &r.codes, &measurements, &output, &DepthProductArgs::default())
+            let mut r = open_kind(&run, "admm-net", &device, false, calibration.as_deref())?;
+            decode_file(r.decoder.as_mut(), &r.sensor, &measurements, &output, &DepthProductArgs::default())
         }
         ReconstructCmd::Unet { run, measurements, output, products, calibration, no_range_fit, device } => {
-            let mut r = open_kind(&run, "unet", &device, !no_range_fit)?;
-            let cal = load_calibration(calibration.as_deref(), &r)?;
-            decode_file(r.decoder.as_mut(), &r.sensor, cal.as_ref(), &r.codes, &measurements, &output, &products)
+            let mut r = open_kind(&run, "unet", &device, !no_range_fit, calibration.as_deref())?;
+            decode_file(r.decoder.as_mut(), &r.sensor, &measurements, &output, &products)
         }
         ReconstructCmd::Lifetime { run, measurements, output, png, calibration, device } => {
-            let mut r = open_kind(&run, "lifetime", &device, false)?;
-            let cal = load_calibration(calibration.as_deref(), &r)?;
+            let mut r = open_kind(&run, "lifetime", &device, false, calibration.as_deref())?;
             let products = DepthProductArgs { png, ..DepthProductArgs::default() };
-            decode_file(r.decoder.as_mut(), &r.sensor, cal.as_ref(), &r.codes, &measurements, &output, &products)
+            decode_file(r.decoder.as_mut(), &r.sensor, &measurements, &output, &products)
         }
         ReconstructCmd::LifetimeFit { sensor, measurements, fit, output, png } => {
             let mut decoder = tcsense_infer::tapfit::TapFitDecoder::new(fit.options()?)?;
-            let (codes, _, a, cal) = sensor.decoding()?;
             let products = DepthProductArgs { png, ..DepthProductArgs::default() };
-            decode_file(&mut decoder, &a, cal.as_ref(), &codes, &measurements, &output, &products)
+            decode_file(&mut decoder, &sensor.sensor()?, &measurements, &output, &products)
         }
         ReconstructCmd::DepthFit { sensor, measurements, returns, window, output, products } => {
             let fit = tcsense_models::range_fit::RangeFitOptions { window, ..Default::default() };
             let mut decoder = tcsense_infer::ranged::DepthFitDecoder::new(tcsense_models::range_templates::DepthFitOptions { fit, returns, ..Default::default() })?;
-            let (codes, _, a, cal) = sensor.decoding()?;
-            if let Some(w) = tcsense_infer::ranged::alias_warning(&a, codes.length()) {
+            let sensor = sensor.sensor()?;
+            if let Some(w) = tcsense_infer::ranged::alias_warning(sensor.nominal(), sensor.codes().length()) {
                 eprintln!("{w}");
             }
-            decode_file(&mut decoder, &a, cal.as_ref(), &codes, &measurements, &output, &products)
+            decode_file(&mut decoder, &sensor, &measurements, &output, &products)
         }
         ReconstructCmd::Tval3 { sensor, measurements, tval3: targs, output } => {
             let mut decoder = Tval3Decoder::new(targs.options()?)?;
-            let (codes, _, a, cal) = sensor.decoding()?;
-            decode_file(&mut decoder, &a, cal.as_ref(), &codes, &measurements, &output, &DepthProductArgs::default())
+            decode_file(&mut decoder, &sensor.sensor()?, &measurements, &output, &DepthProductArgs::default())
         }
     }
 }
 
-/// Open a run and check that it is of the decoder kind the subcommand names.
-fn open_kind(run: &Path, kind: &str, device: &super::DeviceArgs, range_fit: bool) -> Result<runs::Run> {
-    let r = runs::open_with(run, &device.device()?, range_fit)?;
+/// Open a run, check that it is of the decoder kind the subcommand names, and give its sensor
+/// the calibration `--calibration DIR` names (checked against the run's codes and sensor).
+fn open_kind(run: &Path, kind: &str, device: &super::DeviceArgs, range_fit: bool, calibration: Option<&Path>) -> Result<runs::Run> {
+    let mut r = runs::open_with(run, &device.device()?, range_fit)?;
     let got = r.spec.model.name();
     if got != kind {
         bail!("{}: config.json field decoder is {got:?}, expected a {kind:?} run (use `tcsense reconstruct {got}`)", run.display());
     }
+    if let Some(dir) = calibration {
+        r.sensor = r.sensor.calibrated_from(dir)?;
+    }
     Ok(r)
 }
 
-/// A run's sensor calibration (`--calibration DIR`), checked against the run's codes and sensor.
-fn load_calibration(dir: Option<&Path>, run: &runs::Run) -> Result<Option<Calibration>> {
-    Ok(dir.map(|d| Calibration::load(d, &run.sensor, &run.codes)).transpose()?)
-}
-
 /// Decode the tap images in `measurements` (`[M, H, W]` or a batch `[B, M, H, W]`) with any
-/// decoder and write what it gives (same batching) to `output`: the cubes, or the depth maps
-/// with their confidence, with a progress bar. With a calibration the raw tap images are
-/// corrected for its dark and gain maps and decoded with its matrix (`sensor` is the nominal
-/// one, which the measurements' sidecar names).
-fn decode_file(decoder: &mut dyn Decoder, nominal: &MeasurementMatrix, calibration: Option<&Calibration>, codes: &tcsense_sensor::Codes, measurements: &Path, output: &Path, products: &DepthProductArgs) -> Result<ExitCode> {
-    let y = read_npy(measurements)?;
-    check_measurements_file(measurements, nominal, codes, calibration)?;
-    let sensor = calibration.map_or(nominal, |c| &c.matrix);
-    let (batched, y): (bool, Array4<f32>) = match y.ndim() {
-        3 => (false, y.into_dimensionality::<Ix3>()?.insert_axis(Axis(0))),
-        4 => (true, y.into_dimensionality::<Ix4>()?),
-        _ => bail!("{}: measurements have shape {:?}, expected [M, H, W] or [B, M, H, W]", measurements.display(), y.shape()),
-    };
-    let (frames, m, _, _) = y.dim();
-    if m != sensor.taps() {
-        bail!("{}: {m} tap images, but the sensor (codes) has M = {} taps", measurements.display(), sensor.taps());
-    }
-    let y = match calibration {
-        Some(c) => c.correct(&y.view()).map_err(|e| anyhow::anyhow!("{}: {e}", measurements.display()))?,
-        None => y,
-    };
+/// decoder on `sensor` ([`tcsense_infer::decode::decode_file`]) with a progress bar, print what
+/// was written and draw the products asked for.
+fn decode_file(decoder: &mut dyn Decoder, sensor: &tcsense_sensor::Sensor, measurements: &Path, output: &Path, products: &DepthProductArgs) -> Result<ExitCode> {
     let cancel = interrupt_flag();
-    let pb = ProgressBar::new(frames as u64);
+    let pb = ProgressBar::new(1);
     pb.set_style(ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
     pb.set_message(decoder.name().to_string());
     let progress = |s: Step| {
         pb.set_length((s.frames * s.total.max(1)) as u64);
         pb.set_position((s.frame * s.total.max(1) + s.done) as u64);
     };
-    let t0 = std::time::Instant::now();
-    let out = decoder.decode(y.view(), sensor, &Control { cancel: &cancel, progress: &progress });
+    let out = tcsense_infer::decode::decode_file(decoder, sensor, measurements, output, &Control { cancel: &cancel, progress: &progress });
     pb.finish_and_clear();
     let out = match out {
-        Err(ModelError::Cancelled) => bail!("interrupted; {} was not written", output.display()),
-        r => r.map_err(|e| anyhow::anyhow!("{}: {e}", measurements.display()))?,
+        Err(tcsense_infer::InferError::Cancelled) => bail!("interrupted; {} was not written", output.display()),
+        r => r?,
     };
-    let per_frame = t0.elapsed().as_secs_f64() / frames as f64;
-    let unbatch = |a: Array4<f32>| -> ArrayD<f32> { if batched { a.into_dyn() } else { a.index_axis(Axis(0), 0).to_owned().into_dyn() } };
-    if let Some(cube) = out.cube {
-        let cube = unbatch(cube);
-        write_npy(output, &cube.view())?;
-        println!("wrote {}: x̂ {:?} ({} per frame, {})", output.display(), cube.shape(), human_time(per_frame), decoder.name());
+    let name = decoder.name();
+    let time = human_time(out.seconds_per_frame);
+    let shape = |a: &Array4<f32>| -> Vec<usize> { if out.batched { a.shape().to_vec() } else { a.shape()[1..].to_vec() } };
+    let d = &out.decoded;
+    if let Some(cube) = &d.cube {
+        println!("wrote {}: x̂ {:?} ({time} per frame, {name})", output.display(), shape(cube));
         return Ok(ExitCode::SUCCESS);
     }
-    if let (Some(lifetime), Some(confidence), Some(intensity)) = (&out.lifetime, &out.confidence, &out.intensity) {
-        let first = lifetime.index_axis(Axis(0), 0).to_owned();
-        let (conf_path, int_path) = (output.with_extension("confidence.npy"), output.with_extension("intensity.npy"));
-        let written = unbatch(lifetime.clone());
-        write_npy(output, &written.view())?;
-        write_npy(&conf_path, &unbatch(confidence.clone()).view())?;
-        write_npy(&int_path, &unbatch(intensity.clone()).view())?;
+    if let Some(lifetime) = &d.lifetime {
+        let first = lifetime.index_axis(Axis(0), 0);
         let tau_m: Vec<f64> = first.index_axis(Axis(0), 0).iter().filter(|v| v.is_finite()).map(|&v| v as f64).collect();
         let mean = tau_m.iter().sum::<f64>() / tau_m.len().max(1) as f64;
         println!(
-            "wrote {}, {} and {}: lifetimes {:?}, {} pixels with a fluorophore, mean τ_m {:.3} ns (first frame) ({} per frame, {})",
-            output.display(),
-            conf_path.display(),
-            int_path.display(),
-            written.shape(),
+            "wrote {}, {} and {}: lifetimes {:?}, {} pixels with a fluorophore, mean τ_m {:.3} ns (first frame) ({time} per frame, {name})",
+            out.written[0].display(),
+            out.written[1].display(),
+            out.written[2].display(),
+            shape(lifetime),
             tau_m.len(),
             mean * 1e9,
-            human_time(per_frame),
-            decoder.name()
         );
         if let Some(p) = &products.png {
-            figures::map(p, &format!("Fluorescence lifetime ({})", decoder.name()), &first.index_axis(Axis(0), 0).mapv(|t| t * 1e9).view(), "lifetime τ_m (ns)")?;
+            figures::map(p, &format!("Fluorescence lifetime ({name})"), &first.index_axis(Axis(0), 0).mapv(|t| t * 1e9).view(), "lifetime τ_m (ns)")?;
             println!("wrote {}", p.display());
         }
         return Ok(ExitCode::SUCCESS);
     }
-    let (depth, confidence) = out.depth.zip(out.confidence).with_context(|| format!("decoder {} gives neither a cube nor depth", decoder.name()))?;
-    let (first_d, first_c) = (depth.index_axis(Axis(0), 0).to_owned(), confidence.index_axis(Axis(0), 0).to_owned());
-    let conf_path = output.with_extension("confidence.npy");
-    let depth = unbatch(depth);
-    write_npy(output, &depth.view())?;
-    write_npy(&conf_path, &unbatch(confidence).view())?;
+    let (depth, confidence) = d.depth.as_ref().zip(d.confidence.as_ref()).with_context(|| format!("decoder {name} gives neither a cube nor depth"))?;
+    let (first_d, first_c) = (depth.index_axis(Axis(0), 0), confidence.index_axis(Axis(0), 0));
     let found: Vec<usize> = first_d.outer_iter().map(|d| d.iter().filter(|v| v.is_finite()).count()).collect();
-    println!("wrote {} and {}: depth {:?}, returns per bounce {found:?} (first frame) ({} per frame, {})", output.display(), conf_path.display(), depth.shape(), human_time(per_frame), decoder.name());
+    println!("wrote {} and {}: depth {:?}, returns per bounce {found:?} (first frame) ({time} per frame, {name})", out.written[0].display(), out.written[1].display(), shape(depth));
     if let Some(p) = &products.ply {
-        let n = write_ply(p, &first_d.view(), &first_c.view(), products.fov)?;
+        let n = write_ply(p, &first_d, &first_c, products.fov)?;
         println!("wrote {}: {n} points", p.display());
     }
     if let Some(p) = &products.png {

@@ -4,14 +4,13 @@ use anyhow::{bail, Result};
 use clap::{Args, Subcommand, ValueEnum};
 use std::path::PathBuf;
 use std::process::ExitCode;
-use tcsense_sensor::measure::{measure, Measurement};
+use tcsense_sensor::measure::Measurement;
 use tcsense_sensor::noise::Exposure;
 use tcsense_sensor::npy::{read_cube, write_npy};
 use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
-use tcsense_sensor::calibration::Calibration;
 use tcsense_sensor::nonideal::NonIdeal;
 use tcsense_sensor::sweep::{simulate_sweep, SweepSettings};
-use tcsense_sensor::{Codes, Irf, MeasurementMatrix, NoiseParams, Sampling, SensorParams, SensorSpec};
+use tcsense_sensor::{Codes, Irf, NoiseParams, Sampling, Sensor, SensorModel};
 
 /// Sensor-model flags shared by every command that needs `A`.
 #[derive(Args, Clone)]
@@ -42,35 +41,22 @@ pub struct SensorArgs {
 }
 
 impl SensorArgs {
-    /// Load the codes and build the checked spec (without noise settings).
-    pub fn spec(&self) -> Result<(Codes, SensorSpec)> {
-        let codes = Codes::load(&self.codes)?;
+    /// The flags as the sensor crate's one description of a sensor (without non-idealities).
+    pub fn model(&self) -> Result<SensorModel> {
         let sampling = Sampling::from_factors(self.oversample, self.heterodyne, Sampling::Oversample(1))?;
-        let irf = match self.irf.as_str() {
-            "physical" => Irf::Physical { laser_fwhm_s: self.laser_fwhm_ns * 1e-9, tap_tau_s: self.tap_tau_ns * 1e-9 },
-            _ => Irf::Ideal,
-        };
-        let spec = SensorParams { sampling, irf, ..SensorParams::from_codes(&codes) }.validate()?;
-        Ok((codes, spec))
-    }
-
-    /// The measurement matrix: synthesised, or loaded when `--irf` names a file.
-    pub fn matrix(&self) -> Result<(Codes, SensorSpec, MeasurementMatrix)> {
-        let (codes, spec) = self.spec()?;
-        let a = match self.irf.as_str() {
-            "ideal" | "physical" => MeasurementMatrix::synthesize(&codes, &spec)?,
-            path if path.ends_with(".npy") => MeasurementMatrix::load(std::path::Path::new(path), &spec)?,
+        let (irf, measured) = match self.irf.as_str() {
+            "ideal" => (Irf::Ideal, None),
+            "physical" => (Irf::Physical { laser_fwhm_s: self.laser_fwhm_ns * 1e-9, tap_tau_s: self.tap_tau_ns * 1e-9 }, None),
+            path if path.ends_with(".npy") => (Irf::Ideal, Some(PathBuf::from(path))),
             other => bail!("--irf {other:?}: expected `ideal`, `physical` or a measured matrix file `A.npy`"),
         };
-        Ok((codes, spec, a))
+        Ok(SensorModel { sampling, irf, measured, calibration: self.calibration.clone(), ..Default::default() })
     }
 
-    /// The sensor as a decoder sees it: codes, spec, the nominal `A` and the calibration
-    /// (`--calibration`), checked against the codes and the nominal sensor.
-    pub fn decoding(&self) -> Result<(Codes, SensorSpec, MeasurementMatrix, Option<Calibration>)> {
-        let (codes, spec, a) = self.matrix()?;
-        let cal = self.calibration.as_ref().map(|dir| Calibration::load(dir, &a, &codes)).transpose()?;
-        Ok((codes, spec, a, cal))
+    /// The sensor these flags describe: the codes loaded, `A` synthesised or loaded (`--irf
+    /// A.npy`), and the calibration (`--calibration`) checked against both.
+    pub fn sensor(&self) -> Result<Sensor> {
+        Ok(Sensor::build(Codes::load(&self.codes)?, &self.model()?)?)
     }
 }
 
@@ -148,7 +134,8 @@ pub enum SensorCmd {
 pub fn run(cmd: SensorCmd) -> Result<ExitCode> {
     match cmd {
         SensorCmd::Matrix { sensor, output } => {
-            let (_, spec, a) = sensor.matrix()?;
+            let sensor = sensor.sensor()?;
+            let (spec, a) = (sensor.spec(), sensor.matrix());
             a.save(&output)?;
             println!(
                 "wrote {}: A [N, M, T] = [{}, {}, {}], bin width {:.1} ps, cycle {:.2} ns",
@@ -171,6 +158,16 @@ pub fn run(cmd: SensorCmd) -> Result<ExitCode> {
         }
     }
     Ok(ExitCode::SUCCESS)
+}
+
+impl From<Units> for tcsense_sensor::Units {
+    fn from(u: Units) -> Self {
+        match u {
+            Units::Input => tcsense_sensor::Units::Input,
+            Units::Electrons => tcsense_sensor::Units::Electrons,
+            Units::Adc => tcsense_sensor::Units::Adc,
+        }
+    }
 }
 
 /// Units of the simulated measurements.
@@ -248,25 +245,24 @@ pub fn simulate(a: SimulateArgs) -> Result<ExitCode> {
         adc_bits: a.adc_bits,
     }
     .validate()?;
-    let (codes, spec, matrix) = a.sensor.matrix()?;
     if a.sensor.calibration.is_some() {
         bail!("--calibration describes a decoder's knowledge of a sensor; simulate a sensor with --tap-gain, --prnu, --dark, --tail, …");
     }
-    let nonideal = a.nonideal.nonideal()?;
+    let sensor = a.sensor.sensor()?.with_nonideal(a.nonideal.nonideal()?)?;
+    let spec = sensor.spec();
     if let Some(dir) = &a.sweep {
         let settings = SweepSettings { size: a.size, average: a.average, noise, noisy: a.noise, adc: matches!(a.units, Units::Adc), png: a.png, level: a.sweep_level, seed: a.seed };
-        let (bh, bw) = codes.block();
+        let (bh, bw) = sensor.block();
         if a.size.0 == 0 || a.size.1 == 0 || a.size.0 % bh != 0 || a.size.1 % bw != 0 {
             bail!("--size {}x{}: expected a non-zero multiple of the {bh}x{bw} code block", a.size.0, a.size.1);
         }
-        let m = simulate_sweep(&matrix, &codes, &nonideal, &settings, dir)?;
+        let m = simulate_sweep(sensor.nominal(), sensor.codes(), sensor.nonideal(), &settings, dir)?;
         println!("wrote {}: {} delays over {:.3} ns, {} frames averaged each, in {} (full scale {})", dir.join(tcsense_sensor::sweep::MANIFEST).display(), m.delays_s.len(), spec.cycle_s() * 1e9, a.average, m.units, m.full_scale);
         return Ok(ExitCode::SUCCESS);
     }
     let (Some(cube), Some(output)) = (&a.cube, &a.output) else { bail!("--cube and --output are required (or --sweep DIR)") };
     let x = read_cube(cube, true)?;
-    let shape = x.shape().to_vec();
-    let (t, h, w) = (shape[shape.len() - 3], shape[shape.len() - 2], shape[shape.len() - 1]);
+    let t = x.shape()[x.ndim() - 3];
     if t != spec.bins() {
         bail!(
             "{}: cube has {t} time bins, but the sensor grid has T = L·K = {} bins (L = {}, K = {}); pass --oversample/--heterodyne to match",
@@ -276,42 +272,17 @@ pub fn simulate(a: SimulateArgs) -> Result<ExitCode> {
             spec.sampling().k()
         );
     }
-    let plan = matrix.plan(h, w).map_err(|e| anyhow::anyhow!("{}: {e}", cube.display()))?;
     let exposure = match a.electrons_per_unit {
         Some(s) => Exposure::ElectronsPerUnit(s),
         None => Exposure::Auto,
     };
-    let measured = if nonideal.is_ideal() {
-        measure(&plan, &x.view(), a.noise.then_some(&noise), exposure, a.seed)?
-    } else {
-        // the real sensor: gains, dark offset, crosstalk, tail and drift, in electrons
-        let real = nonideal.realise(&matrix, h, w)?;
-        let batch = if x.ndim() == 3 { x.clone().insert_axis(ndarray::Axis(0)) } else { x.clone() };
-        let batch = batch.into_dimensionality::<ndarray::Ix4>()?;
-        let mut e = real.measure(&batch.view(), &noise, a.noise, exposure, a.seed)?;
-        if x.ndim() == 3 {
-            e.electrons = e.electrons.index_axis_move(ndarray::Axis(0), 0);
-        }
-        Measurement::Noisy(e)
-    };
-    let y = match measured {
-        Measurement::Noiseless(y) => y,
-        Measurement::Noisy(noisy) => {
-            eprintln!("noise: {:.4} e⁻ per unit, full well {} e⁻, read noise {} e⁻", noisy.electrons_per_unit, noise.full_well_e, noise.read_noise_e);
-            match a.units {
-                Units::Input => noisy.in_input_units(),
-                Units::Electrons => noisy.electrons,
-                Units::Adc => noisy.in_adc_codes(&noise),
-            }
-        }
-    };
-    let units = match (a.noise || !nonideal.is_ideal(), a.units) {
-        (false, _) | (true, Units::Input) => "input",
-        (true, Units::Electrons) => "electrons",
-        (true, Units::Adc) => "adc",
-    };
-    let mut sidecar = tcsense_sensor::sidecar::Sidecar::new(&codes, &matrix, spec.sampling(), a.noise.then_some(noise), a.noise.then_some(a.seed), units);
-    sidecar.sensor = (!nonideal.is_ideal()).then_some(nonideal);
+    let measured = sensor.measure(&x.view(), &noise, a.noise, exposure, a.seed).map_err(|e| anyhow::anyhow!("{}: {e}", cube.display()))?;
+    if let Measurement::Noisy(noisy) = &measured {
+        eprintln!("noise: {:.4} e⁻ per unit, full well {} e⁻, read noise {} e⁻", noisy.electrons_per_unit, noise.full_well_e, noise.read_noise_e);
+    }
+    let units = if a.noise || !sensor.nonideal().is_ideal() { a.units.into() } else { tcsense_sensor::Units::Input };
+    let y = measured.in_units(units, &noise);
+    let sidecar = sensor.sidecar(a.noise.then_some(noise), a.noise.then_some(a.seed), units.name());
     write_npy(output, &y.view())?;
     let meta = sidecar.write_for(output)?;
     println!("wrote {}: y {:?} (sensor in {})", output.display(), y.shape(), meta.display());

@@ -13,7 +13,7 @@ use tcsense_models::net::{to_tensor, NetDecoder, Network, Prediction};
 use tcsense_models::runs::{ModelConfig, RunSpec};
 use tcsense_models::SensorTensors;
 use tcsense_sensor::measure::measure_batch;
-use tcsense_sensor::{Codes, Constraints, Irf, MeasurementMatrix, Sampling};
+use tcsense_sensor::{Codes, Constraints, Irf, MeasurementMatrix, Sampling, Sensor};
 
 use crate::config::Loss;
 use crate::deep_sensing::{LearnCodes, Learner};
@@ -64,11 +64,12 @@ pub fn bench_step(a: &MeasurementMatrix, model: &ModelConfig, h: usize, w: usize
 /// tap + Hamming 2 + window 2 penalties on).
 pub fn bench_step_learned(codes: &Codes, sampling: Sampling, model: &ModelConfig, h: usize, w: usize, steps: usize) -> Result<StepTiming> {
     let spec = RunSpec { model: model.clone(), sampling, irf: Irf::Ideal, measured: false };
-    let a = spec.matrix(codes)?;
+    let a = Sensor::ideal(codes.clone(), sampling, Irf::Ideal)?;
+    let a = a.matrix();
     let lc = LearnCodes::new(Constraints { tap: true, hamming: Some(2), window: Some(2) }, 2);
     let mut learner = Learner::new(&lc, codes, &spec, &Device::flex().autodiff())?;
     learner.schedule(0.5);
-    timed(&a, model, h, w, steps, Some(learner))
+    timed(a, model, h, w, steps, Some(learner))
 }
 
 /// [`time_steps`] for the network of `model`, with the step's floating-point operations.
@@ -147,7 +148,7 @@ fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h:
 
 /// Median inference time (ms) of one `h × w` frame on the CPU without autodiff, through the
 /// decoder contract.
-pub fn bench_forward(a: &MeasurementMatrix, model: &ModelConfig, h: usize, w: usize, reps: usize) -> Result<f64> {
+pub fn bench_forward(a: &Sensor, model: &ModelConfig, h: usize, w: usize, reps: usize) -> Result<f64> {
     let device = Device::flex();
     let mut decoder: Box<dyn Decoder> = match model {
         ModelConfig::AdmmNet(c) => Box::new(NetDecoder::new(model.name(), crate::fit::seeded_init(&device, 1, |d| c.init(d)), device.clone())),

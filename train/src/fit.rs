@@ -24,7 +24,7 @@ use tcsense_models::runs::{ModelConfig, CODES_FILE, CONFIG_FILE};
 use tcsense_models::SensorTensors;
 use tcsense_sensor::measure::measure_batch;
 use tcsense_sensor::noise::derive_seed;
-use tcsense_sensor::{Codes, FramePlan, MeasurementMatrix, NoiseParams};
+use tcsense_sensor::{Codes, FramePlan, NoiseParams, Sensor};
 
 use crate::config::TrainConfig;
 use crate::deep_sensing::{LearnCodes, Learner};
@@ -57,7 +57,7 @@ impl Progress for Quiet {}
 ///
 /// # Shapes
 /// - `x`: `[N, T, H, W]`, `depth`: `[N, K, H, W]`
-pub fn validate(decoder: &mut dyn Decoder, plan: &FramePlan, sensor: &MeasurementMatrix, x: &Array4<f32>, depth: Option<&Array4<f32>>, noise: Option<&NoiseParams>, seed: u64) -> Result<Vec<(String, f64)>> {
+pub fn validate(decoder: &mut dyn Decoder, plan: &FramePlan, sensor: &Sensor, x: &Array4<f32>, depth: Option<&Array4<f32>>, noise: Option<&NoiseParams>, seed: u64) -> Result<Vec<(String, f64)>> {
     let n = x.dim().0;
     let never = AtomicBool::new(false);
     let (mut total_mse, mut total_psnr) = (0.0, 0.0);
@@ -182,7 +182,7 @@ fn fit<M: Network>(
     cfg.validate()?;
     codes.ensure_feasible()?;
     let ds = Dataset::open(Path::new(&cfg.dataset))?;
-    let mut a = cfg.run.matrix_in(run, codes)?;
+    let mut a = cfg.run.sensor(run, codes.clone())?;
     let model_cfg = &cfg.run.model;
     if a.bins() != ds.manifest.bins || a.taps() != model_cfg.taps() || a.bins() != model_cfg.bins() {
         return Err(TrainError::InvalidParam {
@@ -219,7 +219,7 @@ fn fit<M: Network>(
     let mut train_plan = a.plan(th, tw)?;
     let infer_device = on.clone();
     let device = on.clone().autodiff();
-    let mut sensor = SensorTensors::new(&a, th, tw, &device)?;
+    let mut sensor = SensorTensors::new(a.matrix(), th, tw, &device)?;
     let mut learner = learn.map(|lc| Learner::new(lc, codes, &cfg.run, &device)).transpose()?;
 
     std::fs::create_dir_all(run).map_err(|e| file_err(run, e))?;
@@ -349,11 +349,11 @@ fn fit<M: Network>(
 }
 
 /// The sensor of `codes` for validation (whole frames `hw`) and training (frames `thw`).
-fn sensing_for(cfg: &TrainConfig, codes: &Codes, hw: (usize, usize), thw: (usize, usize), device: &Device) -> Result<(MeasurementMatrix, FramePlan, FramePlan, SensorTensors)> {
-    let a = cfg.run.matrix(codes)?;
+fn sensing_for(cfg: &TrainConfig, codes: &Codes, hw: (usize, usize), thw: (usize, usize), device: &Device) -> Result<(Sensor, FramePlan, FramePlan, SensorTensors)> {
+    let a = Sensor::ideal(codes.clone(), cfg.run.sampling, cfg.run.irf)?;
     let plan = a.plan(hw.0, hw.1)?;
     let train_plan = a.plan(thw.0, thw.1)?;
-    let sensor = SensorTensors::new(&a, thw.0, thw.1, device)?;
+    let sensor = SensorTensors::new(a.matrix(), thw.0, thw.1, device)?;
     Ok((a, plan, train_plan, sensor))
 }
 

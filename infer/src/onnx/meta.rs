@@ -5,7 +5,7 @@
 use std::path::Path;
 
 use tcsense_models::runs::{LoadedRun, ModelConfig};
-use tcsense_sensor::{Codes, Irf, MeasurementMatrix, Sampling, SensorParams, SensorSpec};
+use tcsense_sensor::{Codes, Irf, MeasurementMatrix, Sampling, Sensor, SensorParams, SensorSpec};
 
 use super::ExportOptions;
 
@@ -66,7 +66,7 @@ pub struct CalibrationNote {
 impl OnnxMeta {
     /// The metadata of `run` exported with `opts`.
     pub fn of_run(run: &LoadedRun, opts: ExportOptions<'_>) -> Self {
-        let (bh, bw) = run.sensor.block();
+        let (bh, bw) = run.sensor.matrix().block();
         let (frame_multiple, returns, range_m) = match &run.spec.model {
             ModelConfig::AdmmNet(_) => ((bh, bw), 0, 0.0),
             ModelConfig::Unet(c) => {
@@ -80,21 +80,21 @@ impl OnnxMeta {
         };
         OnnxMeta {
             decoder: run.spec.model.name().to_string(),
-            taps: run.sensor.taps(),
-            bins: run.sensor.bins(),
+            taps: run.sensor.matrix().taps(),
+            bins: run.sensor.matrix().bins(),
             block: (bh, bw),
             frame_multiple,
             returns,
             range_m,
-            bin_s: run.sensor.bin_width_s(),
-            clock_hz: run.codes.clock_hz,
+            bin_s: run.sensor.matrix().bin_width_s(),
+            clock_hz: run.sensor.codes().clock_hz,
             sampling: run.spec.sampling,
             irf: run.spec.irf,
-            codes: run.codes.clone(),
+            codes: run.sensor.codes().clone(),
             matrix_input: opts.matrix_input,
             matrix_values: match opts.calibration {
                 Some(c) => Some(c.matrix.a().iter().copied().collect()),
-                None => run.spec.measured.then(|| run.sensor.a().iter().copied().collect()),
+                None => run.spec.measured.then(|| run.sensor.matrix().a().iter().copied().collect()),
             },
             calibration: opts.calibration.map(|c| CalibrationNote { size: c.meta.size, units: c.meta.units.clone(), matrix_digest: c.meta.matrix_digest.clone(), sweep: c.meta.sweep.clone() }),
         }
@@ -214,6 +214,12 @@ impl OnnxMeta {
     /// The sensor spec of the model's codes, sampling and IRF.
     pub fn spec(&self) -> Result<SensorSpec> {
         Ok(SensorParams { sampling: self.sampling, irf: self.irf, ..SensorParams::from_codes(&self.codes) }.validate()?)
+    }
+
+    /// The model's sensor: its codes, sampling and IRF, with the recorded matrix of a measured
+    /// or calibrated sensor.
+    pub fn sensor(&self) -> Result<Sensor> {
+        Ok(Sensor::with_matrix(self.codes.clone(), self.spec()?, self.matrix()?)?)
     }
 
     /// The measurement matrix of the model: the recorded values of a measured or calibrated

@@ -53,7 +53,7 @@ pub struct ExportOptions<'a> {
 /// The ONNX model of a trained run, serialised.
 pub fn export(run: &LoadedRun, opts: ExportOptions<'_>) -> Result<Vec<u8>> {
     let meta = OnnxMeta::of_run(run, opts);
-    let (n, m, t) = run.sensor.a().dim();
+    let (n, m, t) = run.sensor.matrix().a().dim();
     let mut g = Graph::new(run.spec.model.name());
     let y = match opts.calibration {
         None => g.input(INPUT, &[Dim::Named("batch"), Dim::Fixed(m), Dim::Named("height"), Dim::Named("width")]),
@@ -70,10 +70,10 @@ pub fn export(run: &LoadedRun, opts: ExportOptions<'_>) -> Result<Vec<u8>> {
             g.op("Div", &[&d, &gain])
         }
     };
-    let a_model = opts.calibration.map_or(&run.sensor, |c| &c.matrix);
+    let a_model = opts.calibration.map_or(run.sensor.matrix(), |c| &c.matrix);
     let sensor = if opts.matrix_input {
         let a = g.input(MATRIX_INPUT, &[Dim::Fixed(n), Dim::Fixed(m), Dim::Fixed(t)]);
-        SensorGraph::from_input(&mut g, &a, n, m, t, run.sensor.block())
+        SensorGraph::from_input(&mut g, &a, n, m, t, run.sensor.matrix().block())
     } else {
         SensorGraph::baked(a_model)
     };
