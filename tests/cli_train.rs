@@ -299,6 +299,21 @@ fn a_delay_prior_run_records_its_prior_and_keeps_it() {
     ok(d, &["train", "admm-net", "--config", "run3/config.json", "--codes", "codes.json", "--prior", "delay", "-o", "run4"]);
     let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("run4/config.json")).unwrap()).unwrap();
     assert_eq!((cfg["model"]["prior"].as_str(), cfg["model"]["channels"].as_u64()), (Some("Delay"), Some(2)), "{cfg}");
+
+    // fine-tuning takes the architecture from the run it starts from: no flag restates it
+    ok(d, &["train", "admm-net", "--init-from", "run3", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "-o", "tuned"]);
+    let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("tuned/config.json")).unwrap()).unwrap();
+    assert_eq!((cfg["model"]["prior"].as_str(), cfg["model"]["channels"].as_u64(), cfg["model"]["stages"].as_u64()), (Some("Delay"), Some(2), Some(1)), "{cfg}");
+    assert_eq!(cfg["init_from"].as_str(), Some("run3"));
+    // a flag that agrees is accepted; one that contradicts it is refused naming the run's value
+    ok(d, &["train", "admm-net", "--init-from", "run3", "--stages", "1", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "-o", "tuned2"]);
+    fails(d, &["train", "admm-net", "--init-from", "run3", "--stages", "3", "--dataset", "ds", "--codes", "codes.json", "-o", "tuned3"], &["run3/config.json", "--stages 3", "stages 1", "model.stages"]);
+    fails(d, &["train", "admm-net", "--init-from", "run3", "--preset", "lidar", "--dataset", "ds", "--codes", "codes.json", "-o", "tuned3"], &["run3/config.json", "stages 1"]);
+    fails(d, &["train", "unet", "--init-from", "run3", "--dataset", "ds", "--codes", "codes.json", "-o", "tuned3"], &["run3/config.json", "admm-net run", "tcsense train admm-net"]);
+    fails(d, &["train", "admm-net", "--init-from", "nowhere", "--dataset", "ds", "--codes", "codes.json", "-o", "tuned3"], &["nowhere", "config.json missing"]);
+    // the same on --resume: the run's architecture, flags checked against it
+    fails(d, &["train", "admm-net", "--channels", "8", "--epochs", "2", "--resume", "-o", "tuned"], &["tuned/config.json", "--channels 8", "channels 2"]);
+    assert!(!d.join("tuned3").exists(), "a refused fine-tuning writes nothing");
 }
 
 /// The files under `dir`, as sorted paths relative to it.

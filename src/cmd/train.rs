@@ -6,13 +6,11 @@ use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use tcsense_datasets::Dataset;
-use tcsense_models::runs::{ModelConfig, CODES_FILE, CONFIG_FILE, SENSOR_MATRIX_FILE};
-use tcsense_sensor::npy::write_npy;
-use tcsense_sensor::params::SensorParams;
-use tcsense_sensor::MeasurementMatrix;
+use tcsense_models::runs::{ModelConfig, CONFIG_FILE};
 use tcsense_models::{AdmmNetConfig, LifetimeNetConfig, Prior, UnetConfig};
 use tcsense_sensor::{Codes, Constraints};
-use tcsense_train::deep_sensing::{LearnCodes, START_CODES_FILE};
+use tcsense_train::deep_sensing::LearnCodes;
+use tcsense_train::setup::{self, Architecture, MeasuredSensor};
 use tcsense_train::{Augmentation, EpochMetrics, Loss, LrSchedule, Progress, TrainConfig, TrainError};
 
 use super::dataset::interrupt_flag;
@@ -57,23 +55,23 @@ pub enum TrainCmd {
 /// Lifetime-decoder size.
 #[derive(Args)]
 pub struct LifetimeArgs {
-    /// Harmonics of the cycle the time axis is pooled to (input channels 2K + 2).
-    #[arg(long, default_value_t = 16)]
-    harmonics: usize,
-    /// Channels of the U-Net's first level (doubled per level).
-    #[arg(long, default_value_t = 16)]
-    base_width: usize,
-    /// Resolutions (frames are padded inside the model to a multiple of 2^(levels−1)).
-    #[arg(long, default_value_t = 3)]
-    levels: usize,
+    /// Harmonics of the cycle the time axis is pooled to (input channels 2K + 2) [default: 16].
+    #[arg(long)]
+    harmonics: Option<usize>,
+    /// Channels of the U-Net's first level (doubled per level) [default: 16].
+    #[arg(long)]
+    base_width: Option<usize>,
+    /// Resolutions (frames are padded inside the model to a multiple of 2^(levels−1)) [default: 3].
+    #[arg(long)]
+    levels: Option<usize>,
 }
 
 /// ADMM-Net size.
 #[derive(Args)]
 pub struct AdmmArgs {
-    /// Model size.
-    #[arg(long, value_enum, default_value = "cpu")]
-    preset: Preset,
+    /// Model size [default: cpu].
+    #[arg(long, value_enum)]
+    preset: Option<Preset>,
     /// Unrolled stages (overrides the preset).
     #[arg(long)]
     stages: Option<usize>,
@@ -106,17 +104,19 @@ pub struct UnetArgs {
     /// How the range is read out: `score-volume` (a score per bin and return, the range their
     /// soft-argmax: sub-bin precision) or `regression` (one sigmoid per return over the whole
     /// range, as runs before the score volume).
-    #[arg(long, value_enum, default_value = "score-volume")]
-    head: HeadArg,
-    /// Returns per pixel: 1 (first surface) or 2 (and the one behind a diffusive sheet).
-    #[arg(long, default_value_t = 2)]
-    returns: usize,
-    /// Channels of the first level (doubled per level).
-    #[arg(long, default_value_t = 8)]
-    base_width: usize,
-    /// Resolutions (frames are padded inside the model to a multiple of 2^(levels−1)).
-    #[arg(long, default_value_t = 3)]
-    levels: usize,
+    /// [default: score-volume]
+    #[arg(long, value_enum)]
+    head: Option<HeadArg>,
+    /// Returns per pixel: 1 (first surface) or 2 (and the one behind a diffusive sheet)
+    /// [default: 2].
+    #[arg(long)]
+    returns: Option<usize>,
+    /// Channels of the first level (doubled per level) [default: 8].
+    #[arg(long)]
+    base_width: Option<usize>,
+    /// Resolutions (frames are padded inside the model to a multiple of 2^(levels−1)) [default: 3].
+    #[arg(long)]
+    levels: Option<usize>,
 }
 
 #[derive(Args)]
@@ -190,7 +190,8 @@ pub struct TrainArgs {
     #[arg(long, value_name = "N")]
     pause_after: Option<usize>,
     /// Start from the weights of a trained run of the same network (fine-tuning on new codes,
-    /// another IRF or a recalibrated sensor); `zoo:NAME` starts from a zoo entry.
+    /// another IRF or a recalibrated sensor); `zoo:NAME` starts from a zoo entry. The network's
+    /// architecture comes from that run (flags that contradict it are refused).
     #[arg(long, value_name = "RUN", value_parser = super::parse_run)]
     init_from: Option<PathBuf>,
     /// Deep sensing: learn the codes with the decoder, starting from --codes; after the relaxed
@@ -296,6 +297,62 @@ enum NetArgs {
     Lifetime(LifetimeArgs),
 }
 
+impl NetArgs {
+    /// The architecture flags given (a preset gives its stages and channels).
+    fn architecture(&self) -> Architecture {
+        match self {
+            NetArgs::Admm(n) => {
+                let preset = n.preset.map(|p| preset_config(p, 1, 1));
+                Architecture {
+                    stages: n.stages.or(preset.as_ref().map(|c| c.stages)),
+                    channels: n.channels.or(preset.as_ref().map(|c| c.channels)),
+                    prior: n.prior.map(|p| match p {
+                        PriorArg::Bins => Prior::Bins,
+                        PriorArg::Delay => Prior::Delay,
+                    }),
+                    ..Default::default()
+                }
+            }
+            NetArgs::Unet(n) => Architecture {
+                returns: n.returns,
+                base_width: n.base_width,
+                levels: n.levels,
+                head: n.head.map(|h| match h {
+                    HeadArg::ScoreVolume => tcsense_models::UnetHead::ScoreVolume,
+                    HeadArg::Regression => tcsense_models::UnetHead::Regression,
+                }),
+                ..Default::default()
+            },
+            NetArgs::Lifetime(n) => Architecture { harmonics: n.harmonics, base_width: n.base_width, levels: n.levels, ..Default::default() },
+        }
+    }
+
+    /// The default network of a new run for `m` taps and `t` bins over `range_m` (U-Net).
+    fn default_model(&self, m: usize, t: usize, range_m: f64) -> ModelConfig {
+        match self {
+            NetArgs::Admm(n) => ModelConfig::AdmmNet(preset_config(n.preset.unwrap_or(Preset::Cpu), m, t).with_normalize(true)),
+            NetArgs::Unet(_) => ModelConfig::Unet(UnetConfig::new(m, t, range_m).with_returns(2).with_base_width(8).with_levels(3).with_head(tcsense_models::UnetHead::ScoreVolume)),
+            NetArgs::Lifetime(_) => ModelConfig::Lifetime(LifetimeNetConfig::new(m, t).with_harmonics(16).with_base_width(16).with_levels(3)),
+        }
+    }
+
+    fn name(&self) -> &'static str {
+        match self {
+            NetArgs::Admm(_) => "admm-net",
+            NetArgs::Unet(_) => "unet",
+            NetArgs::Lifetime(_) => "lifetime",
+        }
+    }
+}
+
+fn preset_config(p: Preset, m: usize, t: usize) -> AdmmNetConfig {
+    match p {
+        Preset::Cpu => AdmmNetConfig::cpu(m, t),
+        Preset::Lidar => AdmmNetConfig::lidar(m, t),
+        Preset::Flim => AdmmNetConfig::flim(m, t),
+    }
+}
+
 pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     let (a, net) = match cmd {
         TrainCmd::AdmmNet { common, net } => (common, NetArgs::Admm(net)),
@@ -305,42 +362,58 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     let run_dir = &a.output;
     // the device first: a missing GPU backend or adapter writes nothing
     let device = a.device.device()?;
-    // base config: the saved one on --resume, a given file, or built from the dataset
+    let arch = net.architecture();
+    // the network: the run's own on --resume; the source run's with --init-from; else a
+    // config file's or the defaults, shaped by the flags
     let saved = run_dir.join(CONFIG_FILE);
     let mut cfg = if a.resume {
         if !saved.exists() {
             bail!("{}: no run to resume ({CONFIG_FILE} missing)", run_dir.display());
         }
-        TrainConfig::load(&saved)?
-    } else if let Some(p) = &a.config {
-        TrainConfig::load(p)?
+        let cfg = TrainConfig::load(&saved)?;
+        if cfg.run.model.name() != net.name() {
+            bail!("{}: this is a {} run; train it with `tcsense train {}`", run_dir.display(), cfg.run.model.name(), cfg.run.model.name());
+        }
+        arch.check(&cfg.run.model, run_dir)?;
+        cfg
     } else {
-        let ds_path = a.dataset.as_ref().context("--dataset is required (or --config / --resume)")?;
-        let ds = Dataset::open(ds_path)?;
-        let codes_path = a.codes.as_ref().context("--codes is required")?;
-        let codes = Codes::load(codes_path)?;
-        let (m, t) = (codes.taps(), ds.manifest.bins);
-        let model = match &net {
-            NetArgs::Admm(n) => ModelConfig::AdmmNet(
-                match n.preset {
-                    Preset::Cpu => AdmmNetConfig::cpu(m, t),
-                    Preset::Lidar => AdmmNetConfig::lidar(m, t),
-                    Preset::Flim => AdmmNetConfig::flim(m, t),
-                }
-                .with_normalize(true),
-            ),
-            NetArgs::Unet(n) => {
+        let (mut cfg, from_config) = match &a.config {
+            Some(p) => (TrainConfig::load(p)?, true),
+            None => {
+                let ds_path = a.dataset.as_ref().context("--dataset is required (or --config / --resume)")?;
+                let ds = Dataset::open(ds_path)?;
+                let codes_path = a.codes.as_ref().context("--codes is required")?;
+                let codes = Codes::load(codes_path)?;
+                let t = ds.manifest.bins;
                 // depth up to the unambiguous range of the dataset's cycle
                 let range_m = tcsense_datasets::grid::C * ds.manifest.bin_width_s * t as f64 / 2.0;
-                let head = match n.head {
-                    HeadArg::ScoreVolume => tcsense_models::UnetHead::ScoreVolume,
-                    HeadArg::Regression => tcsense_models::UnetHead::Regression,
-                };
-                ModelConfig::Unet(UnetConfig::new(m, t, range_m).with_returns(n.returns).with_base_width(n.base_width).with_levels(n.levels).with_head(head))
+                (TrainConfig::for_dataset(net.default_model(codes.taps(), t, range_m), ds_path, &ds), false)
             }
-            NetArgs::Lifetime(n) => ModelConfig::Lifetime(LifetimeNetConfig::new(m, t).with_harmonics(n.harmonics).with_base_width(n.base_width).with_levels(n.levels)),
         };
-        TrainConfig::for_dataset(model, ds_path, &ds)
+        if cfg.run.model.name() != net.name() {
+            bail!("{}: this is a {} run; train it with `tcsense train {}`", run_dir.display(), cfg.run.model.name(), cfg.run.model.name());
+        }
+        match &a.init_from {
+            Some(src) => {
+                cfg.run.model = setup::model_for_init(src, &cfg.run.model, from_config)?;
+                arch.check(&cfg.run.model, src)?;
+            }
+            None => {
+                let before = cfg.run.model.clone();
+                arch.apply(&mut cfg.run.model)?;
+                // the delay prior's convolutions run at every bin: a few channels per bin (a
+                // config that already has the delay prior keeps its channels)
+                if let (ModelConfig::AdmmNet(m), ModelConfig::AdmmNet(b), NetArgs::Admm(n)) = (&mut cfg.run.model, &before, &net) {
+                    if m.prior == Prior::Delay && b.prior != Prior::Delay && n.channels.is_none() {
+                        m.channels = match n.preset.unwrap_or(Preset::Cpu) {
+                            Preset::Cpu => 4,
+                            Preset::Lidar | Preset::Flim => 8,
+                        };
+                    }
+                }
+            }
+        }
+        cfg
     };
     if let Some(r) = &a.sensor_residue {
         if r.len() != 3 {
@@ -356,36 +429,6 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     }
     if let Some(d) = &a.dataset {
         cfg.dataset = d.display().to_string();
-    }
-    match (&mut cfg.run.model, &net) {
-        (ModelConfig::AdmmNet(m), NetArgs::Admm(n)) => {
-            if let Some(v) = n.stages {
-                m.stages = v;
-            }
-            if let Some(v) = n.channels {
-                m.channels = v;
-            }
-            if let Some(v) = n.prior {
-                let prior = match v {
-                    PriorArg::Bins => Prior::Bins,
-                    PriorArg::Delay => Prior::Delay,
-                };
-                if a.resume && prior != m.prior {
-                    bail!("{}: --prior cannot change on --resume (this run's prior is {:?})", run_dir.display(), m.prior);
-                }
-                if prior == Prior::Delay && m.prior != Prior::Delay && n.channels.is_none() {
-                    // its convolutions run at every bin: a few channels per bin (a config that
-                    // already has the delay prior keeps its channels)
-                    m.channels = match n.preset {
-                        Preset::Cpu => 4,
-                        Preset::Lidar | Preset::Flim => 8,
-                    };
-                }
-                m.prior = prior;
-            }
-        }
-        (ModelConfig::Unet(_), NetArgs::Unet(_)) | (ModelConfig::Lifetime(_), NetArgs::Lifetime(_)) => {}
-        (model, _) => bail!("{}: this is a {} run; train it with `tcsense train {}`", run_dir.display(), model.name(), model.name()),
     }
     if let Some(v) = a.epochs {
         cfg.epochs = v;
@@ -413,29 +456,23 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
         cfg.noise = None;
     }
     // a measured matrix replaces the synthetic sensor (a recalibrated instrument)
-    let mut measured: Option<PathBuf> = None;
+    let mut measured: Option<MeasuredSensor> = None;
     if let Some(irf) = &a.irf {
         if std::path::Path::new(irf).extension().is_some_and(|e| e == "npy") {
-            if a.resume {
-                bail!("--irf {irf}: a run's sensor does not change on --resume; start a new run from it with --init-from");
-            }
-            measured = Some(PathBuf::from(irf));
-            cfg.run.measured = true;
+            measured = Some(MeasuredSensor::Matrix(PathBuf::from(irf)));
         } else {
             cfg.run.irf = super::sensor::parse_irf(irf)?;
             cfg.run.measured = false;
         }
     }
     if let Some(dir) = &a.calibration {
-        if a.resume {
-            bail!("--calibration {}: a run's sensor does not change on --resume; start a new run from it with --init-from", dir.display());
-        }
         if measured.is_some() {
             bail!("--calibration {} and --irf A.npy both give the sensor matrix; pass one", dir.display());
         }
-        // loaded and checked against the codes with the rest of the sensor below
-        measured = Some(dir.clone());
-        cfg.run.measured = true;
+        measured = Some(MeasuredSensor::Calibration(dir.clone()));
+    }
+    if let Some(m) = &measured {
+        setup::use_measured_sensor(&mut cfg, m, a.resume)?;
     }
     if a.max_train.is_some() {
         cfg.max_train_items = a.max_train;
@@ -446,13 +483,7 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     if let Some(s) = a.seed {
         cfg.seed = s;
     }
-    let codes = match (&a.codes, a.resume) {
-        (Some(p), _) => Codes::load(p)?,
-        // a learned-codes run before its projection has only its starting codes
-        (None, true) if !run_dir.join(CODES_FILE).exists() && run_dir.join(START_CODES_FILE).exists() => Codes::load(&run_dir.join(START_CODES_FILE))?,
-        (None, true) => Codes::load(&run_dir.join(CODES_FILE))?,
-        (None, false) => bail!("--codes is required"),
-    };
+    let codes = setup::run_codes(run_dir, a.codes.as_deref(), a.resume)?;
     if let Some(r) = &a.init_from {
         cfg.init_from = Some(r.display().to_string());
     }
@@ -509,19 +540,9 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
             ),
         }
     );
-    if let Some(src) = &measured {
+    if let Some(m) = &measured {
         // the settings and the matrix are checked before the run takes a copy
-        cfg.validate()?;
-        let spec = SensorParams { sampling: cfg.run.sampling, irf: cfg.run.irf, ..SensorParams::from_codes(&codes) }.validate()?;
-        let matrix = match &a.calibration {
-            // checked against the codes and the geometry of the sensor
-            Some(dir) => tcsense_sensor::calibration::Calibration::load(dir, &MeasurementMatrix::synthesize(&codes, &spec)?, &codes)?.matrix,
-            None => MeasurementMatrix::load(src, &spec)?,
-        };
-        if run_dir.join("checkpoint").exists() || run_dir.join("relaxed").exists() {
-            bail!("{}: a run already exists here; pass --resume to continue it or choose another directory", run_dir.display());
-        }
-        write_npy(&run_dir.join(SENSOR_MATRIX_FILE), &matrix.a().view())?;
+        setup::write_measured_sensor(&cfg, &codes, m, run_dir)?;
     }
     if let Some(lc) = &cfg.learn_codes {
         println!(

@@ -15,7 +15,9 @@
 //! - [`loss`]: the losses;
 //! - [`run_dir`]: checkpoints (atomic), progress state, `metrics.csv`;
 //! - [`data`]: training cubes from a dataset;
-//! - [`bench`]: step and inference timings for `tcsense bench train`.
+//! - [`bench`]: step and inference timings for `tcsense bench train`;
+//! - [`setup`]: the rules of starting, resuming and fine-tuning a run (architecture from the
+//!   run, start codes, a measured sensor).
 //!
 //! Opening a trained run for inference needs none of this: `tcsense_models::runs::open`.
 
@@ -27,6 +29,7 @@ pub mod deep_sensing;
 pub mod fit;
 pub mod loss;
 pub mod run_dir;
+pub mod setup;
 
 pub use augment::Augmentation;
 pub use config::{Loss, LrSchedule, TrainConfig};
