@@ -56,7 +56,7 @@ enum Command {
     Eval(cmd::eval::EvalArgs),
     /// Design sweeps of the paper's Fig. 13 and Table 1 (TVAL3 MSE over a dataset).
     #[command(subcommand)]
-    Sweep(cmd::design::SweepCmd),
+    Sweep(cmd::sweep::SweepCmd),
     /// The main job end to end on built-in defaults: datasets, code design (selection and
     /// deep sensing), code-memory export, TVAL3, ADMM-Net and U-Net training, ONNX export,
     /// ONNX Runtime, and DIR/report.html with figures. Rerunning into DIR resumes.
@@ -97,7 +97,7 @@ fn main() -> ExitCode {
         Command::Depth(a) => cmd::recon::depth(a),
         Command::Lifetime(a) => cmd::recon::lifetime(a),
         Command::Plot(c) => cmd::recon::plot(c),
-        Command::Sweep(c) => cmd::design::sweep(c),
+        Command::Sweep(c) => cmd::sweep::sweep(c),
         Command::Eval(a) => cmd::eval::run(a),
         Command::Export(c) => cmd::deploy::export(c),
         Command::Infer(a) => cmd::deploy::infer(a, cli.threads),

@@ -15,7 +15,8 @@
 //! 3×3 convolution makes anyway. The composed form (`roll` + `cat` into `[B·T, 3·C_in, H, W]`,
 //! then a 3×3 conv) is [`crate::delay_op::delay_taps`]; the two are tested equal.
 
-use crate::conv::{correlate, Conv3x3, Kernel, Source};
+use crate::conv::{correlate, Conv3x3};
+use crate::plane::{Kernel, Source};
 
 /// Sizes of one delay-tap convolution over a batch.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -22,7 +22,7 @@
 
 use rayon::prelude::*;
 
-use crate::conv::{with_scratch, Kernel, Plane, SharedOut, Source, BAND_ELEMS};
+use crate::plane::{with_scratch, Kernel, Plane, SharedOut, Source, BAND_ELEMS};
 
 /// Passes with at most this many output channels, from at most [`MAX_SRC`] input channels, run
 /// here instead of the im2col GEMM (with more input channels the GEMM's long inner dimension
@@ -90,7 +90,7 @@ pub(crate) fn correlate(p: Plane, src: Source, input: &[f32], kernel: &Kernel, o
             let job = BandSums { input, sources: &sources, h, w, y0, y1, wd: &wd, bias: &bias, edge, planes: &mut planes };
             let t0 = std::time::Instant::now();
             pulp::Arch::new().dispatch(job);
-            crate::conv::CONV_NANOS.fetch_add(t0.elapsed().as_nanos() as u64, std::sync::atomic::Ordering::Relaxed);
+            crate::plane::CONV_NANOS.fetch_add(t0.elapsed().as_nanos() as u64, std::sync::atomic::Ordering::Relaxed);
         });
     });
 }

@@ -20,7 +20,7 @@
 //! This is the only crate of the workspace with `unsafe` code, in three kinds of places, each
 //! with a `SAFETY` note: the calls into `gemm::gemm` (an `unsafe fn`; every view is
 //! bounds-checked before it) in [`conv`]; the disjoint parallel writes into output planes
-//! through `conv::SharedOut` (used by [`conv`]'s bands, the direct loops' bands and
+//! through `plane::SharedOut` (used by [`conv`]'s bands, the direct loops' bands and
 //! [`pixel`]'s `par_bands`); and glibc's `mallopt` in [`keep_freed_memory`]. SIMD dispatch is
 //! also only here: `gemm` picks AVX2/AVX-512 at run time, and the per-pixel loops and the
 //! direct convolution loops are compiled for the best extension this CPU has through
@@ -51,6 +51,7 @@ pub mod delay;
 pub mod delay_op;
 mod direct;
 pub mod pixel;
+mod plane;
 pub mod resample;
 pub mod timing;
 

@@ -28,7 +28,7 @@ use burn::backend::{backend_extension, Autodiff, AutodiffBackend, Backend, Dispa
 use burn::tensor::{Shape, Tensor, TensorData};
 use rayon::prelude::*;
 
-use crate::conv::SharedOut;
+use crate::plane::SharedOut;
 use crate::conv_op::with_f32;
 
 /// A per-subpixel linear map `P_n [O, I]` laid out for a frame `W` pixels wide.

@@ -330,7 +330,7 @@ impl Codes {
     pub fn digest(&self) -> String {
         let CodeShape { bh, bw, taps, length, drain } = self.shape;
         let head = [bh, bw, taps, length, drain as usize].into_iter().flat_map(|v| (v as u64).to_le_bytes());
-        crate::sidecar::digest(head.chain(self.bits.iter().copied()))
+        crate::digest::digest(head.chain(self.bits.iter().copied()))
     }
 
     /// Hamming distance between mask `l` and mask `l+1 mod L` over all channels.

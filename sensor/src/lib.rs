@@ -17,6 +17,7 @@
 pub mod calibration;
 pub mod codes;
 pub mod design;
+pub mod digest;
 pub mod error;
 pub mod export;
 pub mod generate;

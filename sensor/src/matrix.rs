@@ -40,7 +40,7 @@ impl MeasurementMatrix {
         let (bh, bw) = self.block();
         let head = [n, m, t, bh, bw].into_iter().flat_map(|v| (v as u64).to_le_bytes());
         let values: Vec<u8> = self.a().iter().flat_map(|v| v.to_le_bytes()).collect();
-        crate::sidecar::digest(head.chain(values))
+        crate::digest::digest(head.chain(values))
     }
 
     /// Build `A` from codes and a sensor spec (IRF and sampling from the spec).

@@ -128,12 +128,4 @@ impl Sidecar {
     }
 }
 
-/// FNV-1a (64 bit) of `bytes`, as 16 hex digits: a stable fingerprint (not a cryptographic hash).
-pub fn digest(bytes: impl IntoIterator<Item = u8>) -> String {
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for b in bytes {
-        h ^= b as u64;
-        h = h.wrapping_mul(0x0100_0000_01b3);
-    }
-    format!("{h:016x}")
-}
+pub use crate::digest::digest;

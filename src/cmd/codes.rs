@@ -4,7 +4,9 @@ use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use std::path::PathBuf;
 use std::process::ExitCode;
-use tcsense_sensor::codes::{CodeShape, Codes, Constraints, DEFAULT_CLOCK_HZ};
+
+use super::code_shape::DesignArgs;
+use tcsense_sensor::codes::Codes;
 use tcsense_sensor::{export, generate};
 
 #[derive(Subcommand)]
@@ -51,7 +53,7 @@ pub enum CodesCmd {
     /// Design codes: the best of random candidates by a criterion (TVAL3 MSE on a dataset, or
     /// the closed-form range / lifetime identifiability), then a local search that keeps every
     /// constraint exact.
-    Select(super::design::SelectArgs),
+    Select(super::select::SelectArgs),
     /// Project code logits (e.g. learned elsewhere) exactly onto the constraints: the feasible
     /// codes of highest total log-probability.
     Project(ProjectArgs),
@@ -63,47 +65,6 @@ pub enum CodesCmd {
         #[arg(short, long)]
         output: PathBuf,
     },
-}
-
-/// Geometry and constraint flags shared by code generation and selection.
-#[derive(Args, Clone)]
-pub struct DesignArgs {
-    /// Taps M (1–8).
-    #[arg(long, default_value_t = 4)]
-    pub taps: usize,
-    /// Pixel block bh×bw.
-    #[arg(long, default_value = "2x2", value_parser = super::parse_hw)]
-    pub block: (usize, usize),
-    /// Masks per cycle L (multiple of 8, 8–256).
-    #[arg(long, default_value_t = 32)]
-    pub length: usize,
-    /// The modulator has a drain (with the tap constraint: at most one tap on).
-    #[arg(long)]
-    pub drain: bool,
-    /// Code clock in MHz.
-    #[arg(long, default_value_t = DEFAULT_CLOCK_HZ / 1e6)]
-    pub clock_mhz: f64,
-    /// Tap constraint: one tap (drain included) on per subpixel at each mask.
-    #[arg(long)]
-    pub tap_constraint: bool,
-    /// Hamming-distance constraint: at most H bits change between adjacent masks.
-    #[arg(long, value_name = "H")]
-    pub hamming: Option<usize>,
-    /// Time-window constraint: every run of 1s and 0s lasts at least W masks.
-    #[arg(long, value_name = "W")]
-    pub window: Option<usize>,
-}
-
-impl DesignArgs {
-    pub fn shape(&self) -> CodeShape {
-        CodeShape { bh: self.block.0, bw: self.block.1, taps: self.taps, length: self.length, drain: self.drain }
-    }
-    pub fn constraints(&self) -> Constraints {
-        Constraints { tap: self.tap_constraint, hamming: self.hamming, window: self.window }
-    }
-    pub fn clock_hz(&self) -> f64 {
-        self.clock_mhz * 1e6
-    }
 }
 
 #[derive(Args)]
@@ -179,7 +140,7 @@ pub fn run(cmd: CodesCmd) -> Result<ExitCode> {
             g.save(&output)?;
             println!("wrote {}", output.display());
         }
-        CodesCmd::Select(a) => return super::design::select_cmd(a),
+        CodesCmd::Select(a) => return super::select::select_cmd(a),
         CodesCmd::Analyze(a) => return super::analyze::analyze_cmd(a),
         CodesCmd::Project(a) => {
             let d = &a.design;

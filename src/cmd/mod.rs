@@ -3,14 +3,16 @@
 pub mod bench;
 pub mod analyze;
 pub mod calibrate;
+pub mod code_shape;
 pub mod codes;
 pub mod dataset;
 pub mod demo;
 pub mod deploy;
-pub mod design;
 pub mod eval;
 pub mod recon;
+pub mod select;
 pub mod sensor;
+pub mod sweep;
 pub mod train;
 pub mod zoo;
 
