@@ -1,0 +1,254 @@
+//! The demo's report page: the metric tables, the findings read off them and the figures.
+
+use super::*;
+
+/// A table row per entry of `results["rows"]` (the parsed `file`): the `text` fields as they
+/// are, then each `(pointer into the row, format)` as a sourced number.
+pub(super) fn result_rows(file: &str, results: &Value, text: &[&str], numbers: &[(&str, Format)]) -> Vec<Vec<Cell>> {
+    let rows = results["rows"].as_array().map_or(0, |r| r.len());
+    (0..rows)
+        .map(|i| {
+            let row = &results["rows"][i];
+            let mut cells: Vec<Cell> = text.iter().map(|k| Cell::text(row[*k].as_str().unwrap_or(""))).collect();
+            cells.extend(numbers.iter().map(|&(k, f)| Cell::from_json(file, results, &format!("/rows/{i}/{k}"), f)));
+            cells
+        })
+        .collect()
+}
+
+/// One sentence per metric (JSON pointer into a row, label, format, unit): which row of
+/// `results` has the lowest value and what TVAL3 gets, read from the results themselves so
+/// the text follows whatever the run measured.
+pub(super) fn findings(results: &Value, metrics: &[(&str, &str, Format, &str)]) -> String {
+    let rows = results["rows"].as_array().cloned().unwrap_or_default();
+    let name = |r: &Value| format!("{} ({} codes, {})", r["decoder"].as_str().unwrap_or(""), r["codes"].as_str().unwrap_or("selected"), r["engine"].as_str().unwrap_or(""));
+    let mut out = Vec::new();
+    for &(ptr, label, format, unit) in metrics {
+        let val = |r: &Value| r.pointer(&format!("/{ptr}")).and_then(Value::as_f64).filter(|v| v.is_finite());
+        let show = |v: f64| format!("{}{unit}", format.show(Some(v)));
+        let best = rows.iter().filter_map(|r| val(r).map(|v| (r, v))).min_by(|a, b| a.1.total_cmp(&b.1));
+        let tval3 = rows.iter().find(|r| r["decoder"] == "TVAL3").and_then(val);
+        if let Some((r, v)) = best {
+            let vs = match tval3 {
+                Some(t) if r["decoder"] != "TVAL3" => format!(" against TVAL3's {}", show(t)),
+                _ => String::new(),
+            };
+            out.push(format!("Lowest {label}: {}, {}{vs}.", name(r), show(v)));
+        }
+    }
+    out.join(" ")
+}
+
+pub(super) fn read_json(path: &Path) -> Result<Value> {
+    serde_json::from_slice(&std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?).with_context(|| format!("{}: not JSON", path.display()))
+}
+
+pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Value], total_s: f64) -> Result<Report> {
+    let fig = |name: &str, caption: &str| -> Block {
+        debug_assert!(figs.files.contains(&name), "figure {name} not drawn");
+        Block::Figure { src: format!("figures/{name}"), caption: caption.into() }
+    };
+    let r = &plan.request;
+    let mut sections = Vec::new();
+
+    // overview
+    let mut training_rows = Vec::new();
+    for t in &plan.trainings {
+        let rows = run_rows(&dir.join("runs").join(&t.name))?;
+        let last = rows.last();
+        training_rows.push(vec![
+            Cell::text(&t.title),
+            Cell::text(format!("runs/{}", t.name)),
+            Cell::text(last.map_or("0".into(), |m| m.epoch.to_string())),
+            Cell::text(last.map_or("0".into(), |m| m.step.to_string())),
+            Cell::text(format!("{:.1}", t.step_ms)),
+            Cell::text(format!("{:.0}", last.map_or(0.0, |m| m.seconds))),
+            Cell::text(last.and_then(|m| m.val.first()).map_or("–".into(), |(n, v)| format!("{} {}", n.trim_start_matches("val_").replace('_', " "), if n.ends_with("_m") { format!("{v:.3} m") } else { format!("{v:.3e}") }))),
+        ]);
+    }
+    let mut step_rows: Vec<Vec<Cell>> = times.iter().map(|t| vec![Cell::text(t["step"].as_str().unwrap_or("")), Cell::text(format!("{:.1}", t["seconds"].as_f64().unwrap_or(f64::NAN)))]).collect();
+    step_rows.push(vec![Cell::text("this run of tcsense demo, in all"), Cell::text(format!("{total_s:.1}"))]);
+    sections.push(Section {
+        id: "overview".into(),
+        title: "What was done".into(),
+        blocks: vec![
+            Block::Text(format!(
+                "The prototype sensor of the paper (4 taps, 2×2 pixel blocks, L = 32 masks at 607 MHz, constraints tap + Hamming H = 2 + window W = 2, physical IRF) was simulated on two synthetic datasets with randomised scenes: LiDAR with multipath ({} scenes of {}×{} pixels, T = 32 bins of 51.5 ps) and fluorescence lifetime imaging ({} scenes, heterodyne K = 8, T = 256). Codes were drawn at random under the constraints, the best of {} by TVAL3 was kept for comparison (the paper's selection), the selected codes were designed for range identifiability (no alias, the smallest worst-case range bound; see Exposure codes), and codes were also learned jointly with an ADMM-Net (deep sensing, with a hinge on the range alias in the loss) and projected exactly onto the constraints; both sets are exported to the sensor's code memory. TVAL3, ADMM-Net and the Aᵀ + U-Net depth decoder reconstruct the same noisy tap images (shot and read noise, full well 20 000 e⁻, σ 40 e⁻); the trained decoders are exported to ONNX and run again through ONNX Runtime. Budget: {} minutes{}.",
+                r.lidar_scenes, r.size[0], r.size[1], r.flim_scenes, plan.candidates, r.budget_minutes, if r.quick { " (--quick)" } else { "" }
+            )),
+            Block::Table(Table { caption: "Trainings (epochs sized to the budget from a measured step time; batch 2, Adam, lr 10⁻³, augmentation on)".into(), headers: vec!["network".into(), "run directory".into(), "epochs".into(), "steps".into(), "ms per step (planned)".into(), "training time (s)".into(), "last validation".into()], rows: training_rows }),
+        ],
+    });
+    let run_log = Section {
+        id: "run".into(),
+        title: "This run".into(),
+        blocks: vec![
+            Block::Table(Table { caption: "Steps of this run of the demo and their wall time (a resumed run times only what it did)".into(), headers: vec!["step".into(), "seconds".into()], rows: step_rows }),
+            Block::Text(format!("Everything this report shows is in {}: plan.json (the settings and the epochs sized to the budget), results/*.json (every number of the tables), runs/ (the training runs: config.json, metrics.csv, checkpoints, model.bpk, codes.json), onnx/, code-memory/, codes/, the datasets lidar/ and flim/, frames/ (the tap images and reconstructions of the frames shown, .npy) and figures/.", dir.display())),
+        ],
+    };
+
+    // codes
+    let sel = read_json(&dir.join("results/selection.json"))?;
+    let ident = read_json(&dir.join("results/identifiability.json"))?;
+    let n_cand = sel["candidates"].as_array().map_or(0, |a| a.len());
+    let mut cand_rows = Vec::new();
+    for i in 0..n_cand {
+        cand_rows.push(vec![Cell::from_json("results/selection.json", &sel, &format!("/candidates/{i}/seed"), Format::Fixed(0)), Cell::from_json("results/selection.json", &sel, &format!("/candidates/{i}/mse"), Format::Sci(3))]);
+    }
+    let regs = std::fs::read_to_string(dir.join("code-memory/learned/registers.json")).unwrap_or_default();
+    let proj = read_json(&dir.join("runs/learned-lidar/relaxed/projection.json"))?;
+    let psrc = "runs/learned-lidar/relaxed/projection.json";
+    let projection = Table {
+        caption: "Projection of the learned codes onto the constraints (the relaxed codes' hard version, and the bits the exact projection changed)".into(),
+        headers: ["solver", "violations before (tap / Hamming / window)", "bits changed", "of bits"].map(String::from).to_vec(),
+        rows: vec![vec![
+            Cell::text(proj["solver"].as_str().unwrap_or("")),
+            Cell::text(format!("{} / {} / {}", proj["relaxed_violations"]["tap"], proj["relaxed_violations"]["hamming"], proj["relaxed_violations"]["window"])),
+            Cell::from_json(psrc, &proj, "/bits_changed", Format::Fixed(0)),
+            Cell::from_json(psrc, &proj, "/bits", Format::Fixed(0)),
+        ]],
+    };
+    sections.push(Section {
+        id: "codes".into(),
+        title: "Exposure codes".into(),
+        blocks: vec![
+            Block::Text("Each row is one code channel: subpixel n of the 2×2 block and tap m; a coloured cell means the tap collects light during that mask. The strip below counts the bits that change between adjacent masks against the Hamming limit; red marks on top would flag violated masks (there are none: every exported set passes the checker).".into()),
+            fig("codes-random.png", "One random code set under the constraints (seed of the demo)."),
+            fig("codes-selected.png", "The selected code set: designed for range identifiability (tcsense codes select --criterion range: the best of 20 000 random sets by alias and worst-case range bound, then a local search that keeps every constraint exact)."),
+            fig("codes-best-mse.png", "The paper's selection: the random candidate with the lowest TVAL3 MSE."),
+            fig("codes-learned.png", "Codes learned jointly with ADMM-Net (relaxed, straight-through training, then the exact projection onto tap + H 2 + W 2, then fine-tuning)."),
+            fig("selection.png", "TVAL3 MSE of every random candidate on the validation scenes (noise-free, as in the paper's selection)."),
+            Block::Table(Table { caption: "Code selection by TVAL3 MSE (results/selection.json)".into(), headers: vec!["candidate seed".into(), "TVAL3 MSE".into()], rows: cand_rows }),
+            Block::Text("Selection by TVAL3 MSE over typical scenes does not see a range the codes erase: two returns whose tap signatures are nearly equal cost little MSE on average, but a surface at one of them is placed at the other by every decoder. The table and figures below measure what each code set lets the taps tell apart; the selected set was designed for it.".into()),
+            Block::Table(crate::identifiability::table(&ident, "results/identifiability.json", &|name| match name {
+                "best MSE" => sel["candidates"].as_array().and_then(|a| a.iter().filter_map(|c| c["mse"].as_f64()).reduce(f64::min)),
+                "selected" => sel["designed"]["mse"].as_f64(),
+                _ => None,
+            })),
+            fig("identifiability-range.png", "Cramér–Rao bound of a single return's range at every delay of the cycle, per code set (LiDAR grid): where two ranges alias the bound peaks."),
+            fig("identifiability-lifetime.png", "Cramér–Rao bound of the lifetime (onset known), worst over the onsets, per code set (FLIm grid, heterodyne K = 8)."),
+            Block::Table(projection),
+            Block::Text("Both sets are written to the sensor's code memory: code-memory/selected/ and code-memory/learned/ hold one binary per channel (chNN.bin), the combined image codes.bin and the registers (ECLEN = L/8 − 1). Write them to the sensor with your acquisition software, or read them back with tcsense codes import. The learned set's registers:".into()),
+            Block::Code(regs),
+        ],
+    });
+
+    // tap images
+    sections.push(Section {
+        id: "taps".into(),
+        title: "Tap images".into(),
+        blocks: vec![
+            Block::Text("What the sensor reads out for one LiDAR test frame: one image per tap, each pixel the light of its 2×2 subpixel's code channel integrated over the frame, with shot and read noise (as in the paper's Fig. 15b). These are the decoders' only input.".into()),
+            fig("taps.png", "The four tap images of the LiDAR test frame shown below (selected codes)."),
+        ],
+    });
+
+    // LiDAR
+    let lj = read_json(&dir.join("results/lidar.json"))?;
+    let src = "results/lidar.json";
+    let rows = result_rows(src, &lj, &["decoder", "codes", "engine"], &[
+        ("mse", Format::Sci(3)),
+        ("psnr_db", Format::Fixed(2)),
+        ("range_rmse_m/0", Format::Fixed(3)),
+        ("range_rmse_m/1", Format::Fixed(3)),
+        ("detection_pct/0", Format::Fixed(1)),
+        ("detection_pct/1", Format::Fixed(1)),
+        ("ms_per_frame", Format::Fixed(1)),
+    ]);
+    let findings_lidar = findings(&lj, &[("mse", "MSE", Format::Sci(3), ""), ("range_rmse_m/0", "range RMSE of return 1", Format::Fixed(3), " m"), ("range_rmse_m/1", "range RMSE of return 2", Format::Fixed(3), " m")]);
+    sections.push(Section {
+        id: "lidar".into(),
+        title: "LiDAR with multipath".into(),
+        blocks: vec![
+            Block::Table(Table {
+                caption: format!("LiDAR test split, {} items, noisy (in the style of the paper's Table 4). Every decoder of a code set sees the same measurements; the learned-codes rows measure the same scenes with the same noise seeds through their own codes, as does the zoo's decoder as shipped (zoo:admm-lidar-delay, trained for hours on the prototype's codes); the zoo's decoder fine-tuned to the selected codes had the training time of ADMM-Net from scratch. Range errors over the pixels where the truth and the decoder both have that return; the U-Net estimates range directly and has no cube (no MSE).", plan.lidar_eval_items),
+                headers: ["decoder", "codes", "engine", "MSE", "PSNR (dB)", "range RMSE return 1 (m)", "range RMSE return 2 (m)", "detected return 1 (%)", "detected return 2 (%)", "time per frame (ms)"].map(String::from).to_vec(),
+                rows,
+            }),
+            Block::Text(findings_lidar),
+            fig("waveforms-lidar.png", "Waveforms at three pixels of one test frame (the first with a diffusive sheet) against the truth (as in the paper's Fig. 18): the pixel nearest the centre with a return behind the sheet, the centre, the farthest first return (quarter points where these coincide)."),
+            fig("depth.png", "Range of the first and second return, truth and each decoder (TVAL3 and ADMM-Net by peak detection in the cube, the U-Net directly); one colour scale over the unambiguous range."),
+            fig("depth-error.png", "Absolute range error of each decoder and return."),
+            fig("point-cloud.png", "The same frame as point clouds (pinhole camera, 40° field of view; as in the paper's Fig. 17)."),
+        ],
+    });
+
+    // FLIm
+    let fj = read_json(&dir.join("results/flim.json"))?;
+    let src = "results/flim.json";
+    let rows = result_rows(src, &fj, &["decoder", "engine"], &[("mse", Format::Sci(3)), ("psnr_db", Format::Fixed(2)), ("lifetime_mae_ns", Format::Fixed(3)), ("lifetime_within_02ns_pct", Format::Fixed(1)), ("ms_per_frame", Format::Fixed(1))]);
+    let findings_flim = findings(&fj, &[("mse", "MSE", Format::Sci(3), ""), ("lifetime_mae_ns", "lifetime MAE", Format::Fixed(3), " ns")]);
+    sections.push(Section {
+        id: "flim".into(),
+        title: "Fluorescence lifetime imaging".into(),
+        blocks: vec![
+            Block::Table(Table {
+                caption: format!("FLIm test split, {} items, noisy, selected codes (in the style of the paper's Table 5). Lifetime error: mean absolute error of the amplitude-weighted mean lifetime over the pixels holding a fluorophore (a cube's by the reconvolution fit with the IRF fitted; the fit to the taps and the lifetime decoder have no cube, so no MSE). The zoo's decoders as shipped (zoo:admm-flim-delay, trained for 3.8 hours, and zoo:lifetime-flim, 39 minutes, on the prototype's codes) measure the same scenes with the same noise seeds through their own codes.", plan.flim_eval_items),
+                headers: ["decoder", "engine", "MSE", "PSNR (dB)", "lifetime MAE (ns)", "within 0.2 ns (%)", "time per frame (ms)"].map(String::from).to_vec(),
+                rows,
+            }),
+            Block::Text(findings_flim),
+            fig("waveforms-flim.png", "Decays at three pixels of FLIm test frame 0 (shortest and longest true lifetime, centre) against the truth (as in the paper's Fig. 20)."),
+            fig("lifetime.png", "Lifetime map: the generator's amplitude-weighted mean lifetimes, the reconvolution fit to the true cube (the fit's own error), the fits to each decoder's cube, and the lifetimes fitted to the tap images directly."),
+            fig("phasor.png", "Phasor plot of every pixel (first harmonic, background removed, phase referenced to the frame's decay onset at the peak of its summed decay): single exponentials lie on the semicircle, mixtures of lifetimes inside it."),
+        ],
+    });
+
+    // training
+    sections.push(Section {
+        id: "training".into(),
+        title: "Training curves".into(),
+        blocks: vec![
+            fig("training-lidar.png", "ADMM-Net on LiDAR with the selected codes and with codes learned jointly (metrics.csv of each run; the learned run's relaxed epochs, then its fine-tuning on the projected codes), and the zoo's ADMM-Net fine-tuned to the selected codes in the same time as the run from scratch: what starting from the zoo buys."),
+            fig("training-unet.png", "Aᵀ + U-Net: depth loss and validation range RMSE."),
+            fig("training-flim.png", "ADMM-Net on FLIm."),
+        ],
+    });
+
+    // deployment timing
+    let tj = read_json(&dir.join("results/timing.json"))?;
+    let src = "results/timing.json";
+    let mut rows = Vec::new();
+    for (i, d) in tj["decoders"].as_array().cloned().unwrap_or_default().iter().enumerate() {
+        for (j, e) in d["timing"]["engines"].as_array().cloned().unwrap_or_default().iter().enumerate() {
+            let p = |k: &str| format!("/decoders/{i}/timing/engines/{j}/{k}");
+            let fps = e["frames_per_s"].as_f64().unwrap_or(0.0);
+            rows.push(vec![
+                Cell::text(format!("runs/{}", d["run"].as_str().unwrap_or(""))),
+                Cell::text(e["engine"].as_str().unwrap_or("")),
+                Cell::from_json(src, &tj, &p("ms_per_frame"), Format::Fixed(1)),
+                Cell::from_json(src, &tj, &p("frames_per_s"), Format::Fixed(1)),
+                Cell::text(if fps >= SENSOR_FPS { "yes" } else { "no" }),
+            ]);
+        }
+    }
+    let (th, tw) = (r.timing_size[0], r.timing_size[1]);
+    sections.push(Section {
+        id: "deployment".into(),
+        title: "Deployment: ONNX and timing".into(),
+        blocks: vec![
+            Block::Table(Table {
+                caption: format!("Time per {th}×{tw} frame, batch 1, median of {} interleaved rounds on this machine ({} threads available); the sensor delivers {SENSOR_FPS} frames/s.", plan.timing_rounds, rayon::current_num_threads()),
+                headers: ["decoder", "engine", "ms per frame", "frames/s", "keeps up with the sensor"].map(String::from).to_vec(),
+                rows,
+            }),
+            Block::Text("Each trained decoder is exported to onnx/NAME.onnx (opset 17; input measurements [B, 4, H, W], the raw tap images; output cube [B, T, H, W] or depth and confidence [B, 2, H, W]; codes, clock and sensor model in the metadata). Run them on recorded tap images with:".into()),
+            Block::Code(format!(
+                "tcsense infer --model {0}/onnx/unet-lidar.onnx --measurements {0}/frames/lidar-y.npy --products depth,ply -o out/\ntcsense infer --model {0}/onnx/admm-flim.onnx --measurements {0}/frames/flim-y.npy --products cube,lifetime -o out/\ntcsense eval --dataset {0}/lidar --codes {0}/codes/selected.json --irf physical --decoder tval3 --decoder onnx:{0}/onnx/admm-lidar.onnx --noise",
+                dir.display()
+            )),
+        ],
+    });
+    sections.push(run_log);
+    // results first: what was done, the two applications, then how (codes, tap images,
+    // training), deployment and the run's log
+    let order = ["overview", "lidar", "flim", "codes", "taps", "training", "deployment", "run"];
+    sections.sort_by_key(|s| order.iter().position(|o| *o == s.id).unwrap_or(order.len()));
+    let version = env!("CARGO_PKG_VERSION");
+    Ok(Report {
+        title: "tcsense demo report".into(),
+        subtitle: format!("tcsense {version}; prototype sensor 4 taps, 2×2, L = 32, 607 MHz; {}×{} frames; budget {} min; seed {}; written by `tcsense demo{}`", r.size[0], r.size[1], r.budget_minutes, r.seed, if r.quick { " --quick" } else { "" }),
+        sections,
+    })
+}

@@ -1,0 +1,181 @@
+//! The demo's steps: the sensor of a dataset, numbered steps with their wall times, one
+//! training, the metric rows, and the frames every decoder decodes for the figures.
+
+use super::*;
+
+pub(super) fn physical_irf() -> Irf {
+    Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S }
+}
+
+/// The sensor of a dataset's grid with these codes (physical IRF).
+pub(super) fn sensor(codes: &Codes, ds: &Dataset) -> Result<Sensor> {
+    Ok(Sensor::ideal(codes.clone(), ds.manifest.grid.sampling, physical_irf())?)
+}
+
+/// Numbered steps with their wall times.
+pub(super) struct Steps<'a> {
+    pub(super) obs: &'a dyn Observer,
+    pub(super) n: usize,
+    pub(super) of: usize,
+    pub(super) times: Vec<(String, f64)>,
+}
+
+impl Steps<'_> {
+    pub(super) fn run<T>(&mut self, what: &str, f: impl FnOnce() -> Result<T>) -> Result<T> {
+        self.n += 1;
+        self.obs.line(&format!("[{}/{}] {what}", self.n, self.of));
+        let t0 = Instant::now();
+        let v = f()?;
+        self.times.push((what.to_string(), t0.elapsed().as_secs_f64()));
+        Ok(v)
+    }
+}
+
+pub(super) fn cancelled(cancel: &AtomicBool) -> Result<()> {
+    if cancel.load(Ordering::SeqCst) {
+        bail!("interrupted; rerun the same command to resume");
+    }
+    Ok(())
+}
+
+/// Train (or resume) one run of the plan.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn train_one(t: &TrainPlan, plan: &Plan, ds: &Dataset, ds_dir: &Path, codes: &Codes, run: &Path, obs: &dyn Observer, cancel: &AtomicBool) -> Result<()> {
+    let resume = run.join(CONFIG_FILE).exists();
+    let cfg = if resume {
+        TrainConfig::load(&run.join(CONFIG_FILE))?
+    } else {
+        let mut cfg = TrainConfig::for_dataset(model_of(&t.name, ds), ds_dir, ds);
+        cfg.run.irf = physical_irf();
+        cfg.epochs = t.epochs;
+        cfg.seed = plan.request.seed;
+        cfg.max_val_items = Some(plan.val_items);
+        if let Some(c) = plan.crop {
+            cfg.augment = cfg.augment.map(|g| tcsense_train::Augmentation { crop: Some(c), ..g });
+        }
+        if t.name.starts_with("learned") {
+            cfg.learn_codes = Some(LearnCodes::new(codes.constraints, t.epochs));
+        }
+        if t.name.starts_with("zoo") {
+            let Some((zoo_dir, _)) = zoo_entry(ds) else { bail!("the plan fine-tunes zoo:{ZOO_ENTRY}, but the zoo no longer holds it (see TCSENSE_ZOO)") };
+            cfg.init_from = Some(zoo_dir.display().to_string());
+        }
+        cfg
+    };
+    let start = if resume && t.name.starts_with("learned") && !run.join(CODES_FILE).exists() { Codes::load(&run.join(tcsense_train::deep_sensing::START_CODES_FILE))? } else if resume { Codes::load(&run.join(CODES_FILE))? } else { codes.clone() };
+    let res = train(&cfg, &start, run, resume, obs.training(), cancel);
+    match res {
+        Ok(_) => Ok(()),
+        Err(TrainError::Cancelled) => bail!("interrupted; the last checkpoint in {} is kept: rerun the same command to resume", run.display()),
+        Err(e) => Err(e.into()),
+    }
+}
+
+/// The engine that runs a decoder given by its spec (`tval3`, `KIND:RUN`, `onnx:MODEL`).
+pub(super) fn engine(spec: &str) -> &'static str {
+    if spec.starts_with("onnx:") {
+        "ONNX Runtime"
+    } else if spec == "tval3" {
+        "Rust (TVAL3)"
+    } else if spec == "lifetime-fit" {
+        "Rust (fit to the taps)"
+    } else {
+        "burn (flex)"
+    }
+}
+
+/// A row of a metric table: what every decoder has, and the domain's own metrics `own`.
+pub(super) fn result_row(r: &EvalRow, codes: &str, decoder: &str, engine: &str, own: Value) -> Value {
+    let mut row = json!({
+        "decoder": decoder,
+        "codes": codes,
+        "engine": engine,
+        "items": r.items,
+        "mse": r.mse,
+        "psnr_db": r.psnr_db,
+        "ms_per_frame": r.seconds_per_frame * 1e3,
+    });
+    if let (Some(row), Value::Object(own)) = (row.as_object_mut(), own) {
+        row.extend(own);
+    }
+    row
+}
+
+pub(super) fn lidar_row(r: &EvalRow, codes: &str, decoder: &str, engine: &str) -> Value {
+    let own = json!({
+        "range_rmse_m": r.depth.iter().map(|d| d.rmse_m).collect::<Vec<_>>(),
+        "range_mae_m": r.depth.iter().map(|d| d.mae_m).collect::<Vec<_>>(),
+        "detection_pct": r.depth.iter().map(|d| 100.0 * d.detection_rate()).collect::<Vec<_>>(),
+    });
+    result_row(r, codes, decoder, engine, own)
+}
+
+pub(super) fn flim_row(r: &EvalRow, codes: &str, decoder: &str, engine: &str) -> Value {
+    let own = json!({
+        "lifetime_mae_ns": r.lifetime_mae_s.map(|v| v * 1e9),
+        "lifetime_within_02ns_pct": r.lifetime_within_02ns.map(|v| v * 100.0),
+    });
+    result_row(r, codes, decoder, engine, own)
+}
+
+/// Decode one test item of each dataset (with the evaluation's noise for that item) with every
+/// decoder and keep the inputs and outputs in `DIR/frames/` as `.npy`; which items, in
+/// `DIR/frames/frames.json`.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn decode_frames(dir: &Path, lidar: &Dataset, flim: &Dataset, selected: &Codes, learned: &Codes, noise: &NoiseParams, seed: u64, cancel: &AtomicBool) -> Result<()> {
+    let frames = dir.join("frames");
+    let runs_dir = dir.join("runs");
+    let ctl = Control::quiet(cancel);
+    // the LiDAR frame: the first test item with a return behind a sheet in ≥ 5 % of its pixels
+    let depth = lidar.load("test", "depth")?.into_dimensionality::<Ix4>()?;
+    let (n, k, fh, fw) = depth.dim();
+    let lidar_index = if k > 1 { (0..n).find(|&i| depth.slice(ndarray::s![i, 1, .., ..]).iter().filter(|v| v.is_finite()).count() * 20 >= fh * fw).unwrap_or(0) } else { 0 };
+    write_json(&frames.join("frames.json"), &json!({ "lidar_test_index": lidar_index, "flim_test_index": 0 }))?;
+    let item = |ds: &Dataset, i: usize| -> Result<Array4<f32>> {
+        let x = ds.load("test", "x")?.into_dimensionality::<Ix4>()?;
+        Ok(x.slice_axis(Axis(0), ndarray::Slice::from(i..i + 1)).to_owned())
+    };
+    let jobs: [FrameJob<'_>; 3] = [
+        ("lidar", lidar, selected, vec![("tval3", "tval3".into()), ("admm", format!("admm-net:{}", runs_dir.join("admm-lidar").display())), ("unet", format!("unet:{}", runs_dir.join("unet-lidar").display()))]),
+        ("lidar-learned", lidar, learned, vec![("admm", format!("admm-net:{}", runs_dir.join("learned-lidar").display()))]),
+        ("flim", flim, selected, vec![("tval3", "tval3".into()), ("admm", format!("admm-net:{}", runs_dir.join("admm-flim").display())), ("fit", "lifetime-fit".into())]),
+    ];
+    for (tag, ds, codes, decoders) in jobs {
+        let a = sensor(codes, ds)?;
+        let index = if tag.starts_with("lidar") { lidar_index } else { 0 };
+        let x = item(ds, index)?;
+        let (_, _, fh, fw) = x.dim();
+        let y_path = frames.join(format!("{tag}-y.npy"));
+        // the evaluation's noise for this item
+        let y = measure_batch(&a.plan(fh, fw)?, &x.view(), Some(noise), derive_seed(seed, index as u64))?;
+        write_npy(&y_path, &y.index_axis(Axis(0), 0).to_owned().view())?;
+        // the truth, once per dataset (`lidar-learned` shares `lidar`'s)
+        let x_path = frames.join(format!("{}-x.npy", tag.split('-').next().unwrap_or(tag)));
+        if !x_path.exists() {
+            write_npy(&x_path, &x.index_axis(Axis(0), 0).to_owned().view())?;
+        }
+        for (name, spec) in decoders {
+            let out_cube = frames.join(format!("{tag}-{name}.npy"));
+            let out_depth = frames.join(format!("{tag}-{name}-depth.npy"));
+            let out_lifetime = frames.join(format!("{tag}-{name}-lifetime.npy"));
+            if out_cube.exists() || out_depth.exists() || out_lifetime.exists() {
+                continue;
+            }
+            let mut d = open_decoder(&spec, &Tval3Options::default(), &Device::flex())?;
+            let out = d.decoder.decode(y.view(), &a, &ctl).map_err(|e| PipelineError::Invalid(format!("{spec}: {e}")))?;
+            if let Some(c) = out.cube {
+                write_npy(&out_cube, &c.index_axis(Axis(0), 0).to_owned().view())?;
+            }
+            if let Some(dp) = out.depth {
+                write_npy(&out_depth, &dp.index_axis(Axis(0), 0).to_owned().view())?;
+            }
+            if let Some(l) = out.lifetime {
+                write_npy(&out_lifetime, &l.index_axis(Axis(0), 0).to_owned().view())?;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// One dataset's test frame through decoders: (file tag, dataset, codes, [(name, decoder spec)]).
+pub(super) type FrameJob<'a> = (&'a str, &'a Dataset, &'a Codes, Vec<(&'a str, String)>);
