@@ -11,7 +11,7 @@ use std::sync::atomic::AtomicBool;
 use tcsense_models::{tval3, Tval3Options};
 use tcsense_sensor::codes::{CodeShape, Codes, Constraints};
 use tcsense_sensor::generate::random_codes;
-use tcsense_sensor::{MeasurementMatrix, SensorParams, SensorSpec};
+use tcsense_sensor::{Sensor, SensorParams};
 
 /// Sensor settings that do not come from the codes (sampling, IRF).
 #[derive(Debug, Clone, Copy)]
@@ -26,8 +26,8 @@ pub struct EvalSetup {
 /// # Shapes
 /// - `cubes`: each `[T, H, W]`
 pub fn evaluate(codes: &Codes, setup: &EvalSetup, cubes: &[Array3<f32>], cancel: &AtomicBool) -> Result<f64> {
-    let spec: SensorSpec = SensorParams { sampling: setup.base.sampling, irf: setup.base.irf, noise: setup.base.noise, ..SensorParams::from_codes(codes) }.validate()?;
-    let a = MeasurementMatrix::synthesize(codes, &spec)?;
+    let sensor = Sensor::ideal(codes.clone(), setup.base.sampling, setup.base.irf)?;
+    let a = sensor.matrix();
     let mut total = 0.0;
     for x in cubes {
         let (_, h, w) = x.dim();

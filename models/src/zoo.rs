@@ -127,9 +127,8 @@ fn read_entry(name: &str, dir: &Path) -> Result<Entry> {
 fn alias_of(codes: &tcsense_sensor::Codes, json: &serde_json::Value) -> Option<f64> {
     let sampling: tcsense_sensor::Sampling = serde_json::from_value(json.get("sampling")?.clone()).ok()?;
     let irf: tcsense_sensor::Irf = serde_json::from_value(json.get("irf")?.clone()).ok()?;
-    let spec = tcsense_sensor::SensorParams { sampling, irf, ..tcsense_sensor::SensorParams::from_codes(codes) }.validate().ok()?;
-    let a = tcsense_sensor::MeasurementMatrix::synthesize(codes, &spec).ok()?;
-    Some(tcsense_sensor::identify::range_alias(&tcsense_sensor::identify::Columns::new(&a, sampling.k())).distance)
+    let sensor = tcsense_sensor::Sensor::ideal(codes.clone(), sampling, irf).ok()?;
+    Some(tcsense_sensor::identify::range_alias(&tcsense_sensor::identify::Columns::new(sensor.matrix(), sampling.k())).distance)
 }
 
 /// The number of rows of a `metrics.csv` and its last row's validation columns (none when

@@ -10,7 +10,7 @@ use tcsense_infer::figures::{self, Series};
 use tcsense_infer::report::{Cell, Format, Table};
 use tcsense_sensor::identify::{self, AnalyzeOptions, Light};
 use tcsense_sensor::params::C;
-use tcsense_sensor::{Codes, Irf, MeasurementMatrix, Sampling, SensorParams};
+use tcsense_sensor::{Codes, Irf, Sampling, Sensor};
 
 /// The heterodyne steps of the demo's FLIm grid.
 const FLIM_K: usize = 8;
@@ -21,10 +21,8 @@ pub fn analyse(sets: &[(&str, &Codes)], irf: Irf) -> Result<Value> {
     let light = Light::default();
     let mut out = Vec::new();
     for (name, codes) in sets {
-        let lidar_spec = SensorParams { irf, ..SensorParams::from_codes(codes) }.validate()?;
-        let lidar = identify::analyze(&MeasurementMatrix::synthesize(codes, &lidar_spec)?, 1, &light, &AnalyzeOptions::default());
-        let flim_spec = SensorParams { irf, sampling: Sampling::Heterodyne(FLIM_K), ..SensorParams::from_codes(codes) }.validate()?;
-        let flim = identify::analyze(&MeasurementMatrix::synthesize(codes, &flim_spec)?, FLIM_K, &light, &AnalyzeOptions { lifetime: true, ..Default::default() });
+        let lidar = identify::analyze(Sensor::ideal((*codes).clone(), Sampling::Oversample(1), irf)?.matrix(), 1, &light, &AnalyzeOptions::default());
+        let flim = identify::analyze(Sensor::ideal((*codes).clone(), Sampling::Heterodyne(FLIM_K), irf)?.matrix(), FLIM_K, &light, &AnalyzeOptions { lifetime: true, ..Default::default() });
         let mm = |bins: f64, r: &identify::Report| bins * r.bin_width_s * C / 2.0 * 1e3;
         let lifetime = flim.lifetime.clone().unwrap_or_default();
         let worst_rel = lifetime.iter().map(|p| p.known_worst_s / p.tau_s).fold(0.0, f64::max);

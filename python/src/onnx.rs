@@ -11,7 +11,6 @@ use pyo3::types::{PyDict, PyList};
 use tcsense_infer::onnx::{export_to, ExportOptions};
 use tcsense_infer::runtime::OnnxModel;
 use tcsense_models::{runs, zoo, Device};
-use tcsense_sensor::calibration::Calibration;
 
 use crate::codes::PyCodes;
 use crate::{check_rank, err, existing, f32_array, path_of, run_long};
@@ -38,7 +37,8 @@ fn export_onnx(py: Python<'_>, run: &Bound<'_, PyAny>, out: &Bound<'_, PyAny>, m
     }
     run_long(py, |_| -> PyResult<usize> {
         let loaded = runs::load(&dir, &Device::flex()).map_err(err)?;
-        let cal = cal_dir.as_ref().map(|d| Calibration::load(d, loaded.sensor.nominal(), loaded.sensor.codes())).transpose().map_err(err)?;
+        let calibrated = cal_dir.as_ref().map(|d| loaded.sensor.clone().calibrated_from(d)).transpose().map_err(err)?;
+        let cal = calibrated.as_ref().and_then(|s| s.calibration()).cloned();
         export_to(&loaded, ExportOptions { matrix_input, calibration: cal.as_ref() }, &out).map_err(err)
     })?
 }

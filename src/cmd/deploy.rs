@@ -40,7 +40,8 @@ pub fn export(cmd: ExportCmd) -> Result<ExitCode> {
     match cmd {
         ExportCmd::Onnx { run, matrix_input, calibration, output } => {
             let loaded = runs::load(&run, &Device::flex())?;
-            let cal = calibration.as_ref().map(|d| tcsense_sensor::calibration::Calibration::load(d, loaded.sensor.nominal(), loaded.sensor.codes())).transpose()?;
+            let calibrated = calibration.as_ref().map(|d| loaded.sensor.clone().calibrated_from(d)).transpose()?;
+            let cal = calibrated.as_ref().and_then(|s| s.calibration()).cloned();
             let opts = ExportOptions { matrix_input, calibration: cal.as_ref() };
             let bytes = export_to(&loaded, opts, &output)?;
             let meta = tcsense_infer::onnx::OnnxMeta::of_run(&loaded, opts);

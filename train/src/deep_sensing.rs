@@ -30,7 +30,7 @@ use std::path::Path;
 use tcsense_models::learned_codes::{alias_penalty, basis_tensor, forward, hamming_penalty, hard_codes, matrix, window_penalty, CodeLogits, CodeRelaxation};
 use tcsense_models::net::to_tensor;
 use tcsense_models::runs::RunSpec;
-use tcsense_sensor::params::SensorParams;
+use tcsense_sensor::Sensor;
 use tcsense_sensor::{Codes, Constraints, MeasurementMatrix};
 
 use crate::{file_err, Result, TrainError};
@@ -134,8 +134,8 @@ impl Learner {
     /// Logits at `start` (± the margin) on `device` (an autodiff device).
     pub fn new(lc: &LearnCodes, start: &Codes, spec: &RunSpec, device: &Device) -> Result<Self> {
         let relax = CodeRelaxation { taps: start.taps(), tap: lc.constraints.tap, drain: start.drain() };
-        let sensor = SensorParams { sampling: spec.sampling, irf: spec.irf, ..SensorParams::from_codes(start) }.validate()?;
-        let basis = basis_tensor(&MeasurementMatrix::code_basis(&sensor), device);
+        let sensor = Sensor::ideal(start.clone(), spec.sampling, spec.irf)?;
+        let basis = basis_tensor(&MeasurementMatrix::code_basis(sensor.spec()), device);
         let mut logits = CodeLogits::from_codes(start, &relax, lc.init_margin, device);
         logits.theta.id = ParamId::from(LOGITS_ID);
         let hard = hard_codes(&logits.to_array(), &relax, start)?;

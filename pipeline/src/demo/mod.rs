@@ -198,8 +198,8 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
             let mut on = |c: &tcsense_infer::selection::Candidate| obs.line(&format!("  candidate seed {:>3}: TVAL3 MSE {:.4e}", c.seed, c.mse));
             let (best, all) = select(generate::PROTOTYPE_SHAPE, DEFAULT_CLOCK_HZ, constraints, plan.candidates, seed, &setup, &cubes, &mut on, cancel)?;
             // design by identifiability: closed form, seconds
-            let spec = SensorParams { sampling: g.sampling, irf: physical_irf(), ..SensorParams::from_codes(&best) }.validate()?;
-            let obj = Objective::new(Criterion::Range, &spec, Light::default(), DEFAULT_ALIAS_THRESHOLD);
+            let sensor = Sensor::ideal(best.clone(), g.sampling, physical_irf())?;
+            let obj = Objective::new(Criterion::Range, sensor.spec(), Light::default(), DEFAULT_ALIAS_THRESHOLD);
             let designed = design(&obj, generate::PROTOTYPE_SHAPE, DEFAULT_CLOCK_HZ, constraints, &DesignOptions { seed, ..Default::default() }, &Quiet, cancel)?;
             let designed_mse = evaluate_codes(&designed.codes, &setup, &cubes, cancel)?;
             obs.line(&format!(
