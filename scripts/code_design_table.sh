@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The README's code-design table: for the prototype's constraints (4 taps, 2x2, L = 32,
+# The code-design table of docs/codes.md: for the prototype's constraints (4 taps, 2x2, L = 32,
 # tap + H 2 + W 2, physical IRF), TVAL3 MSE, range alias, worst and mean range bound and the
 # worst lifetime bound of
 #   - the zoo's prototype codes (random, seed 1), the best of 20 random sets by TVAL3 MSE

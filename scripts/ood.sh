@@ -6,7 +6,7 @@
 # from the scikit-image wheel). Every decoder sees the same noisy measurements of a set.
 #
 #   scripts/ood.sh [OUT]          (default OUT = ood-out; about 75 minutes on two cores;
-#                                  the README's tables come from these defaults)
+#                                  the tables of docs/results.md come from these defaults)
 #
 # Sizes and budgets can be set from the environment: SIZE (32x32), LIDAR_COUNT (600),
 # FLIM_COUNT (400), LIDAR_EPOCHS (40), UNET_EPOCHS (150), FLIM_EPOCHS (16), FLIM_DELAY_EPOCHS (8:

@@ -5,7 +5,7 @@
 //!
 //! `tcsense simulate` writes one; every decoder that reads `y.npy` checks it when it is there
 //! and refuses measurements of another sensor (exit 2, naming the sidecar and the field). A
-//! sensor's own software can write the same file (the format is documented in the README).
+//! sensor's own software can write the same file (the format is documented in docs/formats.md).
 
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
