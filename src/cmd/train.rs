@@ -511,52 +511,13 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     let cancel = interrupt_flag();
     let pb = ProgressBar::new(1);
     pb.set_style(ProgressStyle::with_template("[{bar:30}] {pos}/{len} steps {per_sec} eta {eta} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
-    let network = match &cfg.run.model {
-        ModelConfig::AdmmNet(m) => format!("ADMM-Net S = {}, CN = {}, M = {}, T = {}", m.stages, m.channels, m.taps, m.bins),
-        ModelConfig::Lifetime(m) => format!("lifetime decoder: {} harmonics, U-Net base width {}, {} levels, M = {}, T = {}, {:.2} GFLOP per 188x212 frame", m.harmonics, m.base_width, m.levels, m.taps, m.bins, m.flops(188, 212) / 1e9),
-        ModelConfig::Unet(m) => format!("Aᵀ + U-Net K = {}, base width {}, {} levels, M = {}, T = {}, range {:.2} m, {:.2} GFLOP per 188x212 frame", m.returns, m.base_width, m.levels, m.taps, m.bins, m.range_m, m.flops(188, 212) / 1e9),
-    };
-    println!(
-        "{network}; {} epochs, batch {}, lr {} ({}), loss {:?}, noise {}, augmentation {}",
-        cfg.epochs,
-        cfg.batch_size,
-        cfg.learning_rate,
-        match cfg.lr_schedule {
-            LrSchedule::Constant => "constant".to_string(),
-            LrSchedule::Cosine { final_fraction, warmup_steps } => format!("cosine to {final_fraction}×, {warmup_steps} warm-up steps"),
-        },
-        cfg.loss,
-        if cfg.noise.is_some() { "shot + read" } else { "off" },
-        match &cfg.augment {
-            None => "off".to_string(),
-            Some(g) => format!(
-                "shifts {}, flips {}, crop {}, brightness {:?}, signal {:?} of full well{}",
-                g.time_shift,
-                g.flips,
-                g.crop.map_or("none".into(), |[h, w]| format!("{h}x{w}")),
-                g.brightness,
-                g.signal_fraction,
-                if g.sensor_residue.iter().any(|&v| v != 0.0) { format!(", sensor residue (tap gain, PRNU, dark) {:?}", g.sensor_residue) } else { String::new() }
-            ),
-        }
-    );
+    println!("{}", cfg.summary());
     if let Some(m) = &measured {
         // the settings and the matrix are checked before the run takes a copy
         setup::write_measured_sensor(&cfg, &codes, m, run_dir)?;
     }
     if let Some(lc) = &cfg.learn_codes {
-        println!(
-            "learning the codes: {} relaxed epochs (τ {} → {}, codes lr {}, penalty weight {}, alias weight {} at {}), then {} epochs on the codes projected onto {}",
-            lc.relaxed_epochs,
-            lc.tau_start,
-            lc.tau_end,
-            lc.codes_lr,
-            lc.penalty_weight,
-            lc.alias_weight,
-            lc.alias_threshold,
-            cfg.epochs.saturating_sub(lc.relaxed_epochs),
-            lc.constraints.label()
-        );
+        println!("{}", lc.summary(cfg.epochs));
     }
     if a.pause_after == Some(0) {
         bail!("--pause-after 0: expected at least one epoch");

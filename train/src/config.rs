@@ -109,6 +109,39 @@ pub struct TrainConfig {
 }
 
 impl TrainConfig {
+    /// One line for people: the network, the schedule, the loss, the noise and the augmentation.
+    pub fn summary(&self) -> String {
+        let network = match &self.run.model {
+            ModelConfig::AdmmNet(m) => format!("ADMM-Net S = {}, CN = {}, M = {}, T = {}", m.stages, m.channels, m.taps, m.bins),
+            ModelConfig::Lifetime(m) => format!("lifetime decoder: {} harmonics, U-Net base width {}, {} levels, M = {}, T = {}, {:.2} GFLOP per 188x212 frame", m.harmonics, m.base_width, m.levels, m.taps, m.bins, m.flops(188, 212) / 1e9),
+            ModelConfig::Unet(m) => format!("Aᵀ + U-Net K = {}, base width {}, {} levels, M = {}, T = {}, range {:.2} m, {:.2} GFLOP per 188x212 frame", m.returns, m.base_width, m.levels, m.taps, m.bins, m.range_m, m.flops(188, 212) / 1e9),
+        };
+        format!(
+            "{network}; {} epochs, batch {}, lr {} ({}), loss {:?}, noise {}, augmentation {}",
+            self.epochs,
+            self.batch_size,
+            self.learning_rate,
+            match self.lr_schedule {
+                LrSchedule::Constant => "constant".to_string(),
+                LrSchedule::Cosine { final_fraction, warmup_steps } => format!("cosine to {final_fraction}×, {warmup_steps} warm-up steps"),
+            },
+            self.loss,
+            if self.noise.is_some() { "shot + read" } else { "off" },
+            match &self.augment {
+                None => "off".to_string(),
+                Some(g) => format!(
+                    "shifts {}, flips {}, crop {}, brightness {:?}, signal {:?} of full well{}",
+                    g.time_shift,
+                    g.flips,
+                    g.crop.map_or("none".into(), |[h, w]| format!("{h}x{w}")),
+                    g.brightness,
+                    g.signal_fraction,
+                    if g.sensor_residue.iter().any(|&v| v != 0.0) { format!(", sensor residue (tap gain, PRNU, dark) {:?}", g.sensor_residue) } else { String::new() }
+                ),
+            }
+        )
+    }
+
     /// Defaults of the paper's Table 3 for a model config.
     pub fn new(model: ModelConfig, dataset: &Path, loss: Loss, sampling: Sampling) -> Self {
         TrainConfig {

@@ -68,6 +68,22 @@ fn default_alias_threshold() -> f64 {
 pub const DEFAULT_ALIAS_WEIGHT: f64 = 1.0;
 
 impl LearnCodes {
+    /// One line for people, for a run of `epochs` in all.
+    pub fn summary(&self, epochs: usize) -> String {
+        format!(
+            "learning the codes: {} relaxed epochs (τ {} → {}, codes lr {}, penalty weight {}, alias weight {} at {}), then {} epochs on the codes projected onto {}",
+            self.relaxed_epochs,
+            self.tau_start,
+            self.tau_end,
+            self.codes_lr,
+            self.penalty_weight,
+            self.alias_weight,
+            self.alias_threshold,
+            epochs.saturating_sub(self.relaxed_epochs),
+            self.constraints.label()
+        )
+    }
+
     /// Defaults for `epochs` in all: two thirds relaxed.
     pub fn new(constraints: Constraints, epochs: usize) -> Self {
         LearnCodes {
