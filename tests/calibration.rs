@@ -195,3 +195,37 @@ fn bad_sweeps_and_calibrations_exit_2() {
     fails(dir, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "--sensor-residue", "0.01,0.005", "-o", "r1"], &["--sensor-residue", "three numbers"]);
     fails(dir, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "--sensor-residue", "0.01,0.5,0.002", "-o", "r2"], &["sensor_residue", "PRNU"]);
 }
+
+#[test]
+fn gate_skew_and_modulation_contrast_calibrate_back_and_bad_values_exit_2() {
+    let d = tempdir();
+    let dir = d.path();
+    tiny_lidar_and_codes(dir);
+    let real: &[&str] = &["--gate-skew-ns", "0.3", "--modulation-contrast", "0.925", "--sensor-seed", "5"];
+    ok(dir, &with(&["simulate", "--codes", "codes.json", "--irf", "physical", "--sweep", "clean", "--size", "8x8", "--average", "1"], real));
+    ok(dir, &["calibrate", "--codes", "codes.json", "--irf", "physical", "--sweep", "clean", "-o", "cal", "--no-report"]);
+    let codes = tcsense_sensor::Codes::load(&dir.join("codes.json")).unwrap();
+    let nominal = tcsense_sensor::Sensor::ideal(codes.clone(), tcsense_sensor::Sampling::Oversample(1), tcsense_sensor::Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }).unwrap();
+    let truth = NonIdeal { gate_skew_s: 0.3e-9, modulation_contrast: 0.925, seed: 5, ..NonIdeal::default() }.matrix(nominal.matrix()).unwrap();
+    let cal = Calibration::load(&dir.join("cal"), nominal.matrix(), &codes).unwrap();
+    // the calibrated A is the skewed, leaking sensor's (up to the brightness), not the nominal one
+    let off = |a: ndarray::ArrayView3<'_, f32>| {
+        let scale = truth.a().sum() / a.sum();
+        let peak = truth.a().iter().fold(0f32, |p, &v| p.max(v));
+        (&a.mapv(|v| v * scale) - &truth.a()).mapv(f32::abs).iter().fold(0f32, |p, &v| p.max(v)) / peak
+    };
+    let (e_cal, e_nom) = (off(cal.matrix.a()), off(nominal.matrix().a()));
+    assert!(e_cal < 0.01 && e_nom > 0.05, "calibrated A off by {e_cal} of the peak, the nominal A by {e_nom}");
+    // the sidecar of simulated frames records the non-idealities
+    scene(dir);
+    ok(dir, &with(&["simulate", "--codes", "codes.json", "--irf", "physical", "--cube", "x.npy", "--nonlinearity", "0.2", "-o", "y.npy"], real));
+    let meta = std::fs::read_to_string(dir.join("y.meta.json")).unwrap();
+    assert!(meta.contains("\"gate_skew_s\"") && meta.contains("0.925") && meta.contains("\"nonlinearity\": 0.2"), "{meta}");
+    // out of range, or two statements of the same leakage
+    let sim = |more: &[&'static str]| with(&["simulate", "--codes", "codes.json", "--cube", "x.npy", "-o", "bad.npy"], more);
+    fails(dir, &sim(&["--modulation-contrast", "1.5"]), &["--modulation-contrast 1.5", "(0, 1]"]);
+    fails(dir, &sim(&["--nonlinearity", "0.7"]), &["nonlinearity", "0.5"]);
+    fails(dir, &sim(&["--gate-skew-ns=-1"]), &["gate_skew", "non-negative"]);
+    fails(dir, &sim(&["--crosstalk", "0.1", "--modulation-contrast", "0.9"]), &["--modulation-contrast", "--crosstalk"]);
+    assert!(!dir.join("bad.npy").exists());
+}

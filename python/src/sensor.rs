@@ -229,7 +229,7 @@ impl PySensor {
     /// What the sensor reads out (`tcsense simulate`): `A x`, with `noise` shot and read noise,
     /// full-well clipping and ADC quantisation, seeded; `nonideal` a dict of the real sensor's
     /// non-idealities (`tap_gain`, `prnu`, `dark`, `dark_fpn`, `crosstalk`, `tail`,
-    /// `tail_tau_s`, `shift_s`, `seed`). `units`: "input" (units of A x), "electrons" or "adc".
+    /// `tail_tau_s`, `shift_s`, `gate_skew_s`, `modulation_contrast`, `nonlinearity`, `seed`). `units`: "input" (units of A x), "electrons" or "adc".
     /// x `[T, H, W]` or `[B, T, H, W]` → y `[M, H, W]` or `[B, M, H, W]`.
     #[pyo3(signature = (x, noise = true, seed = 0, *, full_well = 20_000.0, read_noise = 40.0, signal_fraction = 0.8, adc_bits = 12, electrons_per_unit = None, units = "input", nonideal = None))]
     #[allow(clippy::too_many_arguments)]

@@ -88,7 +88,7 @@ class Sensor:
     def measure(self, x: F32, noise: bool = True, seed: int = 0, *, full_well: float = 20000.0, read_noise: float = 40.0, signal_fraction: float = 0.8, adc_bits: int = 12, electrons_per_unit: Optional[float] = None, units: str = "input", nonideal: Optional[Dict[str, float]] = None) -> F32:
         """What the sensor reads out (``tcsense simulate``): A x with shot and read noise (e⁻),
         full-well clipping and ADC quantisation, seeded. ``nonideal``: tap_gain, prnu, dark,
-        dark_fpn (fractions), crosstalk, tail, tail_tau_s, shift_s (s), seed. ``units``: "input"
+        dark_fpn (fractions), crosstalk, tail, tail_tau_s, shift_s, gate_skew_s (s), modulation_contrast, nonlinearity, seed. ``units``: "input"
         (units of A x), "electrons" or "adc". ``[T, H, W]`` → ``[M, H, W]`` (or batched)."""
     def correct(self, y: F32) -> F32:
         """(y − d) / G of a calibrated sensor's raw tap images ``[M, H, W]`` (or batched)."""

@@ -436,7 +436,7 @@ mod tests {
     #[test]
     fn a_simulated_sweep_calibrates_back_to_its_sensor() {
         let (codes, a) = sensor();
-        let truth = NonIdeal { tap_gain: 0.05, prnu: 0.02, dark: 0.01, dark_fpn: 0.002, crosstalk: 0.02, tail: 0.25, tail_tau_s: 0.4e-9, shift_s: 0.05e-9, seed: 11 };
+        let truth = NonIdeal { tap_gain: 0.05, prnu: 0.02, dark: 0.01, dark_fpn: 0.002, crosstalk: 0.02, tail: 0.25, tail_tau_s: 0.4e-9, shift_s: 0.05e-9, gate_skew_s: 0.1e-9, seed: 11, ..NonIdeal::default() };
         let dir = tempfile::tempdir().unwrap();
         let settings = SweepSettings { size: (8, 8), average: 256, noise: NoiseParams::default(), noisy: true, adc: false, png: false, level: 0.7, seed: 2 };
         simulate_sweep(&a, &codes, &truth, &settings, dir.path()).unwrap();

@@ -15,7 +15,16 @@
 //!   later, over the bins `j + k` with weights `∝ exp(−kΔt/tail_tau)` (cyclic), so
 //!   `A'[·, ·, j] = (1 − tail)·A[·, ·, j] + tail·Σ_{k≥1} w_k A[·, ·, j + k]`;
 //! - `δ = shift`: the whole response arrives `δ` late (drift), linearly interpolated between
-//!   bins (cyclic): `A'[·, ·, j] = A[·, ·, j − δ/Δt]`.
+//!   bins (cyclic): `A'[·, ·, j] = A[·, ·, j − δ/Δt]`;
+//! - `δ_m = gate_skew · v_m`, `v_m ~ U(−1, 1)`: each tap's gate opens `δ_m` late (skew between
+//!   the taps' gate drivers): tap `m`'s row is delayed by `δ_m` the same way;
+//! - a modulation contrast `C < 1` (what a lab measures of a multitap pixel: the lab's four-tap
+//!   pixels report 92.5 %) is the crosstalk `c` it implies: with `1 − c` in the open tap and
+//!   `c/(M − 1)` in each other, `C = (q_open − q_other)/(q_open + q_other)`, so
+//!   `c = (1 − C) / ((1 + C)/(M − 1) + 1 − C)`;
+//! - `κ = nonlinearity`: the collected charge is compressed near full well `F`,
+//!   `e' = e·(1 − κ·e/F)` (κ ≤ ½ keeps it monotone; at full well the response is `1 − κ` of the
+//!   linear one). A delay sweep at one level cannot see it: calibration leaves it in the residual.
 //!
 //! All are circular convolutions in time or mixes of taps, so they commute with the heterodyne
 //! sum and act on the final `A`. The random parts are drawn from `seed` alone (the same seed,
@@ -69,6 +78,16 @@ pub struct NonIdeal {
     /// Delay of the whole response (s), drift.
     #[serde(default)]
     pub shift_s: f64,
+    /// Skew of the taps' gates (s): tap `m` opens `gate_skew_s · v_m` late, `v_m ~ U(−1, 1)`.
+    #[serde(default)]
+    pub gate_skew_s: f64,
+    /// Modulation contrast `C` of the pixel (0: not given; 1: no leakage), stated instead of
+    /// `crosstalk`.
+    #[serde(default)]
+    pub modulation_contrast: f64,
+    /// Response compression near full well, `e' = e·(1 − κ·e/F)` (`κ` in `[0, 0.5]`).
+    #[serde(default)]
+    pub nonlinearity: f64,
     /// Seed of the random parts (tap gains, PRNU, dark pattern).
     #[serde(default)]
     pub seed: u64,
@@ -78,6 +97,7 @@ pub struct NonIdeal {
 const STREAM_TAP: u64 = 0x7a9;
 const STREAM_PRNU: u64 = 0x9a1;
 const STREAM_DARK: u64 = 0xda4;
+const STREAM_SKEW: u64 = 0x5e3;
 
 impl NonIdeal {
     /// Check the ranges; errors name the field.
@@ -100,12 +120,47 @@ impl NonIdeal {
         if !self.shift_s.is_finite() {
             return Err(invalid("shift", self.shift_s, "a finite delay"));
         }
+        if !(self.gate_skew_s.is_finite() && self.gate_skew_s >= 0.0) {
+            return Err(invalid("gate_skew", self.gate_skew_s, "a non-negative delay (s)"));
+        }
+        if !(self.modulation_contrast == 0.0 || (self.modulation_contrast > 0.0 && self.modulation_contrast <= 1.0)) {
+            return Err(invalid("modulation_contrast", self.modulation_contrast, "a contrast in (0, 1] (e.g. 0.925), or 0 for none given"));
+        }
+        if self.modulation_contrast > 0.0 && self.crosstalk > 0.0 {
+            return Err(invalid("modulation_contrast", self.modulation_contrast, "either a modulation contrast or a crosstalk share, not both (they state the same leakage)"));
+        }
+        frac("nonlinearity", self.nonlinearity, 0.5)?;
         Ok(self)
     }
 
     /// True when every non-ideality is off.
     pub fn is_ideal(&self) -> bool {
-        self.tap_gain == 0.0 && self.prnu == 0.0 && self.dark == 0.0 && self.dark_fpn == 0.0 && self.crosstalk == 0.0 && self.tail == 0.0 && self.shift_s == 0.0
+        self.tap_gain == 0.0
+            && self.prnu == 0.0
+            && self.dark == 0.0
+            && self.dark_fpn == 0.0
+            && self.crosstalk == 0.0
+            && self.tail == 0.0
+            && self.shift_s == 0.0
+            && self.gate_skew_s == 0.0
+            && (self.modulation_contrast == 0.0 || self.modulation_contrast == 1.0)
+            && self.nonlinearity == 0.0
+    }
+
+    /// The crosstalk share of `taps` taps: `crosstalk`, or the one a modulation contrast implies.
+    pub fn leakage(&self, taps: usize) -> f64 {
+        let c = self.modulation_contrast;
+        if c > 0.0 && taps > 1 {
+            (1.0 - c) / ((1.0 + c) / (taps - 1) as f64 + 1.0 - c)
+        } else {
+            self.crosstalk
+        }
+    }
+
+    /// The taps' gate delays `δ_m` (s).
+    pub fn gate_delays(&self, taps: usize) -> Vec<f64> {
+        let mut rng = StdRng::seed_from_u64(derive_seed(self.seed, STREAM_SKEW));
+        (0..taps).map(|_| if self.gate_skew_s > 0.0 { self.gate_skew_s * rng.random_range(-1.0..=1.0) } else { 0.0 }).collect()
     }
 
     /// The per-tap gains `g [M]`.
@@ -123,12 +178,14 @@ impl NonIdeal {
         let (_, m, t) = nominal.dim();
         let dt = a.bin_width_s();
         let mut out = nominal.mapv(|v| v as f64);
-        // drift: A'[j] = A[j − δ/Δt], linear interpolation, cyclic
-        if self.shift_s != 0.0 {
-            let s = self.shift_s / dt;
-            let (whole, frac) = (s.floor(), s - s.floor());
+        // drift and the taps' gate skew: A'[m, j] = A[m, j − (δ + δ_m)/Δt], linear
+        // interpolation, cyclic
+        let skew = self.gate_delays(m);
+        if self.shift_s != 0.0 || skew.iter().any(|&d| d != 0.0) {
             let src = out.clone();
             for ((k, r, j), v) in out.indexed_iter_mut() {
+                let s = (self.shift_s + skew[r]) / dt;
+                let (whole, frac) = (s.floor(), s - s.floor());
                 let j0 = (j as i64 - whole as i64).rem_euclid(t as i64) as usize;
                 let j1 = (j0 + t - 1) % t;
                 *v = (1.0 - frac) * src[(k, r, j0)] + frac * src[(k, r, j1)];
@@ -144,12 +201,13 @@ impl NonIdeal {
                 *v = (1.0 - self.tail) * src[(k, r, j)] + self.tail * late / total.max(f64::MIN_POSITIVE);
             }
         }
-        // crosstalk between taps, then the tap gains
+        // crosstalk between taps (or the modulation contrast's leakage), then the tap gains
         let g = self.tap_gains(m);
+        let leak = self.leakage(m);
         let src = out.clone();
         for ((k, r, j), v) in out.indexed_iter_mut() {
             let others: f64 = (0..m).filter(|&q| q != r).map(|q| src[(k, q, j)]).sum();
-            let mixed = if m > 1 { (1.0 - self.crosstalk) * src[(k, r, j)] + self.crosstalk / (m - 1) as f64 * others } else { src[(k, r, j)] };
+            let mixed = if m > 1 { (1.0 - leak) * src[(k, r, j)] + leak / (m - 1) as f64 * others } else { src[(k, r, j)] };
             *v = g[r] * mixed;
         }
         a.with_values(out.mapv(|v| v as f32))
@@ -171,7 +229,7 @@ impl NonIdeal {
         let s = self.validate()?;
         let matrix = s.matrix(a)?;
         let (gain, dark) = s.maps(a.taps(), h, w);
-        Ok(RealSensor { matrix, gain, dark })
+        Ok(RealSensor { matrix, gain, dark, nonlinearity: s.nonlinearity })
     }
 }
 
@@ -184,6 +242,8 @@ pub struct RealSensor {
     pub gain: Array3<f32>,
     /// `d` (`[M, H, W]`), fraction of the full well.
     pub dark: Array3<f32>,
+    /// `κ`: the response's compression near full well.
+    pub nonlinearity: f64,
 }
 
 impl RealSensor {
@@ -210,6 +270,14 @@ impl RealSensor {
         let mut mean = y.mapv(|v| v * s as f32);
         for mut frame in mean.outer_iter_mut() {
             frame.zip_mut_with(&self.dark, |e, d| *e += d * fw);
+        }
+        if self.nonlinearity > 0.0 {
+            // e' = e·(1 − κ·e/F) up to full well (monotone for κ ≤ ½)
+            let k = self.nonlinearity as f32;
+            mean.mapv_inplace(|e| {
+                let e = e.clamp(0.0, fw);
+                e * (1.0 - k * e / fw)
+            });
         }
         let electrons = if noisy {
             add_noise(&mean.view().into_dyn(), &noise, Exposure::ElectronsPerUnit(1.0), seed)?.electrons
@@ -271,6 +339,53 @@ mod tests {
         let gm = ni.matrix(&a).unwrap();
         assert!((gm.a()[(1, 2, 9)] as f64 - g[2] * a.a()[(1, 2, 9)] as f64).abs() < 1e-6);
         assert_ne!(NonIdeal { seed: 5, ..ni }.tap_gains(m), g, "another seed, other gains");
+    }
+
+    #[test]
+    fn gate_skew_contrast_and_nonlinearity_do_what_they_say() {
+        let a = nominal();
+        let (_, m, t) = a.a().dim();
+        let dt = a.bin_width_s();
+        // each tap's row is delayed by its own gate delay (whole bins here: rolled exactly)
+        let ni = NonIdeal { gate_skew_s: 3.0 * dt, seed: 2, ..NonIdeal::default() };
+        let d = ni.gate_delays(m);
+        assert!(d.iter().all(|v| v.abs() <= 3.0 * dt) && d.iter().any(|v| v.abs() > 0.5 * dt), "{d:?}");
+        assert!(d.windows(2).any(|w| w[0] != w[1]), "the taps are skewed against each other");
+        let sk = ni.matrix(&a).unwrap();
+        for r in 0..m {
+            let s = d[r] / dt;
+            let (whole, frac) = (s.floor(), s - s.floor());
+            for j in [0, 5, t - 1] {
+                let j0 = (j as i64 - whole as i64).rem_euclid(t as i64) as usize;
+                let want = (1.0 - frac) * a.a()[(1, r, j0)] as f64 + frac * a.a()[(1, r, (j0 + t - 1) % t)] as f64;
+                assert!((sk.a()[(1, r, j)] as f64 - want).abs() < 1e-6, "tap {r} bin {j}");
+            }
+        }
+        // a modulation contrast of 92.5 % on 4 taps: the open tap keeps 1 − c, each other c/3,
+        // and (open − other)/(open + other) is the contrast again
+        let mc = NonIdeal { modulation_contrast: 0.925, ..NonIdeal::default() };
+        let c = mc.leakage(4);
+        assert!((c - 0.075 / (1.925 / 3.0 + 0.075)).abs() < 1e-12);
+        let (open, other) = (1.0 - c, c / 3.0);
+        assert!(((open - other) / (open + other) - 0.925).abs() < 1e-12);
+        assert_eq!(mc.matrix(&a).unwrap(), NonIdeal { crosstalk: c, ..NonIdeal::default() }.matrix(&a).unwrap());
+        assert!(NonIdeal { modulation_contrast: 0.9, crosstalk: 0.1, ..NonIdeal::default() }.validate().unwrap_err().to_string().contains("not both"));
+        assert!(NonIdeal { modulation_contrast: 1.2, ..NonIdeal::default() }.validate().is_err());
+        assert!(NonIdeal { modulation_contrast: 1.0, ..NonIdeal::default() }.is_ideal());
+        // κ = 0.2: half a full well reads 10 % low, a tenth 2 % low, monotone up to full well
+        let real = NonIdeal { nonlinearity: 0.2, ..NonIdeal::default() }.realise(&a, 2, 2).unwrap();
+        let noise = NoiseParams { adc_bits: 0, ..NoiseParams::default() };
+        let x = Array4::<f32>::from_elem((1, a.bins(), 2, 2), 1.0);
+        let y = a.plan(2, 2).unwrap().forward_batch(&x.view()).unwrap();
+        let peak = y.iter().fold(0f32, |p, &v| p.max(v));
+        let linear = |s: f64| y.mapv(|v| v * s as f32);
+        for frac in [0.1f64, 0.5] {
+            let s = frac * 20_000.0 / peak as f64;
+            let e = real.measure(&x.view(), &noise, false, Exposure::ElectronsPerUnit(s), 0).unwrap().electrons;
+            let (got, lin) = (e.iter().fold(0f32, |p, &v| p.max(v)) as f64, linear(s).iter().fold(0f32, |p, &v| p.max(v)) as f64);
+            assert!((got / lin - (1.0 - 0.2 * frac)).abs() < 1e-4, "at {frac} of full well: {got} vs linear {lin}");
+        }
+        assert!(NonIdeal { nonlinearity: 0.6, ..NonIdeal::default() }.validate().is_err());
     }
 
     #[test]

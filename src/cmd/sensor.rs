@@ -87,7 +87,17 @@ pub struct NonIdealArgs {
     /// Delay of the whole response (drift), ns.
     #[arg(long, value_name = "NS", default_value_t = 0.0)]
     pub shift_ns: f64,
-    /// Seed of the random non-idealities (tap gains, PRNU, dark pattern).
+    /// Skew of the taps' gates (ns): each tap opens up to this much early or late (seeded).
+    #[arg(long, value_name = "NS", default_value_t = 0.0)]
+    pub gate_skew_ns: f64,
+    /// Modulation contrast of the pixel (e.g. 0.925): the tap leakage it implies, instead of
+    /// --crosstalk.
+    #[arg(long, value_name = "C", conflicts_with = "crosstalk")]
+    pub modulation_contrast: Option<f64>,
+    /// Response compression near full well κ: e' = e·(1 − κ·e/full well), 0–0.5.
+    #[arg(long, value_name = "K", default_value_t = 0.0)]
+    pub nonlinearity: f64,
+    /// Seed of the random non-idealities (tap gains, PRNU, dark pattern, gate skew).
     #[arg(long, value_name = "N", default_value_t = 0)]
     pub sensor_seed: u64,
 }
@@ -104,9 +114,15 @@ impl NonIdealArgs {
             tail: self.tail,
             tail_tau_s: self.tail_tau_ns * 1e-9,
             shift_s: self.shift_ns * 1e-9,
+            gate_skew_s: self.gate_skew_ns * 1e-9,
+            modulation_contrast: self.modulation_contrast.unwrap_or(0.0),
+            nonlinearity: self.nonlinearity,
             seed: self.sensor_seed,
         };
-        n.validate().map_err(|e| anyhow::anyhow!("sensor non-idealities (--tap-gain, --prnu, --dark, --dark-fpn, --crosstalk, --tail, --tail-tau-ns, --shift-ns): {e}"))
+        if self.modulation_contrast.is_some_and(|c| !(c > 0.0 && c <= 1.0)) {
+            bail!("--modulation-contrast {}: expected a contrast in (0, 1], e.g. 0.925", self.modulation_contrast.unwrap_or_default());
+        }
+        n.validate().map_err(|e| anyhow::anyhow!("sensor non-idealities (--tap-gain, --prnu, --dark, --dark-fpn, --crosstalk, --tail, --tail-tau-ns, --shift-ns, --gate-skew-ns, --modulation-contrast, --nonlinearity): {e}"))
     }
 }
 
