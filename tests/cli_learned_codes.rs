@@ -95,6 +95,7 @@ fn init_from_starts_from_a_trained_decoder() {
     fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "--irf", "k2.npy", "-o", "m2"], &["k2.npy", "[4, 4, 8]"]);
     fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "3", "--learn-codes", "--irf", "measured.npy", "-o", "m3"], &["learn_codes", "measured"]);
     assert!(!d.join("m2").exists() && !d.join("m3").exists());
-    // another network's weights are refused, naming them
-    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "2", "--channels", "2", "--epochs", "1", "--init-from", "a", "-o", "e"], &["a/model.bpk"]);
+    // another network than the run's is refused before anything is written, naming the run's value
+    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "2", "--channels", "2", "--epochs", "1", "--init-from", "a", "-o", "e"], &["a/config.json", "--stages 2", "stages 1"]);
+    assert!(!d.join("e").exists());
 }

@@ -1,17 +1,13 @@
-//! `tcsense train …`: resolves flags and a config file into a `TrainConfig`, shows progress.
+//! `tcsense train …`: the flags as a `tcsense_train::request::TrainRequest` (the training
+//! crate resolves it into the run), progress bars, pausing and Ctrl-C.
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 use clap::{Args, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use std::process::ExitCode;
-use tcsense_datasets::Dataset;
-use tcsense_models::runs::{ModelConfig, CONFIG_FILE};
-use tcsense_models::{AdmmNetConfig, LifetimeNetConfig, Prior, UnetConfig};
-use tcsense_sensor::{Codes, Constraints};
-use tcsense_train::deep_sensing::LearnCodes;
-use tcsense_train::setup::{self, Architecture, MeasuredSensor};
-use tcsense_train::{Augmentation, EpochMetrics, Loss, LrSchedule, Progress, TrainConfig, TrainError};
+use tcsense_train::request::{self, TrainRequest};
+use tcsense_train::{EpochMetrics, Progress, TrainError};
 
 use super::dataset::interrupt_flag;
 
@@ -297,59 +293,65 @@ enum NetArgs {
     Lifetime(LifetimeArgs),
 }
 
-impl NetArgs {
-    /// The architecture flags given (a preset gives its stages and channels).
-    fn architecture(&self) -> Architecture {
-        match self {
-            NetArgs::Admm(n) => {
-                let preset = n.preset.map(|p| preset_config(p, 1, 1));
-                Architecture {
-                    stages: n.stages.or(preset.as_ref().map(|c| c.stages)),
-                    channels: n.channels.or(preset.as_ref().map(|c| c.channels)),
-                    prior: n.prior.map(|p| match p {
-                        PriorArg::Bins => Prior::Bins,
-                        PriorArg::Delay => Prior::Delay,
-                    }),
-                    ..Default::default()
-                }
-            }
-            NetArgs::Unet(n) => Architecture {
-                returns: n.returns,
-                base_width: n.base_width,
-                levels: n.levels,
-                head: n.head.map(|h| match h {
-                    HeadArg::ScoreVolume => tcsense_models::UnetHead::ScoreVolume,
-                    HeadArg::Regression => tcsense_models::UnetHead::Regression,
-                }),
-                ..Default::default()
-            },
-            NetArgs::Lifetime(n) => Architecture { harmonics: n.harmonics, base_width: n.base_width, levels: n.levels, ..Default::default() },
-        }
-    }
-
-    /// The default network of a new run for `m` taps and `t` bins over `range_m` (U-Net).
-    fn default_model(&self, m: usize, t: usize, range_m: f64) -> ModelConfig {
-        match self {
-            NetArgs::Admm(n) => ModelConfig::AdmmNet(preset_config(n.preset.unwrap_or(Preset::Cpu), m, t).with_normalize(true)),
-            NetArgs::Unet(_) => ModelConfig::Unet(UnetConfig::new(m, t, range_m).with_returns(2).with_base_width(8).with_levels(3).with_head(tcsense_models::UnetHead::ScoreVolume)),
-            NetArgs::Lifetime(_) => ModelConfig::Lifetime(LifetimeNetConfig::new(m, t).with_harmonics(16).with_base_width(16).with_levels(3)),
-        }
-    }
-
-    fn name(&self) -> &'static str {
-        match self {
-            NetArgs::Admm(_) => "admm-net",
-            NetArgs::Unet(_) => "unet",
-            NetArgs::Lifetime(_) => "lifetime",
-        }
-    }
+/// A value enum's command-line name (`score-volume`, `rmse-mae`).
+fn name_of<T: ValueEnum>(v: T) -> Option<String> {
+    v.to_possible_value().map(|p| p.get_name().to_string())
 }
 
-fn preset_config(p: Preset, m: usize, t: usize) -> AdmmNetConfig {
-    match p {
-        Preset::Cpu => AdmmNetConfig::cpu(m, t),
-        Preset::Lidar => AdmmNetConfig::lidar(m, t),
-        Preset::Flim => AdmmNetConfig::flim(m, t),
+impl TrainArgs {
+    /// The flags as the training crate's request (the same as Python's keyword arguments).
+    fn request(&self, net: &NetArgs) -> Result<TrainRequest> {
+        if let Some(r) = &self.sensor_residue {
+            if r.len() != 3 {
+                bail!("--sensor-residue {r:?}: expected three numbers G,P,D (tap gain, PRNU, dark), e.g. 0.01,0.005,0.002");
+            }
+        }
+        let mut req = TrainRequest {
+            output: self.output.clone(),
+            dataset: self.dataset.clone(),
+            codes: self.codes.clone(),
+            config: self.config.clone(),
+            resume: self.resume,
+            init_from: self.init_from.clone(),
+            epochs: self.epochs,
+            lr: self.lr,
+            lr_schedule: self.lr_schedule.and_then(name_of),
+            batch_size: self.batch_size,
+            loss: self.loss.and_then(name_of),
+            no_noise: self.no_noise,
+            irf: self.irf.clone(),
+            calibration: self.calibration.clone(),
+            max_train: self.max_train,
+            max_val: self.max_val,
+            seed: self.seed,
+            no_augment: self.no_augment,
+            sensor_residue: self.sensor_residue.as_ref().map(|r| [r[0], r[1], r[2]]),
+            crop: self.crop.map(|(h, w)| [h, w]),
+            learn_codes: self.learn_codes,
+            tap_constraint: self.tap_constraint,
+            hamming: self.hamming,
+            window: self.window,
+            relaxed_epochs: self.relaxed_epochs,
+            codes_lr: self.codes_lr,
+            alias_weight: self.alias_weight,
+            alias_threshold: self.alias_threshold,
+            ..Default::default()
+        };
+        match net {
+            NetArgs::Admm(n) => {
+                req.decoder = "admm-net".into();
+                (req.preset, req.stages, req.channels, req.prior) = (n.preset.and_then(name_of), n.stages, n.channels, n.prior.and_then(name_of));
+            }
+            NetArgs::Unet(n) => {
+                req.decoder = "unet".into();
+                (req.head, req.returns, req.base_width, req.levels) = (n.head.and_then(name_of), n.returns, n.base_width, n.levels);
+            }
+            NetArgs::Lifetime(n) => {
+                req.decoder = "lifetime".into();
+                (req.harmonics, req.base_width, req.levels) = (n.harmonics, n.base_width, n.levels);
+            }
+        }
+        Ok(req)
     }
 }
 
@@ -362,168 +364,20 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     let run_dir = &a.output;
     // the device first: a missing GPU backend or adapter writes nothing
     let device = a.device.device()?;
-    let arch = net.architecture();
-    // the network: the run's own on --resume; the source run's with --init-from; else a
-    // config file's or the defaults, shaped by the flags
-    let saved = run_dir.join(CONFIG_FILE);
-    let mut cfg = if a.resume {
-        if !saved.exists() {
-            bail!("{}: no run to resume ({CONFIG_FILE} missing)", run_dir.display());
-        }
-        let cfg = TrainConfig::load(&saved)?;
-        if cfg.run.model.name() != net.name() {
-            bail!("{}: this is a {} run; train it with `tcsense train {}`", run_dir.display(), cfg.run.model.name(), cfg.run.model.name());
-        }
-        arch.check(&cfg.run.model, run_dir)?;
-        cfg
-    } else {
-        let (mut cfg, from_config) = match &a.config {
-            Some(p) => (TrainConfig::load(p)?, true),
-            None => {
-                let ds_path = a.dataset.as_ref().context("--dataset is required (or --config / --resume)")?;
-                let ds = Dataset::open(ds_path)?;
-                let codes_path = a.codes.as_ref().context("--codes is required")?;
-                let codes = Codes::load(codes_path)?;
-                let t = ds.manifest.bins;
-                // depth up to the unambiguous range of the dataset's cycle
-                let range_m = tcsense_datasets::grid::C * ds.manifest.bin_width_s * t as f64 / 2.0;
-                (TrainConfig::for_dataset(net.default_model(codes.taps(), t, range_m), ds_path, &ds), false)
-            }
-        };
-        if cfg.run.model.name() != net.name() {
-            bail!("{}: this is a {} run; train it with `tcsense train {}`", run_dir.display(), cfg.run.model.name(), cfg.run.model.name());
-        }
-        match &a.init_from {
-            Some(src) => {
-                cfg.run.model = setup::model_for_init(src, &cfg.run.model, from_config)?;
-                arch.check(&cfg.run.model, src)?;
-            }
-            None => {
-                let before = cfg.run.model.clone();
-                arch.apply(&mut cfg.run.model)?;
-                // the delay prior's convolutions run at every bin: a few channels per bin (a
-                // config that already has the delay prior keeps its channels)
-                if let (ModelConfig::AdmmNet(m), ModelConfig::AdmmNet(b), NetArgs::Admm(n)) = (&mut cfg.run.model, &before, &net) {
-                    if m.prior == Prior::Delay && b.prior != Prior::Delay && n.channels.is_none() {
-                        m.channels = match n.preset.unwrap_or(Preset::Cpu) {
-                            Preset::Cpu => 4,
-                            Preset::Lidar | Preset::Flim => 8,
-                        };
-                    }
-                }
-            }
-        }
-        cfg
-    };
-    if let Some(r) = &a.sensor_residue {
-        if r.len() != 3 {
-            bail!("--sensor-residue {r:?}: expected three numbers G,P,D (tap gain, PRNU, dark), e.g. 0.01,0.005,0.002");
-        }
-        cfg.augment = Some(Augmentation { sensor_residue: [r[0], r[1], r[2]], ..cfg.augment.unwrap_or_default() });
-    }
-    if a.no_augment {
-        cfg.augment = None;
-    }
-    if let Some((h, w)) = a.crop {
-        cfg.augment = Some(Augmentation { crop: Some([h, w]), ..cfg.augment.unwrap_or_default() });
-    }
-    if let Some(d) = &a.dataset {
-        cfg.dataset = d.display().to_string();
-    }
-    if let Some(v) = a.epochs {
-        cfg.epochs = v;
-    }
-    if let Some(v) = a.lr {
-        cfg.learning_rate = v;
-    }
-    if let Some(v) = a.lr_schedule {
-        cfg.lr_schedule = match v {
-            ScheduleArg::Constant => LrSchedule::Constant,
-            ScheduleArg::Cosine => LrSchedule::COSINE,
-        };
-    }
-    if let Some(v) = a.batch_size {
-        cfg.batch_size = v;
-    }
-    if let Some(l) = a.loss {
-        cfg.loss = match l {
-            LossArg::Rmse => Loss::Rmse,
-            LossArg::RmseMae => Loss::RmseMae,
-            LossArg::RmseMaePixel => Loss::RmseMaePixel,
-        };
-    }
-    if a.no_noise {
-        cfg.noise = None;
-    }
-    // a measured matrix replaces the synthetic sensor (a recalibrated instrument)
-    let mut measured: Option<MeasuredSensor> = None;
-    if let Some(irf) = &a.irf {
-        if std::path::Path::new(irf).extension().is_some_and(|e| e == "npy") {
-            measured = Some(MeasuredSensor::Matrix(PathBuf::from(irf)));
-        } else {
-            cfg.run.irf = super::sensor::parse_irf(irf)?;
-            cfg.run.measured = false;
-        }
-    }
-    if let Some(dir) = &a.calibration {
-        if measured.is_some() {
-            bail!("--calibration {} and --irf A.npy both give the sensor matrix; pass one", dir.display());
-        }
-        measured = Some(MeasuredSensor::Calibration(dir.clone()));
-    }
-    if let Some(m) = &measured {
-        setup::use_measured_sensor(&mut cfg, m, a.resume)?;
-    }
-    if a.max_train.is_some() {
-        cfg.max_train_items = a.max_train;
-    }
-    if a.max_val.is_some() {
-        cfg.max_val_items = a.max_val;
-    }
-    if let Some(s) = a.seed {
-        cfg.seed = s;
-    }
-    let codes = setup::run_codes(run_dir, a.codes.as_deref(), a.resume)?;
-    if let Some(r) = &a.init_from {
-        cfg.init_from = Some(r.display().to_string());
-    }
-    if a.learn_codes && !a.resume {
-        let flags = a.tap_constraint || a.hamming.is_some() || a.window.is_some();
-        let constraints = if flags { Constraints { tap: a.tap_constraint, hamming: a.hamming, window: a.window } } else { codes.constraints };
-        let mut lc = LearnCodes::new(constraints, cfg.epochs);
-        if let Some(v) = a.relaxed_epochs {
-            lc.relaxed_epochs = v;
-        }
-        if let Some(v) = a.codes_lr {
-            lc.codes_lr = v;
-        }
-        if let Some(v) = a.alias_weight {
-            lc.alias_weight = v;
-        }
-        if let Some(v) = a.alias_threshold {
-            lc.alias_threshold = v;
-        }
-        cfg.learn_codes = Some(lc);
-    }
-    if codes.taps() != cfg.run.model.taps() {
-        bail!("the codes have {} taps but the model expects M = {}", codes.taps(), cfg.run.model.taps());
-    }
-    let cancel = interrupt_flag();
-    let pb = ProgressBar::new(1);
-    pb.set_style(ProgressStyle::with_template("[{bar:30}] {pos}/{len} steps {per_sec} eta {eta} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
+    let prepared = request::prepare(&a.request(&net)?)?;
+    let cfg = &prepared.cfg;
     println!("{}", cfg.summary());
-    if let Some(m) = &measured {
-        // the settings and the matrix are checked before the run takes a copy
-        setup::write_measured_sensor(&cfg, &codes, m, run_dir)?;
-    }
     if let Some(lc) = &cfg.learn_codes {
         println!("{}", lc.summary(cfg.epochs));
     }
     if a.pause_after == Some(0) {
         bail!("--pause-after 0: expected at least one epoch");
     }
+    let cancel = interrupt_flag();
+    let pb = ProgressBar::new(1);
+    pb.set_style(ProgressStyle::with_template("[{bar:30}] {pos}/{len} steps {per_sec} eta {eta} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
     let bar = Bar { pb: pb.clone(), pause: a.pause_after.map(|n| (n, cancel.clone())), epochs_done: Default::default() };
-    let res = tcsense_train::train_on(&cfg, &codes, run_dir, a.resume, &device, &bar, &cancel);
+    let res = request::run(&prepared, &device, &bar, &cancel);
     pb.finish_and_clear();
     match res {
         Ok(rows) => {

@@ -28,6 +28,7 @@ pub mod data;
 pub mod deep_sensing;
 pub mod fit;
 pub mod loss;
+pub mod request;
 pub mod run_dir;
 pub mod setup;
 

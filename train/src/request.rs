@@ -1,0 +1,293 @@
+//! A training as a front end asks for it — the command line's flags, the Python module's
+//! keyword arguments — resolved into a run's [`TrainConfig`], its codes and its sensor by the
+//! rules of [`crate::setup`]. Both front ends fill a [`TrainRequest`] and call [`prepare`] and
+//! [`run`]: the same options give the same run directory.
+//!
+//! ```
+//! use tcsense_train::request::TrainRequest;
+//! let r: TrainRequest = serde_json::from_value(serde_json::json!({ "decoder": "admm-net", "output": "run", "epochs": 3 })).unwrap();
+//! assert_eq!((r.epochs, r.resume), (Some(3), false));
+//! assert!(serde_json::from_value::<TrainRequest>(serde_json::json!({ "decoder": "unet", "output": "r", "epoch": 3 })).is_err());
+//! ```
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+
+use serde::{Deserialize, Serialize};
+use tcsense_datasets::Dataset;
+use tcsense_models::runs::{ModelConfig, CONFIG_FILE};
+use tcsense_models::{AdmmNetConfig, Device, LifetimeNetConfig, Prior, UnetConfig, UnetHead};
+use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
+use tcsense_sensor::{Codes, Constraints, Irf};
+
+use crate::deep_sensing::LearnCodes;
+use crate::setup::{self, Architecture, MeasuredSensor};
+use crate::{file_err, Augmentation, EpochMetrics, Loss, LrSchedule, Progress, Result, TrainConfig, TrainError};
+
+/// What a front end asks of a training (`None`/`false`: not given). Names and values are the
+/// command line's (`tcsense train DECODER --flag`), with `-` as `_`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrainRequest {
+    /// `admm-net`, `unet` or `lifetime`.
+    pub decoder: String,
+    /// The run directory.
+    pub output: PathBuf,
+    pub dataset: Option<PathBuf>,
+    pub codes: Option<PathBuf>,
+    /// A training config JSON (as written to `RUN/config.json`); the other fields override it.
+    pub config: Option<PathBuf>,
+    /// Continue the run in `output` from its last checkpoint.
+    pub resume: bool,
+    /// Start from the weights (and the architecture) of a trained run or `zoo:NAME`.
+    pub init_from: Option<PathBuf>,
+    /// ADMM-Net: `cpu`, `lidar` or `flim`.
+    pub preset: Option<String>,
+    pub stages: Option<usize>,
+    pub channels: Option<usize>,
+    /// ADMM-Net: `bins` or `delay`.
+    pub prior: Option<String>,
+    pub returns: Option<usize>,
+    pub base_width: Option<usize>,
+    pub levels: Option<usize>,
+    /// U-Net: `score-volume` or `regression`.
+    pub head: Option<String>,
+    pub harmonics: Option<usize>,
+    pub epochs: Option<usize>,
+    pub lr: Option<f64>,
+    /// `cosine` or `constant`.
+    pub lr_schedule: Option<String>,
+    pub batch_size: Option<usize>,
+    /// `rmse`, `rmse-mae` or `rmse-mae-pixel`.
+    pub loss: Option<String>,
+    pub no_noise: bool,
+    /// `ideal`, `physical` or a measured matrix `A.npy`.
+    pub irf: Option<String>,
+    /// A calibration directory: train for the calibrated sensor.
+    pub calibration: Option<PathBuf>,
+    pub max_train: Option<usize>,
+    pub max_val: Option<usize>,
+    pub seed: Option<u64>,
+    pub no_augment: bool,
+    /// Residual tap gain, PRNU and dark offset a calibration leaves, drawn per item.
+    pub sensor_residue: Option<[f64; 3]>,
+    pub crop: Option<[usize; 2]>,
+    pub learn_codes: bool,
+    pub tap_constraint: bool,
+    pub hamming: Option<usize>,
+    pub window: Option<usize>,
+    pub relaxed_epochs: Option<usize>,
+    pub codes_lr: Option<f64>,
+    pub alias_weight: Option<f64>,
+    pub alias_threshold: Option<f64>,
+}
+
+/// A training ready to run: the run's config, codes and measured sensor.
+#[derive(Debug, Clone)]
+pub struct Prepared {
+    pub cfg: TrainConfig,
+    pub codes: Codes,
+    pub measured: Option<MeasuredSensor>,
+    pub output: PathBuf,
+    pub resume: bool,
+}
+
+fn bad(field: &'static str, got: &str, expected: &str) -> TrainError {
+    TrainError::InvalidParam { field, got: got.into(), expected: expected.into() }
+}
+
+fn preset(name: &str, m: usize, t: usize) -> Result<AdmmNetConfig> {
+    Ok(match name {
+        "cpu" => AdmmNetConfig::cpu(m, t),
+        "lidar" => AdmmNetConfig::lidar(m, t),
+        "flim" => AdmmNetConfig::flim(m, t),
+        other => return Err(bad("preset", other, "cpu, lidar or flim")),
+    })
+}
+
+impl TrainRequest {
+    /// The architecture settings given (a preset gives its stages and channels).
+    pub fn architecture(&self) -> Result<Architecture> {
+        let p = self.preset.as_deref().map(|p| preset(p, 1, 1)).transpose()?;
+        let prior = match self.prior.as_deref() {
+            None => None,
+            Some("bins") => Some(Prior::Bins),
+            Some("delay") => Some(Prior::Delay),
+            Some(other) => return Err(bad("prior", other, "bins or delay")),
+        };
+        let head = match self.head.as_deref() {
+            None => None,
+            Some("score-volume") => Some(UnetHead::ScoreVolume),
+            Some("regression") => Some(UnetHead::Regression),
+            Some(other) => return Err(bad("head", other, "score-volume or regression")),
+        };
+        Ok(Architecture {
+            stages: self.stages.or(p.as_ref().map(|c| c.stages)),
+            channels: self.channels.or(p.as_ref().map(|c| c.channels)),
+            prior,
+            returns: self.returns,
+            base_width: self.base_width,
+            levels: self.levels,
+            head,
+            harmonics: self.harmonics,
+        })
+    }
+
+    /// The default network of a new run for `m` taps and `t` bins over `range_m` (U-Net).
+    fn default_model(&self, m: usize, t: usize, range_m: f64) -> Result<ModelConfig> {
+        Ok(match self.decoder.as_str() {
+            "admm-net" => ModelConfig::AdmmNet(preset(self.preset.as_deref().unwrap_or("cpu"), m, t)?.with_normalize(true)),
+            "unet" => ModelConfig::Unet(UnetConfig::new(m, t, range_m).with_returns(2).with_base_width(8).with_levels(3).with_head(UnetHead::ScoreVolume)),
+            "lifetime" => ModelConfig::Lifetime(LifetimeNetConfig::new(m, t).with_harmonics(16).with_base_width(16).with_levels(3)),
+            other => return Err(bad("decoder", other, "admm-net, unet or lifetime")),
+        })
+    }
+
+    fn kind_check(&self, cfg: &TrainConfig) -> Result<()> {
+        let name = cfg.run.model.name();
+        if name != self.decoder {
+            return Err(file_err(&self.output, format!("this is a {name} run; train it with `tcsense train {name}`")));
+        }
+        Ok(())
+    }
+}
+
+/// Resolve a request into a run's config, codes and sensor (nothing is written yet).
+pub fn prepare(req: &TrainRequest) -> Result<Prepared> {
+    let run_dir = &req.output;
+    let arch = req.architecture()?;
+    // the network: the run's own on resume; the source run's with init_from; else a config
+    // file's or the defaults, shaped by the architecture settings
+    let mut cfg = if req.resume {
+        let saved = run_dir.join(CONFIG_FILE);
+        if !saved.exists() {
+            return Err(file_err(run_dir, format!("no run to resume ({CONFIG_FILE} missing)")));
+        }
+        let cfg = TrainConfig::load(&saved)?;
+        req.kind_check(&cfg)?;
+        arch.check(&cfg.run.model, run_dir)?;
+        cfg
+    } else {
+        let (mut cfg, from_config) = match &req.config {
+            Some(p) => (TrainConfig::load(p)?, true),
+            None => {
+                let ds_path = req.dataset.as_ref().ok_or_else(|| bad("dataset", "none", "a dataset directory (--dataset), or a config (--config) or --resume"))?;
+                let ds = Dataset::open(ds_path)?;
+                let codes_path = req.codes.as_ref().ok_or_else(|| bad("codes", "none", "a codes JSON file (--codes)"))?;
+                let codes = Codes::load(codes_path)?;
+                let t = ds.manifest.bins;
+                // depth up to the unambiguous range of the dataset's cycle
+                let range_m = tcsense_datasets::grid::C * ds.manifest.bin_width_s * t as f64 / 2.0;
+                (TrainConfig::for_dataset(req.default_model(codes.taps(), t, range_m)?, ds_path, &ds), false)
+            }
+        };
+        req.kind_check(&cfg)?;
+        match &req.init_from {
+            Some(src) => {
+                cfg.run.model = setup::model_for_init(src, &cfg.run.model, from_config)?;
+                arch.check(&cfg.run.model, src)?;
+            }
+            None => {
+                let before = cfg.run.model.clone();
+                arch.apply(&mut cfg.run.model)?;
+                // the delay prior's convolutions run at every bin: a few channels per bin (a
+                // config that already has the delay prior keeps its channels)
+                if let (ModelConfig::AdmmNet(m), ModelConfig::AdmmNet(b)) = (&mut cfg.run.model, &before) {
+                    if m.prior == Prior::Delay && b.prior != Prior::Delay && req.channels.is_none() {
+                        m.channels = if matches!(req.preset.as_deref(), Some("lidar" | "flim")) { 8 } else { 4 };
+                    }
+                }
+            }
+        }
+        cfg
+    };
+    if let Some(r) = req.sensor_residue {
+        cfg.augment = Some(Augmentation { sensor_residue: r, ..cfg.augment.unwrap_or_default() });
+    }
+    if req.no_augment {
+        if req.crop.is_some() {
+            return Err(bad("no_augment", "with a crop", "either no augmentation or a crop (a crop is an augmentation)"));
+        }
+        cfg.augment = None;
+    }
+    if let Some(crop) = req.crop {
+        cfg.augment = Some(Augmentation { crop: Some(crop), ..cfg.augment.unwrap_or_default() });
+    }
+    if let Some(d) = &req.dataset {
+        cfg.dataset = d.display().to_string();
+    }
+    cfg.epochs = req.epochs.unwrap_or(cfg.epochs);
+    cfg.learning_rate = req.lr.unwrap_or(cfg.learning_rate);
+    if let Some(s) = req.lr_schedule.as_deref() {
+        cfg.lr_schedule = match s {
+            "constant" => LrSchedule::Constant,
+            "cosine" => LrSchedule::COSINE,
+            other => return Err(bad("lr_schedule", other, "cosine or constant")),
+        };
+    }
+    cfg.batch_size = req.batch_size.unwrap_or(cfg.batch_size);
+    if let Some(l) = req.loss.as_deref() {
+        cfg.loss = match l {
+            "rmse" => Loss::Rmse,
+            "rmse-mae" => Loss::RmseMae,
+            "rmse-mae-pixel" => Loss::RmseMaePixel,
+            other => return Err(bad("loss", other, "rmse, rmse-mae or rmse-mae-pixel")),
+        };
+    }
+    if req.no_noise {
+        cfg.noise = None;
+    }
+    // a measured matrix replaces the synthetic sensor (a recalibrated instrument)
+    let mut measured = None;
+    match req.irf.as_deref() {
+        None => {}
+        Some(p) if Path::new(p).extension().is_some_and(|e| e == "npy") => measured = Some(MeasuredSensor::Matrix(PathBuf::from(p))),
+        Some("ideal") => (cfg.run.irf, cfg.run.measured) = (Irf::Ideal, false),
+        Some("physical") => (cfg.run.irf, cfg.run.measured) = (Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S }, false),
+        Some(other) => return Err(bad("irf", other, "ideal, physical or a measured matrix A.npy")),
+    }
+    if let Some(dir) = &req.calibration {
+        if measured.is_some() {
+            return Err(bad("calibration", &dir.display().to_string(), "either a calibration or a measured matrix (irf A.npy): both give the sensor matrix"));
+        }
+        measured = Some(MeasuredSensor::Calibration(dir.clone()));
+    }
+    if let Some(m) = &measured {
+        setup::use_measured_sensor(&mut cfg, m, req.resume)?;
+    }
+    if req.max_train.is_some() {
+        cfg.max_train_items = req.max_train;
+    }
+    if req.max_val.is_some() {
+        cfg.max_val_items = req.max_val;
+    }
+    cfg.seed = req.seed.unwrap_or(cfg.seed);
+    let codes = setup::run_codes(run_dir, req.codes.as_deref(), req.resume)?;
+    if let Some(r) = &req.init_from {
+        cfg.init_from = Some(r.display().to_string());
+    }
+    if req.learn_codes && !req.resume {
+        let given = req.tap_constraint || req.hamming.is_some() || req.window.is_some();
+        let constraints = if given { Constraints { tap: req.tap_constraint, hamming: req.hamming, window: req.window } } else { codes.constraints };
+        let mut lc = LearnCodes::new(constraints, cfg.epochs);
+        lc.relaxed_epochs = req.relaxed_epochs.unwrap_or(lc.relaxed_epochs);
+        lc.codes_lr = req.codes_lr.unwrap_or(lc.codes_lr);
+        lc.alias_weight = req.alias_weight.unwrap_or(lc.alias_weight);
+        lc.alias_threshold = req.alias_threshold.unwrap_or(lc.alias_threshold);
+        cfg.learn_codes = Some(lc);
+    }
+    if codes.taps() != cfg.run.model.taps() {
+        return Err(bad("codes", &format!("{} taps", codes.taps()), &format!("the model's M = {}", cfg.run.model.taps())));
+    }
+    Ok(Prepared { cfg, codes, measured, output: run_dir.clone(), resume: req.resume })
+}
+
+/// Run a prepared training on `device`: the measured sensor written into the run first (checked
+/// against the codes), then [`crate::train_on`] (resumable, `cancel` stops it with the last
+/// checkpoint kept).
+pub fn run(p: &Prepared, device: &Device, progress: &dyn Progress, cancel: &AtomicBool) -> Result<Vec<EpochMetrics>> {
+    if let Some(m) = &p.measured {
+        setup::write_measured_sensor(&p.cfg, &p.codes, m, &p.output)?;
+    }
+    crate::train_on(&p.cfg, &p.codes, &p.output, p.resume, device, progress, cancel)
+}
