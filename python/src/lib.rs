@@ -27,6 +27,7 @@ mod onnx;
 mod pipeline;
 mod products;
 mod sensor;
+mod training;
 
 pyo3::create_exception!(
     tcsense,
@@ -147,5 +148,6 @@ fn _tcsense(m: &Bound<'_, PyModule>) -> PyResult<()> {
     products::register(m)?;
     onnx::register(m)?;
     pipeline::register(m)?;
+    training::register(m)?;
     Ok(())
 }

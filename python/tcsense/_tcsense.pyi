@@ -6,7 +6,7 @@ and kept. Arrays are float32. Times are in seconds, ranges in metres.
 """
 
 import os
-from typing import Any, Dict, Iterator, List, Optional, Sequence, Tuple, Union
+from typing import Any, Callable, Dict, Iterator, List, Optional, Sequence, Tuple, Union
 
 import numpy as np
 import numpy.typing as npt
@@ -227,6 +227,21 @@ class OnnxModel:
 
 def calibrate(codes: Union[Codes, PathLike], sweep: PathLike, out: PathLike, *, irf: Union[str, PathLike, F32, None] = None, oversample: Optional[int] = None, heterodyne: Optional[int] = None, report: bool = True) -> Dict[str, Any]:
     """Calibrate from a laser-delay sweep (``tcsense calibrate``); returns calibration.json."""
+
+def train(decoder: str, output: PathLike, *, progress: Optional[Callable[[Dict[str, Any]], Any]] = None, **options: Any) -> List[Dict[str, Any]]:
+    """Train ``decoder`` ("admm-net", "unet", "lifetime") into the run ``output`` (``tcsense
+    train``); options as the command line's flags with ``_`` for ``-`` (dataset, codes, epochs,
+    lr, init_from, calibration, irf, resume, seed, crop=[h, w], sensor_residue=[g, p, d], …).
+    ``progress(epoch)`` after every epoch. Returns the epochs trained (epoch, step,
+    train_loss, seconds and the validation metrics)."""
+
+def fine_tune(run: PathLike, output: PathLike, *, progress: Optional[Callable[[Dict[str, Any]], Any]] = None, **options: Any) -> List[Dict[str, Any]]:
+    """Fine-tune a trained run or ``zoo:NAME`` into ``output`` (``train --init-from``): its
+    network and architecture, with new codes, dataset, calibration or IRF."""
+
+def simulate_sweep(sensor: Sensor, out: PathLike, *, size: Tuple[int, int] = (32, 32), average: int = 64, noise: bool = True, level: float = 0.7, adc: bool = False, png: bool = False, seed: int = 0, nonideal: Optional[Dict[str, Any]] = None) -> Dict[str, Any]:
+    """A laser-delay sweep of a flat target through ``sensor`` with its ``nonideal``
+    non-idealities (``tcsense simulate --sweep``), for ``calibrate``; returns sweep.json."""
 
 def run_demo(out: PathLike, *, quick: bool = False, budget_minutes: Optional[float] = None, size: Optional[Tuple[int, int]] = None, scenes: Optional[int] = None, timing_size: Tuple[int, int] = (188, 212), seed: int = 1, quiet: bool = False) -> Dict[str, Any]:
     """The demo (``tcsense demo``) into ``out``; returns {report, seconds, resumed}."""

@@ -154,6 +154,9 @@ impl TrainRequest {
 
 /// Resolve a request into a run's config, codes and sensor (nothing is written yet).
 pub fn prepare(req: &TrainRequest) -> Result<Prepared> {
+    // `zoo:NAME` is the zoo's run directory
+    let resolved = req.init_from.as_ref().map(|r| tcsense_models::zoo::resolve(&r.to_string_lossy())).transpose()?;
+    let req = &TrainRequest { init_from: resolved, ..req.clone() };
     let run_dir = &req.output;
     let arch = req.architecture()?;
     // the network: the run's own on resume; the source run's with init_from; else a config
