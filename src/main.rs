@@ -61,6 +61,10 @@ enum Command {
     /// deep sensing), code-memory export, TVAL3, ADMM-Net and U-Net training, ONNX export,
     /// ONNX Runtime, and DIR/report.html with figures. Rerunning into DIR resumes.
     Demo(cmd::demo::DemoArgs),
+    /// A sensor on the bench to decoders deployed for it: a delay sweep → calibration → the
+    /// zoo's decoders fine-tuned to it within a budget → ONNX models that take its raw tap
+    /// images → a check on held-back scenes and DIR/report.html. Rerunning into DIR resumes.
+    Bringup(cmd::bringup::BringupArgs),
     /// Throughput benchmarks (prints figures).
     #[command(subcommand)]
     Bench(cmd::bench::BenchCmd),
@@ -102,6 +106,7 @@ fn main() -> ExitCode {
         Command::Export(c) => cmd::deploy::export(c),
         Command::Infer(a) => cmd::deploy::infer(a, cli.threads),
         Command::Demo(a) => cmd::demo::run(a),
+        Command::Bringup(a) => cmd::bringup::run(a),
         Command::Bench(c) => cmd::bench::run(c),
         Command::Zoo(c) => cmd::zoo::run(c),
     };

@@ -10,6 +10,7 @@
 //! and returns its results as values; errors are [`PipelineError`]s carrying the message the
 //! command line prints.
 
+pub mod bringup;
 pub mod demo;
 pub mod error;
 pub mod identifiability;

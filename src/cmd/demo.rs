@@ -39,9 +39,19 @@ pub struct DemoArgs {
 }
 
 /// Log lines on stdout, one progress bar for item counts and one for trainings.
-struct Terminal {
-    items: ProgressBar,
-    training: super::train::Bar,
+pub(crate) struct Terminal {
+    pub(crate) items: ProgressBar,
+    pub(crate) training: super::train::Bar,
+}
+
+impl Terminal {
+    /// Lines on stdout, item counts and trainings as bars on stderr.
+    pub(crate) fn new() -> Self {
+        let items = ProgressBar::hidden();
+        items.set_style(ProgressStyle::with_template("  {msg} [{bar:30}] {pos}/{len}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
+        items.set_draw_target(indicatif::ProgressDrawTarget::stderr());
+        Terminal { items, training: super::train::Bar::new() }
+    }
 }
 
 impl Observer for Terminal {
@@ -68,10 +78,7 @@ impl Observer for Terminal {
 
 pub fn run(a: DemoArgs) -> Result<ExitCode> {
     let options = DemoOptions { quick: a.quick, budget_minutes: a.budget_minutes, size: a.size, scenes: a.scenes, timing_size: a.timing_size, seed: a.seed };
-    let items = ProgressBar::hidden();
-    items.set_style(ProgressStyle::with_template("  {msg} [{bar:30}] {pos}/{len}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
-    items.set_draw_target(indicatif::ProgressDrawTarget::stderr());
-    let term = Terminal { items, training: super::train::Bar::new() };
+    let term = Terminal::new();
     let cancel = interrupt_flag();
     let res = demo::run(&options, &a.output, &term, &cancel);
     term.items.finish_and_clear();

@@ -162,10 +162,18 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
     };
     if let Some(meta) = tcsense_sensor::sidecar::Sidecar::read_for(&a.measurements)? {
         let path = tcsense_sensor::sidecar::Sidecar::path_for(&a.measurements);
-        match &recalibrated {
+        match (&recalibrated, &model.meta.calibration) {
             // a recalibrated matrix: the measurements must carry its digest
-            Some(a_cal) => meta.check(&path, a_cal, None)?,
-            None => meta.check(&path, &model.sensor, Some(&model.meta.codes))?,
+            (Some(a_cal), _) => meta.check(&path, a_cal, None)?,
+            // a calibration in the graph: raw frames of the nominal sensor, in the sweep's units
+            (None, Some(cal)) => {
+                let nominal = tcsense_sensor::Sensor::ideal(model.meta.codes.clone(), model.meta.sampling, model.meta.irf)?;
+                meta.check(&path, nominal.matrix(), Some(&model.meta.codes))?;
+                if meta.units != cal.units {
+                    bail!("{}: the measurements are in {:?} (field units), the model's built-in calibration corrects raw {:?}; record them in the units of the sweep", path.display(), meta.units, cal.units);
+                }
+            }
+            (None, None) => meta.check(&path, &model.sensor, Some(&model.meta.codes))?,
         }
     }
     let source = FrameSource::open(&a.measurements)?;

@@ -1,6 +1,7 @@
 //! One module per subcommand family.
 
 pub mod bench;
+pub mod bringup;
 pub mod analyze;
 pub mod calibrate;
 pub mod code_shape;

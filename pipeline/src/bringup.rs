@@ -1,0 +1,388 @@
+//! `tcsense bringup`: from a laser-delay sweep of a sensor on the bench to decoders deployed for
+//! it, as one resumable path.
+//!
+//! 1. **calibrate** the sensor from the sweep (`DIR/cal`: measured `A`, gain and dark maps, its
+//!    report);
+//! 2. **generate** training scenes for the sensor's grid (LiDAR, or FLIm for a heterodyne sweep);
+//! 3. **fine-tune** each chosen zoo decoder to the calibrated sensor within the time budget
+//!    (`DIR/runs/NAME`: its architecture from the zoo, epochs sized from a measured step time,
+//!    residual gains and offsets drawn per item), resumable from its checkpoints;
+//! 4. **export** each to ONNX with the correction built in (`DIR/onnx/NAME.onnx`: it takes the
+//!    sensor's raw tap images);
+//! 5. **check** every decoder on held-back scenes through the sensor the sweep recorded (a
+//!    simulated bench records its non-idealities): on the ideal sensor, through the nominal model,
+//!    with the calibration alone and calibrated + fine-tuned, beside TVAL3;
+//! 6. **report** it all in `DIR/report.html`, with the time of every step.
+//!
+//! A step whose outputs exist is skipped, so rerunning into `DIR` resumes; `cancel` stops it
+//! between steps and inside trainings (the last checkpoint kept).
+
+use serde_json::{json, Value};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+
+use tcsense_datasets::flim::FlimParams;
+use tcsense_datasets::lidar::LidarParams;
+use tcsense_datasets::store::{self, Generator, WriteOptions, DEFAULT_SHARD};
+use tcsense_datasets::{Dataset, TimeGrid};
+use tcsense_infer::eval::{evaluate, open_decoder, EvalRow, EvalSettings};
+use tcsense_infer::onnx::{export_to, ExportOptions};
+use tcsense_infer::report::{Block, Cell, Format, Report, Section, Table};
+use tcsense_models::runs::{self, CONFIG_FILE, WEIGHTS_FILE};
+use tcsense_models::{zoo, Device, Tval3Options};
+use tcsense_sensor::calibration::{calibrate, Calibration, DESCRIPTION};
+use tcsense_sensor::npy::write_bytes;
+use tcsense_sensor::sweep::Sweep;
+use tcsense_sensor::{Codes, Irf, NoiseParams, Sampling, Sensor, SensorModel};
+use tcsense_train::request::{self, TrainRequest};
+
+use crate::demo::Observer;
+use crate::error::{bail, Result};
+
+/// Share of the budget given to the fine-tunings (the rest: calibration, data, export, check).
+const TRAINING_SHARE: f64 = 0.8;
+/// Residual tap gain, PRNU and dark offset a calibration leaves, drawn per training item.
+const SENSOR_RESIDUE: [f64; 3] = [0.01, 0.005, 0.002];
+/// Seed stream of the held-back scenes (the training scenes use the seed itself).
+const CHECK_SEED: u64 = 0xc4ec;
+/// Time per step beyond the timed forward/backward/Adam step (ms): measurements, augmentation,
+/// validation, checkpoints.
+const STEP_OVERHEAD_MS: f64 = 2.0;
+
+/// What to bring up.
+#[derive(Debug, Clone)]
+pub struct BringupOptions {
+    /// The sweep directory (`sweep.json`).
+    pub sweep: PathBuf,
+    /// The codes the sensor runs (`codes.json`).
+    pub codes: PathBuf,
+    /// The sensor's sampling and nominal instrument response.
+    pub sampling: Sampling,
+    pub irf: Irf,
+    /// Zoo entries to fine-tune (empty: the designed-codes entries of the sensor's domain).
+    pub decoders: Vec<String>,
+    /// The whole path's time budget (min).
+    pub budget_minutes: f64,
+    /// Training scenes generated, and their frame size.
+    pub scenes: usize,
+    pub size: (usize, usize),
+    /// Held-back scenes of the check.
+    pub check_items: usize,
+    pub seed: u64,
+}
+
+/// What a bring-up left behind.
+#[derive(Debug, Clone)]
+pub struct BringupSummary {
+    pub report: PathBuf,
+    /// The exported models, one per decoder.
+    pub models: Vec<PathBuf>,
+    /// Every step's wall time (s).
+    pub steps: Vec<(String, f64)>,
+}
+
+/// The zoo entries brought up by default for a sensor of `sampling`.
+fn default_decoders(sampling: Sampling) -> Vec<String> {
+    match sampling {
+        Sampling::Heterodyne(_) => vec!["lifetime-flim-designed".into()],
+        Sampling::Oversample(_) => vec!["unet-lidar-designed".into(), "admm-lidar-designed".into()],
+    }
+}
+
+fn write_json(path: &Path, v: &Value) -> Result<()> {
+    write_bytes(path, (serde_json::to_string_pretty(v)? + "\n").as_bytes())?;
+    Ok(())
+}
+
+/// Bring the sensor of `options` up into `dir` (see the module docs).
+pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &AtomicBool) -> Result<BringupSummary> {
+    // everything checked before anything is written
+    let codes = Codes::load(&options.codes)?;
+    let nominal = Sensor::build(codes.clone(), &SensorModel { sampling: options.sampling, irf: options.irf, ..Default::default() })?;
+    let sweep = Sweep::load(&options.sweep)?;
+    let names = if options.decoders.is_empty() { default_decoders(options.sampling) } else { options.decoders.clone() };
+    let mut entries = Vec::new();
+    for n in &names {
+        let e = zoo::entry(n)?;
+        if (e.model.taps(), e.model.bins()) != (nominal.taps(), nominal.bins()) {
+            bail!("zoo:{n}: its network takes M = {} taps and T = {} bins, the sensor gives M = {}, T = {} (check --oversample/--heterodyne)", e.model.taps(), e.model.bins(), nominal.taps(), nominal.bins());
+        }
+        entries.push(e);
+    }
+    let (h, w) = options.size;
+    let (bh, bw) = nominal.block();
+    if h == 0 || w == 0 || h % bh != 0 || w % bw != 0 || options.scenes < 4 || options.check_items == 0 || !(options.budget_minutes > 0.0) {
+        bail!("bring-up settings: --size {h}x{w} (a multiple of the {bh}x{bw} block), --scenes {} (≥ 4), --check-items {} (≥ 1), --budget-minutes {} (> 0)", options.scenes, options.check_items, options.budget_minutes);
+    }
+    std::fs::create_dir_all(dir).map_err(|e| crate::PipelineError::Io { path: dir.to_path_buf(), source: e })?;
+    // a step done by an earlier run keeps the time it took then
+    let steps_path = dir.join("results/steps.json");
+    let earlier: Value = std::fs::read_to_string(&steps_path).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or(Value::Null);
+    let earlier_s = |name: &str| earlier["steps"].as_array().and_then(|a| a.iter().find(|s| s["step"] == name)).and_then(|s| s["seconds"].as_f64());
+    let mut steps: Vec<(String, f64)> = Vec::new();
+    // `f` returns whether it did the work (false: its outputs were there)
+    let mut step = |name: &str, f: &mut dyn FnMut() -> Result<bool>| -> Result<()> {
+        if cancel.load(Ordering::Relaxed) {
+            bail!("interrupted before {name}; rerun into {} to resume", dir.display());
+        }
+        obs.line(&format!("{name} …"));
+        let t0 = Instant::now();
+        let worked = f()?;
+        let s = t0.elapsed().as_secs_f64();
+        let s = if worked { s } else { earlier_s(name).unwrap_or(s) };
+        obs.line(&format!("  {name}: {s:.1} s{}", if worked { "" } else { " (done by an earlier run)" }));
+        steps.push((name.to_string(), s));
+        write_json(&steps_path, &json!({ "steps": steps.iter().map(|(n, s)| json!({ "step": n, "seconds": s })).collect::<Vec<_>>() }))?;
+        Ok(())
+    };
+
+    // 1. calibration
+    let cal_dir = dir.join("cal");
+    step("calibration from the sweep", &mut || {
+        if cal_dir.join(DESCRIPTION).exists() {
+            return Ok(false);
+        }
+        let cal = calibrate(&sweep, nominal.nominal(), &codes, options.sampling)?;
+        cal.save(&cal_dir)?;
+        tcsense_infer::calibration_report::write_calibration_report(&cal, nominal.nominal(), &cal_dir)?;
+        obs.line(&format!("  wrote {}: tap gains {:?}, RMS residual {:.2e} of the peak", cal_dir.display(), cal.meta.tap_gains, cal.meta.residual_rms));
+        Ok(true)
+    })?;
+    let cal = Calibration::load(&cal_dir, nominal.nominal(), &codes)?;
+    let calibrated = nominal.clone().with_calibration(cal.clone());
+
+    // 2. training scenes on the sensor's grid
+    let data = dir.join("data");
+    let flim = matches!(options.sampling, Sampling::Heterodyne(_));
+    step("training scenes", &mut || {
+        if data.join("manifest.json").exists() && Dataset::open(&data).is_ok() {
+            return Ok(false);
+        }
+        let gen = if flim { Generator::Flim(FlimParams { height: h, width: w, ..Default::default() }) } else { Generator::Lidar(LidarParams { height: h, width: w, ..Default::default() }) };
+        let grid = TimeGrid { length: codes.length(), clock_hz: codes.clock_hz, sampling: options.sampling };
+        let done = std::sync::atomic::AtomicUsize::new(0);
+        let progress = || obs.items("scenes", done.fetch_add(1, Ordering::Relaxed) + 1, options.scenes);
+        store::generate(&gen, &grid, options.scenes, options.seed, &data, &WriteOptions { shard_size: DEFAULT_SHARD, force: true, progress: &progress, cancel })?;
+        Ok(true)
+    })?;
+    let ds = Dataset::open(&data)?;
+    let train_items = ds.manifest.splits.iter().find(|s| s.name == "train").map_or(0, |s| s.count).max(1);
+
+    // 3. fine-tuning, each decoder its share of the budget
+    let share_s = TRAINING_SHARE * options.budget_minutes * 60.0 / entries.len().max(1) as f64;
+    let runs_dir = dir.join("runs");
+    for e in &entries {
+        let out = runs_dir.join(&e.name);
+        step(&format!("fine-tuning {} to the calibrated sensor", e.name), &mut || {
+            let resume = out.join(CONFIG_FILE).exists();
+            let req = if resume {
+                TrainRequest { decoder: e.model.name().into(), output: out.clone(), resume: true, ..Default::default() }
+            } else {
+                let ms = tcsense_train::bench::bench_step(calibrated.matrix(), &e.model, h, w, 3)?.step_ms + STEP_OVERHEAD_MS;
+                let epochs = ((share_s / (ms / 1e3 * train_items.div_ceil(2) as f64)).floor() as usize).max(1);
+                obs.line(&format!("  {}: {ms:.1} ms per step at {h}x{w}, {train_items} items → {epochs} epochs in {share_s:.0} s", e.name));
+                TrainRequest {
+                    decoder: e.model.name().into(),
+                    output: out.clone(),
+                    dataset: Some(data.clone()),
+                    codes: Some(options.codes.clone()),
+                    init_from: Some(e.dir.clone()),
+                    calibration: Some(cal_dir.clone()),
+                    // the nominal sensor the calibration was measured against (raw frames name it)
+                    irf: Some(match options.irf {
+                        Irf::Ideal => "ideal".into(),
+                        Irf::Physical { .. } => "physical".into(),
+                    }),
+                    sensor_residue: Some(SENSOR_RESIDUE),
+                    epochs: Some(epochs),
+                    seed: Some(options.seed),
+                    ..Default::default()
+                }
+            };
+            let prepared = request::prepare(&req)?;
+            if resume && out.join(WEIGHTS_FILE).exists() && done_epochs(&out) >= prepared.cfg.epochs {
+                return Ok(false);
+            }
+            request::run(&prepared, &Device::flex(), obs.training(), cancel)?;
+            Ok(true)
+        })?;
+    }
+
+    // 4. export with the correction in the graph
+    let onnx_dir = dir.join("onnx");
+    let mut models = Vec::new();
+    step("ONNX export with the calibration built in", &mut || {
+        let mut worked = false;
+        for e in &entries {
+            let out = onnx_dir.join(format!("{}.onnx", e.name));
+            if !out.exists() {
+                let run = runs::load(&runs_dir.join(&e.name), &Device::flex())?;
+                let bytes = export_to(&run, ExportOptions { matrix_input: false, calibration: Some(&cal) }, &out)?;
+                obs.line(&format!("  wrote {} ({:.1} kB), raw {} tap images of {}x{}", out.display(), bytes as f64 / 1e3, cal.meta.units, cal.meta.size[0], cal.meta.size[1]));
+                worked = true;
+            }
+            models.push(out);
+        }
+        Ok(worked)
+    })?;
+
+    // 5. the check on held-back scenes through the sensor the sweep recorded
+    let check_path = dir.join("results/check.json");
+    let truth = sweep.manifest.sensor;
+    step("check on held-back scenes", &mut || {
+        if check_path.exists() {
+            return Ok(false);
+        }
+        let Some(truth) = truth else {
+            write_json(&check_path, &json!({ "truth": null, "rows": [] }))?;
+            obs.line("  the sweep records no sensor (a real bench): the check needs scenes of known truth through it; skipped");
+            return Ok(true);
+        };
+        // held-back scenes at the calibrated frame size (the correction maps are per pixel),
+        // drawn with another seed than the training scenes
+        let [ch, cw] = cal.meta.size;
+        let check_dir = dir.join("check-scenes");
+        if !(check_dir.join("manifest.json").exists() && Dataset::open(&check_dir).is_ok()) {
+            let gen = if flim { Generator::Flim(FlimParams { height: ch, width: cw, ..Default::default() }) } else { Generator::Lidar(LidarParams { height: ch, width: cw, ..Default::default() }) };
+            let grid = TimeGrid { length: codes.length(), clock_hz: codes.clock_hz, sampling: options.sampling };
+            // the training split of this set holds about 80 % of it
+            let count = (options.check_items as f64 / 0.75).ceil() as usize + 2;
+            store::generate(&gen, &grid, count, options.seed ^ CHECK_SEED, &check_dir, &WriteOptions { shard_size: DEFAULT_SHARD, force: true, progress: &|| {}, cancel })?;
+        }
+        let ds = Dataset::open(&check_dir)?;
+        let noise = Some(NoiseParams::default().validate()?);
+        let split = "train";
+        let settings = |real: bool| EvalSettings { split: split.into(), items: Some(options.check_items), noise, seed: options.seed, sensor: real.then_some(truth) };
+        let mut rows = Vec::new();
+        let mut eval = |decoder: &str, spec: String, condition: &str, sensor: &Sensor, real: bool| -> Result<()> {
+            let mut d = vec![open_decoder(&spec, &Tval3Options::default(), &Device::flex())?];
+            let r = evaluate(&ds, sensor, &mut d, &settings(real), &|_, _, _| {}, cancel)?;
+            rows.push(row(&r[0], decoder, condition));
+            obs.line(&format!("  {decoder:<24} {condition:<26} {}", r[0].line()));
+            Ok(())
+        };
+        let tval3 = "tval3";
+        eval(tval3, "tval3".into(), "ideal sensor", &nominal, false)?;
+        eval(tval3, "tval3".into(), "nominal model", &nominal, true)?;
+        eval(tval3, "tval3".into(), "calibration", &calibrated, true)?;
+        for e in &entries {
+            let own = Codes::load(&e.dir.join(runs::CODES_FILE))?.digest() == codes.digest();
+            if own {
+                eval(&e.name, format!("zoo:{}", e.name), "ideal sensor", &nominal, false)?;
+                eval(&e.name, format!("zoo:{}", e.name), "nominal model", &nominal, true)?;
+                eval(&e.name, format!("zoo:{}", e.name), "calibration", &calibrated, true)?;
+            }
+            let tuned = format!("{}:{}", e.model.name(), runs_dir.join(&e.name).display());
+            let tuned_sensor = runs::load(&runs_dir.join(&e.name), &Device::flex())?.sensor.with_calibration(cal.clone());
+            eval(&e.name, tuned, "calibration + fine-tuning", &tuned_sensor, true)?;
+        }
+        let items = ds.manifest.splits.iter().find(|s| s.name == split).map_or(0, |s| s.count).min(options.check_items);
+        write_json(&check_path, &json!({ "truth": truth, "split": split, "items": items, "rows": rows }))?;
+        Ok(true)
+    })?;
+
+    // 6. the report
+    let total: f64 = steps.iter().map(|(_, s)| s).sum();
+    let report = dir.join("report.html");
+    let check: Value = serde_json::from_str(&std::fs::read_to_string(&check_path).map_err(|e| crate::PipelineError::Io { path: check_path.clone(), source: e })?)?;
+    write_json(&dir.join("results/steps.json"), &json!({ "steps": steps.iter().map(|(n, s)| json!({ "step": n, "seconds": s })).collect::<Vec<_>>(), "total_s": total }))?;
+    build_report(dir, options, &names, &cal, &check, &steps, total, flim).write(&report)?;
+    obs.line(&format!("wrote {} ({total:.0} s in all)", report.display()));
+    Ok(BringupSummary { report, models, steps })
+}
+
+/// Epochs a run has logged.
+fn done_epochs(run: &Path) -> usize {
+    std::fs::read_to_string(run.join("metrics.csv")).map_or(0, |t| t.lines().count().saturating_sub(1))
+}
+
+/// One row of the check: the decoder, the condition and its metrics.
+fn row(r: &EvalRow, decoder: &str, condition: &str) -> Value {
+    json!({
+        "decoder": decoder,
+        "condition": condition,
+        "psnr_db": r.psnr_db,
+        "first_return_median_m": r.depth_median_m.first().copied(),
+        "detected": r.depth.first().map(|d| d.detection_rate()),
+        "lifetime_mae_ns": r.lifetime_mae_s.map(|v| v * 1e9),
+        "seconds_per_frame": r.seconds_per_frame,
+    })
+}
+
+#[allow(clippy::too_many_arguments)]
+fn build_report(dir: &Path, o: &BringupOptions, names: &[String], cal: &Calibration, check: &Value, steps: &[(String, f64)], total: f64, flim: bool) -> Report {
+    let _ = dir;
+    let mut sections = Vec::new();
+    sections.push(Section {
+        id: "steps".into(),
+        title: "The path and its time".into(),
+        blocks: vec![
+            Block::Text(format!(
+                "From the sweep {} of the codes {} to decoders deployed for the calibrated sensor: {} (zoo entries fine-tuned within a budget of {} min). Steps skipped on a rerun show the time of the rerun.",
+                o.sweep.display(),
+                o.codes.display(),
+                names.join(", "),
+                o.budget_minutes
+            )),
+            Block::Table(Table {
+                caption: format!("Wall time of every step ({total:.0} s in all)"),
+                headers: vec!["step".into(), "seconds".into()],
+                rows: steps.iter().enumerate().map(|(i, (n, _))| vec![Cell::text(n.clone()), Cell::from_json("results/steps.json", &json!({ "steps": steps.iter().map(|(_, s)| json!({ "seconds": s })).collect::<Vec<_>>() }), &format!("/steps/{i}/seconds"), Format::Fixed(1))]).collect(),
+            }),
+        ],
+    });
+    let gains: Vec<String> = cal.meta.tap_gains.iter().map(|g| format!("{g:.4}")).collect();
+    sections.push(Section {
+        id: "calibration".into(),
+        title: "Calibration".into(),
+        blocks: vec![
+            Block::Text(format!(
+                "Measured from {} delays: tap gains [{}], RMS residual {:.2e} of the peak, gain and dark maps of {}x{} pixels in {}. The calibration's own page, cal/report.html, shows the maps, the fit and the responses.",
+                cal.meta.delays,
+                gains.join(", "),
+                cal.meta.residual_rms,
+                cal.meta.size[0],
+                cal.meta.size[1],
+                cal.meta.units
+            )),
+            Block::Figure { src: "cal/fit.png".into(), caption: "The sweep's mean response per tap against the calibrated model (cal/report.html has the rest).".into() },
+        ],
+    });
+    let metric: (&str, &str, Format) = if flim { ("lifetime MAE (ns)", "lifetime_mae_ns", Format::Fixed(3)) } else { ("first-return median error (m)", "first_return_median_m", Format::Fixed(3)) };
+    let rows: Vec<Vec<Cell>> = check["rows"]
+        .as_array()
+        .map(|rs| {
+            rs.iter()
+                .enumerate()
+                .map(|(i, r)| {
+                    vec![
+                        Cell::text(r["decoder"].as_str().unwrap_or_default()),
+                        Cell::text(r["condition"].as_str().unwrap_or_default()),
+                        Cell::from_json("results/check.json", check, &format!("/rows/{i}/{}", metric.1), metric.2),
+                        Cell::from_json("results/check.json", check, &format!("/rows/{i}/psnr_db"), Format::Fixed(2)),
+                    ]
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    let text = if check["truth"].is_null() {
+        "The sweep records no sensor: it comes from a real bench, and held-back scenes of known truth through that sensor are what the check needs. Decode frames of known scenes with the exported models to check them.".to_string()
+    } else {
+        format!(
+            "{} held-back scenes (the {} split of check-scenes/, at the calibrated frame size), through the sensor the sweep recorded (its non-idealities: {}), with noise: every decoder on the ideal sensor, through the nominal model (the raw tap images decoded as if the sensor were ideal), with the calibration alone (the zoo's decoder, frames corrected, decoded with the measured matrix) and calibrated + fine-tuned. A zoo entry whose codes are not the sensor's has only the last row.",
+            check["items"],
+            check["split"].as_str().unwrap_or("test"),
+            check["truth"]
+        )
+    };
+    sections.push(Section {
+        id: "check".into(),
+        title: "Decoders on the ideal sensor, the nominal model, the calibration and the fine-tuning".into(),
+        blocks: vec![Block::Text(text), Block::Table(Table { caption: format!("{} and cube PSNR (dB) per decoder and condition", metric.0), headers: vec!["decoder".into(), "condition".into(), metric.0.into(), "PSNR (dB)".into()], rows })],
+    });
+    let models: Vec<String> = names.iter().map(|n| format!("tcsense infer --model onnx/{n}.onnx --measurements RAW.npy -o out/{n}")).collect();
+    sections.push(Section { id: "deploy".into(), title: "Deployed models".into(), blocks: vec![Block::Text("Each takes the sensor's raw tap images (the calibration's dark and gain correction is in the graph):".into()), Block::Code(models.join("\n"))] });
+    Report { title: "Sensor bring-up".into(), subtitle: format!("{} → {}", o.sweep.display(), names.join(", ")), sections }
+}
