@@ -4,6 +4,7 @@ use std::io::Write;
 
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
+use tcsense_pipeline::bringup::{self as bring, BringupOptions};
 use tcsense_pipeline::demo::{self, DemoOptions, Observer};
 use tcsense_sensor::calibration::calibrate as calibrate_sweep;
 use tcsense_sensor::sweep::Sweep;
@@ -90,7 +91,48 @@ fn calibrate<'py>(py: Python<'py>, codes: &Bound<'py, PyAny>, sweep: &Bound<'py,
     crate::to_python(py, &serde_json::to_value(&cal.meta).map_err(err)?)
 }
 
+/// Bring a sensor up from a laser-delay sweep (`tcsense bringup`): calibration, the zoo's
+/// `decoders` (default: the designed-codes entries of the sensor's domain) fine-tuned to the
+/// calibrated sensor within `budget_minutes`, ONNX models that take its raw tap images, a check
+/// on held-back scenes and `out/report.html`. Rerunning into `out` resumes; Ctrl-C stops it.
+/// Returns `{report, models, steps}` (steps: `[(name, seconds)]`).
+#[pyfunction]
+#[pyo3(signature = (sweep, codes, out, *, irf = "physical", heterodyne = None, decoders = None, budget_minutes = 20.0, scenes = 400, size = (64, 64), check_items = 8, seed = 1, quiet = false))]
+#[allow(clippy::too_many_arguments)]
+fn bringup<'py>(
+    py: Python<'py>,
+    sweep: &Bound<'py, PyAny>,
+    codes: &Bound<'py, PyAny>,
+    out: &Bound<'py, PyAny>,
+    irf: &str,
+    heterodyne: Option<usize>,
+    decoders: Option<Vec<String>>,
+    budget_minutes: f64,
+    scenes: usize,
+    size: (usize, usize),
+    check_items: usize,
+    seed: u64,
+    quiet: bool,
+) -> PyResult<Bound<'py, PyDict>> {
+    let irf = match irf {
+        "ideal" => tcsense_sensor::Irf::Ideal,
+        "physical" => tcsense_sensor::Irf::Physical { laser_fwhm_s: tcsense_sensor::params::DEFAULT_LASER_FWHM_S, tap_tau_s: tcsense_sensor::params::DEFAULT_TAP_TAU_S },
+        other => return Err(err(format!("irf {other:?}: expected \"physical\" or \"ideal\""))),
+    };
+    let sampling = tcsense_sensor::Sampling::from_factors(None, heterodyne, tcsense_sensor::Sampling::Oversample(1)).map_err(err)?;
+    let options = BringupOptions { sweep: path_of(sweep)?, codes: path_of(codes)?, sampling, irf, decoders: decoders.unwrap_or_default(), budget_minutes, scenes, size, check_items, seed };
+    let dir = path_of(out)?;
+    let obs = Stderr { quiet };
+    let s = run_long(py, |cancel| bring::run(&options, &dir, &obs, cancel))?.map_err(err)?;
+    let d = PyDict::new(py);
+    d.set_item("report", s.report)?;
+    d.set_item("models", s.models)?;
+    d.set_item("steps", s.steps)?;
+    Ok(d)
+}
+
 pub fn register(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add_function(wrap_pyfunction!(bringup, m)?)?;
     m.add_function(wrap_pyfunction!(run_demo, m)?)?;
     m.add_function(wrap_pyfunction!(calibrate, m)?)?;
     Ok(())

@@ -62,3 +62,18 @@ def test_simulate_sweep_matches_the_command_line_and_calibrates(lab, cli, tmp_pa
         tcsense.simulate_sweep(sensor, tmp_path / "bad", size=(7, 8))
     with pytest.raises(tcsense.TcsenseError, match=r"nonideal: .*prnu"):
         tcsense.simulate_sweep(sensor, tmp_path / "bad", size=(8, 8), nonideal={"prnu": 0.9})
+
+
+def test_bringup_from_python(tmp_path):
+    codes = tcsense.open_run("zoo:admm-lidar-designed").codes
+    codes.save(tmp_path / "codes.json")
+    sensor = tcsense.Sensor(codes, irf="physical")
+    tcsense.simulate_sweep(sensor, tmp_path / "sweep", size=(8, 8), average=8, nonideal={"tap_gain": 0.05, "prnu": 0.02, "seed": 3})
+    s = tcsense.bringup(tmp_path / "sweep", tmp_path / "codes.json", tmp_path / "out", decoders=["admm-lidar-designed"],
+                        budget_minutes=0.03, scenes=8, size=(16, 16), check_items=2, quiet=True)
+    assert str(s["report"]).endswith("report.html") and (tmp_path / "out" / "onnx" / "admm-lidar-designed.onnx").is_file()
+    assert [n for n, _ in s["steps"]][0] == "calibration from the sweep" and len(s["steps"]) == 5
+    check = json.loads((tmp_path / "out" / "results" / "check.json").read_text())
+    assert {r["condition"] for r in check["rows"]} == {"ideal sensor", "nominal model", "calibration", "calibration + fine-tuning"}
+    with pytest.raises(tcsense.TcsenseError, match=r"no-such-entry"):
+        tcsense.bringup(tmp_path / "sweep", tmp_path / "codes.json", tmp_path / "bad", decoders=["no-such-entry"], quiet=True)
