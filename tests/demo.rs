@@ -55,9 +55,20 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
     let mut args = ARGS.to_vec();
     args.extend(["-o", "demo"]);
     let out = ok(d, &args);
-    assert!(out.contains("[12/13] timing") && out.contains("wrote demo/report.html"), "{out}");
+    assert!(out.contains("[12/14] timing") && out.contains("[13/14] bring-up of a non-ideal sensor") && out.contains("wrote demo/report.html"), "{out}");
     let demo = d.join("demo");
     let html = std::fs::read_to_string(demo.join("report.html")).unwrap();
+
+    // the bring-up of the non-ideal sensor: calibrated, the LiDAR decoders fine-tuned and
+    // exported for its raw taps, every condition checked and in the report
+    for f in ["bench-sweep/sweep.json", "bringup/cal/calibration.json", "bringup/onnx/admm-lidar.onnx", "bringup/onnx/unet-lidar.onnx", "bringup/report.html"] {
+        assert!(demo.join(f).exists(), "{f} missing");
+    }
+    let check: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(demo.join("bringup/results/check.json")).unwrap()).unwrap();
+    let rows = check["rows"].as_array().unwrap();
+    assert_eq!(rows.len(), 3 + 2 * 4, "TVAL3 under three conditions, each decoder under four: {rows:?}");
+    assert!(rows.iter().all(|r| r["first_return_median_m"].as_f64().is_some_and(f64::is_finite)), "{rows:?}");
+    assert!(html.contains("Bring-up of a non-ideal sensor") && html.contains("data-ptr=\"/rows/10/first_return_median_m\""));
 
     // every figure exists, is a PNG and is not empty; the ones the issue names are there
     let images = attributes(&html, "img", "src");

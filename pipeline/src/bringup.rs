@@ -61,7 +61,8 @@ pub struct BringupOptions {
     /// The sensor's sampling and nominal instrument response.
     pub sampling: Sampling,
     pub irf: Irf,
-    /// Zoo entries to fine-tune (empty: the designed-codes entries of the sensor's domain).
+    /// Decoders to fine-tune: zoo entries (`NAME` or `zoo:NAME`) or trained run directories
+    /// (empty: the zoo's designed-codes entries of the sensor's domain).
     pub decoders: Vec<String>,
     /// The whole path's time budget (min).
     pub budget_minutes: f64,
@@ -81,6 +82,27 @@ pub struct BringupSummary {
     pub models: Vec<PathBuf>,
     /// Every step's wall time (s).
     pub steps: Vec<(String, f64)>,
+}
+
+/// A decoder to bring up: a zoo entry or a trained run.
+struct Source {
+    /// As given (for messages).
+    label: String,
+    /// Its name under `runs/` and `onnx/`: the entry's or the run directory's.
+    name: String,
+    dir: PathBuf,
+    model: tcsense_models::runs::ModelConfig,
+}
+
+impl Source {
+    /// `NAME` or `zoo:NAME` (a zoo entry), or a run directory.
+    fn open(spec: &str) -> Result<Source> {
+        let full = if spec.contains(':') || Path::new(spec).exists() { spec.to_string() } else { format!("zoo:{spec}") };
+        let dir = zoo::resolve(&full)?;
+        let model = tcsense_train::setup::model_of_run(&dir)?;
+        let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| spec.to_string());
+        Ok(Source { label: full, name, dir, model })
+    }
 }
 
 /// The zoo entries brought up by default for a sensor of `sampling`.
@@ -105,9 +127,12 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
     let names = if options.decoders.is_empty() { default_decoders(options.sampling) } else { options.decoders.clone() };
     let mut entries = Vec::new();
     for n in &names {
-        let e = zoo::entry(n)?;
+        let e = Source::open(n)?;
         if (e.model.taps(), e.model.bins()) != (nominal.taps(), nominal.bins()) {
-            bail!("zoo:{n}: its network takes M = {} taps and T = {} bins, the sensor gives M = {}, T = {} (check --oversample/--heterodyne)", e.model.taps(), e.model.bins(), nominal.taps(), nominal.bins());
+            bail!("{}: its network takes M = {} taps and T = {} bins, the sensor gives M = {}, T = {} (check --oversample/--heterodyne)", e.label, e.model.taps(), e.model.bins(), nominal.taps(), nominal.bins());
+        }
+        if entries.iter().any(|o: &Source| o.name == e.name) {
+            bail!("{}: two decoders named {:?}; give each once", e.label, e.name);
         }
         entries.push(e);
     }
@@ -270,9 +295,10 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
         for e in &entries {
             let own = Codes::load(&e.dir.join(runs::CODES_FILE))?.digest() == codes.digest();
             if own {
-                eval(&e.name, format!("zoo:{}", e.name), "ideal sensor", &nominal, false)?;
-                eval(&e.name, format!("zoo:{}", e.name), "nominal model", &nominal, true)?;
-                eval(&e.name, format!("zoo:{}", e.name), "calibration", &calibrated, true)?;
+                let original = format!("{}:{}", e.model.name(), e.dir.display());
+                eval(&e.name, original.clone(), "ideal sensor", &nominal, false)?;
+                eval(&e.name, original.clone(), "nominal model", &nominal, true)?;
+                eval(&e.name, original, "calibration", &calibrated, true)?;
             }
             let tuned = format!("{}:{}", e.model.name(), runs_dir.join(&e.name).display());
             let tuned_sensor = runs::load(&runs_dir.join(&e.name), &Device::flex())?.sensor.with_calibration(cal.clone());
@@ -320,7 +346,7 @@ fn build_report(dir: &Path, o: &BringupOptions, names: &[String], cal: &Calibrat
         title: "The path and its time".into(),
         blocks: vec![
             Block::Text(format!(
-                "From the sweep {} of the codes {} to decoders deployed for the calibrated sensor: {} (zoo entries fine-tuned within a budget of {} min). Steps skipped on a rerun show the time of the rerun.",
+                "From the sweep {} of the codes {} to decoders deployed for the calibrated sensor: {} (fine-tuned within a budget of {} min). A step done by an earlier run into the same directory shows the time it took then.",
                 o.sweep.display(),
                 o.codes.display(),
                 names.join(", "),
@@ -371,7 +397,7 @@ fn build_report(dir: &Path, o: &BringupOptions, names: &[String], cal: &Calibrat
         "The sweep records no sensor: it comes from a real bench, and held-back scenes of known truth through that sensor are what the check needs. Decode frames of known scenes with the exported models to check them.".to_string()
     } else {
         format!(
-            "{} held-back scenes (the {} split of check-scenes/, at the calibrated frame size), through the sensor the sweep recorded (its non-idealities: {}), with noise: every decoder on the ideal sensor, through the nominal model (the raw tap images decoded as if the sensor were ideal), with the calibration alone (the zoo's decoder, frames corrected, decoded with the measured matrix) and calibrated + fine-tuned. A zoo entry whose codes are not the sensor's has only the last row.",
+            "{} held-back scenes (the {} split of check-scenes/, at the calibrated frame size), through the sensor the sweep recorded (its non-idealities: {}), with noise: every decoder on the ideal sensor, through the nominal model (the raw tap images decoded as if the sensor were ideal), with the calibration alone (the decoder as given, frames corrected, decoded with the measured matrix) and calibrated + fine-tuned. A decoder trained on other codes than the sensor's has only the last row.",
             check["items"],
             check["split"].as_str().unwrap_or("test"),
             check["truth"]
