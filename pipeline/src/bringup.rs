@@ -175,8 +175,8 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
         obs.line(&format!("  wrote {}: tap gains {:?}, RMS residual {:.2e} of the peak", cal_dir.display(), cal.meta.tap_gains, cal.meta.residual_rms));
         Ok(true)
     })?;
-    let cal = Calibration::load(&cal_dir, nominal.nominal(), &codes)?;
-    let calibrated = nominal.clone().with_calibration(cal.clone());
+    let calibrated = nominal.clone().calibrated_from(&cal_dir)?;
+    let Some(cal) = calibrated.calibration().cloned() else { bail!("{}: no calibration was loaded", cal_dir.display()) };
 
     // 2. training scenes on the sensor's grid
     let data = dir.join("data");
