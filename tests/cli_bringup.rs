@@ -13,7 +13,7 @@ fn bench(dir: &Path) {
     ok(dir, &["simulate", "--codes", "codes.json", "--irf", "physical", "--sweep", "sweep", "--size", "8x8", "--noise", "--average", "16", "--tap-gain", "0.05", "--prnu", "0.02", "--dark", "0.01", "--gate-skew-ns", "0.1", "--modulation-contrast", "0.925", "--sensor-seed", "7"]);
 }
 
-const BRINGUP: &[&str] = &["bringup", "--sweep", "sweep", "--codes", "codes.json", "--decoder", "admm-lidar-designed", "--budget-minutes", "0.05", "--scenes", "8", "--size", "16x16", "--check-items", "2", "-o", "out"];
+const BRINGUP: &[&str] = &["bringup", "--sweep", "sweep", "--codes", "codes.json", "--decoder", "admm-lidar-designed", "--budget-minutes", "0.05", "--epochs", "2", "--scenes", "8", "--size", "16x16", "--check-items", "2", "-o", "out"];
 
 #[test]
 fn a_sweep_becomes_a_deployed_decoder_with_a_report() {

@@ -49,6 +49,9 @@ const SENSOR_RESIDUE: [f64; 3] = [0.01, 0.005, 0.002];
 /// already good; at 1e-3 a few epochs on the generated scenes undid them (measured at 188×212:
 /// the U-Net's first-return median error 0.016 m with the calibration alone, 0.072 m after).
 const FINE_TUNE_LR: f64 = 1e-4;
+/// A fine-tuning may run this many times its share of the budget (its epochs are sized from a
+/// timed step, which a busy machine misjudges) before it is stopped.
+const DEADLINE_SLACK: f64 = 1.25;
 /// Seed stream of the held-back scenes (the training scenes use the seed itself).
 const CHECK_SEED: u64 = 0xc4ec;
 /// Time per step beyond the timed forward/backward/Adam step (ms): measurements, augmentation,
@@ -70,6 +73,8 @@ pub struct BringupOptions {
     pub decoders: Vec<String>,
     /// The whole path's time budget (min).
     pub budget_minutes: f64,
+    /// Epochs of every fine-tuning instead of the budget's (no deadline then).
+    pub epochs: Option<usize>,
     /// Training scenes generated, and their frame size.
     pub scenes: usize,
     pub size: (usize, usize),
@@ -209,9 +214,15 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
             let req = if resume {
                 TrainRequest { decoder: e.model.name().into(), output: out.clone(), resume: true, ..Default::default() }
             } else {
-                let ms = tcsense_train::bench::bench_step(calibrated.matrix(), &e.model, h, w, 3)?.step_ms + STEP_OVERHEAD_MS;
-                let epochs = ((share_s / (ms / 1e3 * train_items.div_ceil(2) as f64)).floor() as usize).max(1);
-                obs.line(&format!("  {}: {ms:.1} ms per step at {h}x{w}, {train_items} items → {epochs} epochs in {share_s:.0} s", e.name));
+                let epochs = match options.epochs {
+                    Some(n) => n,
+                    None => {
+                        let ms = tcsense_train::bench::bench_step(calibrated.matrix(), &e.model, h, w, 3)?.step_ms + STEP_OVERHEAD_MS;
+                        let n = ((share_s / (ms / 1e3 * train_items.div_ceil(2) as f64)).floor() as usize).max(1);
+                        obs.line(&format!("  {}: {ms:.1} ms per step at {h}x{w}, {train_items} items → {n} epochs in {share_s:.0} s", e.name));
+                        n
+                    }
+                };
                 TrainRequest {
                     decoder: e.model.name().into(),
                     output: out.clone(),
@@ -235,7 +246,33 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
             if resume && out.join(WEIGHTS_FILE).exists() && done_epochs(&out) >= prepared.cfg.epochs {
                 return Ok(false);
             }
-            request::run(&prepared, &Device::flex(), obs.training(), cancel)?;
+            // the share is a budget, not an estimate: past DEADLINE_SLACK of it the training stops
+            // at the next step with its checkpoint kept (the model; a rerun continues it)
+            let (stop, finished) = (AtomicBool::new(false), AtomicBool::new(false));
+            let deadline = std::time::Duration::from_secs_f64(if options.epochs.is_some() { f64::INFINITY } else { share_s * DEADLINE_SLACK }.min(1e9));
+            let res = std::thread::scope(|sc| {
+                sc.spawn(|| {
+                    let t0 = Instant::now();
+                    while !finished.load(Ordering::Relaxed) {
+                        if cancel.load(Ordering::Relaxed) || t0.elapsed() > deadline {
+                            stop.store(true, Ordering::Relaxed);
+                            break;
+                        }
+                        std::thread::sleep(std::time::Duration::from_millis(100));
+                    }
+                });
+                let r = request::run(&prepared, &Device::flex(), obs.training(), &stop);
+                finished.store(true, Ordering::Relaxed);
+                r
+            });
+            match res {
+                Err(tcsense_train::TrainError::Cancelled) if !cancel.load(Ordering::Relaxed) => {
+                    obs.line(&format!("  {}: its share of the budget is spent after {} of {} epochs; its last checkpoint is the model (rerun into the directory to continue)", e.name, done_epochs(&out), prepared.cfg.epochs));
+                }
+                r => {
+                    r?;
+                }
+            }
             Ok(true)
         })?;
     }

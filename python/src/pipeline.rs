@@ -97,7 +97,7 @@ fn calibrate<'py>(py: Python<'py>, codes: &Bound<'py, PyAny>, sweep: &Bound<'py,
 /// on held-back scenes and `out/report.html`. Rerunning into `out` resumes; Ctrl-C stops it.
 /// Returns `{report, models, steps}` (steps: `[(name, seconds)]`).
 #[pyfunction]
-#[pyo3(signature = (sweep, codes, out, *, irf = "physical", heterodyne = None, decoders = None, budget_minutes = 20.0, scenes = 400, size = (64, 64), check_items = 8, seed = 1, quiet = false))]
+#[pyo3(signature = (sweep, codes, out, *, irf = "physical", heterodyne = None, decoders = None, budget_minutes = 20.0, epochs = None, scenes = 400, size = (64, 64), check_items = 8, seed = 1, quiet = false))]
 #[allow(clippy::too_many_arguments)]
 fn bringup<'py>(
     py: Python<'py>,
@@ -108,6 +108,7 @@ fn bringup<'py>(
     heterodyne: Option<usize>,
     decoders: Option<Vec<String>>,
     budget_minutes: f64,
+    epochs: Option<usize>,
     scenes: usize,
     size: (usize, usize),
     check_items: usize,
@@ -120,7 +121,7 @@ fn bringup<'py>(
         other => return Err(err(format!("irf {other:?}: expected \"physical\" or \"ideal\""))),
     };
     let sampling = tcsense_sensor::Sampling::from_factors(None, heterodyne, tcsense_sensor::Sampling::Oversample(1)).map_err(err)?;
-    let options = BringupOptions { sweep: path_of(sweep)?, codes: path_of(codes)?, sampling, irf, decoders: decoders.unwrap_or_default(), budget_minutes, scenes, size, check_items, seed };
+    let options = BringupOptions { sweep: path_of(sweep)?, codes: path_of(codes)?, sampling, irf, decoders: decoders.unwrap_or_default(), budget_minutes, epochs, scenes, size, check_items, seed };
     let dir = path_of(out)?;
     let obs = Stderr { quiet };
     let s = run_long(py, |cancel| bring::run(&options, &dir, &obs, cancel))?.map_err(err)?;

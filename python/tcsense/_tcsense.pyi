@@ -243,7 +243,7 @@ def simulate_sweep(sensor: Sensor, out: PathLike, *, size: Tuple[int, int] = (32
     """A laser-delay sweep of a flat target through ``sensor`` with its ``nonideal``
     non-idealities (``tcsense simulate --sweep``), for ``calibrate``; returns sweep.json."""
 
-def bringup(sweep: PathLike, codes: PathLike, out: PathLike, *, irf: str = "physical", heterodyne: Optional[int] = None, decoders: Optional[List[str]] = None, budget_minutes: float = 20.0, scenes: int = 400, size: Tuple[int, int] = (64, 64), check_items: int = 8, seed: int = 1, quiet: bool = False) -> Dict[str, Any]:
+def bringup(sweep: PathLike, codes: PathLike, out: PathLike, *, irf: str = "physical", heterodyne: Optional[int] = None, decoders: Optional[List[str]] = None, budget_minutes: float = 20.0, epochs: Optional[int] = None, scenes: int = 400, size: Tuple[int, int] = (64, 64), check_items: int = 8, seed: int = 1, quiet: bool = False) -> Dict[str, Any]:
     """A sensor brought up from a delay sweep (``tcsense bringup``): calibration, the zoo's
     decoders fine-tuned to it, ONNX models for its raw tap images, a check and
     ``out/report.html``; returns {report, models, steps}."""

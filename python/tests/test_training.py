@@ -70,7 +70,7 @@ def test_bringup_from_python(tmp_path):
     sensor = tcsense.Sensor(codes, irf="physical")
     tcsense.simulate_sweep(sensor, tmp_path / "sweep", size=(8, 8), average=8, nonideal={"tap_gain": 0.05, "prnu": 0.02, "seed": 3})
     s = tcsense.bringup(tmp_path / "sweep", tmp_path / "codes.json", tmp_path / "out", decoders=["admm-lidar-designed"],
-                        budget_minutes=0.03, scenes=8, size=(16, 16), check_items=2, quiet=True)
+                        budget_minutes=0.03, epochs=2, scenes=8, size=(16, 16), check_items=2, quiet=True)
     assert str(s["report"]).endswith("report.html") and (tmp_path / "out" / "onnx" / "admm-lidar-designed.onnx").is_file()
     assert [n for n, _ in s["steps"]][0] == "calibration from the sweep" and len(s["steps"]) == 5
     check = json.loads((tmp_path / "out" / "results" / "check.json").read_text())

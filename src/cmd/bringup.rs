@@ -33,6 +33,9 @@ pub struct BringupArgs {
     /// measured step time.
     #[arg(long, default_value_t = 20.0)]
     budget_minutes: f64,
+    /// Epochs of every fine-tuning instead of sizing them to the budget.
+    #[arg(long)]
+    epochs: Option<usize>,
     /// Training scenes generated for the sensor's grid.
     #[arg(long, default_value_t = 400)]
     scenes: usize,
@@ -59,6 +62,7 @@ pub fn run(a: BringupArgs) -> Result<ExitCode> {
         irf: super::sensor::parse_irf(&a.irf)?,
         decoders: a.decoders,
         budget_minutes: a.budget_minutes,
+        epochs: a.epochs,
         scenes: a.scenes,
         size: a.size,
         check_items: a.check_items,

@@ -356,6 +356,8 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
             irf: physical_irf(),
             decoders: ["admm-lidar", "unet-lidar"].iter().map(|n| runs_dir.join(n).display().to_string()).collect(),
             budget_minutes: request.budget_minutes * BRINGUP_SHARE,
+            // fixed, so that a resumed demo finds its fine-tunings done whatever the machine's load
+            epochs: Some(if request.quick { 2 } else { 8 }),
             scenes: (request.lidar_scenes / 4).max(8),
             size: (h, w),
             check_items: plan.lidar_eval_items,
