@@ -342,9 +342,10 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
                 eval(&e.name, original.clone(), "nominal model", &nominal, true)?;
                 eval(&e.name, original, "calibration", &calibrated, true)?;
             }
+            // the same frames as the rows above (the truth realised on the nominal sensor, corrected
+            // by the calibration); the fine-tuned run's own matrix is the calibration's
             let tuned = format!("{}:{}", e.model.name(), runs_dir.join(&e.name).display());
-            let tuned_sensor = runs::load(&runs_dir.join(&e.name), &Device::flex())?.sensor.with_calibration(cal.clone());
-            eval(&e.name, tuned, "calibration + fine-tuning", &tuned_sensor, true)?;
+            eval(&e.name, tuned, "calibration + fine-tuning", &calibrated, true)?;
         }
         let items = ds.manifest.splits.iter().find(|s| s.name == split).map_or(0, |s| s.count).min(options.check_items);
         write_json(&check_path, &json!({ "truth": truth, "split": split, "items": items, "rows": rows }))?;
