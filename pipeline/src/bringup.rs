@@ -45,10 +45,6 @@ use crate::error::{bail, Result};
 const TRAINING_SHARE: f64 = 0.8;
 /// Residual tap gain, PRNU and dark offset a calibration leaves, drawn per training item.
 const SENSOR_RESIDUE: [f64; 3] = [0.01, 0.005, 0.002];
-/// Peak learning rate of the fine-tunings: a tenth of a fresh training's. The zoo's weights are
-/// already good; at 1e-3 a few epochs on the generated scenes undid them (measured at 188×212:
-/// the U-Net's first-return median error 0.016 m with the calibration alone, 0.072 m after).
-const FINE_TUNE_LR: f64 = 1e-4;
 /// A fine-tuning may run this many times its share of the budget (its epochs are sized from a
 /// timed step, which a busy machine misjudges) before it is stopped.
 const DEADLINE_SLACK: f64 = 1.25;
@@ -236,7 +232,6 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
                         Irf::Physical { .. } => "physical".into(),
                     }),
                     sensor_residue: Some(SENSOR_RESIDUE),
-                    lr: Some(FINE_TUNE_LR),
                     epochs: Some(epochs),
                     seed: Some(options.seed),
                     ..Default::default()
