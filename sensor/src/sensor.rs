@@ -17,7 +17,7 @@
 //! let sensor = Sensor::build(codes, &SensorModel { sampling: Sampling::Oversample(2), irf: Irf::Ideal, ..Default::default() }).unwrap();
 //! assert_eq!(sensor.matrix().bins(), 64); // T = L·K = 32·2
 //! let x = ndarray::Array3::<f32>::ones((64, 4, 4));
-//! let y = sensor.measure(&x.view().into_dyn(), &Default::default(), false, Default::default(), 0).unwrap().into_input_units();
+//! let y = sensor.measure(&x.view().into_dyn(), &Default::default(), false, tcsense_sensor::noise::Exposure::Auto, 0).unwrap().into_input_units();
 //! assert_eq!(y.shape(), &[4, 4, 4]); // [M, H, W]
 //! ```
 
