@@ -22,7 +22,6 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
-
 use tcsense_datasets::flim::FlimParams;
 use tcsense_datasets::lidar::LidarParams;
 use tcsense_datasets::store::{self, Generator, WriteOptions, DEFAULT_SHARD};
@@ -33,13 +32,13 @@ use tcsense_infer::report::{Block, Cell, Format, Report, Section, Table};
 use tcsense_models::runs::{self, CONFIG_FILE, WEIGHTS_FILE};
 use tcsense_models::{zoo, Device, Tval3Options};
 use tcsense_sensor::calibration::{calibrate, Calibration, DESCRIPTION};
-use tcsense_sensor::npy::write_bytes;
 use tcsense_sensor::sweep::Sweep;
 use tcsense_sensor::{Codes, Irf, NoiseParams, Sampling, Sensor, SensorModel};
 use tcsense_train::request::{self, TrainRequest};
 
 use crate::demo::Observer;
 use crate::error::{bail, Result};
+use crate::write_json;
 
 /// Share of the budget given to the fine-tunings (the rest: calibration, data, export, check).
 const TRAINING_SHARE: f64 = 0.8;
@@ -116,11 +115,6 @@ fn default_decoders(sampling: Sampling) -> Vec<String> {
         Sampling::Heterodyne(_) => vec!["lifetime-flim-designed".into()],
         Sampling::Oversample(_) => vec!["unet-lidar-designed".into(), "admm-lidar-designed".into()],
     }
-}
-
-fn write_json(path: &Path, v: &Value) -> Result<()> {
-    write_bytes(path, (serde_json::to_string_pretty(v)? + "\n").as_bytes())?;
-    Ok(())
 }
 
 /// Bring the sensor of `options` up into `dir` (see the module docs).
@@ -352,7 +346,7 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
     let report = dir.join("report.html");
     let check: Value = serde_json::from_str(&std::fs::read_to_string(&check_path).map_err(|e| crate::PipelineError::Io { path: check_path.clone(), source: e })?)?;
     write_json(&dir.join("results/steps.json"), &json!({ "steps": steps.iter().map(|(n, s)| json!({ "step": n, "seconds": s })).collect::<Vec<_>>(), "total_s": total }))?;
-    build_report(dir, options, &names, &cal, &check, &steps, total, flim).write(&report)?;
+    build_report(options, &names, &cal, &check, &steps, total, flim).write(&report)?;
     obs.line(&format!("wrote {} ({total:.0} s in all)", report.display()));
     Ok(BringupSummary { report, models, steps })
 }
@@ -376,8 +370,7 @@ fn row(r: &EvalRow, decoder: &str, condition: &str) -> Value {
 }
 
 #[allow(clippy::too_many_arguments)]
-fn build_report(dir: &Path, o: &BringupOptions, names: &[String], cal: &Calibration, check: &Value, steps: &[(String, f64)], total: f64, flim: bool) -> Report {
-    let _ = dir;
+fn build_report(o: &BringupOptions, names: &[String], cal: &Calibration, check: &Value, steps: &[(String, f64)], total: f64, flim: bool) -> Report {
     let mut sections = Vec::new();
     sections.push(Section {
         id: "steps".into(),

@@ -17,3 +17,9 @@ pub mod identifiability;
 
 pub use demo::{DemoOptions, DemoSummary, Observer};
 pub use error::{PipelineError, Result};
+
+/// Write `v` as pretty JSON (atomically, with a final newline).
+pub(crate) fn write_json(path: &std::path::Path, v: &serde_json::Value) -> Result<()> {
+    tcsense_sensor::npy::write_bytes(path, (serde_json::to_string_pretty(v)? + "\n").as_bytes())?;
+    Ok(())
+}

@@ -15,6 +15,7 @@
 //! and [`report`] writes the page.
 
 use crate::error::{bail, Context, PipelineError, Result};
+use crate::write_json;
 use ndarray::{Array2, Array3, Array4, Axis, Ix3, Ix4};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
@@ -380,11 +381,6 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
     write_json(&dir.join("results/steps.json"), &json!({ "total_seconds": total, "steps": record }))?;
     obs.line(&format!("wrote {} in {:.0} s ({:.1} min)", dir.join("report.html").display(), total, total / 60.0));
     Ok(DemoSummary { report: dir.join("report.html"), seconds: total, resumed })
-}
-
-fn write_json(path: &Path, v: &Value) -> Result<()> {
-    write_bytes(path, (serde_json::to_string_pretty(v)? + "\n").as_bytes())?;
-    Ok(())
 }
 
 /// Generate a dataset unless a complete one is there (a partial one is never left: the
