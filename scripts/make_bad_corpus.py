@@ -130,6 +130,49 @@ def manifest():
     variant("escaping-path.json", lambda m: m["splits"][0]["shards"][0]["files"].update(x="../../etc/passwd"))
 
 
+def registers():
+    """Variants of an exported code memory's registers.json (of the fixture's codes): every
+    field that `codes import` must honour or refuse."""
+    variant = variants("registers", os.path.join(ROOT, "fuzz", "seeds", "registers.json"))
+
+    open(path("registers", "empty.json"), "w").close()
+    open(path("registers", "garbage.json"), "w").write("ECLEN=0\n")
+    variant("wrong-type.json", lambda r: r.update(ECLEN="zero"))
+    variant("unknown-field.json", lambda r: r.update(ECLEM=0))
+    variant("missing-field.json", lambda r: r.pop("bit_order"))
+    variant("eclen-mismatch.json", lambda r: r.update(ECLEN=7))
+    variant("zero-length.json", lambda r: r.update(length=0, ECLEN=0))
+    variant("bytes-per-channel.json", lambda r: r.update(bytes_per_channel=2))
+    variant("channel-count.json", lambda r: r.update(channel_count=15))
+    variant("bit-order.json", lambda r: r.update(bit_order="lsb-first"))
+    variant("combined-layout.json", lambda r: r.update(combined_layout="tap-major"))
+    variant("escaping-combined-file.json", lambda r: r.update(combined_file="../codes.bin"))
+    variant("escaping-channel-file.json", lambda r: r["channels"][3].update(file="/etc/passwd"))
+    variant("channel-misplaced.json", lambda r: r["channels"][1].update(tap=2))
+    variant("channels-missing.json", lambda r: r.update(channels=r["channels"][:-1]))
+    variant("absurd-taps.json", lambda r: r.update(taps=10**12))
+    variant("zero-clock.json", lambda r: r.update(clock_hz=0.0))
+
+
+def sweep():
+    """Variants of a simulated sweep's sweep.json (the fixture's codes, 8x8, 8 delays): every
+    field that calibration and bring-up must honour or refuse."""
+    variant = variants("sweep", os.path.join(ROOT, "fuzz", "seeds", "sweep.json"))
+
+    open(path("sweep", "empty.json"), "w").close()
+    open(path("sweep", "garbage.json"), "w").write("<sweep/>\n")
+    variant("wrong-type.json", lambda m: m.update(full_scale="max"))
+    variant("unknown-field.json", lambda m: m.update(unitz="electrons"))
+    variant("foreign-format.json", lambda m: m.update(format="something-else"))
+    variant("units-unknown.json", lambda m: m.update(units="furlongs"))
+    variant("units-empty.json", lambda m: m.update(units=""))
+    variant("no-delays.json", lambda m: m.update(delays_s=[]))
+    variant("delays-mismatch.json", lambda m: m.update(delays_s=m["delays_s"][:-1]))
+    variant("zero-full-scale.json", lambda m: m.update(full_scale=0.0))
+    variant("missing-frames.json", lambda m: m.update(frames="nothing.npy"))
+    variant("absurd-gate-skew.json", lambda m: m["sensor"].update(gate_skew_s=1e30))
+
+
 def onnx_files():
     seed = open(os.path.join(ROOT, "fuzz", "seeds", "admm-net.onnx"), "rb").read()
     open(path("onnx", "garbage.onnx"), "wb").write(b"\x08\x09garbage" * 50)
@@ -151,6 +194,8 @@ if __name__ == "__main__":
     codes()
     config()
     manifest()
+    registers()
+    sweep()
     onnx_files()
     for d in sorted(os.listdir(OUT)):
         print(d, len(os.listdir(os.path.join(OUT, d))))

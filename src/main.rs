@@ -10,8 +10,8 @@ use std::process::ExitCode;
 #[derive(Parser)]
 #[command(name = "tcsense", version, about, long_about = None)]
 struct Cli {
-    /// Worker threads (default: all cores).
-    #[arg(long, global = true)]
+    /// Worker threads (default: all cores; 1 to 256).
+    #[arg(long, global = true, value_parser = cmd::count_in(1, cmd::MAX_THREADS))]
     threads: Option<usize>,
     #[command(subcommand)]
     command: Command,
@@ -85,7 +85,7 @@ fn main() -> ExitCode {
     tcsense_kernels::keep_freed_memory();
     let cli = Cli::parse();
     if let Some(n) = cli.threads {
-        if let Err(e) = rayon::ThreadPoolBuilder::new().num_threads(n.max(1)).build_global() {
+        if let Err(e) = rayon::ThreadPoolBuilder::new().num_threads(n).build_global() {
             eprintln!("error: cannot set up {n} threads: {e}");
             return ExitCode::from(2);
         }

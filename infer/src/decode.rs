@@ -11,6 +11,7 @@ use std::path::{Path, PathBuf};
 use tcsense_models::decoder::{Control, Decoded, Decoder};
 use tcsense_models::ModelError;
 use tcsense_sensor::npy::{read_npy, write_npy};
+use tcsense_sensor::output::Outputs;
 use tcsense_sensor::{Codes, Sensor};
 
 use crate::{InferError, Result};
@@ -82,11 +83,19 @@ pub struct DecodedFile {
     pub written: Vec<PathBuf>,
 }
 
+/// The files beside a decoder's main output `output`: `OUTPUT.confidence.npy` (depth and
+/// lifetimes) and `OUTPUT.intensity.npy` (lifetimes).
+pub fn companions(output: &Path) -> [PathBuf; 2] {
+    [output.with_extension("confidence.npy"), output.with_extension("intensity.npy")]
+}
+
 /// Decode the tap images in `measurements` with `decoder` on `sensor` and write what it gives
 /// (same batching as the input) to `output`: the cube; or the depth `[K, H, W]` with the
 /// confidence at `OUTPUT.confidence.npy`; or the lifetimes `[4, H, W]` with the confidence and
-/// the intensity (`OUTPUT.intensity.npy`). Nothing is written when decoding fails.
-pub fn decode_file(decoder: &mut dyn Decoder, sensor: &Sensor, measurements: &Path, output: &Path, ctl: &Control<'_>) -> Result<DecodedFile> {
+/// the intensity (`OUTPUT.intensity.npy`) — staged in `outputs` (planned with `output` and its
+/// [`companions`]), which the caller commits once every other output of the command is
+/// written too. Nothing is written when decoding fails.
+pub fn decode_file(decoder: &mut dyn Decoder, sensor: &Sensor, measurements: &Path, output: &Path, ctl: &Control<'_>, outputs: &mut Outputs) -> Result<DecodedFile> {
     let (batched, y) = read_measurements(measurements, sensor)?;
     let frames = y.dim().0;
     let t0 = std::time::Instant::now();
@@ -96,16 +105,16 @@ pub fn decode_file(decoder: &mut dyn Decoder, sensor: &Sensor, measurements: &Pa
     })?;
     let seconds_per_frame = t0.elapsed().as_secs_f64() / frames.max(1) as f64;
     let unbatch = |a: &Array4<f32>| -> ArrayD<f32> { if batched { a.clone().into_dyn() } else { a.index_axis(Axis(0), 0).to_owned().into_dyn() } };
-    let with = |ext: &str| output.with_extension(ext);
+    let [confidence, intensity] = companions(output);
     let files: Vec<(PathBuf, &Array4<f32>)> = match (&decoded.cube, &decoded.lifetime, &decoded.depth, &decoded.confidence, &decoded.intensity) {
         (Some(c), ..) => vec![(output.to_path_buf(), c)],
-        (None, Some(l), _, Some(c), Some(i)) => vec![(output.to_path_buf(), l), (with("confidence.npy"), c), (with("intensity.npy"), i)],
-        (None, None, Some(d), Some(c), _) => vec![(output.to_path_buf(), d), (with("confidence.npy"), c)],
+        (None, Some(l), _, Some(c), Some(i)) => vec![(output.to_path_buf(), l), (confidence, c), (intensity, i)],
+        (None, None, Some(d), Some(c), _) => vec![(output.to_path_buf(), d), (confidence, c)],
         _ => return Err(InferError::InvalidParam { field: "decoder", got: decoder.name().into(), expected: "a decoder that gives a cube, depth with confidence or lifetimes".into() }),
     };
     let mut written = Vec::with_capacity(files.len());
     for (path, a) in files {
-        write_npy(&path, &unbatch(a).view())?;
+        write_npy(&outputs.stage(&path)?, &unbatch(a).view())?;
         written.push(path);
     }
     Ok(DecodedFile { decoded, batched, frames, seconds_per_frame, written })

@@ -17,6 +17,10 @@ pub enum InferError {
     /// A parameter outside its valid range.
     #[error("invalid {field}: got {got}, expected {expected}")]
     InvalidParam { field: &'static str, got: String, expected: String },
+    /// Settings of a decoder or a fit that it cannot use; `msg` names the setting, the value and
+    /// what was expected.
+    #[error("{what} settings: {msg}")]
+    Settings { what: &'static str, msg: String },
     /// A decoder name that names none.
     #[error("decoder {0:?}: unknown decoder; expected `tval3`, `lifetime-fit`, `admm-net:RUN`, `unet:RUN` or `lifetime:RUN` (a training run directory), `zoo:NAME`, `onnx:MODEL.onnx` (an exported model), or a decoder of cubes followed by `+fit` (ranges refined in the tap domain)")]
     UnknownDecoder(String),

@@ -51,7 +51,7 @@ pub struct DepthFitDecoder {
 impl DepthFitDecoder {
     /// A decoder with checked options.
     pub fn new(options: DepthFitOptions) -> crate::Result<Self> {
-        options.validate().map_err(|e| crate::InferError::InvalidParam { field: "depth-fit", got: format!("{options:?}"), expected: e })?;
+        options.validate().map_err(|msg| crate::InferError::Settings { what: "depth-fit", msg })?;
         Ok(DepthFitDecoder { options })
     }
 }

@@ -56,7 +56,11 @@ static ENVIRONMENT: OnceLock<std::result::Result<ort::environment::Environment, 
 /// The process's ONNX Runtime environment (the library is loaded once).
 fn environment() -> Result<&'static ort::environment::Environment> {
     let env = ENVIRONMENT.get_or_init(|| {
-        let lib = find_library().map_err(|e| e.to_string())?;
+        // the reason alone: OrtMissing's message adds the version and how to install it
+        let lib = find_library().map_err(|e| match e {
+            InferError::OrtMissing(reason) => reason,
+            e => e.to_string(),
+        })?;
         let builder = ort::init_from(&lib).map_err(|e| format!("cannot load {}: {e}", lib.display()))?;
         builder.with_name("tcsense").build().map_err(|e| format!("cannot start ONNX Runtime from {}: {e}", lib.display()))
     });

@@ -81,10 +81,16 @@ impl FrameSource {
             &[f, m, h, w] => (f, [m, h, w], false),
             s => return Err(file_err(path, format!("measurements of shape {s:?}; expected [M, H, W] or [F, M, H, W]"))),
         };
+        if frames == 0 || frame.contains(&0) {
+            return Err(file_err(path, format!("measurements of shape {:?} hold no tap image; expected [M, H, W] or [F, M, H, W] with every size ≥ 1", header.shape)));
+        }
         if header.fortran && frames > 1 {
             return Err(file_err(path, "a Fortran-order stack cannot be streamed; save it in C order (numpy.ascontiguousarray)"));
         }
-        let need = header.data_offset as u64 + (header.count() * header.size) as u64;
+        let need = header.shape.iter().try_fold(header.size as u64, |acc, &d| acc.checked_mul(d as u64)).and_then(|b| b.checked_add(header.data_offset as u64));
+        let Some(need) = need else {
+            return Err(file_err(path, format!("measurements of shape {:?}: more bytes than a file can hold", header.shape)));
+        };
         let have = file.metadata().map_err(|e| file_err(path, e))?.len();
         if have < need {
             return Err(file_err(path, format!("npy data truncated: shape {:?} of {} needs {need} bytes, the file has {have}", header.shape, header.descr)));
@@ -388,7 +394,37 @@ struct Writers {
 
 /// Stream every frame of `source` through `model` into `out`, calling `on_frame(done, total)`
 /// after each; stops with [`InferError::Cancelled`] when `cancel` is set (writing nothing).
-pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, products: &Products, cancel: &AtomicBool, on_frame: &(dyn Fn(usize, usize) + Sync)) -> Result<StreamReport> {
+///
+/// `out` is written whole: the products go into a temporary sibling that replaces `out` once
+/// every frame is done, so an earlier run's products (a longer run's point clouds, a product
+/// not asked for now) never remain beside the new ones, and a refusal, an error or an
+/// interruption leaves `out` as it was. A directory holding other files is refused.
+pub fn run_stream(model: &mut OnnxModel, source: FrameSource, out: &Path, products: &Products, cancel: &AtomicBool, on_frame: &(dyn Fn(usize, usize) + Sync)) -> Result<StreamReport> {
+    if source.is_empty() {
+        return Err(file_err(out, "no frames to decode"));
+    }
+    let mut report = tcsense_sensor::output::replace_dir(out, &is_stream_output, |tmp| stream_into(model, source, tmp, products, cancel, on_frame))?;
+    for p in &mut report.written {
+        if let Ok(rel) = p.strip_prefix(&report_tmp_root(p, out)) {
+            *p = out.join(rel);
+        }
+    }
+    Ok(report)
+}
+
+/// Whether `name` is a file or folder [`run_stream`] writes into its output directory.
+pub fn is_stream_output(name: &str) -> bool {
+    matches!(name, "cube.npy" | "depth.npy" | "peaks.npy" | "confidence.npy" | "lifetime.npy" | "intensity.npy" | "phasor.npy" | "ply")
+}
+
+/// The temporary directory a written path `p` lies in (its ancestor named like `out`'s sibling).
+fn report_tmp_root(p: &Path, out: &Path) -> PathBuf {
+    let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    p.ancestors().find(|a| a.file_name().is_some_and(|n| n.to_string_lossy().starts_with(&format!(".{name}.")))).map(Path::to_path_buf).unwrap_or_default()
+}
+
+/// [`run_stream`] into the directory `out` (fresh and empty).
+fn stream_into(model: &mut OnnxModel, mut source: FrameSource, out: &Path, products: &Products, cancel: &AtomicBool, on_frame: &(dyn Fn(usize, usize) + Sync)) -> Result<StreamReport> {
     let frames = source.len();
     let taps = model.meta.taps;
     let (first, first_path) = source.read(0, taps)?;
@@ -404,7 +440,6 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
             None => model.meta.returns,
         },
     );
-    std::fs::create_dir_all(out).map_err(|e| file_err(out, e))?;
     let lead: Vec<usize> = if source.single() { vec![] } else { vec![frames] };
     let shape = |rest: &[usize]| -> Vec<usize> { lead.iter().chain(rest).copied().collect() };
     let mut writers = Writers {
@@ -445,7 +480,7 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
     let templates = match &products.lifetime_fit {
         Some(opts) => {
             uncalibrated("--lifetime-fit")?;
-            opts.validate().map_err(|e| InferError::InvalidParam { field: "--lifetime-fit", got: format!("{opts:?}"), expected: e })?;
+            opts.validate().map_err(|msg| InferError::Settings { what: "--lifetime-fit", msg })?;
             let instrument = estimate_instrument(&first.view(), &model.sensor, opts);
             Some(LifetimeTemplates::new(&model.sensor, instrument, opts))
         }
@@ -463,7 +498,7 @@ pub fn run_stream(model: &mut OnnxModel, mut source: FrameSource, out: &Path, pr
             if products.peaks {
                 return Err(InferError::InvalidParam { field: "--products", got: "peaks with --depth-fit".into(), expected: "depth, ply (the fit gives ranges, not the cube's peaks)".into() });
             }
-            opts.validate().map_err(|e| InferError::InvalidParam { field: "--depth-fit", got: format!("{opts:?}"), expected: e })?;
+            opts.validate().map_err(|msg| InferError::Settings { what: "--depth-fit", msg })?;
             Some(RangeTemplates::new(&model.sensor, opts))
         }
         None => None,
@@ -601,9 +636,11 @@ fn write_frame(i: usize, outs: Vec<Array4<f32>>, fitted: Option<TapFit>, ranges:
         }
     }
     let depth_by_model = ranges.is_none();
+    // the model's outputs: none when every product asked for comes from a fit to the taps
+    let Some(first) = outs.first() else { return Ok(()) };
     match kind {
         ModelKind::Cube => {
-            let cube: ArrayView3<'_, f32> = outs[0].index_axis(Axis(0), 0);
+            let cube: ArrayView3<'_, f32> = first.index_axis(Axis(0), 0);
             if let Some(w) = wr.cube.as_mut() {
                 w.push(cube.iter())?;
             }

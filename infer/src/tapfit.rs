@@ -70,6 +70,7 @@ impl Default for TapFitOptions {
 impl TapFitOptions {
     /// Checks the settings; the error names the field.
     pub fn validate(&self) -> Result<(), String> {
+        use tcsense_models::range_fit::MAX_WINDOW;
         let [lo, hi] = self.tau_range_s;
         if !(lo > 0.0 && hi > lo && hi.is_finite()) {
             return Err(format!("tau_range_s: [{lo:e}, {hi:e}], expected 0 < lo < hi"));
@@ -77,8 +78,8 @@ impl TapFitOptions {
         if self.points < 3 {
             return Err(format!("points: {}, expected at least 3", self.points));
         }
-        if self.window == 0 || self.window.is_multiple_of(2) {
-            return Err(format!("window: {}, expected an odd size ≥ 1", self.window));
+        if self.window == 0 || self.window.is_multiple_of(2) || self.window > MAX_WINDOW {
+            return Err(format!("window: {}, expected an odd size from 1 to {MAX_WINDOW} pixels", self.window));
         }
         if !(0.0..1.0).contains(&self.min_intensity) {
             return Err(format!("min_intensity: {}, expected a fraction in [0, 1)", self.min_intensity));
@@ -86,8 +87,8 @@ impl TapFitOptions {
         if self.irf_fwhm_s.is_empty() || self.irf_fwhm_s.iter().any(|w| !(w.is_finite() && *w >= 0.0)) {
             return Err(format!("irf_fwhm_s: {:?}, expected one or more widths ≥ 0", self.irf_fwhm_s));
         }
-        if matches!(self.onset_s, Some(t) if !t.is_finite()) {
-            return Err("onset_s: expected a finite time".into());
+        if let Some(t) = self.onset_s.filter(|t| !(t.is_finite() && t.abs() <= tcsense_sensor::params::MAX_RESPONSE_S)) {
+            return Err(format!("onset: {:e} s, expected a time within ±1 µs of the cycle's start (taken modulo the code cycle)", t));
         }
         if self.brightest == 0 {
             return Err("brightest: expected at least 1 pixel".into());
@@ -763,7 +764,7 @@ pub struct TapFitDecoder {
 impl TapFitDecoder {
     /// A decoder with checked options.
     pub fn new(options: TapFitOptions) -> crate::Result<Self> {
-        options.validate().map_err(|e| crate::InferError::InvalidParam { field: "lifetime-fit", got: format!("{options:?}"), expected: e })?;
+        options.validate().map_err(|msg| crate::InferError::Settings { what: "lifetime-fit", msg })?;
         Ok(TapFitDecoder { options })
     }
 }

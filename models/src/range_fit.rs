@@ -67,6 +67,10 @@ pub(crate) fn cyclic_gap(a: f64, b: f64, t: usize) -> f64 {
     g.min(t as f64 - g)
 }
 
+/// The widest window of pixels whose costs a fit sums (pixels a side): a neighbourhood, not a
+/// frame; every fit to the taps takes the same bound.
+pub const MAX_WINDOW: usize = 63;
+
 /// Settings of [`refine_ranges`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct RangeFitOptions {
@@ -96,8 +100,8 @@ impl Default for RangeFitOptions {
 impl RangeFitOptions {
     /// `Err(what was expected)` for settings the fit cannot use.
     pub fn validate(&self) -> Result<(), String> {
-        if self.window == 0 || self.window.is_multiple_of(2) {
-            return Err(format!("window {}: expected an odd side of 1 or more", self.window));
+        if self.window == 0 || self.window.is_multiple_of(2) || self.window > MAX_WINDOW {
+            return Err(format!("window {}: expected an odd side from 1 to {MAX_WINDOW} pixels", self.window));
         }
         if !(self.search_bins.is_finite() && self.search_bins > 0.0) {
             return Err(format!("search_bins {}: expected a positive number of bins", self.search_bins));

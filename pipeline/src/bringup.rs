@@ -53,6 +53,93 @@ const CHECK_SEED: u64 = 0xc4ec;
 /// validation, checkpoints.
 const STEP_OVERHEAD_MS: f64 = 2.0;
 
+/// Limits of a bring-up's settings.
+const MAX_SIDE: usize = 4096;
+const MIN_SCENES: usize = 4;
+const MAX_SCENES: usize = 100_000;
+const MAX_CHECK_ITEMS: usize = 10_000;
+const MAX_EPOCHS: usize = 100_000;
+const MAX_BUDGET_MINUTES: f64 = 7.0 * 24.0 * 60.0;
+/// The record of what a bring-up directory was made from.
+pub const INPUTS_FILE: &str = "inputs.json";
+
+/// What every step of a bring-up is made from: the sweep's content, the codes, the sensor, the
+/// decoders and the settings that shape the steps' outputs (not the budget: a rerun may give
+/// the trainings more or less time). Recorded in `DIR/inputs.json` by the first run; a rerun
+/// with other inputs is refused, naming each difference.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Inputs {
+    /// Digest of the sweep's manifest and frames (dark, flat, delays).
+    sweep: String,
+    codes: String,
+    sampling: String,
+    irf: String,
+    decoders: Vec<String>,
+    epochs: Option<usize>,
+    scenes: usize,
+    size: [usize; 2],
+    check_items: usize,
+    seed: u64,
+}
+
+impl Inputs {
+    fn of(o: &BringupOptions, decoders: &[String], sweep: &Sweep, codes: &Codes) -> Inputs {
+        let floats = |a: &[f32]| a.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>();
+        let manifest = serde_json::to_vec(&sweep.manifest).unwrap_or_default();
+        let mut bytes = manifest;
+        bytes.extend(floats(sweep.frames.as_slice().unwrap_or(&[])));
+        bytes.extend(floats(sweep.dark.as_slice().unwrap_or(&[])));
+        if let Some(f) = &sweep.flat {
+            bytes.extend(floats(f.as_slice().unwrap_or(&[])));
+        }
+        Inputs {
+            sweep: tcsense_sensor::digest::digest(bytes),
+            codes: codes.digest(),
+            sampling: format!("{:?}", o.sampling),
+            irf: format!("{:?}", o.irf),
+            decoders: decoders.to_vec(),
+            epochs: o.epochs,
+            scenes: o.scenes,
+            size: [o.size.0, o.size.1],
+            check_items: o.check_items,
+            seed: o.seed,
+        }
+    }
+
+    /// Refuse `dir` when it holds a bring-up of other inputs, or something that is no bring-up.
+    fn check_resume(&self, dir: &Path) -> Result<()> {
+        let path = dir.join(INPUTS_FILE);
+        let empty = std::fs::read_dir(dir).map(|mut d| d.next().is_none()).unwrap_or(true);
+        if empty {
+            return Ok(());
+        }
+        if !dir.is_dir() {
+            bail!("{}: exists and is not a directory; choose a new output directory", dir.display());
+        }
+        let Ok(text) = std::fs::read_to_string(&path) else {
+            bail!("{}: the directory holds files but no {INPUTS_FILE}, so it is not a bring-up to resume; choose a new output directory", dir.display());
+        };
+        let saved: Inputs = serde_json::from_str(&text).map_err(|e| crate::PipelineError::Invalid(format!("{}: not a bring-up's record of its inputs ({e}); choose a new output directory", path.display())))?;
+        let (a, b) = (serde_json::to_value(&saved)?, serde_json::to_value(self)?);
+        let differences: Vec<String> = a
+            .as_object()
+            .into_iter()
+            .flatten()
+            .filter(|(k, v)| b.get(k.as_str()) != Some(v))
+            .map(|(k, v)| format!("{k}: {v} then, {} now", b.get(k.as_str()).cloned().unwrap_or(Value::Null)))
+            .collect();
+        if !differences.is_empty() {
+            bail!(
+                "{} was brought up from other inputs ({}); rerun with the same sweep, codes and settings to resume it, or choose a new output directory",
+                dir.display(),
+                differences.join("; ")
+            );
+        }
+        Ok(())
+    }
+}
+
 /// What to bring up.
 #[derive(Debug, Clone)]
 pub struct BringupOptions {
@@ -137,10 +224,30 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
     }
     let (h, w) = options.size;
     let (bh, bw) = nominal.block();
-    if h == 0 || w == 0 || h % bh != 0 || w % bw != 0 || options.scenes < 4 || options.check_items == 0 || !(options.budget_minutes > 0.0) {
-        bail!("bring-up settings: --size {h}x{w} (a multiple of the {bh}x{bw} block), --scenes {} (≥ 4), --check-items {} (≥ 1), --budget-minutes {} (> 0)", options.scenes, options.check_items, options.budget_minutes);
+    if h == 0 || w == 0 || h > MAX_SIDE || w > MAX_SIDE || h % bh != 0 || w % bw != 0 {
+        bail!("bring-up settings: --size {h}x{w}: expected whole {bh}x{bw} blocks, each side from 1 to {MAX_SIDE} pixels");
     }
-    std::fs::create_dir_all(dir).map_err(|e| crate::PipelineError::Io { path: dir.to_path_buf(), source: e })?;
+    if !(MIN_SCENES..=MAX_SCENES).contains(&options.scenes) {
+        bail!("bring-up settings: --scenes {}: expected {MIN_SCENES} to {MAX_SCENES} training scenes", options.scenes);
+    }
+    if !(1..=MAX_CHECK_ITEMS).contains(&options.check_items) {
+        bail!("bring-up settings: --check-items {}: expected 1 to {MAX_CHECK_ITEMS} held-back scenes", options.check_items);
+    }
+    if !(options.budget_minutes.is_finite() && options.budget_minutes > 0.0 && options.budget_minutes <= MAX_BUDGET_MINUTES) {
+        bail!("bring-up settings: --budget-minutes {}: expected a time above 0 and at most {MAX_BUDGET_MINUTES} minutes (a week)", options.budget_minutes);
+    }
+    if let Some(e) = options.epochs.filter(|e| !(1..=MAX_EPOCHS).contains(e)) {
+        bail!("bring-up settings: --epochs {e}: expected 1 to {MAX_EPOCHS} epochs");
+    }
+    // the training scenes' working set, before anything is calibrated or generated
+    let item_bytes = 4.0 * (h * w) as f64 * (nominal.bins() + nominal.taps() + 4) as f64;
+    tcsense_sensor::mem::check_fits(&format!("{} training scenes of {h}x{w}", options.scenes), item_bytes * options.scenes as f64, "use fewer --scenes or a smaller --size")?;
+    // what the steps are made from: a directory brought up from other inputs is refused, never
+    // resumed with them
+    let inputs = Inputs::of(options, &names, &sweep, &codes);
+    inputs.check_resume(dir)?;
+    std::fs::create_dir_all(dir).map_err(|e| crate::PipelineError::Io { path: dir.to_path_buf(), cause: e })?;
+    write_json(&dir.join(INPUTS_FILE), &serde_json::to_value(&inputs)?)?;
     // a step done by an earlier run keeps the time it took then
     let steps_path = dir.join("results/steps.json");
     let earlier: Value = std::fs::read_to_string(&steps_path).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or(Value::Null);
@@ -344,7 +451,7 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
     // 6. the report
     let total: f64 = steps.iter().map(|(_, s)| s).sum();
     let report = dir.join("report.html");
-    let check: Value = serde_json::from_str(&std::fs::read_to_string(&check_path).map_err(|e| crate::PipelineError::Io { path: check_path.clone(), source: e })?)?;
+    let check: Value = serde_json::from_str(&std::fs::read_to_string(&check_path).map_err(|e| crate::PipelineError::Io { path: check_path.clone(), cause: e })?)?;
     write_json(&dir.join("results/steps.json"), &json!({ "steps": steps.iter().map(|(n, s)| json!({ "step": n, "seconds": s })).collect::<Vec<_>>(), "total_s": total }))?;
     build_report(options, &names, &cal, &check, &steps, total, flim).write(&report)?;
     obs.line(&format!("wrote {} ({total:.0} s in all)", report.display()));

@@ -15,10 +15,12 @@ pub enum PipelineError {
     Train(#[from] tcsense_train::TrainError),
     #[error(transparent)]
     Infer(#[from] tcsense_infer::InferError),
-    #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
-    #[error("{what}: {source}")]
-    Json { what: String, source: serde_json::Error },
+    /// The OS error and the JSON error are parts of the message, not sources of their own, so
+    /// that a chain printed whole (`{:#}`) says them once.
+    #[error("{}: {cause}", path.display())]
+    Io { path: PathBuf, cause: std::io::Error },
+    #[error("{what}: {cause}")]
+    Json { what: String, cause: serde_json::Error },
     #[error(transparent)]
     Shape(#[from] ndarray::ShapeError),
     /// A setting out of range, a directory that holds something else, an interrupted run: the
@@ -48,6 +50,6 @@ impl<T, E: std::fmt::Display> Context<T> for std::result::Result<T, E> {
 
 impl From<serde_json::Error> for PipelineError {
     fn from(source: serde_json::Error) -> Self {
-        PipelineError::Json { what: "JSON".into(), source }
+        PipelineError::Json { what: "JSON".into(), cause: source }
     }
 }

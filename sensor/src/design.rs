@@ -323,6 +323,11 @@ pub trait DesignProgress: Sync {
     fn moves(&self, _done: usize, _score: &Score) {}
 }
 
+/// The most random candidates a design scores (each is held with its score until ranked).
+pub const MAX_CANDIDATES: usize = 1_000_000;
+/// The most moves of one local search.
+pub const MAX_MOVES: usize = 100_000_000;
+
 /// No progress reports.
 pub struct Quiet;
 impl DesignProgress for Quiet {}
@@ -335,6 +340,13 @@ impl DesignProgress for Quiet {}
 pub fn design(obj: &Objective, shape: CodeShape, clock_hz: f64, constraints: Constraints, opts: &DesignOptions, progress: &dyn DesignProgress, cancel: &AtomicBool) -> Result<Designed> {
     if opts.candidates == 0 || opts.starts == 0 {
         return Err(crate::error::invalid("candidates", opts.candidates.min(opts.starts), "at least one candidate and one search"));
+    }
+    if opts.candidates > MAX_CANDIDATES || opts.starts > MAX_CANDIDATES || opts.moves > MAX_MOVES {
+        return Err(crate::error::invalid(
+            "candidates",
+            format!("{} candidates, {} searches of {} moves", opts.candidates, opts.starts, opts.moves),
+            format!("at most {MAX_CANDIDATES} candidates and searches, at most {MAX_MOVES} moves each"),
+        ));
     }
     let seeds: Vec<u64> = (0..opts.candidates as u64).map(|i| opts.seed.wrapping_add(i)).collect();
     let mut scored: Vec<(u64, Score)> = Vec::with_capacity(seeds.len());

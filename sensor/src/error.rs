@@ -15,13 +15,10 @@ pub enum SensorError {
     /// A file whose content is malformed.
     #[error("{}: {msg}", path.display())]
     File { path: PathBuf, msg: String },
-    /// An I/O failure on a file.
-    #[error("{}: {source}", path.display())]
-    Io {
-        path: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
+    /// An I/O failure on a file. The OS error is part of the message, not a source of its own,
+    /// so that a chain printed whole (`{:#}`) says it once.
+    #[error("{}: {cause}", path.display())]
+    Io { path: PathBuf, cause: std::io::Error },
     /// An array of the wrong shape.
     #[error("{what}: shape {got:?} does not fit, expected {expected}")]
     Shape {
@@ -55,10 +52,7 @@ impl SensorError {
 
     /// Attach a path to an I/O error.
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
-        SensorError::Io {
-            path: path.into(),
-            source,
-        }
+        SensorError::Io { path: path.into(), cause: source }
     }
 
     /// Prefix an error with the file it came from (for errors raised while checking a file's content).

@@ -12,7 +12,8 @@
 //! physical, heterodyne or measured `A`, and its Gram matrices `AAᵀ`), [`operator`] (fast
 //! forward/adjoint), [`noise`] (shot, read, clipping, ADC), [`measure`] (the one physics
 //! entry, `y = quantise(clip(noise(A x)))`), [`export`] (the sensor's code memory), [`show`]
-//! (PNG pictures of codes), [`npy`] (`.npy` I/O and atomic writes).
+//! (PNG pictures of codes), [`npy`] (`.npy` I/O and atomic writes), [`output`] (a command's
+//! outputs written all or none).
 
 pub mod calibration;
 pub mod codes;
@@ -30,6 +31,7 @@ pub mod noise;
 pub mod nonideal;
 pub mod npy;
 pub mod operator;
+pub mod output;
 pub mod params;
 pub mod project;
 pub mod sensor;

@@ -351,9 +351,16 @@ fn laser_kernel(sigma: f64, delta: f64, p: usize) -> Vec<(isize, f64)> {
         return vec![(0, 1.0)];
     }
     let pi = p as isize;
-    let reach = (6.0 * sigma / delta).ceil() as isize;
-    // A pulse wider than half the cycle wraps: cover one whole period and add its images.
-    let (offsets, images) = if 2 * reach < pi { (-reach..=reach, 0) } else { (-(pi / 2)..=(pi - pi / 2 - 1), 4) };
+    // in f64 first: a pulse of many cycles must not overflow the offsets
+    let reach_f = (6.0 * sigma / delta).ceil();
+    // A pulse wider than half the cycle wraps: cover one whole period and add its images (as
+    // many periods as the pulse reaches, at least 4).
+    let (offsets, images) = if 2.0 * reach_f < p as f64 {
+        let reach = reach_f as isize;
+        (-reach..=reach, 0)
+    } else {
+        (-(pi / 2)..=(pi - pi / 2 - 1), ((reach_f / p as f64).ceil() as isize).clamp(4, 64))
+    };
     let mut k: Vec<(isize, f64)> = offsets
         .map(|d| {
             let w: f64 = (-images..=images)

@@ -114,14 +114,17 @@ impl NonIdeal {
         frac("dark_fpn", self.dark_fpn, 0.1)?;
         frac("crosstalk", self.crosstalk, 0.5)?;
         frac("tail", self.tail, 0.9)?;
-        if self.tail > 0.0 && !(self.tail_tau_s.is_finite() && self.tail_tau_s > 0.0) {
-            return Err(invalid("tail_tau", self.tail_tau_s, "a positive time constant when tail > 0"));
+        // times: up to 1 µs, far beyond any cycle of these sensors (a drift or skew is taken
+        // modulo the cycle; beyond that a value means nothing and loses its precision)
+        let max = crate::params::MAX_RESPONSE_S;
+        if self.tail > 0.0 && !(self.tail_tau_s.is_finite() && self.tail_tau_s > 0.0 && self.tail_tau_s <= max) {
+            return Err(invalid("tail_tau", self.tail_tau_s, "a positive time constant up to 1 µs (1e-6 s) when tail > 0"));
         }
-        if !self.shift_s.is_finite() {
-            return Err(invalid("shift", self.shift_s, "a finite delay"));
+        if !(self.shift_s.is_finite() && self.shift_s.abs() <= max) {
+            return Err(invalid("shift", self.shift_s, "a delay from −1 µs to 1 µs (s)"));
         }
-        if !(self.gate_skew_s.is_finite() && self.gate_skew_s >= 0.0) {
-            return Err(invalid("gate_skew", self.gate_skew_s, "a non-negative delay (s)"));
+        if !(self.gate_skew_s.is_finite() && (0.0..=max).contains(&self.gate_skew_s)) {
+            return Err(invalid("gate_skew", self.gate_skew_s, "a delay from 0 to 1 µs (s)"));
         }
         if !(self.modulation_contrast == 0.0 || (self.modulation_contrast > 0.0 && self.modulation_contrast <= 1.0)) {
             return Err(invalid("modulation_contrast", self.modulation_contrast, "a contrast in (0, 1] (e.g. 0.925), or 0 for none given"));

@@ -118,6 +118,10 @@ pub struct SensorParams {
 pub const DEFAULT_LASER_FWHM_S: f64 = 2.55e-9;
 /// Default first-order tap time constant (0.3 ns; the prototype modulates up to ~300 MHz).
 pub const DEFAULT_TAP_TAU_S: f64 = 0.3e-9;
+/// The longest laser pulse width or tap time constant a sensor model takes (s): far beyond any
+/// time-compressive sensor's cycle, short enough that the response's kernel stays a few
+/// cycles long.
+pub const MAX_RESPONSE_S: f64 = 1e-6;
 
 impl Default for SensorParams {
     fn default() -> Self {
@@ -164,11 +168,11 @@ impl SensorParams {
             return Err(invalid(field, k, "K in 1..=64"));
         }
         if let Irf::Physical { laser_fwhm_s, tap_tau_s } = self.irf {
-            if !(laser_fwhm_s.is_finite() && laser_fwhm_s >= 0.0) {
-                return Err(invalid("laser_fwhm", laser_fwhm_s, "a non-negative duration in seconds"));
+            if !(laser_fwhm_s.is_finite() && (0.0..=MAX_RESPONSE_S).contains(&laser_fwhm_s)) {
+                return Err(invalid("laser_fwhm", laser_fwhm_s, "a duration from 0 to 1 µs (1e-6 s; e.g. 2.55e-9)"));
             }
-            if !(tap_tau_s.is_finite() && tap_tau_s >= 0.0) {
-                return Err(invalid("tap_tau", tap_tau_s, "a non-negative time constant in seconds"));
+            if !(tap_tau_s.is_finite() && (0.0..=MAX_RESPONSE_S).contains(&tap_tau_s)) {
+                return Err(invalid("tap_tau", tap_tau_s, "a time constant from 0 to 1 µs (1e-6 s; e.g. 0.3e-9)"));
             }
         }
         self.noise.validate()?;
@@ -269,6 +273,10 @@ mod tests {
         assert!(e.to_string().contains("heterodyne"));
         let p = SensorParams { sampling: Sampling::Heterodyne(8), ..Default::default() }.validate().unwrap();
         assert_eq!(p.bins(), 256);
+        for (fwhm, tau, field) in [(1e20, 0.3e-9, "laser_fwhm"), (f64::NAN, 0.3e-9, "laser_fwhm"), (2.55e-9, 2e-6, "tap_tau"), (2.55e-9, -1e-9, "tap_tau")] {
+            let e = SensorParams { irf: Irf::Physical { laser_fwhm_s: fwhm, tap_tau_s: tau }, ..Default::default() }.validate().unwrap_err();
+            assert!(e.to_string().contains(field) && e.to_string().contains("1 µs"), "{e}");
+        }
         assert!((p.bin_width_s() - 206e-12).abs() < 1e-12, "Δ ≈ 206 ps at 607 MHz");
     }
 }

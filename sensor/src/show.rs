@@ -104,7 +104,7 @@ impl Canvas {
             writer.finish().map_err(std::io::Error::other)
         })
         .map_err(|e| match e {
-            SensorError::Io { path, source } => SensorError::file(path, format!("cannot write PNG: {source}")),
+            SensorError::Io { path, cause } => SensorError::file(path, format!("cannot write PNG: {cause}")),
             e => e,
         })
     }

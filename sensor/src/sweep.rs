@@ -44,6 +44,13 @@ pub const FORMAT: &str = "tcsense-sweep";
 pub const VERSION: u32 = 1;
 /// The manifest's file name in a sweep directory.
 pub const MANIFEST: &str = "sweep.json";
+/// The most exposures averaged per delay in a simulated sweep.
+pub const MAX_AVERAGE: usize = 4096;
+
+/// Whether `name` is a file [`simulate_sweep`] writes (so that a rerun may replace them).
+fn is_sweep_file(name: &str) -> bool {
+    name == MANIFEST || ["sweep", "dark", "flat"].iter().any(|s| name == format!("{s}.npy") || (name.starts_with(&format!("{s}_")) && name.ends_with(".png")))
+}
 
 /// Frames on disk: one `.npy` stack, or per frame the `M` tap images as PNGs.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -67,7 +74,7 @@ pub struct SweepManifest {
     pub flat: Option<FrameFiles>,
     /// Saturation level in the frames' units.
     pub full_scale: f64,
-    /// Units of the values (`electrons`, `adc`, or a sensor's own word).
+    /// Units of the values: `electrons`, `adc` or `input` (as measurements' sidecars name them).
     pub units: String,
     /// The codes' digest ([`Codes::digest`]), when known.
     #[serde(default)]
@@ -143,21 +150,39 @@ fn read_frames(dir: &Path, files: &FrameFiles, field: &str) -> Result<Array4<f32
     }
 }
 
+impl SweepManifest {
+    /// Parse the text of `path` (a `sweep.json`) and check every field that needs no frame:
+    /// format and version, full scale, units, the recorded sensor, the delays.
+    pub fn parse(text: &str, path: &Path) -> Result<SweepManifest> {
+        let manifest: SweepManifest = serde_json::from_str(text).map_err(|e| file_err(path, format!("not a sweep manifest: {e}")))?;
+        if manifest.format != FORMAT || manifest.version != VERSION {
+            return Err(file_err(path, format!("format {:?} version {}; expected {FORMAT:?} version {VERSION}", manifest.format, manifest.version)));
+        }
+        if !(manifest.full_scale.is_finite() && manifest.full_scale > 0.0) {
+            return Err(file_err(path, format!("field full_scale is {}, expected the positive saturation level of the frames", manifest.full_scale)));
+        }
+        if crate::sensor::Units::parse(&manifest.units).is_err() {
+            return Err(file_err(path, format!("field units is {:?}; expected \"electrons\", \"adc\" or \"input\" (the units measurements name in their sidecars)", manifest.units)));
+        }
+        if let Some(sensor) = &manifest.sensor {
+            sensor.validate().map_err(|e| file_err(path, format!("field sensor: {e}")))?;
+        }
+        if manifest.delays_s.is_empty() {
+            return Err(file_err(path, "field delays_s is empty; expected one laser delay (s) per frame"));
+        }
+        if let Some((i, d)) = manifest.delays_s.iter().enumerate().find(|(_, d)| !d.is_finite()) {
+            return Err(file_err(path, format!("field delays_s[{i}] is {d}, expected a finite delay in seconds")));
+        }
+        Ok(manifest)
+    }
+}
+
 impl Sweep {
     /// Read a sweep directory; errors name the file and the field.
     pub fn load(dir: &Path) -> Result<Self> {
         let path = dir.join(MANIFEST);
         let text = std::fs::read_to_string(&path).map_err(|e| SensorError::io(&path, e))?;
-        let manifest: SweepManifest = serde_json::from_str(&text).map_err(|e| file_err(&path, format!("not a sweep manifest: {e}")))?;
-        if manifest.format != FORMAT || manifest.version != VERSION {
-            return Err(file_err(&path, format!("format {:?} version {}; expected {FORMAT:?} version {VERSION}", manifest.format, manifest.version)));
-        }
-        if !(manifest.full_scale.is_finite() && manifest.full_scale > 0.0) {
-            return Err(file_err(&path, format!("field full_scale is {}, expected the positive saturation level of the frames", manifest.full_scale)));
-        }
-        if let Some((i, d)) = manifest.delays_s.iter().enumerate().find(|(_, d)| !d.is_finite()) {
-            return Err(file_err(&path, format!("field delays_s[{i}] is {d}, expected a finite delay in seconds")));
-        }
+        let manifest = SweepManifest::parse(&text, &path)?;
         let frames = read_frames(dir, &manifest.frames, "frames")?;
         if frames.dim().0 != manifest.delays_s.len() {
             return Err(file_err(&path, format!("field delays_s lists {} delays, but frames holds {} frames; one delay per frame", manifest.delays_s.len(), frames.dim().0)));
@@ -224,9 +249,21 @@ pub fn simulate_sweep(a: &MeasurementMatrix, codes: &Codes, sensor: &NonIdeal, s
     if settings.average == 0 {
         return Err(crate::error::invalid("frames averaged", 0, "at least 1"));
     }
+    if settings.average > MAX_AVERAGE {
+        return Err(crate::error::invalid("frames averaged", settings.average, format!("at most {MAX_AVERAGE}")));
+    }
     if !(settings.level > 0.0 && settings.level < 1.0) {
         return Err(crate::error::invalid("sweep level", settings.level, "a fraction of the full well in (0, 1)"));
     }
+    let (bh, bw) = codes.block();
+    if h == 0 || w == 0 || h % bh != 0 || w % bw != 0 {
+        return Err(crate::error::invalid("size", format!("{h}x{w}"), format!("a frame of whole {bh}x{bw} blocks, at least one")));
+    }
+    // the working set before anything is allocated: the sweep, dark and flat stacks, one
+    // delay's exposures, the scene and the realised sensor's per-pixel maps (f32)
+    let (tf, mf, avg) = (a.bins() as f64, a.taps() as f64, settings.average as f64);
+    let per_pixel = 4.0 * (tf * mf + 4.0 * avg * mf + 2.0 * tf + 8.0 * mf);
+    crate::mem::check_fits(&format!("a {h}x{w} sweep of {} delays", a.bins()), per_pixel * h as f64 * w as f64, "use a smaller --size or --average")?;
     let real: RealSensor = sensor.realise(a, h, w)?;
     let t = a.bins();
     let dt = a.bin_width_s();
@@ -267,7 +304,13 @@ pub fn simulate_sweep(a: &MeasurementMatrix, codes: &Codes, sensor: &NonIdeal, s
     if settings.png && full_scale > 65535.0 {
         return Err(crate::error::invalid("PNG sweep", format!("full scale {full_scale}"), "at most 65535 (write ADC codes of ≤ 16 bits, or .npy)"));
     }
-    std::fs::create_dir_all(dir).map_err(|e| SensorError::io(dir, e))?;
+    // written whole: an earlier sweep's files (another size, PNGs instead of .npy) never remain
+    crate::output::replace_dir(dir, &is_sweep_file, |dir| write_sweep(dir, settings, codes, sensor, delays, [&frames, &dark, &flat], full_scale, units))
+}
+
+/// The files of a simulated sweep in `dir`.
+#[allow(clippy::too_many_arguments)]
+fn write_sweep(dir: &Path, settings: &SweepSettings, codes: &Codes, sensor: &NonIdeal, delays: Vec<f64>, [frames, dark, flat]: [&Array4<f32>; 3], full_scale: f64, units: &str) -> Result<SweepManifest> {
     // a stack of frames [F, M, H, W]: one .npy, or one PNG per frame and tap
     let files = |name: &str, stack: &Array4<f32>| -> Result<FrameFiles> {
         if settings.png {
@@ -292,9 +335,9 @@ pub fn simulate_sweep(a: &MeasurementMatrix, codes: &Codes, sensor: &NonIdeal, s
         format: FORMAT.into(),
         version: VERSION,
         delays_s: delays,
-        frames: files("sweep", &frames)?,
-        dark: files("dark", &dark)?,
-        flat: Some(files("flat", &flat)?),
+        frames: files("sweep", frames)?,
+        dark: files("dark", dark)?,
+        flat: Some(files("flat", flat)?),
         full_scale,
         units: units.into(),
         codes_digest: Some(codes.digest()),

@@ -31,24 +31,25 @@ pub struct BringupArgs {
     decoders: Vec<String>,
     /// Time for the whole path in minutes; the fine-tunings get 80 % of it, sized from a
     /// measured step time.
-    #[arg(long, default_value_t = 20.0)]
+    #[arg(long, default_value_t = 20.0, value_parser = super::number_in(0.01, 10080.0))]
     budget_minutes: f64,
     /// Epochs of every fine-tuning instead of sizing them to the budget.
-    #[arg(long)]
+    #[arg(long, value_parser = super::count_in(1, 100_000))]
     epochs: Option<usize>,
     /// Training scenes generated for the sensor's grid.
-    #[arg(long, default_value_t = 400)]
+    #[arg(long, default_value_t = 400, value_parser = super::count_in(4, 100_000))]
     scenes: usize,
     /// Their frame size.
     #[arg(long, value_parser = super::parse_hw, default_value = "64x64")]
     size: (usize, usize),
     /// Held-back scenes of the check.
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = 8, value_parser = super::count_in(1, 10_000))]
     check_items: usize,
     /// Seed of the scenes, the weights' training order and the noise.
     #[arg(long, default_value_t = 1)]
     seed: u64,
-    /// Output directory (rerunning into it resumes).
+    /// Output directory (rerunning into it resumes; a directory brought up from another sweep,
+    /// codes or settings is refused, naming the difference).
     #[arg(short, long)]
     output: PathBuf,
 }

@@ -79,21 +79,22 @@ pub struct InferArgs {
     /// intensity, phasor, default lifetime,intensity).
     #[arg(long)]
     products: Option<String>,
-    /// Returns per pixel found in a cube (depth, peaks, ply of a cube model) or by --depth-fit.
-    #[arg(long, default_value_t = 2)]
-    returns: usize,
-    /// Horizontal field of view of the camera for point clouds (degrees).
-    #[arg(long, default_value_t = 40.0)]
+    /// Returns per pixel found in a cube (depth, peaks, ply of a cube model; 1 to 8, default 2)
+    /// or by --depth-fit (1 or 2); a depth network gives its own number and takes no other.
+    #[arg(long, value_parser = super::count_in(1, 8))]
+    returns: Option<usize>,
+    /// Horizontal field of view of the camera for point clouds (degrees, 1 to 179).
+    #[arg(long, default_value_t = 40.0, value_parser = super::number_in(1.0, 179.0))]
     fov: f64,
     /// A recalibrated sensor matrix .npy [N, M, T] (models exported with --matrix-input).
     #[arg(long)]
     sensor_matrix: Option<PathBuf>,
-    /// ONNX Runtime intra-op threads (default: --threads, else all cores).
-    #[arg(long)]
+    /// ONNX Runtime intra-op threads (default: --threads, else all cores; 1 to 256).
+    #[arg(long, value_parser = super::count_in(1, super::MAX_THREADS))]
     ort_threads: Option<usize>,
     /// A depth model's ranges as the network gives them, without the range fit in the tap
     /// domain that `reconstruct unet` (and by default `infer`) applies after it.
-    #[arg(long)]
+    #[arg(long, conflicts_with = "depth_fit")]
     no_range_fit: bool,
     /// Depth (and ply, confidence) by the template fit of ranges to the taps through the model's
     /// codes and sensor (every range of the cycle at once, no network; needs codes that do not
@@ -111,7 +112,7 @@ pub struct InferArgs {
     #[arg(long, requires = "lifetime_fit")]
     onset_ns: Option<f64>,
     /// Side of the square window of pixels whose costs the fit to the taps sums (odd).
-    #[arg(long, requires = "lifetime_fit", default_value_t = 3)]
+    #[arg(long, requires = "lifetime_fit", default_value_t = 3, value_parser = super::count_in(1, tcsense_models::range_fit::MAX_WINDOW))]
     window: usize,
     /// Output directory.
     #[arg(short, long)]
@@ -119,26 +120,49 @@ pub struct InferArgs {
 }
 
 pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
-    if a.returns == 0 {
-        bail!("--returns 0: at least one return per pixel");
+    if a.depth_fit && a.lifetime_fit {
+        bail!("--depth-fit with --lifetime-fit: a stream fits ranges (LiDAR) or lifetimes (FLIm) to the taps, not both");
     }
     let mut model = OnnxModel::open(&a.model, a.ort_threads.or(threads).unwrap_or(0))?;
     let kind = ModelKind::of(&model.meta.decoder);
-    let list = a.products.clone().unwrap_or_else(|| kind.products().1.to_string());
+    // a fit to the taps must suit the model's sensor: refused here, before any product list is
+    // read, so that the two refusals never send the user to each other
+    match kind {
+        ModelKind::Depth if a.lifetime_fit => bail!("--lifetime-fit: {} is a depth model ({}); the fit to the taps gives lifetimes through a FLIm model's sensor (a lifetime or cube model)", a.model.display(), model.meta.decoder),
+        ModelKind::Lifetime if a.depth_fit => bail!("--depth-fit: {} is a lifetime model ({}); the fit to the taps gives ranges through a LiDAR model's sensor (a depth or cube model)", a.model.display(), model.meta.decoder),
+        _ => {}
+    }
+    // the products: as asked, else the fit's when a fit is asked for, else the model's
+    let list = match (&a.products, a.depth_fit, a.lifetime_fit) {
+        (Some(l), _, _) => l.clone(),
+        (None, true, _) => "depth".into(),
+        (None, _, true) => "lifetime,intensity".into(),
+        (None, false, false) => kind.products().1.to_string(),
+    };
     let mut products = Products::parse(&list, kind)?;
-    products.returns = a.returns;
+    // returns: a depth network gives its own number; a cube's peaks and the depth fit take one
+    let returns = match (a.returns, kind, a.depth_fit) {
+        (Some(r), ModelKind::Depth, false) if r != model.meta.returns => {
+            bail!("--returns {r}: {} gives {} return(s) per pixel (its network's); use --depth-fit for a fit of 1 or 2 returns to the taps", a.model.display(), model.meta.returns)
+        }
+        (Some(r), _, true) if r > 2 => bail!("--depth-fit with --returns {r}: the fit gives 1 or 2 returns per pixel"),
+        (Some(r), _, _) => r,
+        (None, ModelKind::Depth, false) => model.meta.returns,
+        (None, _, _) => 2,
+    };
+    products.returns = returns;
     products.fov_deg = a.fov;
     if a.no_range_fit {
+        if kind != ModelKind::Depth {
+            bail!("--no-range-fit: {} is a {} model; only a depth network's ranges are refined by the range fit", a.model.display(), model.meta.decoder);
+        }
         products.range_fit = None;
     }
     if a.depth_fit {
         if !(products.depth || products.ply) {
             bail!("--depth-fit with --products {list}: the fit gives depth and ply; ask for one of them");
         }
-        if a.returns > 2 {
-            bail!("--depth-fit with --returns {}: the fit gives 1 or 2 returns per pixel", a.returns);
-        }
-        products.depth_fit = Some(tcsense_models::range_templates::DepthFitOptions { returns: a.returns, ..Default::default() });
+        products.depth_fit = Some(tcsense_models::range_templates::DepthFitOptions { returns, ..Default::default() });
         if let Some(w) = tcsense_infer::ranged::alias_warning(&model.sensor, model.meta.codes.length()) {
             eprintln!("{w}");
         }
@@ -147,7 +171,9 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
         if !(products.lifetime || products.intensity || products.phasor) {
             bail!("--lifetime-fit with --products {list}: the fit gives lifetime, intensity and phasor; ask for one of them");
         }
-        products.lifetime_fit = Some(tcsense_infer::tapfit::TapFitOptions { onset_s: a.onset_ns.map(|t| t * 1e-9), window: a.window, ..Default::default() });
+        let opts = tcsense_infer::tapfit::TapFitOptions { onset_s: a.onset_ns.map(|t| t * 1e-9), window: a.window, ..Default::default() };
+        opts.validate().map_err(|e| anyhow::anyhow!("--lifetime-fit settings (--onset-ns, --window): {e}"))?;
+        products.lifetime_fit = Some(opts);
     }
     // a recalibrated sensor matrix, read once: given to the model and checked against the sidecar
     let recalibrated = match &a.sensor_matrix {

@@ -29,13 +29,47 @@ pub fn prototype_codes() -> anyhow::Result<tcsense_sensor::Codes> {
     Ok(tcsense_sensor::generate::prototype_codes(1)?)
 }
 
-/// Parse `HxW` (e.g. `2x2`, `188x212`).
+/// The longest side of a frame any command takes (pixels).
+pub const MAX_SIDE: usize = 65_536;
+/// The most worker threads (`--threads`, `--ort-threads`).
+pub const MAX_THREADS: usize = 256;
+
+/// Parse `HxW` (e.g. `2x2`, `188x212`), each side from 1 to [`MAX_SIDE`].
 pub fn parse_hw(s: &str) -> Result<(usize, usize), String> {
     let (a, b) = s
         .split_once(['x', 'X'])
         .ok_or_else(|| format!("{s:?} is not of the form HxW (e.g. 2x2)"))?;
     let p = |v: &str| v.trim().parse::<usize>().map_err(|_| format!("{s:?} is not of the form HxW (e.g. 2x2)"));
-    Ok((p(a)?, p(b)?))
+    let (h, w) = (p(a)?, p(b)?);
+    if !(1..=MAX_SIDE).contains(&h) || !(1..=MAX_SIDE).contains(&w) {
+        return Err(format!("{s:?}: expected each side from 1 to {MAX_SIDE} pixels"));
+    }
+    Ok((h, w))
+}
+
+/// A clap value parser of whole numbers from `lo` to `hi`: an absurd count is a usage error
+/// naming the flag and the range, before anything is allocated.
+pub fn count_in(lo: usize, hi: usize) -> impl Fn(&str) -> Result<usize, String> + Clone + Send + Sync + 'static {
+    move |s: &str| {
+        let v: usize = s.trim().parse().map_err(|_| format!("{s:?} is not a whole number (expected {lo} to {hi})"))?;
+        if (lo..=hi).contains(&v) {
+            Ok(v)
+        } else {
+            Err(format!("{v} is out of range: expected {lo} to {hi}"))
+        }
+    }
+}
+
+/// A clap value parser of finite numbers from `lo` to `hi`.
+pub fn number_in(lo: f64, hi: f64) -> impl Fn(&str) -> Result<f64, String> + Clone + Send + Sync + 'static {
+    move |s: &str| {
+        let v: f64 = s.trim().parse().map_err(|_| format!("{s:?} is not a number (expected {lo} to {hi})"))?;
+        if v.is_finite() && (lo..=hi).contains(&v) {
+            Ok(v)
+        } else {
+            Err(format!("{v} is out of range: expected a finite number from {lo} to {hi}"))
+        }
+    }
 }
 
 /// `--device`: where a learned decoder trains or runs.

@@ -11,6 +11,7 @@ use tcsense_infer::products::{depth_map, plot_waveforms, write_ply, PeakOptions}
 use tcsense_models::decoder::{Control, Decoder, Step, Tval3Decoder};
 use tcsense_models::{runs, Tval3Options, TvNorm};
 use tcsense_sensor::npy::{write_bytes, write_npy};
+use tcsense_sensor::output::Outputs;
 
 use super::dataset::interrupt_flag;
 use super::sensor::SensorArgs;
@@ -292,6 +293,17 @@ fn open_kind(run: &Path, kind: &str, device: &super::DeviceArgs, range_fit: bool
 /// decoder on `sensor` ([`tcsense_infer::decode::decode_file`]) with a progress bar, print what
 /// was written and draw the products asked for.
 fn decode_file(decoder: &mut dyn Decoder, sensor: &tcsense_sensor::Sensor, measurements: &Path, output: &Path, products: &DepthProductArgs) -> Result<ExitCode> {
+    // every output checked before any work: distinct, not a directory, writable; all of them
+    // appear together once the last is written
+    let [confidence, intensity] = tcsense_infer::decode::companions(output);
+    let mut planned: Vec<(&str, &Path)> = vec![("-o", output), ("-o's confidence", &confidence), ("-o's intensity", &intensity)];
+    if let Some(p) = &products.ply {
+        planned.push(("--ply", p));
+    }
+    if let Some(p) = &products.png {
+        planned.push(("--png", p));
+    }
+    let mut outputs = Outputs::plan(&planned)?;
     let cancel = interrupt_flag();
     let pb = ProgressBar::new(1);
     pb.set_style(ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
@@ -300,7 +312,7 @@ fn decode_file(decoder: &mut dyn Decoder, sensor: &tcsense_sensor::Sensor, measu
         pb.set_length((s.frames * s.total.max(1)) as u64);
         pb.set_position((s.frame * s.total.max(1) + s.done) as u64);
     };
-    let out = tcsense_infer::decode::decode_file(decoder, sensor, measurements, output, &Control { cancel: &cancel, progress: &progress });
+    let out = tcsense_infer::decode::decode_file(decoder, sensor, measurements, output, &Control { cancel: &cancel, progress: &progress }, &mut outputs);
     pb.finish_and_clear();
     let out = match out {
         Err(tcsense_infer::InferError::Cancelled) => bail!("interrupted; {} was not written", output.display()),
@@ -310,15 +322,14 @@ fn decode_file(decoder: &mut dyn Decoder, sensor: &tcsense_sensor::Sensor, measu
     let time = human_time(out.seconds_per_frame);
     let shape = |a: &Array4<f32>| -> Vec<usize> { if out.batched { a.shape().to_vec() } else { a.shape()[1..].to_vec() } };
     let d = &out.decoded;
+    let mut lines = Vec::new();
     if let Some(cube) = &d.cube {
-        println!("wrote {}: x̂ {:?} ({time} per frame, {name})", output.display(), shape(cube));
-        return Ok(ExitCode::SUCCESS);
-    }
-    if let Some(lifetime) = &d.lifetime {
+        lines.push(format!("wrote {}: x̂ {:?} ({time} per frame, {name})", output.display(), shape(cube)));
+    } else if let Some(lifetime) = &d.lifetime {
         let first = lifetime.index_axis(Axis(0), 0);
         let tau_m: Vec<f64> = first.index_axis(Axis(0), 0).iter().filter(|v| v.is_finite()).map(|&v| v as f64).collect();
         let mean = tau_m.iter().sum::<f64>() / tau_m.len().max(1) as f64;
-        println!(
+        lines.push(format!(
             "wrote {}, {} and {}: lifetimes {:?}, {} pixels with a fluorophore, mean τ_m {:.3} ns (first frame) ({time} per frame, {name})",
             out.written[0].display(),
             out.written[1].display(),
@@ -326,24 +337,28 @@ fn decode_file(decoder: &mut dyn Decoder, sensor: &tcsense_sensor::Sensor, measu
             shape(lifetime),
             tau_m.len(),
             mean * 1e9,
-        );
+        ));
         if let Some(p) = &products.png {
-            figures::map(p, &format!("Fluorescence lifetime ({name})"), &first.index_axis(Axis(0), 0).mapv(|t| t * 1e9).view(), "lifetime τ_m (ns)")?;
-            println!("wrote {}", p.display());
+            figures::map(&outputs.stage(p)?, &format!("Fluorescence lifetime ({name})"), &first.index_axis(Axis(0), 0).mapv(|t| t * 1e9).view(), "lifetime τ_m (ns)")?;
+            lines.push(format!("wrote {}", p.display()));
         }
-        return Ok(ExitCode::SUCCESS);
+    } else {
+        let (depth, confidence) = d.depth.as_ref().zip(d.confidence.as_ref()).with_context(|| format!("decoder {name} gives neither a cube nor depth"))?;
+        let (first_d, first_c) = (depth.index_axis(Axis(0), 0), confidence.index_axis(Axis(0), 0));
+        let found: Vec<usize> = first_d.outer_iter().map(|d| d.iter().filter(|v| v.is_finite()).count()).collect();
+        lines.push(format!("wrote {} and {}: depth {:?}, returns per bounce {found:?} (first frame) ({time} per frame, {name})", out.written[0].display(), out.written[1].display(), shape(depth)));
+        if let Some(p) = &products.ply {
+            let n = write_ply(&outputs.stage(p)?, &first_d, &first_c, products.fov)?;
+            lines.push(format!("wrote {}: {n} points", p.display()));
+        }
+        if let Some(p) = &products.png {
+            figures::map(&outputs.stage(p)?, &format!("Range of the first return ({name})"), &first_d.index_axis(Axis(0), 0), "range (m)")?;
+            lines.push(format!("wrote {}", p.display()));
+        }
     }
-    let (depth, confidence) = d.depth.as_ref().zip(d.confidence.as_ref()).with_context(|| format!("decoder {name} gives neither a cube nor depth"))?;
-    let (first_d, first_c) = (depth.index_axis(Axis(0), 0), confidence.index_axis(Axis(0), 0));
-    let found: Vec<usize> = first_d.outer_iter().map(|d| d.iter().filter(|v| v.is_finite()).count()).collect();
-    println!("wrote {} and {}: depth {:?}, returns per bounce {found:?} (first frame) ({time} per frame, {name})", out.written[0].display(), out.written[1].display(), shape(depth));
-    if let Some(p) = &products.ply {
-        let n = write_ply(p, &first_d, &first_c, products.fov)?;
-        println!("wrote {}: {n} points", p.display());
-    }
-    if let Some(p) = &products.png {
-        figures::map(p, "Range of the first return (U-Net)", &first_d.index_axis(Axis(0), 0), "range (m)")?;
-        println!("wrote {}", p.display());
+    outputs.commit()?;
+    for l in lines {
+        println!("{l}");
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -436,8 +451,8 @@ pub struct DepthProductArgs {
     /// Also write a point cloud of the (first) frame (PLY).
     #[arg(long)]
     ply: Option<PathBuf>,
-    /// Horizontal field of view of the camera for the point cloud (degrees).
-    #[arg(long, default_value_t = 40.0)]
+    /// Horizontal field of view of the camera for the point cloud (degrees, 1 to 179).
+    #[arg(long, default_value_t = 40.0, value_parser = super::number_in(1.0, 179.0))]
     fov: f64,
     /// Also write a PNG of the (first) frame's first return.
     #[arg(long)]
@@ -454,6 +469,10 @@ pub fn depth(a: DepthArgs) -> Result<ExitCode> {
     if a.peaks == 0 {
         bail!("--peaks 0: at least one return per pixel");
     }
+    let mut planned: Vec<(&str, &Path)> = vec![("-o", &a.output)];
+    planned.extend(a.products.ply.as_deref().map(|p| ("--ply", p)));
+    planned.extend(a.products.png.as_deref().map(|p| ("--png", p)));
+    let mut outputs = Outputs::plan(&planned)?;
     let (batched, cubes) = read_cubes(&a.cube)?;
     let dt = a.bins.bin_width(cubes[0].dim().0, &a.cube)?;
     let opts = PeakOptions { max_peaks: a.peaks, min_rel: a.min_rel, min_sep: a.min_sep };
@@ -462,18 +481,20 @@ pub fn depth(a: DepthArgs) -> Result<ExitCode> {
         bail!("{}: --ply and --png take a single cube; this batch holds {}", a.cube.display(), maps.len());
     }
     let out = stack_out(batched, maps.iter().map(|m| m.0.clone()).collect())?;
-    write_npy(&a.output, &out.view())?;
+    write_npy(&outputs.stage(&a.output)?, &out.view())?;
     let (d, amp) = &maps[0];
     let found: Vec<usize> = (0..a.peaks).map(|b| d.index_axis(Axis(0), b).iter().filter(|v| v.is_finite()).count()).collect();
-    println!("wrote {}: range map {:?}, returns per bounce {found:?} (first cube), bin width {:.1} ps", a.output.display(), out.shape(), dt * 1e12);
+    let mut lines = vec![format!("wrote {}: range map {:?}, returns per bounce {found:?} (first cube), bin width {:.1} ps", a.output.display(), out.shape(), dt * 1e12)];
     if let Some(p) = &a.products.ply {
-        let n = write_ply(p, &d.view(), &amp.view(), a.products.fov)?;
-        println!("wrote {}: {n} points", p.display());
+        let n = write_ply(&outputs.stage(p)?, &d.view(), &amp.view(), a.products.fov)?;
+        lines.push(format!("wrote {}: {n} points", p.display()));
     }
     if let Some(p) = &a.products.png {
-        figures::map(p, "Range of the first return (peak detection)", &d.index_axis(Axis(0), 0), "range (m)")?;
-        println!("wrote {}", p.display());
+        figures::map(&outputs.stage(p)?, "Range of the first return (peak detection)", &d.index_axis(Axis(0), 0), "range (m)")?;
+        lines.push(format!("wrote {}", p.display()));
     }
+    outputs.commit()?;
+    lines.iter().for_each(|l| println!("{l}"));
     Ok(ExitCode::SUCCESS)
 }
 
@@ -511,6 +532,11 @@ pub struct LifetimeArgs {
 
 pub fn lifetime(a: LifetimeArgs) -> Result<ExitCode> {
     use tcsense_infer::lifetime::{fit_cube, Components, FitOptions, IrfModel};
+    let mut planned: Vec<(&str, &Path)> = vec![("-o", &a.output)];
+    planned.extend(a.components_out.as_deref().map(|p| ("--components-out", p)));
+    planned.extend(a.phasor.as_deref().map(|p| ("--phasor", p)));
+    planned.extend(a.png.as_deref().map(|p| ("--png", p)));
+    let mut outputs = Outputs::plan(&planned)?;
     let (batched, cubes) = read_cubes(&a.cube)?;
     let t = cubes[0].dim().0;
     let dt = a.bins.bin_width(t, &a.cube)?;
@@ -534,37 +560,39 @@ pub fn lifetime(a: LifetimeArgs) -> Result<ExitCode> {
             }
             IrfModel::Measured(v.iter().map(|&x| x as f64).collect())
         }
-        (None, Some(w)) if w.is_finite() && w >= 0.0 => IrfModel::Gaussian(Some(w * 1e-9)),
-        (None, Some(w)) => bail!("--irf-fwhm-ns {w}: expected a width ≥ 0"),
+        (None, Some(w)) if w.is_finite() && w >= 0.0 && w * 1e-9 <= tcsense_sensor::params::MAX_RESPONSE_S => IrfModel::Gaussian(Some(w * 1e-9)),
+        (None, Some(w)) => bail!("--irf-fwhm-ns {w}: expected a width from 0 to 1000 ns"),
         (None, None) => IrfModel::Gaussian(None),
     };
     let opts = FitOptions { irf, components, min_intensity: a.min_intensity, ..Default::default() };
     let fits: Vec<_> = cubes.iter().map(|x| fit_cube(&x.view(), dt, &opts)).collect();
     let taus: Vec<_> = fits.iter().map(|f| f.lifetimes.index_axis(Axis(0), 0).to_owned()).collect();
-    write_npy(&a.output, &stack_out(batched, taus.clone())?.view())?;
+    write_npy(&outputs.stage(&a.output)?, &stack_out(batched, taus.clone())?.view())?;
     let tau = &taus[0];
     let fit: Vec<f32> = tau.iter().copied().filter(|v| v.is_finite()).collect();
     let mean = fit.iter().map(|&v| v as f64).sum::<f64>() / fit.len().max(1) as f64;
-    println!(
+    let mut lines = vec![format!(
         "wrote {}: {} pixels fitted, mean lifetime {:.3} ns (onset {:.3} ns, IRF FWHM {:.3} ns)",
         a.output.display(),
         fit.len(),
         mean * 1e9,
         fits[0].onset_s * 1e9,
         fits[0].irf_fwhm_s * 1e9
-    );
+    )];
     if let Some(p) = &a.components_out {
-        write_npy(p, &stack_out(batched, fits.iter().map(|f| f.lifetimes.clone()).collect())?.view())?;
-        println!("wrote {}", p.display());
+        write_npy(&outputs.stage(p)?, &stack_out(batched, fits.iter().map(|f| f.lifetimes.clone()).collect())?.view())?;
+        lines.push(format!("wrote {}", p.display()));
     }
     if let Some(p) = &a.phasor {
-        write_npy(p, &stack_out(batched, fits.iter().map(|f| f.phasor.clone()).collect())?.view())?;
-        println!("wrote {}", p.display());
+        write_npy(&outputs.stage(p)?, &stack_out(batched, fits.iter().map(|f| f.phasor.clone()).collect())?.view())?;
+        lines.push(format!("wrote {}", p.display()));
     }
     if let Some(p) = &a.png {
-        figures::map(p, "Fluorescence lifetime (reconvolution fit, amplitude-weighted mean)", &tau.mapv(|t| t * 1e9).view(), "lifetime τ (ns)")?;
-        println!("wrote {}", p.display());
+        figures::map(&outputs.stage(p)?, "Fluorescence lifetime (reconvolution fit, amplitude-weighted mean)", &tau.mapv(|t| t * 1e9).view(), "lifetime τ (ns)")?;
+        lines.push(format!("wrote {}", p.display()));
     }
+    outputs.commit()?;
+    lines.iter().for_each(|l| println!("{l}"));
     Ok(ExitCode::SUCCESS)
 }
 

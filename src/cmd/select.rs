@@ -26,11 +26,12 @@ pub struct SelectArgs {
     #[arg(long, value_enum, default_value_t = SelectCriterion::Mse)]
     criterion: SelectCriterion,
     /// Number of random candidates (default: 20 for mse, as the paper; 20000 for range and
-    /// lifetime, which are closed-form).
-    #[arg(long)]
+    /// lifetime, which are closed-form; at most 1 000 000).
+    #[arg(long, value_parser = super::count_in(1, tcsense_sensor::design::MAX_CANDIDATES))]
     candidates: Option<usize>,
-    /// Moves of each local search, from the 8 best candidates (range and lifetime; default 50000).
-    #[arg(long)]
+    /// Moves of each local search, from the 8 best candidates (range and lifetime; default
+    /// 50000; at most 100 000 000).
+    #[arg(long, value_parser = super::count_in(0, tcsense_sensor::design::MAX_MOVES))]
     search: Option<usize>,
     /// Grid: oversampling factor K (range and lifetime criteria).
     #[arg(long, value_name = "K", conflicts_with = "heterodyne")]

@@ -216,7 +216,7 @@ pub struct SimulateArgs {
     size: (usize, usize),
     /// Sweep: exposures averaged per delay (and dark and flat frames taken). FLIm needs about
     /// 64: with 16 the dark frames' noise costs the lifetime fit 10 % of its accuracy.
-    #[arg(long, default_value_t = 64, requires = "sweep")]
+    #[arg(long, default_value_t = 64, requires = "sweep", value_parser = super::count_in(1, tcsense_sensor::sweep::MAX_AVERAGE))]
     average: usize,
     /// Sweep: the brightest tap's level, as a fraction of the full well.
     #[arg(long, default_value_t = 0.7, requires = "sweep")]

@@ -126,16 +126,30 @@ pub struct DemoSummary {
 }
 
 
+/// The file that marks a directory as a demo's (so that an interrupted first run resumes).
+const DEMO_MARKER: &str = ".tcsense-demo";
+
 /// Run the demo into `dir` (rerunning into the same directory resumes it). `cancel` stops
 /// it at the next step or training step, leaving what is done for the rerun.
 pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &AtomicBool) -> Result<DemoSummary> {
     let t_start = Instant::now();
     let request = Request::from_options(options)?;
+    let plan_path = dir.join("plan.json");
+    // a directory of something else is never written into: only a demo's (its plan) is resumed
+    let holds_files = std::fs::read_dir(dir).map(|mut d| d.next().is_some()).unwrap_or(false);
+    if dir.exists() && !dir.is_dir() {
+        bail!("{}: exists and is not a directory; choose another output directory", dir.display());
+    }
+    let marker = dir.join(DEMO_MARKER);
+    if holds_files && !plan_path.exists() && !marker.exists() {
+        bail!("{}: the directory holds files but is no demo's (no plan.json), so it is not resumed; choose another output directory", dir.display());
+    }
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    // marks the directory as a demo's from its first moment (plan.json comes after the datasets)
+    write_bytes(&marker, b"a tcsense demo directory: rerun `tcsense demo` into it to resume\n")?;
     for sub in ["codes", "runs", "onnx", "results", "figures", "frames"] {
         std::fs::create_dir_all(dir.join(sub)).with_context(|| format!("cannot create {}", dir.join(sub).display()))?;
     }
-    let plan_path = dir.join("plan.json");
     let saved: Option<Plan> = if plan_path.exists() {
         let p: Plan = serde_json::from_slice(&std::fs::read(&plan_path).with_context(|| format!("cannot read {}", plan_path.display()))?)
             .with_context(|| format!("{}: not a demo plan; choose another output directory", plan_path.display()))?;
