@@ -190,7 +190,8 @@ fn bench_bad_inputs_exit_2() {
     fails(d, &["bench", "train", "--delay-path", "fast"], &["--delay-path", "kernel", "composed"]);
     fails(d, &["bench", "train", "--size", "7x8"], &["--size 7x8", "even"]);
     fails(d, &["bench", "range-fit", "--size", "7x8"], &["--size 7x8", "even frame"]);
-    fails(d, &["bench", "range-fit", "--size", "0x8"], &["--size 0x8", "even frame"]);
+    fails(d, &["bench", "range-fit", "--size", "0x8"], &["--size", "0x8", "from 1 to"]);
+    fails(d, &["bench", "range-fit", "--size", "3x8"], &["--size 3x8", "even frame"]);
     fails(d, &["bench", "dataset", "--size", "0x8"], &["size"]);
     fails(d, &["bench", "kernels", "--size", "5x5"], &["5x5", "even"]);
     fails(d, &["bench", "kernels", "--bins", "20"], &["--bins 20", "multiple of 32"]);
@@ -222,4 +223,50 @@ fn depth_fit_to_the_taps() {
     fails(d, &["reconstruct", "depth-fit", "--codes", "codes.json", "--measurements", "y.npy", "--returns", "3", "-o", "bad.npy"], &["returns 3", "1 or 2"]);
     assert!(!d.join("bad.npy").exists());
     fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "depth-fit:3"], &["depth-fit:3", "depth-fit:1 or depth-fit:2"]);
+}
+
+/// `eval --light`: every decoder at every level of the photon ladder on the same items, the
+/// errors growing as the light falls, ambient light (`--sbr`) costing accuracy, and the curve.
+#[test]
+fn eval_photon_ladder() {
+    let t = tempdir();
+    let d = t.path();
+    let zoo_codes = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("zoo/unet-lidar-designed/codes.json");
+    std::fs::copy(zoo_codes, d.join("codes.json")).unwrap();
+    ok(d, &["dataset", "lidar", "--count", "12", "--size", "16x16", "--seed", "5", "-o", "ds"]);
+    let ladder = ["eval", "--dataset", "ds", "--split", "train", "--items", "4", "--codes", "codes.json", "--irf", "physical", "--decoder", "depth-fit", "--decoder", "tval3", "--maxit", "20", "--light", "0.8,0.01"];
+    let with = |extra: &[&'static str]| -> Vec<&'static str> { ladder.iter().copied().chain(extra.iter().copied()).collect() };
+    let out = ok(d, &with(&["--plot", "curve.png", "-o", "t.json"]));
+    assert!(out.contains("16000 e⁻ in the brightest tap") && out.contains("200 e⁻ in the brightest tap"), "{out}");
+    let rows: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("t.json")).unwrap()).unwrap();
+    let rows = rows.as_array().unwrap();
+    assert_eq!(rows.len(), 4, "two decoders at two levels");
+    let at = |name: &str, level: f64| rows.iter().find(|r| r["decoder"] == name && r["light"]["signal_fraction"].as_f64() == Some(level)).unwrap().clone();
+    for name in ["depth-fit", "tval3"] {
+        let (bright, dim) = (at(name, 0.8), at(name, 0.01));
+        let (eb, ed) = (bright["depth_median_m"][0].as_f64().unwrap(), dim["depth_median_m"][0].as_f64().unwrap());
+        let (sb, sd) = (bright["depth_within_half_bin"][0].as_f64().unwrap(), dim["depth_within_half_bin"][0].as_f64().unwrap());
+        assert!(ed > 2.0 * eb && sd < sb && (0.0..=1.0).contains(&sb), "{name}: median {eb} → {ed} m, within half a bin {sb} → {sd}");
+        assert_eq!(bright["light"]["signal_electrons"].as_f64(), Some(16000.0));
+        assert!(bright["light"]["sbr"].is_null());
+    }
+    // the fit near the bound in bright light: within half a bin for most first returns
+    assert!(at("depth-fit", 0.8)["depth_within_half_bin"][0].as_f64().unwrap() > 0.6);
+    let csv = std::fs::read_to_string(d.join("t.csv")).unwrap();
+    assert!(csv.lines().next().unwrap().ends_with("bounce1_within_half_bin,bounce2_within_half_bin,signal_fraction,signal_electrons,sbr") && csv.lines().count() == 5, "{csv}");
+    let png = std::fs::read(d.join("curve.png")).unwrap();
+    assert!(png.starts_with(b"\x89PNG") && png.len() > 20_000);
+    // ambient light as strong as the signal costs the fit accuracy at the same level and seeds
+    ok(d, &with(&["--sbr", "1", "-o", "amb.json"]));
+    let amb: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("amb.json")).unwrap()).unwrap();
+    let fit_amb = amb.as_array().unwrap().iter().find(|r| r["decoder"] == "depth-fit" && r["light"]["signal_fraction"].as_f64() == Some(0.8)).unwrap().clone();
+    assert_eq!(fit_amb["light"]["sbr"].as_f64(), Some(1.0));
+    let (clean, ambient) = (at("depth-fit", 0.8)["depth_median_m"][0].as_f64().unwrap(), fit_amb["depth_median_m"][0].as_f64().unwrap());
+    assert!(ambient > clean, "ambient {ambient} vs none {clean}");
+    // bad ladders
+    fails(d, &with(&["--light", "0"]), &["--light"]);
+    fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--light", "NaN"], &["--light"]);
+    fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--light", "0.5", "--sbr=-1"], &["--sbr"]);
+    fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--plot", "c.png"], &["--light"]);
+    fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--light", "0.5", "--plot", "t.json", "-o", "t.json"], &["t.json", "named by both"]);
 }

@@ -71,7 +71,7 @@ fn export_check_and_stream_a_trained_unet() {
     assert!(s0.iter().any(|v| v.is_finite()), "no range fitted");
     assert!(s0.iter().zip(fitted.iter()).all(|(a, b)| (a.is_nan() && b.is_nan()) || (a - b).abs() < 1e-6), "infer --depth-fit and reconstruct depth-fit differ");
     fails(d, &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--depth-fit", "--returns", "3", "-o", "bad-df"], &["--depth-fit", "--returns 3"]);
-    fails(d, &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--lifetime-fit", "-o", "bad-df"], &["--lifetime-fit", "lifetime, intensity and phasor"]);
+    fails(d, &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--lifetime-fit", "-o", "bad-df"], &["--lifetime-fit", "depth model"]);
     assert!(!d.join("bad-df").exists());
     // onnx full checker, shape inference, onnxruntime-Python equal to tcsense infer
     let out = check_onnx(d, &["unet.onnx", "--measurements", "stack.npy", "--compare", "out"]);
@@ -174,7 +174,7 @@ fn a_lifetime_model_streams_the_fit_to_the_taps() {
     // the fit gives lifetime, intensity and phasor only; its settings need --lifetime-fit
     fails(d, &["infer", "--model", "lt.onnx", "--measurements", "stack.npy", "--onset-ns", "2", "-o", "bad"], &["--onset-ns", "--lifetime-fit"]);
     // a lifetime model gives no depth for the range fit to replace
-    fails(d, &["infer", "--model", "lt.onnx", "--measurements", "stack.npy", "--depth-fit", "-o", "bad"], &["--depth-fit", "depth and ply"]);
+    fails(d, &["infer", "--model", "lt.onnx", "--measurements", "stack.npy", "--depth-fit", "-o", "bad"], &["--depth-fit", "lifetime model"]);
     assert!(!d.join("bad").exists());
 }
 

@@ -13,7 +13,7 @@ use tcsense_models::decoder::{Control, Decoded, Decoder, Tval3Decoder};
 use tcsense_models::{runs, Device, ModelError, Tval3Options};
 use tcsense_sensor::noise::Exposure;
 use tcsense_sensor::nonideal::NonIdeal;
-use tcsense_sensor::measure::measure_batch;
+use tcsense_sensor::measure::{measure, measure_batch};
 use tcsense_sensor::noise::derive_seed;
 use tcsense_sensor::{Codes, NoiseParams, Sensor};
 
@@ -43,6 +43,12 @@ pub struct EvalRow {
     pub seconds_per_frame: f64,
     /// Per bounce: the median absolute range error (m) over the detected returns of every item.
     pub depth_median_m: Vec<f64>,
+    /// Per bounce: the share of the true returns estimated within half a bin (`c·Δt/4`) of
+    /// the truth (a missed return counts against it).
+    pub depth_within_half_bin: Vec<f64>,
+    /// The light the measurements were simulated at, on a photon ladder ([`evaluate_ladder`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub light: Option<Light>,
     #[serde(skip)]
     /// Per bounce: the counts summed over items, Σ squared and Σ absolute errors.
     depth_sums: Vec<(DepthErrors, f64, f64)>,
@@ -130,6 +136,16 @@ impl EvalRow {
                 *se += e.rmse_m * e.rmse_m * e.detected as f64;
                 *ae += e.mae_m * e.detected as f64;
             }
+            let half_bin_m = SPEED_OF_LIGHT * bin_width_s / 4.0;
+            self.depth_within_half_bin = self
+                .depth_sums
+                .iter()
+                .enumerate()
+                .map(|(b, (sum, _, _))| {
+                    let within = self.depth_abs.get(b).map_or(0, |abs| abs.iter().filter(|&&e| (e as f64) <= half_bin_m).count());
+                    if sum.truth > 0 { within as f64 / sum.truth as f64 } else { f64::NAN }
+                })
+                .collect();
             self.depth = self
                 .depth_sums
                 .iter()
@@ -185,14 +201,16 @@ impl EvalRow {
 
     /// The rows as CSV, one line per decoder after a header.
     pub fn csv(rows: &[EvalRow]) -> String {
-        let mut csv = String::from("decoder,items,mse,psnr_db,bounce1_rmse_m,bounce1_mae_m,bounce1_detection,bounce2_rmse_m,bounce2_mae_m,bounce2_detection,lifetime_mae_s,seconds_per_frame,lifetime_mae_weighted_s,lifetime_within_02ns,lifetime_coverage,bounce1_false_alarm,bounce2_false_alarm,bounce1_median_m,bounce2_median_m\n");
+        let mut csv = String::from("decoder,items,mse,psnr_db,bounce1_rmse_m,bounce1_mae_m,bounce1_detection,bounce2_rmse_m,bounce2_mae_m,bounce2_detection,lifetime_mae_s,seconds_per_frame,lifetime_mae_weighted_s,lifetime_within_02ns,lifetime_coverage,bounce1_false_alarm,bounce2_false_alarm,bounce1_median_m,bounce2_median_m,bounce1_within_half_bin,bounce2_within_half_bin,signal_fraction,signal_electrons,sbr\n");
         for r in rows {
             let b = |k: usize| r.depth.get(k).map_or(",,".to_string(), |d| format!("{},{},{}", d.rmse_m, d.mae_m, d.detection_rate()));
             let o = |v: Option<f64>| v.map_or(String::new(), |v| v.to_string());
             let fa = |k: usize| o(r.depth.get(k).map(|d| d.false_alarm_rate()));
             let med = |k: usize| o(r.depth_median_m.get(k).copied());
+            let half = |k: usize| o(r.depth_within_half_bin.get(k).copied());
+            let light = r.light.map_or(",,".to_string(), |l| format!("{},{},{}", l.signal_fraction, l.signal_electrons, o(l.sbr)));
             csv.push_str(&format!(
-                "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
+                "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
                 r.decoder,
                 r.items,
                 r.mse,
@@ -207,7 +225,10 @@ impl EvalRow {
                 fa(0),
                 fa(1),
                 med(0),
-                med(1)
+                med(1),
+                half(0),
+                half(1),
+                light
             ));
         }
         csv
@@ -304,6 +325,42 @@ pub struct EvalSettings {
     /// The sensor the measurements come from, when it is not the ideal model: its
     /// non-idealities (gains, dark offset, crosstalk, tail, drift), realised at the items' size.
     pub sensor: Option<NonIdeal>,
+    /// Ambient light as a signal-to-background ratio: constant light added to every item, the
+    /// frame's mean signal photons per pixel over `sbr` (`None`: no ambient). The exposure is
+    /// set by the signal alone, so that `noise.signal_fraction` keeps its meaning.
+    pub sbr: Option<f64>,
+}
+
+/// The speed of light (m/s).
+const SPEED_OF_LIGHT: f64 = 299_792_458.0;
+
+/// One rung of a photon ladder: the light the measurements were simulated at.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Light {
+    /// The brightest tap's signal as a share of the full well.
+    pub signal_fraction: f64,
+    /// The brightest tap's signal electrons (`signal_fraction` × full well).
+    pub signal_electrons: f64,
+    /// Signal-to-background ratio of the ambient light (`None`: none).
+    pub sbr: Option<f64>,
+}
+
+/// Evaluate `decoders` at every light level of `ladder` (the brightest tap's share of the full
+/// well, noise on, ambient light at `settings.sbr`): the photon-efficiency curve. The same
+/// items and noise seeds at every level; the rows carry their [`Light`].
+pub fn evaluate_ladder(ds: &Dataset, sensor: &Sensor, decoders: &mut [NamedDecoder], settings: &EvalSettings, ladder: &[f64], on_item: &dyn Fn(&str, usize, usize), cancel: &AtomicBool) -> Result<Vec<EvalRow>> {
+    let base = settings.noise.unwrap_or_default();
+    let mut rows = Vec::new();
+    for &level in ladder {
+        let noise = NoiseParams { signal_fraction: level, ..base }.validate().map_err(|e| InferError::InvalidParam { field: "light level", got: level.to_string(), expected: format!("a share of the full well the noise model takes ({e})") })?;
+        let at = EvalSettings { noise: Some(noise), ..settings.clone() };
+        let light = Light { signal_fraction: level, signal_electrons: level * noise.full_well_e, sbr: settings.sbr };
+        for mut row in evaluate(ds, sensor, decoders, &at, on_item, cancel)? {
+            row.light = Some(light);
+            rows.push(row);
+        }
+    }
+    Ok(rows)
 }
 
 /// Evaluate `decoders` on a dataset split with `sensor`, what the decoders know of the sensor
@@ -331,16 +388,33 @@ pub fn evaluate(ds: &Dataset, sensor: &Sensor, decoders: &mut [NamedDecoder], se
         _ => None,
     };
     let noise_model = settings.noise.unwrap_or_default();
+    if let Some(sbr) = settings.sbr.filter(|s| !(s.is_finite() && *s > 0.0)) {
+        return Err(InferError::InvalidParam { field: "sbr", got: sbr.to_string(), expected: "a positive signal-to-background ratio (e.g. 1: as much ambient light as signal)".into() });
+    }
     // the measurements every decoder sees, [1, M, H, W] per item
     let ys: Vec<Array4<f32>> = (0..n)
         .map(|i| -> Result<Array4<f32>> {
             let xi = x.slice_axis(Axis(0), ndarray::Slice::from(i..i + 1));
             let seed = derive_seed(settings.seed, i as u64);
+            // ambient light: a constant added to every bin; the exposure is the signal's own
+            let (lit, exposure) = match settings.sbr {
+                Some(sbr) => {
+                    let t = xi.dim().1 as f32;
+                    let b = xi.sum() / (xi.dim().2 * xi.dim().3) as f32 / (t * sbr as f32);
+                    let peak = plan.forward_batch(&xi)?.fold(0f32, |m, &v| m.max(v));
+                    (Some(xi.mapv(|v| v + b)), Exposure::ElectronsPerUnit(Exposure::Auto.electrons_per_unit(peak, &noise_model)?))
+                }
+                None => (None, Exposure::Auto),
+            };
+            let xi = lit.as_ref().map_or(xi, |l| l.view());
             let Some(real) = &real else {
-                return Ok(measure_batch(&plan, &xi, settings.noise.as_ref(), seed)?);
+                return match (&lit, &settings.noise) {
+                    (Some(_), Some(noise)) => Ok(measure(&plan, &xi.into_dyn(), Some(noise), exposure, seed)?.into_input_units().into_dimensionality::<Ix4>().map_err(|e| file_err(&ds.dir, e.to_string()))?),
+                    _ => Ok(measure_batch(&plan, &xi, settings.noise.as_ref(), seed)?),
+                };
             };
             // a real sensor: raw electrons, corrected with the calibration's maps when there is one
-            let m = real.measure(&xi, &noise_model, settings.noise.is_some(), Exposure::Auto, seed)?;
+            let m = real.measure(&xi, &noise_model, settings.noise.is_some(), exposure, seed)?;
             let s = m.electrons_per_unit as f32;
             let e: Array4<f32> = m.electrons.into_dimensionality().map_err(|e| file_err(&ds.dir, e.to_string()))?;
             Ok(sensor.correct(e.view())?.mapv(|v| v / s))
@@ -404,6 +478,9 @@ mod tests {
         // first: {0.1, 0.2, 0.3, 1, 2, 3} → the upper middle, 1; second: {0.5, 1.5, 2.5} → 1.5
         assert!((row.depth_median_m[0] - 1.0).abs() < 1e-6, "{:?}", row.depth_median_m);
         assert!((row.depth_median_m[1] - 1.5).abs() < 1e-6, "{:?}", row.depth_median_m);
-        assert!(EvalRow::csv(&[row]).lines().nth(1).unwrap().ends_with(",1,1.5"));
+        // within half a bin (1 ns: 3.75 cm): 0 of 6 first returns, 0 of 3 second (truth counts
+        // the missed one)
+        assert_eq!(row.depth_within_half_bin, vec![0.0, 0.0]);
+        assert!(EvalRow::csv(&[row]).lines().nth(1).unwrap().ends_with(",1,1.5,0,0,,,"));
     }
 }

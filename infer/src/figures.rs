@@ -158,6 +158,69 @@ pub fn log_chart(path: &Path, title: &str, x_label: &str, y_label: &str, series:
     })
 }
 
+/// The photon-efficiency curve of decoders: on the left the median error against the light
+/// (both axes logarithmic), with `bound` (e.g. the codes' Cramér–Rao bound) drawn dashed; on
+/// the right the share within a tolerance (0–100 %) against the light. Series share their
+/// labels and colours across the panels; points with a non-positive or non-finite value are
+/// left out.
+pub fn photon_curve(path: &Path, title: &str, x_label: &str, error_label: &str, share_label: &str, errors: &[Series], shares: &[Series], bound: Option<&Series>) -> Result<()> {
+    let all: Vec<Series> = errors.iter().chain(bound).cloned().collect();
+    let (x0, x1, y0, y1) = extent(&all, |x, y| x > 0.0 && y > 0.0, (1.0, 10.0, 0.1, 10.0));
+    let decade = |v: f64, up: bool| 10f64.powf(if up { v.log10().ceil() } else { v.log10().floor() });
+    let (x0, x1) = (decade(x0, false), decade(x1, true).max(decade(x0, false) * 10.0));
+    let (y0, y1) = (decade(y0, false), decade(y1, true).max(decade(y0, false) * 10.0));
+    render(path, (1400, 560), |root| {
+        let (title_area, body) = root.split_vertically(40);
+        title_area.titled(title, (FONT, 22)).map_err(err)?;
+        let (left, right) = body.split_horizontally(700);
+        let mut chart = ChartBuilder::on(&left)
+            .margin(12)
+            .x_label_area_size(48)
+            .y_label_area_size(80)
+            .build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())
+            .map_err(err)?;
+        chart.configure_mesh().x_desc(x_label).y_desc(error_label).x_label_formatter(&|v| format!("{v:.0}")).y_label_formatter(&|v| if *v >= 1.0 { format!("{v:.0}") } else { format!("{v}") }).label_style((FONT, 15)).axis_desc_style((FONT, 17)).draw().map_err(err)?;
+        if let Some(b) = bound {
+            let pts: Vec<(f64, f64)> = b.points.iter().copied().filter(|(x, y)| *x > 0.0 && *y > 0.0 && x.is_finite() && y.is_finite()).collect();
+            chart
+                .draw_series(DashedLineSeries::new(pts, 8, 6, BLACK.stroke_width(2)))
+                .map_err(err)?
+                .label(b.label.clone())
+                .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK.stroke_width(2)));
+        }
+        for (i, s) in errors.iter().enumerate() {
+            let c = PALETTE[(i + 1) % PALETTE.len()];
+            let pts: Vec<(f64, f64)> = s.points.iter().copied().filter(|(x, y)| *x > 0.0 && *y > 0.0 && x.is_finite() && y.is_finite()).collect();
+            chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, c.filled()))).map_err(err)?;
+            chart
+                .draw_series(LineSeries::new(pts, c.stroke_width(2)))
+                .map_err(err)?
+                .label(s.label.clone())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+        }
+        legend(&mut chart, 14, SeriesLabelPosition::UpperRight)?;
+        let mut chart = ChartBuilder::on(&right)
+            .margin(12)
+            .x_label_area_size(48)
+            .y_label_area_size(70)
+            .build_cartesian_2d((x0..x1).log_scale(), 0f64..100f64)
+            .map_err(err)?;
+        chart.configure_mesh().x_desc(x_label).y_desc(share_label).x_label_formatter(&|v| format!("{v:.0}")).y_label_formatter(&|v| format!("{v:.0}")).label_style((FONT, 15)).axis_desc_style((FONT, 17)).draw().map_err(err)?;
+        for (i, s) in shares.iter().enumerate() {
+            let c = PALETTE[(i + 1) % PALETTE.len()];
+            let pts: Vec<(f64, f64)> = s.points.iter().copied().filter(|(x, y)| *x > 0.0 && x.is_finite() && y.is_finite()).collect();
+            chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, c.filled()))).map_err(err)?;
+            chart
+                .draw_series(LineSeries::new(pts, c.stroke_width(2)))
+                .map_err(err)?
+                .label(s.label.clone())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+        }
+        legend(&mut chart, 14, SeriesLabelPosition::LowerRight)?;
+        Ok(())
+    })
+}
+
 /// Waveforms at pixels, one panel per pixel and one line per cube (the first black: the
 /// truth), like the paper's Figs. 18 and 20.
 ///

@@ -417,7 +417,7 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
         let ds = Dataset::open(&check_dir)?;
         let noise = Some(NoiseParams::default().validate()?);
         let split = "train";
-        let settings = |real: bool| EvalSettings { split: split.into(), items: Some(options.check_items), noise, seed: options.seed, sensor: real.then_some(truth) };
+        let settings = |real: bool| EvalSettings { split: split.into(), items: Some(options.check_items), noise, seed: options.seed, sensor: real.then_some(truth), sbr: None };
         let mut rows = Vec::new();
         let mut eval = |decoder: &str, spec: String, condition: &str, sensor: &Sensor, real: bool| -> Result<()> {
             let mut d = vec![open_decoder(&spec, &Tval3Options::default(), &Device::flex())?];

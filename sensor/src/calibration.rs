@@ -21,7 +21,7 @@
 
 use ndarray::{s, Array2, Array3, Array4, ArrayView4, Axis};
 use serde::{Deserialize, Serialize};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use crate::codes::Codes;
 use crate::error::{Result, SensorError};
@@ -322,34 +322,20 @@ pub fn calibrate(sweep: &Sweep, nominal: &MeasurementMatrix, codes: &Codes, samp
 }
 
 impl Calibration {
-    /// Write the calibration directory `dir` (replacing one that is there). Everything is
-    /// written into a temporary directory next to it first and renamed into place.
+    /// Write the calibration directory `dir` (replacing one that is there, whole). Everything
+    /// is written into a temporary directory next to it first and renamed into place; a
+    /// directory holding files a calibration does not write (its arrays, description, report
+    /// page and figures) is refused, never replaced.
     pub fn save(&self, dir: &Path) -> Result<()> {
-        let parent = match dir.parent() {
-            Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-            _ => PathBuf::from("."),
-        };
-        std::fs::create_dir_all(&parent).map_err(|e| SensorError::io(&parent, e))?;
-        let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "calibration".into());
-        let tmp = parent.join(format!(".{name}.{}.tmp", std::process::id()));
-        let _ = std::fs::remove_dir_all(&tmp);
-        let result = (|| -> Result<()> {
-            std::fs::create_dir_all(&tmp).map_err(|e| SensorError::io(&tmp, e))?;
+        let ours = |n: &str| n == DESCRIPTION || n == "report.html" || n.ends_with(".npy") || n.ends_with(".png");
+        crate::output::replace_dir(dir, &ours, |tmp| -> Result<()> {
             self.matrix.save(&tmp.join(&self.meta.files.matrix))?;
             write_npy(&tmp.join(&self.meta.files.gain), &self.gain.view())?;
             write_npy(&tmp.join(&self.meta.files.dark), &self.dark.view())?;
             write_npy(&tmp.join(&self.meta.files.residual), &self.residual.view())?;
             let text = serde_json::to_string_pretty(&self.meta).map_err(|e| err(&tmp.join(DESCRIPTION), e.to_string()))?;
-            write_bytes(&tmp.join(DESCRIPTION), (text + "\n").as_bytes())?;
-            if dir.exists() {
-                std::fs::remove_dir_all(dir).map_err(|e| SensorError::io(dir, e))?;
-            }
-            std::fs::rename(&tmp, dir).map_err(|e| SensorError::io(dir, e))
-        })();
-        if result.is_err() {
-            let _ = std::fs::remove_dir_all(&tmp);
-        }
-        result
+            write_bytes(&tmp.join(DESCRIPTION), (text + "\n").as_bytes())
+        })
     }
 
     /// Read a calibration directory for the sensor `nominal` (of `codes`): the codes must be

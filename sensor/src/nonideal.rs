@@ -124,7 +124,7 @@ impl NonIdeal {
             return Err(invalid("shift", self.shift_s, "a delay from −1 µs to 1 µs (s)"));
         }
         if !(self.gate_skew_s.is_finite() && (0.0..=max).contains(&self.gate_skew_s)) {
-            return Err(invalid("gate_skew", self.gate_skew_s, "a delay from 0 to 1 µs (s)"));
+            return Err(invalid("gate_skew", self.gate_skew_s, "a non-negative delay up to 1 µs (1e-6 s)"));
         }
         if !(self.modulation_contrast == 0.0 || (self.modulation_contrast > 0.0 && self.modulation_contrast <= 1.0)) {
             return Err(invalid("modulation_contrast", self.modulation_contrast, "a contrast in (0, 1] (e.g. 0.925), or 0 for none given"));

@@ -6,8 +6,9 @@ use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use tcsense_datasets::Dataset;
-use tcsense_infer::eval::{evaluate, open_decoder, EvalRow, EvalSettings};
+use tcsense_infer::eval::{evaluate, evaluate_ladder, open_decoder, EvalRow, EvalSettings};
 use tcsense_sensor::npy::write_bytes;
+use tcsense_sensor::output::Outputs;
 use tcsense_sensor::{NoiseParams, Sampling};
 
 use super::dataset::interrupt_flag;
@@ -45,6 +46,19 @@ pub struct EvalArgs {
     /// full well): 0.1 is ten times fewer photons, 10 overexposes and clips. Needs --noise.
     #[arg(long, default_value_t = 1.0, requires = "noise")]
     brightness: f64,
+    /// The photon ladder: evaluate at each of these light levels (the brightest tap's signal
+    /// as a share of the full well, e.g. 0.8,0.1,0.02,0.005; noise on), the same items and
+    /// noise seeds at each: every decoder's photon-efficiency curve.
+    #[arg(long, value_delimiter = ',', value_parser = super::number_in(1e-6, 1.0), conflicts_with = "brightness")]
+    light: Vec<f64>,
+    /// Ambient light as a signal-to-background ratio (1: as many ambient photons per pixel as
+    /// signal photons, on the frame's average); noise on. Default: no ambient.
+    #[arg(long, value_parser = super::number_in(1e-3, 1e6))]
+    sbr: Option<f64>,
+    /// With --light: draw the curve (median first-return error in bins and the share within
+    /// half a bin, against the brightest tap's signal electrons) into this PNG.
+    #[arg(long, value_name = "PNG", requires = "light")]
+    plot: Option<PathBuf>,
     /// Noise seed (item i uses a stream derived from it).
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -54,6 +68,14 @@ pub struct EvalArgs {
 }
 
 pub fn run(a: EvalArgs) -> Result<ExitCode> {
+    // every output checked before any work
+    let csv = a.output.as_ref().map(|o| o.with_extension("csv"));
+    let mut planned: Vec<(&str, &std::path::Path)> = Vec::new();
+    if let (Some(o), Some(c)) = (&a.output, &csv) {
+        planned.extend([("-o", o.as_path()), ("-o's CSV", c.as_path())]);
+    }
+    planned.extend(a.plot.as_deref().map(|p| ("--plot", p)));
+    let mut outputs = Outputs::plan(&planned)?;
     let ds = Dataset::open(&a.dataset)?;
     let sensor = a.sensor.sensor()?;
     let (codes, spec) = (sensor.codes(), sensor.spec());
@@ -88,7 +110,8 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     }
     let noise = NoiseParams { signal_fraction: NoiseParams::default().signal_fraction * a.brightness, ..NoiseParams::default() };
     let noise = noise.validate().map_err(|e| anyhow::anyhow!("--brightness {}: {e}", a.brightness))?;
-    let settings = EvalSettings { split: a.split.clone(), items: a.items, noise: a.noise.then_some(noise), seed: a.seed, sensor: Some(nonideal) };
+    let noisy = a.noise || !a.light.is_empty() || a.sbr.is_some();
+    let settings = EvalSettings { split: a.split.clone(), items: a.items, noise: noisy.then_some(noise), seed: a.seed, sensor: Some(nonideal), sbr: a.sbr };
     let cancel = interrupt_flag();
     let pb = ProgressBar::new(0);
     pb.set_style(ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
@@ -100,17 +123,98 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
         }
         pb.set_position(done as u64);
     };
-    let rows = evaluate(&ds, &sensor, &mut decoders, &settings, &on_item, &cancel);
+    let rows = if a.light.is_empty() { evaluate(&ds, &sensor, &mut decoders, &settings, &on_item, &cancel) } else { evaluate_ladder(&ds, &sensor, &mut decoders, &settings, &a.light, &on_item, &cancel) };
     pb.finish_and_clear();
     let rows = rows?;
-    println!("{:<24} {:>5} {:>11} {:>8}", "decoder", "items", "MSE", "PSNR dB");
+    let mut level = None;
     for r in &rows {
+        if r.light != level {
+            if let Some(l) = r.light {
+                let ambient = l.sbr.map_or("no ambient".to_string(), |s| format!("SBR {s}"));
+                println!("\nsignal {} of the full well ({:.0} e⁻ in the brightest tap), {ambient}", l.signal_fraction, l.signal_electrons);
+            }
+            println!("{:<24} {:>5} {:>11} {:>8}", "decoder", "items", "MSE", "PSNR dB");
+            level = r.light;
+        }
         println!("{}", r.line());
     }
-    if let Some(out) = &a.output {
-        write_bytes(out, (serde_json::to_string_pretty(&rows)? + "\n").as_bytes())?;
-        write_bytes(&out.with_extension("csv"), EvalRow::csv(&rows).as_bytes())?;
-        println!("wrote {} and {}", out.display(), out.with_extension("csv").display());
+    let mut lines = Vec::new();
+    if let (Some(out), Some(csv)) = (&a.output, &csv) {
+        write_bytes(&outputs.stage(out)?, (serde_json::to_string_pretty(&rows)? + "\n").as_bytes())?;
+        write_bytes(&outputs.stage(csv)?, EvalRow::csv(&rows).as_bytes())?;
+        lines.push(format!("wrote {} and {}", out.display(), csv.display()));
     }
+    if let Some(png) = &a.plot {
+        photon_curve(&outputs.stage(png)?, &rows, sensor.nominal(), &noise, a.sbr)?;
+        lines.push(format!("wrote {}", png.display()));
+    }
+    outputs.commit()?;
+    lines.iter().for_each(|l| println!("{l}"));
     Ok(ExitCode::SUCCESS)
+}
+
+/// The photon-efficiency figure of ladder rows: each decoder's median first-return error (bins)
+/// and share within half a bin against the brightest tap's signal electrons.
+/// Beside them, the codes' Cramér–Rao bound of one return seen by a whole block
+/// ([`tcsense_sensor::identify::range_bound`], mean over the cycle) whose brightest tap holds
+/// the level's signal electrons, with the noise model's read noise and the ambient light.
+fn photon_curve(png: &std::path::Path, rows: &[EvalRow], a: &tcsense_sensor::MeasurementMatrix, noise: &NoiseParams, sbr: Option<f64>) -> Result<()> {
+    use tcsense_infer::figures::Series;
+    use tcsense_sensor::identify::{range_bound, Light};
+    let bin_m = 299_792_458.0 * a.bin_width_s() / 2.0;
+    // the largest share of a return's light one tap collects: photons = tap electrons / share
+    let m = a.a();
+    let (n, taps, t) = m.dim();
+    let mut share = 0f64;
+    for i in 0..n {
+        for j in 0..t {
+            let col: Vec<f64> = (0..taps).map(|k| m[(i, k, j)] as f64).collect();
+            let total: f64 = col.iter().sum();
+            if total > 0.0 {
+                share = share.max(col.iter().fold(0.0, |x: f64, &v| x.max(v)) / total);
+            }
+        }
+    }
+    let mut levels: Vec<f64> = rows.iter().filter_map(|r| r.light.map(|l| l.signal_electrons)).collect();
+    levels.dedup();
+    let bound = (share > 0.0).then(|| Series {
+        label: "Cramér–Rao bound (a block, one return)".into(),
+        points: levels
+            .iter()
+            .map(|&e| {
+                let photons = e / share;
+                let light = Light { photons, ambient: sbr.map_or(0.0, |s| photons / s), read_noise_e: noise.read_noise_e };
+                (e, range_bound(a, &light, 2).mean_bins)
+            })
+            .collect(),
+    });
+    let mut names: Vec<&str> = Vec::new();
+    for r in rows {
+        if !names.contains(&r.decoder.as_str()) {
+            names.push(&r.decoder);
+        }
+    }
+    let series = |f: &dyn Fn(&EvalRow) -> Option<f64>| -> Vec<Series> {
+        names
+            .iter()
+            .map(|n| Series { label: n.to_string(), points: rows.iter().filter(|r| r.decoder == *n).filter_map(|r| Some((r.light?.signal_electrons, f(r)?))).collect() })
+            .collect()
+    };
+    let errors = series(&|r| r.depth_median_m.first().map(|m| m / bin_m));
+    let shares = series(&|r| r.depth_within_half_bin.first().map(|s| 100.0 * s));
+    if errors.iter().all(|s| s.points.is_empty()) {
+        bail!("--plot: the decoders gave no first-return ranges (a LiDAR dataset with depth and decoders of depth or cubes draw the curve)");
+    }
+    let ambient = sbr.map_or("no ambient light".to_string(), |s| format!("ambient at SBR {s}"));
+    tcsense_infer::figures::photon_curve(
+        png,
+        &format!("Photon efficiency: first-return range error against the light ({ambient})"),
+        "signal electrons in the brightest tap (e⁻)",
+        "median first-return error (bins)",
+        "first returns within half a bin (%)",
+        &errors,
+        &shares,
+        bound.as_ref(),
+    )?;
+    Ok(())
 }

@@ -561,7 +561,7 @@ pub fn lifetime(a: LifetimeArgs) -> Result<ExitCode> {
             IrfModel::Measured(v.iter().map(|&x| x as f64).collect())
         }
         (None, Some(w)) if w.is_finite() && w >= 0.0 && w * 1e-9 <= tcsense_sensor::params::MAX_RESPONSE_S => IrfModel::Gaussian(Some(w * 1e-9)),
-        (None, Some(w)) => bail!("--irf-fwhm-ns {w}: expected a width from 0 to 1000 ns"),
+        (None, Some(w)) => bail!("--irf-fwhm-ns {w}: expected a width ≥ 0 and at most 1000 ns"),
         (None, None) => IrfModel::Gaussian(None),
     };
     let opts = FitOptions { irf, components, min_intensity: a.min_intensity, ..Default::default() };

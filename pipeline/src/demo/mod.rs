@@ -286,7 +286,7 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
     let lidar_json = dir.join("results/lidar.json");
     let flim_json = dir.join("results/flim.json");
     steps.run("evaluation on the test splits (same noisy measurements for every decoder): TVAL3, burn and ONNX Runtime", || {
-        let settings = |items| EvalSettings { split: "test".into(), items: Some(items), noise: Some(eval_noise), seed, sensor: None };
+        let settings = |items| EvalSettings { split: "test".into(), items: Some(items), noise: Some(eval_noise), seed, sensor: None, sbr: None };
         let on_item = |label: &str, done: usize, of: usize| obs.items(label.rsplit('/').next().unwrap_or(label), done, of);
         // decoders as (table name, decoder spec), evaluated on one sensor; a row per decoder
         let rows_of = |ds: &Dataset, a: &Sensor, decoders: &[(&str, String)], items, row: &dyn Fn(&EvalRow, &str, &str) -> Value| -> Result<Vec<Value>> {
