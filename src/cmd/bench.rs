@@ -33,8 +33,8 @@ pub enum BenchCmd {
         /// Iterations.
         #[arg(long, default_value_t = 200)]
         maxit: usize,
-        /// Frames.
-        #[arg(long, default_value_t = 3)]
+        /// Frames (1 to 1000).
+        #[arg(long, default_value_t = 3, value_parser = super::count_in(1, 1000))]
         frames: usize,
     },
     /// Training step of every network (ADMM-Net with the bins and the delay prior, the Aᵀ +
@@ -109,8 +109,8 @@ pub enum BenchCmd {
         /// Frame size HxW.
         #[arg(long, default_value = "188x212", value_parser = super::parse_hw)]
         size: (usize, usize),
-        /// Frames (each timed once per case, interleaved).
-        #[arg(long, default_value_t = 3)]
+        /// Frames (each timed once per case, interleaved; 1 to 1000).
+        #[arg(long, default_value_t = 3, value_parser = super::count_in(1, 1000))]
         frames: usize,
     },
 }

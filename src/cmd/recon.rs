@@ -429,8 +429,8 @@ pub struct DepthArgs {
     cube: PathBuf,
     #[command(flatten)]
     bins: BinArgs,
-    /// Returns per pixel (multipath bounces).
-    #[arg(long, default_value_t = 2)]
+    /// Returns per pixel (multipath bounces, 1 to 16).
+    #[arg(long, default_value_t = 2, value_parser = super::count_in(1, 16))]
     peaks: usize,
     /// Ignore peaks below this fraction of the pixel's maximum.
     #[arg(long, default_value_t = 0.1)]

@@ -87,7 +87,7 @@ pub struct SweepArgs {
     #[command(flatten)]
     eval: EvalArgs,
     /// Code sets per point (the best is reported; paper: 20).
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, value_parser = super::count_in(1, 10_000))]
     candidates: usize,
     /// Constraint series for taps/block sweeps: comma-separated from none, tap, tap+W2, tap+H2, tap+H2+W2.
     #[arg(long, default_value = "none,tap")]

@@ -105,7 +105,7 @@ pub struct UnetArgs {
     head: Option<HeadArg>,
     /// Returns per pixel: 1 (first surface) or 2 (and the one behind a diffusive sheet)
     /// [default: 2].
-    #[arg(long)]
+    #[arg(long, value_parser = super::count_in(1, 2))]
     returns: Option<usize>,
     /// Channels of the first level (doubled per level) [default: 8].
     #[arg(long)]
@@ -131,8 +131,8 @@ pub struct TrainArgs {
     /// Epochs.
     #[arg(long)]
     epochs: Option<usize>,
-    /// Learning rate (the peak of the schedule).
-    #[arg(long)]
+    /// Learning rate (the peak of the schedule; above 0, at most 1).
+    #[arg(long, value_parser = super::number_in(1e-12, 1.0))]
     lr: Option<f64>,
     /// Learning-rate schedule: `cosine` (new runs: half a cosine down to 1 % over the run
     /// after 50 warm-up steps) or `constant` (the paper's).

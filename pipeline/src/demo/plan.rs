@@ -84,16 +84,16 @@ pub(super) fn zoo_entry_named(name: &str, ds: &Dataset) -> Option<(PathBuf, Mode
 impl Request {
     pub(super) fn from_options(a: &DemoOptions) -> Result<Self> {
         let budget = a.budget_minutes.unwrap_or(if a.quick { 2.0 } else { 10.0 });
-        if !(budget.is_finite() && budget > 0.0) {
-            bail!("--budget-minutes {budget}: expected a positive number of minutes");
+        if !(budget.is_finite() && budget > 0.0 && budget <= 10080.0) {
+            bail!("--budget-minutes {budget}: expected a positive number of minutes, at most 10080 (a week)");
         }
         let (h, w) = a.size.unwrap_or(if a.quick { (32, 32) } else { (64, 64) });
-        if h < 8 || w < 8 || h % 8 != 0 || w % 8 != 0 {
-            bail!("--size {h}x{w}: expected multiples of 8 (the 2x2 block and the U-Net's 3 levels), at least 8x8");
+        if h < 8 || w < 8 || h > 4096 || w > 4096 || h % 8 != 0 || w % 8 != 0 {
+            bail!("--size {h}x{w}: expected multiples of 8 (the 2x2 block and the U-Net's 3 levels), from 8x8 to 4096x4096");
         }
         let lidar = a.scenes.unwrap_or(if a.quick { 160 } else { 400 });
-        if lidar < 30 {
-            bail!("--scenes {lidar}: expected at least 30 (the paper's splits need 3 test items)");
+        if !(30..=100_000).contains(&lidar) {
+            bail!("--scenes {lidar}: expected 30 to 100000 (the paper's splits need 3 test items)");
         }
         let (th, tw) = a.timing_size;
         if th == 0 || tw == 0 || th % 4 != 0 || tw % 4 != 0 {
