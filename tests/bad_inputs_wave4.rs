@@ -155,6 +155,13 @@ fn absurd_numbers_are_refused_before_anything_is_allocated() {
     p.refuse(&bringup("--epochs", "0"), &["--epochs"]);
     p.refuse(&bringup("--check-items", "0"), &["--check-items"]);
     p.refuse(&bringup("--size", "100000x100000"), &["--size"]);
+    // the older commands' counts (found by scripts/probe_numbers.py --all)
+    p.refuse(&["depth", "x.npy", "--length", "8", "--peaks", "18446744073709551615", "-o", "d.npy"], &["--peaks", "16"]);
+    p.refuse(&["sweep", "constraints", "--dataset", "nods", "--candidates", "99999999999", "-o", "swc"], &["--candidates"]);
+    p.refuse(&["bench", "range-fit", "--size", "8x8", "--frames", "99999999999"], &["--frames"]);
+    p.refuse(&["demo", "--quick", "--budget-minutes", "1e308", "-o", "demo"], &["--budget-minutes"]);
+    p.refuse(&["demo", "--quick", "--scenes", "18446744073709551615", "-o", "demo"], &["--scenes"]);
+    p.refuse(&["train", "unet", "--dataset", "nods", "--codes", "dcodes.json", "--returns", "18446744073709551615", "-o", "r"], &["--returns"]);
     // values that mean nothing
     p.refuse(&["infer", "--model", "unet.onnx", "--measurements", "stack2.npy", "--products", "ply", "--fov", "NaN", "-o", "out"], &["--fov"]);
     p.refuse(&fit(&["--ply", "c.ply", "--fov", "NaN"]), &["--fov"]);

@@ -19,13 +19,13 @@ pub struct DemoArgs {
     quick: bool,
     /// Time for the whole demo in minutes (default 10, or 2 with --quick): the training
     /// epochs are sized to it from a measured step time.
-    #[arg(long, value_parser = super::number_in(0.01, 10080.0))]
+    #[arg(long)]
     budget_minutes: Option<f64>,
     /// Frame size of the datasets (default 64x64, 32x32 with --quick).
     #[arg(long, value_parser = super::parse_hw)]
     size: Option<(usize, usize)>,
     /// LiDAR scenes (FLIm: half as many; default 400, 160 with --quick).
-    #[arg(long, value_parser = super::count_in(1, 100_000))]
+    #[arg(long)]
     scenes: Option<usize>,
     /// Frame size of the timing table (the sensor's 188x212).
     #[arg(long, default_value = "188x212", value_parser = super::parse_hw)]

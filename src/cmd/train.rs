@@ -131,8 +131,8 @@ pub struct TrainArgs {
     /// Epochs.
     #[arg(long)]
     epochs: Option<usize>,
-    /// Learning rate (the peak of the schedule; above 0, at most 1).
-    #[arg(long, value_parser = super::number_in(1e-12, 1.0))]
+    /// Learning rate (the peak of the schedule).
+    #[arg(long)]
     lr: Option<f64>,
     /// Learning-rate schedule: `cosine` (new runs: half a cosine down to 1 % over the run
     /// after 50 warm-up steps) or `constant` (the paper's).

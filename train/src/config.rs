@@ -195,8 +195,8 @@ impl TrainConfig {
         if self.batch_size == 0 {
             return bad("batch_size", "0".into(), "at least 1");
         }
-        if !(self.learning_rate.is_finite() && self.learning_rate > 0.0 && self.learning_rate <= 1.0) {
-            return bad("learning_rate", self.learning_rate.to_string(), "a positive number, at most 1");
+        if !(self.learning_rate.is_finite() && self.learning_rate > 0.0) {
+            return bad("learning_rate", self.learning_rate.to_string(), "a positive number");
         }
         self.lr_schedule.validate()?;
         match &self.run.model {
