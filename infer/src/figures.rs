@@ -76,6 +76,26 @@ fn legend<'a, CT: plotters::coord::CoordTranslate>(chart: &mut ChartContext<'a, 
     chart.configure_series_labels().label_font((FONT, size)).background_style(WHITE.mix(0.9)).border_style(BLACK).position(position).draw().map_err(err)
 }
 
+/// Each of `series` as a line with a dot at every point (colours from the palette's second
+/// on), the points `keep` accepts, labelled for the legend.
+fn marked_lines<'a, X, Y>(chart: &mut ChartContext<'a, BitMapBackend<'a>, Cartesian2d<X, Y>>, series: &[Series], keep: impl Fn(f64, f64) -> bool) -> std::result::Result<(), String>
+where
+    X: Ranged<ValueType = f64>,
+    Y: Ranged<ValueType = f64>,
+{
+    for (i, s) in series.iter().enumerate() {
+        let c = PALETTE[(i + 1) % PALETTE.len()];
+        let pts: Vec<(f64, f64)> = s.points.iter().copied().filter(|&(x, y)| x.is_finite() && y.is_finite() && keep(x, y)).collect();
+        chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, c.filled()))).map_err(err)?;
+        chart
+            .draw_series(LineSeries::new(pts, c.stroke_width(2)))
+            .map_err(err)?
+            .label(s.label.clone())
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
+    }
+    Ok(())
+}
+
 /// The extent `(x0, x1, y0, y1)` of the points of `series` that `keep` accepts (`x1 > x0`),
 /// `empty` where there are none.
 fn extent(series: &[Series], keep: impl Fn(f64, f64) -> bool, empty: (f64, f64, f64, f64)) -> (f64, f64, f64, f64) {
@@ -143,16 +163,7 @@ pub fn log_chart(path: &Path, title: &str, x_label: &str, y_label: &str, series:
             .build_cartesian_2d(x0..x1, (y0..y1).log_scale())
             .map_err(err)?;
         chart.configure_mesh().x_desc(x_label).y_desc(y_label).y_label_formatter(&|v| format!("{v:.0e}")).label_style((FONT, 15)).axis_desc_style((FONT, 17)).draw().map_err(err)?;
-        for (i, s) in series.iter().enumerate() {
-            let c = PALETTE[(i + 1) % PALETTE.len()];
-            let pts: Vec<(f64, f64)> = s.points.iter().copied().filter(|(x, y)| x.is_finite() && y.is_finite() && *y > 0.0).collect();
-            chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, c.filled()))).map_err(err)?;
-            chart
-                .draw_series(LineSeries::new(pts, c.stroke_width(2)))
-                .map_err(err)?
-                .label(s.label.clone())
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
-        }
+        marked_lines(&mut chart, series, |_, y| y > 0.0)?;
         legend(&mut chart, 15, SeriesLabelPosition::UpperRight)?;
         Ok(())
     })
@@ -188,16 +199,7 @@ pub fn photon_curve(path: &Path, title: &str, x_label: &str, error_label: &str, 
                 .label(b.label.clone())
                 .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK.stroke_width(2)));
         }
-        for (i, s) in errors.iter().enumerate() {
-            let c = PALETTE[(i + 1) % PALETTE.len()];
-            let pts: Vec<(f64, f64)> = s.points.iter().copied().filter(|(x, y)| *x > 0.0 && *y > 0.0 && x.is_finite() && y.is_finite()).collect();
-            chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, c.filled()))).map_err(err)?;
-            chart
-                .draw_series(LineSeries::new(pts, c.stroke_width(2)))
-                .map_err(err)?
-                .label(s.label.clone())
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
-        }
+        marked_lines(&mut chart, errors, |x, y| x > 0.0 && y > 0.0)?;
         legend(&mut chart, 14, SeriesLabelPosition::UpperRight)?;
         let mut chart = ChartBuilder::on(&right)
             .margin(12)
@@ -206,16 +208,7 @@ pub fn photon_curve(path: &Path, title: &str, x_label: &str, error_label: &str, 
             .build_cartesian_2d((x0..x1).log_scale(), 0f64..100f64)
             .map_err(err)?;
         chart.configure_mesh().x_desc(x_label).y_desc(share_label).x_label_formatter(&|v| format!("{v:.0}")).y_label_formatter(&|v| format!("{v:.0}")).label_style((FONT, 15)).axis_desc_style((FONT, 17)).draw().map_err(err)?;
-        for (i, s) in shares.iter().enumerate() {
-            let c = PALETTE[(i + 1) % PALETTE.len()];
-            let pts: Vec<(f64, f64)> = s.points.iter().copied().filter(|(x, y)| *x > 0.0 && x.is_finite() && y.is_finite()).collect();
-            chart.draw_series(pts.iter().map(|&p| Circle::new(p, 4, c.filled()))).map_err(err)?;
-            chart
-                .draw_series(LineSeries::new(pts, c.stroke_width(2)))
-                .map_err(err)?
-                .label(s.label.clone())
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], c.stroke_width(2)));
-        }
+        marked_lines(&mut chart, shares, |x, _| x > 0.0)?;
         legend(&mut chart, 14, SeriesLabelPosition::LowerRight)?;
         Ok(())
     })
