@@ -28,6 +28,10 @@ fn train_resume_reconstruct_and_eval() {
     assert!(!d.join("c2.png").exists());
     // a second fresh run into the same directory is refused
     fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "-o", "run"], &["--resume"]);
+    // a resume continues on its own dataset: another one named is refused, the same one taken
+    ok(d, &["dataset", "lidar", "--count", "8", "--size", "8x8", "--length", "8", "--seed", "4", "-o", "ds2"]);
+    fails(d, &["train", "admm-net", "--dataset", "ds2", "--epochs", "4", "--resume", "-o", "run"], &["ds2", "the run's own", "--init-from"]);
+    assert_eq!(std::fs::read_to_string(d.join("run/metrics.csv")).unwrap().lines().count(), 4, "the refused resume trained nothing");
 
     // a saved config starts a new run, with flag overrides
     ok(d, &["train", "admm-net", "--config", "run/config.json", "--codes", "codes.json", "--epochs", "1", "-o", "run2"]);
@@ -332,4 +336,24 @@ fn files_under(dir: &std::path::Path) -> Vec<String> {
     walk(dir, dir, &mut out);
     out.sort();
     out
+}
+
+/// A resume checks what the run trains on: a dataset regenerated at the same path since the run
+/// started is refused, naming its manifest; the unchanged one resumes.
+#[test]
+fn resume_refuses_a_changed_dataset() {
+    let d = tempdir();
+    let d = d.path();
+    tiny_lidar_and_codes(d);
+    ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "1", "-o", "run"]);
+    let state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("run/checkpoint/state.json")).unwrap()).unwrap();
+    assert_eq!(state["dataset"].as_str().map(str::len), Some(16), "{state}");
+    std::fs::rename(d.join("ds"), d.join("ds-first")).unwrap();
+    ok(d, &["dataset", "lidar", "--count", "8", "--size", "8x8", "--length", "8", "--seed", "7", "-o", "ds"]);
+    fails(d, &["train", "admm-net", "--epochs", "2", "--resume", "-o", "run"], &["ds/manifest.json", "dataset changed", "digest"]);
+    assert_eq!(std::fs::read_to_string(d.join("run/metrics.csv")).unwrap().lines().count(), 2, "the refused resume trained nothing");
+    std::fs::remove_dir_all(d.join("ds")).unwrap();
+    std::fs::rename(d.join("ds-first"), d.join("ds")).unwrap();
+    let out = ok(d, &["train", "admm-net", "--epochs", "2", "--resume", "-o", "run"]);
+    assert!(out.contains("epoch    2"), "{out}");
 }

@@ -182,6 +182,9 @@ fn fit<M: Network>(
     cfg.validate()?;
     codes.ensure_feasible()?;
     let ds = Dataset::open(Path::new(&cfg.dataset))?;
+    // what the run trains on, recorded in its checkpoints and checked when it resumes
+    let manifest = ds.dir.join("manifest.json");
+    let ds_digest = tcsense_sensor::digest::digest(std::fs::read(&manifest).map_err(|e| file_err(&manifest, e))?);
     let mut a = cfg.run.sensor(run, codes.clone())?;
     let model_cfg = &cfg.run.model;
     if a.bins() != ds.manifest.bins || a.taps() != model_cfg.taps() || a.bins() != model_cfg.bins() {
@@ -232,6 +235,12 @@ fn fit<M: Network>(
         match latest_checkpoint(run)? {
             Some(ckpt) => {
                 let (model, optim, state) = load_checkpoint(&ckpt, init(&device), AdamConfig::new().init())?;
+                if let Some(then) = state.dataset.as_ref().filter(|d| **d != ds_digest) {
+                    return Err(file_err(
+                        &manifest,
+                        format!("the dataset changed since the run started (its manifest's digest {then} then, {ds_digest} now); resume on the data the run started on, or start a new run (or fine-tune with --init-from) on this one"),
+                    ));
+                }
                 if let Some(l) = learner.as_mut() {
                     l.load(&ckpt)?;
                 }
@@ -244,13 +253,13 @@ fn fit<M: Network>(
                 (model, optim, state, rows)
             }
             // killed before its first checkpoint: start over, as the run would have
-            None => (start.unwrap_or_else(|| seeded_init(&device, cfg.seed, init)), AdamConfig::new().init(), RunState::default(), Vec::new()),
+            None => (start.unwrap_or_else(|| seeded_init(&device, cfg.seed, init)), AdamConfig::new().init(), RunState { dataset: Some(ds_digest.clone()), ..RunState::default() }, Vec::new()),
         }
     } else {
         if run.join(crate::run_dir::CHECKPOINT_DIR).exists() {
             return Err(file_err(run, "a run already exists here; pass --resume to continue it or choose another directory"));
         }
-        (start.unwrap_or_else(|| seeded_init(&device, cfg.seed, init)), AdamConfig::new().init(), RunState::default(), Vec::new())
+        (start.unwrap_or_else(|| seeded_init(&device, cfg.seed, init)), AdamConfig::new().init(), RunState { dataset: Some(ds_digest.clone()), ..RunState::default() }, Vec::new())
     };
     write_json(&run.join(CONFIG_FILE), cfg)?;
     let mut codes_log = match &learner {

@@ -169,6 +169,13 @@ pub fn prepare(req: &TrainRequest) -> Result<Prepared> {
         let cfg = TrainConfig::load(&saved)?;
         req.kind_check(&cfg)?;
         arch.check(&cfg.run.model, run_dir)?;
+        // a resume trains on the run's own dataset: another one named is refused, not ignored
+        if let Some(ds) = &req.dataset {
+            let same = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
+            if same(ds) != same(Path::new(&cfg.dataset)) {
+                return Err(bad("dataset", &ds.display().to_string(), &format!("the run's own, {} (its {CONFIG_FILE}): a resume continues on the data it started on; start a new run (or fine-tune with --init-from) for other data", cfg.dataset)));
+            }
+        }
         cfg
     } else {
         let (mut cfg, from_config) = match &req.config {

@@ -41,6 +41,10 @@ pub struct RunState {
     /// checkpoint would make two runs of one seed differ).
     #[serde(default, skip_serializing)]
     pub seconds: f64,
+    /// Digest of the dataset's manifest the run started on: a resume on a dataset that changed
+    /// since is refused (absent in runs from before it was recorded, which are not checked).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dataset: Option<String>,
 }
 
 /// One row of `metrics.csv`.
