@@ -400,27 +400,21 @@ struct Writers {
 /// not asked for now) never remain beside the new ones, and a refusal, an error or an
 /// interruption leaves `out` as it was. A directory holding other files is refused.
 pub fn run_stream(model: &mut OnnxModel, source: FrameSource, out: &Path, products: &Products, cancel: &AtomicBool, on_frame: &(dyn Fn(usize, usize) + Sync)) -> Result<StreamReport> {
-    if source.is_empty() {
-        return Err(file_err(out, "no frames to decode"));
-    }
-    let mut report = tcsense_sensor::output::replace_dir(out, &is_stream_output, |tmp| stream_into(model, source, tmp, products, cancel, on_frame))?;
-    for p in &mut report.written {
-        if let Ok(rel) = p.strip_prefix(&report_tmp_root(p, out)) {
-            *p = out.join(rel);
+    tcsense_sensor::output::replace_dir(out, &is_stream_output, |tmp| {
+        let mut report = stream_into(model, source, tmp, products, cancel, on_frame)?;
+        // the paths the products will have once the temporary directory is renamed
+        for p in &mut report.written {
+            if let Ok(rel) = p.strip_prefix(tmp) {
+                *p = out.join(rel);
+            }
         }
-    }
-    Ok(report)
+        Ok(report)
+    })
 }
 
 /// Whether `name` is a file or folder [`run_stream`] writes into its output directory.
 pub fn is_stream_output(name: &str) -> bool {
     matches!(name, "cube.npy" | "depth.npy" | "peaks.npy" | "confidence.npy" | "lifetime.npy" | "intensity.npy" | "phasor.npy" | "ply")
-}
-
-/// The temporary directory a written path `p` lies in (its ancestor named like `out`'s sibling).
-fn report_tmp_root(p: &Path, out: &Path) -> PathBuf {
-    let name = out.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    p.ancestors().find(|a| a.file_name().is_some_and(|n| n.to_string_lossy().starts_with(&format!(".{name}.")))).map(Path::to_path_buf).unwrap_or_default()
 }
 
 /// [`run_stream`] into the directory `out` (fresh and empty).

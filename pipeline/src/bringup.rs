@@ -85,16 +85,11 @@ struct Inputs {
 
 impl Inputs {
     fn of(o: &BringupOptions, decoders: &[String], sweep: &Sweep, codes: &Codes) -> Inputs {
-        let floats = |a: &[f32]| a.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>();
+        // the manifest, then the frames, dark and flat values in order, streamed (no copy of the sweep)
         let manifest = serde_json::to_vec(&sweep.manifest).unwrap_or_default();
-        let mut bytes = manifest;
-        bytes.extend(floats(sweep.frames.as_slice().unwrap_or(&[])));
-        bytes.extend(floats(sweep.dark.as_slice().unwrap_or(&[])));
-        if let Some(f) = &sweep.flat {
-            bytes.extend(floats(f.as_slice().unwrap_or(&[])));
-        }
+        let values = sweep.frames.iter().chain(sweep.dark.iter()).chain(sweep.flat.iter().flatten());
         Inputs {
-            sweep: tcsense_sensor::digest::digest(bytes),
+            sweep: tcsense_sensor::digest::digest(manifest.into_iter().chain(values.flat_map(|v| v.to_le_bytes()))),
             codes: codes.digest(),
             sampling: format!("{:?}", o.sampling),
             irf: format!("{:?}", o.irf),
@@ -110,12 +105,12 @@ impl Inputs {
     /// Refuse `dir` when it holds a bring-up of other inputs, or something that is no bring-up.
     fn check_resume(&self, dir: &Path) -> Result<()> {
         let path = dir.join(INPUTS_FILE);
+        if dir.exists() && !dir.is_dir() {
+            bail!("{}: exists and is not a directory; choose a new output directory", dir.display());
+        }
         let empty = std::fs::read_dir(dir).map(|mut d| d.next().is_none()).unwrap_or(true);
         if empty {
             return Ok(());
-        }
-        if !dir.is_dir() {
-            bail!("{}: exists and is not a directory; choose a new output directory", dir.display());
         }
         let Ok(text) = std::fs::read_to_string(&path) else {
             bail!("{}: the directory holds files but no {INPUTS_FILE}, so it is not a bring-up to resume; choose a new output directory", dir.display());

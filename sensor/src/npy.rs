@@ -9,7 +9,7 @@
 use crate::error::{Result, SensorError};
 use ndarray::{ArrayD, ArrayView, Dimension, IxDyn, ShapeBuilder};
 use std::io::Write;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 const MAGIC: &[u8] = b"\x93NUMPY";
 
@@ -19,10 +19,7 @@ pub fn atomic_write<F>(path: &Path, fill: F) -> Result<()>
 where
     F: FnOnce(&mut dyn Write) -> std::io::Result<()>,
 {
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
+    let dir = crate::output::parent_of(path);
     if !dir.is_dir() {
         std::fs::create_dir_all(&dir).map_err(|e| SensorError::io(&dir, e))?;
     }
@@ -278,6 +275,7 @@ pub fn read_cube(path: &Path, allow_batch: bool) -> Result<ArrayD<f32>> {
 pub(crate) mod tests {
     use super::*;
     use ndarray::Array3;
+    use std::path::PathBuf;
 
     #[test]
     fn roundtrip_f32() {

@@ -14,7 +14,7 @@ use crate::error::{Result, SensorError};
 use std::path::{Component, Path, PathBuf};
 
 /// The parent directory of `path` (`.` for a bare file name).
-fn parent_of(path: &Path) -> PathBuf {
+pub(crate) fn parent_of(path: &Path) -> PathBuf {
     match path.parent() {
         Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
         _ => PathBuf::from("."),
