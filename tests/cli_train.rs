@@ -143,6 +143,43 @@ fn train_reconstruct_and_eval_the_unet() {
     fails(d, &["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--levels", "9", "-o", "u3"], &["levels"]);
 }
 
+/// The photon ladder and ambient light in training, and the U-Net that reads the matched
+/// filters: recorded in the config, kept on resume, changeable on a fine-tune only; absurd
+/// ranges refused before a run directory exists.
+#[test]
+fn ladder_ambient_and_the_matched_input() {
+    let d = tempdir();
+    let d = d.path();
+    tiny_lidar_and_codes(d);
+    let base = ["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--base-width", "4", "--levels", "2", "--seed", "3"];
+    let args = |extra: &[&'static str]| [&base[..], extra].concat();
+    let out = ok(d, &args(&["--input", "matched", "--signal", "0.002,0.9", "--ambient", "0,2", "--epochs", "1", "-o", "m"]));
+    assert!(out.contains("matched filters + U-Net") && out.contains("signal [0.002, 0.9]") && out.contains("ambient [0.0, 2.0]"), "{out}");
+    let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("m/config.json")).unwrap()).unwrap();
+    assert_eq!(cfg["model"]["input"].as_str(), Some("Matched"));
+    assert_eq!((cfg["augment"]["signal_fraction"][0].as_f64(), cfg["augment"]["ambient"][1].as_f64()), (Some(0.002), Some(2.0)));
+    // resume keeps the input; another is refused
+    fails(d, &["train", "unet", "--input", "backprojection", "--epochs", "2", "--resume", "-o", "m"], &["--input", "Matched"]);
+    // the same seed without ambient light trains other weights: the ambient reaches the measurements
+    ok(d, &args(&["--input", "matched", "--signal", "0.002,0.9", "--epochs", "1", "-o", "m0"]));
+    assert_ne!(std::fs::read(d.join("m/model.bpk")).unwrap(), std::fs::read(d.join("m0/model.bpk")).unwrap());
+    // a fine-tune may change what the network reads
+    ok(d, &["train", "unet", "--init-from", "m", "--input", "backprojection", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "-o", "bp"]);
+    let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("bp/config.json")).unwrap()).unwrap();
+    assert_eq!(cfg["model"]["input"].as_str(), Some("Backprojection"));
+    // and the network decodes: reconstruct and eval take it
+    ok(d, &["simulate", "--codes", "codes.json", "--cube", "ds/test/x_000.npy", "--noise", "-o", "y.npy"]);
+    ok(d, &["reconstruct", "unet", "--run", "m", "--measurements", "y.npy", "-o", "depth.npy"]);
+    assert_eq!(read_npy(&d.join("depth.npy")).unwrap().shape(), &[1, 2, 8, 8]);
+    // absurd ranges: usage errors or refusals naming the field, and no run directory
+    for (flag, value, needle) in [("--signal", "0.5,0.1", "LO is above HI"), ("--signal", "0,1", "signal_fraction"), ("--signal", "0.1,1e9", "signal_fraction"), ("--ambient", "-1,2", "ambient"), ("--ambient", "0,1e6", "ambient"), ("--ambient", "nan,1", "LO,HI")] {
+        fails(d, &args(&[flag, value, "--epochs", "1", "-o", "bad"]), &[needle]);
+        assert!(!d.join("bad").exists(), "{flag} {value} left a run directory");
+    }
+    fails(d, &args(&["--signal", "0.01,0.5", "--no-augment", "--epochs", "1", "-o", "bad"]), &["--no-augment"]);
+    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--input", "matched", "-o", "bad"], &["--input"]);
+}
+
 #[test]
 fn train_and_eval_the_lifetime_decoder() {
     let d = tempdir();

@@ -162,6 +162,16 @@ fn unet_in_onnx_runtime_equals_burn() {
     for got in ort_equals_burn("unet score volume", &run, &[(8, 8), (12, 16)], 10, "unet-scores.onnx", &["depth", "confidence"]) {
         assert!(got[0].iter().all(|v| (0.37..=11.63).contains(v)) && got[1].iter().all(|v| (0.0..=1.0).contains(v)));
     }
+    // the matched filters as input (baked, and formed in the graph from an input matrix), with
+    // a physical IRF so that the templates are not the code bits
+    let matched = |m: usize, t: usize| ModelConfig::Unet(UnetConfig::new(m, t, 12.0).with_base_width(4).with_levels(3).with_returns(2).with_head(tcsense_models::UnetHead::ScoreVolume).with_input(tcsense_models::UnetInput::Matched));
+    let physical = Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 };
+    let run = random_run(matched, (2, 2), Sampling::Oversample(1), physical, 6);
+    let outs = ort_equals_burn("unet matched", &run, &[(8, 8), (12, 16)], 11, "unet-matched.onnx", &["depth", "confidence"]);
+    // another input, another network output on the same weights
+    let backprojection = random_run(scores, (2, 2), Sampling::Oversample(1), physical, 6);
+    let other = ort_equals_burn("unet backprojection", &backprojection, &[(8, 8)], 11, "unet-bp.onnx", &["depth", "confidence"]);
+    assert!(rel_diff(&outs[0][0], &other[0][0]) > 1e-3, "the matched input changes the ranges");
 }
 
 #[test]

@@ -194,8 +194,9 @@ fn file_err(path: &Path, msg: impl ToString) -> ModelError {
 
 /// Bring a config written by an earlier build up to date: add `"decoder": "admm-net"` where
 /// that field is missing (all such runs are ADMM-Net runs), `"normalize": false` to
-/// ADMM-Net models written before the input normalisation existed and `"prior": "Bins"` to
-/// those written before the delay prior; other configs are returned unchanged.
+/// ADMM-Net models written before the input normalisation existed, `"prior": "Bins"` to
+/// those written before the delay prior and `"input": "Backprojection"` to U-Nets written
+/// before the matched filters; other configs are returned unchanged.
 pub fn upgrade_config(mut v: serde_json::Value) -> serde_json::Value {
     if let Some(obj) = v.as_object_mut() {
         if obj.contains_key("model") && !obj.contains_key("decoder") {
@@ -205,6 +206,11 @@ pub fn upgrade_config(mut v: serde_json::Value) -> serde_json::Value {
             if let Some(model) = obj.get_mut("model").and_then(|m| m.as_object_mut()) {
                 model.entry("normalize").or_insert(serde_json::Value::Bool(false));
                 model.entry("prior").or_insert(serde_json::Value::String("Bins".into()));
+            }
+        }
+        if obj.get("decoder").and_then(|d| d.as_str()) == Some("unet") {
+            if let Some(model) = obj.get_mut("model").and_then(|m| m.as_object_mut()) {
+                model.entry("input").or_insert(serde_json::Value::String("Backprojection".into()));
             }
         }
     }

@@ -21,6 +21,7 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use std::sync::Arc;
 use tcsense_kernels::pixel::{pixel_dc, pixel_linear, woodbury_matrices, PixelMap, PixelSensor};
+use tcsense_sensor::matrix::MATCHED_EPS;
 use tcsense_sensor::MeasurementMatrix;
 
 /// The sensor model as tensors for one frame size, in *block layout*: a frame `[B, C, H, W]`
@@ -39,6 +40,9 @@ pub struct SensorTensors {
     pub qt: Tensor<4>,
     /// Eigenvalues, `[1, N, 1, M]`.
     pub lambda: Tensor<4>,
+    /// The range fit's matched filters `F_n` at the bin centres, ambient projected out
+    /// ([`MeasurementMatrix::matched_filters`]), `[1, N, T, M]`.
+    pub matched: Tensor<4>,
     pub taps: usize,
     pub bins: usize,
     pub height: usize,
@@ -57,6 +61,22 @@ pub struct SensorTensors {
     pub composed: bool,
 }
 
+/// [`MeasurementMatrix::matched_filters`] from burn ops, differentiable in `A` (deep sensing):
+/// `s = A1`, `P = I − ssᵀ/‖s‖²`, rows `(P a_t)ᵀ‖P a_t‖/(‖P a_t‖² + ε²‖a_t‖²)`.
+///
+/// # Shapes
+/// - `a`: `[1, N, M, T]` → `[1, N, T, M]`
+pub fn matched_filters(a: Tensor<4>) -> Tensor<4> {
+    let s = a.clone().sum_dim(3); // [1, N, M, 1]
+    let ss = s.clone().powi_scalar(2).sum_dim(2).clamp_min(1e-30); // [1, N, 1, 1]
+    let along = s.clone().swap_dims(2, 3).matmul(a.clone()) / ss; // [1, N, 1, T]
+    let p = a.clone() - s * along; // [1, N, M, T]
+    let pp = p.clone().powi_scalar(2).sum_dim(2); // [1, N, 1, T]
+    let aa = a.clone().powi_scalar(2).sum_dim(2) * (MATCHED_EPS * MATCHED_EPS) as f32;
+    let scale = pp.clone().add_scalar(1e-30).sqrt() / (pp + aa).clamp_min(1e-30);
+    (p * scale).swap_dims(2, 3)
+}
+
 /// The per-pixel operators of [`SensorTensors`] for [`pixel_linear`] and [`pixel_dc`].
 #[derive(Debug, Clone)]
 pub struct FusedSensor {
@@ -68,6 +88,8 @@ pub struct FusedSensor {
     pub qt: Arc<PixelMap>,
     /// `A_nᵀQ_n` (formed in f64), `M → T`.
     pub atq: Arc<PixelMap>,
+    /// The matched filters `F_n` ([`MeasurementMatrix::matched_filters`]), `M → T`.
+    pub matched: Arc<PixelMap>,
 }
 
 impl SensorTensors {
@@ -117,6 +139,7 @@ impl SensorTensors {
                 }
             }
         }
+        let matched_v: Vec<f32> = a.matched_filters().iter().map(|&v| v as f32).collect(); // [N, T, M]
         let block = a.block();
         let (bh, bw) = block;
         let mut lf = vec![0f32; m * height * width];
@@ -134,6 +157,7 @@ impl SensorTensors {
             dc: Arc::new(PixelSensor::new(block, m, t, width, &a_v, &q_v, &l_v)),
             qt: Arc::new(PixelMap::new(block, m, m, width, &qt_v)),
             atq: Arc::new(PixelMap::new(block, t, m, width, &atq_v)),
+            matched: Arc::new(PixelMap::new(block, t, m, width, &matched_v)),
         };
         Ok(SensorTensors {
             fused,
@@ -142,6 +166,7 @@ impl SensorTensors {
             q: Tensor::from_data(TensorData::new(q_v, [1, n_sub, m, m]), device),
             qt: Tensor::from_data(TensorData::new(qt_v, [1, n_sub, m, m]), device),
             lambda: Tensor::from_data(TensorData::new(l_v, [1, n_sub, 1, m]), device),
+            matched: Tensor::from_data(TensorData::new(matched_v, [1, n_sub, t, m]), device),
             lambda_frame: Tensor::from_data(TensorData::new(lf, [1, m, height, width]), device),
             taps: m,
             bins: t,
@@ -211,6 +236,7 @@ impl SensorTensors {
     pub fn with_matrix(mut self, a: Tensor<3>) -> Self {
         let a: Tensor<4> = a.unsqueeze_dim(0);
         self.at = a.clone().swap_dims(2, 3);
+        self.matched = matched_filters(a.clone());
         self.a = a;
         self.differentiable = true;
         self
@@ -242,6 +268,18 @@ impl SensorTensors {
             return self.from_blocks(self.at_blocks(self.to_blocks(y)));
         }
         pixel_linear(y, self.fused.at.clone())
+    }
+
+    /// The matched filters `F y` ([`Self::matched`]): each pixel's correlation with a return at
+    /// every bin centre, ambient light projected out.
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
+    pub fn matched(&self, y: Tensor<4>) -> Tensor<4> {
+        if self.in_blocks() {
+            return self.from_blocks(self.matched.clone().matmul(self.to_blocks(y)));
+        }
+        pixel_linear(y, self.fused.matched.clone())
     }
 
     /// The normalised back-projection `Aᵀ(AAᵀ + εI)⁻¹ y`, `ε = 1e-3·λ_max`.
@@ -360,6 +398,7 @@ mod tests {
         close(vec(diff.forward(v.clone())), vec(st.forward(v.clone())), "A x");
         close(vec(diff.adjoint(y.clone())), vec(st.adjoint(y.clone())), "Aᵀ y");
         close(vec(diff.pinv(y.clone())), vec(st.pinv(y.clone())), "back-projection");
+        close(vec(diff.matched(y.clone())), vec(st.matched(y.clone())), "matched filters");
         close(vec(diff.data_consistency(v.clone(), rho())), vec(st.data_consistency(v.clone(), rho())), "data consistency");
         // gradient in A against central differences
         let loss = |vals: Vec<f32>, grad: bool| {

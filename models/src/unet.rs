@@ -2,7 +2,8 @@
 //! depth of `K` returns directly, correcting multipath on the way.
 //!
 //! ```text
-//! y [B, M, H, W] ──Aᵀ──▶ x₀ [B, T, H, W] ──÷ (‖x₀‖₂ per pixel + 10⁻³·mean‖x₀‖₂)──▶ x̄
+//! y [B, M, H, W] ──Aᵀ (or F)──▶ x₀ [B, T, H, W] ──÷ (‖x₀‖₂ per pixel + f·mean‖x₀‖₂)──▶ x̄
+//!     (f = 10⁻³ for Aᵀ, 1 for F: see MATCHED_NORM_FLOOR)
 //! x̄ ──pad to a multiple of 2^(levels−1)──▶ U-Net ──crop──▶ [B, 2K, H, W]
 //!     level ℓ: two 3×3 conv + ReLU with w·2^ℓ channels; 2×2 max-pool between levels;
 //!     decoder: nearest ×2 up-sampling, concatenation with the skip, two 3×3 conv + ReLU;
@@ -27,6 +28,12 @@
 //! Training keeps the soft-argmax over all bins in its loss (with the cross-entropy on the
 //! true bin it makes the distribution peaked, and it keeps its gradient everywhere).
 //!
+//! With [`UnetInput::Matched`] the network reads `x₀ = F y` instead of `Aᵀy`: the range fit's
+//! matched filters (each bin centre's template with the ambient light projected out, unit
+//! norm), whose argmax per pixel is the fit's own range on the bin grid. It is the fit-aware
+//! input of photon-efficient LiDAR networks, which decode a per-pixel evidence volume with a
+//! learned spatial prior rather than raw measurements.
+//!
 //! The normalisation is part of the model, so deployment feeds raw tap images, and it makes
 //! the output invariant to the scale of `y` (`y` and `10·y` give the same depth). Time is the
 //! channel axis. Frames of any size work: the model pads them with zeros to a multiple of
@@ -50,6 +57,13 @@ use crate::sensor_tensors::SensorTensors;
 /// Relative floor of the per-pixel normalisation: dark pixels are divided by at least this
 /// fraction of the frame's mean norm, so noise alone is not blown up to unit scale.
 pub const NORM_FLOOR: f64 = 1e-3;
+
+/// The floor of the normalisation of the matched filters ([`UnetInput::Matched`]): the frame's
+/// mean norm itself, so a pixel keeps its brightness relative to the frame (a pixel as bright
+/// as the mean comes out at half its norm, one ten times dimmer at a tenth of that) where the
+/// back-projection's floor makes every lit pixel's waveform unit-norm. Light is what the
+/// network must weigh in dim light: which pixels hold signal and which hold read noise.
+pub const MATCHED_NORM_FLOOR: f64 = 1.0;
 
 /// Half width (bins) of the window around the most probable bin over which inference takes
 /// the score volume's soft-argmax (see the module documentation).
@@ -76,6 +90,22 @@ pub struct UnetConfig {
     /// How the range is read out (`regression` in runs written before the score volume).
     #[config(default = "UnetHead::Regression")]
     pub head: UnetHead,
+    /// What the network reads (`backprojection` in runs written before the matched filters).
+    #[config(default = "UnetInput::Backprojection")]
+    pub input: UnetInput,
+}
+
+/// What the U-Net reads from the taps (see the module documentation).
+#[derive(Config, Debug, PartialEq, Eq, Copy)]
+pub enum UnetInput {
+    /// `x₀ = Aᵀy`, the back-projection through the code bits.
+    Backprojection,
+    /// `x₀ = F y`: the range fit's matched filters at every bin centre, ambient light projected
+    /// out ([`tcsense_sensor::MeasurementMatrix::matched_filters`]). What the per-pixel fit
+    /// maximises, so the network starts from the fit's own evidence for a return at each bin
+    /// and learns the spatial prior the fit does not have; ambient light does not reach it
+    /// except through its shot noise.
+    Matched,
 }
 
 /// The U-Net's read-out of the range (see the module documentation).
@@ -106,6 +136,8 @@ pub struct Unet {
     range_m: f64,
     /// Bins `T` of the score volume; 0 for the regression head.
     score_bins: usize,
+    /// Reads the matched filters `F y` instead of `Aᵀy` ([`UnetInput::Matched`]).
+    matched: bool,
 }
 
 impl UnetConfig {
@@ -126,7 +158,7 @@ impl UnetConfig {
         let up = (0..self.levels.saturating_sub(1)).map(|l| block(self.width(l + 1) + self.width(l), self.width(l))).collect();
         let head = Conv2dConfig::new([self.width(0), self.head_channels()], [1, 1]).init(device);
         let score_bins = if self.head == UnetHead::ScoreVolume { self.bins } else { 0 };
-        Unet { down, up, head, returns: self.returns, levels: self.levels, range_m: self.range_m, score_bins }
+        Unet { down, up, head, returns: self.returns, levels: self.levels, range_m: self.range_m, score_bins, matched: self.input == UnetInput::Matched }
     }
 
     /// Output channels of the 1×1 head: `K·T + K` (score volume) or `2K` (regression).
@@ -246,9 +278,27 @@ impl Unet {
     /// # Shapes
     /// - `x0`: `[B, T, H, W]` → `[B, T, H, W]`
     pub fn normalise(x0: Tensor<4>) -> Tensor<4> {
+        Self::normalise_with(x0, NORM_FLOOR)
+    }
+
+    /// [`Self::normalise`] with the floor `floor` times the frame's mean norm.
+    ///
+    /// # Shapes
+    /// - `x0`: `[B, T, H, W]` → `[B, T, H, W]`
+    pub fn normalise_with(x0: Tensor<4>, floor: f64) -> Tensor<4> {
         let norm = Self::pixel_norm(x0.clone()); // [B, 1, H, W]
         let mean = norm.clone().mean_dim(2).mean_dim(3); // [B, 1, 1, 1]
-        x0 / (norm + mean * NORM_FLOOR + 1e-30)
+        x0 / (norm + mean * floor + 1e-30)
+    }
+
+    /// The floor of this network's normalisation ([`NORM_FLOOR`], or [`MATCHED_NORM_FLOOR`]
+    /// for the matched filters).
+    pub fn norm_floor(&self) -> f64 {
+        if self.matched {
+            MATCHED_NORM_FLOOR
+        } else {
+            NORM_FLOOR
+        }
     }
 
     /// Raw outputs: depth logits (regression, `K` channels) or scores (score volume, `K·T`
@@ -257,7 +307,8 @@ impl Unet {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → `[B, 2K, H, W]` or `[B, K·T + K, H, W]`
     pub fn logits(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
-        let x = Self::normalise(sensor.adjoint(y)); // [B, T, H, W]
+        let x0 = if self.matched { sensor.matched(y) } else { sensor.adjoint(y) }; // [B, T, H, W]
+        let x = Self::normalise_with(x0, self.norm_floor());
         self.head_1x1(trunk(&self.down, &self.up, x))
     }
 
@@ -292,6 +343,15 @@ impl Unet {
     /// The 1×1 head (to `2K` channels, or `K·T + K` with the score volume).
     pub fn head(&self) -> &Conv2d {
         &self.head
+    }
+
+    /// What the network reads.
+    pub fn input_kind(&self) -> UnetInput {
+        if self.matched {
+            UnetInput::Matched
+        } else {
+            UnetInput::Backprojection
+        }
     }
 
     /// The read-out of the range.

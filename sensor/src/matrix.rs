@@ -32,6 +32,10 @@ pub struct MeasurementMatrix {
     bin_width_s: f64,
 }
 
+/// The matched filters' regulariser ([`MeasurementMatrix::matched_filters`]): a column whose
+/// part outside the ambient's span is below `ε` of its norm is damped towards zero.
+pub const MATCHED_EPS: f64 = 1e-3;
+
 impl MeasurementMatrix {
     /// A fingerprint of `A` (its shape, block and f32 values; FNV-1a, 16 hex digits): the
     /// codes, IRF and sampling in one number.
@@ -176,6 +180,41 @@ impl MeasurementMatrix {
     /// `λ_max(A_nA_nᵀ)` over the subpixel types (`‖A‖²` of the per-pixel operator).
     pub fn max_gram_eigenvalue(&self) -> f64 {
         self.gram_eigen().0.iter().fold(0f64, |a, &b| a.max(b))
+    }
+
+    /// The matched filters of the range fit at the bin centres, ambient projected out: row `t`
+    /// of `F_n` is `ĝ_n(t)ᵀ = (P_n a_{n,t})ᵀ / ‖P_n a_{n,t}‖`, where `a_{n,t}` is column `t` of
+    /// `A_n` (the template of a return at bin `t`'s centre, the IRF included), `s_n = A_n 1`
+    /// the template of ambient light and `P_n = I − s_n s_nᵀ/‖s_n‖²`. So `(F_n y)_t` is the
+    /// correlation of the taps with a return at bin `t` after the best ambient level is
+    /// removed, and its square over `‖P_n y‖²` the share of the taps that one return there
+    /// explains: `argmax_t (F_n y)_t` is the per-pixel least-squares range on the bin grid
+    /// (`a ≥ 0`, ambient free). A column with (almost) nothing outside the ambient's span gets
+    /// a (nearly) zero row: the division is by `‖P a‖ + ε²‖a‖²/‖P a‖` ([`MATCHED_EPS`]), the
+    /// same in f64 here and in f32 in the networks, so that rounding is never normalised up
+    /// to a unit row. Computed in f64.
+    ///
+    /// # Shapes
+    /// - returns `[N, T, M]`
+    pub fn matched_filters(&self) -> Array3<f64> {
+        let (n, m, t) = self.a.dim();
+        let mut f = Array3::zeros((n, t, m));
+        for k in 0..n {
+            let s: Vec<f64> = (0..m).map(|i| (0..t).map(|l| self.a[(k, i, l)] as f64).sum()).collect();
+            let ss: f64 = s.iter().map(|v| v * v).sum();
+            for l in 0..t {
+                let col: Vec<f64> = (0..m).map(|i| self.a[(k, i, l)] as f64).collect();
+                let along = if ss > 0.0 { col.iter().zip(&s).map(|(a, b)| a * b).sum::<f64>() / ss } else { 0.0 };
+                let p: Vec<f64> = col.iter().zip(&s).map(|(a, b)| a - along * b).collect();
+                let pp: f64 = p.iter().map(|v| v * v).sum();
+                let aa: f64 = col.iter().map(|v| v * v).sum();
+                let scale = pp.sqrt() / (pp + MATCHED_EPS * MATCHED_EPS * aa).max(f64::MIN_POSITIVE);
+                for i in 0..m {
+                    f[(k, l, i)] = p[i] * scale;
+                }
+            }
+        }
+        f
     }
 }
 
@@ -430,6 +469,46 @@ mod tests {
                 assert!((v - from_basis).abs() <= 1e-5 * peak, "{sampling:?} {irf:?} [{n}, {m}, {j}]: {v} vs {from_basis}");
             }
         }
+    }
+
+    /// The matched filters see a return at its bin, whatever the ambient level, and no ambient.
+    #[test]
+    fn matched_filters_find_the_return_and_ignore_ambient() {
+        let c = codes();
+        let a = MeasurementMatrix::synthesize(&c, &spec(&c, Sampling::Oversample(1), Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 })).unwrap();
+        let f = a.matched_filters();
+        let (n, m, t) = a.a().dim();
+        let mut checked = 0;
+        assert_eq!(f.dim(), (n, t, m));
+        for k in 0..n {
+            let s: Vec<f64> = (0..m).map(|i| a.a().index_axis(Axis(0), k).row(i).iter().map(|&v| v as f64).sum()).collect();
+            let informative: Vec<bool> = (0..t)
+                .map(|l| {
+                    let row = f.index_axis(Axis(0), k);
+                    let norm: f64 = row.row(l).iter().map(|v| v * v).sum::<f64>().sqrt();
+                    // a column along the ambient's template carries no range: a zero row
+                    let col: Vec<f64> = (0..m).map(|i| a.a()[(k, i, l)] as f64).collect();
+                    let cos = col.iter().zip(&s).map(|(a, b)| a * b).sum::<f64>() / (col.iter().map(|v| v * v).sum::<f64>() * s.iter().map(|v| v * v).sum::<f64>()).sqrt();
+                    assert!((norm - 1.0).abs() < 1e-4 || (norm < 1e-6 && (cos - 1.0).abs() < 1e-9), "row {l} of type {k}: norm {norm}, column at cos {cos} to the ambient");
+                    let amb: f64 = row.row(l).iter().zip(&s).map(|(a, b)| a * b).sum();
+                    assert!(amb.abs() < 1e-9 * s.iter().map(|v| v.abs()).sum::<f64>(), "ambient leaks: {amb}");
+                    norm > 0.5
+                })
+                .collect();
+            if informative.iter().filter(|&&i| i).count() < t / 2 {
+                continue;
+            }
+            checked += 1;
+            for t0 in [0, 5, t - 1].into_iter().filter(|&t0| informative[t0]) {
+                // a return at bin t0 under ambient light five times the return's weight
+                let y: Vec<f64> = (0..m).map(|i| 3.0 * a.a()[(k, i, t0)] as f64 + 5.0 * s[i]).collect();
+                let corr: Vec<f64> = (0..t).map(|l| (0..m).map(|i| f[(k, l, i)] * y[i]).sum()).collect();
+                let best = (0..t).max_by(|&i, &j| corr[i].total_cmp(&corr[j])).unwrap();
+                // M = 4 taps (two in some types): the best may tie within 10⁻⁵, never beat it
+                assert!(corr[t0] >= corr[best] - 1e-5 * corr[best].abs(), "type {k}, return at {t0}: best {best}; {corr:?}; column {:?} s {s:?}", a.a().index_axis(Axis(0), k).column(t0));
+            }
+        }
+        assert!(checked >= 2, "{checked} subpixel types with range information");
     }
 
     #[test]

@@ -47,6 +47,19 @@ pub fn parse_hw(s: &str) -> Result<(usize, usize), String> {
     Ok((h, w))
 }
 
+/// Parse a range `LO,HI` of finite numbers with `LO ≤ HI` (the ranges' own bounds are checked
+/// where they are used, with the field's name).
+pub fn parse_range(s: &str) -> Result<(f64, f64), String> {
+    let form = || format!("{s:?} is not a range LO,HI of two numbers (e.g. 0.002,0.9)");
+    let (a, b) = s.split_once(',').ok_or_else(form)?;
+    let p = |v: &str| v.trim().parse::<f64>().ok().filter(|v| v.is_finite()).ok_or_else(form);
+    let (lo, hi) = (p(a)?, p(b)?);
+    if lo > hi {
+        return Err(format!("{s:?}: LO is above HI"));
+    }
+    Ok((lo, hi))
+}
+
 /// A clap value parser of whole numbers from `lo` to `hi`: an absurd count is a usage error
 /// naming the flag and the range, before anything is allocated.
 pub fn count_in(lo: usize, hi: usize) -> impl Fn(&str) -> Result<usize, String> + Clone + Send + Sync + 'static {

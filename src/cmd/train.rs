@@ -62,6 +62,12 @@ pub struct LifetimeArgs {
     levels: Option<usize>,
 }
 
+#[derive(Clone, Copy, ValueEnum)]
+enum InputArg {
+    Backprojection,
+    Matched,
+}
+
 /// ADMM-Net size.
 #[derive(Args)]
 pub struct AdmmArgs {
@@ -113,6 +119,12 @@ pub struct UnetArgs {
     /// Resolutions (frames are padded inside the model to a multiple of 2^(levels−1)) [default: 3].
     #[arg(long)]
     levels: Option<usize>,
+    /// What the network reads: `backprojection` (Aᵀy through the code bits) or `matched` (the
+    /// range fit's matched filters at every bin, ambient light projected out: the fit's own
+    /// evidence, for the network's spatial prior). With --init-from it may change: the weights
+    /// fit either [default: backprojection].
+    #[arg(long, value_enum)]
+    input: Option<InputArg>,
 }
 
 #[derive(Args)]
@@ -178,6 +190,15 @@ pub struct TrainArgs {
     /// Train on random HxW crops of the frames (a multiple of the pixel block).
     #[arg(long, value_parser = super::parse_hw)]
     crop: Option<(usize, usize)>,
+    /// The photon ladder: each item's brightest tap at a fraction of the full well drawn
+    /// log-uniformly from LO,HI (default 0.05,0.9; e.g. 0.002,0.9 down to where `eval --light`
+    /// reaches).
+    #[arg(long, value_name = "LO,HI", value_parser = super::parse_range, allow_hyphen_values = true, conflicts_with = "no_augment")]
+    signal: Option<(f64, f64)>,
+    /// Ambient light: each item gets a background of 1/SBR times its mean signal, drawn
+    /// uniformly from LO,HI (e.g. 0,2: from none to twice the signal; at most 100).
+    #[arg(long, value_name = "LO,HI", value_parser = super::parse_range, allow_hyphen_values = true, conflicts_with = "no_augment")]
+    ambient: Option<(f64, f64)>,
     /// Continue the run in the output directory from its last checkpoint.
     #[arg(long)]
     resume: bool,
@@ -327,6 +348,8 @@ impl TrainArgs {
             no_augment: self.no_augment,
             sensor_residue: self.sensor_residue.as_ref().map(|r| [r[0], r[1], r[2]]),
             crop: self.crop.map(|(h, w)| [h, w]),
+            signal: self.signal.map(|(lo, hi)| [lo, hi]),
+            ambient: self.ambient.map(|(lo, hi)| [lo, hi]),
             learn_codes: self.learn_codes,
             tap_constraint: self.tap_constraint,
             hamming: self.hamming,
@@ -344,7 +367,7 @@ impl TrainArgs {
             }
             NetArgs::Unet(n) => {
                 req.decoder = "unet".into();
-                (req.head, req.returns, req.base_width, req.levels) = (n.head.and_then(name_of), n.returns, n.base_width, n.levels);
+                (req.head, req.returns, req.base_width, req.levels, req.input) = (n.head.and_then(name_of), n.returns, n.base_width, n.levels, n.input.and_then(name_of));
             }
             NetArgs::Lifetime(n) => {
                 req.decoder = "lifetime".into();

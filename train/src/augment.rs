@@ -9,7 +9,11 @@
 //! - **brightness**: a per-item factor, log-uniform, so that the network sees tap images over
 //!   decades of scale instead of cubes normalised to a peak of 1;
 //! - **noise level**: per item, a full well, a read noise and the fraction of full well the
-//!   brightest tap reaches (the photon count), each drawn from its range.
+//!   brightest tap reaches (the photon count), each drawn from its range: the photon ladder
+//!   that `tcsense eval --light` measures decoders on;
+//! - **ambient light**: per item, a constant background in every bin, `ambient` times the
+//!   frame's mean signal per pixel and bin (`1/SBR`, as `eval --sbr`), with the exposure set
+//!   by the signal alone (ambient adds photons and shot noise; it does not dim the signal).
 //!
 //! Every draw comes from a generator seeded by `(seed, step)`, so a run stays a pure function
 //! of its config and resumes exactly.
@@ -20,9 +24,14 @@ use rand::{RngExt, SeedableRng};
 use serde::{Deserialize, Serialize};
 use tcsense_datasets::knobs::draw;
 use tcsense_sensor::noise::derive_seed;
+use tcsense_sensor::params::MAX_SIGNAL_FRACTION;
 use tcsense_sensor::NoiseParams;
 
 use crate::{Result, TrainError};
+
+/// The most ambient light an augmentation draws: 100 times the signal (SBR 0.01, where
+/// photon-efficient single-photon LiDAR is judged).
+pub const MAX_AMBIENT: f64 = 100.0;
 
 /// Stream of the augmentation draws, apart from the noise's `(seed, step)`.
 const AUGMENT_STREAM: u64 = 0x4155_474D_454E_5421;
@@ -50,6 +59,15 @@ pub struct Augmentation {
     /// brightest tap. All zero (the default): off.
     #[serde(default, skip_serializing_if = "is_off")]
     pub sensor_residue: [f64; 3],
+    /// Ambient light per item, uniform in `[lo, hi]`: the background per bin over the mean
+    /// signal per pixel and bin (`1/SBR`: 1 is as much ambient as signal). `[0, 0]` (the
+    /// default, and configs written before it): none.
+    #[serde(default, skip_serializing_if = "no_ambient")]
+    pub ambient: [f64; 2],
+}
+
+fn no_ambient(r: &[f64; 2]) -> bool {
+    r[1] == 0.0
 }
 
 fn is_off(r: &[f64; 3]) -> bool {
@@ -61,7 +79,7 @@ impl Default for Augmentation {
     /// read noise 10–60 e⁻, brightest tap at 5–90 % of full well (500 to 36 000 e⁻, against the
     /// paper's 16 000).
     fn default() -> Self {
-        Augmentation { time_shift: true, flips: true, crop: None, brightness: [0.01, 1.0], full_well_e: [1e4, 4e4], read_noise_e: [10.0, 60.0], signal_fraction: [0.05, 0.9], sensor_residue: [0.0; 3] }
+        Augmentation { time_shift: true, flips: true, crop: None, brightness: [0.01, 1.0], full_well_e: [1e4, 4e4], read_noise_e: [10.0, 60.0], signal_fraction: [0.05, 0.9], sensor_residue: [0.0; 3], ambient: [0.0; 2] }
     }
 }
 
@@ -82,6 +100,9 @@ pub struct Augmented {
     pub noise: Vec<NoiseParams>,
     /// The brightness factor of each item.
     pub gains: Vec<f32>,
+    /// Ambient light of each item: a constant to add to every bin of its cube `x` before it
+    /// is measured (in the cube's units, brightness included; 0: none).
+    pub ambient: Vec<f32>,
 }
 
 /// Range labels to move with the cubes.
@@ -141,6 +162,17 @@ impl Augmentation {
 
     /// Check the ranges against a frame of `h × w` with pixel block `block`.
     pub fn validate(&self, h: usize, w: usize, block: (usize, usize)) -> Result<()> {
+        self.validate_ranges()?;
+        if let Some([ch, cw]) = self.crop {
+            if ch == 0 || cw == 0 || ch > h || cw > w || ch % block.0 != 0 || cw % block.1 != 0 {
+                return Err(TrainError::InvalidParam { field: "augment.crop", got: format!("{ch}x{cw}"), expected: format!("a window within the {h}x{w} frames, a multiple of the {}x{} block", block.0, block.1) });
+            }
+        }
+        Ok(())
+    }
+
+    /// Check the ranges that need no frame (all but the crop's fit).
+    pub fn validate_ranges(&self) -> Result<()> {
         let bad = |field: &'static str, got: String, expected: &str| Err(TrainError::InvalidParam { field, got, expected: expected.into() });
         let [g, p, d] = self.sensor_residue;
         if !(g.is_finite() && p.is_finite() && d.is_finite() && (0.0..=0.5).contains(&g) && (0.0..=0.2).contains(&p) && (0.0..=0.1).contains(&d)) {
@@ -151,13 +183,15 @@ impl Augmentation {
                 return bad(name, format!("{r:?}"), "a range LO ≤ HI of positive numbers");
             }
         }
+        if self.signal_fraction[1] > MAX_SIGNAL_FRACTION {
+            return bad("augment.signal_fraction", format!("{:?}", self.signal_fraction), &format!("fractions of full well up to {MAX_SIGNAL_FRACTION}"));
+        }
+        let [a0, a1] = self.ambient;
+        if !(a0.is_finite() && a1.is_finite() && 0.0 <= a0 && a0 <= a1 && a1 <= MAX_AMBIENT) {
+            return bad("augment.ambient", format!("{:?}", self.ambient), &format!("a range 0 ≤ LO ≤ HI ≤ {MAX_AMBIENT} of ambient over signal (1/SBR)"));
+        }
         if !(self.read_noise_e[0] >= 0.0 && self.read_noise_e[0] <= self.read_noise_e[1] && self.read_noise_e[1].is_finite()) {
             return bad("augment.read_noise_e", format!("{:?}", self.read_noise_e), "a range 0 ≤ LO ≤ HI");
-        }
-        if let Some([ch, cw]) = self.crop {
-            if ch == 0 || cw == 0 || ch > h || cw > w || ch % block.0 != 0 || cw % block.1 != 0 {
-                return bad("augment.crop", format!("{ch}x{cw}"), &format!("a window within the {h}x{w} frames, a multiple of the {}x{} block", block.0, block.1));
-            }
         }
         Ok(())
     }
@@ -183,6 +217,7 @@ impl Augmentation {
         let mut maps_out = maps.map(|m| Array4::<f32>::zeros((b, m.dim().1, ch, cw)));
         let mut noise = Vec::with_capacity(b);
         let mut gains = Vec::with_capacity(b);
+        let mut ambient = Vec::with_capacity(b);
         for (i, mut dst) in out.outer_iter_mut().enumerate() {
             let shift = if self.time_shift { rng.random_range(0..t) } else { 0 };
             let (flip_r, flip_c) = if self.flips { (rng.random_bool(0.5), rng.random_bool(0.5)) } else { (false, false) };
@@ -217,8 +252,11 @@ impl Augmentation {
                 signal_fraction: draw(&mut rng, self.signal_fraction, true),
                 adc_bits: base.adc_bits,
             });
+            // drawn last, so runs without ambient light keep their draws
+            let share = if no_ambient(&self.ambient) { 0.0 } else { draw(&mut rng, self.ambient, false) };
+            ambient.push((share * dst.sum() as f64 / dst.len().max(1) as f64) as f32);
         }
-        Augmented { x: out, depth: depth_out, maps: maps_out, noise, gains }
+        Augmented { x: out, depth: depth_out, maps: maps_out, noise, gains, ambient }
     }
 }
 
@@ -235,7 +273,7 @@ mod tests {
     fn shifts_flips_crops_and_levels() {
         let x = cube();
         let base = NoiseParams::default();
-        let off = Augmentation { time_shift: false, flips: false, crop: None, brightness: [1.0, 1.0], full_well_e: [2e4, 2e4], read_noise_e: [40.0, 40.0], signal_fraction: [0.8, 0.8], sensor_residue: [0.0; 3] };
+        let off = Augmentation { time_shift: false, flips: false, crop: None, brightness: [1.0, 1.0], full_well_e: [2e4, 2e4], read_noise_e: [40.0, 40.0], signal_fraction: [0.8, 0.8], sensor_residue: [0.0; 3], ambient: [0.0; 2] };
         let same = off.apply(&x.view(), None, None, &base, (2, 2), 1, 1);
         assert_eq!(same.x, x, "everything off is the identity");
         assert!(same.noise.iter().all(|n| n.full_well_e == 2e4 && n.read_noise_e == 40.0 && n.signal_fraction == 0.8 && n.adc_bits == base.adc_bits));
@@ -280,6 +318,19 @@ mod tests {
         assert!(Augmentation { sensor_residue: [0.0, 0.5, 0.0], ..off }.validate(4, 6, (2, 2)).is_err());
         assert!(Augmentation { crop: Some([6, 4]), ..off }.validate(4, 6, (2, 2)).is_err());
         assert!(Augmentation { brightness: [1.0, 0.5], ..off }.validate(4, 6, (2, 2)).is_err());
+        assert!(Augmentation { ambient: [2.0, 1.0], ..off }.validate(4, 6, (2, 2)).is_err());
+        assert!(Augmentation { ambient: [0.0, 1e3], ..off }.validate(4, 6, (2, 2)).is_err());
+        assert!(Augmentation { ambient: [0.0, f64::NAN], ..off }.validate(4, 6, (2, 2)).is_err());
+
+        // ambient light: 1/SBR times each item's mean signal per pixel and bin (none by default)
+        assert!(off.apply(&x.view(), None, None, &base, (2, 2), 1, 1).ambient.iter().all(|&b| b == 0.0));
+        let lit = Augmentation { ambient: [2.0, 2.0], ..off }.apply(&x.view(), None, None, &base, (2, 2), 1, 1);
+        for (i, b) in lit.ambient.iter().enumerate() {
+            let mean = x.index_axis(Axis(0), i).mean().unwrap();
+            assert!((b / (2.0 * mean) - 1.0).abs() < 1e-5, "item {i}: ambient {b}, mean signal {mean}");
+        }
+        let drawn = Augmentation { ambient: [0.0, 4.0], ..off }.apply(&x.view(), None, None, &base, (2, 2), 1, 1);
+        assert_eq!(drawn.x, lit.x, "the ambient draw leaves the other draws as they were");
 
         // brightness and noise levels are drawn in their ranges, seeded by (seed, step)
         let d = Augmentation::default();

@@ -114,7 +114,7 @@ impl TrainConfig {
         let network = match &self.run.model {
             ModelConfig::AdmmNet(m) => format!("ADMM-Net S = {}, CN = {}, M = {}, T = {}", m.stages, m.channels, m.taps, m.bins),
             ModelConfig::Lifetime(m) => format!("lifetime decoder: {} harmonics, U-Net base width {}, {} levels, M = {}, T = {}, {:.2} GFLOP per 188x212 frame", m.harmonics, m.base_width, m.levels, m.taps, m.bins, m.flops(188, 212) / 1e9),
-            ModelConfig::Unet(m) => format!("Aᵀ + U-Net K = {}, base width {}, {} levels, M = {}, T = {}, range {:.2} m, {:.2} GFLOP per 188x212 frame", m.returns, m.base_width, m.levels, m.taps, m.bins, m.range_m, m.flops(188, 212) / 1e9),
+            ModelConfig::Unet(m) => format!("{} + U-Net K = {}, base width {}, {} levels, M = {}, T = {}, range {:.2} m, {:.2} GFLOP per 188x212 frame", if m.input == tcsense_models::UnetInput::Matched { "matched filters" } else { "Aᵀ" }, m.returns, m.base_width, m.levels, m.taps, m.bins, m.range_m, m.flops(188, 212) / 1e9),
         };
         format!(
             "{network}; {} epochs, batch {}, lr {} ({}), loss {:?}, noise {}, augmentation {}",
@@ -130,12 +130,13 @@ impl TrainConfig {
             match &self.augment {
                 None => "off".to_string(),
                 Some(g) => format!(
-                    "shifts {}, flips {}, crop {}, brightness {:?}, signal {:?} of full well{}",
+                    "shifts {}, flips {}, crop {}, brightness {:?}, signal {:?} of full well{}{}",
                     g.time_shift,
                     g.flips,
                     g.crop.map_or("none".into(), |[h, w]| format!("{h}x{w}")),
                     g.brightness,
                     g.signal_fraction,
+                    if g.ambient[1] > 0.0 { format!(", ambient {:?} of the signal (1/SBR)", g.ambient) } else { String::new() },
                     if g.sensor_residue.iter().any(|&v| v != 0.0) { format!(", sensor residue (tap gain, PRNU, dark) {:?}", g.sensor_residue) } else { String::new() }
                 ),
             }
@@ -214,6 +215,9 @@ impl TrainConfig {
         }
         if let Some(n) = &self.noise {
             n.validate()?;
+        }
+        if let Some(g) = &self.augment {
+            g.validate_ranges()?;
         }
         if let Some(lc) = &self.learn_codes {
             lc.validate(self.epochs)?;

@@ -22,7 +22,8 @@ use tcsense_models::metrics::{depth_errors, mse, psnr};
 use tcsense_models::net::{to_tensor, NetDecoder, Network, Prediction};
 use tcsense_models::runs::{ModelConfig, CODES_FILE, CONFIG_FILE};
 use tcsense_models::SensorTensors;
-use tcsense_sensor::measure::measure_batch;
+use tcsense_sensor::measure::{measure, measure_batch};
+use tcsense_sensor::noise::Exposure;
 use tcsense_sensor::noise::derive_seed;
 use tcsense_sensor::{Codes, FramePlan, NoiseParams, Sensor};
 
@@ -299,21 +300,27 @@ fn fit<M: Network>(
                 }
             }
             let noise_seed = derive_seed(cfg.seed, state.step);
-            let (xb, db, yb, scales) = match (&cfg.augment, &cfg.noise) {
+            let (xb, db, yb, scales, lit) = match (&cfg.augment, &cfg.noise) {
                 (None, _) => {
                     let yb = measure_batch(&plan, &xb.view(), cfg.noise.as_ref(), noise_seed)?;
-                    (xb, db, yb, None)
+                    (xb, db, yb, None, None)
                 }
                 (Some(aug), noise) => {
                     let lifetimes = M::PREDICTION == Prediction::Lifetime;
                     let labels = db.as_ref().filter(|_| !lifetimes).map(|d| DepthLabels { depth: d.view(), bin_m, range_m });
                     let maps = db.as_ref().filter(|_| lifetimes).map(|d| d.view());
                     let out = aug.apply(&xb.view(), labels, maps, noise.as_ref().unwrap_or(&crate::config::TRAINING_NOISE), a.block(), cfg.seed, state.step);
-                    let mut yb = measure_items(&train_plan, &out.x, noise.as_ref().map(|_| out.noise.as_slice()), noise_seed)?;
+                    let mut yb = measure_items(&train_plan, &out.x, noise.as_ref().map(|_| out.noise.as_slice()), &out.ambient, noise_seed)?;
                     aug.perturb(&mut yb, cfg.seed, state.step);
                     // each item's loss on its own scale: its peak, brightness included
                     let peaks: Vec<f32> = out.x.outer_iter().map(|xi| xi.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-12)).collect();
-                    (out.x, out.depth.or(out.maps), yb, Some(peaks))
+                    // what the sensor saw (ambient light included), for deep sensing's gradient
+                    let lit = out.ambient.iter().any(|&b| b > 0.0).then(|| {
+                        let mut l = out.x.clone();
+                        l.outer_iter_mut().zip(&out.ambient).for_each(|(mut li, &b)| li += b);
+                        l
+                    });
+                    (out.x, out.depth.or(out.maps), yb, Some(peaks), lit)
                 }
             };
             let target = match (&db, M::PREDICTION) {
@@ -323,7 +330,7 @@ fn fit<M: Network>(
             };
             let l;
             (model, l) = match learner.as_mut() {
-                Some(learner) => step_learned(model, &mut optim, learner, cfg, lr, &sensor, &xb, &yb, target, &device),
+                Some(learner) => step_learned(model, &mut optim, learner, cfg, lr, &sensor, lit.as_ref().unwrap_or(&xb), &yb, target, &device),
                 None => step(model, &mut optim, cfg, lr, &sensor, &yb, target, &device),
             };
             if !l.is_finite() {
@@ -420,15 +427,28 @@ pub(crate) fn seeded_init<M: Module>(device: &Device, seed: u64, init: impl Fn(&
 }
 
 /// Measure each item of `x` with its own noise model (`None`: noise-free), item `i`'s noise
-/// seeded by `(seed, i)`.
+/// seeded by `(seed, i)`, under its ambient light `ambient[i]` (a constant added to every
+/// bin; the exposure stays the one that brings the unlit item's brightest tap to its
+/// `signal_fraction`, as `tcsense eval --sbr` measures).
 ///
 /// # Shapes
 /// - `x`: `[B, T, H, W]` → `[B, M, H, W]`
-fn measure_items(plan: &FramePlan, x: &Array4<f32>, noise: Option<&[NoiseParams]>, seed: u64) -> Result<Array4<f32>> {
+fn measure_items(plan: &FramePlan, x: &Array4<f32>, noise: Option<&[NoiseParams]>, ambient: &[f32], seed: u64) -> Result<Array4<f32>> {
     let mut y = Array4::zeros((x.dim().0, plan.taps(), plan.height(), plan.width()));
     for (i, mut yi) in y.outer_iter_mut().enumerate() {
         let xi = x.slice_axis(Axis(0), ndarray::Slice::from(i..i + 1));
-        let item = measure_batch(plan, &xi, noise.map(|n| &n[i]), derive_seed(seed, i as u64))?;
+        let item_seed = derive_seed(seed, i as u64);
+        let item = match (noise, ambient.get(i).copied().filter(|&b| b > 0.0)) {
+            (Some(n), Some(b)) => {
+                let peak = plan.forward_batch(&xi)?.fold(0f32, |m, &v| m.max(v));
+                let exposure = Exposure::ElectronsPerUnit(Exposure::Auto.electrons_per_unit(peak, &n[i])?);
+                let lit = xi.mapv(|v| v + b);
+                let m = measure(plan, &lit.view().into_dyn(), Some(&n[i]), exposure, item_seed)?.into_input_units();
+                m.into_dimensionality::<ndarray::Ix4>().map_err(|e| TrainError::InvalidParam { field: "measurements", got: format!("{e}"), expected: "a batch".into() })?
+            }
+            (n, Some(b)) => measure_batch(plan, &xi.mapv(|v| v + b).view(), n.map(|n| &n[i]), item_seed)?,
+            (n, None) => measure_batch(plan, &xi, n.map(|n| &n[i]), item_seed)?,
+        };
         yi.assign(&item.index_axis(Axis(0), 0));
     }
     Ok(y)

@@ -16,7 +16,7 @@ use std::sync::atomic::AtomicBool;
 use serde::{Deserialize, Serialize};
 use tcsense_datasets::Dataset;
 use tcsense_models::runs::{ModelConfig, CONFIG_FILE};
-use tcsense_models::{AdmmNetConfig, Device, LifetimeNetConfig, Prior, UnetConfig, UnetHead};
+use tcsense_models::{AdmmNetConfig, Device, LifetimeNetConfig, Prior, UnetConfig, UnetHead, UnetInput};
 use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
 use tcsense_sensor::{Codes, Constraints, Irf};
 
@@ -52,6 +52,8 @@ pub struct TrainRequest {
     pub levels: Option<usize>,
     /// U-Net: `score-volume` or `regression`.
     pub head: Option<String>,
+    /// U-Net: `backprojection` or `matched` (what the network reads).
+    pub input: Option<String>,
     pub harmonics: Option<usize>,
     pub epochs: Option<usize>,
     pub lr: Option<f64>,
@@ -72,6 +74,11 @@ pub struct TrainRequest {
     /// Residual tap gain, PRNU and dark offset a calibration leaves, drawn per item.
     pub sensor_residue: Option<[f64; 3]>,
     pub crop: Option<[usize; 2]>,
+    /// The photon ladder trained on: the brightest tap's fraction of full well per item,
+    /// log-uniform in `[lo, hi]`.
+    pub signal: Option<[f64; 2]>,
+    /// Ambient light per item, `1/SBR` uniform in `[lo, hi]` (see `Augmentation::ambient`).
+    pub ambient: Option<[f64; 2]>,
     pub learn_codes: bool,
     pub tap_constraint: bool,
     pub hamming: Option<usize>,
@@ -121,6 +128,12 @@ impl TrainRequest {
             Some("regression") => Some(UnetHead::Regression),
             Some(other) => return Err(bad("head", other, "score-volume or regression")),
         };
+        let input = match self.input.as_deref() {
+            None => None,
+            Some("backprojection") => Some(UnetInput::Backprojection),
+            Some("matched") => Some(UnetInput::Matched),
+            Some(other) => return Err(bad("input", other, "backprojection or matched")),
+        };
         Ok(Architecture {
             stages: self.stages.or(p.as_ref().map(|c| c.stages)),
             channels: self.channels.or(p.as_ref().map(|c| c.channels)),
@@ -129,6 +142,7 @@ impl TrainRequest {
             base_width: self.base_width,
             levels: self.levels,
             head,
+            input,
             harmonics: self.harmonics,
         })
     }
@@ -195,7 +209,8 @@ pub fn prepare(req: &TrainRequest) -> Result<Prepared> {
         match &req.init_from {
             Some(src) => {
                 cfg.run.model = setup::model_for_init(src, &cfg.run.model, from_config)?;
-                arch.check(&cfg.run.model, src)?;
+                // the input may change on a fine-tune: the weights fit either
+                arch.with_input(&mut cfg.run.model, src)?;
             }
             None => {
                 let before = cfg.run.model.clone();
@@ -222,6 +237,17 @@ pub fn prepare(req: &TrainRequest) -> Result<Prepared> {
     }
     if let Some(crop) = req.crop {
         cfg.augment = Some(Augmentation { crop: Some(crop), ..cfg.augment.unwrap_or_default() });
+    }
+    for (field, given) in [("signal", req.signal.is_some()), ("ambient", req.ambient.is_some())] {
+        if given && req.no_augment {
+            return Err(bad("no_augment", &format!("with {field}"), &format!("either no augmentation or a {field} range (the photon ladder is drawn by the augmentation)")));
+        }
+    }
+    if let Some(r) = req.signal {
+        cfg.augment = Some(Augmentation { signal_fraction: r, ..cfg.augment.unwrap_or_default() });
+    }
+    if let Some(r) = req.ambient {
+        cfg.augment = Some(Augmentation { ambient: r, ..cfg.augment.unwrap_or_default() });
     }
     if let Some(d) = &req.dataset {
         cfg.dataset = d.display().to_string();

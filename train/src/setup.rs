@@ -13,7 +13,7 @@
 use std::path::{Path, PathBuf};
 
 use tcsense_models::runs::{read_config_json, ModelConfig, RunSpec, CODES_FILE, CONFIG_FILE, SENSOR_MATRIX_FILE};
-use tcsense_models::{Prior, UnetHead};
+use tcsense_models::{Prior, UnetHead, UnetInput};
 use tcsense_sensor::npy::write_npy;
 use tcsense_sensor::{Codes, Sensor, SensorModel};
 
@@ -37,6 +37,8 @@ pub struct Architecture {
     pub levels: Option<usize>,
     /// U-Net: the range read-out.
     pub head: Option<UnetHead>,
+    /// U-Net: what the network reads.
+    pub input: Option<UnetInput>,
     /// Lifetime decoder: harmonics of the cycle.
     pub harmonics: Option<usize>,
 }
@@ -62,6 +64,7 @@ impl Architecture {
         put("prior", self.prior.map(|v| s(&v)), a.map(|c| s(&c.prior)));
         put("returns", self.returns.map(|v| s(&v)), u.map(|c| s(&c.returns)));
         put("head", self.head.map(|v| s(&v)), u.map(|c| s(&c.head)));
+        put("input", self.input.map(|v| s(&v)), u.map(|c| s(&c.input)));
         put("base-width", self.base_width.map(|v| s(&v)), u.map(|c| s(&c.base_width)).or(l.map(|c| s(&c.base_width))));
         put("levels", self.levels.map(|v| s(&v)), u.map(|c| s(&c.levels)).or(l.map(|c| s(&c.levels))));
         put("harmonics", self.harmonics.map(|v| s(&v)), l.map(|c| s(&c.harmonics)));
@@ -85,12 +88,26 @@ impl Architecture {
                 c.base_width = self.base_width.unwrap_or(c.base_width);
                 c.levels = self.levels.unwrap_or(c.levels);
                 c.head = self.head.unwrap_or(c.head);
+                c.input = self.input.unwrap_or(c.input);
             }
             ModelConfig::Lifetime(c) => {
                 c.harmonics = self.harmonics.unwrap_or(c.harmonics);
                 c.base_width = self.base_width.unwrap_or(c.base_width);
                 c.levels = self.levels.unwrap_or(c.levels);
             }
+        }
+        Ok(())
+    }
+
+    /// The source run's network for `--init-from` (in `model`), checked against the given
+    /// settings, with the U-Net's input set where one is given: the weights fit either input,
+    /// so a fine-tune may change what the network reads.
+    pub fn with_input(&self, model: &mut ModelConfig, run: &Path) -> Result<()> {
+        Architecture { input: None, ..self.clone() }.check(model, run)?;
+        match (model, self.input) {
+            (ModelConfig::Unet(c), Some(i)) => c.input = i,
+            (m, Some(_)) => return Err(file_err(&run.join(CONFIG_FILE), format!("a {} run has no --input; leave it out", m.name()))),
+            (_, None) => {}
         }
         Ok(())
     }

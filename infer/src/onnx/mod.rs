@@ -364,11 +364,14 @@ fn lifetime(g: &mut Graph, net: &LifetimeNet, sensor: &SensorGraph, y: &str) -> 
 }
 
 fn unet(g: &mut Graph, net: &Unet, sensor: &SensorGraph, y: &str) -> Result<(String, String)> {
-    let x0 = sensor.adjoint(g, y);
-    // per-pixel normalisation: x₀ / (‖x₀‖₂ + 10⁻³·mean‖x₀‖₂ + 10⁻³⁰)
+    let x0 = match net.input_kind() {
+        tcsense_models::UnetInput::Matched => sensor.matched(g, y),
+        tcsense_models::UnetInput::Backprojection => sensor.adjoint(g, y),
+    };
+    // per-pixel normalisation: x₀ / (‖x₀‖₂ + f·mean‖x₀‖₂ + 10⁻³⁰), f = Unet::norm_floor()
     let norm = g.node("ReduceL2", &[&x0], &[Attr::Ints("axes", &[1]), Attr::Int("keepdims", 1)]);
     let mean = g.node("ReduceMean", &[&norm], &[Attr::Ints("axes", &[2, 3]), Attr::Int("keepdims", 1)]);
-    let floor = g.scalar("norm_floor", tcsense_models::unet::NORM_FLOOR as f32);
+    let floor = g.scalar("norm_floor", net.norm_floor() as f32);
     let mf = g.node("Mul", &[&mean, &floor], &[]);
     let den = g.node("Add", &[&norm, &mf], &[]);
     let tiny = g.scalar("tiny", 1e-30);

@@ -33,8 +33,9 @@ pub const EPS_REL: f64 = 1e-3;
 
 /// Where the per-subpixel matrices come from.
 enum Source {
-    /// Computed at export, in f64: `A [N, M, T]` and `(ε, (A_nA_nᵀ) [N, M, M])`.
-    Baked { a: Vec<f64>, gram: Vec<f64>, eps: f64 },
+    /// Computed at export, in f64: `A [N, M, T]`, `(ε, (A_nA_nᵀ) [N, M, M])` and the
+    /// matched filters `F [N, T, M]`.
+    Baked { a: Vec<f64>, gram: Vec<f64>, eps: f64, matched: Vec<f64> },
     /// Computed in the graph from the input `[N, M, T]`: names of `A`, `Aᵀ [N, T, M]`, the
     /// Gram matrices `[1, N, M, M]` and `ε` (shape `[1]`).
     Input { a: String, at: String, gram: String, eps: String },
@@ -63,7 +64,8 @@ impl SensorGraph {
         let (lambda, _) = a.gram_eigen();
         let lmax = lambda.iter().fold(0f64, |acc, &l| acc.max(l.max(0.0) as f32 as f64)).max(1e-12);
         let gram = a.gram().iter().copied().collect();
-        SensorGraph { n, m, t, block: a.block(), src: Source::Baked { a: av, gram, eps: EPS_REL * lmax } }
+        let matched = a.matched_filters().iter().copied().collect();
+        SensorGraph { n, m, t, block: a.block(), src: Source::Baked { a: av, gram, eps: EPS_REL * lmax, matched } }
     }
 
     /// Operators computed in the graph from the input `input [N, M, T]` (its name).
@@ -114,7 +116,7 @@ impl SensorGraph {
     pub fn pinv(&self, g: &mut Graph, yb: &str) -> String {
         let (n, m, t) = (self.n, self.m, self.t);
         let mats = match &self.src {
-            Source::Baked { a, gram, eps } => {
+            Source::Baked { a, gram, eps, .. } => {
                 let mut w = vec![0f64; n * t * m];
                 for k in 0..n {
                     let inv = spd_inverse(&gram[k * m * m..(k + 1) * m * m], m, *eps);
@@ -158,6 +160,48 @@ impl SensorGraph {
             Source::Input { at, .. } => Mats::Value(at.clone()),
         };
         let w = self.back_weight(g, "adjoint", mats, t, m);
+        let blocks = self.to_blocks(g, y, m);
+        self.from_blocks(g, &blocks, &w)
+    }
+
+    /// The matched filters `F y` ([`tcsense_sensor::MeasurementMatrix::matched_filters`]): from
+    /// an input matrix the graph forms them itself (`s = A1`, `P = I − ssᵀ/‖s‖²`, the columns
+    /// `Pa` times `‖Pa‖/(‖Pa‖² + ε²‖a‖²)`).
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]` → `[B, T, H, W]`
+    pub fn matched(&self, g: &mut Graph, y: &str) -> String {
+        let (m, t) = (self.m, self.t);
+        let mats = match &self.src {
+            Source::Baked { matched, .. } => Mats::Const(matched.clone()),
+            Source::Input { a, .. } => {
+                let ax2 = g.ints("axis2", &[2]);
+                let ax1 = g.ints("axis1", &[1]);
+                let s = g.node("ReduceSum", &[a, &ax2], &[Attr::Int("keepdims", 1)]); // [N, M, 1]
+                let st = g.node("Transpose", &[&s], &[Attr::Ints("perm", &[0, 2, 1])]); // [N, 1, M]
+                let ss = g.op("MatMul", &[&st, &s]); // [N, 1, 1]
+                let tiny = g.scalar("tiny_ss", 1e-30);
+                let ss = g.op("Max", &[&ss, &tiny]);
+                let sa = g.op("MatMul", &[&st, a]); // [N, 1, T]
+                let along = g.op("Div", &[&sa, &ss]);
+                let proj = g.op("Mul", &[&s, &along]); // [N, M, T]
+                let p = g.op("Sub", &[a, &proj]);
+                let p2 = g.op("Mul", &[&p, &p]);
+                let pp = g.node("ReduceSum", &[&p2, &ax1], &[Attr::Int("keepdims", 1)]); // [N, 1, T]
+                let a2 = g.op("Mul", &[a, a]);
+                let aa = g.node("ReduceSum", &[&a2, &ax1], &[Attr::Int("keepdims", 1)]);
+                let eps2 = g.scalar("matched_eps2", (tcsense_sensor::matrix::MATCHED_EPS * tcsense_sensor::matrix::MATCHED_EPS) as f32);
+                let aa = g.op("Mul", &[&aa, &eps2]);
+                let den = g.op("Add", &[&pp, &aa]);
+                let den = g.op("Max", &[&den, &tiny]);
+                let pp = g.op("Add", &[&pp, &tiny]);
+                let num = g.op("Sqrt", &[&pp]);
+                let scale = g.op("Div", &[&num, &den]);
+                let f = g.op("Mul", &[&p, &scale]); // [N, M, T]
+                Mats::Value(g.node("Transpose", &[&f], &[Attr::Ints("perm", &[0, 2, 1])])) // [N, T, M]
+            }
+        };
+        let w = self.back_weight(g, "matched", mats, t, m);
         let blocks = self.to_blocks(g, y, m);
         self.from_blocks(g, &blocks, &w)
     }
