@@ -50,6 +50,8 @@ fn zoo_list_and_show_name_every_entry() {
     let names = entries();
     assert!(!names.is_empty(), "the zoo has entries");
     let list = ok(d.path(), &["zoo", "list"]);
+    // the light each entry was trained in: the photon ladder's range, and ambient light where any
+    assert!(list.contains("LIGHT") && list.contains("0.05–0.9") && list.contains("0.002–0.9, ambient 0–2"), "{list}");
     for n in &names {
         assert!(list.contains(n.as_str()), "zoo list names {n}: {list}");
         let show = ok(d.path(), &["zoo", "show", &format!("zoo:{n}")]);

@@ -87,6 +87,28 @@ pub struct Entry {
     /// [`tcsense_sensor::identify`]): below 0.5 two ranges (or two onsets) two masks or more
     /// apart give nearly the same taps. `None` where the config names no sensor.
     pub range_alias: Option<f64>,
+    /// The light it was trained in: the brightest tap's share of the full well (a range where
+    /// the photon ladder was drawn per item), and the ambient light (`1/SBR`) where there was
+    /// some; `noise-free` for runs without noise.
+    pub light: String,
+}
+
+/// The light of a run config: `0.05–0.9`, `0.002–0.9, ambient 0–2`, `0.8` or `noise-free`.
+fn light_of(json: &serde_json::Value) -> String {
+    let num = |p: &str| json.pointer(p).and_then(|v| v.as_f64());
+    let g = |v: f64| format!("{v}");
+    if json.get("noise").is_none_or(|n| n.is_null()) {
+        return "noise-free".into();
+    }
+    let signal = match (num("/augment/signal_fraction/0"), num("/augment/signal_fraction/1"), num("/noise/signal_fraction")) {
+        (Some(lo), Some(hi), _) if lo < hi => format!("{}–{}", g(lo), g(hi)),
+        (Some(v), Some(_), _) | (None, _, Some(v)) => g(v),
+        _ => "?".into(),
+    };
+    match (num("/augment/ambient/0"), num("/augment/ambient/1")) {
+        (Some(lo), Some(hi)) if hi > 0.0 => format!("{signal}, ambient {}–{}", g(lo), g(hi)),
+        _ => signal,
+    }
 }
 
 /// Every entry of the zoo, by name.
@@ -120,7 +142,8 @@ fn read_entry(name: &str, dir: &Path) -> Result<Entry> {
     let epochs = epochs + if learned_codes { last_metrics(&file("relaxed/metrics.csv")).0 } else { 0 };
     let title = std::fs::read_to_string(file(PROVENANCE_FILE)).ok().and_then(|t| t.lines().find_map(|l| l.strip_prefix("# ").map(str::to_string))).unwrap_or_default();
     let weights_bytes = std::fs::metadata(file(WEIGHTS_FILE)).map_err(|e| ModelError::File { path: file(WEIGHTS_FILE), msg: e.to_string() })?.len();
-    Ok(Entry { name: name.to_string(), dir: dir.to_path_buf(), model, domain, learned_codes, designed_codes, codes, epochs, validation, title, weights_bytes, range_alias })
+    let light = light_of(&json);
+    Ok(Entry { name: name.to_string(), dir: dir.to_path_buf(), model, domain, learned_codes, designed_codes, codes, epochs, validation, title, weights_bytes, range_alias, light })
 }
 
 /// The range alias of `codes` on the sensor of a run config (its `sampling` and `irf`).
