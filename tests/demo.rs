@@ -58,6 +58,9 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
     assert!(out.contains("[12/14] timing") && out.contains("[13/14] bring-up of a non-ideal sensor") && out.contains("wrote demo/report.html"), "{out}");
     let demo = d.join("demo");
     let html = std::fs::read_to_string(demo.join("report.html")).unwrap();
+    // the code memory's registers as tables a person reads, not a page of raw JSON
+    assert!(html.contains("ECLEN (L/8 − 1)") && html.contains("16 (4 subpixels × 4 taps)") && html.contains("offset in the combined image"), "registers table missing");
+    assert!(!html.contains("bytes_per_channel"), "raw registers JSON in the report");
 
     // the bring-up of the non-ideal sensor: calibrated, the LiDAR decoders fine-tuned and
     // exported for its raw taps, every condition checked and in the report

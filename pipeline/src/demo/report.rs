@@ -43,6 +43,66 @@ pub(super) fn read_json(path: &Path) -> Result<Value> {
     serde_json::from_slice(&std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?).with_context(|| format!("{}: not JSON", path.display()))
 }
 
+/// The code memory's settings (`registers.json`'s fields but the channel map) as a table.
+fn registers_table(r: &Value, src: &str) -> Table {
+    let text = |v: &Value| match v {
+        Value::String(s) => s.clone(),
+        Value::Null => "–".into(),
+        other => other.to_string(),
+    };
+    let c = &r["constraints"];
+    let mut constraints = Vec::new();
+    if c["tap"].as_bool() == Some(true) {
+        constraints.push("tap".to_string());
+    }
+    if let Some(h) = c["hamming"].as_u64() {
+        constraints.push(format!("Hamming ≤ {h}"));
+    }
+    if let Some(w) = c["window"].as_u64() {
+        constraints.push(format!("runs ≥ {w} masks"));
+    }
+    let block = match (r["block"][0].as_u64(), r["block"][1].as_u64()) {
+        (Some(h), Some(w)) => format!("{h}×{w}"),
+        _ => "–".into(),
+    };
+    let row = |name: &str, value: String| vec![Cell::text(name), Cell::text(value)];
+    Table {
+        caption: format!("Code-memory registers of the learned set ({src})"),
+        headers: vec!["register".into(), "value".into()],
+        rows: vec![
+            row("ECLEN (L/8 − 1)", text(&r["ECLEN"])),
+            row("masks per cycle L", text(&r["length"])),
+            row("channels", match (r["channel_count"].as_u64(), r["taps"].as_u64().filter(|&t| t > 0)) {
+                (Some(c), Some(t)) => format!("{c} ({} subpixels × {t} taps)", c / t),
+                _ => text(&r["channel_count"]),
+            }),
+            row("pixel block", block),
+            row("bytes per channel", text(&r["bytes_per_channel"])),
+            row("modulation clock", r["clock_hz"].as_f64().map_or("–".into(), |hz| format!("{} MHz", hz / 1e6))),
+            row("drain tap", text(&r["drain"])),
+            row("constraints", if constraints.is_empty() { "none".into() } else { constraints.join(", ") }),
+            row("bit order", text(&r["bit_order"])),
+            row("combined image", format!("{}: {}", text(&r["combined_file"]), text(&r["combined_layout"]))),
+        ],
+    }
+}
+
+/// Where each code channel lives in the code memory (`registers.json`'s `channels`).
+fn channels_table(r: &Value, src: &str) -> Table {
+    let rows = r["channels"]
+        .as_array()
+        .map(|chs| {
+            chs.iter()
+                .map(|c| {
+                    let n = |k: &str| c[k].as_u64().map_or("–".into(), |v| v.to_string());
+                    vec![Cell::text(n("channel")), Cell::text(format!("{} (row {}, column {})", n("subpixel"), n("row"), n("col"))), Cell::text(n("tap")), Cell::text(c["file"].as_str().unwrap_or("–")), Cell::text(n("offset"))]
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    Table { caption: format!("Code channels of the learned set ({src}: channels)"), headers: ["channel", "subpixel", "tap", "file", "offset in the combined image (bytes)"].map(String::from).to_vec(), rows }
+}
+
 pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Value], total_s: f64) -> Result<Report> {
     let fig = |name: &str, caption: &str| -> Block {
         debug_assert!(figs.files.contains(&name), "figure {name} not drawn");
@@ -96,7 +156,8 @@ pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Val
     for i in 0..n_cand {
         cand_rows.push(vec![Cell::from_json("results/selection.json", &sel, &format!("/candidates/{i}/seed"), Format::Fixed(0)), Cell::from_json("results/selection.json", &sel, &format!("/candidates/{i}/mse"), Format::Sci(3))]);
     }
-    let regs = std::fs::read_to_string(dir.join("code-memory/learned/registers.json")).unwrap_or_default();
+    let regs_src = "code-memory/learned/registers.json";
+    let regs = read_json(&dir.join(regs_src)).unwrap_or(Value::Null);
     let proj = read_json(&dir.join("runs/learned-lidar/relaxed/projection.json"))?;
     let psrc = "runs/learned-lidar/relaxed/projection.json";
     let projection = Table {
@@ -129,8 +190,9 @@ pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Val
             fig("identifiability-range.png", "Cramér–Rao bound of a single return's range at every delay of the cycle, per code set (LiDAR grid): where two ranges alias the bound peaks."),
             fig("identifiability-lifetime.png", "Cramér–Rao bound of the lifetime (onset known), worst over the onsets, per code set (FLIm grid, heterodyne K = 8)."),
             Block::Table(projection),
-            Block::Text("Both sets are written to the sensor's code memory: code-memory/selected/ and code-memory/learned/ hold one binary per channel (chNN.bin), the combined image codes.bin and the registers (ECLEN = L/8 − 1). Write them to the sensor with your acquisition software, or read them back with tcsense codes import. The learned set's registers:".into()),
-            Block::Code(regs),
+            Block::Text("Both sets are written to the sensor's code memory: code-memory/selected/ and code-memory/learned/ hold one binary per channel (chNN.bin), the combined image codes.bin and the registers (ECLEN = L/8 − 1). Write them to the sensor with your acquisition software, or read them back with tcsense codes import. The learned set's registers, and where each channel's bits are:".into()),
+            Block::Table(registers_table(&regs, regs_src)),
+            Block::Table(channels_table(&regs, regs_src)),
         ],
     });
 
