@@ -13,7 +13,7 @@ use tcsense_models::decoder::{Control, Decoded, Decoder, Tval3Decoder};
 use tcsense_models::{runs, Device, ModelError, Tval3Options};
 use tcsense_sensor::noise::Exposure;
 use tcsense_sensor::nonideal::NonIdeal;
-use tcsense_sensor::measure::{measure, measure_batch};
+use tcsense_sensor::measure::{measure_batch, measure_batch_at, signal_exposure};
 use tcsense_sensor::noise::derive_seed;
 use tcsense_sensor::{Codes, NoiseParams, Sensor};
 
@@ -401,15 +401,14 @@ pub fn evaluate(ds: &Dataset, sensor: &Sensor, decoders: &mut [NamedDecoder], se
                 Some(sbr) => {
                     let t = xi.dim().1 as f32;
                     let b = xi.sum() / (xi.dim().2 * xi.dim().3) as f32 / (t * sbr as f32);
-                    let peak = plan.forward_batch(&xi)?.fold(0f32, |m, &v| m.max(v));
-                    (Some(xi.mapv(|v| v + b)), Exposure::ElectronsPerUnit(Exposure::Auto.electrons_per_unit(peak, &noise_model)?))
+                    (Some(xi.mapv(|v| v + b)), signal_exposure(&plan, &xi, &noise_model)?)
                 }
                 None => (None, Exposure::Auto),
             };
             let xi = lit.as_ref().map_or(xi, |l| l.view());
             let Some(real) = &real else {
                 return match (&lit, &settings.noise) {
-                    (Some(_), Some(noise)) => Ok(measure(&plan, &xi.into_dyn(), Some(noise), exposure, seed)?.into_input_units().into_dimensionality::<Ix4>().map_err(|e| file_err(&ds.dir, e.to_string()))?),
+                    (Some(_), Some(noise)) => Ok(measure_batch_at(&plan, &xi, Some(noise), exposure, seed)?),
                     _ => Ok(measure_batch(&plan, &xi, settings.noise.as_ref(), seed)?),
                 };
             };

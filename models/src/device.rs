@@ -60,25 +60,30 @@ fn gpu() -> Result<Device> {
     let hook = std::panic::take_hook();
     let record = said.clone();
     std::panic::set_hook(Box::new(move |info| {
-        let msg = info.payload().downcast_ref::<String>().cloned().or_else(|| info.payload().downcast_ref::<&str>().map(|s| s.to_string())).unwrap_or_default();
-        if let Ok(mut v) = record.lock() {
+        if let (Some(msg), Ok(mut v)) = (panic_text(info.payload()), record.lock()) {
             v.push(msg);
         }
     }));
     let probe = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| Tensor::<1>::ones([4], &device).sum().into_scalar::<f32>()));
     std::panic::set_hook(hook);
-    let first_said = said.lock().ok().and_then(|v| v.iter().find(|m| !m.is_empty()).cloned());
+    let first_said = said.lock().ok().and_then(|v| v.first().cloned());
     // what wgpu said, for the message: an adapter missing and one failing read differently
     let cause = match &probe {
         Ok(v) if *v == 4.0 => return Ok(device),
         Ok(v) => format!("a test sum gave {v}, not 4"),
-        Err(payload) => first_said.or_else(|| payload.downcast_ref::<String>().cloned()).or_else(|| payload.downcast_ref::<&str>().map(|s| s.to_string())).unwrap_or_else(|| "a panic without a message".into()),
+        Err(payload) => first_said.or_else(|| panic_text(payload.as_ref())).unwrap_or_else(|| "a panic without a message".into()),
     };
     Err(ModelError::InvalidParam {
         field: "--device",
         got: "gpu".into(),
         expected: format!("a machine with a GPU adapter burn's wgpu backend can use (Vulkan, Metal or DX12; none works here — on Linux without a GPU, Mesa's software Vulkan driver `mesa-vulkan-drivers` provides one); wgpu: {}", cause.split_whitespace().collect::<Vec<_>>().join(" ")),
     })
+}
+
+/// A panic's message (a `String` or `&str` payload), where it has a non-empty one.
+#[cfg(feature = "gpu")]
+fn panic_text(payload: &(dyn std::any::Any + Send)) -> Option<String> {
+    payload.downcast_ref::<String>().cloned().or_else(|| payload.downcast_ref::<&str>().map(|s| s.to_string())).filter(|m| !m.is_empty())
 }
 
 #[cfg(not(feature = "gpu"))]

@@ -75,8 +75,29 @@ pub fn measure(plan: &FramePlan, x: &ArrayViewD<'_, f32>, noise: Option<&NoisePa
 /// # Shapes
 /// - `x`: `[B, T, H, W]` → `[B, M, H, W]`
 pub fn measure_batch(plan: &FramePlan, x: &ArrayView4<'_, f32>, noise: Option<&NoiseParams>, seed: u64) -> Result<Array4<f32>> {
-    let y = measure(plan, &x.view().into_dyn(), noise, Exposure::Auto, seed)?.into_input_units();
+    measure_batch_at(plan, x, noise, Exposure::Auto, seed)
+}
+
+/// [`measure_batch`] with the exposure given (e.g. [`signal_exposure`] of the cube before
+/// ambient light was added to it).
+///
+/// # Shapes
+/// - `x`: `[B, T, H, W]` → `[B, M, H, W]`
+pub fn measure_batch_at(plan: &FramePlan, x: &ArrayView4<'_, f32>, noise: Option<&NoiseParams>, exposure: Exposure, seed: u64) -> Result<Array4<f32>> {
+    let y = measure(plan, &x.view().into_dyn(), noise, exposure, seed)?.into_input_units();
     y.into_dimensionality::<Ix4>().map_err(|e| invalid("measurements", "a batch".to_string(), e.to_string()))
+}
+
+/// The exposure that brings the brightest tap of `A x` to `noise`'s `signal_fraction` of full
+/// well: the signal's own, kept when ambient light is then added to `x` (ambient light adds
+/// photons and their shot noise; it does not dim the signal). What `eval --sbr` and training's
+/// ambient light measure with.
+///
+/// # Shapes
+/// - `x`: `[B, T, H, W]`
+pub fn signal_exposure(plan: &FramePlan, x: &ArrayView4<'_, f32>, noise: &NoiseParams) -> Result<Exposure> {
+    let peak = plan.forward_batch(x)?.fold(0f32, |m, &v| m.max(v));
+    Ok(Exposure::ElectronsPerUnit(Exposure::Auto.electrons_per_unit(peak, noise)?))
 }
 
 #[cfg(test)]

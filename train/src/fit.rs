@@ -22,8 +22,7 @@ use tcsense_models::metrics::{depth_errors, mse, psnr};
 use tcsense_models::net::{to_tensor, NetDecoder, Network, Prediction};
 use tcsense_models::runs::{ModelConfig, CODES_FILE, CONFIG_FILE};
 use tcsense_models::SensorTensors;
-use tcsense_sensor::measure::{measure, measure_batch};
-use tcsense_sensor::noise::Exposure;
+use tcsense_sensor::measure::{measure_batch, measure_batch_at, signal_exposure};
 use tcsense_sensor::noise::derive_seed;
 use tcsense_sensor::{Codes, FramePlan, NoiseParams, Sensor};
 
@@ -439,13 +438,7 @@ fn measure_items(plan: &FramePlan, x: &Array4<f32>, noise: Option<&[NoiseParams]
         let xi = x.slice_axis(Axis(0), ndarray::Slice::from(i..i + 1));
         let item_seed = derive_seed(seed, i as u64);
         let item = match (noise, ambient.get(i).copied().filter(|&b| b > 0.0)) {
-            (Some(n), Some(b)) => {
-                let peak = plan.forward_batch(&xi)?.fold(0f32, |m, &v| m.max(v));
-                let exposure = Exposure::ElectronsPerUnit(Exposure::Auto.electrons_per_unit(peak, &n[i])?);
-                let lit = xi.mapv(|v| v + b);
-                let m = measure(plan, &lit.view().into_dyn(), Some(&n[i]), exposure, item_seed)?.into_input_units();
-                m.into_dimensionality::<ndarray::Ix4>().map_err(|e| TrainError::InvalidParam { field: "measurements", got: format!("{e}"), expected: "a batch".into() })?
-            }
+            (Some(n), Some(b)) => measure_batch_at(plan, &xi.mapv(|v| v + b).view(), Some(&n[i]), signal_exposure(plan, &xi, &n[i])?, item_seed)?,
             (n, Some(b)) => measure_batch(plan, &xi.mapv(|v| v + b).view(), n.map(|n| &n[i]), item_seed)?,
             (n, None) => measure_batch(plan, &xi, n.map(|n| &n[i]), item_seed)?,
         };
