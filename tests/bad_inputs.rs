@@ -94,7 +94,13 @@ impl Corpus {
     /// Print the cases per command and fail with every case that went wrong.
     fn finish(&self, what: &str) {
         eprintln!("{what}: cases per command: {:?}", self.counts);
-        assert!(self.failures.is_empty(), "{} of {} {what} cases failed:\n{}", self.failures.len(), self.counts.values().sum::<usize>(), self.failures.join("\n"));
+        assert!(
+            self.failures.is_empty(),
+            "{} of {} {what} cases failed:\n{}",
+            self.failures.len(),
+            self.counts.values().sum::<usize>(),
+            self.failures.join("\n")
+        );
     }
 
     fn refuse(&mut self, args: &[&str], arg: &str, needles: &[&str]) {
@@ -252,7 +258,26 @@ const TRAINING_ONLY: &[&str] = &["missing-field.json", "negative-learning-rate.j
 fn config_and_checkpoint_corpus() {
     let (_t, mut c) = setup();
     // `trun`: a run trained by this build, with a checkpoint to resume from
-    ok(&c.dir, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "--stages", "2", "--channels", "4", "--no-augment", "-o", "trun"]);
+    ok(
+        &c.dir,
+        &[
+            "train",
+            "admm-net",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--epochs",
+            "1",
+            "--stages",
+            "2",
+            "--channels",
+            "4",
+            "--no-augment",
+            "-o",
+            "trun",
+        ],
+    );
     for f in corpus("config") {
         let n = c.place(&f);
         c.refuse(&["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--config", "@", "-o", "newrun"], &n, &[&n]);
@@ -368,7 +393,11 @@ fn onnx_corpus_every_reader() {
     c.refuse(&["infer", "--model", "m.onnx", "--measurements", "@", "-o", "out"], "y6.npy", &["y6.npy", "M = 4"]);
     ok(&c.dir, &["export", "onnx", "--run", "run", "--matrix-input", "-o", "mi.onnx"]);
     write_npy(&c.dir.join("A.npy"), &Array3::<f32>::ones((4, 4, 9)).view()).unwrap();
-    c.refuse(&["infer", "--model", "mi.onnx", "--measurements", "y.npy", "--sensor-matrix", "@", "-o", "out"], "A.npy", &["A.npy", "(4, 4, 8)"]);
+    c.refuse(
+        &["infer", "--model", "mi.onnx", "--measurements", "y.npy", "--sensor-matrix", "@", "-o", "out"],
+        "A.npy",
+        &["A.npy", "(4, 4, 8)"],
+    );
     c.finish("onnx corpus");
 }
 

@@ -76,7 +76,13 @@ impl Probe {
 
     fn finish(self, what: &str) {
         eprintln!("{what}: {} cases", self.cases);
-        assert!(self.failures.is_empty(), "{} of {} {what} cases went wrong:\n{}", self.failures.len(), self.cases, self.failures.join("\n"));
+        assert!(
+            self.failures.is_empty(),
+            "{} of {} {what} cases went wrong:\n{}",
+            self.failures.len(),
+            self.cases,
+            self.failures.join("\n")
+        );
     }
 }
 
@@ -118,37 +124,87 @@ fn setup() -> (tempfile::TempDir, Probe) {
 fn absurd_numbers_are_refused_before_anything_is_allocated() {
     let (_t, mut p) = setup();
     let fit = |extra: &[&'static str]| -> Vec<&'static str> {
-        let mut a = vec!["reconstruct", "depth-fit", "--codes", "dcodes.json", "--irf", "physical", "--measurements", "y32.npy", "-o", "d.npy"];
+        let mut a =
+            vec!["reconstruct", "depth-fit", "--codes", "dcodes.json", "--irf", "physical", "--measurements", "y32.npy", "-o", "d.npy"];
         a.extend(extra);
         a
     };
     // every command that builds an IRF, and from a model's metadata (range-checked, no overflow)
     p.refuse(&["codes", "analyze", "dcodes.json", "--laser-fwhm-ns", "1e20"], &["laser_fwhm", "1 µs"]);
     p.refuse(&["codes", "analyze", "dcodes.json", "--tap-tau-ns", "1e20"], &["tap_tau", "1 µs"]);
-    p.refuse(&["sensor", "matrix", "--codes", "dcodes.json", "--irf", "physical", "--laser-fwhm-ns", "1e300", "-o", "A.npy"], &["laser_fwhm"]);
+    p.refuse(
+        &["sensor", "matrix", "--codes", "dcodes.json", "--irf", "physical", "--laser-fwhm-ns", "1e300", "-o", "A.npy"],
+        &["laser_fwhm"],
+    );
     p.refuse(&fit(&["--laser-fwhm-ns", "inf"]), &["laser_fwhm"]);
     p.refuse(&["lifetime", "x.npy", "--length", "8", "--irf-fwhm-ns", "1e20", "-o", "t.npy"], &["--irf-fwhm-ns"]);
     // counts and sizes
-    p.refuse(&["codes", "select", "--criterion", "range", "--candidates", "1000000000000", "--tap-constraint", "-o", "s.json"], &["--candidates", "1000000"]);
+    p.refuse(
+        &["codes", "select", "--criterion", "range", "--candidates", "1000000000000", "--tap-constraint", "-o", "s.json"],
+        &["--candidates", "1000000"],
+    );
     p.refuse(&["codes", "select", "--criterion", "range", "--search", "100000000000", "--tap-constraint", "-o", "s.json"], &["--search"]);
     p.refuse(&fit(&["--window", "1000001"]), &["window 1000001", "63"]);
     p.refuse(&fit(&["--window", "18446744073709551615"]), &["window 18446744073709551615"]);
-    p.refuse(&["reconstruct", "lifetime-fit", "--codes", "codes.json", "--heterodyne", "8", "--measurements", "y.npy", "--window", "1000001", "-o", "t.npy"], &["window", "63"]);
+    p.refuse(
+        &[
+            "reconstruct",
+            "lifetime-fit",
+            "--codes",
+            "codes.json",
+            "--heterodyne",
+            "8",
+            "--measurements",
+            "y.npy",
+            "--window",
+            "1000001",
+            "-o",
+            "t.npy",
+        ],
+        &["window", "63"],
+    );
     p.refuse(&["simulate", "--codes", "dcodes.json", "--sweep", "sw", "--size", "1000000000000x2"], &["--size", "65536"]);
     p.refuse(&["simulate", "--codes", "dcodes.json", "--sweep", "sw", "--size", "60000x60000"], &["GiB"]);
     p.refuse(&["simulate", "--codes", "dcodes.json", "--sweep", "sw", "--size", "8x8", "--average", "100000000"], &["--average"]);
     // times that mean nothing
     for flag in ["--gate-skew-ns", "--shift-ns"] {
-        p.refuse(&["simulate", "--codes", "dcodes.json", "--sweep", "sw", "--size", "8x8", flag, "1e30"], &[&flag[2..flag.len() - 3].replace('-', "_")]);
+        p.refuse(
+            &["simulate", "--codes", "dcodes.json", "--sweep", "sw", "--size", "8x8", flag, "1e30"],
+            &[&flag[2..flag.len() - 3].replace('-', "_")],
+        );
     }
-    p.refuse(&["simulate", "--codes", "dcodes.json", "--cube", "x32.npy", "--tail", "0.2", "--tail-tau-ns", "1e30", "-o", "yy.npy"], &["tail_tau"]);
-    p.refuse(&["reconstruct", "lifetime-fit", "--codes", "codes.json", "--heterodyne", "8", "--measurements", "y.npy", "--onset-ns", "1e30", "-o", "t.npy"], &["onset", "1 µs"]);
-    p.refuse(&["infer", "--model", "m.onnx", "--measurements", "y.npy", "--lifetime-fit", "--onset-ns", "1e30", "-o", "out"], &["onset", "1 µs"]);
+    p.refuse(
+        &["simulate", "--codes", "dcodes.json", "--cube", "x32.npy", "--tail", "0.2", "--tail-tau-ns", "1e30", "-o", "yy.npy"],
+        &["tail_tau"],
+    );
+    p.refuse(
+        &[
+            "reconstruct",
+            "lifetime-fit",
+            "--codes",
+            "codes.json",
+            "--heterodyne",
+            "8",
+            "--measurements",
+            "y.npy",
+            "--onset-ns",
+            "1e30",
+            "-o",
+            "t.npy",
+        ],
+        &["onset", "1 µs"],
+    );
+    p.refuse(
+        &["infer", "--model", "m.onnx", "--measurements", "y.npy", "--lifetime-fit", "--onset-ns", "1e30", "-o", "out"],
+        &["onset", "1 µs"],
+    );
     // threads, budgets, scenes, epochs
     p.refuse(&["--threads", "100000", "zoo", "list"], &["--threads", "256"]);
     p.refuse(&["--threads", "0", "zoo", "list"], &["--threads"]);
     p.refuse(&["infer", "--model", "m.onnx", "--measurements", "y.npy", "--ort-threads", "1000", "-o", "out"], &["--ort-threads", "256"]);
-    let bringup = |flag: &'static str, v: &'static str| -> Vec<&'static str> { vec!["bringup", "--sweep", "sweep", "--codes", "codes.json", "--decoder", "admm-lidar-designed", flag, v, "-o", "bu"] };
+    let bringup = |flag: &'static str, v: &'static str| -> Vec<&'static str> {
+        vec!["bringup", "--sweep", "sweep", "--codes", "codes.json", "--decoder", "admm-lidar-designed", flag, v, "-o", "bu"]
+    };
     p.refuse(&bringup("--budget-minutes", "inf"), &["--budget-minutes"]);
     p.refuse(&bringup("--budget-minutes", "NaN"), &["--budget-minutes"]);
     p.refuse(&bringup("--scenes", "1000000000000"), &["--scenes"]);
@@ -161,9 +217,15 @@ fn absurd_numbers_are_refused_before_anything_is_allocated() {
     p.refuse(&["bench", "range-fit", "--size", "8x8", "--frames", "99999999999"], &["--frames"]);
     p.refuse(&["demo", "--quick", "--budget-minutes", "1e308", "-o", "demo"], &["--budget-minutes"]);
     p.refuse(&["demo", "--quick", "--scenes", "18446744073709551615", "-o", "demo"], &["--scenes"]);
-    p.refuse(&["train", "unet", "--dataset", "nods", "--codes", "dcodes.json", "--returns", "18446744073709551615", "-o", "r"], &["--returns"]);
+    p.refuse(
+        &["train", "unet", "--dataset", "nods", "--codes", "dcodes.json", "--returns", "18446744073709551615", "-o", "r"],
+        &["--returns"],
+    );
     // values that mean nothing
-    p.refuse(&["infer", "--model", "unet.onnx", "--measurements", "stack2.npy", "--products", "ply", "--fov", "NaN", "-o", "out"], &["--fov"]);
+    p.refuse(
+        &["infer", "--model", "unet.onnx", "--measurements", "stack2.npy", "--products", "ply", "--fov", "NaN", "-o", "out"],
+        &["--fov"],
+    );
     p.refuse(&fit(&["--ply", "c.ply", "--fov", "NaN"]), &["--fov"]);
     p.refuse(&["depth", "x.npy", "--length", "8", "--ply", "c.ply", "--fov", "1e9", "-o", "d.npy"], &["--fov"]);
     p.finish("absurd numbers");
@@ -173,11 +235,23 @@ fn absurd_numbers_are_refused_before_anything_is_allocated() {
 fn contradictions_and_messages() {
     let (_t, mut p) = setup();
     // contradictory flags
-    p.refuse(&["infer", "--model", "unet.onnx", "--measurements", "stack2.npy", "--depth-fit", "--no-range-fit", "-o", "out"], &["--no-range-fit", "--depth-fit"]);
-    p.refuse(&["infer", "--model", "unet.onnx", "--measurements", "stack2.npy", "--returns", "5", "-o", "out"], &["--returns 5", "2 return(s)"]);
-    p.refuse(&["infer", "--model", "admm.onnx", "--measurements", "stack2.npy", "--depth-fit", "--returns", "3", "-o", "out"], &["--returns 3"]);
+    p.refuse(
+        &["infer", "--model", "unet.onnx", "--measurements", "stack2.npy", "--depth-fit", "--no-range-fit", "-o", "out"],
+        &["--no-range-fit", "--depth-fit"],
+    );
+    p.refuse(
+        &["infer", "--model", "unet.onnx", "--measurements", "stack2.npy", "--returns", "5", "-o", "out"],
+        &["--returns 5", "2 return(s)"],
+    );
+    p.refuse(
+        &["infer", "--model", "admm.onnx", "--measurements", "stack2.npy", "--depth-fit", "--returns", "3", "-o", "out"],
+        &["--returns 3"],
+    );
     p.refuse(&["infer", "--model", "admm.onnx", "--measurements", "stack2.npy", "--no-range-fit", "-o", "out"], &["--no-range-fit"]);
-    p.refuse(&["infer", "--model", "admm.onnx", "--measurements", "stack2.npy", "--depth-fit", "--lifetime-fit", "-o", "out"], &["--depth-fit", "--lifetime-fit"]);
+    p.refuse(
+        &["infer", "--model", "admm.onnx", "--measurements", "stack2.npy", "--depth-fit", "--lifetime-fit", "-o", "out"],
+        &["--depth-fit", "--lifetime-fit"],
+    );
     // a fit that does not suit the model is refused for what it is, not by a product list
     for products in [None, Some("lifetime"), Some("depth")] {
         let mut args = vec!["infer", "--model", "unet.onnx", "--measurements", "stack2.npy", "--lifetime-fit", "-o", "out"];
@@ -192,7 +266,20 @@ fn contradictions_and_messages() {
     }
     // the fits' settings name the setting, not a dump of the options
     for args in [
-        vec!["reconstruct", "depth-fit", "--codes", "dcodes.json", "--irf", "physical", "--measurements", "y32.npy", "--window", "4", "-o", "d.npy"],
+        vec![
+            "reconstruct",
+            "depth-fit",
+            "--codes",
+            "dcodes.json",
+            "--irf",
+            "physical",
+            "--measurements",
+            "y32.npy",
+            "--window",
+            "4",
+            "-o",
+            "d.npy",
+        ],
         vec!["infer", "--model", "m.onnx", "--measurements", "y.npy", "--lifetime-fit", "--onset-ns", "1e9", "-o", "out"],
     ] {
         p.cases += 1;
@@ -245,7 +332,8 @@ fn outputs_are_exclusive_whole_and_never_left_behind() {
     ok(&d, &["infer", "--model", "unet.onnx", "--measurements", "stack3.npy", "--products", "depth,ply", "-o", "o"]);
     assert_eq!(std::fs::read_dir(d.join("o/ply")).unwrap().count(), 3);
     ok(&d, &["infer", "--model", "unet.onnx", "--measurements", "stack2.npy", "--products", "ply", "-o", "o"]);
-    let mut names: Vec<String> = std::fs::read_dir(d.join("o")).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    let mut names: Vec<String> =
+        std::fs::read_dir(d.join("o")).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
     names.sort();
     assert_eq!(names, ["ply"], "the earlier run's depth.npy and confidence.npy are gone");
     assert_eq!(std::fs::read_dir(d.join("o/ply")).unwrap().count(), 2, "the earlier run's third frame is gone");
@@ -253,7 +341,8 @@ fn outputs_are_exclusive_whole_and_never_left_behind() {
     assert_eq!(std::fs::read_dir(d.join("mem")).unwrap().count(), 18);
     ok(&d, &["codes", "generate", "--taps", "2", "--block", "1x1", "--length", "8", "--seed", "1", "-o", "small.json"]);
     ok(&d, &["codes", "export", "small.json", "--force", "-o", "mem"]);
-    let mut names: Vec<String> = std::fs::read_dir(d.join("mem")).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    let mut names: Vec<String> =
+        std::fs::read_dir(d.join("mem")).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
     names.sort();
     assert_eq!(names, ["ch00.bin", "ch01.bin", "codes.bin", "registers.json"], "no channel file of the first export remains");
 }
@@ -333,7 +422,10 @@ fn registers_and_sweep_corpus() {
         let name = v.file_name().unwrap().to_string_lossy().into_owned();
         let needle = if name == "missing-frames.json" { "sweep/nothing.npy" } else { "sweep/sweep.json" };
         p.refuse(&["calibrate", "--codes", "codes.json", "--irf", "physical", "--sweep", "sweep", "-o", "cal"], &[needle]);
-        p.refuse(&["bringup", "--sweep", "sweep", "--codes", "codes.json", "--decoder", "admm-lidar-designed", "--epochs", "1", "-o", "bu"], &[needle]);
+        p.refuse(
+            &["bringup", "--sweep", "sweep", "--codes", "codes.json", "--decoder", "admm-lidar-designed", "--epochs", "1", "-o", "bu"],
+            &[needle],
+        );
     }
     std::fs::write(d.join("sweep/sweep.json"), &good).unwrap();
     p.finish("registers and sweep corpus");
@@ -347,10 +439,64 @@ fn resumes_check_their_inputs() {
     let d = p.dir.clone();
     let zoo_codes = Path::new(env!("CARGO_MANIFEST_DIR")).join("zoo/admm-lidar-designed/codes.json");
     std::fs::copy(zoo_codes, d.join("codes32.json")).unwrap();
-    ok(&d, &["simulate", "--codes", "codes32.json", "--irf", "physical", "--sweep", "s1", "--size", "8x8", "--average", "2", "--tap-gain", "0.05", "--sensor-seed", "1"]);
-    ok(&d, &["simulate", "--codes", "codes32.json", "--irf", "physical", "--sweep", "s2", "--size", "8x8", "--average", "2", "--tap-gain", "0.05", "--sensor-seed", "2"]);
-    let base = ["bringup", "--codes", "codes32.json", "--decoder", "admm-lidar-designed", "--scenes", "4", "--size", "8x8", "--check-items", "1", "-o", "bu"];
-    let args = |sweep: &'static str, extra: &[&'static str]| -> Vec<&'static str> { base.iter().copied().chain(["--sweep", sweep]).chain(extra.iter().copied()).collect() };
+    ok(
+        &d,
+        &[
+            "simulate",
+            "--codes",
+            "codes32.json",
+            "--irf",
+            "physical",
+            "--sweep",
+            "s1",
+            "--size",
+            "8x8",
+            "--average",
+            "2",
+            "--tap-gain",
+            "0.05",
+            "--sensor-seed",
+            "1",
+        ],
+    );
+    ok(
+        &d,
+        &[
+            "simulate",
+            "--codes",
+            "codes32.json",
+            "--irf",
+            "physical",
+            "--sweep",
+            "s2",
+            "--size",
+            "8x8",
+            "--average",
+            "2",
+            "--tap-gain",
+            "0.05",
+            "--sensor-seed",
+            "2",
+        ],
+    );
+    let base = [
+        "bringup",
+        "--codes",
+        "codes32.json",
+        "--decoder",
+        "admm-lidar-designed",
+        "--scenes",
+        "4",
+        "--size",
+        "8x8",
+        "--check-items",
+        "1",
+        "-o",
+        "bu",
+    ];
+    let args = |sweep: &'static str, extra: &[&'static str]| -> Vec<&'static str> {
+        base.iter().copied().chain(["--sweep", sweep]).chain(extra.iter().copied()).collect()
+    };
     ok(&d, &args("s1", &["--epochs", "1"]));
     p.refuse(&args("s2", &["--epochs", "1"]), &["bu", "other inputs", "sweep:"]);
     p.refuse(&args("s1", &["--epochs", "2"]), &["epochs: 1 then, 2 now"]);

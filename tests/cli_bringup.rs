@@ -10,10 +10,58 @@ use std::path::Path;
 fn bench(dir: &Path) {
     let zoo_codes = Path::new(env!("CARGO_MANIFEST_DIR")).join("zoo/admm-lidar-designed/codes.json");
     std::fs::copy(zoo_codes, dir.join("codes.json")).unwrap();
-    ok(dir, &["simulate", "--codes", "codes.json", "--irf", "physical", "--sweep", "sweep", "--size", "8x8", "--noise", "--average", "16", "--tap-gain", "0.05", "--prnu", "0.02", "--dark", "0.01", "--gate-skew-ns", "0.1", "--modulation-contrast", "0.925", "--sensor-seed", "7"]);
+    ok(
+        dir,
+        &[
+            "simulate",
+            "--codes",
+            "codes.json",
+            "--irf",
+            "physical",
+            "--sweep",
+            "sweep",
+            "--size",
+            "8x8",
+            "--noise",
+            "--average",
+            "16",
+            "--tap-gain",
+            "0.05",
+            "--prnu",
+            "0.02",
+            "--dark",
+            "0.01",
+            "--gate-skew-ns",
+            "0.1",
+            "--modulation-contrast",
+            "0.925",
+            "--sensor-seed",
+            "7",
+        ],
+    );
 }
 
-const BRINGUP: &[&str] = &["bringup", "--sweep", "sweep", "--codes", "codes.json", "--decoder", "admm-lidar-designed", "--budget-minutes", "0.05", "--epochs", "2", "--scenes", "8", "--size", "16x16", "--check-items", "2", "-o", "out"];
+const BRINGUP: &[&str] = &[
+    "bringup",
+    "--sweep",
+    "sweep",
+    "--codes",
+    "codes.json",
+    "--decoder",
+    "admm-lidar-designed",
+    "--budget-minutes",
+    "0.05",
+    "--epochs",
+    "2",
+    "--scenes",
+    "8",
+    "--size",
+    "16x16",
+    "--check-items",
+    "2",
+    "-o",
+    "out",
+];
 
 #[test]
 fn a_sweep_becomes_a_deployed_decoder_with_a_report() {
@@ -22,22 +70,40 @@ fn a_sweep_becomes_a_deployed_decoder_with_a_report() {
     bench(dir);
     let out = ok(dir, BRINGUP);
     assert!(out.contains("wrote out/report.html"), "{out}");
-    for f in ["cal/calibration.json", "cal/report.html", "runs/admm-lidar-designed/model.bpk", "runs/admm-lidar-designed/sensor_matrix.npy", "onnx/admm-lidar-designed.onnx", "results/check.json", "results/steps.json", "report.html"] {
+    for f in [
+        "cal/calibration.json",
+        "cal/report.html",
+        "runs/admm-lidar-designed/model.bpk",
+        "runs/admm-lidar-designed/sensor_matrix.npy",
+        "onnx/admm-lidar-designed.onnx",
+        "results/check.json",
+        "results/steps.json",
+        "report.html",
+    ] {
         assert!(dir.join("out").join(f).exists(), "out/{f} missing");
     }
     // fine-tuned from the zoo entry, for the calibrated sensor
-    let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("out/runs/admm-lidar-designed/config.json")).unwrap()).unwrap();
+    let cfg: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("out/runs/admm-lidar-designed/config.json")).unwrap()).unwrap();
     assert!(cfg["init_from"].as_str().unwrap().ends_with("zoo/admm-lidar-designed") && cfg["measured"] == true, "{cfg}");
     // the check: TVAL3 and the zoo decoder under three conditions, the fine-tuned one, each with a range error
     let check: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("out/results/check.json")).unwrap()).unwrap();
     let rows = check["rows"].as_array().unwrap();
     let conditions: Vec<(&str, &str)> = rows.iter().map(|r| (r["decoder"].as_str().unwrap(), r["condition"].as_str().unwrap())).collect();
     assert_eq!(conditions.len(), 7, "{conditions:?}");
-    assert!(conditions.contains(&("tval3", "calibration")) && conditions.contains(&("admm-lidar-designed", "calibration + fine-tuning")) && conditions.contains(&("admm-lidar-designed", "ideal sensor")));
+    assert!(
+        conditions.contains(&("tval3", "calibration"))
+            && conditions.contains(&("admm-lidar-designed", "calibration + fine-tuning"))
+            && conditions.contains(&("admm-lidar-designed", "ideal sensor"))
+    );
     assert!(rows.iter().all(|r| r["first_return_median_m"].as_f64().is_some_and(|v| v.is_finite() && v < 3.0)), "{rows:?}");
     assert_eq!(check["truth"]["gate_skew_s"].as_f64().map(|v| (v * 1e12).round()), Some(100.0));
     let html = std::fs::read_to_string(dir.join("out/report.html")).unwrap();
-    assert!(html.contains("calibration + fine-tuning") && html.contains("data-ptr=\"/rows/6/first_return_median_m\"") && html.contains("cal/fit.png"));
+    assert!(
+        html.contains("calibration + fine-tuning")
+            && html.contains("data-ptr=\"/rows/6/first_return_median_m\"")
+            && html.contains("cal/fit.png")
+    );
     let steps: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("out/results/steps.json")).unwrap()).unwrap();
     assert_eq!(steps["steps"].as_array().unwrap().len(), 5, "calibration, scenes, one fine-tuning, export, check");
     // a rerun resumes: every step's outputs are there, and their times are kept
@@ -46,7 +112,35 @@ fn a_sweep_becomes_a_deployed_decoder_with_a_report() {
     let steps2: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("out/results/steps.json")).unwrap()).unwrap();
     assert_eq!(steps2["steps"], steps["steps"]);
     // the exported model takes the sensor's raw tap images (electrons, the sweep's units)
-    ok(dir, &["simulate", "--codes", "codes.json", "--irf", "physical", "--cube", "out/check-scenes/test/x_000.npy", "--units", "electrons", "--noise", "--tap-gain", "0.05", "--prnu", "0.02", "--dark", "0.01", "--gate-skew-ns", "0.1", "--modulation-contrast", "0.925", "--sensor-seed", "7", "-o", "raw.npy"]);
+    ok(
+        dir,
+        &[
+            "simulate",
+            "--codes",
+            "codes.json",
+            "--irf",
+            "physical",
+            "--cube",
+            "out/check-scenes/test/x_000.npy",
+            "--units",
+            "electrons",
+            "--noise",
+            "--tap-gain",
+            "0.05",
+            "--prnu",
+            "0.02",
+            "--dark",
+            "0.01",
+            "--gate-skew-ns",
+            "0.1",
+            "--modulation-contrast",
+            "0.925",
+            "--sensor-seed",
+            "7",
+            "-o",
+            "raw.npy",
+        ],
+    );
     ok(dir, &["infer", "--model", "out/onnx/admm-lidar-designed.onnx", "--measurements", "raw.npy", "-o", "inf"]);
     assert!(dir.join("inf").exists());
 }

@@ -79,7 +79,13 @@ fn select_by_range_designs_exportable_codes_reproducibly() {
     assert_eq!(codes["provenance"]["criterion"], "range");
     // the bounds hold against the range fit on noisy frames (printed, spread/bound per delay)
     let out = ok(d, &["codes", "analyze", "a.json", "--validate", "--photons", "20000", "--ambient", "500"]);
-    let ratios: Vec<f64> = out.lines().skip_while(|l| !l.contains("spread/bound")).skip(1).take(8).map(|l| l.split_whitespace().last().unwrap().parse().unwrap()).collect();
+    let ratios: Vec<f64> = out
+        .lines()
+        .skip_while(|l| !l.contains("spread/bound"))
+        .skip(1)
+        .take(8)
+        .map(|l| l.split_whitespace().last().unwrap().parse().unwrap())
+        .collect();
     assert_eq!(ratios.len(), 8, "{out}");
     for r in ratios {
         assert!((0.7..1.4).contains(&r), "spread/bound {r}: {out}");
@@ -92,7 +98,27 @@ fn select_by_lifetime_and_bad_requests() {
     let d = d.path();
     ok(
         d,
-        &["codes", "select", "--criterion", "lifetime", "--heterodyne", "4", "--length", "16", "--tap-constraint", "--window", "2", "--candidates", "40", "--search", "200", "--seed", "2", "-o", "f.json"],
+        &[
+            "codes",
+            "select",
+            "--criterion",
+            "lifetime",
+            "--heterodyne",
+            "4",
+            "--length",
+            "16",
+            "--tap-constraint",
+            "--window",
+            "2",
+            "--candidates",
+            "40",
+            "--search",
+            "200",
+            "--seed",
+            "2",
+            "-o",
+            "f.json",
+        ],
     );
     let out = ok(d, &["codes", "analyze", "f.json", "--heterodyne", "4"]);
     assert!(out.contains("lifetime bound") && out.contains("lifetime alias"), "{out}");

@@ -13,7 +13,22 @@ fn lidar_dataset_is_seeded_and_items_are_pure_functions_of_seed_and_index() {
     let d = tempdir();
     let d = d.path();
     let args = |out: &'static str, seed: &'static str| -> Vec<&'static str> {
-        vec!["dataset", "lidar", "--count", "5", "--size", "8x8", "--shard-size", "2", "--sheet-probability", "1", "--seed", seed, "-o", out]
+        vec![
+            "dataset",
+            "lidar",
+            "--count",
+            "5",
+            "--size",
+            "8x8",
+            "--shard-size",
+            "2",
+            "--sheet-probability",
+            "1",
+            "--seed",
+            seed,
+            "-o",
+            out,
+        ]
     };
     ok(d, &args("a", "7"));
     ok(d, &args("b", "7"));

@@ -89,7 +89,12 @@ fn lifetime_fit_agrees_with_a_numpy_reference() {
     let python = root.join(".venv/bin/python");
     assert!(python.exists(), "{} missing: run scripts/setup.sh (numpy for the reference fit)", python.display());
     let d = tempdir();
-    let o = std::process::Command::new(python).arg(root.join("scripts/lifetime_reference.py")).arg(env!("CARGO_BIN_EXE_tcsense")).arg(d.path()).output().unwrap();
+    let o = std::process::Command::new(python)
+        .arg(root.join("scripts/lifetime_reference.py"))
+        .arg(env!("CARGO_BIN_EXE_tcsense"))
+        .arg(d.path())
+        .output()
+        .unwrap();
     let out = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success(), "reference fit: {out}{}", String::from_utf8_lossy(&o.stderr));
     assert!(out.contains("tcsense vs numpy reference"), "{out}");
@@ -102,7 +107,28 @@ fn lifetime_fit_to_the_taps() {
     let d = tempdir();
     let d = d.path();
     ok(d, &["dataset", "flim", "--paper", "--count", "10", "--size", "16x16", "--seed", "3", "-o", "f"]);
-    ok(d, &["codes", "generate", "--taps", "4", "--block", "2x2", "--length", "32", "--tap-constraint", "--hamming", "2", "--window", "2", "--seed", "1", "-o", "codes.json"]);
+    ok(
+        d,
+        &[
+            "codes",
+            "generate",
+            "--taps",
+            "4",
+            "--block",
+            "2x2",
+            "--length",
+            "32",
+            "--tap-constraint",
+            "--hamming",
+            "2",
+            "--window",
+            "2",
+            "--seed",
+            "1",
+            "-o",
+            "codes.json",
+        ],
+    );
     let x = read_npy(&d.join("f/test/x_000.npy")).unwrap();
     write_npy(&d.join("x.npy"), &x.index_axis(ndarray::Axis(0), 0)).unwrap();
     let sensor = ["--codes", "codes.json", "--irf", "physical", "--heterodyne", "8"];
@@ -127,7 +153,11 @@ fn lifetime_fit_to_the_taps() {
     // a LiDAR dataset has no lifetimes; bad fit settings exit 2
     lidar(d);
     fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "lifetime-fit"], &["no lifetime field"]);
-    fails(d, &[&["reconstruct", "lifetime-fit", "--measurements", "y.npy", "-o", "t2.npy", "--window", "2"][..], &sensor[..]].concat(), &["--window", "odd"]);
+    fails(
+        d,
+        &[&["reconstruct", "lifetime-fit", "--measurements", "y.npy", "-o", "t2.npy", "--window", "2"][..], &sensor[..]].concat(),
+        &["--window", "odd"],
+    );
     assert!(!d.join("t2.npy").exists());
 }
 
@@ -140,7 +170,10 @@ fn eval_select_and_sweep() {
     assert!(out.contains("tval3"), "{out}");
     let rep: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("report.json")).unwrap()).unwrap();
     assert!(rep[0]["mse"].as_f64().unwrap() > 0.0 && rep[0]["mse"].as_f64().unwrap() < 0.05);
-    let out = ok(d, &["codes", "select", "--dataset", "ds", "--tap-constraint", "--candidates", "3", "--maxit", "20", "--seed", "5", "-o", "best.json"]);
+    let out = ok(
+        d,
+        &["codes", "select", "--dataset", "ds", "--tap-constraint", "--candidates", "3", "--maxit", "20", "--seed", "5", "-o", "best.json"],
+    );
     assert_eq!(out.lines().filter(|l| l.trim_start().starts_with(|c: char| c.is_ascii_digit())).count(), 3, "{out}");
     ok(d, &["codes", "check", "best.json"]);
     ok(d, &["sweep", "constraints", "--dataset", "ds", "--items", "1", "--maxit", "10", "-o", "sw"]);
@@ -155,10 +188,18 @@ fn bad_inputs_exit_2() {
     let d = d.path();
     ok(d, &["codes", "generate", "--tap-constraint", "--seed", "1", "-o", "codes.json"]);
     write_npy(&d.join("y5.npy"), &Array3::<f32>::zeros((5, 4, 4)).view()).unwrap();
-    fails(d, &["reconstruct", "tval3", "--codes", "codes.json", "--measurements", "y5.npy", "-o", "x.npy"], &["y5.npy", "5 tap images", "M = 4"]);
+    fails(
+        d,
+        &["reconstruct", "tval3", "--codes", "codes.json", "--measurements", "y5.npy", "-o", "x.npy"],
+        &["y5.npy", "5 tap images", "M = 4"],
+    );
     write_npy(&d.join("y.npy"), &Array3::<f32>::zeros((4, 4, 4)).view()).unwrap();
     fails(d, &["reconstruct", "tval3", "--codes", "codes.json", "--measurements", "y.npy", "--mu=-1", "-o", "x.npy"], &["mu", "positive"]);
-    fails(d, &["reconstruct", "tval3", "--codes", "codes.json", "--measurements", "y.npy", "--tv-weights", "1,1", "-o", "x.npy"], &["--tv-weights"]);
+    fails(
+        d,
+        &["reconstruct", "tval3", "--codes", "codes.json", "--measurements", "y.npy", "--tv-weights", "1,1", "-o", "x.npy"],
+        &["--tv-weights"],
+    );
     assert!(!d.join("x.npy").exists());
     write_npy(&d.join("c.npy"), &Array3::<f32>::zeros((30, 4, 4)).view()).unwrap();
     fails(d, &["depth", "c.npy", "-o", "d.npy"], &["c.npy", "not a multiple of L = 32"]);
@@ -205,7 +246,8 @@ fn depth_fit_to_the_taps() {
     let d = d.path();
     lidar(d);
     ok(d, &["simulate", "--codes", "codes.json", "--cube", "ds/test/x_000.npy", "-o", "y.npy"]);
-    let out = run(d, &["reconstruct", "depth-fit", "--codes", "codes.json", "--measurements", "y.npy", "--returns", "1", "-o", "depth.npy"]);
+    let out =
+        run(d, &["reconstruct", "depth-fit", "--codes", "codes.json", "--measurements", "y.npy", "--returns", "1", "-o", "depth.npy"]);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{err}");
     // random codes through the ideal gates alias exactly (bins 8 and 26): the whole-cycle search
@@ -217,12 +259,27 @@ fn depth_fit_to_the_taps() {
     let (est, first) = (depth.index_axis(ndarray::Axis(0), 0), truth.index_axis(ndarray::Axis(0), 0));
     let placed = est.iter().zip(first.index_axis(ndarray::Axis(0), 0).iter()).filter(|(e, t)| e.is_finite() && t.is_finite()).count();
     assert!(placed > 32, "{placed} of 64 pixels got a range");
-    let out = ok(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "depth-fit", "--decoder", "depth-fit:1", "-o", "rep.json"]);
+    let out = ok(
+        d,
+        &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "depth-fit", "--decoder", "depth-fit:1", "-o", "rep.json"],
+    );
     assert!(out.contains("depth-fit:1") && out.contains("median"), "{out}");
-    fails(d, &["reconstruct", "depth-fit", "--codes", "codes.json", "--measurements", "y.npy", "--window", "2", "-o", "bad.npy"], &["window 2", "odd"]);
-    fails(d, &["reconstruct", "depth-fit", "--codes", "codes.json", "--measurements", "y.npy", "--returns", "3", "-o", "bad.npy"], &["returns 3", "1 or 2"]);
+    fails(
+        d,
+        &["reconstruct", "depth-fit", "--codes", "codes.json", "--measurements", "y.npy", "--window", "2", "-o", "bad.npy"],
+        &["window 2", "odd"],
+    );
+    fails(
+        d,
+        &["reconstruct", "depth-fit", "--codes", "codes.json", "--measurements", "y.npy", "--returns", "3", "-o", "bad.npy"],
+        &["returns 3", "1 or 2"],
+    );
     assert!(!d.join("bad.npy").exists());
-    fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "depth-fit:3"], &["depth-fit:3", "depth-fit:1 or depth-fit:2"]);
+    fails(
+        d,
+        &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "depth-fit:3"],
+        &["depth-fit:3", "depth-fit:1 or depth-fit:2"],
+    );
 }
 
 /// `eval --light`: every decoder at every level of the photon ladder on the same items, the
@@ -234,14 +291,36 @@ fn eval_photon_ladder() {
     let zoo_codes = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("zoo/unet-lidar-designed/codes.json");
     std::fs::copy(zoo_codes, d.join("codes.json")).unwrap();
     ok(d, &["dataset", "lidar", "--count", "12", "--size", "16x16", "--seed", "5", "-o", "ds"]);
-    let ladder = ["eval", "--dataset", "ds", "--split", "train", "--items", "4", "--codes", "codes.json", "--irf", "physical", "--decoder", "depth-fit", "--decoder", "tval3", "--maxit", "20", "--light", "0.8,0.01"];
+    let ladder = [
+        "eval",
+        "--dataset",
+        "ds",
+        "--split",
+        "train",
+        "--items",
+        "4",
+        "--codes",
+        "codes.json",
+        "--irf",
+        "physical",
+        "--decoder",
+        "depth-fit",
+        "--decoder",
+        "tval3",
+        "--maxit",
+        "20",
+        "--light",
+        "0.8,0.01",
+    ];
     let with = |extra: &[&'static str]| -> Vec<&'static str> { ladder.iter().copied().chain(extra.iter().copied()).collect() };
     let out = ok(d, &with(&["--plot", "curve.png", "-o", "t.json"]));
     assert!(out.contains("16000 e⁻ in the brightest tap") && out.contains("200 e⁻ in the brightest tap"), "{out}");
     let rows: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("t.json")).unwrap()).unwrap();
     let rows = rows.as_array().unwrap();
     assert_eq!(rows.len(), 4, "two decoders at two levels");
-    let at = |name: &str, level: f64| rows.iter().find(|r| r["decoder"] == name && r["light"]["signal_fraction"].as_f64() == Some(level)).unwrap().clone();
+    let at = |name: &str, level: f64| {
+        rows.iter().find(|r| r["decoder"] == name && r["light"]["signal_fraction"].as_f64() == Some(level)).unwrap().clone()
+    };
     for name in ["depth-fit", "tval3"] {
         let (bright, dim) = (at(name, 0.8), at(name, 0.01));
         let (eb, ed) = (bright["depth_median_m"][0].as_f64().unwrap(), dim["depth_median_m"][0].as_f64().unwrap());
@@ -253,13 +332,23 @@ fn eval_photon_ladder() {
     // the fit near the bound in bright light: within half a bin for most first returns
     assert!(at("depth-fit", 0.8)["depth_within_half_bin"][0].as_f64().unwrap() > 0.6);
     let csv = std::fs::read_to_string(d.join("t.csv")).unwrap();
-    assert!(csv.lines().next().unwrap().ends_with("bounce1_within_half_bin,bounce2_within_half_bin,signal_fraction,signal_electrons,sbr") && csv.lines().count() == 5, "{csv}");
+    assert!(
+        csv.lines().next().unwrap().ends_with("bounce1_within_half_bin,bounce2_within_half_bin,signal_fraction,signal_electrons,sbr")
+            && csv.lines().count() == 5,
+        "{csv}"
+    );
     let png = std::fs::read(d.join("curve.png")).unwrap();
     assert!(png.starts_with(b"\x89PNG") && png.len() > 20_000);
     // ambient light as strong as the signal costs the fit accuracy at the same level and seeds
     ok(d, &with(&["--sbr", "1", "-o", "amb.json"]));
     let amb: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("amb.json")).unwrap()).unwrap();
-    let fit_amb = amb.as_array().unwrap().iter().find(|r| r["decoder"] == "depth-fit" && r["light"]["signal_fraction"].as_f64() == Some(0.8)).unwrap().clone();
+    let fit_amb = amb
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|r| r["decoder"] == "depth-fit" && r["light"]["signal_fraction"].as_f64() == Some(0.8))
+        .unwrap()
+        .clone();
     assert_eq!(fit_amb["light"]["sbr"].as_f64(), Some(1.0));
     let (clean, ambient) = (at("depth-fit", 0.8)["depth_median_m"][0].as_f64().unwrap(), fit_amb["depth_median_m"][0].as_f64().unwrap());
     assert!(ambient > clean, "ambient {ambient} vs none {clean}");
@@ -268,5 +357,9 @@ fn eval_photon_ladder() {
     fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--light", "NaN"], &["--light"]);
     fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--light", "0.5", "--sbr=-1"], &["--sbr"]);
     fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--plot", "c.png"], &["--light"]);
-    fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--light", "0.5", "--plot", "t.json", "-o", "t.json"], &["t.json", "named by both"]);
+    fails(
+        d,
+        &["eval", "--dataset", "ds", "--codes", "codes.json", "--light", "0.5", "--plot", "t.json", "-o", "t.json"],
+        &["t.json", "named by both"],
+    );
 }

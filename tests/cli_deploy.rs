@@ -26,7 +26,27 @@ fn export_check_and_stream_a_trained_unet() {
     let d = tempdir();
     let d = d.path();
     tiny_lidar_and_codes(d);
-    ok(d, &["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--base-width", "4", "--levels", "2", "--epochs", "2", "--seed", "3", "-o", "unet"]);
+    ok(
+        d,
+        &[
+            "train",
+            "unet",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--base-width",
+            "4",
+            "--levels",
+            "2",
+            "--epochs",
+            "2",
+            "--seed",
+            "3",
+            "-o",
+            "unet",
+        ],
+    );
     let out = ok(d, &["export", "onnx", "--run", "unet", "-o", "unet.onnx"]);
     assert!(out.contains("multiples of 2x2") && out.contains("depth, confidence"), "{out}");
     // a stack of 3 noisy frames
@@ -36,7 +56,8 @@ fn export_check_and_stream_a_trained_unet() {
     let views: Vec<_> = frames.iter().map(|f| f.view()).collect();
     let stack = ndarray::stack(ndarray::Axis(0), &views).unwrap();
     write_npy(&d.join("stack.npy"), &stack.view()).unwrap();
-    let out = ok(d, &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--products", "depth,ply", "--no-range-fit", "-o", "out"]);
+    let out =
+        ok(d, &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--products", "depth,ply", "--no-range-fit", "-o", "out"]);
     assert!(out.contains("3 frames") && out.contains("frames/s"), "{out}");
     let depth = read_npy(&d.join("out/depth.npy")).unwrap();
     let conf = read_npy(&d.join("out/confidence.npy")).unwrap();
@@ -50,7 +71,10 @@ fn export_check_and_stream_a_trained_unet() {
     // burn (reconstruct unet) and ort (infer) agree on the first frame
     ok(d, &["reconstruct", "unet", "--run", "unet", "--measurements", "y0.npy", "--no-range-fit", "-o", "burn.npy"]);
     let burn = read_npy(&d.join("burn.npy")).unwrap();
-    assert!(burn.iter().zip(f0.iter()).all(|(a, b)| (a.is_nan() && b.is_nan()) || (a - b).abs() < 1e-4 * 12.0), "burn and ort depth differ");
+    assert!(
+        burn.iter().zip(f0.iter()).all(|(a, b)| (a.is_nan() && b.is_nan()) || (a - b).abs() < 1e-4 * 12.0),
+        "burn and ort depth differ"
+    );
     // by default infer refines the ranges in the tap domain as reconstruct does: the same product
     ok(d, &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "-o", "out-fit"]);
     ok(d, &["reconstruct", "unet", "--run", "unet", "--measurements", "y0.npy", "-o", "burn-fit.npy"]);
@@ -58,7 +82,8 @@ fn export_check_and_stream_a_trained_unet() {
     let fitted0 = fitted.index_axis(ndarray::Axis(0), 0);
     let moved = fitted0.iter().zip(f0.iter()).filter(|(a, b)| a.is_finite() && b.is_finite() && (*a - *b).abs() > 1e-3).count();
     assert!(moved > 0, "the range fit moved no return");
-    let far = burn_fit.iter().zip(fitted0.iter()).filter(|(a, b)| a.is_nan() != b.is_nan() || (a.is_finite() && (*a - *b).abs() > 1e-2)).count();
+    let far =
+        burn_fit.iter().zip(fitted0.iter()).filter(|(a, b)| a.is_nan() != b.is_nan() || (a.is_finite() && (*a - *b).abs() > 1e-2)).count();
     assert!(far == 0, "{far} ranges of infer differ from reconstruct unet's (both with the range fit)");
     // --depth-fit: the template fit through the model's sensor, the network skipped, equal to
     // reconstruct depth-fit on the same frame
@@ -69,9 +94,20 @@ fn export_check_and_stream_a_trained_unet() {
     assert_eq!(streamed.shape(), &[3, 2, 8, 8]);
     let s0 = streamed.index_axis(ndarray::Axis(0), 0);
     assert!(s0.iter().any(|v| v.is_finite()), "no range fitted");
-    assert!(s0.iter().zip(fitted.iter()).all(|(a, b)| (a.is_nan() && b.is_nan()) || (a - b).abs() < 1e-6), "infer --depth-fit and reconstruct depth-fit differ");
-    fails(d, &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--depth-fit", "--returns", "3", "-o", "bad-df"], &["--depth-fit", "--returns 3"]);
-    fails(d, &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--lifetime-fit", "-o", "bad-df"], &["--lifetime-fit", "depth model"]);
+    assert!(
+        s0.iter().zip(fitted.iter()).all(|(a, b)| (a.is_nan() && b.is_nan()) || (a - b).abs() < 1e-6),
+        "infer --depth-fit and reconstruct depth-fit differ"
+    );
+    fails(
+        d,
+        &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--depth-fit", "--returns", "3", "-o", "bad-df"],
+        &["--depth-fit", "--returns 3"],
+    );
+    fails(
+        d,
+        &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--lifetime-fit", "-o", "bad-df"],
+        &["--lifetime-fit", "depth model"],
+    );
     assert!(!d.join("bad-df").exists());
     // onnx full checker, shape inference, onnxruntime-Python equal to tcsense infer
     let out = check_onnx(d, &["unet.onnx", "--measurements", "stack.npy", "--compare", "out"]);
@@ -115,7 +151,11 @@ fn export_check_and_stream_a_trained_unet() {
 
     // bad input: products a depth model cannot give, a frame off the frame rule, wrong taps,
     // a truncated stack, an empty directory, a missing model; nothing is written
-    fails(d, &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--products", "cube", "-o", "bad1"], &["--products", "cube"]);
+    fails(
+        d,
+        &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--products", "cube", "-o", "bad1"],
+        &["--products", "cube"],
+    );
     let odd = ndarray::Array3::<f32>::ones((4, 8, 7));
     write_npy(&d.join("odd.npy"), &odd.view()).unwrap();
     fails(d, &["infer", "--model", "unet.onnx", "--measurements", "odd.npy", "-o", "bad2"], &["odd.npy", "multiples of 2x2"]);
@@ -149,14 +189,53 @@ fn a_lifetime_model_streams_the_fit_to_the_taps() {
     let d = d.path();
     tiny_lidar_and_codes(d);
     ok(d, &["dataset", "flim", "--count", "4", "--size", "8x8", "--length", "8", "--heterodyne", "4", "--seed", "5", "-o", "f"]);
-    ok(d, &["train", "lifetime", "--dataset", "f", "--codes", "codes.json", "--harmonics", "3", "--base-width", "4", "--levels", "2", "--epochs", "1", "--seed", "3", "-o", "lt"]);
+    ok(
+        d,
+        &[
+            "train",
+            "lifetime",
+            "--dataset",
+            "f",
+            "--codes",
+            "codes.json",
+            "--harmonics",
+            "3",
+            "--base-width",
+            "4",
+            "--levels",
+            "2",
+            "--epochs",
+            "1",
+            "--seed",
+            "3",
+            "-o",
+            "lt",
+        ],
+    );
     ok(d, &["export", "onnx", "--run", "lt", "-o", "lt.onnx"]);
-    ok(d, &["simulate", "--codes", "codes.json", "--heterodyne", "4", "--cube", "f/test/x_000.npy", "--noise", "--seed", "1", "-o", "y0.npy"]);
+    ok(
+        d,
+        &["simulate", "--codes", "codes.json", "--heterodyne", "4", "--cube", "f/test/x_000.npy", "--noise", "--seed", "1", "-o", "y0.npy"],
+    );
     let y0 = read_npy(&d.join("y0.npy")).unwrap().index_axis_move(ndarray::Axis(0), 0);
     let frames = [y0.clone(), y0.mapv(|v| 2.0 * v)];
     let views: Vec<_> = frames.iter().map(|f| f.view()).collect();
     write_npy(&d.join("stack.npy"), &ndarray::stack(ndarray::Axis(0), &views).unwrap().view()).unwrap();
-    let out = ok(d, &["infer", "--model", "lt.onnx", "--measurements", "stack.npy", "--lifetime-fit", "--products", "lifetime,intensity,phasor", "-o", "out"]);
+    let out = ok(
+        d,
+        &[
+            "infer",
+            "--model",
+            "lt.onnx",
+            "--measurements",
+            "stack.npy",
+            "--lifetime-fit",
+            "--products",
+            "lifetime,intensity,phasor",
+            "-o",
+            "out",
+        ],
+    );
     assert!(out.contains("2 frames") && out.contains("0.0 ms per frame in ONNX Runtime"), "the network ran: {out}");
     ok(d, &["reconstruct", "lifetime-fit", "--codes", "codes.json", "--heterodyne", "4", "--measurements", "y0.npy", "-o", "fit.npy"]);
     let (streamed, fitted) = (read_npy(&d.join("out/lifetime.npy")).unwrap(), read_npy(&d.join("fit.npy")).unwrap());
@@ -165,16 +244,29 @@ fn a_lifetime_model_streams_the_fit_to_the_taps() {
     assert!(fitted0.iter().any(|v| v.is_finite()), "no lifetime fitted");
     for f in 0..2 {
         let s = streamed.index_axis(ndarray::Axis(0), f);
-        let bad = s.iter().zip(fitted0.iter()).filter(|(a, b)| a.is_nan() != b.is_nan() || (a.is_finite() && (*a - *b).abs() > 1e-3 * b.abs())).count();
+        let bad = s
+            .iter()
+            .zip(fitted0.iter())
+            .filter(|(a, b)| a.is_nan() != b.is_nan() || (a.is_finite() && (*a - *b).abs() > 1e-3 * b.abs()))
+            .count();
         assert_eq!(bad, 0, "frame {f}: {bad} lifetimes differ from reconstruct lifetime-fit's\n{s:?}\n{fitted0:?}");
     }
     // a second stream into the same directory names only what it wrote, not the first's files
-    let out = ok(d, &["infer", "--model", "lt.onnx", "--measurements", "stack.npy", "--lifetime-fit", "--products", "lifetime", "-o", "out"]);
+    let out =
+        ok(d, &["infer", "--model", "lt.onnx", "--measurements", "stack.npy", "--lifetime-fit", "--products", "lifetime", "-o", "out"]);
     assert!(out.contains("lifetime.npy") && !out.contains("intensity.npy") && !out.contains("phasor.npy"), "{out}");
     // the fit gives lifetime, intensity and phasor only; its settings need --lifetime-fit
-    fails(d, &["infer", "--model", "lt.onnx", "--measurements", "stack.npy", "--onset-ns", "2", "-o", "bad"], &["--onset-ns", "--lifetime-fit"]);
+    fails(
+        d,
+        &["infer", "--model", "lt.onnx", "--measurements", "stack.npy", "--onset-ns", "2", "-o", "bad"],
+        &["--onset-ns", "--lifetime-fit"],
+    );
     // a lifetime model gives no depth for the range fit to replace
-    fails(d, &["infer", "--model", "lt.onnx", "--measurements", "stack.npy", "--depth-fit", "-o", "bad"], &["--depth-fit", "lifetime model"]);
+    fails(
+        d,
+        &["infer", "--model", "lt.onnx", "--measurements", "stack.npy", "--depth-fit", "-o", "bad"],
+        &["--depth-fit", "lifetime model"],
+    );
     assert!(!d.join("bad").exists());
 }
 
@@ -183,7 +275,27 @@ fn admm_net_export_with_the_matrix_as_input_and_eval_through_ort() {
     let d = tempdir();
     let d = d.path();
     tiny_lidar_and_codes(d);
-    ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "2", "--channels", "2", "--epochs", "1", "--seed", "3", "-o", "run"]);
+    ok(
+        d,
+        &[
+            "train",
+            "admm-net",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--stages",
+            "2",
+            "--channels",
+            "2",
+            "--epochs",
+            "1",
+            "--seed",
+            "3",
+            "-o",
+            "run",
+        ],
+    );
     ok(d, &["export", "onnx", "--run", "run", "-o", "baked.onnx"]);
     ok(d, &["export", "onnx", "--run", "run", "--matrix-input", "-o", "input.onnx"]);
     ok(d, &["sensor", "matrix", "--codes", "codes.json", "-o", "A.npy"]);
@@ -193,7 +305,8 @@ fn admm_net_export_with_the_matrix_as_input_and_eval_through_ort() {
     let scale = burn.iter().fold(0f32, |m, v| m.max(v.abs()));
     for (model, extra) in [("baked.onnx", vec![]), ("input.onnx", vec!["--sensor-matrix", "A.npy"])] {
         let out_dir = format!("out-{model}");
-        let mut args = vec!["infer", "--model", model, "--measurements", "y.npy", "--products", "cube,depth,peaks,lifetime", "-o", &out_dir];
+        let mut args =
+            vec!["infer", "--model", model, "--measurements", "y.npy", "--products", "cube,depth,peaks,lifetime", "-o", &out_dir];
         args.extend(extra.iter().copied());
         ok(d, &args);
         let cube = read_npy(&d.join(&out_dir).join("cube.npy")).unwrap();
@@ -206,24 +319,57 @@ fn admm_net_export_with_the_matrix_as_input_and_eval_through_ort() {
     let out = check_onnx(d, &["input.onnx", "--measurements", "y.npy", "--sensor-matrix", "A.npy", "--compare", "out-input.onnx"]);
     assert!(out.contains("ok  cube"), "{out}");
     // eval through the contract: the exported model next to the run it came from
-    let out = ok(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "admm-net:run", "--decoder", "onnx:baked.onnx", "-o", "rep.json"]);
+    let out = ok(
+        d,
+        &[
+            "eval",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--decoder",
+            "admm-net:run",
+            "--decoder",
+            "onnx:baked.onnx",
+            "-o",
+            "rep.json",
+        ],
+    );
     let rep: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("rep.json")).unwrap()).unwrap();
     let (a, b) = (rep[0]["psnr_db"].as_f64().unwrap(), rep[1]["psnr_db"].as_f64().unwrap());
     assert!((a - b).abs() < 1e-3, "burn {a} dB vs ort {b} dB: {out}");
     // a sensor matrix of the wrong shape; a baked model given one
     let small = ndarray::Array3::<f32>::ones((4, 4, 4));
     write_npy(&d.join("A4.npy"), &small.view()).unwrap();
-    fails(d, &["infer", "--model", "input.onnx", "--measurements", "y.npy", "--sensor-matrix", "A4.npy", "-o", "bad"], &["A4.npy", "[N, M, T]"]);
-    fails(d, &["infer", "--model", "baked.onnx", "--measurements", "y.npy", "--sensor-matrix", "A.npy", "-o", "bad"], &["A.npy", "--matrix-input"]);
+    fails(
+        d,
+        &["infer", "--model", "input.onnx", "--measurements", "y.npy", "--sensor-matrix", "A4.npy", "-o", "bad"],
+        &["A4.npy", "[N, M, T]"],
+    );
+    fails(
+        d,
+        &["infer", "--model", "baked.onnx", "--measurements", "y.npy", "--sensor-matrix", "A.npy", "-o", "bad"],
+        &["A.npy", "--matrix-input"],
+    );
 }
 
 #[test]
 fn a_missing_onnx_runtime_exits_2_with_the_install_hint() {
     let d = tempdir();
     let d = d.path();
-    let o = bin().current_dir(d).env("ORT_DYLIB_PATH", d.join("nowhere.so")).args(["infer", "--model", "m.onnx", "--measurements", "y.npy", "-o", "out"]).output().unwrap();
+    let o = bin()
+        .current_dir(d)
+        .env("ORT_DYLIB_PATH", d.join("nowhere.so"))
+        .args(["infer", "--model", "m.onnx", "--measurements", "y.npy", "-o", "out"])
+        .output()
+        .unwrap();
     std::fs::write(d.join("m.onnx"), b"x").unwrap();
-    let o2 = bin().current_dir(d).env("ORT_DYLIB_PATH", d.join("nowhere.so")).args(["infer", "--model", "m.onnx", "--measurements", "y.npy", "-o", "out"]).output().unwrap();
+    let o2 = bin()
+        .current_dir(d)
+        .env("ORT_DYLIB_PATH", d.join("nowhere.so"))
+        .args(["infer", "--model", "m.onnx", "--measurements", "y.npy", "-o", "out"])
+        .output()
+        .unwrap();
     let err = String::from_utf8_lossy(&o2.stderr);
     assert_eq!(o.status.code(), Some(2));
     assert_eq!(o2.status.code(), Some(2), "{err}");

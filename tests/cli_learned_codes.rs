@@ -11,10 +11,33 @@ fn learned_codes_are_exact_exportable_and_decode() {
     let d = tempdir();
     let d = d.path();
     ok(d, &["dataset", "lidar", "--count", "8", "--size", "8x8", "--length", "8", "--seed", "2", "-o", "ds"]);
-    ok(d, &["codes", "generate", "--tap-constraint", "--hamming", "2", "--window", "2", "--length", "8", "--seed", "1", "-o", "start.json"]);
+    ok(
+        d,
+        &["codes", "generate", "--tap-constraint", "--hamming", "2", "--window", "2", "--length", "8", "--seed", "1", "-o", "start.json"],
+    );
     let out = ok(
         d,
-        &["train", "admm-net", "--dataset", "ds", "--codes", "start.json", "--stages", "1", "--channels", "2", "--epochs", "6", "--relaxed-epochs", "4", "--codes-lr", "0.5", "--learn-codes", "-o", "run"],
+        &[
+            "train",
+            "admm-net",
+            "--dataset",
+            "ds",
+            "--codes",
+            "start.json",
+            "--stages",
+            "1",
+            "--channels",
+            "2",
+            "--epochs",
+            "6",
+            "--relaxed-epochs",
+            "4",
+            "--codes-lr",
+            "0.5",
+            "--learn-codes",
+            "-o",
+            "run",
+        ],
     );
     assert!(out.contains("4 relaxed epochs") && out.contains("tap+H2+W2"), "{out}");
     // the learned codes meet the constraints exactly and say where they come from
@@ -46,7 +69,28 @@ fn learned_codes_are_exact_exportable_and_decode() {
     fails(d, &["reconstruct", "admm-net", "--run", "run", "--measurements", "y0.npy", "-o", "x0.npy"], &["y0.meta.json", "codes"]);
 
     // the U-Net learns codes too
-    ok(d, &["train", "unet", "--dataset", "ds", "--codes", "start.json", "--base-width", "2", "--levels", "2", "--epochs", "3", "--relaxed-epochs", "2", "--learn-codes", "-o", "unet"]);
+    ok(
+        d,
+        &[
+            "train",
+            "unet",
+            "--dataset",
+            "ds",
+            "--codes",
+            "start.json",
+            "--base-width",
+            "2",
+            "--levels",
+            "2",
+            "--epochs",
+            "3",
+            "--relaxed-epochs",
+            "2",
+            "--learn-codes",
+            "-o",
+            "unet",
+        ],
+    );
     ok(d, &["codes", "check", "unet/codes.json"]);
     // its gradient reaches the codes through the per-pixel normalisation, dark pixels included:
     // every logged loss is finite (a NaN from √0 once stopped nothing and was logged)
@@ -56,7 +100,25 @@ fn learned_codes_are_exact_exportable_and_decode() {
         assert!(!losses.is_empty() && losses.iter().all(|l| l.is_finite()), "{phase}: {losses:?}");
     }
     // bad settings
-    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "start.json", "--epochs", "3", "--relaxed-epochs", "4", "--learn-codes", "-o", "bad"], &["relaxed_epochs", "got 4"]);
+    fails(
+        d,
+        &[
+            "train",
+            "admm-net",
+            "--dataset",
+            "ds",
+            "--codes",
+            "start.json",
+            "--epochs",
+            "3",
+            "--relaxed-epochs",
+            "4",
+            "--learn-codes",
+            "-o",
+            "bad",
+        ],
+        &["relaxed_epochs", "got 4"],
+    );
     let o = run(d, &["train", "admm-net", "--dataset", "ds", "--codes", "start.json", "--hamming", "2", "-o", "bad2"]);
     assert_eq!(o.status.code(), Some(2), "--hamming needs --learn-codes");
     assert!(!d.join("bad").join("model.bpk").exists() && !d.join("bad2").exists());
@@ -67,10 +129,76 @@ fn init_from_starts_from_a_trained_decoder() {
     let d = tempdir();
     let d = d.path();
     tiny_lidar_and_codes(d);
-    ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "2", "--seed", "3", "-o", "a"]);
+    ok(
+        d,
+        &[
+            "train",
+            "admm-net",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--stages",
+            "1",
+            "--channels",
+            "2",
+            "--epochs",
+            "2",
+            "--seed",
+            "3",
+            "-o",
+            "a",
+        ],
+    );
     // a vanishing learning rate: b's weights stay a's, so b decodes as a does (a fresh seed would not)
-    ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "1", "--seed", "9", "--lr", "1e-12", "--init-from", "a", "-o", "b"]);
-    ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "1", "--seed", "9", "--lr", "1e-12", "-o", "c"]);
+    ok(
+        d,
+        &[
+            "train",
+            "admm-net",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--stages",
+            "1",
+            "--channels",
+            "2",
+            "--epochs",
+            "1",
+            "--seed",
+            "9",
+            "--lr",
+            "1e-12",
+            "--init-from",
+            "a",
+            "-o",
+            "b",
+        ],
+    );
+    ok(
+        d,
+        &[
+            "train",
+            "admm-net",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--stages",
+            "1",
+            "--channels",
+            "2",
+            "--epochs",
+            "1",
+            "--seed",
+            "9",
+            "--lr",
+            "1e-12",
+            "-o",
+            "c",
+        ],
+    );
     ok(d, &["simulate", "--codes", "codes.json", "--cube", "ds/test/x_000.npy", "-o", "y.npy"]);
     for r in ["a", "b", "c"] {
         ok(d, &["reconstruct", "admm-net", "--run", r, "--measurements", "y.npy", "-o", &format!("x{r}.npy")]);
@@ -83,7 +211,29 @@ fn init_from_starts_from_a_trained_decoder() {
     // a recalibrated sensor: a measured matrix (here the physical IRF's) replaces the synthetic
     // one; the run keeps it and decodes with it
     ok(d, &["sensor", "matrix", "--codes", "codes.json", "--irf", "physical", "-o", "measured.npy"]);
-    ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "1", "--init-from", "a", "--irf", "measured.npy", "-o", "m"]);
+    ok(
+        d,
+        &[
+            "train",
+            "admm-net",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--stages",
+            "1",
+            "--channels",
+            "2",
+            "--epochs",
+            "1",
+            "--init-from",
+            "a",
+            "--irf",
+            "measured.npy",
+            "-o",
+            "m",
+        ],
+    );
     assert_eq!(std::fs::read(d.join("m/sensor_matrix.npy")).unwrap(), std::fs::read(d.join("measured.npy")).unwrap());
     let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("m/config.json")).unwrap()).unwrap();
     assert_eq!((cfg["measured"].as_bool(), cfg["init_from"].as_str()), (Some(true), Some("a")));
@@ -92,10 +242,53 @@ fn init_from_starts_from_a_trained_decoder() {
     ok(d, &["export", "onnx", "--run", "m", "-o", "m.onnx"]);
     // a matrix of another shape, or learning codes through a measured matrix, is refused
     ok(d, &["sensor", "matrix", "--codes", "codes.json", "--oversample", "2", "-o", "k2.npy"]);
-    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "--irf", "k2.npy", "-o", "m2"], &["k2.npy", "[4, 4, 8]"]);
-    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "3", "--learn-codes", "--irf", "measured.npy", "-o", "m3"], &["learn_codes", "measured"]);
+    fails(
+        d,
+        &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "--irf", "k2.npy", "-o", "m2"],
+        &["k2.npy", "[4, 4, 8]"],
+    );
+    fails(
+        d,
+        &[
+            "train",
+            "admm-net",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--epochs",
+            "3",
+            "--learn-codes",
+            "--irf",
+            "measured.npy",
+            "-o",
+            "m3",
+        ],
+        &["learn_codes", "measured"],
+    );
     assert!(!d.join("m2").exists() && !d.join("m3").exists());
     // another network than the run's is refused before anything is written, naming the run's value
-    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "2", "--channels", "2", "--epochs", "1", "--init-from", "a", "-o", "e"], &["a/config.json", "--stages 2", "stages 1"]);
+    fails(
+        d,
+        &[
+            "train",
+            "admm-net",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--stages",
+            "2",
+            "--channels",
+            "2",
+            "--epochs",
+            "1",
+            "--init-from",
+            "a",
+            "-o",
+            "e",
+        ],
+        &["a/config.json", "--stages 2", "stages 1"],
+    );
     assert!(!d.join("e").exists());
 }

@@ -10,7 +10,28 @@ use tcsense_sensor::Codes;
 fn generate_check_export_import_show() {
     let d = tempdir();
     let d = d.path();
-    ok(d, &["codes", "generate", "--taps", "4", "--block", "2x2", "--length", "32", "--tap-constraint", "--hamming", "2", "--window", "2", "--seed", "3", "-o", "codes.json"]);
+    ok(
+        d,
+        &[
+            "codes",
+            "generate",
+            "--taps",
+            "4",
+            "--block",
+            "2x2",
+            "--length",
+            "32",
+            "--tap-constraint",
+            "--hamming",
+            "2",
+            "--window",
+            "2",
+            "--seed",
+            "3",
+            "-o",
+            "codes.json",
+        ],
+    );
     ok(d, &["codes", "check", "codes.json"]);
     // random codes: seed 3's alias (below 0.5 under the physical IRF) needs --force
     ok(d, &["codes", "export", "codes.json", "--force", "-o", "mem"]);
@@ -74,7 +95,29 @@ fn simulate_ideal_equals_direct_sum_and_noise_is_seeded() {
     ok(d, &["simulate", "--codes", "codes.json", "--cube", "x.npy", "--irf", "A.npy", "--oversample", "2", "-o", "y2.npy"]);
     assert_eq!(std::fs::read(d.join("y.npy")).unwrap(), std::fs::read(d.join("y2.npy")).unwrap());
     // noise: same seed same bytes, other seed differs
-    let noisy = |seed: &str, out: &str| ok(d, &["simulate", "--codes", "codes.json", "--cube", "x.npy", "--oversample", "2", "--noise", "--full-well", "20000", "--read-noise", "40", "--seed", seed, "-o", out]);
+    let noisy = |seed: &str, out: &str| {
+        ok(
+            d,
+            &[
+                "simulate",
+                "--codes",
+                "codes.json",
+                "--cube",
+                "x.npy",
+                "--oversample",
+                "2",
+                "--noise",
+                "--full-well",
+                "20000",
+                "--read-noise",
+                "40",
+                "--seed",
+                seed,
+                "-o",
+                out,
+            ],
+        )
+    };
     noisy("1", "n1.npy");
     noisy("1", "n1b.npy");
     noisy("2", "n2.npy");

@@ -9,9 +9,31 @@ fn train_resume_reconstruct_and_eval() {
     let d = tempdir();
     let d = d.path();
     tiny_lidar_and_codes(d);
-    let out = ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "2", "--seed", "3", "-o", "run"]);
+    let out = ok(
+        d,
+        &[
+            "train",
+            "admm-net",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--stages",
+            "1",
+            "--channels",
+            "2",
+            "--epochs",
+            "2",
+            "--seed",
+            "3",
+            "-o",
+            "run",
+        ],
+    );
     assert!(out.contains("epoch    2"), "{out}");
-    for f in ["config.json", "codes.json", "metrics.csv", "model.bpk", "checkpoint/model.bpk", "checkpoint/optim.bpk", "checkpoint/state.json"] {
+    for f in
+        ["config.json", "codes.json", "metrics.csv", "model.bpk", "checkpoint/model.bpk", "checkpoint/optim.bpk", "checkpoint/state.json"]
+    {
         assert!(d.join("run").join(f).exists(), "{f} missing");
     }
     assert_eq!(std::fs::read_to_string(d.join("run/metrics.csv")).unwrap().lines().count(), 3);
@@ -30,7 +52,11 @@ fn train_resume_reconstruct_and_eval() {
     fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "-o", "run"], &["--resume"]);
     // a resume continues on its own dataset: another one named is refused, the same one taken
     ok(d, &["dataset", "lidar", "--count", "8", "--size", "8x8", "--length", "8", "--seed", "4", "-o", "ds2"]);
-    fails(d, &["train", "admm-net", "--dataset", "ds2", "--epochs", "4", "--resume", "-o", "run"], &["ds2", "the run's own", "--init-from"]);
+    fails(
+        d,
+        &["train", "admm-net", "--dataset", "ds2", "--epochs", "4", "--resume", "-o", "run"],
+        &["ds2", "the run's own", "--init-from"],
+    );
     assert_eq!(std::fs::read_to_string(d.join("run/metrics.csv")).unwrap().lines().count(), 4, "the refused resume trained nothing");
 
     // a saved config starts a new run, with flag overrides
@@ -38,14 +64,35 @@ fn train_resume_reconstruct_and_eval() {
     let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("run2/config.json")).unwrap()).unwrap();
     assert_eq!((cfg["epochs"].as_u64(), cfg["model"]["channels"].as_u64(), cfg["seed"].as_u64()), (Some(1), Some(2), Some(3)));
     std::fs::write(d.join("bad.json"), "{\"epochs\": 1}").unwrap();
-    fails(d, &["train", "admm-net", "--config", "bad.json", "--codes", "codes.json", "-o", "run3"], &["bad.json", "malformed training config"]);
+    fails(
+        d,
+        &["train", "admm-net", "--config", "bad.json", "--codes", "codes.json", "-o", "run3"],
+        &["bad.json", "malformed training config"],
+    );
 
     ok(d, &["simulate", "--codes", "codes.json", "--cube", "ds/test/x_000.npy", "-o", "y.npy"]);
     ok(d, &["reconstruct", "admm-net", "--run", "run", "--measurements", "y.npy", "-o", "xhat.npy"]);
     let xh = read_npy(&d.join("xhat.npy")).unwrap();
     assert_eq!(xh.shape(), &[1, 8, 8, 8]);
     assert!(xh.iter().all(|v| v.is_finite()));
-    let out = ok(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "tval3", "--decoder", "admm-net:run", "--maxit", "20", "-o", "rep.json"]);
+    let out = ok(
+        d,
+        &[
+            "eval",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--decoder",
+            "tval3",
+            "--decoder",
+            "admm-net:run",
+            "--maxit",
+            "20",
+            "-o",
+            "rep.json",
+        ],
+    );
     assert!(out.contains("tval3") && out.contains("admm-net:run"), "{out}");
     let rep: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("rep.json")).unwrap()).unwrap();
     assert_eq!(rep.as_array().unwrap().len(), 2);
@@ -63,14 +110,59 @@ fn bad_inputs_exit_2() {
     fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", "0", "-o", "run0"], &["epochs"]);
     fails(d, &["train", "admm-net", "--resume", "-o", "nothing"], &["no run to resume"]);
     // a loss that is not finite stops the training with a message, and no final weights are written
-    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--epochs", "2", "--lr", "1e30", "-o", "diverged"], &["training diverged", "lower --lr"]);
+    fails(
+        d,
+        &[
+            "train",
+            "admm-net",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--stages",
+            "1",
+            "--epochs",
+            "2",
+            "--lr",
+            "1e30",
+            "-o",
+            "diverged",
+        ],
+        &["training diverged", "lower --lr"],
+    );
     assert!(!d.join("diverged").join("model.bpk").exists());
-    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--pause-after", "0", "-o", "runp"], &["--pause-after 0", "at least one epoch"]);
+    fails(
+        d,
+        &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--pause-after", "0", "-o", "runp"],
+        &["--pause-after 0", "at least one epoch"],
+    );
     assert!(!d.join("runp").exists());
     fails(d, &["reconstruct", "admm-net", "--run", "nothing", "--measurements", "y.npy", "-o", "x.npy"], &["nothing", "config.json"]);
-    fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--lr-schedule", "linear", "-o", "runlr"], &["--lr-schedule", "linear"]);
+    fails(
+        d,
+        &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--lr-schedule", "linear", "-o", "runlr"],
+        &["--lr-schedule", "linear"],
+    );
     assert!(!d.join("runlr").exists());
-    ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "1", "-o", "run"]);
+    ok(
+        d,
+        &[
+            "train",
+            "admm-net",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--stages",
+            "1",
+            "--channels",
+            "2",
+            "--epochs",
+            "1",
+            "-o",
+            "run",
+        ],
+    );
     // new runs decay the learning rate along a cosine; the config records it
     let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("run/config.json")).unwrap()).unwrap();
     assert_eq!((cfg["lr_schedule"]["kind"].as_str(), cfg["lr_schedule"]["final_fraction"].as_f64()), (Some("cosine"), Some(0.01)));
@@ -78,7 +170,22 @@ fn bad_inputs_exit_2() {
     fails(d, &["eval", "--dataset", "ds", "--codes", "other.json", "--decoder", "admm-net:run"], &["other codes"]);
     fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "magic"], &["unknown decoder"]);
     // a cube decoder's peaks refined in the tap domain: the same cube (PSNR), ranges beside it
-    let out = ok(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "admm-net:run", "--decoder", "admm-net:run+fit", "-o", "fit.json"]);
+    let out = ok(
+        d,
+        &[
+            "eval",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--decoder",
+            "admm-net:run",
+            "--decoder",
+            "admm-net:run+fit",
+            "-o",
+            "fit.json",
+        ],
+    );
     let rows: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("fit.json")).unwrap()).unwrap();
     let rows = rows.as_array().cloned().unwrap_or_default();
     assert_eq!(rows.len(), 2, "{out}");
@@ -87,10 +194,22 @@ fn bad_inputs_exit_2() {
     fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "unet:run+fit"], &["+fit after a decoder of cubes"]);
     // a build without the GPU backend says how to get one, and writes nothing
     if !cfg!(feature = "gpu") {
-        fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--device", "gpu", "-o", "rungpu"], &["--device", "--features gpu"]);
+        fails(
+            d,
+            &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--device", "gpu", "-o", "rungpu"],
+            &["--device", "--features gpu"],
+        );
         assert!(!d.join("rungpu").exists());
-        fails(d, &["reconstruct", "admm-net", "--run", "run", "--measurements", "y.npy", "--device", "gpu", "-o", "xg.npy"], &["--features gpu"]);
-        fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "admm-net:run", "--device", "gpu"], &["--features gpu"]);
+        fails(
+            d,
+            &["reconstruct", "admm-net", "--run", "run", "--measurements", "y.npy", "--device", "gpu", "-o", "xg.npy"],
+            &["--features gpu"],
+        );
+        fails(
+            d,
+            &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "admm-net:run", "--device", "gpu"],
+            &["--features gpu"],
+        );
     }
     fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--device", "tpu", "-o", "runtpu"], &["--device", "tpu"]);
 }
@@ -108,7 +227,11 @@ fn reconstruct_with_a_run_from_an_earlier_build() {
     assert_eq!(got.shape(), want.shape());
     let diff = got.iter().zip(want.iter()).fold(0f32, |m, (a, b)| m.max((a - b).abs()));
     assert!(diff < 1e-5, "differs from the earlier build's reconstruction by {diff}");
-    fails(d, &["reconstruct", "admm-net", "--run", &run, "--measurements", &fx.join("xhat.npy").display().to_string(), "-o", "x2.npy"], &["xhat.npy", "8 tap images", "M = 4"]);
+    fails(
+        d,
+        &["reconstruct", "admm-net", "--run", &run, "--measurements", &fx.join("xhat.npy").display().to_string(), "-o", "x2.npy"],
+        &["xhat.npy", "8 tap images", "M = 4"],
+    );
     assert!(!d.join("x2.npy").exists());
 }
 
@@ -117,21 +240,65 @@ fn train_reconstruct_and_eval_the_unet() {
     let d = tempdir();
     let d = d.path();
     tiny_lidar_and_codes(d);
-    let out = ok(d, &["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--base-width", "4", "--levels", "2", "--epochs", "2", "--seed", "3", "-o", "unet"]);
+    let out = ok(
+        d,
+        &[
+            "train",
+            "unet",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--base-width",
+            "4",
+            "--levels",
+            "2",
+            "--epochs",
+            "2",
+            "--seed",
+            "3",
+            "-o",
+            "unet",
+        ],
+    );
     assert!(out.contains("U-Net") && out.contains("depth_rmse_m"), "{out}");
     let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("unet/config.json")).unwrap()).unwrap();
-    assert_eq!((cfg["decoder"].as_str(), cfg["model"]["returns"].as_u64(), cfg["model"]["levels"].as_u64()), (Some("unet"), Some(2), Some(2)));
+    assert_eq!(
+        (cfg["decoder"].as_str(), cfg["model"]["returns"].as_u64(), cfg["model"]["levels"].as_u64()),
+        (Some("unet"), Some(2), Some(2))
+    );
     let out = ok(d, &["train", "unet", "--epochs", "3", "--resume", "-o", "unet"]);
     assert!(out.contains("epoch    3"), "{out}");
     ok(d, &["simulate", "--codes", "codes.json", "--cube", "ds/test/x_000.npy", "--noise", "-o", "y.npy"]);
-    let out = ok(d, &["reconstruct", "unet", "--run", "unet", "--measurements", "y.npy", "-o", "depth.npy", "--ply", "cloud.ply", "--png", "depth.png"]);
+    let out = ok(
+        d,
+        &["reconstruct", "unet", "--run", "unet", "--measurements", "y.npy", "-o", "depth.npy", "--ply", "cloud.ply", "--png", "depth.png"],
+    );
     assert!(out.contains("confidence"), "{out}");
     let depth = read_npy(&d.join("depth.npy")).unwrap();
     let conf = read_npy(&d.join("depth.confidence.npy")).unwrap();
     assert_eq!((depth.shape(), conf.shape()), (&[1, 2, 8, 8][..], &[1, 2, 8, 8][..]));
     assert!(depth.iter().zip(conf.iter()).all(|(d, c)| d.is_nan() == (*c < 0.5)));
     assert!(d.join("cloud.ply").exists() && d.join("depth.png").exists());
-    let out = ok(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "tval3", "--decoder", "unet:unet", "--maxit", "10", "--noise", "-o", "rep.json"]);
+    let out = ok(
+        d,
+        &[
+            "eval",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--decoder",
+            "tval3",
+            "--decoder",
+            "unet:unet",
+            "--maxit",
+            "10",
+            "--noise",
+            "-o",
+            "rep.json",
+        ],
+    );
     assert!(out.contains("unet:unet"), "{out}");
     let rep: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("rep.json")).unwrap()).unwrap();
     assert_eq!(rep[1]["decoder"].as_str(), Some("unet:unet"));
@@ -164,7 +331,25 @@ fn ladder_ambient_and_the_matched_input() {
     ok(d, &args(&["--input", "matched", "--signal", "0.002,0.9", "--epochs", "1", "-o", "m0"]));
     assert_ne!(std::fs::read(d.join("m/model.bpk")).unwrap(), std::fs::read(d.join("m0/model.bpk")).unwrap());
     // a fine-tune may change what the network reads
-    ok(d, &["train", "unet", "--init-from", "m", "--input", "backprojection", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "-o", "bp"]);
+    ok(
+        d,
+        &[
+            "train",
+            "unet",
+            "--init-from",
+            "m",
+            "--input",
+            "backprojection",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--epochs",
+            "1",
+            "-o",
+            "bp",
+        ],
+    );
     let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("bp/config.json")).unwrap()).unwrap();
     assert_eq!(cfg["model"]["input"].as_str(), Some("Backprojection"));
     // and the network decodes: reconstruct and eval take it
@@ -172,7 +357,14 @@ fn ladder_ambient_and_the_matched_input() {
     ok(d, &["reconstruct", "unet", "--run", "m", "--measurements", "y.npy", "-o", "depth.npy"]);
     assert_eq!(read_npy(&d.join("depth.npy")).unwrap().shape(), &[1, 2, 8, 8]);
     // absurd ranges: usage errors or refusals naming the field, and no run directory
-    for (flag, value, needle) in [("--signal", "0.5,0.1", "LO is above HI"), ("--signal", "0,1", "signal_fraction"), ("--signal", "0.1,1e9", "signal_fraction"), ("--ambient", "-1,2", "ambient"), ("--ambient", "0,1e6", "ambient"), ("--ambient", "nan,1", "LO,HI")] {
+    for (flag, value, needle) in [
+        ("--signal", "0.5,0.1", "LO is above HI"),
+        ("--signal", "0,1", "signal_fraction"),
+        ("--signal", "0.1,1e9", "signal_fraction"),
+        ("--ambient", "-1,2", "ambient"),
+        ("--ambient", "0,1e6", "ambient"),
+        ("--ambient", "nan,1", "LO,HI"),
+    ] {
         fails(d, &args(&[flag, value, "--epochs", "1", "-o", "bad"]), &[needle]);
         assert!(!d.join("bad").exists(), "{flag} {value} left a run directory");
     }
@@ -186,11 +378,53 @@ fn train_and_eval_the_lifetime_decoder() {
     let d = d.path();
     tiny_lidar_and_codes(d);
     ok(d, &["dataset", "flim", "--count", "6", "--size", "8x8", "--length", "8", "--heterodyne", "2", "-o", "f"]);
-    let out = ok(d, &["train", "lifetime", "--dataset", "f", "--codes", "codes.json", "--harmonics", "3", "--base-width", "4", "--levels", "2", "--epochs", "2", "--seed", "3", "-o", "lt"]);
+    let out = ok(
+        d,
+        &[
+            "train",
+            "lifetime",
+            "--dataset",
+            "f",
+            "--codes",
+            "codes.json",
+            "--harmonics",
+            "3",
+            "--base-width",
+            "4",
+            "--levels",
+            "2",
+            "--epochs",
+            "2",
+            "--seed",
+            "3",
+            "-o",
+            "lt",
+        ],
+    );
     assert!(out.contains("lifetime decoder") && out.contains("lifetime MAE"), "{out}");
     let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("lt/config.json")).unwrap()).unwrap();
     assert_eq!((cfg["decoder"].as_str(), cfg["model"]["harmonics"].as_u64()), (Some("lifetime"), Some(3)));
-    let out = ok(d, &["eval", "--dataset", "f", "--codes", "codes.json", "--heterodyne", "2", "--decoder", "tval3", "--decoder", "lifetime:lt", "--maxit", "10", "--noise", "-o", "rep.json"]);
+    let out = ok(
+        d,
+        &[
+            "eval",
+            "--dataset",
+            "f",
+            "--codes",
+            "codes.json",
+            "--heterodyne",
+            "2",
+            "--decoder",
+            "tval3",
+            "--decoder",
+            "lifetime:lt",
+            "--maxit",
+            "10",
+            "--noise",
+            "-o",
+            "rep.json",
+        ],
+    );
     assert!(out.contains("lifetime:lt") && out.contains("within 0.2 ns"), "{out}");
     let rep: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("rep.json")).unwrap()).unwrap();
     for r in rep.as_array().unwrap() {
@@ -198,10 +432,22 @@ fn train_and_eval_the_lifetime_decoder() {
         assert!((0.0..=1.0).contains(&share) && share <= cover && cover <= 1.0, "{r}");
     }
     // bad input: a LiDAR dataset has no lifetimes; a run of the other kind; a lifetime decoder on LiDAR
-    fails(d, &["train", "lifetime", "--dataset", "ds", "--codes", "codes.json", "--harmonics", "3", "--epochs", "1", "-o", "l2"], &["ds", "no lifetime field"]);
+    fails(
+        d,
+        &["train", "lifetime", "--dataset", "ds", "--codes", "codes.json", "--harmonics", "3", "--epochs", "1", "-o", "l2"],
+        &["ds", "no lifetime field"],
+    );
     fails(d, &["train", "unet", "--resume", "-o", "lt"], &["lifetime run", "tcsense train lifetime"]);
-    fails(d, &["eval", "--dataset", "f", "--codes", "codes.json", "--heterodyne", "2", "--decoder", "unet:lt", "-o", "r2.json"], &["a lifetime run"]);
-    fails(d, &["eval", "--dataset", "f", "--codes", "codes.json", "--heterodyne", "2", "--decoder", "unet-raw:lt", "-o", "r3.json"], &["a lifetime run, not unet", "lifetime:lt"]);
+    fails(
+        d,
+        &["eval", "--dataset", "f", "--codes", "codes.json", "--heterodyne", "2", "--decoder", "unet:lt", "-o", "r2.json"],
+        &["a lifetime run"],
+    );
+    fails(
+        d,
+        &["eval", "--dataset", "f", "--codes", "codes.json", "--heterodyne", "2", "--decoder", "unet-raw:lt", "-o", "r3.json"],
+        &["a lifetime run, not unet", "lifetime:lt"],
+    );
     assert!(!d.join("r3.json").exists());
     fails(d, &["train", "lifetime", "--dataset", "f", "--codes", "codes.json", "--harmonics", "99", "-o", "l3"], &["harmonics"]);
     // reconstruct lifetime: [4, H, W] with confidence and intensity beside it; another kind's subcommand refuses the run
@@ -211,8 +457,16 @@ fn train_and_eval_the_lifetime_decoder() {
     ok(d, &["reconstruct", "lifetime", "--run", "lt", "--measurements", "y.npy", "-o", "tau.npy"]);
     assert_eq!(tcsense_sensor::npy::read_npy(&d.join("tau.npy")).unwrap().shape(), &[4, 8, 8]);
     assert_eq!(tcsense_sensor::npy::read_npy(&d.join("tau.intensity.npy")).unwrap().shape(), &[1, 8, 8]);
-    fails(d, &["reconstruct", "unet", "--run", "lt", "--measurements", "y.npy", "-o", "d.npy"], &["lt", "decoder", "\"lifetime\"", "reconstruct lifetime"]);
-    fails(d, &["reconstruct", "unet", "--run", "lt", "--no-range-fit", "--measurements", "y.npy", "-o", "d.npy"], &["lt", "decoder", "\"lifetime\"", "reconstruct lifetime"]);
+    fails(
+        d,
+        &["reconstruct", "unet", "--run", "lt", "--measurements", "y.npy", "-o", "d.npy"],
+        &["lt", "decoder", "\"lifetime\"", "reconstruct lifetime"],
+    );
+    fails(
+        d,
+        &["reconstruct", "unet", "--run", "lt", "--no-range-fit", "--measurements", "y.npy", "-o", "d.npy"],
+        &["lt", "decoder", "\"lifetime\"", "reconstruct lifetime"],
+    );
     assert!(!d.join("d.npy").exists());
 }
 
@@ -260,12 +514,41 @@ fn same_seed_same_weights_bytes() {
     tiny_lidar_and_codes(d);
     for run in ["a", "b", "c"] {
         let seed = if run == "c" { "4" } else { "3" };
-        ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "2", "--seed", seed, "-o", run]);
+        ok(
+            d,
+            &[
+                "train",
+                "admm-net",
+                "--dataset",
+                "ds",
+                "--codes",
+                "codes.json",
+                "--stages",
+                "1",
+                "--channels",
+                "2",
+                "--epochs",
+                "2",
+                "--seed",
+                seed,
+                "-o",
+                run,
+            ],
+        );
     }
     let read = |p: &str| std::fs::read(d.join(p)).unwrap();
     // every file of the run, the optimiser's included, but the one clock reading
     let files = files_under(&d.join("a"));
-    for f in ["model.bpk", "metrics.csv", "config.json", "codes.json", "checkpoint/model.bpk", "checkpoint/optim.bpk", "checkpoint/state.json", "timing.csv"] {
+    for f in [
+        "model.bpk",
+        "metrics.csv",
+        "config.json",
+        "codes.json",
+        "checkpoint/model.bpk",
+        "checkpoint/optim.bpk",
+        "checkpoint/state.json",
+        "timing.csv",
+    ] {
         assert!(files.iter().any(|p| p == f), "the run has {f}: {files:?}");
     }
     for f in files.iter().filter(|f| *f != "timing.csv") {
@@ -284,7 +567,22 @@ fn a_second_training_into_the_same_run_is_refused() {
     // the first one runs long enough for the second to meet it
     let mut first = bin()
         .current_dir(d)
-        .args(["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "100000", "-o", "run"])
+        .args([
+            "train",
+            "admm-net",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--stages",
+            "1",
+            "--channels",
+            "2",
+            "--epochs",
+            "100000",
+            "-o",
+            "run",
+        ])
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null())
         .spawn()
@@ -321,9 +619,33 @@ fn a_delay_prior_run_records_its_prior_and_keeps_it() {
     ok(d, &["codes", "generate", "--tap-constraint", "--length", "16", "--seed", "1", "-o", "codes.json"]);
     std::fs::create_dir(d.join("short")).unwrap();
     tiny_lidar_and_codes(&d.join("short"));
-    fails(&d.join("short"), &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--prior", "delay", "-o", "run"], &["model.bins", "more than 9 bins"]);
+    fails(
+        &d.join("short"),
+        &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--prior", "delay", "-o", "run"],
+        &["model.bins", "more than 9 bins"],
+    );
     assert!(!d.join("short/run").exists());
-    ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--prior", "delay", "--stages", "1", "--epochs", "1", "--seed", "3", "-o", "run"]);
+    ok(
+        d,
+        &[
+            "train",
+            "admm-net",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--prior",
+            "delay",
+            "--stages",
+            "1",
+            "--epochs",
+            "1",
+            "--seed",
+            "3",
+            "-o",
+            "run",
+        ],
+    );
     let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("run/config.json")).unwrap()).unwrap();
     // a few channels per bin by default
     assert_eq!((cfg["model"]["prior"].as_str(), cfg["model"]["channels"].as_u64()), (Some("Delay"), Some(4)), "{cfg}");
@@ -336,7 +658,27 @@ fn a_delay_prior_run_records_its_prior_and_keeps_it() {
     assert!(xh.shape() == [1, 16, 8, 8] && xh.iter().all(|v| v.is_finite()));
     fails(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--prior", "time", "-o", "run2"], &["--prior", "time"]);
     // a saved delay-prior config keeps its channels when --prior delay is given again
-    ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--prior", "delay", "--channels", "2", "--stages", "1", "--epochs", "1", "-o", "run3"]);
+    ok(
+        d,
+        &[
+            "train",
+            "admm-net",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--prior",
+            "delay",
+            "--channels",
+            "2",
+            "--stages",
+            "1",
+            "--epochs",
+            "1",
+            "-o",
+            "run3",
+        ],
+    );
     ok(d, &["train", "admm-net", "--config", "run3/config.json", "--codes", "codes.json", "--prior", "delay", "-o", "run4"]);
     let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("run4/config.json")).unwrap()).unwrap();
     assert_eq!((cfg["model"]["prior"].as_str(), cfg["model"]["channels"].as_u64()), (Some("Delay"), Some(2)), "{cfg}");
@@ -344,16 +686,58 @@ fn a_delay_prior_run_records_its_prior_and_keeps_it() {
     // fine-tuning takes the architecture from the run it starts from: no flag restates it
     ok(d, &["train", "admm-net", "--init-from", "run3", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "-o", "tuned"]);
     let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("tuned/config.json")).unwrap()).unwrap();
-    assert_eq!((cfg["model"]["prior"].as_str(), cfg["model"]["channels"].as_u64(), cfg["model"]["stages"].as_u64()), (Some("Delay"), Some(2), Some(1)), "{cfg}");
+    assert_eq!(
+        (cfg["model"]["prior"].as_str(), cfg["model"]["channels"].as_u64(), cfg["model"]["stages"].as_u64()),
+        (Some("Delay"), Some(2), Some(1)),
+        "{cfg}"
+    );
     assert_eq!(cfg["init_from"].as_str(), Some("run3"));
     // a flag that agrees is accepted; one that contradicts it is refused naming the run's value
-    ok(d, &["train", "admm-net", "--init-from", "run3", "--stages", "1", "--dataset", "ds", "--codes", "codes.json", "--epochs", "1", "-o", "tuned2"]);
-    fails(d, &["train", "admm-net", "--init-from", "run3", "--stages", "3", "--dataset", "ds", "--codes", "codes.json", "-o", "tuned3"], &["run3/config.json", "--stages 3", "stages 1", "model.stages"]);
-    fails(d, &["train", "admm-net", "--init-from", "run3", "--preset", "lidar", "--dataset", "ds", "--codes", "codes.json", "-o", "tuned3"], &["run3/config.json", "stages 1"]);
-    fails(d, &["train", "unet", "--init-from", "run3", "--dataset", "ds", "--codes", "codes.json", "-o", "tuned3"], &["run3/config.json", "admm-net run", "tcsense train admm-net"]);
-    fails(d, &["train", "admm-net", "--init-from", "nowhere", "--dataset", "ds", "--codes", "codes.json", "-o", "tuned3"], &["nowhere", "config.json missing"]);
+    ok(
+        d,
+        &[
+            "train",
+            "admm-net",
+            "--init-from",
+            "run3",
+            "--stages",
+            "1",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--epochs",
+            "1",
+            "-o",
+            "tuned2",
+        ],
+    );
+    fails(
+        d,
+        &["train", "admm-net", "--init-from", "run3", "--stages", "3", "--dataset", "ds", "--codes", "codes.json", "-o", "tuned3"],
+        &["run3/config.json", "--stages 3", "stages 1", "model.stages"],
+    );
+    fails(
+        d,
+        &["train", "admm-net", "--init-from", "run3", "--preset", "lidar", "--dataset", "ds", "--codes", "codes.json", "-o", "tuned3"],
+        &["run3/config.json", "stages 1"],
+    );
+    fails(
+        d,
+        &["train", "unet", "--init-from", "run3", "--dataset", "ds", "--codes", "codes.json", "-o", "tuned3"],
+        &["run3/config.json", "admm-net run", "tcsense train admm-net"],
+    );
+    fails(
+        d,
+        &["train", "admm-net", "--init-from", "nowhere", "--dataset", "ds", "--codes", "codes.json", "-o", "tuned3"],
+        &["nowhere", "config.json missing"],
+    );
     // the same on --resume: the run's architecture, flags checked against it
-    fails(d, &["train", "admm-net", "--channels", "8", "--epochs", "2", "--resume", "-o", "tuned"], &["tuned/config.json", "--channels 8", "channels 2"]);
+    fails(
+        d,
+        &["train", "admm-net", "--channels", "8", "--epochs", "2", "--resume", "-o", "tuned"],
+        &["tuned/config.json", "--channels 8", "channels 2"],
+    );
     assert!(!d.join("tuned3").exists(), "a refused fine-tuning writes nothing");
 }
 
@@ -382,7 +766,25 @@ fn resume_refuses_a_changed_dataset() {
     let d = tempdir();
     let d = d.path();
     tiny_lidar_and_codes(d);
-    ok(d, &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--channels", "2", "--epochs", "1", "-o", "run"]);
+    ok(
+        d,
+        &[
+            "train",
+            "admm-net",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--stages",
+            "1",
+            "--channels",
+            "2",
+            "--epochs",
+            "1",
+            "-o",
+            "run",
+        ],
+    );
     let state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("run/checkpoint/state.json")).unwrap()).unwrap();
     assert_eq!(state["dataset"].as_str().map(str::len), Some(16), "{state}");
     std::fs::rename(d.join("ds"), d.join("ds-first")).unwrap();

@@ -55,19 +55,32 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
     let mut args = ARGS.to_vec();
     args.extend(["-o", "demo"]);
     let out = ok(d, &args);
-    assert!(out.contains("[12/14] timing") && out.contains("[13/14] bring-up of a non-ideal sensor") && out.contains("wrote demo/report.html"), "{out}");
+    assert!(
+        out.contains("[12/14] timing") && out.contains("[13/14] bring-up of a non-ideal sensor") && out.contains("wrote demo/report.html"),
+        "{out}"
+    );
     let demo = d.join("demo");
     let html = std::fs::read_to_string(demo.join("report.html")).unwrap();
     // the code memory's registers as tables a person reads, not a page of raw JSON
-    assert!(html.contains("ECLEN (L/8 − 1)") && html.contains("16 (4 subpixels × 4 taps)") && html.contains("offset in the combined image"), "registers table missing");
+    assert!(
+        html.contains("ECLEN (L/8 − 1)") && html.contains("16 (4 subpixels × 4 taps)") && html.contains("offset in the combined image"),
+        "registers table missing"
+    );
     assert!(!html.contains("bytes_per_channel"), "raw registers JSON in the report");
 
     // the bring-up of the non-ideal sensor: calibrated, the LiDAR decoders fine-tuned and
     // exported for its raw taps, every condition checked and in the report
-    for f in ["bench-sweep/sweep.json", "bringup/cal/calibration.json", "bringup/onnx/admm-lidar.onnx", "bringup/onnx/unet-lidar.onnx", "bringup/report.html"] {
+    for f in [
+        "bench-sweep/sweep.json",
+        "bringup/cal/calibration.json",
+        "bringup/onnx/admm-lidar.onnx",
+        "bringup/onnx/unet-lidar.onnx",
+        "bringup/report.html",
+    ] {
         assert!(demo.join(f).exists(), "{f} missing");
     }
-    let check: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(demo.join("bringup/results/check.json")).unwrap()).unwrap();
+    let check: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(demo.join("bringup/results/check.json")).unwrap()).unwrap();
     let rows = check["rows"].as_array().unwrap();
     assert_eq!(rows.len(), 3 + 2 * 4, "TVAL3 under three conditions, each decoder under four: {rows:?}");
     assert!(rows.iter().all(|r| r["first_return_median_m"].as_f64().is_some_and(f64::is_finite)), "{rows:?}");
@@ -80,7 +93,22 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
         let bytes = std::fs::read(demo.join(src)).unwrap_or_else(|e| panic!("{src}: {e}"));
         assert!(bytes.len() > 5000 && bytes.starts_with(b"\x89PNG\r\n\x1a\n"), "{src}: {} bytes", bytes.len());
     }
-    for name in ["codes-random", "codes-selected", "codes-learned", "taps", "waveforms-lidar", "depth", "depth-error", "point-cloud", "lifetime", "phasor", "waveforms-flim", "training-lidar", "training-unet", "training-flim"] {
+    for name in [
+        "codes-random",
+        "codes-selected",
+        "codes-learned",
+        "taps",
+        "waveforms-lidar",
+        "depth",
+        "depth-error",
+        "point-cloud",
+        "lifetime",
+        "phasor",
+        "waveforms-flim",
+        "training-lidar",
+        "training-unet",
+        "training-flim",
+    ] {
         assert!(images.contains(&format!("figures/{name}.png").as_str()), "no {name} in {images:?}");
     }
 
@@ -89,7 +117,11 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
     let mut files = std::collections::BTreeMap::new();
     for (file, ptr, text) in &cells {
         let v = files.entry(file.clone()).or_insert_with(|| json(&demo.join(file)));
-        assert!(shows(text, v.pointer(ptr).and_then(Value::as_f64)), "{file}#{ptr}: table shows {text:?}, results hold {:?}", v.pointer(ptr));
+        assert!(
+            shows(text, v.pointer(ptr).and_then(Value::as_f64)),
+            "{file}#{ptr}: table shows {text:?}, results hold {:?}",
+            v.pointer(ptr)
+        );
     }
     let lidar = json(&demo.join("results/lidar.json"));
     let flim = json(&demo.join("results/flim.json"));
@@ -106,12 +138,18 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
     }
     assert_eq!(flim["rows"].as_array().unwrap().len(), 6);
     for fit in [&flim["rows"][3], &flim["rows"][5]] {
-        assert!(fit["mse"].is_null() && fit["lifetime_mae_ns"].as_f64().is_some_and(|v| v.is_finite() && v < 5.0), "the fit to the taps and the lifetime decoder have lifetimes and no cube: {fit}");
+        assert!(
+            fit["mse"].is_null() && fit["lifetime_mae_ns"].as_f64().is_some_and(|v| v.is_finite() && v < 5.0),
+            "the fit to the taps and the lifetime decoder have lifetimes and no cube: {fit}"
+        );
     }
     let zoo_cube = &flim["rows"][4];
     // (its lifetimes on the quick demo's two 16×16 test items are off by about 5 ns, TVAL3's by
     // 1.3: only that it gives them is asserted; its accuracy is in its PROVENANCE.md)
-    assert!(zoo_cube["psnr_db"].as_f64().is_some_and(|v| v > 20.0) && zoo_cube["lifetime_mae_ns"].as_f64().is_some_and(f64::is_finite), "the zoo's FLIm ADMM-Net gives a cube and its lifetimes: {zoo_cube}");
+    assert!(
+        zoo_cube["psnr_db"].as_f64().is_some_and(|v| v > 20.0) && zoo_cube["lifetime_mae_ns"].as_f64().is_some_and(f64::is_finite),
+        "the zoo's FLIm ADMM-Net gives a cube and its lifetimes: {zoo_cube}"
+    );
     for r in &flim["rows"].as_array().unwrap()[4..] {
         assert_eq!(r["codes"].as_str(), Some("the zoo's"));
         assert!(r["decoder"].as_str().is_some_and(|d| d.contains("zoo")), "{r}");

@@ -24,7 +24,12 @@ fn root() -> PathBuf {
 /// The pages: README.md and every `docs/*.md`, sorted.
 fn pages() -> Vec<PathBuf> {
     let mut out = vec![root().join("README.md")];
-    let mut docs: Vec<PathBuf> = std::fs::read_dir(root().join("docs")).unwrap().flatten().map(|e| e.path()).filter(|p| p.extension().is_some_and(|e| e == "md")).collect();
+    let mut docs: Vec<PathBuf> = std::fs::read_dir(root().join("docs"))
+        .unwrap()
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|e| e == "md"))
+        .collect();
     docs.sort();
     out.extend(docs);
     out
@@ -52,7 +57,11 @@ fn blocks(text: &str) -> Vec<(String, usize, String)> {
 fn synopsis_commands(line: &str) -> Vec<Vec<String>> {
     let mut paths: Vec<Vec<String>> = vec![Vec::new()];
     for tok in line.split_whitespace().skip(1) {
-        let is_word = |w: &str| !w.is_empty() && w.chars().all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '-') && w.starts_with(|c: char| c.is_ascii_lowercase());
+        let is_word = |w: &str| {
+            !w.is_empty()
+                && w.chars().all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == '-')
+                && w.starts_with(|c: char| c.is_ascii_lowercase())
+        };
         let alts: Vec<&str> = tok.split('|').collect();
         if !alts.iter().all(|a| is_word(a)) {
             break;
@@ -74,7 +83,13 @@ fn the_synopses_name_commands_that_exist() {
             for l in body.lines().filter(|l| l.starts_with("tcsense ")) {
                 for path in synopsis_commands(l) {
                     let o = common::bin().args(&path).arg("--help").output().unwrap();
-                    assert!(o.status.success(), "{}:{line}: `tcsense {} --help` failed: {}\n(synopsis: {l})", page.display(), path.join(" "), String::from_utf8_lossy(&o.stderr));
+                    assert!(
+                        o.status.success(),
+                        "{}:{line}: `tcsense {} --help` failed: {}\n(synopsis: {l})",
+                        page.display(),
+                        path.join(" "),
+                        String::from_utf8_lossy(&o.stderr)
+                    );
                     checked += 1;
                 }
             }
@@ -124,7 +139,10 @@ fn the_parser_finds_blocks_and_commands() {
     let b = blocks(md);
     assert_eq!(b.len(), 2);
     assert_eq!((b[0].0.as_str(), b[0].1, b[0].2.as_str()), ("sh", 2, "tcsense codes check c.json\n"));
-    assert_eq!(synopsis_commands(b[1].2.lines().next().unwrap()), vec![vec!["train".to_string(), "admm-net".into()], vec!["train".into(), "unet".into()]]);
+    assert_eq!(
+        synopsis_commands(b[1].2.lines().next().unwrap()),
+        vec![vec!["train".to_string(), "admm-net".into()], vec!["train".into(), "unet".into()]]
+    );
     assert_eq!(synopsis_commands("tcsense bench forward | dataset"), vec![vec!["bench".to_string(), "forward".into()]]);
     assert_eq!(synopsis_commands("tcsense depth xhat.npy [--peaks 2]"), vec![vec!["depth".to_string()]]);
 }

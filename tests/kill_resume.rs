@@ -14,8 +14,24 @@ const EPOCHS: &str = "4";
 fn train_cmd(dir: &Path, run: &str, resume: bool) -> Command {
     let mut c = bin();
     c.current_dir(dir).args([
-        "--threads", "2", "train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--epochs", EPOCHS, "--stages", "2",
-        "--channels", "4", "--seed", "5", "-o", run,
+        "--threads",
+        "2",
+        "train",
+        "admm-net",
+        "--dataset",
+        "ds",
+        "--codes",
+        "codes.json",
+        "--epochs",
+        EPOCHS,
+        "--stages",
+        "2",
+        "--channels",
+        "4",
+        "--seed",
+        "5",
+        "-o",
+        run,
     ]);
     if resume {
         c.arg("--resume");
@@ -38,11 +54,7 @@ fn resume(dir: &Path, run: &str) {
 
 /// `metrics.csv` without the wall-clock column.
 fn metrics(dir: &Path, run: &str) -> Vec<String> {
-    std::fs::read_to_string(dir.join(run).join("metrics.csv"))
-        .unwrap()
-        .lines()
-        .map(|l| l.rsplit_once(',').unwrap().0.to_string())
-        .collect()
+    std::fs::read_to_string(dir.join(run).join("metrics.csv")).unwrap().lines().map(|l| l.rsplit_once(',').unwrap().0.to_string()).collect()
 }
 
 fn assert_same_as_straight(dir: &Path, run: &str) {
@@ -106,7 +118,10 @@ fn killed_learned_code_runs_resume_to_the_same_codes_and_weights() {
     let t = tempdir();
     let d = t.path();
     ok(d, &["dataset", "lidar", "--count", "8", "--size", "8x8", "--length", "8", "--seed", "2", "-o", "ds"]);
-    ok(d, &["codes", "generate", "--tap-constraint", "--hamming", "2", "--window", "2", "--length", "8", "--seed", "1", "-o", "codes.json"]);
+    ok(
+        d,
+        &["codes", "generate", "--tap-constraint", "--hamming", "2", "--window", "2", "--length", "8", "--seed", "1", "-o", "codes.json"],
+    );
     let cmd = |run: &str, resume: bool| {
         let mut c = train_cmd(d, run, resume);
         c.args(["--learn-codes", "--relaxed-epochs", "2", "--codes-lr", "0.5"]);
@@ -120,7 +135,10 @@ fn killed_learned_code_runs_resume_to_the_same_codes_and_weights() {
         let o = cmd(run, true).output().unwrap();
         assert!(o.status.success(), "{run}: resume failed: {}", String::from_utf8_lossy(&o.stderr));
         for f in ["codes.json", "model.bpk", "relaxed/model.bpk", "relaxed/checkpoint/code_logits.bpk"] {
-            assert!(std::fs::read(d.join(run).join(f)).unwrap() == std::fs::read(d.join("straight").join(f)).unwrap(), "{run}: {f} differs from the uninterrupted run's");
+            assert!(
+                std::fs::read(d.join(run).join(f)).unwrap() == std::fs::read(d.join("straight").join(f)).unwrap(),
+                "{run}: {f} differs from the uninterrupted run's"
+            );
         }
     }
 }

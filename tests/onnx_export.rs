@@ -29,7 +29,14 @@ fn random_run(model: impl Fn(usize, usize) -> ModelConfig, block: (usize, usize)
 }
 
 /// [`random_run`] with `length` masks per cycle.
-fn random_run_of_length(model: impl Fn(usize, usize) -> ModelConfig, block: (usize, usize), length: usize, sampling: Sampling, irf: Irf, seed: u64) -> LoadedRun {
+fn random_run_of_length(
+    model: impl Fn(usize, usize) -> ModelConfig,
+    block: (usize, usize),
+    length: usize,
+    sampling: Sampling,
+    irf: Irf,
+    seed: u64,
+) -> LoadedRun {
     let shape = CodeShape { bh: block.0, bw: block.1, taps: 4, length, drain: false };
     let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, seed).unwrap();
     let probe = RunSpec { model: model(4, 8), sampling, irf, measured: false };
@@ -54,7 +61,8 @@ fn ort_outputs(run: &LoadedRun, opts: ExportOptions, y: &Array4<f32>, dir: &Path
 fn ort_outputs_on(run: &LoadedRun, opts: ExportOptions, y: &Array4<f32>, dir: &Path, name: &str, threads: usize) -> Vec<Array4<f32>> {
     let path = dir.join(name);
     std::fs::write(&path, export(run, opts).unwrap()).unwrap();
-    let mut model = OnnxModel::open(&path, threads).unwrap_or_else(|e| panic!("{e} (run scripts/setup.sh to install ONNX Runtime into .venv)"));
+    let mut model =
+        OnnxModel::open(&path, threads).unwrap_or_else(|e| panic!("{e} (run scripts/setup.sh to install ONNX Runtime into .venv)"));
     model.run(y.view()).unwrap()
 }
 
@@ -73,7 +81,11 @@ fn rel_diff(a: &Array4<f32>, b: &Array4<f32>) -> f32 {
 #[test]
 fn admm_net_in_onnx_runtime_equals_burn() {
     let dir = tempfile::tempdir().unwrap();
-    let admm = |normalize: bool, prior: Prior| move |m: usize, t: usize| ModelConfig::AdmmNet(AdmmNetConfig::new(m, t).with_stages(3).with_channels(4).with_normalize(normalize).with_prior(prior));
+    let admm = |normalize: bool, prior: Prior| {
+        move |m: usize, t: usize| {
+            ModelConfig::AdmmNet(AdmmNetConfig::new(m, t).with_stages(3).with_channels(4).with_normalize(normalize).with_prior(prior))
+        }
+    };
     let physical = Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 };
     let cases = [
         ("2x2 ideal", random_run(admm(true, Prior::Bins), (2, 2), Sampling::Oversample(1), Irf::Ideal, 1)),
@@ -105,7 +117,11 @@ fn admm_net_in_onnx_runtime_equals_burn() {
 #[test]
 fn flim_delay_prior_net_is_the_same_in_burn_and_onnx_runtime_on_any_thread_count() {
     let physical = Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 };
-    let net = |m: usize, t: usize| ModelConfig::AdmmNet(AdmmNetConfig::new(m, t).with_stages(3).with_channels(2).with_normalize(true).with_prior(Prior::Delay).with_rho_init(0.02));
+    let net = |m: usize, t: usize| {
+        ModelConfig::AdmmNet(
+            AdmmNetConfig::new(m, t).with_stages(3).with_channels(2).with_normalize(true).with_prior(Prior::Delay).with_rho_init(0.02),
+        )
+    };
     let run = random_run_of_length(net, (2, 2), 32, Sampling::Heterodyne(8), physical, 8);
     let (t, h, w) = (run.sensor.bins(), 8, 8);
     assert_eq!(t, 256);
@@ -114,7 +130,11 @@ fn flim_delay_prior_net_is_the_same_in_burn_and_onnx_runtime_on_any_thread_count
     let x = Array4::from_shape_fn((1, t, h, w), |(_, j, r, c)| {
         let (tau, amp) = (0.5 + 4.5 * ((r * w + c) as f64 / (h * w) as f64), 10f64.powf(2.0 * ((r + 3 * c) % 7) as f64 / 6.0));
         let dt = (j as f64 - 10.0) * bin_ns;
-        if dt < 0.0 { 0.0 } else { (amp * (-dt / tau).exp()) as f32 }
+        if dt < 0.0 {
+            0.0
+        } else {
+            (amp * (-dt / tau).exp()) as f32
+        }
     });
     let plan = run.sensor.plan(h, w).unwrap();
     let mut y = plan.forward_batch(&x.view()).unwrap();
@@ -140,7 +160,10 @@ fn ort_equals_burn(label: &str, run: &LoadedRun, sizes: &[(usize, usize)], seed:
             let got = ort_outputs(run, ExportOptions { matrix_input, ..Default::default() }, &y, dir.path(), file);
             for (k, name) in names.iter().enumerate() {
                 let d = rel_diff(&got[k], &want[k]);
-                assert!(d <= 1e-4, "{label}, {h}x{w}, matrix input {matrix_input}, {name}: ort differs from burn by {d:e} of the output scale");
+                assert!(
+                    d <= 1e-4,
+                    "{label}, {h}x{w}, matrix input {matrix_input}, {name}: ort differs from burn by {d:e} of the output scale"
+                );
             }
             all.push(got);
         }
@@ -157,14 +180,27 @@ fn unet_in_onnx_runtime_equals_burn() {
         assert!(got[0].iter().all(|v| (0.0..=12.0).contains(v)) && got[1].iter().all(|v| (0.0..=1.0).contains(v)));
     }
     // the score-volume head: the soft-argmax in the graph, depth between the first and last bin centres
-    let scores = |m: usize, t: usize| ModelConfig::Unet(UnetConfig::new(m, t, 12.0).with_base_width(4).with_levels(3).with_returns(2).with_head(tcsense_models::UnetHead::ScoreVolume));
+    let scores = |m: usize, t: usize| {
+        ModelConfig::Unet(
+            UnetConfig::new(m, t, 12.0).with_base_width(4).with_levels(3).with_returns(2).with_head(tcsense_models::UnetHead::ScoreVolume),
+        )
+    };
     let run = random_run(scores, (2, 2), Sampling::Oversample(2), Irf::Ideal, 5);
     for got in ort_equals_burn("unet score volume", &run, &[(8, 8), (12, 16)], 10, "unet-scores.onnx", &["depth", "confidence"]) {
         assert!(got[0].iter().all(|v| (0.37..=11.63).contains(v)) && got[1].iter().all(|v| (0.0..=1.0).contains(v)));
     }
     // the matched filters as input (baked, and formed in the graph from an input matrix), with
     // a physical IRF so that the templates are not the code bits
-    let matched = |m: usize, t: usize| ModelConfig::Unet(UnetConfig::new(m, t, 12.0).with_base_width(4).with_levels(3).with_returns(2).with_head(tcsense_models::UnetHead::ScoreVolume).with_input(tcsense_models::UnetInput::Matched));
+    let matched = |m: usize, t: usize| {
+        ModelConfig::Unet(
+            UnetConfig::new(m, t, 12.0)
+                .with_base_width(4)
+                .with_levels(3)
+                .with_returns(2)
+                .with_head(tcsense_models::UnetHead::ScoreVolume)
+                .with_input(tcsense_models::UnetInput::Matched),
+        )
+    };
     let physical = Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 };
     let run = random_run(matched, (2, 2), Sampling::Oversample(1), physical, 6);
     let outs = ort_equals_burn("unet matched", &run, &[(8, 8), (12, 16)], 11, "unet-matched.onnx", &["depth", "confidence"]);

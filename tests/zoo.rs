@@ -24,7 +24,12 @@ fn zoo_dir() -> PathBuf {
 
 /// The zoo's entries (directories with a run config), sorted.
 fn entries() -> Vec<String> {
-    let mut names: Vec<String> = std::fs::read_dir(zoo_dir()).unwrap().filter_map(|e| e.ok()).filter(|e| e.path().join("config.json").is_file()).map(|e| e.file_name().to_string_lossy().into_owned()).collect();
+    let mut names: Vec<String> = std::fs::read_dir(zoo_dir())
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .filter(|e| e.path().join("config.json").is_file())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
     names.sort();
     names
 }
@@ -34,7 +39,12 @@ fn recipe(name: &str) -> Vec<Vec<String>> {
     let path = zoo_dir().join(name).join("recipe.json");
     let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e} (every zoo entry records its recipe)", path.display()));
     let v: serde_json::Value = serde_json::from_str(&text).unwrap();
-    v["steps"].as_array().expect("recipe.steps").iter().map(|s| s.as_array().expect("a step is a list of arguments").iter().map(|a| a.as_str().unwrap().to_string()).collect()).collect()
+    v["steps"]
+        .as_array()
+        .expect("recipe.steps")
+        .iter()
+        .map(|s| s.as_array().expect("a step is a list of arguments").iter().map(|a| a.as_str().unwrap().to_string()).collect())
+        .collect()
 }
 
 /// Max |a − b| over the scale of `b`.
@@ -92,7 +102,10 @@ fn every_entry_decodes_and_exports_with_burn_and_onnx_runtime_agreeing() {
         let onnx = d.path().join(format!("{name}.onnx"));
         std::fs::write(&onnx, export(&run, ExportOptions::default()).unwrap()).unwrap();
         for threads in [1, 2] {
-            let got = OnnxModel::open(&onnx, threads).unwrap_or_else(|e| panic!("{e} (run scripts/setup.sh to install ONNX Runtime into .venv)")).run(y.view()).unwrap();
+            let got = OnnxModel::open(&onnx, threads)
+                .unwrap_or_else(|e| panic!("{e} (run scripts/setup.sh to install ONNX Runtime into .venv)"))
+                .run(y.view())
+                .unwrap();
             for (k, want) in want.iter().enumerate() {
                 let diff = rel_diff(&got[k], want);
                 assert!(diff <= 1e-4, "zoo:{name}, output {k}, {threads} threads: ONNX Runtime differs from burn by {diff:e} of the scale");
@@ -128,14 +141,21 @@ fn every_entry_reproduces_its_first_logged_epoch_from_its_recipe() {
                 }
             }
         }
-        let out = train.iter().position(|a| a == "-o" || a == "--output").map(|i| train[i + 1].clone()).expect("the train step names its run");
+        let out =
+            train.iter().position(|a| a == "-o" || a == "--output").map(|i| train[i + 1].clone()).expect("the train step names its run");
         let mut args: Vec<&str> = train.iter().map(String::as_str).collect();
         args.extend(["--pause-after", "1"]);
         let stdout = ok(d.path(), &args);
         assert!(stdout.contains("paused after 1 epochs"), "{stdout}");
         let first = |p: &Path| std::fs::read_to_string(p).unwrap().lines().nth(1).map(str::to_string).unwrap_or_default();
         // the clock is in timing.csv; a metrics.csv from before it ends in seconds
-        let strip = |row: String, header: &str| if header.ends_with(",seconds") { row.rsplit_once(',').map(|(a, _)| a.to_string()).unwrap_or(row) } else { row };
+        let strip = |row: String, header: &str| {
+            if header.ends_with(",seconds") {
+                row.rsplit_once(',').map(|(a, _)| a.to_string()).unwrap_or(row)
+            } else {
+                row
+            }
+        };
         // an entry with learned codes starts with its relaxed phase, a run of its own in RUN/relaxed
         let phase = if train.iter().any(|a| a == "--learn-codes") { "relaxed" } else { "" };
         let zoo_metrics = zoo_dir().join(&name).join(phase).join("metrics.csv");
@@ -160,7 +180,10 @@ fn every_entry_reproduces_its_first_logged_epoch_from_its_recipe() {
                 Some(&"val_detection") => 0.01,
                 _ => 0.25,
             };
-            assert!((g - w).abs() <= tolerance * w.abs(), "zoo:{name}: validation column {k} of the first epoch re-run: {got} against {want} (within {tolerance})");
+            assert!(
+                (g - w).abs() <= tolerance * w.abs(),
+                "zoo:{name}: validation column {k} of the first epoch re-run: {got} against {want} (within {tolerance})"
+            );
         }
         // the first epoch's checkpoint is a resumable run of the recorded config
         let cfg = |p: &Path| serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(p.join("config.json")).unwrap()).unwrap();
@@ -168,7 +191,8 @@ fn every_entry_reproduces_its_first_logged_epoch_from_its_recipe() {
         for key in ["decoder", "model", "sampling", "irf", "epochs", "batch_size", "learning_rate", "seed", "augment"] {
             assert_eq!(zc[key], rc[key], "zoo:{name}: config.{key} of the re-run");
         }
-        let state: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.path().join(&out).join(phase).join("checkpoint/state.json")).unwrap()).unwrap();
+        let state: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(d.path().join(&out).join(phase).join("checkpoint/state.json")).unwrap()).unwrap();
         assert_eq!(state["epoch"], 1, "zoo:{name}: paused after one epoch, its checkpoint in place");
         dirs.push(d);
     }

@@ -75,7 +75,14 @@ impl Default for FlimRandomization {
     /// Onsets over the whole cycle, IRF FWHM 0–1 ns, 1–3 lifetimes in 0.3–6 ns, background
     /// 0–5 % of the peak, brightness over two decades.
     fn default() -> Self {
-        FlimRandomization { onset_cycle: [0.0, 1.0], irf_fwhm_s: [0.0, 1e-9], lifetimes: [1, 3], tau_s: [0.3e-9, 6e-9], background: [0.0, 0.05], brightness: [0.01, 1.0] }
+        FlimRandomization {
+            onset_cycle: [0.0, 1.0],
+            irf_fwhm_s: [0.0, 1e-9],
+            lifetimes: [1, 3],
+            tau_s: [0.3e-9, 6e-9],
+            background: [0.0, 0.05],
+            brightness: [0.01, 1.0],
+        }
     }
 }
 
@@ -310,7 +317,8 @@ pub fn render(p: &Array3<f32>, knobs: &FlimKnobs, grid: &TimeGrid) -> FlimSample
     let (_, h, w) = p.dim();
     let t = grid.bins();
     let (tau, t0) = (knobs.tau, knobs.onset_s);
-    let decays: Vec<Vec<f64>> = tau.iter().map(|&ti| blur_cyclic(&decay_bins(grid, ti, t0), grid.bin_width_s(), knobs.irf_fwhm_s)).collect();
+    let decays: Vec<Vec<f64>> =
+        tau.iter().map(|&ti| blur_cyclic(&decay_bins(grid, ti, t0), grid.bin_width_s(), knobs.irf_fwhm_s)).collect();
     let mut x = Array3::<f32>::zeros((t, h, w));
     let mut weights = Array3::<f32>::zeros((3, h, w));
     let mut lifetime = Array2::<f32>::from_elem((h, w), f32::NAN);
@@ -343,7 +351,14 @@ pub fn render(p: &Array3<f32>, knobs: &FlimKnobs, grid: &TimeGrid) -> FlimSample
         x.mapv_inplace(|v| v * b);
         intensity.mapv_inplace(|v| v * b);
     }
-    FlimSample { x, tau: Array1::from_iter(tau.iter().map(|&v| v as f32)), weights, lifetime, intensity, onset: Array1::from_elem(1, t0 as f32) }
+    FlimSample {
+        x,
+        tau: Array1::from_iter(tau.iter().map(|&v| v as f32)),
+        weights,
+        lifetime,
+        intensity,
+        onset: Array1::from_elem(1, t0 as f32),
+    }
 }
 
 #[cfg(test)]
@@ -367,12 +382,19 @@ mod tests {
             let tau_true = s.tau[i] as f64;
             let mut p = Array3::<f32>::zeros((3, 1, 1));
             p[(i, 0, 0)] = 1.0;
-            let knobs = FlimKnobs { tau: [s.tau[0] as f64, s.tau[1] as f64, s.tau[2] as f64], onset_s: params.onset_s, irf_fwhm_s: 0.0, background: 0.0, brightness: 1.0 };
+            let knobs = FlimKnobs {
+                tau: [s.tau[0] as f64, s.tau[1] as f64, s.tau[2] as f64],
+                onset_s: params.onset_s,
+                irf_fwhm_s: 0.0,
+                background: 0.0,
+                brightness: 1.0,
+            };
             let one = render(&p, &knobs, &g);
             let ys: Vec<f64> = (first..first + 30).map(|j| (one.x[(j, 0, 0)] as f64).ln()).collect();
             let xs: Vec<f64> = (first..first + 30).map(|j| j as f64 * dt).collect();
             let (mx, my) = (xs.iter().sum::<f64>() / 30.0, ys.iter().sum::<f64>() / 30.0);
-            let slope = xs.iter().zip(&ys).map(|(x, y)| (x - mx) * (y - my)).sum::<f64>() / xs.iter().map(|x| (x - mx).powi(2)).sum::<f64>();
+            let slope =
+                xs.iter().zip(&ys).map(|(x, y)| (x - mx) * (y - my)).sum::<f64>() / xs.iter().map(|x| (x - mx).powi(2)).sum::<f64>();
             let tau_fit = -1.0 / slope;
             assert!((tau_fit / tau_true - 1.0).abs() < 1e-3, "channel {i}: fit {tau_fit:e} true {tau_true:e}");
             assert!(tau_true >= TAU_RANGES[i].0 && tau_true < TAU_RANGES[i].1);
@@ -416,7 +438,14 @@ mod tests {
         assert!(hist.iter().all(|&n| n >= 25), "onset histogram {hist:?}");
         // one, two and three distinct lifetimes all occur, inside the log-uniform range
         for n in 1..=3 {
-            assert!(knobs.iter().any(|k| { let mut t = k.tau.to_vec(); t.dedup(); t.len() == n }), "{n} lifetimes");
+            assert!(
+                knobs.iter().any(|k| {
+                    let mut t = k.tau.to_vec();
+                    t.dedup();
+                    t.len() == n
+                }),
+                "{n} lifetimes"
+            );
         }
         assert!(knobs.iter().all(|k| k.tau.iter().all(|&t| t >= r.tau_s[0] && t <= r.tau_s[1])));
         let taus: Vec<f64> = knobs.iter().map(|k| k.tau[0]).collect();

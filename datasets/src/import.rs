@@ -44,7 +44,9 @@ pub fn read_map(path: &Path) -> Result<Array2<f32>> {
         let a = read_npy(path)?;
         let nd = a.ndim();
         let shape = a.shape().to_vec();
-        let a = a.into_dimensionality::<Ix2>().map_err(|_| file_err(path, format!("map has shape {shape:?} (rank {nd}), expected rank 2 [H, W]")))?;
+        let a = a
+            .into_dimensionality::<Ix2>()
+            .map_err(|_| file_err(path, format!("map has shape {shape:?} (rank {nd}), expected rank 2 [H, W]")))?;
         ensure_finite(&a.view(), "map").map_err(|e| e.in_file(path))?;
         return Ok(a);
     }
@@ -70,7 +72,9 @@ pub fn import(source: &Source, opts: &ImportOptions, dir: &Path) -> Result<Manif
     let mut check_size = |path: &Path, h: usize, w: usize| -> Result<()> {
         check_frame(path, h, w, opts.block)?;
         match &size {
-            Some((h0, w0, p0)) if (*h0, *w0) != (h, w) => Err(file_err(path, format!("frame {h}x{w} differs from {h0}x{w0} of {}", p0.display()))),
+            Some((h0, w0, p0)) if (*h0, *w0) != (h, w) => {
+                Err(file_err(path, format!("frame {h}x{w} differs from {h0}x{w0} of {}", p0.display())))
+            }
             Some(_) => Ok(()),
             None => {
                 size = Some((h, w, path.to_path_buf()));
@@ -89,7 +93,15 @@ pub fn import(source: &Source, opts: &ImportOptions, dir: &Path) -> Result<Manif
                 for c in cubes {
                     let sh = c.shape().to_vec();
                     if sh[0] != t {
-                        return Err(file_err(p, format!("cube has {} time bins, expected T = L·K = {t} for the grid (L = {}, K = {})", sh[0], grid.length, grid.sampling.k())));
+                        return Err(file_err(
+                            p,
+                            format!(
+                                "cube has {} time bins, expected T = L·K = {t} for the grid (L = {}, K = {})",
+                                sh[0],
+                                grid.length,
+                                grid.sampling.k()
+                            ),
+                        ));
                     }
                     check_size(p, sh[1], sh[2])?;
                     let intensity = c.sum_axis(Axis(0));
@@ -116,7 +128,10 @@ pub fn import(source: &Source, opts: &ImportOptions, dir: &Path) -> Result<Manif
                     return Err(file_err(dp, format!("negative depth {v} m at pixel ({r}, {c}); depths must be ≥ 0 (0 = no return)")));
                 }
                 if let Some(((r, c), v)) = d.indexed_iter().find(|(_, v)| **v as f64 >= range) {
-                    return Err(file_err(dp, format!("depth {v} m at pixel ({r}, {c}) is beyond the unambiguous range {range:.3} m (L·T_c·c/2)")));
+                    return Err(file_err(
+                        dp,
+                        format!("depth {v} m at pixel ({r}, {c}) is beyond the unambiguous range {range:.3} m (L·T_c·c/2)"),
+                    ));
                 }
                 let alb = match albedo.get(k) {
                     Some(ap) => {

@@ -98,11 +98,7 @@ impl Camera {
     /// Unit ray direction through the centre of pixel `(r, c)`.
     pub fn ray(&self, r: usize, c: usize) -> [f64; 3] {
         let f = (self.width as f64 / 2.0) / (self.fov_deg.to_radians() / 2.0).tan();
-        let d = [
-            (c as f64 + 0.5 - self.width as f64 / 2.0) / f,
-            (r as f64 + 0.5 - self.height as f64 / 2.0) / f,
-            1.0,
-        ];
+        let d = [(c as f64 + 0.5 - self.width as f64 / 2.0) / f, (r as f64 + 0.5 - self.height as f64 / 2.0) / f, 1.0];
         let n = norm(d);
         [d[0] / n, d[1] / n, d[2] / n]
     }
@@ -242,7 +238,16 @@ impl LidarParams {
     /// The generator without randomisation: 64×64, 40°, up to 4 objects, a sheet in half the
     /// scenes, walls within 70–90 % of the range, checker textures.
     pub fn paper() -> Self {
-        LidarParams { height: 64, width: 64, fov_deg: 40.0, max_objects: 4, sheet_probability: 0.5, interreflection: false, ambient: 0.0, randomization: None }
+        LidarParams {
+            height: 64,
+            width: 64,
+            fov_deg: 40.0,
+            max_objects: 4,
+            sheet_probability: 0.5,
+            interreflection: false,
+            ambient: 0.0,
+            randomization: None,
+        }
     }
 
     fn camera(&self) -> Camera {
@@ -317,7 +322,14 @@ impl LidarParams {
                 Shape::Cuboid { min: [cx - s[0], cy - s[1], z - s[2]], max: [cx + s[0], cy + s[1], z + s[2]] }
             };
             let (p, t) = tex(&mut rng);
-            objects.push(Object { shape, albedo: rng.random_range(0.2..1.0), texture_period: p, texture_contrast: t, tail: tail(&mut rng, self.interreflection), noise_seed: None });
+            objects.push(Object {
+                shape,
+                albedo: rng.random_range(0.2..1.0),
+                texture_period: p,
+                texture_contrast: t,
+                tail: tail(&mut rng, self.interreflection),
+                noise_seed: None,
+            });
         }
         let sheet = rng.random_bool(self.sheet_probability).then(|| Sheet {
             z: rng.random_range(0.3..0.7) * z_near,
@@ -335,7 +347,15 @@ impl LidarParams {
         let half_x = (cam.fov_deg.to_radians() / 2.0).tan();
         let half_y = half_x * cam.height as f64 / cam.width as f64;
         let corners = [(0, 0), (0, cam.width - 1), (cam.height - 1, 0), (cam.height - 1, cam.width - 1)];
-        let min_den = |tilt: [f64; 2]| corners.iter().map(|&(rr, c)| { let d = cam.ray(rr, c); d[2] - tilt[0] * d[0] - tilt[1] * d[1] }).fold(f64::INFINITY, f64::min);
+        let min_den = |tilt: [f64; 2]| {
+            corners
+                .iter()
+                .map(|&(rr, c)| {
+                    let d = cam.ray(rr, c);
+                    d[2] - tilt[0] * d[0] - tilt[1] * d[1]
+                })
+                .fold(f64::INFINITY, f64::min)
+        };
         // a surface's look: checkers or fractal noise, albedo, interreflection tail
         let look = |rng: &mut StdRng, albedo: (f64, f64)| {
             let noise = rng.random_bool(r.noise_texture);
@@ -358,8 +378,15 @@ impl LidarParams {
         // plane z = zw + tilt·(x, y): the range along ray d is zw / den(d); the largest is at the smallest den
         let zw = far * min_den(tilt);
         // the wall's nearest depth z = t·d_z over the corners (t = zw / den)
-        let mut z_near = corners.iter().map(|&(rr, c)| { let d = cam.ray(rr, c); zw * d[2] / (d[2] - tilt[0] * d[0] - tilt[1] * d[1]) }).fold(f64::INFINITY, f64::min);
-        let mut objects = vec![object(&mut rng, Shape::Plane { point: [0.0, 0.0, zw], normal: normalize([tilt[0], tilt[1], -1.0]) }, (0.2, 1.0))];
+        let mut z_near = corners
+            .iter()
+            .map(|&(rr, c)| {
+                let d = cam.ray(rr, c);
+                zw * d[2] / (d[2] - tilt[0] * d[0] - tilt[1] * d[1])
+            })
+            .fold(f64::INFINITY, f64::min);
+        let mut objects =
+            vec![object(&mut rng, Shape::Plane { point: [0.0, 0.0, zw], normal: normalize([tilt[0], tilt[1], -1.0]) }, (0.2, 1.0))];
         if rng.random_bool(0.5) {
             let yf = rng.random_range(0.2..0.9) * half_y * zw;
             z_near = z_near.min(yf / half_y);
@@ -483,7 +510,12 @@ fn value_noise(p: [f64; 3], seed: u64) -> f64 {
     let f = [p[0] - cell[0], p[1] - cell[1], p[2] - cell[2]].map(|v| v * v * (3.0 - 2.0 * v));
     let lattice = |dx: i64, dy: i64, dz: i64| {
         let (x, y, z) = (cell[0] as i64 + dx, cell[1] as i64 + dy, cell[2] as i64 + dz);
-        let h = tcsense_sensor::noise::derive_seed(seed, (x as u64).wrapping_mul(0x9E37_79B9) ^ (y as u64).wrapping_mul(0x85EB_CA6B).rotate_left(21) ^ (z as u64).wrapping_mul(0xC2B2_AE35).rotate_left(42));
+        let h = tcsense_sensor::noise::derive_seed(
+            seed,
+            (x as u64).wrapping_mul(0x9E37_79B9)
+                ^ (y as u64).wrapping_mul(0x85EB_CA6B).rotate_left(21)
+                ^ (z as u64).wrapping_mul(0xC2B2_AE35).rotate_left(42),
+        );
         (h >> 11) as f64 / (1u64 << 53) as f64
     };
     let lerp = |a: f64, b: f64, t: f64| a + (b - a) * t;
@@ -551,11 +583,8 @@ pub fn render(scene: &Scene, cam: &Camera, grid: &TimeGrid) -> LidarSample {
                     atten = s.transmission * s.transmission;
                 }
             }
-            let hit = scene
-                .objects
-                .iter()
-                .filter_map(|o| intersect(&o.shape, d).map(|(rng, n)| (rng, n, o)))
-                .min_by(|a, b| a.0.total_cmp(&b.0));
+            let hit =
+                scene.objects.iter().filter_map(|o| intersect(&o.shape, d).map(|(rng, n)| (rng, n, o))).min_by(|a, b| a.0.total_cmp(&b.0));
             if let Some((range, n, o)) = hit {
                 let p = [d[0] * range, d[1] * range, d[2] * range];
                 let alb = texture(o, p);
@@ -602,7 +631,14 @@ mod tests {
     }
 
     fn wall(z: f64) -> Object {
-        Object { shape: Shape::Plane { point: [0.0, 0.0, z], normal: [0.0, 0.0, -1.0] }, albedo: 0.5, texture_period: 0.0, texture_contrast: 0.0, tail: None, noise_seed: None }
+        Object {
+            shape: Shape::Plane { point: [0.0, 0.0, z], normal: [0.0, 0.0, -1.0] },
+            albedo: 0.5,
+            texture_period: 0.0,
+            texture_contrast: 0.0,
+            tail: None,
+            noise_seed: None,
+        }
     }
 
     #[test]
@@ -648,7 +684,14 @@ mod tests {
     #[test]
     fn generator_is_deterministic_and_in_range() {
         for random in [None, Some(LidarRandomization::default())] {
-            let p = LidarParams { height: 8, width: 8, sheet_probability: 1.0, interreflection: true, randomization: random, ..LidarParams::paper() };
+            let p = LidarParams {
+                height: 8,
+                width: 8,
+                sheet_probability: 1.0,
+                interreflection: true,
+                randomization: random,
+                ..LidarParams::paper()
+            };
             let g = grid();
             let a = p.sample(&g, 3, 5);
             let b = p.sample(&g, 3, 5);
@@ -674,7 +717,8 @@ mod tests {
         let p = LidarParams { height: 16, width: 16, ..Default::default() };
         let fixed = LidarParams { height: 16, width: 16, ..LidarParams::paper() };
         let range = g.range_m();
-        let far = |p: &LidarParams, i: u64| p.sample(&g, 1, i).depth.iter().filter(|v| v.is_finite()).fold(0f32, |m, &v| m.max(v)) as f64 / range;
+        let far =
+            |p: &LidarParams, i: u64| p.sample(&g, 1, i).depth.iter().filter(|v| v.is_finite()).fold(0f32, |m, &v| m.max(v)) as f64 / range;
         let random_far: Vec<f64> = (0..60).map(|i| far(&p, i)).collect();
         let fixed_far: Vec<f64> = (0..60).map(|i| far(&fixed, i)).collect();
         // the fixed generator keeps every wall within 90 % of the range; the randomised one
@@ -689,7 +733,10 @@ mod tests {
         assert!((noisy - r.noise_texture).abs() < 0.1, "{noisy} of the surfaces have noise textures");
         assert!(objects().any(|o| o.tail.is_some_and(|(k, _)| k > 0.1)), "strong interreflection tails");
         let sheets: Vec<Sheet> = scenes.iter().filter_map(|s| s.sheet).collect();
-        assert!(sheets.iter().any(|s| s.transmission < 0.5) && sheets.iter().all(|s| (r.sheet_transmission[0]..=r.sheet_transmission[1]).contains(&s.transmission)));
+        assert!(
+            sheets.iter().any(|s| s.transmission < 0.5)
+                && sheets.iter().all(|s| (r.sheet_transmission[0]..=r.sheet_transmission[1]).contains(&s.transmission))
+        );
         assert!(scenes.iter().any(|s| s.ambient > 0.01) && scenes.iter().all(|s| s.ambient <= r.ambient[1]));
         // fractal noise varies smoothly within [0, 1]
         let v: Vec<f64> = (0..200).map(|i| fractal_noise([i as f64 * 0.05, 0.3, 1.7], 4)).collect();

@@ -61,16 +61,25 @@ pub fn montage(ds: &Dataset, split: &str, index: usize, out: &Path) -> Result<()
     let scale = (192 / h.max(w)).max(1);
     let (tw, th) = (w * scale, h * scale);
     let pad = 8;
-    let intensity = ds.item(split, index, "intensity")?.into_dimensionality::<Ix2>().map_err(|e| crate::error::invalid("intensity", "", e.to_string()))?;
+    let intensity = ds
+        .item(split, index, "intensity")?
+        .into_dimensionality::<Ix2>()
+        .map_err(|e| crate::error::invalid("intensity", "", e.to_string()))?;
     let mut maps: Vec<(ndarray::Array2<f32>, bool)> = vec![(intensity, true)];
     match ds.manifest.kind {
         Kind::Flim => {
-            let lt = ds.item(split, index, "lifetime")?.into_dimensionality::<Ix2>().map_err(|e| crate::error::invalid("lifetime", "", e.to_string()))?;
+            let lt = ds
+                .item(split, index, "lifetime")?
+                .into_dimensionality::<Ix2>()
+                .map_err(|e| crate::error::invalid("lifetime", "", e.to_string()))?;
             maps.push((lt, false));
         }
         _ => {
             if ds.manifest.fields.contains_key("depth") {
-                let d = ds.item(split, index, "depth")?.into_dimensionality::<Ix3>().map_err(|e| crate::error::invalid("depth", "", e.to_string()))?;
+                let d = ds
+                    .item(split, index, "depth")?
+                    .into_dimensionality::<Ix3>()
+                    .map_err(|e| crate::error::invalid("depth", "", e.to_string()))?;
                 for b in 0..d.dim().0 {
                     maps.push((d.index_axis(ndarray::Axis(0), b).to_owned(), false));
                 }

@@ -372,7 +372,10 @@ impl Manifest {
                 for rel in shard.files.values() {
                     let inside = Path::new(rel).components().all(|c| matches!(c, std::path::Component::Normal(_)));
                     if !inside || rel.is_empty() {
-                        return Err(format!("split {:?}: shard path {rel:?}, expected a relative path inside the dataset directory", split.name));
+                        return Err(format!(
+                            "split {:?}: shard path {rel:?}, expected a relative path inside the dataset directory",
+                            split.name
+                        ));
                     }
                 }
             }
@@ -439,7 +442,10 @@ impl Dataset {
             .ok_or_else(|| file_err(self.dir.join("manifest.json"), format!("no field {field:?} in 'fields'")))?;
         let mut parts = Vec::new();
         for sh in &s.shards {
-            let rel = sh.files.get(field).ok_or_else(|| file_err(self.dir.join("manifest.json"), format!("a shard of {split} lacks field {field:?}")))?;
+            let rel = sh
+                .files
+                .get(field)
+                .ok_or_else(|| file_err(self.dir.join("manifest.json"), format!("a shard of {split} lacks field {field:?}")))?;
             let path = self.dir.join(rel);
             let a = read_npy(&path)?;
             let mut want = vec![sh.count];

@@ -65,7 +65,10 @@ fn flat_frame(a: &MeasurementMatrix, x: &[f64], size: usize) -> Result<Array3<f3
 /// The inner pixels `(i, j)` of a frame, with the bound weights of their window.
 fn inner(size: usize, block: (usize, usize)) -> Vec<(usize, usize, Vec<f64>)> {
     let r = WINDOW / 2;
-    (r..size - r).flat_map(|i| (r..size - r).map(move |j| (i, j))).map(|(i, j)| (i, j, identify::window_weights(block, WINDOW, (i % block.0) * block.1 + j % block.1))).collect()
+    (r..size - r)
+        .flat_map(|i| (r..size - r).map(move |j| (i, j)))
+        .map(|(i, j)| (i, j, identify::window_weights(block, WINDOW, (i % block.0) * block.1 + j % block.1)))
+        .collect()
 }
 
 fn summarise(at: f64, pairs: &[(f64, f64)]) -> Check {
@@ -94,8 +97,17 @@ pub fn validate_range(a: &MeasurementMatrix, light: &Light, delays_bins: &[f64],
         x[t0] += light.photons * (1.0 - f);
         x[(t0 + 1) % t] += light.photons * f;
         let y = flat_frame(a, &x, size)?;
-        let noisy = add_noise(&y.view().into_dyn(), &noise_of(light), Exposure::ElectronsPerUnit(1.0), tcsense_sensor::noise::derive_seed(seed, di as u64))?;
-        let y4 = noisy.electrons.into_dimensionality::<ndarray::Ix3>().map_err(|e| crate::InferError::InvalidParam { field: "frame", got: e.to_string(), expected: "[M, H, W]".into() })?.insert_axis(Axis(0));
+        let noisy = add_noise(
+            &y.view().into_dyn(),
+            &noise_of(light),
+            Exposure::ElectronsPerUnit(1.0),
+            tcsense_sensor::noise::derive_seed(seed, di as u64),
+        )?;
+        let y4 = noisy
+            .electrons
+            .into_dimensionality::<ndarray::Ix3>()
+            .map_err(|e| crate::InferError::InvalidParam { field: "frame", got: e.to_string(), expected: "[M, H, W]".into() })?
+            .insert_axis(Axis(0));
         let mut depth = Array4::from_elem((1, 1, size, size), (tau * metres_per_bin) as f32);
         refine_ranges(y4.view(), a, &mut depth, &RangeFitOptions::default());
         let pairs: Vec<(f64, f64)> = pixels
@@ -116,18 +128,42 @@ pub fn validate_range(a: &MeasurementMatrix, light: &Light, delays_bins: &[f64],
 
 /// The lifetime bound (onset known) against the fit to the taps for each lifetime of `taus_s`,
 /// decays starting at `onset_s`, on `size × size` frames.
-pub fn validate_lifetime(a: &MeasurementMatrix, k: usize, light: &Light, taus_s: &[f64], onset_s: f64, size: usize, seed: u64) -> Result<Vec<Check>> {
+pub fn validate_lifetime(
+    a: &MeasurementMatrix,
+    k: usize,
+    light: &Light,
+    taus_s: &[f64],
+    onset_s: f64,
+    size: usize,
+    seed: u64,
+) -> Result<Vec<Check>> {
     let cols = Columns::new(a, k);
     let t = a.bins();
     let pixels = inner(size, a.block());
-    let opts = TapFitOptions { onset_s: Some(onset_s), irf_fwhm_s: vec![0.0], window: WINDOW, points: 192, tau_range_s: [0.05e-9, 30e-9], ..Default::default() };
+    let opts = TapFitOptions {
+        onset_s: Some(onset_s),
+        irf_fwhm_s: vec![0.0],
+        window: WINDOW,
+        points: 192,
+        tau_range_s: [0.05e-9, 30e-9],
+        ..Default::default()
+    };
     let mut out = Vec::new();
     for (ti, &tau) in taus_s.iter().enumerate() {
         let d = periodic_decay(t, a.bin_width_s(), tau, onset_s);
         let x: Vec<f64> = d.iter().map(|v| light.photons * v + light.ambient / t as f64).collect();
         let y = flat_frame(a, &x, size)?;
-        let noisy = add_noise(&y.view().into_dyn(), &noise_of(light), Exposure::ElectronsPerUnit(1.0), tcsense_sensor::noise::derive_seed(seed, ti as u64))?;
-        let y3 = noisy.electrons.into_dimensionality::<ndarray::Ix3>().map_err(|e| crate::InferError::InvalidParam { field: "frame", got: e.to_string(), expected: "[M, H, W]".into() })?;
+        let noisy = add_noise(
+            &y.view().into_dyn(),
+            &noise_of(light),
+            Exposure::ElectronsPerUnit(1.0),
+            tcsense_sensor::noise::derive_seed(seed, ti as u64),
+        )?;
+        let y3 = noisy.electrons.into_dimensionality::<ndarray::Ix3>().map_err(|e| crate::InferError::InvalidParam {
+            field: "frame",
+            got: e.to_string(),
+            expected: "[M, H, W]".into(),
+        })?;
         let fit = fit_taps(&y3.view(), a, &opts);
         let pairs: Vec<(f64, f64)> = pixels
             .iter()

@@ -95,7 +95,14 @@ pub fn companions(output: &Path) -> [PathBuf; 2] {
 /// the intensity (`OUTPUT.intensity.npy`) — staged in `outputs` (planned with `output` and its
 /// [`companions`]), which the caller commits once every other output of the command is
 /// written too. Nothing is written when decoding fails.
-pub fn decode_file(decoder: &mut dyn Decoder, sensor: &Sensor, measurements: &Path, output: &Path, ctl: &Control<'_>, outputs: &mut Outputs) -> Result<DecodedFile> {
+pub fn decode_file(
+    decoder: &mut dyn Decoder,
+    sensor: &Sensor,
+    measurements: &Path,
+    output: &Path,
+    ctl: &Control<'_>,
+    outputs: &mut Outputs,
+) -> Result<DecodedFile> {
     let (batched, y) = read_measurements(measurements, sensor)?;
     let frames = y.dim().0;
     let t0 = std::time::Instant::now();
@@ -104,14 +111,27 @@ pub fn decode_file(decoder: &mut dyn Decoder, sensor: &Sensor, measurements: &Pa
         e => InferError::File { path: measurements.to_path_buf(), msg: e.to_string() },
     })?;
     let seconds_per_frame = t0.elapsed().as_secs_f64() / frames.max(1) as f64;
-    let unbatch = |a: &Array4<f32>| -> ArrayD<f32> { if batched { a.clone().into_dyn() } else { a.index_axis(Axis(0), 0).to_owned().into_dyn() } };
-    let [confidence, intensity] = companions(output);
-    let files: Vec<(PathBuf, &Array4<f32>)> = match (&decoded.cube, &decoded.lifetime, &decoded.depth, &decoded.confidence, &decoded.intensity) {
-        (Some(c), ..) => vec![(output.to_path_buf(), c)],
-        (None, Some(l), _, Some(c), Some(i)) => vec![(output.to_path_buf(), l), (confidence, c), (intensity, i)],
-        (None, None, Some(d), Some(c), _) => vec![(output.to_path_buf(), d), (confidence, c)],
-        _ => return Err(InferError::InvalidParam { field: "decoder", got: decoder.name().into(), expected: "a decoder that gives a cube, depth with confidence or lifetimes".into() }),
+    let unbatch = |a: &Array4<f32>| -> ArrayD<f32> {
+        if batched {
+            a.clone().into_dyn()
+        } else {
+            a.index_axis(Axis(0), 0).to_owned().into_dyn()
+        }
     };
+    let [confidence, intensity] = companions(output);
+    let files: Vec<(PathBuf, &Array4<f32>)> =
+        match (&decoded.cube, &decoded.lifetime, &decoded.depth, &decoded.confidence, &decoded.intensity) {
+            (Some(c), ..) => vec![(output.to_path_buf(), c)],
+            (None, Some(l), _, Some(c), Some(i)) => vec![(output.to_path_buf(), l), (confidence, c), (intensity, i)],
+            (None, None, Some(d), Some(c), _) => vec![(output.to_path_buf(), d), (confidence, c)],
+            _ => {
+                return Err(InferError::InvalidParam {
+                    field: "decoder",
+                    got: decoder.name().into(),
+                    expected: "a decoder that gives a cube, depth with confidence or lifetimes".into(),
+                })
+            }
+        };
     let mut written = Vec::with_capacity(files.len());
     for (path, a) in files {
         write_npy(&outputs.stage(&path)?, &unbatch(a).view())?;

@@ -11,10 +11,10 @@ use std::time::Instant;
 use tcsense_datasets::Dataset;
 use tcsense_models::decoder::{Control, Decoded, Decoder, Tval3Decoder};
 use tcsense_models::{runs, Device, ModelError, Tval3Options};
-use tcsense_sensor::noise::Exposure;
-use tcsense_sensor::nonideal::NonIdeal;
 use tcsense_sensor::measure::{measure_batch, measure_batch_at, signal_exposure};
 use tcsense_sensor::noise::derive_seed;
+use tcsense_sensor::noise::Exposure;
+use tcsense_sensor::nonideal::NonIdeal;
 use tcsense_sensor::{Codes, NoiseParams, Sensor};
 
 use crate::metrics::{depth_errors, mse, psnr, DepthErrors, LifetimeErrors};
@@ -71,7 +71,16 @@ impl EvalRow {
     /// decoder's time for it. Depth comes from `depth_est` `[K, H, W]` where the decoder
     /// estimated it, else from peaks of `x̂`; MSE, PSNR and lifetimes need `x̂` (NaN without).
     #[allow(clippy::too_many_arguments)]
-    pub fn add(&mut self, xh: Option<&ArrayView3<'_, f32>>, x: &ArrayView3<'_, f32>, depth_est: Option<&ArrayView3<'_, f32>>, depth: Option<&ArrayView3<'_, f32>>, lifetime: Option<&ArrayView2<'_, f32>>, bin_width_s: f64, seconds: f64) {
+    pub fn add(
+        &mut self,
+        xh: Option<&ArrayView3<'_, f32>>,
+        x: &ArrayView3<'_, f32>,
+        depth_est: Option<&ArrayView3<'_, f32>>,
+        depth: Option<&ArrayView3<'_, f32>>,
+        lifetime: Option<&ArrayView2<'_, f32>>,
+        bin_width_s: f64,
+        seconds: f64,
+    ) {
         self.add_with(xh, x, depth_est, depth, lifetime.map(|l| (l, None, None)), bin_width_s, seconds)
     }
 
@@ -121,7 +130,13 @@ impl EvalRow {
                     self.depth_abs.resize(k, Vec::new());
                 }
                 for (b, abs) in self.depth_abs.iter_mut().enumerate().take(k) {
-                    abs.extend(d.index_axis(Axis(0), b).iter().zip(est.index_axis(Axis(0), b).iter()).filter(|(t, e)| t.is_finite() && e.is_finite()).map(|(t, e)| (e - t).abs()));
+                    abs.extend(
+                        d.index_axis(Axis(0), b)
+                            .iter()
+                            .zip(est.index_axis(Axis(0), b).iter())
+                            .filter(|(t, e)| t.is_finite() && e.is_finite())
+                            .map(|(t, e)| (e - t).abs()),
+                    );
                 }
                 self.depth_median_m = self.depth_abs.iter_mut().map(|v| median(v)).collect();
             }
@@ -143,7 +158,11 @@ impl EvalRow {
                 .enumerate()
                 .map(|(b, (sum, _, _))| {
                     let within = self.depth_abs.get(b).map_or(0, |abs| abs.iter().filter(|&&e| (e as f64) <= half_bin_m).count());
-                    if sum.truth > 0 { within as f64 / sum.truth as f64 } else { f64::NAN }
+                    if sum.truth > 0 {
+                        within as f64 / sum.truth as f64
+                    } else {
+                        f64::NAN
+                    }
                 })
                 .collect();
             self.depth = self
@@ -151,7 +170,11 @@ impl EvalRow {
                 .iter()
                 .map(|&(sum, se, ae)| {
                     let d = sum.detected as f64;
-                    DepthErrors { rmse_m: if d > 0.0 { (se / d).sqrt() } else { f64::NAN }, mae_m: if d > 0.0 { ae / d } else { f64::NAN }, ..sum }
+                    DepthErrors {
+                        rmse_m: if d > 0.0 { (se / d).sqrt() } else { f64::NAN },
+                        mae_m: if d > 0.0 { ae / d } else { f64::NAN },
+                        ..sum
+                    }
                 })
                 .collect();
         }
@@ -182,7 +205,14 @@ impl EvalRow {
         let mut s = format!("{:<24} {:>5} {:>11.4e} {:>8.2}", self.decoder, self.items, self.mse, self.psnr_db);
         for (b, d) in self.depth.iter().enumerate() {
             if d.truth > 0 {
-                s.push_str(&format!("  b{}: rmse {:.3} m mae {:.3} m median {:.3} m det {:.0}%", b + 1, d.rmse_m, d.mae_m, self.depth_median_m.get(b).copied().unwrap_or(f64::NAN), 100.0 * d.detection_rate()));
+                s.push_str(&format!(
+                    "  b{}: rmse {:.3} m mae {:.3} m median {:.3} m det {:.0}%",
+                    b + 1,
+                    d.rmse_m,
+                    d.mae_m,
+                    self.depth_median_m.get(b).copied().unwrap_or(f64::NAN),
+                    100.0 * d.detection_rate()
+                ));
             }
             if d.false_alarms > 0 {
                 let lead = if d.truth > 0 { " ".to_string() } else { format!("  b{}: ", b + 1) };
@@ -193,7 +223,12 @@ impl EvalRow {
             s.push_str(&format!("  lifetime MAE {:.3} ns", l * 1e9));
         }
         if let (Some(w), Some(f), Some(c)) = (self.lifetime_mae_weighted_s, self.lifetime_within_02ns, self.lifetime_coverage) {
-            s.push_str(&format!(" (intensity-weighted {:.3} ns, {:.1} % within 0.2 ns, {:.1} % with a lifetime)", w * 1e9, f * 100.0, c * 100.0));
+            s.push_str(&format!(
+                " (intensity-weighted {:.3} ns, {:.1} % within 0.2 ns, {:.1} % with a lifetime)",
+                w * 1e9,
+                f * 100.0,
+                c * 100.0
+            ));
         }
         s.push_str(&format!("  {:.1} ms/frame", self.seconds_per_frame * 1e3));
         s
@@ -275,17 +310,30 @@ pub fn open_decoder(name: &str, tval3: &Tval3Options, device: &Device) -> Result
     if let Some(inner) = name.strip_suffix("+fit") {
         // a cube decoder's peaks refined by the fit in the tap domain
         if inner.ends_with("+fit") || inner.starts_with("unet") || inner.starts_with("lifetime") {
-            return Err(InferError::InvalidParam { field: "decoder", got: name.into(), expected: "+fit after a decoder of cubes: tval3+fit, admm-net:RUN+fit, zoo:NAME+fit or onnx:MODEL.onnx+fit of an ADMM-Net".into() });
+            return Err(InferError::InvalidParam {
+                field: "decoder",
+                got: name.into(),
+                expected: "+fit after a decoder of cubes: tval3+fit, admm-net:RUN+fit, zoo:NAME+fit or onnx:MODEL.onnx+fit of an ADMM-Net"
+                    .into(),
+            });
         }
         let d = open_decoder(inner, tval3, device)?;
         return Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::ranged::PeaksThenFit::new(d.decoder)), sensor: d.sensor });
     }
     match name.split_once(':') {
         None if name == "tval3" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(Tval3Decoder::new(*tval3)?), sensor: None }),
-        None if name == "lifetime-fit" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::tapfit::TapFitDecoder::default()), sensor: None }),
-        None if name == "depth-fit" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::ranged::DepthFitDecoder::default()), sensor: None }),
+        None if name == "lifetime-fit" => {
+            Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::tapfit::TapFitDecoder::default()), sensor: None })
+        }
+        None if name == "depth-fit" => {
+            Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::ranged::DepthFitDecoder::default()), sensor: None })
+        }
         Some(("depth-fit", r)) => {
-            let returns: usize = r.parse().ok().filter(|r| (1..=2).contains(r)).ok_or_else(|| InferError::InvalidParam { field: "decoder", got: name.into(), expected: "depth-fit:1 or depth-fit:2 (returns per pixel)".into() })?;
+            let returns: usize = r.parse().ok().filter(|r| (1..=2).contains(r)).ok_or_else(|| InferError::InvalidParam {
+                field: "decoder",
+                got: name.into(),
+                expected: "depth-fit:1 or depth-fit:2 (returns per pixel)".into(),
+            })?;
             let opts = tcsense_models::range_templates::DepthFitOptions { returns, ..Default::default() };
             Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::ranged::DepthFitDecoder::new(opts)?), sensor: None })
         }
@@ -298,7 +346,10 @@ pub fn open_decoder(name: &str, tval3: &Tval3Options, device: &Device) -> Result
             let (kind, range_fit) = if kind == "unet-raw" { ("unet", false) } else { (kind, true) };
             let run = runs::open_with(&tcsense_models::zoo::resolve(dir)?, device, range_fit)?;
             if run.spec.model.name() != kind {
-                return Err(InferError::File { path: run.dir.join(runs::CONFIG_FILE), msg: format!("a {} run, not {kind}; name it {}:{dir}", run.spec.model.name(), run.spec.model.name()) });
+                return Err(InferError::File {
+                    path: run.dir.join(runs::CONFIG_FILE),
+                    msg: format!("a {} run, not {kind}; name it {}:{dir}", run.spec.model.name(), run.spec.model.name()),
+                });
             }
             Ok(NamedDecoder { label: name.into(), decoder: run.decoder, sensor: Some(run.sensor) })
         }
@@ -348,11 +399,23 @@ pub struct Light {
 /// Evaluate `decoders` at every light level of `ladder` (the brightest tap's share of the full
 /// well, noise on, ambient light at `settings.sbr`): the photon-efficiency curve. The same
 /// items and noise seeds at every level; the rows carry their [`Light`].
-pub fn evaluate_ladder(ds: &Dataset, sensor: &Sensor, decoders: &mut [NamedDecoder], settings: &EvalSettings, ladder: &[f64], on_item: &dyn Fn(&str, usize, usize), cancel: &AtomicBool) -> Result<Vec<EvalRow>> {
+pub fn evaluate_ladder(
+    ds: &Dataset,
+    sensor: &Sensor,
+    decoders: &mut [NamedDecoder],
+    settings: &EvalSettings,
+    ladder: &[f64],
+    on_item: &dyn Fn(&str, usize, usize),
+    cancel: &AtomicBool,
+) -> Result<Vec<EvalRow>> {
     let base = settings.noise.unwrap_or_default();
     let mut rows = Vec::new();
     for &level in ladder {
-        let noise = NoiseParams { signal_fraction: level, ..base }.validate().map_err(|e| InferError::InvalidParam { field: "light level", got: level.to_string(), expected: format!("a share of the full well the noise model takes ({e})") })?;
+        let noise = NoiseParams { signal_fraction: level, ..base }.validate().map_err(|e| InferError::InvalidParam {
+            field: "light level",
+            got: level.to_string(),
+            expected: format!("a share of the full well the noise model takes ({e})"),
+        })?;
         let at = EvalSettings { noise: Some(noise), ..settings.clone() };
         let light = Light { signal_fraction: level, signal_electrons: level * noise.full_well_e, sbr: settings.sbr };
         for mut row in evaluate(ds, sensor, decoders, &at, on_item, cancel)? {
@@ -367,16 +430,35 @@ pub fn evaluate_ladder(ds: &Dataset, sensor: &Sensor, decoders: &mut [NamedDecod
 /// (its nominal `A` measures the items; a calibration's dark and gain maps correct the tap
 /// images and its matrix decodes them): the same measurements of each item (`measure`, noise
 /// seeded per item) go to every decoder. `on_item(decoder, done, of)` is called after each item.
-pub fn evaluate(ds: &Dataset, sensor: &Sensor, decoders: &mut [NamedDecoder], settings: &EvalSettings, on_item: &dyn Fn(&str, usize, usize), cancel: &AtomicBool) -> Result<Vec<EvalRow>> {
-    let x = ds.load(&settings.split, "x")?.into_dimensionality::<Ix4>().map_err(|e| file_err(&ds.dir, format!("field x of split {}: {e}", settings.split)))?;
+pub fn evaluate(
+    ds: &Dataset,
+    sensor: &Sensor,
+    decoders: &mut [NamedDecoder],
+    settings: &EvalSettings,
+    on_item: &dyn Fn(&str, usize, usize),
+    cancel: &AtomicBool,
+) -> Result<Vec<EvalRow>> {
+    let x = ds
+        .load(&settings.split, "x")?
+        .into_dimensionality::<Ix4>()
+        .map_err(|e| file_err(&ds.dir, format!("field x of split {}: {e}", settings.split)))?;
     let n = settings.items.unwrap_or(x.dim().0).min(x.dim().0);
     if n == 0 {
         return Err(file_err(&ds.dir, format!("no items in split {:?}", settings.split)));
     }
-    let field = |name: &str| -> Result<Option<ndarray::ArrayD<f32>>> { Ok(if ds.manifest.fields.contains_key(name) { Some(ds.load(&settings.split, name)?) } else { None }) };
-    let depth = field("depth")?.map(|d| d.into_dimensionality::<Ix4>()).transpose().map_err(|e| file_err(&ds.dir, format!("field depth: {e}")))?;
-    let lifetime = field("lifetime")?.map(|d| d.into_dimensionality::<Ix3>()).transpose().map_err(|e| file_err(&ds.dir, format!("field lifetime: {e}")))?;
-    let intensity = field("intensity")?.map(|d| d.into_dimensionality::<Ix3>()).transpose().map_err(|e| file_err(&ds.dir, format!("field intensity: {e}")))?;
+    let field = |name: &str| -> Result<Option<ndarray::ArrayD<f32>>> {
+        Ok(if ds.manifest.fields.contains_key(name) { Some(ds.load(&settings.split, name)?) } else { None })
+    };
+    let depth =
+        field("depth")?.map(|d| d.into_dimensionality::<Ix4>()).transpose().map_err(|e| file_err(&ds.dir, format!("field depth: {e}")))?;
+    let lifetime = field("lifetime")?
+        .map(|d| d.into_dimensionality::<Ix3>())
+        .transpose()
+        .map_err(|e| file_err(&ds.dir, format!("field lifetime: {e}")))?;
+    let intensity = field("intensity")?
+        .map(|d| d.into_dimensionality::<Ix3>())
+        .transpose()
+        .map_err(|e| file_err(&ds.dir, format!("field intensity: {e}")))?;
     let (_, _, h, w) = x.dim();
     let a = sensor.nominal();
     let plan = a.plan(h, w)?;
@@ -389,7 +471,11 @@ pub fn evaluate(ds: &Dataset, sensor: &Sensor, decoders: &mut [NamedDecoder], se
     };
     let noise_model = settings.noise.unwrap_or_default();
     if let Some(sbr) = settings.sbr.filter(|s| !(s.is_finite() && *s > 0.0)) {
-        return Err(InferError::InvalidParam { field: "sbr", got: sbr.to_string(), expected: "a positive signal-to-background ratio (e.g. 1: as much ambient light as signal)".into() });
+        return Err(InferError::InvalidParam {
+            field: "sbr",
+            got: sbr.to_string(),
+            expected: "a positive signal-to-background ratio (e.g. 1: as much ambient light as signal)".into(),
+        });
     }
     // the measurements every decoder sees, [1, M, H, W] per item
     let ys: Vec<Array4<f32>> = (0..n)
@@ -431,10 +517,17 @@ pub fn evaluate(ds: &Dataset, sensor: &Sensor, decoders: &mut [NamedDecoder], se
             })?;
             let secs = t0.elapsed().as_secs_f64();
             if out.cube.is_none() && out.depth.is_none() && out.lifetime.is_none() {
-                return Err(InferError::InvalidParam { field: "decoder", got: d.label.clone(), expected: "a decoder that gives a cube, depth or lifetimes".into() });
+                return Err(InferError::InvalidParam {
+                    field: "decoder",
+                    got: d.label.clone(),
+                    expected: "a decoder that gives a cube, depth or lifetimes".into(),
+                });
             }
             if out.lifetime.is_some() && lifetime.is_none() {
-                return Err(file_err(&ds.dir, format!("{} estimates lifetimes; this dataset has no lifetime field (a FLIm dataset has)", d.label)));
+                return Err(file_err(
+                    &ds.dir,
+                    format!("{} estimates lifetimes; this dataset has no lifetime field (a FLIm dataset has)", d.label),
+                ));
             }
             let est = out.depth.as_ref().map(|e| e.index_axis(Axis(0), 0));
             let truth_d = depth.as_ref().map(|t| t.index_axis(Axis(0), i));

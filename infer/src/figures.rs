@@ -48,7 +48,11 @@ const TAPS: [RGBColor; 8] = [
 ];
 
 /// Draw into a `w × h` RGB buffer with `draw`, then write it to `path` as PNG, atomically.
-fn render(path: &Path, (w, h): (u32, u32), draw: impl FnOnce(&DrawingArea<BitMapBackend<'_>, Shift>) -> std::result::Result<(), String>) -> Result<()> {
+fn render(
+    path: &Path,
+    (w, h): (u32, u32),
+    draw: impl FnOnce(&DrawingArea<BitMapBackend<'_>, Shift>) -> std::result::Result<(), String>,
+) -> Result<()> {
     register_font();
     let mut buf = vec![255u8; (w * h * 3) as usize];
     {
@@ -72,13 +76,28 @@ fn err<E: std::fmt::Debug>(e: E) -> String {
 }
 
 /// The legend of a chart: labels in `size` points on a white box at `position`.
-fn legend<'a, CT: plotters::coord::CoordTranslate>(chart: &mut ChartContext<'a, BitMapBackend<'a>, CT>, size: u32, position: SeriesLabelPosition) -> std::result::Result<(), String> {
-    chart.configure_series_labels().label_font((FONT, size)).background_style(WHITE.mix(0.9)).border_style(BLACK).position(position).draw().map_err(err)
+fn legend<'a, CT: plotters::coord::CoordTranslate>(
+    chart: &mut ChartContext<'a, BitMapBackend<'a>, CT>,
+    size: u32,
+    position: SeriesLabelPosition,
+) -> std::result::Result<(), String> {
+    chart
+        .configure_series_labels()
+        .label_font((FONT, size))
+        .background_style(WHITE.mix(0.9))
+        .border_style(BLACK)
+        .position(position)
+        .draw()
+        .map_err(err)
 }
 
 /// Each of `series` as a line with a dot at every point (colours from the palette's second
 /// on), the points `keep` accepts, labelled for the legend.
-fn marked_lines<'a, X, Y>(chart: &mut ChartContext<'a, BitMapBackend<'a>, Cartesian2d<X, Y>>, series: &[Series], keep: impl Fn(f64, f64) -> bool) -> std::result::Result<(), String>
+fn marked_lines<'a, X, Y>(
+    chart: &mut ChartContext<'a, BitMapBackend<'a>, Cartesian2d<X, Y>>,
+    series: &[Series],
+    keep: impl Fn(f64, f64) -> bool,
+) -> std::result::Result<(), String>
 where
     X: Ranged<ValueType = f64>,
     Y: Ranged<ValueType = f64>,
@@ -162,7 +181,15 @@ pub fn log_chart(path: &Path, title: &str, x_label: &str, y_label: &str, series:
             .y_label_area_size(90)
             .build_cartesian_2d(x0..x1, (y0..y1).log_scale())
             .map_err(err)?;
-        chart.configure_mesh().x_desc(x_label).y_desc(y_label).y_label_formatter(&|v| format!("{v:.0e}")).label_style((FONT, 15)).axis_desc_style((FONT, 17)).draw().map_err(err)?;
+        chart
+            .configure_mesh()
+            .x_desc(x_label)
+            .y_desc(y_label)
+            .y_label_formatter(&|v| format!("{v:.0e}"))
+            .label_style((FONT, 15))
+            .axis_desc_style((FONT, 17))
+            .draw()
+            .map_err(err)?;
         marked_lines(&mut chart, series, |_, y| y > 0.0)?;
         legend(&mut chart, 15, SeriesLabelPosition::UpperRight)?;
         Ok(())
@@ -174,7 +201,16 @@ pub fn log_chart(path: &Path, title: &str, x_label: &str, y_label: &str, series:
 /// the right the share within a tolerance (0–100 %) against the light. Series share their
 /// labels and colours across the panels; points with a non-positive or non-finite value are
 /// left out.
-pub fn photon_curve(path: &Path, title: &str, x_label: &str, error_label: &str, share_label: &str, errors: &[Series], shares: &[Series], bound: Option<&Series>) -> Result<()> {
+pub fn photon_curve(
+    path: &Path,
+    title: &str,
+    x_label: &str,
+    error_label: &str,
+    share_label: &str,
+    errors: &[Series],
+    shares: &[Series],
+    bound: Option<&Series>,
+) -> Result<()> {
     let all: Vec<Series> = errors.iter().chain(bound).cloned().collect();
     let (x0, x1, y0, y1) = extent(&all, |x, y| x > 0.0 && y > 0.0, (1.0, 10.0, 0.1, 10.0));
     let decade = |v: f64, up: bool| 10f64.powf(if up { v.log10().ceil() } else { v.log10().floor() });
@@ -190,9 +226,19 @@ pub fn photon_curve(path: &Path, title: &str, x_label: &str, error_label: &str, 
             .y_label_area_size(80)
             .build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())
             .map_err(err)?;
-        chart.configure_mesh().x_desc(x_label).y_desc(error_label).x_label_formatter(&|v| format!("{v:.0}")).y_label_formatter(&|v| if *v >= 1.0 { format!("{v:.0}") } else { format!("{v}") }).label_style((FONT, 15)).axis_desc_style((FONT, 17)).draw().map_err(err)?;
+        chart
+            .configure_mesh()
+            .x_desc(x_label)
+            .y_desc(error_label)
+            .x_label_formatter(&|v| format!("{v:.0}"))
+            .y_label_formatter(&|v| if *v >= 1.0 { format!("{v:.0}") } else { format!("{v}") })
+            .label_style((FONT, 15))
+            .axis_desc_style((FONT, 17))
+            .draw()
+            .map_err(err)?;
         if let Some(b) = bound {
-            let pts: Vec<(f64, f64)> = b.points.iter().copied().filter(|(x, y)| *x > 0.0 && *y > 0.0 && x.is_finite() && y.is_finite()).collect();
+            let pts: Vec<(f64, f64)> =
+                b.points.iter().copied().filter(|(x, y)| *x > 0.0 && *y > 0.0 && x.is_finite() && y.is_finite()).collect();
             chart
                 .draw_series(DashedLineSeries::new(pts, 8, 6, BLACK.stroke_width(2)))
                 .map_err(err)?
@@ -207,7 +253,16 @@ pub fn photon_curve(path: &Path, title: &str, x_label: &str, error_label: &str, 
             .y_label_area_size(70)
             .build_cartesian_2d((x0..x1).log_scale(), 0f64..100f64)
             .map_err(err)?;
-        chart.configure_mesh().x_desc(x_label).y_desc(share_label).x_label_formatter(&|v| format!("{v:.0}")).y_label_formatter(&|v| format!("{v:.0}")).label_style((FONT, 15)).axis_desc_style((FONT, 17)).draw().map_err(err)?;
+        chart
+            .configure_mesh()
+            .x_desc(x_label)
+            .y_desc(share_label)
+            .x_label_formatter(&|v| format!("{v:.0}"))
+            .y_label_formatter(&|v| format!("{v:.0}"))
+            .label_style((FONT, 15))
+            .axis_desc_style((FONT, 17))
+            .draw()
+            .map_err(err)?;
         marked_lines(&mut chart, shares, |x, _| x > 0.0)?;
         legend(&mut chart, 14, SeriesLabelPosition::LowerRight)?;
         Ok(())
@@ -219,7 +274,12 @@ pub fn photon_curve(path: &Path, title: &str, x_label: &str, error_label: &str, 
 ///
 /// # Shapes
 /// - `cubes`: `(name, [T, H, W])`; `pixels`: `(row, column)`
-pub fn waveforms(path: &Path, cubes: &[(&str, ndarray::ArrayView3<'_, f32>)], pixels: &[(usize, usize)], bin_ns: Option<f64>) -> Result<()> {
+pub fn waveforms(
+    path: &Path,
+    cubes: &[(&str, ndarray::ArrayView3<'_, f32>)],
+    pixels: &[(usize, usize)],
+    bin_ns: Option<f64>,
+) -> Result<()> {
     let panels = pixels.len().max(1);
     let x_label = match bin_ns {
         Some(b) => format!("time (ns, bins of {b:.3} ns)"),
@@ -240,7 +300,14 @@ pub fn waveforms(path: &Path, cubes: &[(&str, ndarray::ArrayView3<'_, f32>)], pi
                 .y_label_area_size(70)
                 .build_cartesian_2d(0.0..(t as f64 - 1.0).max(1.0) * scale, low..peak * 1.08)
                 .map_err(err)?;
-            chart.configure_mesh().x_desc(x_label.as_str()).y_desc("intensity (a.u.)").label_style((FONT, 13)).axis_desc_style((FONT, 14)).draw().map_err(err)?;
+            chart
+                .configure_mesh()
+                .x_desc(x_label.as_str())
+                .y_desc("intensity (a.u.)")
+                .label_style((FONT, 13))
+                .axis_desc_style((FONT, 14))
+                .draw()
+                .map_err(err)?;
             for (i, (name, x)) in cubes.iter().enumerate() {
                 let colour = PALETTE[i % PALETTE.len()];
                 let pts: Vec<(f64, f64)> = (0..x.dim().0).map(|j| (j as f64 * scale, x[(j, r, c)] as f64)).collect();
@@ -270,12 +337,21 @@ pub fn training_curves(path: &Path, loss: &[Series], val: &[Series], val_label: 
         let panels = body.split_evenly((1, 2));
         for (area, (series, y_label)) in panels.iter().zip([(loss, "training loss (batch mean)"), (val, val_label)]) {
             let (x0, x1, y0, y1) = bounds(series);
-            let mut chart = ChartBuilder::on(area).margin(10).x_label_area_size(44).y_label_area_size(80).build_cartesian_2d(x0..x1, y0..y1).map_err(err)?;
+            let mut chart = ChartBuilder::on(area)
+                .margin(10)
+                .x_label_area_size(44)
+                .y_label_area_size(80)
+                .build_cartesian_2d(x0..x1, y0..y1)
+                .map_err(err)?;
             chart
                 .configure_mesh()
                 .x_desc("epoch")
                 .x_label_formatter(&|v| if (v - v.round()).abs() < 1e-9 { format!("{v:.0}") } else { String::new() })
-                .y_desc(y_label).label_style((FONT, 14)).axis_desc_style((FONT, 15)).draw().map_err(err)?;
+                .y_desc(y_label)
+                .label_style((FONT, 14))
+                .axis_desc_style((FONT, 15))
+                .draw()
+                .map_err(err)?;
             for (i, s) in series.iter().enumerate() {
                 let c = PALETTE[(i + 1) % PALETTE.len()];
                 chart.draw_series(s.points.iter().map(|&p| Circle::new(p, 3, c.filled()))).map_err(err)?;
@@ -293,7 +369,8 @@ pub fn training_curves(path: &Path, loss: &[Series], val: &[Series], val_label: 
 
 /// The viridis colour map at `t` ∈ [0, 1].
 pub fn viridis(t: f64) -> RGBColor {
-    const STOPS: [(f64, f64, f64); 6] = [(68.0, 1.0, 84.0), (65.0, 68.0, 135.0), (42.0, 120.0, 142.0), (34.0, 168.0, 132.0), (122.0, 209.0, 81.0), (253.0, 231.0, 37.0)];
+    const STOPS: [(f64, f64, f64); 6] =
+        [(68.0, 1.0, 84.0), (65.0, 68.0, 135.0), (42.0, 120.0, 142.0), (34.0, 168.0, 132.0), (122.0, 209.0, 81.0), (253.0, 231.0, 37.0)];
     let t = if t.is_finite() { t.clamp(0.0, 1.0) } else { 0.0 } * (STOPS.len() - 1) as f64;
     let i = (t.floor() as usize).min(STOPS.len() - 2);
     let f = t - i as f64;
@@ -325,7 +402,13 @@ fn value_range(panels: &[(&str, ndarray::ArrayView2<'_, f32>)]) -> (f64, f64) {
 ///
 /// # Shapes
 /// - `panels`: `(title, [H, W])`, all the same size
-pub fn maps(path: &Path, title: &str, panels: &[(&str, ndarray::ArrayView2<'_, f32>)], unit: &str, range: Option<(f64, f64)>) -> Result<()> {
+pub fn maps(
+    path: &Path,
+    title: &str,
+    panels: &[(&str, ndarray::ArrayView2<'_, f32>)],
+    unit: &str,
+    range: Option<(f64, f64)>,
+) -> Result<()> {
     let Some((_, first)) = panels.first() else {
         return Err(InferError::File { path: path.to_path_buf(), msg: "no maps to draw".into() });
     };
@@ -376,7 +459,11 @@ pub fn maps(path: &Path, title: &str, panels: &[(&str, ndarray::ArrayView2<'_, f
                 }))
                 .map_err(err)?;
             if any_nan && values.iter().any(|x| !x.is_finite()) {
-                chart.draw_series(std::iter::empty::<Rectangle<(f64, f64)>>()).map_err(err)?.label("no value").legend(move |(x, y)| Rectangle::new([(x, y - 6), (x + 14, y + 6)], grey.filled()));
+                chart
+                    .draw_series(std::iter::empty::<Rectangle<(f64, f64)>>())
+                    .map_err(err)?
+                    .label("no value")
+                    .legend(move |(x, y)| Rectangle::new([(x, y - 6), (x + 14, y + 6)], grey.filled()));
                 legend(&mut chart, 13, SeriesLabelPosition::LowerRight)?;
             }
         }
@@ -389,7 +476,14 @@ pub fn maps(path: &Path, title: &str, panels: &[(&str, ndarray::ArrayView2<'_, f
             .set_label_area_size(LabelAreaPosition::Right, 100)
             .build_cartesian_2d(0.0..1.0, lo..hi)
             .map_err(err)?;
-        bar.configure_mesh().disable_mesh().disable_x_axis().y_desc(unit).label_style((FONT, 14)).axis_desc_style((FONT, 15)).draw().map_err(err)?;
+        bar.configure_mesh()
+            .disable_mesh()
+            .disable_x_axis()
+            .y_desc(unit)
+            .label_style((FONT, 14))
+            .axis_desc_style((FONT, 15))
+            .draw()
+            .map_err(err)?;
         let steps = 128;
         bar.draw_series((0..steps).map(|i| {
             let (a, b) = (lo + (hi - lo) * i as f64 / steps as f64, lo + (hi - lo) * (i + 1) as f64 / steps as f64);
@@ -429,7 +523,11 @@ pub fn point_clouds(path: &Path, title: &str, clouds: &[(&str, Vec<[f32; 4]>)]) 
         title_area.titled(title, (FONT, 22)).map_err(err)?;
         for (area, (name, points)) in body.split_evenly((1, panels)).iter().zip(clouds) {
             // plotters' 3-D axes: x across, y up, z into the picture
-            let mut chart = ChartBuilder::on(area).caption(*name, (FONT, 16)).margin(20).build_cartesian_3d(lo[0]..hi[0], lo[1]..hi[1], lo[2]..hi[2]).map_err(err)?;
+            let mut chart = ChartBuilder::on(area)
+                .caption(*name, (FONT, 16))
+                .margin(20)
+                .build_cartesian_3d(lo[0]..hi[0], lo[1]..hi[1], lo[2]..hi[2])
+                .map_err(err)?;
             chart.with_projection(|mut pb| {
                 pb.yaw = 0.6;
                 pb.pitch = 0.25;
@@ -439,7 +537,11 @@ pub fn point_clouds(path: &Path, title: &str, clouds: &[(&str, Vec<[f32; 4]>)]) 
             chart.configure_axes().light_grid_style(BLACK.mix(0.1)).max_light_lines(3).label_style((FONT, 12)).draw().map_err(err)?;
             let label = |x: f64, y: f64, z: f64, s: &str| Text::new(s.to_string(), (x, y, z), (FONT, 14));
             chart
-                .draw_series([label(hi[0], lo[1], lo[2], "x (m)"), label(lo[0], hi[1], lo[2], "y (m)"), label(lo[0], lo[1], hi[2], "z (m, depth)")])
+                .draw_series([
+                    label(hi[0], lo[1], lo[2], "x (m)"),
+                    label(lo[0], hi[1], lo[2], "y (m)"),
+                    label(lo[0], lo[1], hi[2], "z (m, depth)"),
+                ])
                 .map_err(err)?;
             for ret in 0..2usize {
                 let c = PALETTE[ret + 1];
@@ -450,7 +552,14 @@ pub fn point_clouds(path: &Path, title: &str, clouds: &[(&str, Vec<[f32; 4]>)]) 
                     .label(if ret == 0 { "return 1 (first surface)" } else { "return 2 (behind the sheet)" })
                     .legend(move |(x, y)| Circle::new((x + 7, y), 4, c.filled()));
             }
-            chart.configure_series_labels().label_font((FONT, 13)).background_style(WHITE.mix(0.9)).border_style(BLACK).position(SeriesLabelPosition::UpperRight).draw().map_err(err)?;
+            chart
+                .configure_series_labels()
+                .label_font((FONT, 13))
+                .background_style(WHITE.mix(0.9))
+                .border_style(BLACK)
+                .position(SeriesLabelPosition::UpperRight)
+                .draw()
+                .map_err(err)?;
         }
         Ok(())
     })
@@ -462,13 +571,32 @@ pub fn point_clouds(path: &Path, title: &str, clouds: &[(&str, Vec<[f32; 4]>)]) 
 /// about a sixth of the period lie (phasors outside are left out).
 pub fn phasor(path: &Path, title: &str, series: &[(&str, Vec<(f64, f64)>)], period_s: f64) -> Result<()> {
     render(path, (760, 520), |root| {
-        let mut chart = ChartBuilder::on(root).caption(title, (FONT, 20)).margin(12).x_label_area_size(46).y_label_area_size(60).build_cartesian_2d(0.4..1.08, -0.02..0.52).map_err(err)?;
-        chart.configure_mesh().x_desc("g (cosine component)").y_desc("s (sine component)").label_style((FONT, 14)).axis_desc_style((FONT, 15)).draw().map_err(err)?;
-        let circle: Vec<(f64, f64)> = (0..=100).map(|i| {
-            let a = std::f64::consts::PI * i as f64 / 180.0;
-            (0.5 + 0.5 * a.cos(), 0.5 * a.sin())
-        }).collect();
-        chart.draw_series(LineSeries::new(circle, BLACK.stroke_width(1))).map_err(err)?.label("single exponentials").legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK));
+        let mut chart = ChartBuilder::on(root)
+            .caption(title, (FONT, 20))
+            .margin(12)
+            .x_label_area_size(46)
+            .y_label_area_size(60)
+            .build_cartesian_2d(0.4..1.08, -0.02..0.52)
+            .map_err(err)?;
+        chart
+            .configure_mesh()
+            .x_desc("g (cosine component)")
+            .y_desc("s (sine component)")
+            .label_style((FONT, 14))
+            .axis_desc_style((FONT, 15))
+            .draw()
+            .map_err(err)?;
+        let circle: Vec<(f64, f64)> = (0..=100)
+            .map(|i| {
+                let a = std::f64::consts::PI * i as f64 / 180.0;
+                (0.5 + 0.5 * a.cos(), 0.5 * a.sin())
+            })
+            .collect();
+        chart
+            .draw_series(LineSeries::new(circle, BLACK.stroke_width(1)))
+            .map_err(err)?
+            .label("single exponentials")
+            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK));
         // lifetimes on the circle: g = 1/(1+(ωτ)²), s = ωτ/(1+(ωτ)²)
         let omega = 2.0 * std::f64::consts::PI / period_s;
         for tau_ns in [0.5, 1.0, 2.0, 4.0, 8.0] {
@@ -480,7 +608,11 @@ pub fn phasor(path: &Path, title: &str, series: &[(&str, Vec<(f64, f64)>)], peri
         for (i, (name, pts)) in series.iter().enumerate() {
             let c = PALETTE[(i + 1) % PALETTE.len()];
             chart
-                .draw_series(pts.iter().filter(|(g, s)| (0.4..1.08).contains(g) && (-0.02..0.52).contains(s)).map(|&p| Circle::new(p, 2, c.mix(0.6).filled())))
+                .draw_series(
+                    pts.iter()
+                        .filter(|(g, s)| (0.4..1.08).contains(g) && (-0.02..0.52).contains(s))
+                        .map(|&p| Circle::new(p, 2, c.mix(0.6).filled())),
+                )
                 .map_err(err)?
                 .label(name.to_string())
                 .legend(move |(x, y)| Circle::new((x + 7, y), 4, c.filled()));
@@ -535,26 +667,43 @@ pub fn codes(path: &Path, name: &str, codes: &Codes) -> Result<()> {
         }
         let shade = [RGBColor(244, 244, 244), RGBColor(228, 228, 228)];
         chart
-            .draw_series((0..rows).map(|c| Rectangle::new([(0.0, c as f64 + 0.02), (len as f64, c as f64 + 0.98)], shade[(c / taps) % 2].filled())))
+            .draw_series(
+                (0..rows).map(|c| Rectangle::new([(0.0, c as f64 + 0.02), (len as f64, c as f64 + 0.98)], shade[(c / taps) % 2].filled())),
+            )
             .map_err(err)?;
         chart
             .draw_series((0..rows).flat_map(|c| {
                 let (n, m) = (c / taps, c % taps);
-                (0..len).filter(move |&l| codes.get(n, m, l)).map(move |l| Rectangle::new([(l as f64 + 0.05, c as f64 + 0.1), (l as f64 + 0.95, c as f64 + 0.9)], TAPS[m % 8].filled()))
+                (0..len).filter(move |&l| codes.get(n, m, l)).map(move |l| {
+                    Rectangle::new([(l as f64 + 0.05, c as f64 + 0.1), (l as f64 + 0.95, c as f64 + 0.9)], TAPS[m % 8].filled())
+                })
             }))
             .map_err(err)?;
         for m in 0..taps {
-            chart.draw_series(std::iter::empty::<Rectangle<(f64, f64)>>()).map_err(err)?.label(format!("tap {m}")).legend(move |(x, y)| Rectangle::new([(x, y - 6), (x + 14, y + 6)], TAPS[m % 8].filled()));
+            chart
+                .draw_series(std::iter::empty::<Rectangle<(f64, f64)>>())
+                .map_err(err)?
+                .label(format!("tap {m}"))
+                .legend(move |(x, y)| Rectangle::new([(x, y - 6), (x + 14, y + 6)], TAPS[m % 8].filled()));
         }
         if !bad.is_empty() {
-            chart.draw_series(bad.iter().map(|&l| Rectangle::new([(l as f64, 0.0), (l as f64 + 1.0, 0.3)], RED.filled()))).map_err(err)?.label("violation").legend(|(x, y)| Rectangle::new([(x, y - 6), (x + 14, y + 6)], RED.filled()));
+            chart
+                .draw_series(bad.iter().map(|&l| Rectangle::new([(l as f64, 0.0), (l as f64 + 1.0, 0.3)], RED.filled())))
+                .map_err(err)?
+                .label("violation")
+                .legend(|(x, y)| Rectangle::new([(x, y - 6), (x + 14, y + 6)], RED.filled()));
         }
         legend(&mut chart, 13, SeriesLabelPosition::UpperRight)?;
 
         let hd: Vec<usize> = (0..len).map(|l| codes.hamming_at(l)).collect();
         let limit = codes.constraints.hamming;
         let ymax = hd.iter().copied().max().unwrap_or(0).max(limit.unwrap_or(0)).max(1) as f64 + 0.5;
-        let mut strip = ChartBuilder::on(&bottom).margin(10).x_label_area_size(40).y_label_area_size(90).build_cartesian_2d(0.0..len as f64, 0.0..ymax).map_err(err)?;
+        let mut strip = ChartBuilder::on(&bottom)
+            .margin(10)
+            .x_label_area_size(40)
+            .y_label_area_size(90)
+            .build_cartesian_2d(0.0..len as f64, 0.0..ymax)
+            .map_err(err)?;
         strip
             .configure_mesh()
             .disable_x_mesh()
@@ -566,9 +715,21 @@ pub fn codes(path: &Path, name: &str, codes: &Codes) -> Result<()> {
             .axis_desc_style((FONT, 15))
             .draw()
             .map_err(err)?;
-        strip.draw_series(hd.iter().enumerate().map(|(l, &d)| Rectangle::new([(l as f64 + 0.2, 0.0), (l as f64 + 0.8, d as f64)], RGBColor(80, 80, 80).filled()))).map_err(err)?.label("Hamming distance").legend(|(x, y)| Rectangle::new([(x, y - 6), (x + 14, y + 6)], RGBColor(80, 80, 80).filled()));
+        strip
+            .draw_series(
+                hd.iter()
+                    .enumerate()
+                    .map(|(l, &d)| Rectangle::new([(l as f64 + 0.2, 0.0), (l as f64 + 0.8, d as f64)], RGBColor(80, 80, 80).filled())),
+            )
+            .map_err(err)?
+            .label("Hamming distance")
+            .legend(|(x, y)| Rectangle::new([(x, y - 6), (x + 14, y + 6)], RGBColor(80, 80, 80).filled()));
         if let Some(hl) = limit {
-            strip.draw_series(LineSeries::new(vec![(0.0, hl as f64), (len as f64, hl as f64)], RED.stroke_width(2))).map_err(err)?.label(format!("limit H = {hl}")).legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], RED.stroke_width(2)));
+            strip
+                .draw_series(LineSeries::new(vec![(0.0, hl as f64), (len as f64, hl as f64)], RED.stroke_width(2)))
+                .map_err(err)?
+                .label(format!("limit H = {hl}"))
+                .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], RED.stroke_width(2)));
         }
         legend(&mut strip, 13, SeriesLabelPosition::UpperRight)?;
         Ok(())
@@ -591,13 +752,26 @@ mod tests {
     fn figures_render_with_text() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("lines.png");
-        line_chart(&p, "Training loss", "epoch", "loss", &[Series { label: "train".into(), points: vec![(1.0, 0.5), (2.0, 0.3), (3.0, 0.2)] }]).unwrap();
+        line_chart(
+            &p,
+            "Training loss",
+            "epoch",
+            "loss",
+            &[Series { label: "train".into(), points: vec![(1.0, 0.5), (2.0, 0.3), (3.0, 0.2)] }],
+        )
+        .unwrap();
         assert_eq!(png_size(&p), (900, 520));
         let m = ndarray::Array2::from_shape_fn((8, 12), |(r, c)| if r == 3 && c == 4 { f32::NAN } else { (r * 12 + c) as f32 });
         let p = dir.path().join("map.png");
         map(&p, "Range of return 1", &m.view(), "range (m)").unwrap();
         let shape = tcsense_sensor::codes::CodeShape { bh: 2, bw: 2, taps: 4, length: 16, drain: false };
-        let c = tcsense_sensor::generate::random_codes(shape, 607e6, tcsense_sensor::Constraints { tap: true, hamming: Some(2), window: Some(2) }, 1).unwrap();
+        let c = tcsense_sensor::generate::random_codes(
+            shape,
+            607e6,
+            tcsense_sensor::Constraints { tap: true, hamming: Some(2), window: Some(2) },
+            1,
+        )
+        .unwrap();
         let p = dir.path().join("codes.png");
         codes(&p, "codes.json", &c).unwrap();
         // caption text: dark pixels in the top band of the image

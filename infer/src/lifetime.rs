@@ -64,7 +64,13 @@ impl Default for FitOptions {
     /// Fitted Gaussian IRF, one or two components by AIC (10), pixels above 2 % of the brightest,
     /// lifetimes 0.1–60 ns (shorter components trade off against the IRF width at 206 ps bins).
     fn default() -> Self {
-        FitOptions { irf: IrfModel::Gaussian(None), components: Components::Auto, min_intensity: 0.02, tau_range_s: [0.1e-9, 60e-9], two_component_aic: 10.0 }
+        FitOptions {
+            irf: IrfModel::Gaussian(None),
+            components: Components::Auto,
+            min_intensity: 0.02,
+            tau_range_s: [0.1e-9, 60e-9],
+            two_component_aic: 10.0,
+        }
     }
 }
 
@@ -124,7 +130,10 @@ impl Kernel {
         }
         let sigma = fwhm / (8.0 * 2f64.ln()).sqrt() / c.dt;
         let reach = ((5.0 * sigma).ceil() as usize).clamp(1, c.bins / 2);
-        let taps: Vec<f64> = (0..=2 * reach).map(|i| i as f64 - reach as f64).map(|d| normal_cdf((d + 0.5) / sigma) - normal_cdf((d - 0.5) / sigma)).collect();
+        let taps: Vec<f64> = (0..=2 * reach)
+            .map(|i| i as f64 - reach as f64)
+            .map(|d| normal_cdf((d + 0.5) / sigma) - normal_cdf((d - 0.5) / sigma))
+            .collect();
         let s: f64 = taps.iter().sum();
         Kernel { taps: taps.into_iter().map(|v| v / s).collect(), reach }
     }
@@ -154,7 +163,8 @@ impl Kernel {
             return v.to_vec();
         }
         let n = v.len();
-        (0..n).map(|j| self.taps.iter().enumerate().map(|(i, k)| k * v[(j + self.reach + n - i) % n]).sum()).collect() // d = i − reach
+        (0..n).map(|j| self.taps.iter().enumerate().map(|(i, k)| k * v[(j + self.reach + n - i) % n]).sum()).collect()
+        // d = i − reach
     }
 }
 
@@ -174,7 +184,8 @@ impl Basis {
         let log_tau: Vec<f64> = (0..points).map(|i| lo + (hi - lo) * i as f64 / (points - 1) as f64).collect();
         let curves: Vec<Vec<f64>> = log_tau.par_iter().map(|&l| kernel.apply(&periodic_decay(c, l.exp(), t0))).collect();
         let g = points;
-        let rows: Vec<Vec<f64>> = (0..g).into_par_iter().map(|i| (0..g).map(|j| if j < i { 0.0 } else { dot(&curves[i], &curves[j]) }).collect()).collect();
+        let rows: Vec<Vec<f64>> =
+            (0..g).into_par_iter().map(|i| (0..g).map(|j| if j < i { 0.0 } else { dot(&curves[i], &curves[j]) }).collect()).collect();
         let mut gram = vec![0.0; g * g];
         for i in 0..g {
             for j in i..g {
@@ -247,7 +258,11 @@ impl Stats {
     /// Two exponentials on grid points `i < j`: `(a_i, a_j, b, sse)`.
     fn two(&self, b: &Basis, i: usize, j: usize) -> Option<(f64, f64, f64, f64)> {
         let g = b.log_tau.len();
-        let m = [[b.gram[i * g + i], b.gram[i * g + j], b.sums[i]], [b.gram[i * g + j], b.gram[j * g + j], b.sums[j]], [b.sums[i], b.sums[j], self.n]];
+        let m = [
+            [b.gram[i * g + i], b.gram[i * g + j], b.sums[i]],
+            [b.gram[i * g + j], b.gram[j * g + j], b.sums[j]],
+            [b.sums[i], b.sums[j], self.n],
+        ];
         let [ai, aj, bg] = solve(m, [self.p[i], self.p[j], self.q])?;
         Some((ai, aj, bg, self.r - ai * self.p[i] - aj * self.p[j] - bg * self.q))
     }
@@ -331,7 +346,9 @@ fn fit_pixel(b: &Basis, x: &[f64], comps: Components, aic: f64) -> Option<PixelF
     let s = Stats::new(b, x);
     // one component
     let ones: Vec<Option<(f64, f64, f64)>> = (0..g).map(|i| s.one(b, i).filter(|o| o.0 > 0.0)).collect();
-    let best1 = (0..g).filter(|&i| ones[i].is_some()).min_by(|&i, &j| ones[i].map(|o| o.2).unwrap_or(f64::MAX).total_cmp(&ones[j].map(|o| o.2).unwrap_or(f64::MAX)));
+    let best1 = (0..g)
+        .filter(|&i| ones[i].is_some())
+        .min_by(|&i, &j| ones[i].map(|o| o.2).unwrap_or(f64::MAX).total_cmp(&ones[j].map(|o| o.2).unwrap_or(f64::MAX)));
     let one = best1.and_then(|i| {
         let (a, bg, sse) = ones[i]?;
         let step = b.log_tau[1] - b.log_tau[0];
@@ -348,7 +365,8 @@ fn fit_pixel(b: &Basis, x: &[f64], comps: Components, aic: f64) -> Option<PixelF
                 if let Some([a, bg]) = solve([[dot(&d, &d), sd], [sd, s.n]], [p, s.q]) {
                     let sse = s.r - a * p - bg * s.q;
                     if a > 0.0 && sse < best.sse {
-                        (u, best, moved) = (v, PixelFit { comps: [((b.log_tau[0] + v * step).exp(), a), (0.0, 0.0)], background: bg, sse }, true);
+                        (u, best, moved) =
+                            (v, PixelFit { comps: [((b.log_tau[0] + v * step).exp(), a), (0.0, 0.0)], background: bg, sse }, true);
                     }
                 }
             }
@@ -390,7 +408,15 @@ fn fit_pixel(b: &Basis, x: &[f64], comps: Components, aic: f64) -> Option<PixelF
             }
         }
     }
-    let two = best.map(|(i, j, (ai, aj, bg, sse))| refine_two(b, x, &s, (i as f64, j as f64), PixelFit { comps: [(b.log_tau[i].exp(), ai), (b.log_tau[j].exp(), aj)], background: bg, sse }));
+    let two = best.map(|(i, j, (ai, aj, bg, sse))| {
+        refine_two(
+            b,
+            x,
+            &s,
+            (i as f64, j as f64),
+            PixelFit { comps: [(b.log_tau[i].exp(), ai), (b.log_tau[j].exp(), aj)], background: bg, sse },
+        )
+    });
     let two = two.filter(|f| inside(b, f));
     match (one, two, comps) {
         (o, Some(t), Components::Two) => Some(t).or(o),
@@ -422,7 +448,8 @@ fn instrument(c: Cycle, total: &[f64], pixels: &[Vec<f64>], irf: &IrfModel, rang
     };
     let reach = 12.0; // bins before the steepest rise where the onset may be (a wide IRF)
     let starts: Vec<f64> = (0..((reach + 4.0) * 4.0) as usize).map(|q| (rise as f64 + 1.0 + 4.0 - q as f64 * 0.25) * c.dt).collect();
-    let grid: Vec<(f64, f64, f64)> = starts.par_iter().flat_map_iter(|&t0| widths.iter().map(move |&w| (t0, w))).map(|(t0, w)| (t0, w, sse(t0, w))).collect();
+    let grid: Vec<(f64, f64, f64)> =
+        starts.par_iter().flat_map_iter(|&t0| widths.iter().map(move |&w| (t0, w))).map(|(t0, w)| (t0, w, sse(t0, w))).collect();
     let (mut t0, mut w, _) = grid.iter().copied().min_by(|a, b| a.2.total_cmp(&b.2)).unwrap_or((rise as f64 * c.dt, 0.0, f64::MAX));
     // refine on the pixels themselves (a global analysis: the onset and IRF shared, one or two
     // lifetimes per pixel), the summed decay being a mixture of more lifetimes than two
@@ -440,7 +467,11 @@ fn instrument(c: Cycle, total: &[f64], pixels: &[Vec<f64>], irf: &IrfModel, rang
         if dt0 < 0.0005 * c.dt && (dw == 0.0 || dw < 0.002e-9) {
             break;
         }
-        let cands: Vec<(f64, f64)> = [(-1.0, 0.0), (1.0, 0.0), (0.0, -1.0), (0.0, 1.0)].iter().filter(|(_, b)| *b == 0.0 || dw > 0.0).map(|(a, b)| (t0 + a * dt0, (w + b * dw).max(0.0))).collect();
+        let cands: Vec<(f64, f64)> = [(-1.0, 0.0), (1.0, 0.0), (0.0, -1.0), (0.0, 1.0)]
+            .iter()
+            .filter(|(_, b)| *b == 0.0 || dw > 0.0)
+            .map(|(a, b)| (t0 + a * dt0, (w + b * dw).max(0.0)))
+            .collect();
         let vals: Vec<(f64, f64, f64)> = cands.iter().map(|&(a, b)| (a, b, global(a, b))).collect();
         match vals.iter().min_by(|x, y| x.2.total_cmp(&y.2)) {
             Some(&(a, b, v)) if v < best => (t0, w, best) = (a, b, v),
@@ -463,7 +494,15 @@ pub fn fit_cube(x: &ArrayView3<'_, f32>, bin_width_s: f64, opts: &FitOptions) ->
     let totals = x.sum_axis(Axis(0)); // [H, W]
     let max = totals.iter().fold(0f32, |m, &v| m.max(v));
     let bright = |r: usize, col: usize| totals[(r, col)] > opts.min_intensity * max && totals[(r, col)] > 0.0;
-    let summed: Vec<f64> = (0..t).map(|j| (0..h).flat_map(|r| (0..w).map(move |col| (r, col))).filter(|&(r, col)| bright(r, col)).map(|(r, col)| x[(j, r, col)] as f64).sum()).collect();
+    let summed: Vec<f64> = (0..t)
+        .map(|j| {
+            (0..h)
+                .flat_map(|r| (0..w).map(move |col| (r, col)))
+                .filter(|&(r, col)| bright(r, col))
+                .map(|(r, col)| x[(j, r, col)] as f64)
+                .sum()
+        })
+        .collect();
     let mut lifetimes = Array3::<f32>::from_elem((4, h, w), f32::NAN);
     let mut background = Array2::<f32>::from_elem((h, w), f32::NAN);
     let mut phasor = Array3::<f32>::from_elem((2, h, w), f32::NAN);
@@ -568,7 +607,8 @@ mod tests {
     #[test]
     fn recovers_single_and_double_exponentials_at_any_onset_and_irf() {
         for &(t0, fwhm, bg) in &[(2e-9, 0.0, 0.0), (31.7e-9, 0.6e-9, 0.02), (51.9e-9, 1.4e-9, 0.05), (0.1e-9, 0.9e-9, 0.0)] {
-            let pixels: [&[(f64, f64)]; 4] = [&[(0.4e-9, 1.0)], &[(3.1e-9, 0.7)], &[(1.0e-9, 0.6), (4.0e-9, 0.4)], &[(0.8e-9, 0.3), (2.5e-9, 0.5)]];
+            let pixels: [&[(f64, f64)]; 4] =
+                [&[(0.4e-9, 1.0)], &[(3.1e-9, 0.7)], &[(1.0e-9, 0.6), (4.0e-9, 0.4)], &[(0.8e-9, 0.3), (2.5e-9, 0.5)]];
             let x = cube(&pixels, t0, fwhm, bg);
             // the IRF unknown: its width is fitted with the onset
             let free = fit_cube(&x.view(), DT, &FitOptions::default());
@@ -578,7 +618,11 @@ mod tests {
             // the IRF known, as reconvolution software takes it: every lifetime within 2 %
             let fit = fit_cube(&x.view(), DT, &FitOptions { irf: IrfModel::Gaussian(Some(fwhm)), ..Default::default() });
             let want_t0 = t0;
-            assert!(((fit.onset_s - want_t0 + 26.35e-9).rem_euclid(52.7e-9) - 26.35e-9).abs() < 0.05 * DT + 0.02e-9, "onset {} vs {want_t0}", fit.onset_s);
+            assert!(
+                ((fit.onset_s - want_t0 + 26.35e-9).rem_euclid(52.7e-9) - 26.35e-9).abs() < 0.05 * DT + 0.02e-9,
+                "onset {} vs {want_t0}",
+                fit.onset_s
+            );
             for (p, comps) in pixels.iter().enumerate() {
                 let total: f64 = comps.iter().map(|c| c.1).sum();
                 let mean = comps.iter().map(|c| c.0 * c.1).sum::<f64>() / total;
@@ -600,7 +644,10 @@ mod tests {
             for (p, tau) in [(0usize, 0.4e-9f64), (1, 3.1e-9)] {
                 let (g, s) = (fit.phasor[(0, 0, p)] as f64, fit.phasor[(1, 0, p)] as f64);
                 let wt = omega * tau;
-                assert!((g - 1.0 / (1.0 + wt * wt)).abs() < 2e-3 && (s - wt / (1.0 + wt * wt)).abs() < 2e-3, "pixel {p}: ({g}, {s}) for τ {tau:e}");
+                assert!(
+                    (g - 1.0 / (1.0 + wt * wt)).abs() < 2e-3 && (s - wt / (1.0 + wt * wt)).abs() < 2e-3,
+                    "pixel {p}: ({g}, {s}) for τ {tau:e}"
+                );
             }
         }
     }
@@ -612,7 +659,16 @@ mod tests {
         // (most of the frame's light in 2 ns decays: the onset is fitted on the frame's sum)
         let pixels: [&[(f64, f64)]; 4] = [&[(2e-9, 1.0)], &[(30e-9, 0.2)], &[(0.05e-9, 0.2)], &[(2e-9, 1.0)]];
         let x = cube(&pixels, 5e-9, 0.5e-9, 0.0);
-        let fit = fit_cube(&x.view(), DT, &FitOptions { irf: IrfModel::Gaussian(Some(0.5e-9)), components: Components::One, tau_range_s: [0.5e-9, 10e-9], ..Default::default() });
+        let fit = fit_cube(
+            &x.view(),
+            DT,
+            &FitOptions {
+                irf: IrfModel::Gaussian(Some(0.5e-9)),
+                components: Components::One,
+                tau_range_s: [0.5e-9, 10e-9],
+                ..Default::default()
+            },
+        );
         assert!((fit.lifetimes[(0, 0, 0)] as f64 / 2e-9 - 1.0).abs() < 0.01, "{}", fit.lifetimes[(0, 0, 0)]);
         assert!(fit.lifetimes[(0, 0, 1)].is_nan(), "30 ns searched up to 10 ns: {}", fit.lifetimes[(0, 0, 1)]);
         assert!(fit.lifetimes[(0, 0, 2)].is_nan(), "0.05 ns searched from 0.5 ns: {}", fit.lifetimes[(0, 0, 2)]);
@@ -622,7 +678,11 @@ mod tests {
     fn dark_pixels_get_no_lifetime_and_a_known_irf_is_kept() {
         let pixels: [&[(f64, f64)]; 2] = [&[(2e-9, 1.0)], &[(2e-9, 0.001)]];
         let x = cube(&pixels, 5e-9, 0.5e-9, 0.0);
-        let fit = fit_cube(&x.view(), DT, &FitOptions { irf: IrfModel::Gaussian(Some(0.5e-9)), components: Components::One, ..Default::default() });
+        let fit = fit_cube(
+            &x.view(),
+            DT,
+            &FitOptions { irf: IrfModel::Gaussian(Some(0.5e-9)), components: Components::One, ..Default::default() },
+        );
         assert!((fit.lifetimes[(0, 0, 0)] as f64 / 2e-9 - 1.0).abs() < 0.01);
         assert!(fit.lifetimes[(0, 0, 1)].is_nan() && fit.phasor[(0, 0, 1)].is_nan());
         assert_eq!(fit.irf_fwhm_s, 0.5e-9);

@@ -2,9 +2,9 @@
 //! `tcsense_models::metrics`), depth errors per bounce with the detection rate, and the
 //! lifetime error.
 
-pub use tcsense_models::metrics::{depth_errors, mse, psnr, DepthErrors};
 use ndarray::ArrayView2;
 use tcsense_datasets::flim::holds_fluorophore;
+pub use tcsense_models::metrics::{depth_errors, mse, psnr, DepthErrors};
 
 /// Errors of a mean-lifetime map against the truth, summed over items: over the pixels that
 /// hold a fluorophore ([`holds_fluorophore`] with the true intensity; without it every pixel
@@ -94,7 +94,8 @@ mod tests {
         assert_eq!((l.mae(), l.estimated, l.truth, l.coverage()), (Some(0.5), 1, 2, Some(0.5)));
         // with intensities: the dim pixel (below 2 % of the brightest) does not count
         let mut l = LifetimeErrors::default();
-        let (est, truth, inten) = (ndarray::arr2(&[[1.1e-9f32, 9e-9, 1e-9]]), ndarray::arr2(&[[1e-9f32, 2e-9, 3e-9]]), ndarray::arr2(&[[1.0f32, 3.0, 0.01]]));
+        let (est, truth, inten) =
+            (ndarray::arr2(&[[1.1e-9f32, 9e-9, 1e-9]]), ndarray::arr2(&[[1e-9f32, 2e-9, 3e-9]]), ndarray::arr2(&[[1.0f32, 3.0, 0.01]]));
         l.add(&est.view(), &truth.view(), Some(&inten.view()));
         assert_eq!((l.truth, l.estimated, l.within), (2, 2, 1));
         assert!((l.mae().unwrap() - 3.55e-9).abs() < 1e-12 && (l.weighted_mae().unwrap() - (0.1e-9 + 21e-9) / 4.0).abs() < 1e-12);

@@ -11,13 +11,13 @@
 //! `s = Σx sin ωt / Σx` at `ω = 2π / (L·T_c)`; for a single exponential,
 //! `τ_φ = s / (ω g)`.
 
+use crate::Result;
 use ndarray::{Array2, Array3, ArrayView1, ArrayView3, Axis};
 use rayon::prelude::*;
 use std::path::Path;
 use tcsense_datasets::grid::C;
 use tcsense_datasets::lidar::Camera;
 use tcsense_sensor::npy::atomic_write;
-use crate::Result;
 
 /// A detected peak.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -106,10 +106,7 @@ pub fn find_peaks(wave: &ArrayView1<'_, f32>, opts: &PeakOptions) -> Vec<Peak> {
 pub fn depth_map(x: &ArrayView3<'_, f32>, bin_width_s: f64, opts: &PeakOptions) -> (Array3<f32>, Array3<f32>) {
     let (_, h, w) = x.dim();
     let k = opts.max_peaks;
-    let per_pixel: Vec<Vec<Peak>> = (0..h * w)
-        .into_par_iter()
-        .map(|p| find_peaks(&x.slice(ndarray::s![.., p / w, p % w]), opts))
-        .collect();
+    let per_pixel: Vec<Vec<Peak>> = (0..h * w).into_par_iter().map(|p| find_peaks(&x.slice(ndarray::s![.., p / w, p % w]), opts)).collect();
     let mut depth = Array3::<f32>::from_elem((k, h, w), f32::NAN);
     let mut amp = Array3::<f32>::zeros((k, h, w));
     for (p, peaks) in per_pixel.iter().enumerate() {
@@ -271,7 +268,8 @@ pub fn point_cloud(depth: &ArrayView3<'_, f32>, fov_deg: f64) -> Vec<[f32; 4]> {
 /// Write a point cloud (ASCII PLY: x y z in metres, bounce index, amplitude) from a range map
 /// `[K, H, W]` seen through a pinhole camera with horizontal field of view `fov_deg`.
 pub fn write_ply(path: &Path, depth: &ArrayView3<'_, f32>, amp: &ArrayView3<'_, f32>, fov_deg: f64) -> Result<usize> {
-    let pts: Vec<(f64, f64, f64, usize, f32)> = camera_points(depth, fov_deg).map(|(b, r, c, p)| (p[0], p[1], p[2], b, amp[(b, r, c)])).collect();
+    let pts: Vec<(f64, f64, f64, usize, f32)> =
+        camera_points(depth, fov_deg).map(|(b, r, c, p)| (p[0], p[1], p[2], b, amp[(b, r, c)])).collect();
     let n = pts.len();
     atomic_write(path, |wr| {
         writeln!(wr, "ply\nformat ascii 1.0\ncomment tcsense point cloud: x y z (m), bounce, amplitude")?;

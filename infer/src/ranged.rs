@@ -109,7 +109,11 @@ impl Decoder for PeaksThenFit {
     fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &tcsense_sensor::Sensor, ctl: &Control<'_>) -> Result<Decoded> {
         let out = self.inner.decode(y, sensor, ctl)?;
         let Some(cube) = &out.cube else {
-            return Err(ModelError::InvalidParam { field: "decoder", got: self.inner.name().into(), expected: "a decoder that reconstructs cubes (NAME+fit refines the peaks of a cube)".into() });
+            return Err(ModelError::InvalidParam {
+                field: "decoder",
+                got: self.inner.name().into(),
+                expected: "a decoder that reconstructs cubes (NAME+fit refines the peaks of a cube)".into(),
+            });
         };
         ctl.check()?;
         let (b, _, h, w) = cube.dim();
@@ -151,7 +155,8 @@ mod tests {
     fn sensor() -> Sensor {
         let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
         let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 1).unwrap();
-        Sensor::ideal(codes, Sampling::Oversample(1), Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S }).unwrap()
+        Sensor::ideal(codes, Sampling::Oversample(1), Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S })
+            .unwrap()
     }
 
     /// An 8×8 cube `[1, T, 8, 8]` of one return at `tau` bins (split linearly between the
@@ -159,7 +164,15 @@ mod tests {
     fn cube(t: usize, tau: f64) -> Array4<f32> {
         let p = tau - 0.5;
         let (t0, f) = (p.floor() as usize, p - p.floor());
-        Array4::from_shape_fn((1, t, 8, 8), |(_, k, _, _)| 0.01 + if k == t0 % t { (1.0 - f) as f32 } else if k == (t0 + 1) % t { f as f32 } else { 0.0 })
+        Array4::from_shape_fn((1, t, 8, 8), |(_, k, _, _)| {
+            0.01 + if k == t0 % t {
+                (1.0 - f) as f32
+            } else if k == (t0 + 1) % t {
+                f as f32
+            } else {
+                0.0
+            }
+        })
     }
 
     /// A "decoder" that gives a fixed cube, whatever it is given.
@@ -206,7 +219,8 @@ mod tests {
         let a = sensor();
         let y = a.plan(8, 8).unwrap().forward_batch(&cube(a.bins(), 5.0).view()).unwrap();
         let depth_only = Decoded { depth: Some(Array4::zeros((1, 2, 8, 8))), ..Default::default() };
-        let err = PeaksThenFit::new(Box::new(Fixed(depth_only))).decode(y.view(), &a, &Control::quiet(&AtomicBool::new(false))).unwrap_err();
+        let err =
+            PeaksThenFit::new(Box::new(Fixed(depth_only))).decode(y.view(), &a, &Control::quiet(&AtomicBool::new(false))).unwrap_err();
         assert!(err.to_string().contains("reconstructs cubes"), "{err}");
     }
 }

@@ -89,7 +89,10 @@ pub enum Block {
     /// A paragraph of plain text.
     Text(String),
     /// A PNG beside the report (`src` relative to it) with a caption.
-    Figure { src: String, caption: String },
+    Figure {
+        src: String,
+        caption: String,
+    },
     Table(Table),
     /// Preformatted text (commands, file listings).
     Code(String),
@@ -171,7 +174,13 @@ impl Report {
                         let _ = writeln!(h, "<pre>{}</pre>", escape(t));
                     }
                     Block::Figure { src, caption } => {
-                        let _ = writeln!(h, "<figure><img src=\"{}\" alt=\"{}\"><figcaption>{}</figcaption></figure>", escape(src), escape(caption), escape(caption));
+                        let _ = writeln!(
+                            h,
+                            "<figure><img src=\"{}\" alt=\"{}\"><figcaption>{}</figcaption></figure>",
+                            escape(src),
+                            escape(caption),
+                            escape(caption)
+                        );
                     }
                     Block::Table(t) => {
                         let _ = writeln!(h, "<table>\n<caption>{}</caption>", escape(&t.caption));
@@ -185,7 +194,13 @@ impl Report {
                             for c in row {
                                 match &c.source {
                                     Some((file, ptr)) => {
-                                        let _ = write!(h, "<td data-src=\"{}\" data-ptr=\"{}\">{}</td>", escape(file), escape(ptr), escape(&c.text));
+                                        let _ = write!(
+                                            h,
+                                            "<td data-src=\"{}\" data-ptr=\"{}\">{}</td>",
+                                            escape(file),
+                                            escape(ptr),
+                                            escape(&c.text)
+                                        );
                                     }
                                     None => {
                                         let _ = write!(h, "<td>{}</td>", escape(&c.text));
@@ -212,7 +227,11 @@ impl Report {
 
     /// Every figure's `src`, in order.
     pub fn figures(&self) -> Vec<&str> {
-        self.sections.iter().flat_map(|s| s.blocks.iter()).filter_map(|b| if let Block::Figure { src, .. } = b { Some(src.as_str()) } else { None }).collect()
+        self.sections
+            .iter()
+            .flat_map(|s| s.blocks.iter())
+            .filter_map(|b| if let Block::Figure { src, .. } = b { Some(src.as_str()) } else { None })
+            .collect()
     }
 }
 
@@ -233,7 +252,11 @@ mod tests {
         let r = Report {
             title: "A <b> & \"c\"".into(),
             subtitle: "s".into(),
-            sections: vec![Section { id: "x".into(), title: "X".into(), blocks: vec![Block::Figure { src: "f.png".into(), caption: "1 < 2".into() }, Block::Text("a&b".into())] }],
+            sections: vec![Section {
+                id: "x".into(),
+                title: "X".into(),
+                blocks: vec![Block::Figure { src: "f.png".into(), caption: "1 < 2".into() }, Block::Text("a&b".into())],
+            }],
         };
         let h = r.to_html();
         assert!(h.contains("<h1>A &lt;b&gt; &amp; &quot;c&quot;</h1>"));

@@ -95,7 +95,10 @@ impl OnnxModel {
     /// Open `path` with `threads` intra-op threads (0: ONNX Runtime's default, one per core).
     pub fn open(path: &Path, threads: usize) -> Result<Self> {
         if !path.is_file() {
-            return Err(InferError::File { path: path.to_path_buf(), msg: "no such file; expected an ONNX model written by `tcsense export onnx`".into() });
+            return Err(InferError::File {
+                path: path.to_path_buf(),
+                msg: "no such file; expected an ONNX model written by `tcsense export onnx`".into(),
+            });
         }
         let env = environment()?;
         let bad = |e: String| InferError::File { path: path.to_path_buf(), msg: format!("not a loadable ONNX model: {e}") };
@@ -113,11 +116,17 @@ impl OnnxModel {
         let inputs: Vec<&str> = session.inputs().iter().map(|i| i.name()).collect();
         let want: Vec<&str> = if meta.matrix_input { vec![INPUT, MATRIX_INPUT] } else { vec![INPUT] };
         if inputs != want {
-            return Err(InferError::File { path: path.to_path_buf(), msg: format!("graph inputs {inputs:?}; its metadata expects {want:?}") });
+            return Err(InferError::File {
+                path: path.to_path_buf(),
+                msg: format!("graph inputs {inputs:?}; its metadata expects {want:?}"),
+            });
         }
         let outputs: Vec<&str> = session.outputs().iter().map(|o| o.name()).collect();
         if outputs != meta.outputs() {
-            return Err(InferError::File { path: path.to_path_buf(), msg: format!("graph outputs {outputs:?}; its metadata expects {:?}", meta.outputs()) });
+            return Err(InferError::File {
+                path: path.to_path_buf(),
+                msg: format!("graph outputs {outputs:?}; its metadata expects {:?}", meta.outputs()),
+            });
         }
         let matrix = meta.matrix_input.then(|| sensor.a().to_owned());
         Ok(OnnxModel { path: path.to_path_buf(), session, meta, sensor, matrix })
@@ -137,10 +146,17 @@ impl OnnxModel {
     /// [`Self::set_matrix`] from the array `[N, M, T]`.
     pub fn set_matrix_array(&mut self, a: ndarray::ArrayView3<'_, f32>) -> Result<()> {
         let Some(m) = &mut self.matrix else {
-            return Err(InferError::File { path: self.path.clone(), msg: "this model has its sensor matrix baked in; export it with --matrix-input to give another".into() });
+            return Err(InferError::File {
+                path: self.path.clone(),
+                msg: "this model has its sensor matrix baked in; export it with --matrix-input to give another".into(),
+            });
         };
         if a.dim() != m.dim() {
-            return Err(InferError::InvalidParam { field: "sensor matrix", got: format!("{:?}", a.dim()), expected: format!("[N, M, T] = {:?} as the model", m.dim()) });
+            return Err(InferError::InvalidParam {
+                field: "sensor matrix",
+                got: format!("{:?}", a.dim()),
+                expected: format!("[N, M, T] = {:?} as the model", m.dim()),
+            });
         }
         if let Some(v) = a.iter().find(|v| !v.is_finite()) {
             return Err(InferError::InvalidParam { field: "sensor matrix", got: format!("a value {v}"), expected: "finite values".into() });
@@ -169,12 +185,22 @@ impl OnnxModel {
                 return Err(InferError::InvalidParam {
                     field: "measurements",
                     got: format!("{what}: [{b}, {m}, {h}, {w}]"),
-                    expected: format!("raw {} tap images of {}x{}, the frame size of the calibration built into {}", c.units, c.size[0], c.size[1], self.path.display()),
+                    expected: format!(
+                        "raw {} tap images of {}x{}, the frame size of the calibration built into {}",
+                        c.units,
+                        c.size[0],
+                        c.size[1],
+                        self.path.display()
+                    ),
                 });
             }
         }
         if let Some(v) = y.iter().find(|v| !v.is_finite()) {
-            return Err(InferError::InvalidParam { field: "measurements", got: format!("{what}: a value {v}"), expected: "finite tap values".into() });
+            return Err(InferError::InvalidParam {
+                field: "measurements",
+                got: format!("{what}: a value {v}"),
+                expected: "finite tap values".into(),
+            });
         }
         Ok(())
     }
@@ -201,7 +227,9 @@ impl OnnxModel {
             .iter()
             .map(|n| {
                 let v: ArrayViewD<'_, f32> = outputs[*n].try_extract_array::<f32>().map_err(fail)?;
-                v.into_dimensionality::<Ix4>().map(|v| v.to_owned()).map_err(|e| InferError::File { path: path.clone(), msg: format!("output {n}: {e}") })
+                v.into_dimensionality::<Ix4>()
+                    .map(|v| v.to_owned())
+                    .map_err(|e| InferError::File { path: path.clone(), msg: format!("output {n}: {e}") })
             })
             .collect()
     }
@@ -235,14 +263,21 @@ impl Decoder for OnnxDecoder {
     fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &tcsense_sensor::Sensor, ctl: &Control<'_>) -> tcsense_models::Result<Decoded> {
         let sensor = sensor.matrix();
         check_measurements(&y, sensor)?;
-        let to_model = |e: InferError| tcsense_models::ModelError::InvalidParam { field: "onnx decoder", got: e.to_string(), expected: "a successful ONNX Runtime run".into() };
+        let to_model = |e: InferError| tcsense_models::ModelError::InvalidParam {
+            field: "onnx decoder",
+            got: e.to_string(),
+            expected: "a successful ONNX Runtime run".into(),
+        };
         if self.model.meta.matrix_input {
             self.model.set_matrix(sensor).map_err(to_model)?;
         } else if *sensor != self.model.sensor {
             return Err(tcsense_models::ModelError::InvalidParam {
                 field: "sensor",
                 got: "a measurement matrix other than the model's".into(),
-                expected: format!("the codes and sensor model baked into {} (or a model exported with --matrix-input)", self.model.path().display()),
+                expected: format!(
+                    "the codes and sensor model baked into {} (or a model exported with --matrix-input)",
+                    self.model.path().display()
+                ),
             });
         }
         let b = y.dim().0;
@@ -254,7 +289,11 @@ impl Decoder for OnnxDecoder {
         }
         let cat = |k: usize| -> tcsense_models::Result<Array4<f32>> {
             let views: Vec<_> = frames.iter().map(|f| f[k].view()).collect();
-            ndarray::concatenate(ndarray::Axis(0), &views).map_err(|e| tcsense_models::ModelError::InvalidParam { field: "batch", got: e.to_string(), expected: "frames of one shape".into() })
+            ndarray::concatenate(ndarray::Axis(0), &views).map_err(|e| tcsense_models::ModelError::InvalidParam {
+                field: "batch",
+                got: e.to_string(),
+                expected: "frames of one shape".into(),
+            })
         };
         if self.model.meta.decoder == "unet" {
             let (mut depth, confidence) = (cat(0)?, cat(1)?);

@@ -37,12 +37,12 @@ use std::time::Instant;
 use tcsense_sensor::npy::{f32_header, parse_header, read_npy, NpyHeader};
 
 use crate::products::{depth_map, write_ply, PeakOptions};
-use crate::tapfit::{estimate_instrument, LifetimeTemplates, TapFit, TapFitOptions};
 use crate::runtime::OnnxModel;
+use crate::tapfit::{estimate_instrument, LifetimeTemplates, TapFit, TapFitOptions};
+use crate::{InferError, Result};
 use tcsense_models::net::mask_depth;
 use tcsense_models::range_fit::{refine_ranges, RangeFitOptions};
 use tcsense_models::range_templates::{DepthFitOptions, RangeTemplates};
-use crate::{InferError, Result};
 
 fn file_err(path: &Path, msg: impl ToString) -> InferError {
     InferError::File { path: path.to_path_buf(), msg: msg.to_string() }
@@ -82,18 +82,31 @@ impl FrameSource {
             s => return Err(file_err(path, format!("measurements of shape {s:?}; expected [M, H, W] or [F, M, H, W]"))),
         };
         if frames == 0 || frame.contains(&0) {
-            return Err(file_err(path, format!("measurements of shape {:?} hold no tap image; expected [M, H, W] or [F, M, H, W] with every size ≥ 1", header.shape)));
+            return Err(file_err(
+                path,
+                format!(
+                    "measurements of shape {:?} hold no tap image; expected [M, H, W] or [F, M, H, W] with every size ≥ 1",
+                    header.shape
+                ),
+            ));
         }
         if header.fortran && frames > 1 {
             return Err(file_err(path, "a Fortran-order stack cannot be streamed; save it in C order (numpy.ascontiguousarray)"));
         }
-        let need = header.shape.iter().try_fold(header.size as u64, |acc, &d| acc.checked_mul(d as u64)).and_then(|b| b.checked_add(header.data_offset as u64));
+        let need = header
+            .shape
+            .iter()
+            .try_fold(header.size as u64, |acc, &d| acc.checked_mul(d as u64))
+            .and_then(|b| b.checked_add(header.data_offset as u64));
         let Some(need) = need else {
             return Err(file_err(path, format!("measurements of shape {:?}: more bytes than a file can hold", header.shape)));
         };
         let have = file.metadata().map_err(|e| file_err(path, e))?.len();
         if have < need {
-            return Err(file_err(path, format!("npy data truncated: shape {:?} of {} needs {need} bytes, the file has {have}", header.shape, header.descr)));
+            return Err(file_err(
+                path,
+                format!("npy data truncated: shape {:?} of {} needs {need} bytes, the file has {have}", header.shape, header.descr),
+            ));
         }
         Ok(FrameSource::Npy { path: path.to_path_buf(), file, header, frames, frame, single })
     }
@@ -142,7 +155,8 @@ impl FrameSource {
                 } else {
                     let a = read_npy(&p)?;
                     let shape = a.shape().to_vec();
-                    a.into_dimensionality::<ndarray::Ix3>().map_err(|_| file_err(&p, format!("a frame of shape {shape:?}; expected [M, H, W]")))?
+                    a.into_dimensionality::<ndarray::Ix3>()
+                        .map_err(|_| file_err(&p, format!("a frame of shape {shape:?}; expected [M, H, W]")))?
                 };
                 Ok((a, p))
             }
@@ -318,12 +332,29 @@ impl Products {
     /// Parse a comma-separated list (`cube,depth,peaks,ply,lifetime,intensity,phasor`) for a
     /// model of `kind`.
     pub fn parse(list: &str, kind: ModelKind) -> Result<Self> {
-        let mut p = Products { cube: false, depth: false, peaks: false, ply: false, lifetime: false, intensity: false, phasor: false, returns: 2, fov_deg: 40.0, lifetime_fit: None, range_fit: Some(RangeFitOptions::default()), depth_fit: None };
+        let mut p = Products {
+            cube: false,
+            depth: false,
+            peaks: false,
+            ply: false,
+            lifetime: false,
+            intensity: false,
+            phasor: false,
+            returns: 2,
+            fov_deg: 40.0,
+            lifetime_fit: None,
+            range_fit: Some(RangeFitOptions::default()),
+            depth_fit: None,
+        };
         let (allowed, _) = kind.products();
         for item in list.split(',').map(str::trim).filter(|s| !s.is_empty()) {
             let (known, _) = ModelKind::Cube.products(); // a cube model gives every product
             if !known.contains(&item) {
-                return Err(InferError::InvalidParam { field: "--products", got: item.into(), expected: format!("a comma-separated list of {}", known.join(", ")) });
+                return Err(InferError::InvalidParam {
+                    field: "--products",
+                    got: item.into(),
+                    expected: format!("a comma-separated list of {}", known.join(", ")),
+                });
             }
             if !allowed.contains(&item) {
                 let what = match kind {
@@ -331,7 +362,11 @@ impl Products {
                     ModelKind::Depth => "depth directly",
                     ModelKind::Lifetime => "lifetimes directly",
                 };
-                return Err(InferError::InvalidParam { field: "--products", got: list.into(), expected: format!("{}: this model estimates {what}", allowed.join(", ")) });
+                return Err(InferError::InvalidParam {
+                    field: "--products",
+                    got: list.into(),
+                    expected: format!("{}: this model estimates {what}", allowed.join(", ")),
+                });
             }
             match item {
                 "cube" => p.cube = true,
@@ -352,7 +387,10 @@ impl Products {
     /// Whether the model must run: a product asked for comes from it (not every product comes
     /// from the fit to the taps).
     pub fn need_model(&self) -> bool {
-        self.cube || self.peaks || ((self.depth || self.ply) && self.depth_fit.is_none()) || ((self.lifetime || self.intensity || self.phasor) && self.lifetime_fit.is_none())
+        self.cube
+            || self.peaks
+            || ((self.depth || self.ply) && self.depth_fit.is_none())
+            || ((self.lifetime || self.intensity || self.phasor) && self.lifetime_fit.is_none())
     }
 }
 
@@ -399,7 +437,14 @@ struct Writers {
 /// every frame is done, so an earlier run's products (a longer run's point clouds, a product
 /// not asked for now) never remain beside the new ones, and a refusal, an error or an
 /// interruption leaves `out` as it was. A directory holding other files is refused.
-pub fn run_stream(model: &mut OnnxModel, source: FrameSource, out: &Path, products: &Products, cancel: &AtomicBool, on_frame: &(dyn Fn(usize, usize) + Sync)) -> Result<StreamReport> {
+pub fn run_stream(
+    model: &mut OnnxModel,
+    source: FrameSource,
+    out: &Path,
+    products: &Products,
+    cancel: &AtomicBool,
+    on_frame: &(dyn Fn(usize, usize) + Sync),
+) -> Result<StreamReport> {
     tcsense_sensor::output::replace_dir(out, &is_stream_output, |tmp| {
         let mut report = stream_into(model, source, tmp, products, cancel, on_frame)?;
         // the paths the products will have once the temporary directory is renamed
@@ -418,7 +463,14 @@ pub fn is_stream_output(name: &str) -> bool {
 }
 
 /// [`run_stream`] into the directory `out` (fresh and empty).
-fn stream_into(model: &mut OnnxModel, mut source: FrameSource, out: &Path, products: &Products, cancel: &AtomicBool, on_frame: &(dyn Fn(usize, usize) + Sync)) -> Result<StreamReport> {
+fn stream_into(
+    model: &mut OnnxModel,
+    mut source: FrameSource,
+    out: &Path,
+    products: &Products,
+    cancel: &AtomicBool,
+    on_frame: &(dyn Fn(usize, usize) + Sync),
+) -> Result<StreamReport> {
     let frames = source.len();
     let taps = model.meta.taps;
     let (first, first_path) = source.read(0, taps)?;
@@ -452,7 +504,12 @@ fn stream_into(model: &mut OnnxModel, mut source: FrameSource, out: &Path, produ
         std::fs::create_dir_all(out.join("ply")).map_err(|e| file_err(out, e))?;
     }
     // what this stream writes (not whatever an earlier run left in `out`)
-    let mut written: Vec<PathBuf> = [&writers.cube, &writers.depth, &writers.second, &writers.lifetime, &writers.intensity, &writers.phasor].into_iter().flatten().map(|w| w.path.clone()).collect();
+    let mut written: Vec<PathBuf> =
+        [&writers.cube, &writers.depth, &writers.second, &writers.lifetime, &writers.intensity, &writers.phasor]
+            .into_iter()
+            .flatten()
+            .map(|w| w.path.clone())
+            .collect();
     if products.ply {
         written.push(out.join("ply"));
     }
@@ -482,15 +539,26 @@ fn stream_into(model: &mut OnnxModel, mut source: FrameSource, out: &Path, produ
     };
     let templates = templates.as_ref();
     let need_model = products.need_model();
-    let range_fit = products.range_fit.as_ref().filter(|_| kind == ModelKind::Depth && (products.depth || products.ply) && products.depth_fit.is_none());
+    let range_fit = products
+        .range_fit
+        .as_ref()
+        .filter(|_| kind == ModelKind::Depth && (products.depth || products.ply) && products.depth_fit.is_none());
     let mut range_templates = match &products.depth_fit {
         Some(opts) => {
             if kind == ModelKind::Lifetime {
-                return Err(InferError::InvalidParam { field: "--depth-fit", got: model.meta.decoder.clone(), expected: "a depth or cube model (the fit gives depth)".into() });
+                return Err(InferError::InvalidParam {
+                    field: "--depth-fit",
+                    got: model.meta.decoder.clone(),
+                    expected: "a depth or cube model (the fit gives depth)".into(),
+                });
             }
             uncalibrated("--depth-fit")?;
             if products.peaks {
-                return Err(InferError::InvalidParam { field: "--products", got: "peaks with --depth-fit".into(), expected: "depth, ply (the fit gives ranges, not the cube's peaks)".into() });
+                return Err(InferError::InvalidParam {
+                    field: "--products",
+                    got: "peaks with --depth-fit".into(),
+                    expected: "depth, ply (the fit gives ranges, not the cube's peaks)".into(),
+                });
             }
             opts.validate().map_err(|msg| InferError::Settings { what: "--depth-fit", msg })?;
             Some(RangeTemplates::new(&model.sensor, opts))
@@ -539,7 +607,9 @@ fn stream_into(model: &mut OnnxModel, mut source: FrameSource, out: &Path, produ
             // only a complete stream is renamed into place; otherwise the writers are dropped
             // and their temporary files removed
             if done == frames {
-                for wr in [writers.cube, writers.depth, writers.second, writers.lifetime, writers.intensity, writers.phasor].into_iter().flatten() {
+                for wr in
+                    [writers.cube, writers.depth, writers.second, writers.lifetime, writers.intensity, writers.phasor].into_iter().flatten()
+                {
                     wr.finish()?;
                 }
             }
@@ -572,7 +642,9 @@ fn stream_into(model: &mut OnnxModel, mut source: FrameSource, out: &Path, produ
                 Ok(o) => o,
                 Err(e) => {
                     status = Err(match e {
-                        InferError::InvalidParam { field, got, expected } => file_err(&path, format!("{field}: got {got}, expected {expected}")),
+                        InferError::InvalidParam { field, got, expected } => {
+                            file_err(&path, format!("{field}: got {got}, expected {expected}"))
+                        }
                         e => e,
                     });
                     break;
@@ -601,7 +673,19 @@ fn planes(phasors: impl Iterator<Item = (f32, f32)>) -> Vec<f32> {
 
 /// The products of frame `i` from the model's outputs (`[1, C, H, W]` each).
 #[allow(clippy::too_many_arguments)]
-fn write_frame(i: usize, outs: Vec<Array4<f32>>, fitted: Option<TapFit>, ranges: Option<Array3<f32>>, wr: &mut Writers, p: &Products, kind: ModelKind, bin_s: f64, bins: usize, peak_opts: &PeakOptions, out: &Path) -> Result<()> {
+fn write_frame(
+    i: usize,
+    outs: Vec<Array4<f32>>,
+    fitted: Option<TapFit>,
+    ranges: Option<Array3<f32>>,
+    wr: &mut Writers,
+    p: &Products,
+    kind: ModelKind,
+    bin_s: f64,
+    bins: usize,
+    peak_opts: &PeakOptions,
+    out: &Path,
+) -> Result<()> {
     let omega = 2.0 * std::f64::consts::PI / (bins as f64 * bin_s);
     if let Some(fit) = &fitted {
         // lifetime, intensity and phasor (one exponential) by the fit to the taps
@@ -674,7 +758,12 @@ fn write_frame(i: usize, outs: Vec<Array4<f32>>, fitted: Option<TapFit>, ranges:
                 w.push(outs[1].iter())?;
             }
             if p.ply {
-                write_ply(&out.join("ply").join(format!("frame_{i:05}.ply")), &depth.index_axis(Axis(0), 0), &outs[1].index_axis(Axis(0), 0), p.fov_deg)?;
+                write_ply(
+                    &out.join("ply").join(format!("frame_{i:05}.ply")),
+                    &depth.index_axis(Axis(0), 0),
+                    &outs[1].index_axis(Axis(0), 0),
+                    p.fov_deg,
+                )?;
             }
         }
         ModelKind::Lifetime if by_model => {
@@ -690,7 +779,13 @@ fn write_frame(i: usize, outs: Vec<Array4<f32>>, fitted: Option<TapFit>, ranges:
             }
             if let Some(w) = wr.phasor.as_mut() {
                 let (_, h, wd) = l.dim();
-                w.push(planes((0..h * wd).map(|q| phasor_of_components(l[(1, q / wd, q % wd)], l[(2, q / wd, q % wd)], l[(3, q / wd, q % wd)], omega))).iter())?;
+                w.push(
+                    planes(
+                        (0..h * wd)
+                            .map(|q| phasor_of_components(l[(1, q / wd, q % wd)], l[(2, q / wd, q % wd)], l[(3, q / wd, q % wd)], omega)),
+                    )
+                    .iter(),
+                )?;
             }
         }
         ModelKind::Lifetime | ModelKind::Depth => {}

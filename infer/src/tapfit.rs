@@ -165,7 +165,12 @@ impl Templates {
         let i = (u.floor() as usize).min(last.saturating_sub(1));
         let f = u - i as f64;
         let idx = |k: isize| (i as isize + k).clamp(0, last as isize) as usize;
-        let w = [(-f + 2.0 * f * f - f * f * f) / 2.0, (2.0 - 5.0 * f * f + 3.0 * f * f * f) / 2.0, (f + 4.0 * f * f - 3.0 * f * f * f) / 2.0, (-f * f + f * f * f) / 2.0];
+        let w = [
+            (-f + 2.0 * f * f - f * f * f) / 2.0,
+            (2.0 - 5.0 * f * f + 3.0 * f * f * f) / 2.0,
+            (f + 4.0 * f * f - 3.0 * f * f * f) / 2.0,
+            (-f * f + f * f * f) / 2.0,
+        ];
         for (k, o) in out.iter_mut().enumerate() {
             *o = (0..4).map(|q| w[q] * self.g[idx(q as isize - 1) * self.nm + n * self.m + k]).sum();
         }
@@ -308,7 +313,13 @@ impl TypeTable {
 
     /// The tables of `types` subpixel types from the normalised template of type `n`, tap `k`,
     /// point `i` and the normalised background's of type `n`, tap `k`.
-    fn build(types: usize, m: usize, points: usize, g_at: impl Fn(usize, usize, usize) -> f64, bg_at: impl Fn(usize, usize) -> f64) -> Vec<TypeTable> {
+    fn build(
+        types: usize,
+        m: usize,
+        points: usize,
+        g_at: impl Fn(usize, usize, usize) -> f64,
+        bg_at: impl Fn(usize, usize) -> f64,
+    ) -> Vec<TypeTable> {
         (0..types)
             .map(|n| {
                 let mut g = vec![0f32; m * points];
@@ -475,7 +486,17 @@ impl LifetimeTemplates {
         let coarse = TypeTable::of(&Templates::new(&av, &decays(c, &taus, instrument.onset_s, instrument.irf_fwhm_s)));
         let fine = TypeTable::of(&Templates::new(&av, &decays(c, &halves, instrument.onset_s, instrument.irf_fwhm_s)));
         let log_tau = (taus[0].ln(), taus[1].ln() - taus[0].ln());
-        LifetimeTemplates { coarse, fine, block: a.block(), taps: av.dim().1, log_tau, instrument, window: opts.window, min_intensity: opts.min_intensity, background: opts.background }
+        LifetimeTemplates {
+            coarse,
+            fine,
+            block: a.block(),
+            taps: av.dim().1,
+            log_tau,
+            instrument,
+            window: opts.window,
+            min_intensity: opts.min_intensity,
+            background: opts.background,
+        }
     }
 
     /// Lifetimes of one frame.
@@ -502,7 +523,13 @@ impl LifetimeTemplates {
             for j in 0..w {
                 let p = i * w + j;
                 if weight[p] > 0.0 {
-                    self.coarse[kind(p)].costs(&r[p * m..(p + 1) * m], weight[p], self.background, &mut beta, &mut cost[j * g..(j + 1) * g]);
+                    self.coarse[kind(p)].costs(
+                        &r[p * m..(p + 1) * m],
+                        weight[p],
+                        self.background,
+                        &mut beta,
+                        &mut cost[j * g..(j + 1) * g],
+                    );
                 }
             }
             for j in 0..w {
@@ -523,50 +550,53 @@ impl LifetimeTemplates {
                 let mut win: Vec<(usize, usize)> = Vec::with_capacity(self.window * self.window);
                 let mut between = Between::new(self.fine.len(), m);
                 let (rows, r, weight) = (&rows, &r, &weight);
-                (0..w).map(move |j| {
-                    let p = i * w + j;
-                    if weight[p] <= 0.0 {
-                        return (f32::NAN, f32::NAN);
-                    }
-                    total.fill(0.0);
-                    for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
-                        total.iter_mut().zip(&rows[(ii * w + j) * g..(ii * w + j + 1) * g]).for_each(|(a, b)| *a += b);
-                    }
-                    let best = argmin(&total);
-                    if best == 0 || best + 1 == g {
-                        return (f32::NAN, f32::NAN);
-                    }
-                    win.clear();
-                    for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
-                        for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
-                            let q = ii * w + jj;
-                            if weight[q] > 0.0 {
-                                win.push((q, kind(q)));
+                (0..w)
+                    .map(move |j| {
+                        let p = i * w + j;
+                        if weight[p] <= 0.0 {
+                            return (f32::NAN, f32::NAN);
+                        }
+                        total.fill(0.0);
+                        for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
+                            total.iter_mut().zip(&rows[(ii * w + j) * g..(ii * w + j + 1) * g]).for_each(|(a, b)| *a += b);
+                        }
+                        let best = argmin(&total);
+                        if best == 0 || best + 1 == g {
+                            return (f32::NAN, f32::NAN);
+                        }
+                        win.clear();
+                        for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
+                            for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
+                                let q = ii * w + jj;
+                                if weight[q] > 0.0 {
+                                    win.push((q, kind(q)));
+                                }
                             }
                         }
-                    }
-                    // the window's cost at the half steps either side of the best, then golden
-                    // sections within a half step of the best of them, the templates linear
-                    // between the half steps (the cost has a kink where the background share
-                    // reaches 0, which a parabola would straddle)
-                    let at = |f: usize| -> f32 { win.iter().map(|&(q, n)| self.fine[n].cost_at(f, &r[q * m..(q + 1) * m], weight[q], self.background).0).sum() };
-                    let c = [total[best - 1], at(2 * best - 1), total[best], at(2 * best + 1), total[best + 1]];
-                    let k = 1 + argmin(&c[1..4]);
-                    let centre = 2 * best + k - 2; // on the grid of half steps
-                    let (u, _) = golden(centre, 2 * g - 2, REFINE_STEPS, &mut |u| {
-                        between.set(&self.fine, u);
-                        win.iter().map(|&(q, n)| between.cost(n, &r[q * m..(q + 1) * m], weight[q], self.background).0 as f64).sum()
-                    });
-                    let tau = (self.log_tau.0 + 0.5 * u * self.log_tau.1).exp();
-                    let beta = if self.background {
-                        between.set(&self.fine, u);
-                        between.cost(kind(p), &r[p * m..(p + 1) * m], weight[p], true).1
-                    } else {
-                        0.0
-                    };
-                    (tau as f32, beta)
-                })
-                .collect::<Vec<_>>()
+                        // the window's cost at the half steps either side of the best, then golden
+                        // sections within a half step of the best of them, the templates linear
+                        // between the half steps (the cost has a kink where the background share
+                        // reaches 0, which a parabola would straddle)
+                        let at = |f: usize| -> f32 {
+                            win.iter().map(|&(q, n)| self.fine[n].cost_at(f, &r[q * m..(q + 1) * m], weight[q], self.background).0).sum()
+                        };
+                        let c = [total[best - 1], at(2 * best - 1), total[best], at(2 * best + 1), total[best + 1]];
+                        let k = 1 + argmin(&c[1..4]);
+                        let centre = 2 * best + k - 2; // on the grid of half steps
+                        let (u, _) = golden(centre, 2 * g - 2, REFINE_STEPS, &mut |u| {
+                            between.set(&self.fine, u);
+                            win.iter().map(|&(q, n)| between.cost(n, &r[q * m..(q + 1) * m], weight[q], self.background).0 as f64).sum()
+                        });
+                        let tau = (self.log_tau.0 + 0.5 * u * self.log_tau.1).exp();
+                        let beta = if self.background {
+                            between.set(&self.fine, u);
+                            between.cost(kind(p), &r[p * m..(p + 1) * m], weight[p], true).1
+                        } else {
+                            0.0
+                        };
+                        (tau as f32, beta)
+                    })
+                    .collect::<Vec<_>>()
             })
             .collect();
         let lifetime = Array2::from_shape_fn((h, w), |(i, j)| fits[i * w + j].0);
@@ -574,7 +604,6 @@ impl LifetimeTemplates {
         TapFit { lifetime, intensity, background, onset_s: self.instrument.onset_s, irf_fwhm_s: self.instrument.irf_fwhm_s }
     }
 }
-
 
 /// Golden-section steps of the refinement within a half step of the best (the bracket of one
 /// grid step shrinks to 0.618⁸ of itself: 0.02 steps, 0.001 in `ln τ` on the default grid).
@@ -600,8 +629,13 @@ fn fit_taps_reference(y: &ArrayView3<'_, f32>, a: &MeasurementMatrix, opts: &Tap
         if weight[p] <= 0.0 {
             return f32::NAN;
         }
-        let window: Vec<usize> = (i.saturating_sub(half)..(i + half + 1).min(h)).flat_map(|ii| (j.saturating_sub(half)..(j + half + 1).min(w)).map(move |jj| ii * w + jj)).filter(|&q| weight[q] > 0.0).collect();
-        let total: Vec<f64> = (0..g).map(|t| window.iter().map(|&q| tpl.cost(t, kind(q), &r[q * m..(q + 1) * m], weight[q], opts.background).0).sum()).collect();
+        let window: Vec<usize> = (i.saturating_sub(half)..(i + half + 1).min(h))
+            .flat_map(|ii| (j.saturating_sub(half)..(j + half + 1).min(w)).map(move |jj| ii * w + jj))
+            .filter(|&q| weight[q] > 0.0)
+            .collect();
+        let total: Vec<f64> = (0..g)
+            .map(|t| window.iter().map(|&q| tpl.cost(t, kind(q), &r[q * m..(q + 1) * m], weight[q], opts.background).0).sum())
+            .collect();
         let best = (0..g).min_by(|&x, &y| total[x].total_cmp(&total[y])).unwrap_or(0);
         if best == 0 || best + 1 == g {
             return f32::NAN;
@@ -642,7 +676,11 @@ fn golden(best: usize, last: usize, iterations: usize, cost: &mut dyn FnMut(f64)
             f2 = cost(x2);
         }
     }
-    if f1 <= f2 { (x1, f1) } else { (x2, f2) }
+    if f1 <= f2 {
+        (x1, f1)
+    } else {
+        (x2, f2)
+    }
 }
 
 /// The frame's onset and IRF width: the cost of the brightest pixels, each at its best
@@ -650,7 +688,16 @@ fn golden(best: usize, last: usize, iterations: usize, cost: &mut dyn FnMut(f64)
 /// templates of every shift at once, as a cyclic correlation of the sensor's rows with the
 /// decays), then refined to a quarter bin around the best and by golden sections.
 #[allow(clippy::too_many_arguments)]
-fn instrument(a: &ArrayView3<'_, f32>, c: Cycle, opts: &TapFitOptions, r: &[f32], weight: &[f32], signal: &[usize], m: usize, kind: &(dyn Fn(usize) -> usize + Sync)) -> (f64, f64) {
+fn instrument(
+    a: &ArrayView3<'_, f32>,
+    c: Cycle,
+    opts: &TapFitOptions,
+    r: &[f32],
+    weight: &[f32],
+    signal: &[usize],
+    m: usize,
+    kind: &(dyn Fn(usize) -> usize + Sync),
+) -> (f64, f64) {
     let mut bright = signal.to_vec();
     bright.sort_by(|&p, &q| weight[q].total_cmp(&weight[p]).then(p.cmp(&q)));
     bright.truncate(opts.brightest);
@@ -662,9 +709,15 @@ fn instrument(a: &ArrayView3<'_, f32>, c: Cycle, opts: &TapFitOptions, r: &[f32]
     let pixels: Vec<(Vec<f32>, f32, usize)> = bright.iter().map(|&p| (r[p * m..(p + 1) * m].to_vec(), weight[p], kind(p))).collect();
     // (on the grid of half steps: the templates are linear between its points)
     let full = grid(opts, 2 * opts.points - 1);
-    let frame_cost = |t0: f64, fwhm: f64| -> f64 { brightest_cost(&TypeTable::of(&Templates::new(a, &decays(c, &full, t0, fwhm))), &pixels, usize::MAX, 16, opts.background) };
+    let frame_cost = |t0: f64, fwhm: f64| -> f64 {
+        brightest_cost(&TypeTable::of(&Templates::new(a, &decays(c, &full, t0, fwhm))), &pixels, usize::MAX, 16, opts.background)
+    };
     let score = |cands: &[(f64, f64)]| -> (f64, f64, f64) {
-        cands.par_iter().map(|&(t0, f)| (frame_cost(t0, f), t0, f)).min_by(|x, y| x.0.total_cmp(&y.0).then(x.1.total_cmp(&y.1)).then(x.2.total_cmp(&y.2))).unwrap_or((0.0, 0.0, widths[0]))
+        cands
+            .par_iter()
+            .map(|&(t0, f)| (frame_cost(t0, f), t0, f))
+            .min_by(|x, y| x.0.total_cmp(&y.0).then(x.1.total_cmp(&y.1)).then(x.2.total_cmp(&y.2)))
+            .unwrap_or((0.0, 0.0, widths[0]))
     };
     if let Some(t0) = opts.onset_s {
         let known: Vec<(f64, f64)> = widths.iter().map(|&f| (t0.rem_euclid(c.period()), f)).collect();
@@ -709,7 +762,8 @@ fn instrument(a: &ArrayView3<'_, f32>, c: Cycle, opts: &TapFitOptions, r: &[f32]
         .unwrap_or((0.0, 0, 0));
     // then every width within a bin of the best, a quarter bin apart
     let t0 = j as f64 * c.dt;
-    let fine: Vec<(f64, f64)> = (-4..=4).flat_map(|q| widths.iter().map(move |&w| ((t0 + q as f64 * 0.25 * c.dt).rem_euclid(c.period()), w))).collect();
+    let fine: Vec<(f64, f64)> =
+        (-4..=4).flat_map(|q| widths.iter().map(move |&w| ((t0 + q as f64 * 0.25 * c.dt).rem_euclid(c.period()), w))).collect();
     let (_, t0, f) = score(&fine);
     // then continuously, by golden sections: the onset within a quarter bin, the width within a
     // quarter nanosecond
@@ -774,7 +828,12 @@ impl tcsense_models::decoder::Decoder for TapFitDecoder {
         "lifetime-fit"
     }
 
-    fn decode(&mut self, y: ndarray::ArrayView4<'_, f32>, sensor: &tcsense_sensor::Sensor, ctl: &tcsense_models::decoder::Control<'_>) -> tcsense_models::Result<tcsense_models::decoder::Decoded> {
+    fn decode(
+        &mut self,
+        y: ndarray::ArrayView4<'_, f32>,
+        sensor: &tcsense_sensor::Sensor,
+        ctl: &tcsense_models::decoder::Control<'_>,
+    ) -> tcsense_models::Result<tcsense_models::decoder::Decoded> {
         let sensor = sensor.matrix();
         tcsense_models::decoder::check_measurements(&y, sensor)?;
         let (b, _, h, w) = y.dim();
@@ -788,12 +847,29 @@ impl tcsense_models::decoder::Decoder for TapFitDecoder {
             for c in 0..3 {
                 lifetime.index_axis_mut(Axis(0), f).index_axis_mut(Axis(0), c).assign(&fit.lifetime);
             }
-            lifetime.index_axis_mut(Axis(0), f).index_axis_mut(Axis(0), 3).assign(&fit.lifetime.mapv(|t| if t.is_finite() { 1.0 } else { f32::NAN }));
-            confidence.index_axis_mut(Axis(0), f).index_axis_mut(Axis(0), 0).assign(&fit.lifetime.mapv(|t| if t.is_finite() { 1.0 } else { 0.0 }));
+            lifetime.index_axis_mut(Axis(0), f).index_axis_mut(Axis(0), 3).assign(&fit.lifetime.mapv(|t| {
+                if t.is_finite() {
+                    1.0
+                } else {
+                    f32::NAN
+                }
+            }));
+            confidence.index_axis_mut(Axis(0), f).index_axis_mut(Axis(0), 0).assign(&fit.lifetime.mapv(|t| {
+                if t.is_finite() {
+                    1.0
+                } else {
+                    0.0
+                }
+            }));
             intensity.index_axis_mut(Axis(0), f).index_axis_mut(Axis(0), 0).assign(&fit.intensity);
             (ctl.progress)(tcsense_models::decoder::Step { frame: f, frames: b, done: 1, total: 1 });
         }
-        Ok(tcsense_models::decoder::Decoded { lifetime: Some(lifetime), confidence: Some(confidence), intensity: Some(intensity), ..Default::default() })
+        Ok(tcsense_models::decoder::Decoded {
+            lifetime: Some(lifetime),
+            confidence: Some(confidence),
+            intensity: Some(intensity),
+            ..Default::default()
+        })
     }
 }
 
@@ -805,7 +881,12 @@ mod tests {
 
     /// The prototype's geometry (4 taps, 2×2, L = 32 at 607 MHz, heterodyne K = 8, physical IRF).
     fn sensor_object() -> tcsense_sensor::Sensor {
-        tcsense_sensor::Sensor::ideal(prototype_codes(1).unwrap(), Sampling::Heterodyne(8), Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }).unwrap()
+        tcsense_sensor::Sensor::ideal(
+            prototype_codes(1).unwrap(),
+            Sampling::Heterodyne(8),
+            Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 },
+        )
+        .unwrap()
     }
 
     fn sensor() -> MeasurementMatrix {
@@ -815,7 +896,15 @@ mod tests {
     /// Noise-free taps `[M, H, W]` of a scene whose pixel `(i, j)` decays with `tau(i, j)` (by
     /// the datasets crate's generator, an independent implementation), onset `t0`, IRF `fwhm`,
     /// a background share and a brightness that varies over the frame.
-    fn taps(a: &MeasurementMatrix, h: usize, w: usize, tau: &dyn Fn(usize, usize) -> f64, t0: f64, fwhm: f64, bg: f64) -> ndarray::Array3<f32> {
+    fn taps(
+        a: &MeasurementMatrix,
+        h: usize,
+        w: usize,
+        tau: &dyn Fn(usize, usize) -> f64,
+        t0: f64,
+        fwhm: f64,
+        bg: f64,
+    ) -> ndarray::Array3<f32> {
         let grid = tcsense_datasets::grid::TimeGrid { length: 32, clock_hz: 607e6, sampling: Sampling::Heterodyne(8) };
         let av = a.a();
         let (bh, bw) = a.block();
@@ -823,12 +912,17 @@ mod tests {
         let mut y = ndarray::Array3::<f32>::zeros((m, h, w));
         for i in 0..h {
             for j in 0..w {
-                let d = tcsense_datasets::flim::blur_cyclic(&tcsense_datasets::flim::decay_bins(&grid, tau(i, j), t0), grid.bin_width_s(), fwhm);
+                let d = tcsense_datasets::flim::blur_cyclic(
+                    &tcsense_datasets::flim::decay_bins(&grid, tau(i, j), t0),
+                    grid.bin_width_s(),
+                    fwhm,
+                );
                 let total: f64 = d.iter().sum();
                 let bright = 0.3 + 0.7 * ((i * w + j) % 7) as f64 / 6.0;
                 let n = (i % bh) * bw + j % bw;
                 for k in 0..m {
-                    y[(k, i, j)] = (bright * (0..t).map(|s| av[(n, k, s)] as f64 * ((1.0 - bg) * d[s] / total + bg / t as f64)).sum::<f64>()) as f32;
+                    y[(k, i, j)] =
+                        (bright * (0..t).map(|s| av[(n, k, s)] as f64 * ((1.0 - bg) * d[s] / total + bg / t as f64)).sum::<f64>()) as f32;
                 }
             }
         }
@@ -856,7 +950,10 @@ mod tests {
                         continue;
                     }
                     let want = tau(i, j);
-                    assert!(((v as f64) - want).abs() < 0.01 * want, "τ at ({i}, {j}) = {v:e}, want {want:e} (onset {t0:e}, IRF {fwhm:e}, background {bg}, window {window})");
+                    assert!(
+                        ((v as f64) - want).abs() < 0.01 * want,
+                        "τ at ({i}, {j}) = {v:e}, want {want:e} (onset {t0:e}, IRF {fwhm:e}, background {bg}, window {window})"
+                    );
                 }
                 if bg > 0.0 {
                     // (its median: a pixel whose charge sits in one tap cannot tell background from decay)
@@ -952,10 +1049,15 @@ mod tests {
             }
         }
         let mut dec = TapFitDecoder::new(TapFitOptions { onset_s: Some(3e-9), irf_fwhm_s: vec![0.0], ..opts }).unwrap();
-        let out = tcsense_models::decoder::Decoder::decode(&mut dec, y.view().insert_axis(Axis(0)), &sensor_object(), &tcsense_models::decoder::Control::quiet(&std::sync::atomic::AtomicBool::new(false))).unwrap();
+        let out = tcsense_models::decoder::Decoder::decode(
+            &mut dec,
+            y.view().insert_axis(Axis(0)),
+            &sensor_object(),
+            &tcsense_models::decoder::Control::quiet(&std::sync::atomic::AtomicBool::new(false)),
+        )
+        .unwrap();
         let conf = out.confidence.unwrap();
         assert_eq!(conf[(0, 0, 0, 0)], 1.0);
         assert_eq!(conf[(0, 0, 0, 7)], 0.0);
     }
-
 }

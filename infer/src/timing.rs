@@ -45,16 +45,28 @@ pub struct Timing {
 /// interleaved rounds; medians.
 pub fn time_decoder(run: Option<&LoadedRun>, model: &Path, (h, w): (usize, usize), ort_threads: &[usize], rounds: usize) -> Result<Timing> {
     if ort_threads.is_empty() || ort_threads.contains(&0) {
-        return Err(InferError::InvalidParam { field: "ort threads", got: format!("{ort_threads:?}"), expected: "thread counts ≥ 1, e.g. 2,1".into() });
+        return Err(InferError::InvalidParam {
+            field: "ort threads",
+            got: format!("{ort_threads:?}"),
+            expected: "thread counts ≥ 1, e.g. 2,1".into(),
+        });
     }
     let mut engines: Vec<(String, usize, OnnxModel)> = Vec::new();
     for &threads in ort_threads {
-        engines.push((format!("ort (Rust), {threads} thread{}", if threads > 1 { "s" } else { "" }), threads, OnnxModel::open(model, threads)?));
+        engines.push((
+            format!("ort (Rust), {threads} thread{}", if threads > 1 { "s" } else { "" }),
+            threads,
+            OnnxModel::open(model, threads)?,
+        ));
     }
     let meta = engines[0].2.meta.clone();
     let (fh, fw) = meta.frame_multiple;
     if h % fh != 0 || w % fw != 0 {
-        return Err(InferError::InvalidParam { field: "frame size", got: format!("{h}x{w}"), expected: format!("multiples of {fh}x{fw} for {}", model.display()) });
+        return Err(InferError::InvalidParam {
+            field: "frame size",
+            got: format!("{h}x{w}"),
+            expected: format!("multiples of {fh}x{fw} for {}", model.display()),
+        });
     }
     // a frame's working set: the input, the cube and a network's widest activations (32
     // channels or T, a few alive at once), in f32
@@ -110,7 +122,18 @@ pub fn time_decoder(run: Option<&LoadedRun>, model: &Path, (h, w): (usize, usize
     let engines = names
         .into_iter()
         .zip(&times)
-        .filter_map(|((engine, threads), t)| median_by(t, |v| *v).map(|ms| EngineTime { engine, threads, ms_per_frame: ms, frames_per_s: 1e3 / ms }))
+        .filter_map(|((engine, threads), t)| {
+            median_by(t, |v| *v).map(|ms| EngineTime { engine, threads, ms_per_frame: ms, frames_per_s: 1e3 / ms })
+        })
         .collect();
-    Ok(Timing { decoder: meta.decoder.clone(), height: h, width: w, taps: meta.taps, bins: meta.bins, gflop_per_frame: flops.map(|f| f / 1e9), rounds, engines })
+    Ok(Timing {
+        decoder: meta.decoder.clone(),
+        height: h,
+        width: w,
+        taps: meta.taps,
+        bins: meta.bins,
+        gflop_per_frame: flops.map(|f| f / 1e9),
+        rounds,
+        engines,
+    })
 }

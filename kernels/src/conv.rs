@@ -43,7 +43,6 @@ pub struct Conv3x3 {
     pub width: usize,
 }
 
-
 /// Seconds of thread time spent inside the convolutions' multiply-add loops so far (GEMM
 /// calls and the direct loops, summed over threads): `bench train` reads it before and after
 /// a step to tell the share of the step outside them.
@@ -233,8 +232,8 @@ pub(crate) fn correlate(p: Plane, src: Source, input: &[f32], kernel: &Kernel, o
         with_scratch(ks * ld, |col| {
             shifts(input, src, b, p, y0, y1, ld, &mut col[..k3 * ld]);
             col[k3 * ld..k3 * ld + n].fill(1.0); // the bias row, read by the ky = 0 product only
-            // out_b[:, band] [c_dst, n] (+)= K_ky [c_dst, 3c_src (+1)] · col_ky [3c_src (+1), n].
-            // The tasks' views are disjoint: each covers its own band of rows of its own item.
+                                                 // out_b[:, band] [c_dst, n] (+)= K_ky [c_dst, 3c_src (+1)] · col_ky [3c_src (+1), n].
+                                                 // The tasks' views are disjoint: each covers its own band of rows of its own item.
             let dst = Mat { m: p.c_dst, n, rs: hw, cs: 1, off: b * p.c_dst * hw + y0 * p.w };
             for ky in 0..3 {
                 let k = if ky == 0 { ks } else { k3 };
@@ -466,7 +465,9 @@ pub(crate) mod tests {
             assert!((lhs - via_x).abs() <= 1e-4 * lhs.abs().max(1.0), "{d:?}: ⟨y,g⟩ {lhs} vs ⟨x,dx⟩ {via_x}");
             assert!((lhs - via_w).abs() <= 1e-4 * lhs.abs().max(1.0), "{d:?}: ⟨y,g⟩ {lhs} vs ⟨w,dW⟩ {via_w}");
             let sums: Vec<f64> = (0..d.c_out)
-                .map(|c| (0..d.batch).flat_map(|b| g[(b * d.c_out + c) * d.hw()..(b * d.c_out + c + 1) * d.hw()].iter()).map(|&v| v as f64).sum())
+                .map(|c| {
+                    (0..d.batch).flat_map(|b| g[(b * d.c_out + c) * d.hw()..(b * d.c_out + c + 1) * d.hw()].iter()).map(|&v| v as f64).sum()
+                })
                 .collect();
             close(&db, &sums, 1e-6, "db");
             if d.x_len() <= 200 {

@@ -14,11 +14,11 @@ use burn::backend::autodiff::checkpoint::{base::Checkpointer, strategy::Checkpoi
 use burn::backend::autodiff::grads::Gradients;
 use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::flex::{Flex, FlexTensor};
+use burn::backend::ops::FloatTensorOps;
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{backend_extension, Autodiff, AutodiffBackend, Backend, Dispatch};
-use burn::backend::ops::FloatTensorOps;
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use burn::tensor::{DType, FloatDType, Shape, Tensor, TensorData};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
 use crate::conv_op::{conv3x3, dims4, f32_contiguous, f32_slice, Conv3x3Backend};
 use crate::delay::DelayConv3x3;
@@ -112,7 +112,12 @@ pub struct DelayGeometry {
 #[backend_extension(Flex, Autodiff)]
 pub trait DelayConvBackend: Backend {
     /// `[B·T, C_in, H, W]`, `[C_out, 3·C_in, 3, 3]`, `[C_out]` → `[B·T, C_out, H, W]`
-    fn delay_conv3x3(x: FloatTensor<Self>, weight: FloatTensor<Self>, bias: FloatTensor<Self>, geometry: DelayGeometry) -> FloatTensor<Self>;
+    fn delay_conv3x3(
+        x: FloatTensor<Self>,
+        weight: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+        geometry: DelayGeometry,
+    ) -> FloatTensor<Self>;
     /// Output gradient `[B·T, C_out, H, W]`, `weight` → input gradient `[B·T, C_in, H, W]`
     fn delay_conv3x3_x_backward(grad: FloatTensor<Self>, weight: FloatTensor<Self>, geometry: DelayGeometry) -> FloatTensor<Self>;
     /// Input `[B·T, C_in, H, W]`, output gradient `[B·T, C_out, H, W]` → kernel gradient `[C_out, 3·C_in, 3, 3]`
@@ -215,7 +220,9 @@ impl<B: Backend + DelayConvBackend + Conv3x3Backend, C: CheckpointStrategy> Dela
                 let state = (x.primitive().clone(), weight.primitive().clone(), g);
                 prep.finish(state, B::delay_conv3x3(x.into_primitive(), weight.into_primitive(), bias.into_primitive(), g))
             }
-            OpsKind::UnTracked(prep) => prep.finish(B::delay_conv3x3(x.into_primitive(), weight.into_primitive(), bias.into_primitive(), g)),
+            OpsKind::UnTracked(prep) => {
+                prep.finish(B::delay_conv3x3(x.into_primitive(), weight.into_primitive(), bias.into_primitive(), g))
+            }
         }
     }
 

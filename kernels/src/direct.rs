@@ -165,7 +165,15 @@ impl pulp::WithSimd for BandSums<'_, '_> {
                     }
                 }
                 let edge = &*edge;
-                groups(simd, &|s: usize, ky: usize| Some(&edge[(s * 3 + ky) * EDGE..(s * 3 + ky) * EDGE + lanes + 2]), wd, bias, planes, row0 + xc, n);
+                groups(
+                    simd,
+                    &|s: usize, ky: usize| Some(&edge[(s * 3 + ky) * EDGE..(s * 3 + ky) * EDGE + lanes + 2]),
+                    wd,
+                    bias,
+                    planes,
+                    row0 + xc,
+                    n,
+                );
             }
         }
     }
@@ -174,7 +182,15 @@ impl pulp::WithSimd for BandSums<'_, '_> {
 /// One output chunk of `n` pixels at offset `at` of every plane: channels in groups of up to
 /// [`GROUP`] accumulated together.
 #[inline(always)]
-fn groups<'r, S: pulp::Simd>(simd: S, fetch: &impl Fn(usize, usize) -> Option<&'r [f32]>, wd: &[f32], bias: &[f32], planes: &mut [&mut [f32]], at: usize, n: usize) {
+fn groups<'r, S: pulp::Simd>(
+    simd: S,
+    fetch: &impl Fn(usize, usize) -> Option<&'r [f32]>,
+    wd: &[f32],
+    bias: &[f32],
+    planes: &mut [&mut [f32]],
+    at: usize,
+    n: usize,
+) {
     let (c_dst, c_src) = (bias.len(), wd.len() / (9 * bias.len().max(1)));
     let mut d0 = 0;
     while d0 < c_dst {
@@ -203,7 +219,14 @@ fn store<S: pulp::Simd, const G: usize>(acc: &[[S::f32s; 2]; G], planes: &mut [&
 /// kernel row `ky` from the pixel left of the chunk (`lanes + 2` values), or `None` outside
 /// the frame.
 #[inline(always)]
-fn chunk<'r, S: pulp::Simd, const G: usize>(simd: S, fetch: &impl Fn(usize, usize) -> Option<&'r [f32]>, wd: &[f32], bias: &[f32], d0: usize, c_src: usize) -> [[S::f32s; 2]; G] {
+fn chunk<'r, S: pulp::Simd, const G: usize>(
+    simd: S,
+    fetch: &impl Fn(usize, usize) -> Option<&'r [f32]>,
+    wd: &[f32],
+    bias: &[f32],
+    d0: usize,
+    c_src: usize,
+) -> [[S::f32s; 2]; G] {
     let c_dst = bias.len();
     let lanes = 2 * S::F32_LANES;
     let mut acc = [[simd.splat_f32s(0.0); 2]; G];

@@ -28,8 +28,8 @@ use burn::backend::{backend_extension, Autodiff, AutodiffBackend, Backend, Dispa
 use burn::tensor::{Shape, Tensor, TensorData};
 use rayon::prelude::*;
 
-use crate::plane::SharedOut;
 use crate::conv_op::with_f32;
+use crate::plane::SharedOut;
 
 /// A per-subpixel linear map `P_n [O, I]` laid out for a frame `W` pixels wide.
 #[derive(Debug, Clone, PartialEq)]

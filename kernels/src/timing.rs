@@ -35,7 +35,14 @@ mod tests {
         assert_eq!(median_by(&[(1, 9.0), (2, 1.0), (3, 5.0)], |v| v.1), Some((3, 5.0)));
         assert_eq!(median_by::<f64>(&[], |v| *v), None);
         let mut calls = 0;
-        let t = median_ms::<()>(|| { calls += 1; Ok(()) }, 4).unwrap();
+        let t = median_ms::<()>(
+            || {
+                calls += 1;
+                Ok(())
+            },
+            4,
+        )
+        .unwrap();
         assert_eq!(calls, 5, "one warm-up and four timed calls");
         assert!(t >= 0.0);
         assert_eq!(median_ms(|| Err::<(), _>("boom"), 3), Err("boom"));

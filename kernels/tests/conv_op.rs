@@ -3,9 +3,9 @@
 
 use burn::tensor::module::conv2d;
 use burn::tensor::ops::ConvOptions;
+use burn::tensor::Device;
 use burn::tensor::{Distribution, Tensor};
 use tcsense_kernels::conv_op::conv3x3;
-use burn::tensor::Device;
 
 fn max_abs_diff<const D: usize>(a: Tensor<D>, b: Tensor<D>) -> f32 {
     (a - b).abs().max().into_scalar::<f32>()
@@ -35,10 +35,9 @@ fn forward_and_gradients_equal_burns_conv2d() {
 
         let g_ours = (ours * wts.clone()).sum().backward();
         let g_theirs = (theirs * wts).sum().backward();
-        for (name, a, t) in [
-            ("x", x.grad(&g_ours).unwrap(), x.grad(&g_theirs).unwrap()),
-            ("kernel", k.grad(&g_ours).unwrap(), k.grad(&g_theirs).unwrap()),
-        ] {
+        for (name, a, t) in
+            [("x", x.grad(&g_ours).unwrap(), x.grad(&g_theirs).unwrap()), ("kernel", k.grad(&g_ours).unwrap(), k.grad(&g_theirs).unwrap())]
+        {
             let s = scale(&t);
             let e = max_abs_diff(a, t);
             assert!(e <= 1e-4 * s, "{:?}: d{name} differs by {e} (scale {s})", (b, ci, co, h, w));

@@ -50,7 +50,14 @@ fn random(shape: [usize; 4], seed: u64) -> FlexTensor {
 
 /// Time one 3×3 conv layer `C → C` on `[B, C, H, W]` (forward, input gradient, weight gradient)
 /// and the data-consistency step on `[B, T, H, W]` with the sensor `a`.
-pub fn bench_kernels(a: &MeasurementMatrix, batch: usize, channels: usize, h: usize, w: usize, reps: usize) -> crate::Result<Vec<OpTiming>> {
+pub fn bench_kernels(
+    a: &MeasurementMatrix,
+    batch: usize,
+    channels: usize,
+    h: usize,
+    w: usize,
+    reps: usize,
+) -> crate::Result<Vec<OpTiming>> {
     let (b, c) = (batch, channels);
     let x = random([b, c, h, w], 1);
     let g = random([b, c, h, w], 2);

@@ -254,7 +254,12 @@ mod tests {
             let codes = random_codes(shape, 607e6, constraints, 3).unwrap();
             let relax = CodeRelaxation::of(&codes, &constraints);
             let logits = CodeLogits::from_codes(&codes, &relax, 4.0, &device);
-            for (sampling, irf) in [(Sampling::Oversample(1), Irf::Ideal), (Sampling::Oversample(2), phys), (Sampling::Heterodyne(4), Irf::Ideal), (Sampling::Heterodyne(4), phys)] {
+            for (sampling, irf) in [
+                (Sampling::Oversample(1), Irf::Ideal),
+                (Sampling::Oversample(2), phys),
+                (Sampling::Heterodyne(4), Irf::Ideal),
+                (Sampling::Heterodyne(4), phys),
+            ] {
                 let spec = SensorParams { sampling, irf, ..SensorParams::from_codes(&codes) }.validate().unwrap();
                 let want = MeasurementMatrix::synthesize(&codes, &spec).unwrap();
                 let g = basis_tensor(&MeasurementMatrix::code_basis(&spec), &device);
@@ -289,12 +294,15 @@ mod tests {
         let relax = CodeRelaxation::of(&codes, &codes.constraints);
         let logits = CodeLogits::from_codes(&codes, &relax, 0.1, &device);
         let g = basis_tensor(&MeasurementMatrix::code_basis(&spec), &device);
-        let value = |theta: Tensor<3>| alias_penalty(matrix(CodeLogits { theta: Param::from_tensor(theta) }.bits(&relax, 1.0, false), g.clone()), 2, 0.5);
+        let value = |theta: Tensor<3>| {
+            alias_penalty(matrix(CodeLogits { theta: Param::from_tensor(theta) }.bits(&relax, 1.0, false), g.clone()), 2, 0.5)
+        };
         let theta = logits.theta.val().require_grad();
         let loss = value(theta.clone());
         let before = to_vec(loss.clone())[0];
         let grad = theta.grad(&loss.backward()).expect("gradient");
-        let stepped = Array3::from_shape_vec((4, 4, 32), logits.to_array().iter().zip(to_vec(grad)).map(|(t, g)| t - 0.05 * g).collect()).unwrap();
+        let stepped =
+            Array3::from_shape_vec((4, 4, 32), logits.to_array().iter().zip(to_vec(grad)).map(|(t, g)| t - 0.05 * g).collect()).unwrap();
         let after = to_vec(value(CodeLogits::from_array(&stepped, &device).theta.val()))[0];
         assert!(after < before, "{after} < {before}");
     }
@@ -329,7 +337,13 @@ mod tests {
         let shape = CodeShape { bh: 1, bw: 2, taps: 3, length: 8, drain: true };
         let constraints = Constraints { tap: true, hamming: Some(2), window: Some(2) };
         let codes = random_codes(shape, 607e6, constraints, 1).unwrap();
-        let spec = SensorParams { sampling: Sampling::Oversample(2), irf: Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }, ..SensorParams::from_codes(&codes) }.validate().unwrap();
+        let spec = SensorParams {
+            sampling: Sampling::Oversample(2),
+            irf: Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 },
+            ..SensorParams::from_codes(&codes)
+        }
+        .validate()
+        .unwrap();
         let g = MeasurementMatrix::code_basis(&spec);
         let relax = CodeRelaxation::of(&codes, &constraints);
         let theta0 = Array3::from_shape_fn((2, 4, 8), |(n, c, l)| ((n * 7 + c * 3 + l * 5) % 11) as f32 * 0.3 - 1.5);

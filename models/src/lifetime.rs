@@ -90,7 +90,8 @@ impl LifetimeNetConfig {
 
     /// Build the network.
     pub fn init(&self, device: &Device) -> LifetimeNet {
-        let down = (0..self.levels).map(|l| Block::new(if l == 0 { self.features() } else { self.width(l - 1) }, self.width(l), device)).collect();
+        let down =
+            (0..self.levels).map(|l| Block::new(if l == 0 { self.features() } else { self.width(l - 1) }, self.width(l), device)).collect();
         let up = (0..self.levels.saturating_sub(1)).map(|l| Block::new(self.width(l + 1) + self.width(l), self.width(l), device)).collect();
         let head = Conv2dConfig::new([self.width(0), OUTPUTS], [1, 1]).init(device);
         LifetimeNet { down, up, head, harmonics: self.harmonics, bins: self.bins, tau_range_ns: self.tau_range_ns }
@@ -100,7 +101,9 @@ impl LifetimeNetConfig {
     /// `(2K+1) × M` matrix per pixel (as exported), the U-Net and the head.
     pub fn flops(&self, h: usize, w: usize) -> f64 {
         let px = (h * w) as f64;
-        2.0 * px * ((2 * self.harmonics + 1) * self.taps) as f64 + trunk_flops(self.features(), self.levels, |l| self.width(l), h, w) + 2.0 * px * (self.width(0) * OUTPUTS) as f64
+        2.0 * px * ((2 * self.harmonics + 1) * self.taps) as f64
+            + trunk_flops(self.features(), self.levels, |l| self.width(l), h, w)
+            + 2.0 * px * (self.width(0) * OUTPUTS) as f64
     }
 }
 
@@ -186,7 +189,16 @@ impl LifetimeNet {
         let (lo, span) = (lo.ln(), (hi / lo).ln());
         let tau = |o: Tensor<4>| (sigmoid(o) * span).add_scalar(lo).exp();
         let (ta, tb) = (tau(o.clone().narrow(1, 1, 1)), tau(o.clone().narrow(1, 2, 1)));
-        Tensor::cat(vec![tau(o.clone().narrow(1, 0, 1)), ta.clone().min_pair(tb.clone()), ta.max_pair(tb), sigmoid(o.clone().narrow(1, 3, 1)), o.narrow(1, 4, 1)], 1)
+        Tensor::cat(
+            vec![
+                tau(o.clone().narrow(1, 0, 1)),
+                ta.clone().min_pair(tb.clone()),
+                ta.max_pair(tb),
+                sigmoid(o.clone().narrow(1, 3, 1)),
+                o.narrow(1, 4, 1),
+            ],
+            1,
+        )
     }
 
     /// Encoder blocks, finest level first (for exporters).
@@ -306,7 +318,11 @@ mod tests {
         assert_eq!(i, vec![4.0, 6.0]);
         // FLOPs at 8×8, K = 2 (6 features), widths 4, 8: folded Aᵀ + DFT, trunk, head
         let cfg = LifetimeNetConfig::new(4, 16).with_harmonics(2).with_base_width(4).with_levels(2);
-        let want = 2.0 * 64.0 * 20.0 + 18.0 * 64.0 * (6.0 * 4.0 + 16.0) + 18.0 * 64.0 * (12.0 * 4.0 + 16.0) + 18.0 * 16.0 * (4.0 * 8.0 + 64.0) + 2.0 * 64.0 * 20.0;
+        let want = 2.0 * 64.0 * 20.0
+            + 18.0 * 64.0 * (6.0 * 4.0 + 16.0)
+            + 18.0 * 64.0 * (12.0 * 4.0 + 16.0)
+            + 18.0 * 16.0 * (4.0 * 8.0 + 64.0)
+            + 2.0 * 64.0 * 20.0;
         assert_eq!(cfg.flops(8, 8), want);
     }
 

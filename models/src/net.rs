@@ -68,8 +68,16 @@ pub fn to_tensor(a: &ArrayView4<'_, f32>, device: &Device) -> Tensor<4> {
 /// - `t`: `[B, C, H, W]` → `[B, C, H, W]`
 pub fn to_array(t: Tensor<4>) -> Result<Array4<f32>> {
     let [b, c, h, w] = t.dims();
-    let v: Vec<f32> = t.into_data().try_into_vec::<f32>().map_err(|e| ModelError::InvalidParam { field: "tensor", got: format!("{e:?}"), expected: "f32 data".into() })?;
-    Array4::from_shape_vec((b, c, h, w), v).map_err(|e| ModelError::InvalidParam { field: "tensor", got: e.to_string(), expected: "a [B, C, H, W] tensor".into() })
+    let v: Vec<f32> = t.into_data().try_into_vec::<f32>().map_err(|e| ModelError::InvalidParam {
+        field: "tensor",
+        got: format!("{e:?}"),
+        expected: "f32 data".into(),
+    })?;
+    Array4::from_shape_vec((b, c, h, w), v).map_err(|e| ModelError::InvalidParam {
+        field: "tensor",
+        got: e.to_string(),
+        expected: "a [B, C, H, W] tensor".into(),
+    })
 }
 
 /// Depth (NaN where the confidence is below [`DETECTION_THRESHOLD`]) and confidence from a
@@ -162,7 +170,11 @@ impl<M: Network> NetDecoder<M> {
         if !fits {
             self.cache = Some((sensor.clone(), SensorTensors::new(sensor, h, w, &self.device)?));
         }
-        self.cache.as_ref().map(|(_, s)| s).ok_or(ModelError::InvalidParam { field: "sensor tensors", got: "none".into(), expected: "prepared tensors".into() })
+        self.cache.as_ref().map(|(_, s)| s).ok_or(ModelError::InvalidParam {
+            field: "sensor tensors",
+            got: "none".into(),
+            expected: "prepared tensors".into(),
+        })
     }
 }
 
@@ -185,7 +197,11 @@ impl<M: Network> Decoder for NetDecoder<M> {
             (ctl.progress)(Step { frame: i, frames: b, done: 1, total: 1 });
         }
         let views: Vec<_> = frames.iter().map(|f| f.view()).collect();
-        let out = ndarray::concatenate(Axis(0), &views).map_err(|e| ModelError::InvalidParam { field: "batch", got: e.to_string(), expected: "frames of one shape".into() })?;
+        let out = ndarray::concatenate(Axis(0), &views).map_err(|e| ModelError::InvalidParam {
+            field: "batch",
+            got: e.to_string(),
+            expected: "frames of one shape".into(),
+        })?;
         match M::PREDICTION {
             Prediction::Cube => Ok(Decoded { cube: Some(out), ..Default::default() }),
             Prediction::Depth => {
@@ -197,7 +213,12 @@ impl<M: Network> Decoder for NetDecoder<M> {
             }
             Prediction::Lifetime => {
                 let (lifetime, confidence) = split_lifetime(&out);
-                Ok(Decoded { lifetime: Some(lifetime), confidence: Some(confidence), intensity: Some(y.sum_axis(Axis(1)).insert_axis(Axis(1))), ..Default::default() })
+                Ok(Decoded {
+                    lifetime: Some(lifetime),
+                    confidence: Some(confidence),
+                    intensity: Some(y.sum_axis(Axis(1)).insert_axis(Axis(1))),
+                    ..Default::default()
+                })
             }
         }
     }

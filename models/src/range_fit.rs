@@ -43,7 +43,6 @@ use ndarray::{Array4, ArrayView4, Axis};
 use rayon::prelude::*;
 use tcsense_sensor::{MeasurementMatrix, C};
 
-
 /// Golden-section steps of the continuous refinement of a single return (the bracket of two
 /// candidates shrinks to 0.618¹⁴ of itself: 0.0006 bins at 4 candidates per bin).
 const POLISH_STEPS: usize = 14;
@@ -345,7 +344,15 @@ pub(crate) struct WindowFit<'a> {
 
 impl<'a> WindowFit<'a> {
     pub(crate) fn new(tpl: &'a Templates, taps: &'a [f64], window: usize) -> Self {
-        WindowFit { tpl, taps, hood: Vec::with_capacity(window * window), groups: Vec::with_capacity(tpl.n), other: vec![0.0; tpl.n * tpl.m], other_gram: vec![[0.0; 2]; tpl.n], other_tau: f64::NAN }
+        WindowFit {
+            tpl,
+            taps,
+            hood: Vec::with_capacity(window * window),
+            groups: Vec::with_capacity(tpl.n),
+            other: vec![0.0; tpl.n * tpl.m],
+            other_gram: vec![[0.0; 2]; tpl.n],
+            other_tau: f64::NAN,
+        }
     }
 
     /// The window: each pixel as its subpixel type and where its taps start in `taps`.
@@ -420,7 +427,8 @@ impl<'a> WindowFit<'a> {
     /// The best single return within `±half` of any of `centres`: (bins, cost at the best
     /// candidate).
     fn best_single(&self, centres: &[f64], half: f64) -> Option<(f64, f64)> {
-        let (tau, cost) = centres.iter().filter_map(|&c| search(self.tpl, c, half, &mut |k| self.single(k))).min_by(|a, b| a.1.total_cmp(&b.1))?;
+        let (tau, cost) =
+            centres.iter().filter_map(|&c| search(self.tpl, c, half, &mut |k| self.single(k))).min_by(|a, b| a.1.total_cmp(&b.1))?;
         Some((self.polish(tau), cost))
     }
 
@@ -492,14 +500,19 @@ impl<'a> WindowFit<'a> {
             tpl.at(n, tau1, &mut g1);
             tpl.at(n, tau2, &mut g2);
             let s = tpl.s(n);
-            let gram = Gram3::new([[dot(&g1, &g1), dot(&g1, &g2), dot(&g1, s)], [dot(&g2, &g1), dot(&g2, &g2), dot(&g2, s)], [dot(s, &g1), dot(s, &g2), dot(s, s)]]);
+            let gram = Gram3::new([
+                [dot(&g1, &g1), dot(&g1, &g2), dot(&g1, s)],
+                [dot(&g2, &g1), dot(&g2, &g2), dot(&g2, s)],
+                [dot(s, &g1), dot(s, &g2), dot(s, s)],
+            ]);
             if !gram.regular {
                 continue;
             }
             for q in &self.hood[lo..hi] {
                 let y = &self.taps[q.at..][..m];
                 let r = [dot(&g1, y), dot(&g2, y), q.sy];
-                let x: [f64; 3] = std::array::from_fn(|i| (gram.cof[i][0] * r[0] + gram.cof[i][1] * r[1] + gram.cof[i][2] * r[2]) * gram.inv_det);
+                let x: [f64; 3] =
+                    std::array::from_fn(|i| (gram.cof[i][0] * r[0] + gram.cof[i][1] * r[1] + gram.cof[i][2] * r[2]) * gram.inv_det);
                 a1 += x[0].max(0.0);
                 a2 += x[1].max(0.0);
             }
@@ -563,7 +576,8 @@ pub fn refine_ranges(y: ArrayView4<'_, f32>, sensor: &MeasurementMatrix, depth: 
             taps[(i * w + j) * m + mm] = v as f64;
         }
         let d = depth.index_axis(Axis(0), bi);
-        let est: Vec<[f64; 2]> = (0..h * w).map(|q| std::array::from_fn(|r| if r < k { d[(r, q / w, q % w)] as f64 / delta } else { f64::NAN })).collect();
+        let est: Vec<[f64; 2]> =
+            (0..h * w).map(|q| std::array::from_fn(|r| if r < k { d[(r, q / w, q % w)] as f64 / delta } else { f64::NAN })).collect();
         let rows: Vec<Vec<[f32; 2]>> = (0..h)
             .into_par_iter()
             .map(|i| {
@@ -579,8 +593,15 @@ pub fn refine_ranges(y: ArrayView4<'_, f32>, sensor: &MeasurementMatrix, depth: 
                         // neighbours on the same surface: one of their returns near this
                         // pixel's first
                         let own = if present[0] { est[0] } else { est[1] };
-                        let near = |q: usize, p: usize| (q, p) == (i, j) || (0..k.min(2)).any(|r| cyclic_gap(d[(r, q, p)] as f64 / delta, own, tpl.t) <= opts.edge_bins);
-                        fit.set_window((i0..i1).flat_map(|q| (j0..j1).map(move |p| (q, p))).filter(|&(q, p)| near(q, p)).map(|(q, p)| (kind(q, p), (q * w + p) * m)));
+                        let near = |q: usize, p: usize| {
+                            (q, p) == (i, j) || (0..k.min(2)).any(|r| cyclic_gap(d[(r, q, p)] as f64 / delta, own, tpl.t) <= opts.edge_bins)
+                        };
+                        fit.set_window(
+                            (i0..i1)
+                                .flat_map(|q| (j0..j1).map(move |p| (q, p)))
+                                .filter(|&(q, p)| near(q, p))
+                                .map(|(q, p)| (kind(q, p), (q * w + p) * m)),
+                        );
                     }
                     match present {
                         [true, true] => {
@@ -596,7 +617,8 @@ pub fn refine_ranges(y: ArrayView4<'_, f32>, sensor: &MeasurementMatrix, depth: 
                                     refined = [(tau * delta) as f32, f32::NAN];
                                 }
                                 _ => {
-                                    refined = [(tau1.min(tau2) * delta) as f32, (tau1.max(tau2) * delta) as f32]; // arrival order
+                                    refined = [(tau1.min(tau2) * delta) as f32, (tau1.max(tau2) * delta) as f32];
+                                    // arrival order
                                 }
                             }
                         }
@@ -636,7 +658,10 @@ mod tests {
     fn sensor() -> MeasurementMatrix {
         let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
         let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 1).unwrap();
-        let params = SensorParams { irf: Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S }, ..SensorParams::from_codes(&codes) };
+        let params = SensorParams {
+            irf: Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S },
+            ..SensorParams::from_codes(&codes)
+        };
         MeasurementMatrix::synthesize(&codes, &params.validate().unwrap()).unwrap()
     }
 

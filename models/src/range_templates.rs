@@ -90,11 +90,21 @@ fn refine(cost: &[f32], c: usize, os: usize, at: &mut dyn FnMut(f64) -> f64) -> 
     let left = side([-1.0, -0.5, 0.0], [v(-1), l, centre]).filter(|&(x, _)| (-1.0..0.0).contains(&x));
     let right = side([0.0, 0.5, 1.0], [centre, r, v(1)]).filter(|&(x, _)| x > 0.0 && x <= 1.0);
     let best = match (left, right) {
-        (Some(a), Some(b)) => if a.1 <= b.1 { a } else { b },
+        (Some(a), Some(b)) => {
+            if a.1 <= b.1 {
+                a
+            } else {
+                b
+            }
+        }
         (Some(a), None) | (None, Some(a)) => a,
         (None, None) => (0.0, centre),
     };
-    if best.1 < centre { best.0.clamp(-0.5, 0.5) } else { 0.0 }
+    if best.1 < centre {
+        best.0.clamp(-0.5, 0.5)
+    } else {
+        0.0
+    }
 }
 
 /// Settings of [`fit_ranges`].
@@ -160,7 +170,8 @@ impl Dense {
         (0..tpl.n)
             .map(|n| {
                 let mut g = vec![0f32; m * cands];
-                let (mut gg, mut gs, mut inv_det, mut inv_gg) = (vec![0f32; cands], vec![0f32; cands], vec![0f32; cands], vec![0f32; cands]);
+                let (mut gg, mut gs, mut inv_det, mut inv_gg) =
+                    (vec![0f32; cands], vec![0f32; cands], vec![0f32; cands], vec![0f32; cands]);
                 let ss = tpl.gram[n * cands][2];
                 for c in 0..cands {
                     for (k, &v) in tpl.g(n, c).iter().enumerate() {
@@ -309,7 +320,17 @@ impl RangeTemplates {
         let tpl = Templates::with_offset(sensor, os, 0.5 * os as f64);
         let dense = Dense::of(&tpl);
         let perp = perpendicular(&tpl);
-        RangeTemplates { jtpl: Templates::new(sensor, os), dense, tpl, perp, block: sensor.block(), delta: C * sensor.bin_width_s() / 2.0, opts: opts.clone(), cost: Vec::new(), rr: Vec::new() }
+        RangeTemplates {
+            jtpl: Templates::new(sensor, os),
+            dense,
+            tpl,
+            perp,
+            block: sensor.block(),
+            delta: C * sensor.bin_width_s() / 2.0,
+            opts: opts.clone(),
+            cost: Vec::new(),
+            rr: Vec::new(),
+        }
     }
 
     /// The ranges of one frame.
@@ -359,22 +380,23 @@ impl RangeTemplates {
             .flat_map_iter(|i| {
                 let mut total = vec![0f32; cands];
                 let lit = &lit;
-                (0..w).map(move |j| {
-                    if !lit[i * w + j] {
-                        return f64::NAN;
-                    }
-                    total.fill(0.0);
-                    for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
-                        for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
-                            let q = ii * w + jj;
-                            if lit[q] {
-                                total.iter_mut().zip(&cost[q * cands..(q + 1) * cands]).for_each(|(a, b)| *a += b);
+                (0..w)
+                    .map(move |j| {
+                        if !lit[i * w + j] {
+                            return f64::NAN;
+                        }
+                        total.fill(0.0);
+                        for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
+                            for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
+                                let q = ii * w + jj;
+                                if lit[q] {
+                                    total.iter_mut().zip(&cost[q * cands..(q + 1) * cands]).for_each(|(a, b)| *a += b);
+                                }
                             }
                         }
-                    }
-                    tpl.tau(argmin(&total))
-                })
-                .collect::<Vec<_>>()
+                        tpl.tau(argmin(&total))
+                    })
+                    .collect::<Vec<_>>()
             })
             .collect();
 
@@ -416,7 +438,9 @@ impl RangeTemplates {
                         let centre = tpl.nearest(own) as i64;
                         let reach = (fit.search_bins * os).floor() as i64;
                         let at = |d: i64| (centre + d).rem_euclid(cands as i64) as usize;
-                        let d = (-reach..=reach).min_by(|&a, &b| total[at(a)].total_cmp(&total[at(b)]).then(a.abs().cmp(&b.abs()))).unwrap_or(0);
+                        let d = (-reach..=reach)
+                            .min_by(|&a, &b| total[at(a)].total_cmp(&total[at(b)]).then(a.abs().cmp(&b.abs())))
+                            .unwrap_or(0);
                         if d.abs() == reach && reach > 0 {
                             return f64::NAN; // on the bound of the search
                         }
@@ -486,7 +510,8 @@ impl RangeTemplates {
                             for c in 0..cands {
                                 total[c] = zsum[c] * zsum[c] / psum[c];
                             }
-                            let best = (0..cands).filter(|&c| cyclic_gap(tpl.tau(c), tau, t) >= MIN_GAP).map(|c| total[c]).fold(0f32, f32::max);
+                            let best =
+                                (0..cands).filter(|&c| cyclic_gap(tpl.tau(c), tau, t) >= MIN_GAP).map(|c| total[c]).fold(0f32, f32::max);
                             if (best as f64) < PRESCREEN * left {
                                 return None;
                             }
@@ -500,21 +525,31 @@ impl RangeTemplates {
                             let mut seeds = [(f32::NEG_INFINITY, 0usize); SEEDS];
                             for c in 0..cands {
                                 let v = total[c];
-                                if v >= total[(c + cands - 1) % cands] && v >= total[(c + 1) % cands] && v > seeds[SEEDS - 1].0 && cyclic_gap(tpl.tau(c), tau, t) >= MIN_GAP {
+                                if v >= total[(c + cands - 1) % cands]
+                                    && v >= total[(c + 1) % cands]
+                                    && v > seeds[SEEDS - 1].0
+                                    && cyclic_gap(tpl.tau(c), tau, t) >= MIN_GAP
+                                {
                                     seeds[SEEDS - 1] = (v, c);
                                     seeds.sort_by(|a, b| b.0.total_cmp(&a.0));
                                 }
                             }
                             win.fix_other(tau);
                             // (each seed at its candidate on the joint fit's grid)
-                            let (screened, c2) = seeds.iter().filter(|s| s.0.is_finite()).map(|s| (win.joint(jtpl.nearest(tpl.tau(s.1))), s.1)).min_by(|a, b| a.0.total_cmp(&b.0))?;
+                            let (screened, c2) = seeds
+                                .iter()
+                                .filter(|s| s.0.is_finite())
+                                .map(|s| (win.joint(jtpl.nearest(tpl.tau(s.1))), s.1))
+                                .min_by(|a, b| a.0.total_cmp(&b.0))?;
                             if screened > SCREEN * single {
                                 return None;
                             }
                             // (a round that leaves twice the residual kept is given up)
                             let ((t1, t2), joint) = win.two_returns_until((tau, tpl.tau(c2)), 1.0, 2.0 * opts.second_residual * single);
                             let (a1, a2) = win.amplitudes(t1, t2);
-                            let keep = cyclic_gap(t1, t2, t) >= MIN_GAP && joint <= opts.second_residual * single && a1.min(a2) >= opts.second_amplitude * a1.max(a2);
+                            let keep = cyclic_gap(t1, t2, t) >= MIN_GAP
+                                && joint <= opts.second_residual * single
+                                && a1.min(a2) >= opts.second_amplitude * a1.max(a2);
                             keep.then_some((p, t1.min(t2), t1.max(t2))) // arrival order
                         })
                         .collect::<Vec<_>>()
@@ -547,7 +582,10 @@ mod tests {
     /// 0.77), physical IRF: a sensor whose codes do not alias.
     fn sensor() -> MeasurementMatrix {
         let codes = Codes::from_json(include_str!("../../zoo/unet-lidar-designed/codes.json")).unwrap();
-        let params = SensorParams { irf: Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S }, ..SensorParams::from_codes(&codes) };
+        let params = SensorParams {
+            irf: Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S },
+            ..SensorParams::from_codes(&codes)
+        };
         MeasurementMatrix::synthesize(&codes, &params.validate().unwrap()).unwrap()
     }
 
@@ -601,7 +639,21 @@ mod tests {
         let a = sensor();
         let dz = C * a.bin_width_s() / 2.0;
         let (sheet, wall) = (6.4, 19.7);
-        let y = taps(&a, 16, 16, &|i, j| if (i, j) == (15, 15) { vec![] } else if j < 8 { vec![(sheet, 0.4), (wall, 1.0)] } else { vec![(wall, 1.0)] }, 0.0);
+        let y = taps(
+            &a,
+            16,
+            16,
+            &|i, j| {
+                if (i, j) == (15, 15) {
+                    vec![]
+                } else if j < 8 {
+                    vec![(sheet, 0.4), (wall, 1.0)]
+                } else {
+                    vec![(wall, 1.0)]
+                }
+            },
+            0.0,
+        );
         let got = fit_ranges(&y.view(), &a, &DepthFitOptions::default());
         let bins = |k: usize, i: usize, j: usize| got[(k, i, j)] as f64 / dz;
         assert!(got[(0, 15, 15)].is_nan() && got[(1, 15, 15)].is_nan(), "a dark pixel has no return");
@@ -612,9 +664,19 @@ mod tests {
                 }
                 if j < 8 {
                     // (the joint fit within a quarter bin, as the range fit's)
-                    assert!((bins(0, i, j) - sheet).abs() < 0.25 && (bins(1, i, j) - wall).abs() < 0.25, "({i}, {j}): {} {}", bins(0, i, j), bins(1, i, j));
+                    assert!(
+                        (bins(0, i, j) - sheet).abs() < 0.25 && (bins(1, i, j) - wall).abs() < 0.25,
+                        "({i}, {j}): {} {}",
+                        bins(0, i, j),
+                        bins(1, i, j)
+                    );
                 } else {
-                    assert!((bins(0, i, j) - wall).abs() < 0.05 && got[(1, i, j)].is_nan(), "({i}, {j}): {} {}", bins(0, i, j), bins(1, i, j));
+                    assert!(
+                        (bins(0, i, j) - wall).abs() < 0.05 && got[(1, i, j)].is_nan(),
+                        "({i}, {j}): {} {}",
+                        bins(0, i, j),
+                        bins(1, i, j)
+                    );
                 }
             }
         }

@@ -23,8 +23,8 @@ use tcsense_sensor::{Codes, Irf, Sampling, Sensor, SensorModel};
 use crate::admm::{AdmmNet, AdmmNetConfig};
 use crate::decoder::Decoder;
 use crate::lifetime::{LifetimeNet, LifetimeNetConfig};
-use crate::unet::{Unet, UnetConfig};
 use crate::net::NetDecoder;
+use crate::unet::{Unet, UnetConfig};
 use crate::{ModelError, Result};
 
 /// The run's config, `RUN/config.json`.
@@ -88,7 +88,8 @@ impl ModelConfig {
     /// Check the hyper-parameters against sane bounds (a config with absurd numbers would
     /// otherwise ask for terabytes when the network is built).
     pub fn validate(&self) -> Result<()> {
-        let bad = |field: &'static str, got: String, expected: &str| Err(ModelError::InvalidParam { field, got, expected: expected.into() });
+        let bad =
+            |field: &'static str, got: String, expected: &str| Err(ModelError::InvalidParam { field, got, expected: expected.into() });
         let (taps, bins) = (self.taps(), self.bins());
         if !(1..=64).contains(&taps) {
             return bad("model.taps", taps.to_string(), "1..=64 taps");
@@ -106,7 +107,11 @@ impl ModelConfig {
                 }
                 let reach = crate::admm::DELAY_DILATIONS[2];
                 if c.prior == crate::admm::Prior::Delay && bins <= reach {
-                    return bad("model.bins", bins.to_string(), &format!("more than {reach} bins for the delay prior (its largest dilation)"));
+                    return bad(
+                        "model.bins",
+                        bins.to_string(),
+                        &format!("more than {reach} bins for the delay prior (its largest dilation)"),
+                    );
                 }
                 if !(c.rho_init.is_finite() && c.rho_init > 0.0 && c.eta_init.is_finite()) {
                     return bad("model.rho_init", format!("{}, eta_init {}", c.rho_init, c.eta_init), "rho_init > 0 and a finite eta_init");
@@ -177,7 +182,12 @@ impl RunSpec {
     /// The sensor model of this run: its sampling and IRF, and the measured matrix in the run
     /// directory `dir` when it has one.
     pub fn sensor_model(&self, dir: &Path) -> SensorModel {
-        SensorModel { sampling: self.sampling, irf: self.irf, measured: self.measured.then(|| dir.join(SENSOR_MATRIX_FILE)), ..Default::default() }
+        SensorModel {
+            sampling: self.sampling,
+            irf: self.irf,
+            measured: self.measured.then(|| dir.join(SENSOR_MATRIX_FILE)),
+            ..Default::default()
+        }
     }
 
     /// The run's sensor for `codes`: the measured matrix in the run directory `dir` when it
@@ -265,8 +275,21 @@ pub struct LoadedRun {
 /// The fields of a run's `config.json` that only training reads (`tcsense_train::TrainConfig`
 /// owns them; its tests keep this list equal to its fields). Inference refuses a config with
 /// a field that is neither these nor the [`RunSpec`]'s.
-pub const TRAINING_KEYS: &[&str] =
-    &["epochs", "batch_size", "learning_rate", "lr_schedule", "loss", "seed", "noise", "dataset", "max_train_items", "max_val_items", "augment", "learn_codes", "init_from"];
+pub const TRAINING_KEYS: &[&str] = &[
+    "epochs",
+    "batch_size",
+    "learning_rate",
+    "lr_schedule",
+    "loss",
+    "seed",
+    "noise",
+    "dataset",
+    "max_train_items",
+    "max_val_items",
+    "augment",
+    "learn_codes",
+    "init_from",
+];
 
 /// Load a run directory on `device`: its config, codes, sensor model and latest weights.
 pub fn load(dir: &Path, device: &Device) -> Result<LoadedRun> {
@@ -283,7 +306,13 @@ pub fn load(dir: &Path, device: &Device) -> Result<LoadedRun> {
     if a.taps() != spec.model.taps() || a.bins() != spec.model.bins() {
         return Err(file_err(
             &cfg_path,
-            format!("the model takes M = {} taps and T = {} bins, but its codes give M = {}, T = {}", spec.model.taps(), spec.model.bins(), a.taps(), a.bins()),
+            format!(
+                "the model takes M = {} taps and T = {} bins, but its codes give M = {}, T = {}",
+                spec.model.taps(),
+                spec.model.bins(),
+                a.taps(),
+                a.bins()
+            ),
         ));
     }
     let net = match &spec.model {

@@ -378,14 +378,25 @@ mod tests {
     fn differentiable_operators_keep_values_and_differentiate_in_a() {
         let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 8, drain: false };
         let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 3).unwrap();
-        let spec = SensorParams { irf: tcsense_sensor::Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }, ..SensorParams::from_codes(&codes) }.validate().unwrap();
+        let spec = SensorParams {
+            irf: tcsense_sensor::Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 },
+            ..SensorParams::from_codes(&codes)
+        }
+        .validate()
+        .unwrap();
         let a = MeasurementMatrix::synthesize(&codes, &spec).unwrap();
         let device = Device::flex().autodiff();
         let st = SensorTensors::new(&a, 2, 4, &device).unwrap();
         let av: Vec<f32> = a.a().iter().copied().collect();
         let a_tensor = |vals: Vec<f32>| Tensor::<3>::from_data(TensorData::new(vals, [4, 4, 8]), &device);
-        let v = Tensor::<4>::from_data(TensorData::new((0..64).map(|i| ((i * 37 % 23) as f32) / 10.0 - 1.0).collect::<Vec<f32>>(), [1, 8, 2, 4]), &device);
-        let y = Tensor::<4>::from_data(TensorData::new((0..32).map(|i| ((i * 13 % 17) as f32) / 5.0).collect::<Vec<f32>>(), [1, 4, 2, 4]), &device);
+        let v = Tensor::<4>::from_data(
+            TensorData::new((0..64).map(|i| ((i * 37 % 23) as f32) / 10.0 - 1.0).collect::<Vec<f32>>(), [1, 8, 2, 4]),
+            &device,
+        );
+        let y = Tensor::<4>::from_data(
+            TensorData::new((0..32).map(|i| ((i * 13 % 17) as f32) / 5.0).collect::<Vec<f32>>(), [1, 4, 2, 4]),
+            &device,
+        );
         let rho = || Tensor::<1>::from_floats([0.37f32], &device);
         let vec = |t: Tensor<4>| t.into_data().try_into_vec::<f32>().unwrap();
         let close = |p: Vec<f32>, q: Vec<f32>, what: &str| {
@@ -429,7 +440,13 @@ mod tests {
     fn x_update_is_accurate_where_the_woodbury_form_cancels() {
         let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
         let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 5).unwrap();
-        let spec = SensorParams { irf: tcsense_sensor::Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }, sampling: tcsense_sensor::params::Sampling::Heterodyne(8), ..SensorParams::from_codes(&codes) }.validate().unwrap();
+        let spec = SensorParams {
+            irf: tcsense_sensor::Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 },
+            sampling: tcsense_sensor::params::Sampling::Heterodyne(8),
+            ..SensorParams::from_codes(&codes)
+        }
+        .validate()
+        .unwrap();
         let a = MeasurementMatrix::synthesize(&codes, &spec).unwrap();
         let (m, t, h, w) = (4, 256, 2, 4);
         assert_eq!(a.bins(), t);
@@ -444,8 +461,15 @@ mod tests {
             for c in 0..w {
                 let n = (r % 2) * 2 + c % 2;
                 let px = |j: usize| (j * h + r) * w + c;
-                let res: Vec<f64> = (0..m).map(|k| yv[(k * h + r) * w + c] as f64 - (0..t).map(|j| av[(n, k, j)] as f64 * wv[px(j)] as f64).sum::<f64>()).collect();
-                let mtx: Vec<f64> = (0..m * m).map(|ij| (0..t).map(|j| av[(n, ij / m, j)] as f64 * av[(n, ij % m, j)] as f64).sum::<f64>() + if ij / m == ij % m { rho } else { 0.0 }).collect();
+                let res: Vec<f64> = (0..m)
+                    .map(|k| yv[(k * h + r) * w + c] as f64 - (0..t).map(|j| av[(n, k, j)] as f64 * wv[px(j)] as f64).sum::<f64>())
+                    .collect();
+                let mtx: Vec<f64> = (0..m * m)
+                    .map(|ij| {
+                        (0..t).map(|j| av[(n, ij / m, j)] as f64 * av[(n, ij % m, j)] as f64).sum::<f64>()
+                            + if ij / m == ij % m { rho } else { 0.0 }
+                    })
+                    .collect();
                 let sol = solve_f64(mtx, res);
                 for j in 0..t {
                     want[px(j)] = wv[px(j)] as f64 + (0..m).map(|k| av[(n, k, j)] as f64 * sol[k]).sum::<f64>();
@@ -459,20 +483,31 @@ mod tests {
         };
         let device = Device::flex();
         let st = SensorTensors::new(&a, h, w, &device).unwrap();
-        let (wt, yt) = (Tensor::<4>::from_data(TensorData::new(wv.clone(), [1, t, h, w]), &device), Tensor::<4>::from_data(TensorData::new(yv.clone(), [1, m, h, w]), &device));
+        let (wt, yt) = (
+            Tensor::<4>::from_data(TensorData::new(wv.clone(), [1, t, h, w]), &device),
+            Tensor::<4>::from_data(TensorData::new(yv.clone(), [1, m, h, w]), &device),
+        );
         let rho_t = || Tensor::<1>::from_floats([rho as f32], &device);
         let fused = err(st.x_update(wt.clone(), yt.clone(), rho_t()));
         let composed = err(st.clone().with_matrix(st.a.clone().squeeze_dim(0)).x_update(wt.clone(), yt.clone(), rho_t()));
         let woodbury = err(st.data_consistency(st.adjoint(yt) + wt * rho as f32, rho_t()));
         assert!(fused < 1e-5 && composed < 1e-5, "x-update error of the scale: fused {fused:e}, composed {composed:e}");
-        assert!(woodbury > 1e-3, "the Woodbury form on Aᵀy + ρw cancels ({woodbury:e}); if not, this test no longer shows why x_update exists");
+        assert!(
+            woodbury > 1e-3,
+            "the Woodbury form on Aᵀy + ρw cancels ({woodbury:e}); if not, this test no longer shows why x_update exists"
+        );
     }
 
     #[test]
     fn data_consistency_equals_a_direct_solve() {
         let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 8, drain: false };
         let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 3).unwrap();
-        let spec = SensorParams { irf: tcsense_sensor::Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }, ..SensorParams::from_codes(&codes) }.validate().unwrap();
+        let spec = SensorParams {
+            irf: tcsense_sensor::Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 },
+            ..SensorParams::from_codes(&codes)
+        }
+        .validate()
+        .unwrap();
         let a = MeasurementMatrix::synthesize(&codes, &spec).unwrap();
         let device = Device::flex();
         let st = SensorTensors::new(&a, 2, 4, &device).unwrap();
@@ -486,7 +521,12 @@ mod tests {
             for c in 0..w {
                 let n = (r % 2) * 2 + c % 2;
                 // (AᵀA + ρI) x = v, solved by Gaussian elimination in f64
-                let mtx: Vec<f64> = (0..t * t).map(|ij| (0..4).map(|m| av[(n, m, ij / t)] as f64 * av[(n, m, ij % t)] as f64).sum::<f64>() + if ij / t == ij % t { rho } else { 0.0 }).collect();
+                let mtx: Vec<f64> = (0..t * t)
+                    .map(|ij| {
+                        (0..4).map(|m| av[(n, m, ij / t)] as f64 * av[(n, m, ij % t)] as f64).sum::<f64>()
+                            + if ij / t == ij % t { rho } else { 0.0 }
+                    })
+                    .collect();
                 let sol = solve_f64(mtx, (0..t).map(|j| vals[(j * h + r) * w + c] as f64).collect());
                 for j in 0..t {
                     let got = x[(j * h + r) * w + c] as f64;

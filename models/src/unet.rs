@@ -158,7 +158,16 @@ impl UnetConfig {
         let up = (0..self.levels.saturating_sub(1)).map(|l| block(self.width(l + 1) + self.width(l), self.width(l))).collect();
         let head = Conv2dConfig::new([self.width(0), self.head_channels()], [1, 1]).init(device);
         let score_bins = if self.head == UnetHead::ScoreVolume { self.bins } else { 0 };
-        Unet { down, up, head, returns: self.returns, levels: self.levels, range_m: self.range_m, score_bins, matched: self.input == UnetInput::Matched }
+        Unet {
+            down,
+            up,
+            head,
+            returns: self.returns,
+            levels: self.levels,
+            range_m: self.range_m,
+            score_bins,
+            matched: self.input == UnetInput::Matched,
+        }
     }
 
     /// Output channels of the 1×1 head: `K·T + K` (score volume) or `2K` (regression).
@@ -549,7 +558,9 @@ mod tests {
         let all: Vec<f32> = net.soft_argmax(scores).into_data().try_into_vec().unwrap();
         let c = net.bin_centres_m();
         let mean = |bins: &[usize], r: usize| {
-            let (num, den) = bins.iter().fold((0f64, 0f64), |(n, d), &j| (n + (s[8 * r + j] as f64).exp() * c[j] as f64, d + (s[8 * r + j] as f64).exp()));
+            let (num, den) = bins
+                .iter()
+                .fold((0f64, 0f64), |(n, d), &j| (n + (s[8 * r + j] as f64).exp() * c[j] as f64, d + (s[8 * r + j] as f64).exp()));
             (num / den) as f32
         };
         assert!((local[0] - mean(&[0, 1, 2], 0)).abs() < 1e-4 && (local[1] - mean(&[6, 7], 1)).abs() < 1e-4, "{local:?}");

@@ -46,14 +46,23 @@ pub fn resolve(spec: &str) -> Result<PathBuf> {
     Err(ModelError::InvalidParam {
         field: "zoo entry",
         got: format!("{spec:?} (zoo {})", root.display()),
-        expected: if names.is_empty() { "an entry, but the zoo has none".into() } else { format!("one of {}", names.iter().map(|n| format!("{PREFIX}{n}")).collect::<Vec<_>>().join(", ")) },
+        expected: if names.is_empty() {
+            "an entry, but the zoo has none".into()
+        } else {
+            format!("one of {}", names.iter().map(|n| format!("{PREFIX}{n}")).collect::<Vec<_>>().join(", "))
+        },
     })
 }
 
 /// The names of the entries in `root` (directories with a `config.json`), sorted.
 fn names(root: &Path) -> Result<Vec<String>> {
-    let rd = std::fs::read_dir(root).map_err(|e| ModelError::File { path: root.to_path_buf(), msg: format!("cannot list the zoo: {e}") })?;
-    let mut out: Vec<String> = rd.filter_map(|e| e.ok()).filter(|e| e.path().join(CONFIG_FILE).is_file()).filter_map(|e| e.file_name().to_str().map(str::to_string)).collect();
+    let rd =
+        std::fs::read_dir(root).map_err(|e| ModelError::File { path: root.to_path_buf(), msg: format!("cannot list the zoo: {e}") })?;
+    let mut out: Vec<String> = rd
+        .filter_map(|e| e.ok())
+        .filter(|e| e.path().join(CONFIG_FILE).is_file())
+        .filter_map(|e| e.file_name().to_str().map(str::to_string))
+        .collect();
     out.sort();
     Ok(out)
 }
@@ -140,10 +149,28 @@ fn read_entry(name: &str, dir: &Path) -> Result<Entry> {
     let (epochs, validation) = last_metrics(&file("metrics.csv"));
     // learned codes: the relaxed phase's epochs come first, in a run of their own
     let epochs = epochs + if learned_codes { last_metrics(&file("relaxed/metrics.csv")).0 } else { 0 };
-    let title = std::fs::read_to_string(file(PROVENANCE_FILE)).ok().and_then(|t| t.lines().find_map(|l| l.strip_prefix("# ").map(str::to_string))).unwrap_or_default();
-    let weights_bytes = std::fs::metadata(file(WEIGHTS_FILE)).map_err(|e| ModelError::File { path: file(WEIGHTS_FILE), msg: e.to_string() })?.len();
+    let title = std::fs::read_to_string(file(PROVENANCE_FILE))
+        .ok()
+        .and_then(|t| t.lines().find_map(|l| l.strip_prefix("# ").map(str::to_string)))
+        .unwrap_or_default();
+    let weights_bytes =
+        std::fs::metadata(file(WEIGHTS_FILE)).map_err(|e| ModelError::File { path: file(WEIGHTS_FILE), msg: e.to_string() })?.len();
     let light = light_of(&json);
-    Ok(Entry { name: name.to_string(), dir: dir.to_path_buf(), model, domain, learned_codes, designed_codes, codes, epochs, validation, title, weights_bytes, range_alias, light })
+    Ok(Entry {
+        name: name.to_string(),
+        dir: dir.to_path_buf(),
+        model,
+        domain,
+        learned_codes,
+        designed_codes,
+        codes,
+        epochs,
+        validation,
+        title,
+        weights_bytes,
+        range_alias,
+        light,
+    })
 }
 
 /// The range alias of `codes` on the sensor of a run config (its `sampling` and `irf`).
@@ -162,7 +189,12 @@ fn last_metrics(path: &Path) -> (usize, Vec<(String, f64)>) {
     let header: Vec<&str> = lines.next().unwrap_or_default().split(',').collect();
     let rows: Vec<&str> = lines.filter(|l| !l.is_empty()).collect();
     let Some(last) = rows.last() else { return (0, Vec::new()) };
-    let vals = header.iter().zip(last.split(',')).filter(|(h, _)| h.starts_with("val_")).filter_map(|(h, v)| Some((h.to_string(), v.parse().ok()?))).collect();
+    let vals = header
+        .iter()
+        .zip(last.split(','))
+        .filter(|(h, _)| h.starts_with("val_"))
+        .filter_map(|(h, v)| Some((h.to_string(), v.parse().ok()?)))
+        .collect();
     (rows.len(), vals)
 }
 

@@ -16,7 +16,9 @@ fn rel_err<const D: usize>(a: Tensor<D>, b: Tensor<D>) -> f32 {
 fn sensor(bh: usize, bw: usize, taps: usize, bins: usize, h: usize, w: usize, device: &Device) -> SensorTensors {
     let shape = CodeShape { bh, bw, taps, length: bins, drain: false };
     let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 11).unwrap();
-    let spec = SensorParams { irf: Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }, ..SensorParams::from_codes(&codes) }.validate().unwrap();
+    let spec = SensorParams { irf: Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }, ..SensorParams::from_codes(&codes) }
+        .validate()
+        .unwrap();
     let a = MeasurementMatrix::synthesize(&codes, &spec).unwrap();
     SensorTensors::new(&a, h, w, device).unwrap()
 }
@@ -58,11 +60,8 @@ fn fused_data_consistency_has_the_composed_gradients() {
         let v = v0.clone().require_grad();
         let log_rho = Tensor::<1>::from_floats([0.3f32.ln()], &device).require_grad();
         let rho = log_rho.clone().exp();
-        let x = if fused {
-            s.data_consistency(v.clone(), rho)
-        } else {
-            s.from_blocks(s.data_consistency_blocks(s.to_blocks(v.clone()), rho))
-        };
+        let x =
+            if fused { s.data_consistency(v.clone(), rho) } else { s.from_blocks(s.data_consistency_blocks(s.to_blocks(v.clone()), rho)) };
         let g = (x * wts.clone()).sum().backward();
         (v.grad(&g).unwrap(), log_rho.grad(&g).unwrap())
     };

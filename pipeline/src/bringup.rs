@@ -113,9 +113,17 @@ impl Inputs {
             return Ok(());
         }
         let Ok(text) = std::fs::read_to_string(&path) else {
-            bail!("{}: the directory holds files but no {INPUTS_FILE}, so it is not a bring-up to resume; choose a new output directory", dir.display());
+            bail!(
+                "{}: the directory holds files but no {INPUTS_FILE}, so it is not a bring-up to resume; choose a new output directory",
+                dir.display()
+            );
         };
-        let saved: Inputs = serde_json::from_str(&text).map_err(|e| crate::PipelineError::Invalid(format!("{}: not a bring-up's record of its inputs ({e}); choose a new output directory", path.display())))?;
+        let saved: Inputs = serde_json::from_str(&text).map_err(|e| {
+            crate::PipelineError::Invalid(format!(
+                "{}: not a bring-up's record of its inputs ({e}); choose a new output directory",
+                path.display()
+            ))
+        })?;
         let (a, b) = (serde_json::to_value(&saved)?, serde_json::to_value(self)?);
         let differences: Vec<String> = a
             .as_object()
@@ -210,7 +218,14 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
     for n in &names {
         let e = Source::open(n)?;
         if (e.model.taps(), e.model.bins()) != (nominal.taps(), nominal.bins()) {
-            bail!("{}: its network takes M = {} taps and T = {} bins, the sensor gives M = {}, T = {} (check --oversample/--heterodyne)", e.label, e.model.taps(), e.model.bins(), nominal.taps(), nominal.bins());
+            bail!(
+                "{}: its network takes M = {} taps and T = {} bins, the sensor gives M = {}, T = {} (check --oversample/--heterodyne)",
+                e.label,
+                e.model.taps(),
+                e.model.bins(),
+                nominal.taps(),
+                nominal.bins()
+            );
         }
         if entries.iter().any(|o: &Source| o.name == e.name) {
             bail!("{}: two decoders named {:?}; give each once", e.label, e.name);
@@ -229,14 +244,21 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
         bail!("bring-up settings: --check-items {}: expected 1 to {MAX_CHECK_ITEMS} held-back scenes", options.check_items);
     }
     if !(options.budget_minutes.is_finite() && options.budget_minutes > 0.0 && options.budget_minutes <= MAX_BUDGET_MINUTES) {
-        bail!("bring-up settings: --budget-minutes {}: expected a time above 0 and at most {MAX_BUDGET_MINUTES} minutes (a week)", options.budget_minutes);
+        bail!(
+            "bring-up settings: --budget-minutes {}: expected a time above 0 and at most {MAX_BUDGET_MINUTES} minutes (a week)",
+            options.budget_minutes
+        );
     }
     if let Some(e) = options.epochs.filter(|e| !(1..=MAX_EPOCHS).contains(e)) {
         bail!("bring-up settings: --epochs {e}: expected 1 to {MAX_EPOCHS} epochs");
     }
     // the training scenes' working set, before anything is calibrated or generated
     let item_bytes = 4.0 * (h * w) as f64 * (nominal.bins() + nominal.taps() + 4) as f64;
-    tcsense_sensor::mem::check_fits(&format!("{} training scenes of {h}x{w}", options.scenes), item_bytes * options.scenes as f64, "use fewer --scenes or a smaller --size")?;
+    tcsense_sensor::mem::check_fits(
+        &format!("{} training scenes of {h}x{w}", options.scenes),
+        item_bytes * options.scenes as f64,
+        "use fewer --scenes or a smaller --size",
+    )?;
     // what the steps are made from: a directory brought up from other inputs is refused, never
     // resumed with them
     let inputs = Inputs::of(options, &names, &sweep, &codes);
@@ -246,7 +268,8 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
     // a step done by an earlier run keeps the time it took then
     let steps_path = dir.join("results/steps.json");
     let earlier: Value = std::fs::read_to_string(&steps_path).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or(Value::Null);
-    let earlier_s = |name: &str| earlier["steps"].as_array().and_then(|a| a.iter().find(|s| s["step"] == name)).and_then(|s| s["seconds"].as_f64());
+    let earlier_s =
+        |name: &str| earlier["steps"].as_array().and_then(|a| a.iter().find(|s| s["step"] == name)).and_then(|s| s["seconds"].as_f64());
     let mut steps: Vec<(String, f64)> = Vec::new();
     // `f` returns whether it did the work (false: its outputs were there)
     let mut step = |name: &str, f: &mut dyn FnMut() -> Result<bool>| -> Result<()> {
@@ -273,7 +296,12 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
         let cal = calibrate(&sweep, nominal.nominal(), &codes, options.sampling)?;
         cal.save(&cal_dir)?;
         tcsense_infer::calibration_report::write_calibration_report(&cal, nominal.nominal(), &cal_dir)?;
-        obs.line(&format!("  wrote {}: tap gains {:?}, RMS residual {:.2e} of the peak", cal_dir.display(), cal.meta.tap_gains, cal.meta.residual_rms));
+        obs.line(&format!(
+            "  wrote {}: tap gains {:?}, RMS residual {:.2e} of the peak",
+            cal_dir.display(),
+            cal.meta.tap_gains,
+            cal.meta.residual_rms
+        ));
         Ok(true)
     })?;
     let calibrated = nominal.clone().calibrated_from(&cal_dir)?;
@@ -286,11 +314,22 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
         if data.join("manifest.json").exists() && Dataset::open(&data).is_ok() {
             return Ok(false);
         }
-        let gen = if flim { Generator::Flim(FlimParams { height: h, width: w, ..Default::default() }) } else { Generator::Lidar(LidarParams { height: h, width: w, ..Default::default() }) };
+        let gen = if flim {
+            Generator::Flim(FlimParams { height: h, width: w, ..Default::default() })
+        } else {
+            Generator::Lidar(LidarParams { height: h, width: w, ..Default::default() })
+        };
         let grid = TimeGrid { length: codes.length(), clock_hz: codes.clock_hz, sampling: options.sampling };
         let done = std::sync::atomic::AtomicUsize::new(0);
         let progress = || obs.items("scenes", done.fetch_add(1, Ordering::Relaxed) + 1, options.scenes);
-        store::generate(&gen, &grid, options.scenes, options.seed, &data, &WriteOptions { shard_size: DEFAULT_SHARD, force: true, progress: &progress, cancel })?;
+        store::generate(
+            &gen,
+            &grid,
+            options.scenes,
+            options.seed,
+            &data,
+            &WriteOptions { shard_size: DEFAULT_SHARD, force: true, progress: &progress, cancel },
+        )?;
         Ok(true)
     })?;
     let ds = Dataset::open(&data)?;
@@ -311,7 +350,10 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
                     None => {
                         let ms = tcsense_train::bench::bench_step(calibrated.matrix(), &e.model, h, w, 3)?.step_ms + STEP_OVERHEAD_MS;
                         let n = ((share_s / (ms / 1e3 * train_items.div_ceil(2) as f64)).floor() as usize).max(1);
-                        obs.line(&format!("  {}: {ms:.1} ms per step at {h}x{w}, {train_items} items → {n} epochs in {share_s:.0} s", e.name));
+                        obs.line(&format!(
+                            "  {}: {ms:.1} ms per step at {h}x{w}, {train_items} items → {n} epochs in {share_s:.0} s",
+                            e.name
+                        ));
                         n
                     }
                 };
@@ -340,7 +382,9 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
             // the share is a budget, not an estimate: past DEADLINE_SLACK of it the training stops
             // at the next step with its checkpoint kept (the model; a rerun continues it)
             let (stop, finished) = (AtomicBool::new(false), AtomicBool::new(false));
-            let deadline = std::time::Duration::from_secs_f64(if options.epochs.is_some() { f64::INFINITY } else { share_s * DEADLINE_SLACK }.min(1e9));
+            let deadline = std::time::Duration::from_secs_f64(
+                if options.epochs.is_some() { f64::INFINITY } else { share_s * DEADLINE_SLACK }.min(1e9),
+            );
             let res = std::thread::scope(|sc| {
                 sc.spawn(|| {
                     let t0 = Instant::now();
@@ -378,7 +422,14 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
             if !out.exists() {
                 let run = runs::load(&runs_dir.join(&e.name), &Device::flex())?;
                 let bytes = export_to(&run, ExportOptions { matrix_input: false, calibration: Some(&cal) }, &out)?;
-                obs.line(&format!("  wrote {} ({:.1} kB), raw {} tap images of {}x{}", out.display(), bytes as f64 / 1e3, cal.meta.units, cal.meta.size[0], cal.meta.size[1]));
+                obs.line(&format!(
+                    "  wrote {} ({:.1} kB), raw {} tap images of {}x{}",
+                    out.display(),
+                    bytes as f64 / 1e3,
+                    cal.meta.units,
+                    cal.meta.size[0],
+                    cal.meta.size[1]
+                ));
                 worked = true;
             }
             models.push(out);
@@ -403,16 +454,34 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
         let [ch, cw] = cal.meta.size;
         let check_dir = dir.join("check-scenes");
         if !(check_dir.join("manifest.json").exists() && Dataset::open(&check_dir).is_ok()) {
-            let gen = if flim { Generator::Flim(FlimParams { height: ch, width: cw, ..Default::default() }) } else { Generator::Lidar(LidarParams { height: ch, width: cw, ..Default::default() }) };
+            let gen = if flim {
+                Generator::Flim(FlimParams { height: ch, width: cw, ..Default::default() })
+            } else {
+                Generator::Lidar(LidarParams { height: ch, width: cw, ..Default::default() })
+            };
             let grid = TimeGrid { length: codes.length(), clock_hz: codes.clock_hz, sampling: options.sampling };
             // the training split of this set holds about 80 % of it
             let count = (options.check_items as f64 / 0.75).ceil() as usize + 2;
-            store::generate(&gen, &grid, count, options.seed ^ CHECK_SEED, &check_dir, &WriteOptions { shard_size: DEFAULT_SHARD, force: true, progress: &|| {}, cancel })?;
+            store::generate(
+                &gen,
+                &grid,
+                count,
+                options.seed ^ CHECK_SEED,
+                &check_dir,
+                &WriteOptions { shard_size: DEFAULT_SHARD, force: true, progress: &|| {}, cancel },
+            )?;
         }
         let ds = Dataset::open(&check_dir)?;
         let noise = Some(NoiseParams::default().validate()?);
         let split = "train";
-        let settings = |real: bool| EvalSettings { split: split.into(), items: Some(options.check_items), noise, seed: options.seed, sensor: real.then_some(truth), sbr: None };
+        let settings = |real: bool| EvalSettings {
+            split: split.into(),
+            items: Some(options.check_items),
+            noise,
+            seed: options.seed,
+            sensor: real.then_some(truth),
+            sbr: None,
+        };
         let mut rows = Vec::new();
         let mut eval = |decoder: &str, spec: String, condition: &str, sensor: &Sensor, real: bool| -> Result<()> {
             let mut d = vec![open_decoder(&spec, &Tval3Options::default(), &Device::flex())?];
@@ -446,8 +515,13 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
     // 6. the report
     let total: f64 = steps.iter().map(|(_, s)| s).sum();
     let report = dir.join("report.html");
-    let check: Value = serde_json::from_str(&std::fs::read_to_string(&check_path).map_err(|e| crate::PipelineError::Io { path: check_path.clone(), cause: e })?)?;
-    write_json(&dir.join("results/steps.json"), &json!({ "steps": steps.iter().map(|(n, s)| json!({ "step": n, "seconds": s })).collect::<Vec<_>>(), "total_s": total }))?;
+    let check: Value = serde_json::from_str(
+        &std::fs::read_to_string(&check_path).map_err(|e| crate::PipelineError::Io { path: check_path.clone(), cause: e })?,
+    )?;
+    write_json(
+        &dir.join("results/steps.json"),
+        &json!({ "steps": steps.iter().map(|(n, s)| json!({ "step": n, "seconds": s })).collect::<Vec<_>>(), "total_s": total }),
+    )?;
     build_report(options, &names, &cal, &check, &steps, total, flim).write(&report)?;
     obs.line(&format!("wrote {} ({total:.0} s in all)", report.display()));
     Ok(BringupSummary { report, models, steps })
@@ -472,7 +546,15 @@ fn row(r: &EvalRow, decoder: &str, condition: &str) -> Value {
 }
 
 #[allow(clippy::too_many_arguments)]
-fn build_report(o: &BringupOptions, names: &[String], cal: &Calibration, check: &Value, steps: &[(String, f64)], total: f64, flim: bool) -> Report {
+fn build_report(
+    o: &BringupOptions,
+    names: &[String],
+    cal: &Calibration,
+    check: &Value,
+    steps: &[(String, f64)],
+    total: f64,
+    flim: bool,
+) -> Report {
     let mut sections = Vec::new();
     sections.push(Section {
         id: "steps".into(),
@@ -509,7 +591,11 @@ fn build_report(o: &BringupOptions, names: &[String], cal: &Calibration, check: 
             Block::Figure { src: "cal/fit.png".into(), caption: "The sweep's mean response per tap against the calibrated model (cal/report.html has the rest).".into() },
         ],
     });
-    let metric: (&str, &str, Format) = if flim { ("lifetime MAE (ns)", "lifetime_mae_ns", Format::Fixed(3)) } else { ("first-return median error (m)", "first_return_median_m", Format::Fixed(3)) };
+    let metric: (&str, &str, Format) = if flim {
+        ("lifetime MAE (ns)", "lifetime_mae_ns", Format::Fixed(3))
+    } else {
+        ("first-return median error (m)", "first_return_median_m", Format::Fixed(3))
+    };
     let rows: Vec<Vec<Cell>> = check["rows"]
         .as_array()
         .map(|rs| {
@@ -539,9 +625,24 @@ fn build_report(o: &BringupOptions, names: &[String], cal: &Calibration, check: 
     sections.push(Section {
         id: "check".into(),
         title: "Decoders on the ideal sensor, the nominal model, the calibration and the fine-tuning".into(),
-        blocks: vec![Block::Text(text), Block::Table(Table { caption: format!("{} and cube PSNR (dB) per decoder and condition", metric.0), headers: vec!["decoder".into(), "condition".into(), metric.0.into(), "PSNR (dB)".into()], rows })],
+        blocks: vec![
+            Block::Text(text),
+            Block::Table(Table {
+                caption: format!("{} and cube PSNR (dB) per decoder and condition", metric.0),
+                headers: vec!["decoder".into(), "condition".into(), metric.0.into(), "PSNR (dB)".into()],
+                rows,
+            }),
+        ],
     });
-    let models: Vec<String> = names.iter().map(|n| format!("tcsense infer --model onnx/{n}.onnx --measurements RAW.npy -o out/{n}")).collect();
-    sections.push(Section { id: "deploy".into(), title: "Deployed models".into(), blocks: vec![Block::Text("Each takes the sensor's raw tap images (the calibration's dark and gain correction is in the graph):".into()), Block::Code(models.join("\n"))] });
+    let models: Vec<String> =
+        names.iter().map(|n| format!("tcsense infer --model onnx/{n}.onnx --measurements RAW.npy -o out/{n}")).collect();
+    sections.push(Section {
+        id: "deploy".into(),
+        title: "Deployed models".into(),
+        blocks: vec![
+            Block::Text("Each takes the sensor's raw tap images (the calibration's dark and gain correction is in the graph):".into()),
+            Block::Code(models.join("\n")),
+        ],
+    });
     Report { title: "Sensor bring-up".into(), subtitle: format!("{} → {}", o.sweep.display(), names.join(", ")), sections }
 }

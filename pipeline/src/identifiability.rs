@@ -21,8 +21,18 @@ pub fn analyse(sets: &[(&str, &Codes)], irf: Irf) -> Result<Value> {
     let light = Light::default();
     let mut out = Vec::new();
     for (name, codes) in sets {
-        let lidar = identify::analyze(Sensor::ideal((*codes).clone(), Sampling::Oversample(1), irf)?.matrix(), 1, &light, &AnalyzeOptions::default());
-        let flim = identify::analyze(Sensor::ideal((*codes).clone(), Sampling::Heterodyne(FLIM_K), irf)?.matrix(), FLIM_K, &light, &AnalyzeOptions { lifetime: true, ..Default::default() });
+        let lidar = identify::analyze(
+            Sensor::ideal((*codes).clone(), Sampling::Oversample(1), irf)?.matrix(),
+            1,
+            &light,
+            &AnalyzeOptions::default(),
+        );
+        let flim = identify::analyze(
+            Sensor::ideal((*codes).clone(), Sampling::Heterodyne(FLIM_K), irf)?.matrix(),
+            FLIM_K,
+            &light,
+            &AnalyzeOptions { lifetime: true, ..Default::default() },
+        );
         let mm = |bins: f64, r: &identify::Report| bins * r.bin_width_s * C / 2.0 * 1e3;
         let lifetime = flim.lifetime.clone().unwrap_or_default();
         let worst_rel = lifetime.iter().map(|p| p.known_worst_s / p.tau_s).fold(0.0, f64::max);
@@ -82,11 +92,30 @@ pub fn draw(v: &Value, range_png: &Path, lifetime_png: &Path) -> Result<()> {
         p.sort_by(|u, w| u.0.total_cmp(&w.0));
         p
     };
-    let label = |s: &Value, alias: &Value| format!("{} (alias {:.2})", s["codes"].as_str().unwrap_or(""), alias.as_f64().unwrap_or(f64::NAN));
-    let range: Vec<Series> = sets.iter().map(|s| Series { label: label(s, &s["lidar"]["range_alias"]), points: pairs(&s["lidar"], "delay_ns", "range_bound_mm") }).collect();
-    figures::line_chart(range_png, "Range Cramér–Rao bound over the cycle (LiDAR grid, 1000 e⁻ signal, 100 e⁻ ambient)", "delay of the return (ns)", "σ of the range (mm)", &range)?;
-    let life: Vec<Series> = sets.iter().map(|s| Series { label: label(s, &s["flim"]["range_alias"]), points: pairs(&s["flim"], "tau_ns", "lifetime_bound_worst_ns") }).collect();
-    figures::log_chart(lifetime_png, "Lifetime Cramér–Rao bound, worst over the onsets (FLIm grid, onset known)", "lifetime τ (ns)", "σ of τ (ns)", &life)?;
+    let label =
+        |s: &Value, alias: &Value| format!("{} (alias {:.2})", s["codes"].as_str().unwrap_or(""), alias.as_f64().unwrap_or(f64::NAN));
+    let range: Vec<Series> = sets
+        .iter()
+        .map(|s| Series { label: label(s, &s["lidar"]["range_alias"]), points: pairs(&s["lidar"], "delay_ns", "range_bound_mm") })
+        .collect();
+    figures::line_chart(
+        range_png,
+        "Range Cramér–Rao bound over the cycle (LiDAR grid, 1000 e⁻ signal, 100 e⁻ ambient)",
+        "delay of the return (ns)",
+        "σ of the range (mm)",
+        &range,
+    )?;
+    let life: Vec<Series> = sets
+        .iter()
+        .map(|s| Series { label: label(s, &s["flim"]["range_alias"]), points: pairs(&s["flim"], "tau_ns", "lifetime_bound_worst_ns") })
+        .collect();
+    figures::log_chart(
+        lifetime_png,
+        "Lifetime Cramér–Rao bound, worst over the onsets (FLIm grid, onset known)",
+        "lifetime τ (ns)",
+        "σ of τ (ns)",
+        &life,
+    )?;
     Ok(())
 }
 

@@ -27,7 +27,8 @@ pub fn codes_of(obj: &Bound<'_, PyAny>) -> PyResult<Codes> {
     if let Ok(c) = obj.cast::<PyCodes>() {
         return Ok(c.get().inner.clone());
     }
-    let path = path_of(obj).map_err(|_| pyo3::exceptions::PyTypeError::new_err("codes: expected a tcsense.Codes or the path of a codes JSON file"))?;
+    let path = path_of(obj)
+        .map_err(|_| pyo3::exceptions::PyTypeError::new_err("codes: expected a tcsense.Codes or the path of a codes JSON file"))?;
     existing(&path, "codes")?;
     Codes::load(&path).map_err(err)
 }
@@ -38,7 +39,17 @@ impl PyCodes {
     #[staticmethod]
     #[pyo3(signature = (taps = 4, block = (2, 2), length = 32, *, tap_constraint = false, hamming = None, window = None, drain = false, clock_hz = DEFAULT_CLOCK_HZ, seed = 0))]
     #[allow(clippy::too_many_arguments)]
-    fn generate(taps: usize, block: (usize, usize), length: usize, tap_constraint: bool, hamming: Option<usize>, window: Option<usize>, drain: bool, clock_hz: f64, seed: u64) -> PyResult<Self> {
+    fn generate(
+        taps: usize,
+        block: (usize, usize),
+        length: usize,
+        tap_constraint: bool,
+        hamming: Option<usize>,
+        window: Option<usize>,
+        drain: bool,
+        clock_hz: f64,
+        seed: u64,
+    ) -> PyResult<Self> {
         let shape = CodeShape { bh: block.0, bw: block.1, taps, length, drain };
         let inner = generate::random_codes(shape, clock_hz, constraints(tap_constraint, hamming, window), seed).map_err(err)?;
         Ok(PyCodes { inner })
@@ -49,13 +60,27 @@ impl PyCodes {
     #[staticmethod]
     #[pyo3(signature = (bits, block = (2, 2), *, tap_constraint = false, hamming = None, window = None, drain = false, clock_hz = DEFAULT_CLOCK_HZ))]
     #[allow(clippy::too_many_arguments)]
-    fn from_bits(bits: &Bound<'_, PyAny>, block: (usize, usize), tap_constraint: bool, hamming: Option<usize>, window: Option<usize>, drain: bool, clock_hz: f64) -> PyResult<Self> {
+    fn from_bits(
+        bits: &Bound<'_, PyAny>,
+        block: (usize, usize),
+        tap_constraint: bool,
+        hamming: Option<usize>,
+        window: Option<usize>,
+        drain: bool,
+        clock_hz: f64,
+    ) -> PyResult<Self> {
         let np = bits.py().import("numpy")?;
-        let b: PyReadonlyArray3<'_, u8> = np.call_method1("asarray", (bits, "uint8"))?.extract().map_err(|_| err("bits: expected an array [N, M, L] of 0/1"))?;
+        let b: PyReadonlyArray3<'_, u8> =
+            np.call_method1("asarray", (bits, "uint8"))?.extract().map_err(|_| err("bits: expected an array [N, M, L] of 0/1"))?;
         let b = b.as_array();
         let (n, m, l) = b.dim();
         if n != block.0 * block.1 {
-            return Err(err(format!("bits: shape [{n}, {m}, {l}]; expected N = bh·bw = {} subpixels for the {}x{} block", block.0 * block.1, block.0, block.1)));
+            return Err(err(format!(
+                "bits: shape [{n}, {m}, {l}]; expected N = bh·bw = {} subpixels for the {}x{} block",
+                block.0 * block.1,
+                block.0,
+                block.1
+            )));
         }
         let shape = CodeShape { bh: block.0, bw: block.1, taps: m, length: l, drain };
         let mut codes = Codes::zeros(shape, clock_hz, constraints(tap_constraint, hamming, window)).map_err(err)?;
@@ -74,14 +99,24 @@ impl PyCodes {
     #[staticmethod]
     #[pyo3(signature = (logits, block = (2, 2), *, tap_constraint = false, hamming = None, window = None, drain = false, clock_hz = DEFAULT_CLOCK_HZ))]
     #[allow(clippy::too_many_arguments)]
-    fn project(py: Python<'_>, logits: &Bound<'_, PyAny>, block: (usize, usize), tap_constraint: bool, hamming: Option<usize>, window: Option<usize>, drain: bool, clock_hz: f64) -> PyResult<Self> {
+    fn project(
+        py: Python<'_>,
+        logits: &Bound<'_, PyAny>,
+        block: (usize, usize),
+        tap_constraint: bool,
+        hamming: Option<usize>,
+        window: Option<usize>,
+        drain: bool,
+        clock_hz: f64,
+    ) -> PyResult<Self> {
         let arr = f32_array(logits, "logits")?;
         check_rank(arr.shape(), &[3], "logits", "[N, C, L]")?;
         let view = arr.as_array().into_dimensionality::<Ix3>().map_err(err)?;
         let (_, c, l) = view.dim();
         let taps = if tap_constraint && drain { c.saturating_sub(1) } else { c };
         let shape = CodeShape { bh: block.0, bw: block.1, taps, length: l, drain };
-        let p = crate::run_long(py, |_| project::project(shape, clock_hz, constraints(tap_constraint, hamming, window), &view))?.map_err(err)?;
+        let p = crate::run_long(py, |_| project::project(shape, clock_hz, constraints(tap_constraint, hamming, window), &view))?
+            .map_err(err)?;
         Ok(PyCodes { inner: p.codes })
     }
 
@@ -188,13 +223,21 @@ impl PyCodes {
 
     fn __eq__(&self, other: &Bound<'_, PyAny>) -> bool {
         // the same codes: shape, bits, clock and constraints (not the free-form provenance)
-        let same = |a: &Codes, b: &Codes| a.shape() == b.shape() && a.digest() == b.digest() && a.clock_hz == b.clock_hz && a.constraints == b.constraints;
+        let same = |a: &Codes, b: &Codes| {
+            a.shape() == b.shape() && a.digest() == b.digest() && a.clock_hz == b.clock_hz && a.constraints == b.constraints
+        };
         other.cast::<PyCodes>().map(|o| same(&o.get().inner, &self.inner)).unwrap_or(false)
     }
 
     fn __repr__(&self) -> String {
         let (bh, bw) = self.inner.block();
-        format!("Codes(taps={}, block=({bh}, {bw}), length={}, constraints={:?}, digest={:?})", self.inner.taps(), self.inner.length(), self.inner.constraints.label(), self.inner.digest())
+        format!(
+            "Codes(taps={}, block=({bh}, {bw}), length={}, constraints={:?}, digest={:?})",
+            self.inner.taps(),
+            self.inner.length(),
+            self.inner.constraints.label(),
+            self.inner.digest()
+        )
     }
 }
 

@@ -186,7 +186,10 @@ fn generate_dataset(
     let progress = || {
         done.fetch_add(1, Ordering::Relaxed);
     };
-    run_long(py, |cancel| store::generate(&gen, &grid, count, seed, &dir, &WriteOptions { shard_size: DEFAULT_SHARD, force, progress: &progress, cancel }))?.map_err(err)?;
+    run_long(py, |cancel| {
+        store::generate(&gen, &grid, count, seed, &dir, &WriteOptions { shard_size: DEFAULT_SHARD, force, progress: &progress, cancel })
+    })?
+    .map_err(err)?;
     Ok(PyDataset { inner: Dataset::open(&dir).map_err(err)? })
 }
 

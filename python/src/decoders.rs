@@ -52,7 +52,12 @@ fn decoded_dict<'py>(py: Python<'py>, d: Decoded, batched: bool) -> PyResult<Bou
 /// Decode `y` (`[M, H, W]` or `[B, M, H, W]`) with `decoder` on `sensor`
 /// ([`tcsense_infer::decode::decode_batch`]: a calibrated sensor's raw frames are corrected
 /// first, then decoded with its matrix).
-fn decode_with<'py>(py: Python<'py>, decoder: &Mutex<Box<dyn Decoder>>, sensor: &PySensor, y: &Bound<'py, PyAny>) -> PyResult<Bound<'py, PyDict>> {
+fn decode_with<'py>(
+    py: Python<'py>,
+    decoder: &Mutex<Box<dyn Decoder>>,
+    sensor: &PySensor,
+    y: &Bound<'py, PyAny>,
+) -> PyResult<Bound<'py, PyDict>> {
     let arr = f32_array(y, "y")?;
     check_rank(arr.shape(), &[3, 4], "y", "[M, H, W] or [B, M, H, W]")?;
     let v = arr.as_array();
@@ -171,7 +176,12 @@ fn open_decoder_py(py: Python<'_>, name: &str, tval3: Option<&Bound<'_, PyDict>>
 /// `[B, T, H, W]`. Settings as keyword arguments (`mu`, `beta`, `maxit`, `tol`, `nonneg`, …).
 #[pyfunction]
 #[pyo3(signature = (y, sensor, **options))]
-fn tval3<'py>(py: Python<'py>, y: &Bound<'py, PyAny>, sensor: &Bound<'py, PySensor>, options: Option<&Bound<'py, PyDict>>) -> PyResult<Bound<'py, PyAny>> {
+fn tval3<'py>(
+    py: Python<'py>,
+    y: &Bound<'py, PyAny>,
+    sensor: &Bound<'py, PySensor>,
+    options: Option<&Bound<'py, PyDict>>,
+) -> PyResult<Bound<'py, PyAny>> {
     let opts: Tval3Options = merged(&Tval3Options::default(), options, "tval3 settings")?;
     let dec: Mutex<Box<dyn Decoder>> = Mutex::new(Box::new(Tval3Decoder::new(opts).map_err(err)?));
     let d = decode_with(py, &dec, sensor.get(), y)?;

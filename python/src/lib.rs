@@ -59,7 +59,9 @@ pub(crate) fn f32_array<'py>(obj: &Bound<'py, PyAny>, name: &str) -> PyResult<Py
     };
     let dtype = untyped.dtype();
     if !dtype.is_equiv_to(&numpy::dtype::<f32>(obj.py())) {
-        return Err(PyTypeError::new_err(format!("{name}: expected a numpy array of float32, got dtype {dtype}; convert it with {name}.astype(numpy.float32)")));
+        return Err(PyTypeError::new_err(format!(
+            "{name}: expected a numpy array of float32, got dtype {dtype}; convert it with {name}.astype(numpy.float32)"
+        )));
     }
     let arr = obj.cast::<PyArrayDyn<f32>>().map_err(|e| PyTypeError::new_err(format!("{name}: {e}")))?;
     arr.try_readonly().map_err(|e| PyRuntimeError::new_err(format!("{name}: {e}")))
@@ -108,18 +110,25 @@ pub(crate) fn run_long<T: Send>(py: Python<'_>, f: impl FnOnce(&AtomicBool) -> T
                 return Err(interrupt);
             }
         }
-        py.detach(|| worker.join()).map_err(|_| PyRuntimeError::new_err("tcsense: the worker thread panicked; please report this with the call that caused it"))
+        py.detach(|| worker.join())
+            .map_err(|_| PyRuntimeError::new_err("tcsense: the worker thread panicked; please report this with the call that caused it"))
     })
 }
 
 /// Overrides from a Python dict onto `default`, through JSON: every key must be one of
 /// `default`'s fields (a `TcsenseError` names the unknown ones and lists the fields).
-pub(crate) fn merged<T: serde::Serialize + serde::de::DeserializeOwned>(default: &T, overrides: Option<&Bound<'_, PyDict>>, what: &str) -> PyResult<T> {
+pub(crate) fn merged<T: serde::Serialize + serde::de::DeserializeOwned>(
+    default: &T,
+    overrides: Option<&Bound<'_, PyDict>>,
+    what: &str,
+) -> PyResult<T> {
     let mut v = serde_json::to_value(default).map_err(err)?;
     if let Some(d) = overrides {
         let json = d.py().import("json")?.call_method1("dumps", (d,))?.extract::<String>()?;
         let o: serde_json::Value = serde_json::from_str(&json).map_err(err)?;
-        let (Some(base), Some(over)) = (v.as_object_mut(), o.as_object()) else { return Err(err(format!("{what}: expected a dict of settings"))) };
+        let (Some(base), Some(over)) = (v.as_object_mut(), o.as_object()) else {
+            return Err(err(format!("{what}: expected a dict of settings")));
+        };
         let unknown: Vec<&String> = over.keys().filter(|k| !base.contains_key(*k)).collect();
         if !unknown.is_empty() {
             let fields: Vec<&String> = base.keys().collect();

@@ -26,7 +26,13 @@ pub fn open_model(path: &Path, threads: usize) -> PyResult<OnnxModel> {
 /// graph. Returns the bytes written (`tcsense export onnx`).
 #[pyfunction]
 #[pyo3(signature = (run, out, *, matrix_input = false, calibration = None))]
-fn export_onnx(py: Python<'_>, run: &Bound<'_, PyAny>, out: &Bound<'_, PyAny>, matrix_input: bool, calibration: Option<&Bound<'_, PyAny>>) -> PyResult<usize> {
+fn export_onnx(
+    py: Python<'_>,
+    run: &Bound<'_, PyAny>,
+    out: &Bound<'_, PyAny>,
+    matrix_input: bool,
+    calibration: Option<&Bound<'_, PyAny>>,
+) -> PyResult<usize> {
     let spec = path_of(run)?.to_string_lossy().into_owned();
     let dir = zoo::resolve(&spec).map_err(err)?;
     existing(&dir, "run")?;
@@ -69,7 +75,8 @@ impl PyOnnxModel {
         let arr = f32_array(y, "y")?;
         check_rank(arr.shape(), &[3, 4], "y", "[M, H, W] or [B, M, H, W]")?;
         let v = arr.as_array();
-        let v = if v.ndim() == 4 { v.into_dimensionality::<Ix4>() } else { v.insert_axis(Axis(0)).into_dimensionality::<Ix4>() }.map_err(err)?;
+        let v = if v.ndim() == 4 { v.into_dimensionality::<Ix4>() } else { v.insert_axis(Axis(0)).into_dimensionality::<Ix4>() }
+            .map_err(err)?;
         let outs = run_long(py, |_| self.inner.lock().unwrap_or_else(|e| e.into_inner()).run(v))?.map_err(err)?;
         let list = PyList::empty(py);
         for o in outs {

@@ -46,7 +46,17 @@ impl Observer for Stderr {
 #[pyfunction]
 #[pyo3(signature = (out, *, quick = false, budget_minutes = None, size = None, scenes = None, timing_size = (188, 212), seed = 1, quiet = false))]
 #[allow(clippy::too_many_arguments)]
-fn run_demo<'py>(py: Python<'py>, out: &Bound<'py, PyAny>, quick: bool, budget_minutes: Option<f64>, size: Option<(usize, usize)>, scenes: Option<usize>, timing_size: (usize, usize), seed: u64, quiet: bool) -> PyResult<Bound<'py, PyDict>> {
+fn run_demo<'py>(
+    py: Python<'py>,
+    out: &Bound<'py, PyAny>,
+    quick: bool,
+    budget_minutes: Option<f64>,
+    size: Option<(usize, usize)>,
+    scenes: Option<usize>,
+    timing_size: (usize, usize),
+    seed: u64,
+    quiet: bool,
+) -> PyResult<Bound<'py, PyDict>> {
     let dir = path_of(out)?;
     let options = DemoOptions { quick, budget_minutes, size, scenes, timing_size, seed };
     let obs = Stderr { quiet };
@@ -65,10 +75,21 @@ fn run_demo<'py>(py: Python<'py>, out: &Bound<'py, PyAny>, quick: bool, budget_m
 #[pyfunction]
 #[pyo3(signature = (codes, sweep, out, *, irf = None, oversample = None, heterodyne = None, report = true))]
 #[allow(clippy::too_many_arguments)]
-fn calibrate<'py>(py: Python<'py>, codes: &Bound<'py, PyAny>, sweep: &Bound<'py, PyAny>, out: &Bound<'py, PyAny>, irf: Option<&Bound<'py, PyAny>>, oversample: Option<usize>, heterodyne: Option<usize>, report: bool) -> PyResult<Bound<'py, PyAny>> {
+fn calibrate<'py>(
+    py: Python<'py>,
+    codes: &Bound<'py, PyAny>,
+    sweep: &Bound<'py, PyAny>,
+    out: &Bound<'py, PyAny>,
+    irf: Option<&Bound<'py, PyAny>>,
+    oversample: Option<usize>,
+    heterodyne: Option<usize>,
+    report: bool,
+) -> PyResult<Bound<'py, PyAny>> {
     let codes = codes_of(codes)?;
     let irf = match irf {
-        Some(i) => IrfArgOwned::parse(i, tcsense_sensor::params::DEFAULT_LASER_FWHM_S * 1e9, tcsense_sensor::params::DEFAULT_TAP_TAU_S * 1e9)?,
+        Some(i) => {
+            IrfArgOwned::parse(i, tcsense_sensor::params::DEFAULT_LASER_FWHM_S * 1e9, tcsense_sensor::params::DEFAULT_TAP_TAU_S * 1e9)?
+        }
         None => IrfArgOwned::parse(&pyo3::types::PyString::new(py, "ideal").into_any(), 0.0, 0.0)?,
     };
     let sensor = build(codes, irf, oversample, heterodyne, None)?.inner;
@@ -117,11 +138,26 @@ fn bringup<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     let irf = match irf {
         "ideal" => tcsense_sensor::Irf::Ideal,
-        "physical" => tcsense_sensor::Irf::Physical { laser_fwhm_s: tcsense_sensor::params::DEFAULT_LASER_FWHM_S, tap_tau_s: tcsense_sensor::params::DEFAULT_TAP_TAU_S },
+        "physical" => tcsense_sensor::Irf::Physical {
+            laser_fwhm_s: tcsense_sensor::params::DEFAULT_LASER_FWHM_S,
+            tap_tau_s: tcsense_sensor::params::DEFAULT_TAP_TAU_S,
+        },
         other => return Err(err(format!("irf {other:?}: expected \"physical\" or \"ideal\""))),
     };
     let sampling = tcsense_sensor::Sampling::from_factors(None, heterodyne, tcsense_sensor::Sampling::Oversample(1)).map_err(err)?;
-    let options = BringupOptions { sweep: path_of(sweep)?, codes: path_of(codes)?, sampling, irf, decoders: decoders.unwrap_or_default(), budget_minutes, epochs, scenes, size, check_items, seed };
+    let options = BringupOptions {
+        sweep: path_of(sweep)?,
+        codes: path_of(codes)?,
+        sampling,
+        irf,
+        decoders: decoders.unwrap_or_default(),
+        budget_minutes,
+        epochs,
+        scenes,
+        size,
+        check_items,
+        seed,
+    };
     let dir = path_of(out)?;
     let obs = Stderr { quiet };
     let s = run_long(py, |cancel| bring::run(&options, &dir, &obs, cancel))?.map_err(err)?;

@@ -28,7 +28,14 @@ fn peak_options(max_peaks: usize, min_rel: f32, min_sep: usize) -> PyResult<Peak
 /// return, `amplitude [K, H, W])`.
 #[pyfunction]
 #[pyo3(signature = (x, bin_width_s, *, max_peaks = 2, min_rel = 0.1, min_sep = 2))]
-fn depth_map<'py>(py: Python<'py>, x: &Bound<'py, PyAny>, bin_width_s: f64, max_peaks: usize, min_rel: f32, min_sep: usize) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyAny>)> {
+fn depth_map<'py>(
+    py: Python<'py>,
+    x: &Bound<'py, PyAny>,
+    bin_width_s: f64,
+    max_peaks: usize,
+    min_rel: f32,
+    min_sep: usize,
+) -> PyResult<(Bound<'py, PyAny>, Bound<'py, PyAny>)> {
     let a = cube(x, "x")?;
     let v = a.as_array().into_dimensionality::<Ix3>().map_err(err)?;
     let opts = peak_options(max_peaks, min_rel, min_sep)?;
@@ -40,7 +47,13 @@ fn depth_map<'py>(py: Python<'py>, x: &Bound<'py, PyAny>, bin_width_s: f64, max_
 /// centred at j), strongest first up to `max_peaks`.
 #[pyfunction]
 #[pyo3(signature = (wave, *, max_peaks = 2, min_rel = 0.1, min_sep = 2))]
-fn find_peaks<'py>(py: Python<'py>, wave: &Bound<'py, PyAny>, max_peaks: usize, min_rel: f32, min_sep: usize) -> PyResult<Bound<'py, PyList>> {
+fn find_peaks<'py>(
+    py: Python<'py>,
+    wave: &Bound<'py, PyAny>,
+    max_peaks: usize,
+    min_rel: f32,
+    min_sep: usize,
+) -> PyResult<Bound<'py, PyList>> {
     let a = f32_array(wave, "wave")?;
     check_rank(a.shape(), &[1], "wave", "a waveform [T]")?;
     let v = a.as_array().into_dimensionality::<Ix1>().map_err(err)?;
@@ -59,7 +72,15 @@ fn find_peaks<'py>(py: Python<'py>, wave: &Bound<'py, PyAny>, max_peaks: usize, 
 #[pyfunction]
 #[pyo3(signature = (x, bin_width_s, *, components = "auto", irf_fwhm_s = None, irf = None, min_intensity = 0.02))]
 #[allow(clippy::too_many_arguments)]
-fn fit_lifetimes<'py>(py: Python<'py>, x: &Bound<'py, PyAny>, bin_width_s: f64, components: &str, irf_fwhm_s: Option<f64>, irf: Option<&Bound<'py, PyAny>>, min_intensity: f32) -> PyResult<Bound<'py, PyDict>> {
+fn fit_lifetimes<'py>(
+    py: Python<'py>,
+    x: &Bound<'py, PyAny>,
+    bin_width_s: f64,
+    components: &str,
+    irf_fwhm_s: Option<f64>,
+    irf: Option<&Bound<'py, PyAny>>,
+    min_intensity: f32,
+) -> PyResult<Bound<'py, PyDict>> {
     let a = cube(x, "x")?;
     let v = a.as_array().into_dimensionality::<Ix3>().map_err(err)?;
     let t = v.dim().0;
@@ -77,7 +98,10 @@ fn fit_lifetimes<'py>(py: Python<'py>, x: &Bound<'py, PyAny>, bin_width_s: f64, 
             let i = f32_array(i, "irf")?;
             let iv = i.as_array();
             if iv.shape() != [t] || iv.iter().any(|x| !x.is_finite() || *x < 0.0) || iv.iter().all(|&x| x == 0.0) {
-                return Err(err(format!("irf: shape {:?}; expected [{t}] non-negative finite values, not all zero (one per bin of the cube)", iv.shape())));
+                return Err(err(format!(
+                    "irf: shape {:?}; expected [{t}] non-negative finite values, not all zero (one per bin of the cube)",
+                    iv.shape()
+                )));
             }
             IrfModel::Measured(iv.iter().map(|&x| x as f64).collect())
         }

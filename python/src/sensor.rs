@@ -89,7 +89,6 @@ impl PySensor {
         py.detach(|| run(&mut fresh.view_mut())).map_err(err)?;
         Ok(unbatch(batched, fresh).into_pyarray(py).into_any())
     }
-
 }
 
 /// `Sensor(…)`'s `irf`: a name, a path to `A.npy`, or an array.
@@ -105,7 +104,9 @@ fn irf_arg(obj: &Bound<'_, PyAny>, laser_fwhm_ns: f64, tap_tau_ns: f64) -> PyRes
             "ideal" => Ok(IrfArg::Named(Irf::Ideal, s)),
             "physical" => Ok(IrfArg::Named(Irf::Physical { laser_fwhm_s: laser_fwhm_ns * 1e-9, tap_tau_s: tap_tau_ns * 1e-9 }, s)),
             p if p.ends_with(".npy") => Ok(IrfArg::File(p.into())),
-            other => Err(err(format!("irf {other:?}: expected \"ideal\", \"physical\", a measured matrix file \"A.npy\" or an array [N, M, T]"))),
+            other => {
+                Err(err(format!("irf {other:?}: expected \"ideal\", \"physical\", a measured matrix file \"A.npy\" or an array [N, M, T]")))
+            }
         };
     }
     if obj.cast::<numpy::PyUntypedArray>().is_ok() {
@@ -113,18 +114,32 @@ fn irf_arg(obj: &Bound<'_, PyAny>, laser_fwhm_ns: f64, tap_tau_ns: f64) -> PyRes
         check_rank(a.shape(), &[3], "irf", "a measured matrix A [N, M, T]")?;
         return Ok(IrfArg::Array(a.as_array().into_dimensionality::<Ix3>().map_err(err)?.to_owned()));
     }
-    let p = path_of(obj).map_err(|_| pyo3::exceptions::PyTypeError::new_err("irf: expected \"ideal\", \"physical\", a path to A.npy or a float32 array [N, M, T]"))?;
+    let p = path_of(obj).map_err(|_| {
+        pyo3::exceptions::PyTypeError::new_err("irf: expected \"ideal\", \"physical\", a path to A.npy or a float32 array [N, M, T]")
+    })?;
     Ok(IrfArg::File(p))
 }
 
 /// The sensor of `codes` under these settings (what `--irf`, `--oversample`, `--heterodyne`,
 /// `--laser-fwhm-ns`, `--tap-tau-ns` and `--calibration` give on the command line).
-pub fn build(codes: Codes, irf: IrfArgOwned, oversample: Option<usize>, heterodyne: Option<usize>, calibration: Option<PathBuf>) -> PyResult<PySensor> {
+pub fn build(
+    codes: Codes,
+    irf: IrfArgOwned,
+    oversample: Option<usize>,
+    heterodyne: Option<usize>,
+    calibration: Option<PathBuf>,
+) -> PyResult<PySensor> {
     let sampling = Sampling::from_factors(oversample, heterodyne, Sampling::Oversample(1)).map_err(err)?;
     if let Some(d) = &calibration {
         existing(d, "calibration")?;
     }
-    let model = |irf: Irf, measured: Option<PathBuf>| SensorModel { sampling, irf, measured, calibration: calibration.clone(), ..Default::default() };
+    let model = |irf: Irf, measured: Option<PathBuf>| SensorModel {
+        sampling,
+        irf,
+        measured,
+        calibration: calibration.clone(),
+        ..Default::default()
+    };
     let (sensor, label) = match irf.0 {
         IrfArg::Named(i, label) => (Sensor::build(codes, &model(i, None)), label),
         IrfArg::File(p) => {
@@ -174,14 +189,20 @@ fn out_shape(batched: bool, b: usize, c: usize, h: usize, w: usize) -> Vec<usize
 
 /// Write into the caller's float32 array `out` of shape `want` (checked) with the GIL
 /// released: `f` gets it as `[B, C, H, W]`.
-fn into_out(py: Python<'_>, out: &Bound<'_, PyAny>, want: &[usize], f: impl FnOnce(&mut ndarray::ArrayViewMut4<'_, f32>) -> tcsense_sensor::Result<()> + Send) -> PyResult<()> {
+fn into_out(
+    py: Python<'_>,
+    out: &Bound<'_, PyAny>,
+    want: &[usize],
+    f: impl FnOnce(&mut ndarray::ArrayViewMut4<'_, f32>) -> tcsense_sensor::Result<()> + Send,
+) -> PyResult<()> {
     f32_array(out, "out")?;
     let mut rw: PyReadwriteArrayDyn<'_, f32> = out.extract().map_err(|e| err(format!("out: {e}")))?;
     if rw.shape() != want {
         return Err(err(format!("out: shape {:?}; expected {want:?}", rw.shape())));
     }
     let view = rw.as_array_mut();
-    let mut v4 = if want.len() == 4 { view.into_dimensionality::<Ix4>() } else { view.insert_axis(Axis(0)).into_dimensionality::<Ix4>() }.map_err(err)?;
+    let mut v4 = if want.len() == 4 { view.into_dimensionality::<Ix4>() } else { view.insert_axis(Axis(0)).into_dimensionality::<Ix4>() }
+        .map_err(err)?;
     py.detach(|| f(&mut v4)).map_err(err)
 }
 
@@ -202,7 +223,15 @@ impl PySensor {
     /// and gain maps).
     #[new]
     #[pyo3(signature = (codes, irf = None, *, oversample = None, heterodyne = None, laser_fwhm_ns = DEFAULT_LASER_FWHM_S * 1e9, tap_tau_ns = DEFAULT_TAP_TAU_S * 1e9, calibration = None))]
-    fn py_new(codes: &Bound<'_, PyAny>, irf: Option<&Bound<'_, PyAny>>, oversample: Option<usize>, heterodyne: Option<usize>, laser_fwhm_ns: f64, tap_tau_ns: f64, calibration: Option<&Bound<'_, PyAny>>) -> PyResult<Self> {
+    fn py_new(
+        codes: &Bound<'_, PyAny>,
+        irf: Option<&Bound<'_, PyAny>>,
+        oversample: Option<usize>,
+        heterodyne: Option<usize>,
+        laser_fwhm_ns: f64,
+        tap_tau_ns: f64,
+        calibration: Option<&Bound<'_, PyAny>>,
+    ) -> PyResult<Self> {
         let codes = codes_of(codes)?;
         let irf = match irf {
             Some(i) => IrfArgOwned::parse(i, laser_fwhm_ns, tap_tau_ns)?,
@@ -277,7 +306,14 @@ impl PySensor {
     /// Write `y` to `path` (.npy) with its sidecar (`NAME.meta.json` beside it), which names this
     /// sensor, the noise settings and the units, as `tcsense simulate` does.
     #[pyo3(signature = (path, y, *, noise = None, seed = None, units = "input"))]
-    fn save_measurements(&self, path: &Bound<'_, PyAny>, y: &Bound<'_, PyAny>, noise: Option<&Bound<'_, PyDict>>, seed: Option<u64>, units: &str) -> PyResult<()> {
+    fn save_measurements(
+        &self,
+        path: &Bound<'_, PyAny>,
+        y: &Bound<'_, PyAny>,
+        noise: Option<&Bound<'_, PyDict>>,
+        seed: Option<u64>,
+        units: &str,
+    ) -> PyResult<()> {
         let p = path_of(path)?;
         let arr = f32_array(y, "y")?;
         check_rank(arr.shape(), &[3, 4], "y", "[M, H, W] or [B, M, H, W]")?;

@@ -60,7 +60,9 @@ fn run_training<'py>(py: Python<'py>, req: TrainRequest, progress: Option<Py<PyA
     let bar = Callback(progress);
     let rows = run_long(py, |cancel| request::run(&prepared, &Device::flex(), &bar, cancel))?;
     let rows = match rows {
-        Err(TrainError::Cancelled) => return Err(err(format!("interrupted; the last checkpoint in {} is kept, continue with resume=True", req.output.display()))),
+        Err(TrainError::Cancelled) => {
+            return Err(err(format!("interrupted; the last checkpoint in {} is kept, continue with resume=True", req.output.display())))
+        }
         r => r.map_err(err)?,
     };
     let out = PyList::empty(py);
@@ -79,7 +81,13 @@ fn run_training<'py>(py: Python<'py>, req: TrainRequest, progress: Option<Py<PyA
 /// `resume=True`). Returns the epochs trained, as dicts.
 #[pyfunction]
 #[pyo3(signature = (decoder, output, *, progress = None, **options))]
-fn train<'py>(py: Python<'py>, decoder: &str, output: &Bound<'py, PyAny>, progress: Option<Py<PyAny>>, options: Option<&Bound<'py, PyDict>>) -> PyResult<Bound<'py, PyList>> {
+fn train<'py>(
+    py: Python<'py>,
+    decoder: &str,
+    output: &Bound<'py, PyAny>,
+    progress: Option<Py<PyAny>>,
+    options: Option<&Bound<'py, PyDict>>,
+) -> PyResult<Bound<'py, PyList>> {
     let base = TrainRequest { decoder: decoder.into(), output: path_of(output)?, ..Default::default() };
     let req: TrainRequest = merged(&base, plain(py, options)?.as_ref(), "train settings")?;
     if req.decoder != decoder || req.output != base.output {
@@ -94,7 +102,13 @@ fn train<'py>(py: Python<'py>, decoder: &str, output: &Bound<'py, PyAny>, progre
 /// `train`. Returns the epochs trained.
 #[pyfunction]
 #[pyo3(signature = (run, output, *, progress = None, **options))]
-fn fine_tune<'py>(py: Python<'py>, run: &Bound<'py, PyAny>, output: &Bound<'py, PyAny>, progress: Option<Py<PyAny>>, options: Option<&Bound<'py, PyDict>>) -> PyResult<Bound<'py, PyList>> {
+fn fine_tune<'py>(
+    py: Python<'py>,
+    run: &Bound<'py, PyAny>,
+    output: &Bound<'py, PyAny>,
+    progress: Option<Py<PyAny>>,
+    options: Option<&Bound<'py, PyDict>>,
+) -> PyResult<Bound<'py, PyList>> {
     let name = path_of(run)?.to_string_lossy().into_owned();
     let dir = zoo::resolve(&name).map_err(err)?;
     existing(&dir, "run")?;
@@ -112,10 +126,24 @@ fn fine_tune<'py>(py: Python<'py>, run: &Bound<'py, PyAny>, output: &Bound<'py, 
 #[pyfunction]
 #[pyo3(signature = (sensor, out, *, size = (32, 32), average = 64, noise = true, level = 0.7, adc = false, png = false, seed = 0, nonideal = None))]
 #[allow(clippy::too_many_arguments)]
-fn simulate_sweep<'py>(py: Python<'py>, sensor: &Bound<'py, PySensor>, out: &Bound<'py, PyAny>, size: (usize, usize), average: usize, noise: bool, level: f64, adc: bool, png: bool, seed: u64, nonideal: Option<&Bound<'py, PyDict>>) -> PyResult<Bound<'py, PyAny>> {
+fn simulate_sweep<'py>(
+    py: Python<'py>,
+    sensor: &Bound<'py, PySensor>,
+    out: &Bound<'py, PyAny>,
+    size: (usize, usize),
+    average: usize,
+    noise: bool,
+    level: f64,
+    adc: bool,
+    png: bool,
+    seed: u64,
+    nonideal: Option<&Bound<'py, PyDict>>,
+) -> PyResult<Bound<'py, PyAny>> {
     let s = &sensor.get().inner;
     if s.calibration().is_some() {
-        return Err(err("simulate_sweep: the sensor has a calibration (a decoder's knowledge of a sensor); simulate the real one with nonideal={…}"));
+        return Err(err(
+            "simulate_sweep: the sensor has a calibration (a decoder's knowledge of a sensor); simulate the real one with nonideal={…}",
+        ));
     }
     let (bh, bw) = s.block();
     if size.0 == 0 || size.1 == 0 || size.0 % bh != 0 || size.1 % bw != 0 {

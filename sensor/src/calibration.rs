@@ -159,7 +159,10 @@ pub fn calibrate(sweep: &Sweep, nominal: &MeasurementMatrix, codes: &Codes, samp
     }
     if let Some(d) = &sweep.manifest.codes_digest {
         if *d != codes.digest() {
-            return Err(err(&manifest_path, format!("field codes_digest {d}: the sweep was taken with other codes than these ({})", codes.digest())));
+            return Err(err(
+                &manifest_path,
+                format!("field codes_digest {d}: the sweep was taken with other codes than these ({})", codes.digest()),
+            ));
         }
     }
     // saturation: a clipped frame says nothing about the response
@@ -173,7 +176,10 @@ pub fn calibrate(sweep: &Sweep, nominal: &MeasurementMatrix, codes: &Codes, samp
     if let Some(f) = &sweep.flat {
         let over = f.iter().filter(|&&v| v >= limit).count();
         if over > 0 {
-            return Err(err(&manifest_path, format!("field flat: the mean flat frame is saturated in {over} values (full_scale {})", sweep.manifest.full_scale)));
+            return Err(err(
+                &manifest_path,
+                format!("field flat: the mean flat frame is saturated in {over} values (full_scale {})", sweep.manifest.full_scale),
+            ));
         }
     }
     // delays → bins, covering the whole cycle
@@ -183,7 +189,10 @@ pub fn calibrate(sweep: &Sweep, nominal: &MeasurementMatrix, codes: &Codes, samp
     let mut bin_of = Vec::with_capacity(k);
     for (i, &d) in sweep.manifest.delays_s.iter().enumerate() {
         if !(0.0..cycle).contains(&d) {
-            return Err(err(&manifest_path, format!("field delays_s[{i}] = {:.4} ns lies outside the code cycle [0, {:.4}) ns", d * 1e9, cycle * 1e9)));
+            return Err(err(
+                &manifest_path,
+                format!("field delays_s[{i}] = {:.4} ns lies outside the code cycle [0, {:.4}) ns", d * 1e9, cycle * 1e9),
+            ));
         }
         // a delay a rounding error below a bin's start belongs to that bin: settings on bin
         // edges (j·Δt computed in floating point) must not land in the bin before
@@ -193,7 +202,8 @@ pub fn calibrate(sweep: &Sweep, nominal: &MeasurementMatrix, codes: &Codes, samp
     }
     let missing: Vec<usize> = (0..t).filter(|&j| count[j] == 0).collect();
     if !missing.is_empty() {
-        let show: Vec<String> = missing.iter().take(8).map(|j| format!("{:.3}–{:.3} ns", *j as f64 * dt * 1e9, (*j + 1) as f64 * dt * 1e9)).collect();
+        let show: Vec<String> =
+            missing.iter().take(8).map(|j| format!("{:.3}–{:.3} ns", *j as f64 * dt * 1e9, (*j + 1) as f64 * dt * 1e9)).collect();
         return Err(err(
             &manifest_path,
             format!("field delays_s does not cover the cycle: {} of the {t} bins ({:.1} ps each) have no delay, e.g. {}; sweep the delay over the whole {:.3} ns cycle", missing.len(), dt * 1e12, show.join(", "), cycle * 1e9),
@@ -245,7 +255,12 @@ pub fn calibrate(sweep: &Sweep, nominal: &MeasurementMatrix, codes: &Codes, samp
         }
     }
     if let Some(((c, i, j), g)) = gain.indexed_iter().find(|(_, g)| !(g.is_finite() && **g > 0.0)) {
-        return Err(err(&manifest_path, format!("pixel ({i}, {j}) tap {c} has gain {g}: no response to the light (a dead pixel, or dark frames brighter than the light)")));
+        return Err(err(
+            &manifest_path,
+            format!(
+                "pixel ({i}, {j}) tap {c} has gain {g}: no response to the light (a dead pixel, or dark frames brighter than the light)"
+            ),
+        ));
     }
     // A [N, M, T]: the class mean of R / G
     let mut a = Array3::<f64>::zeros((n, m, t));
@@ -286,7 +301,11 @@ pub fn calibrate(sweep: &Sweep, nominal: &MeasurementMatrix, codes: &Codes, samp
             .map(|c| {
                 let got: f64 = matrix.a().slice(s![.., c, ..]).iter().map(|&v| v as f64).sum();
                 let want: f64 = nom.slice(s![.., c, ..]).iter().map(|&v| v as f64).sum();
-                if want > 0.0 { got / want } else { f64::NAN }
+                if want > 0.0 {
+                    got / want
+                } else {
+                    f64::NAN
+                }
             })
             .collect();
         let mean = raw.iter().filter(|v| v.is_finite()).sum::<f64>() / raw.iter().filter(|v| v.is_finite()).count().max(1) as f64;
@@ -316,7 +335,12 @@ pub fn calibrate(sweep: &Sweep, nominal: &MeasurementMatrix, codes: &Codes, samp
         residual_rms,
         dark_noise_rms,
         sweep: sweep.dir.display().to_string(),
-        files: CalibrationFiles { matrix: "A.npy".into(), gain: "gain.npy".into(), dark: "dark.npy".into(), residual: "residual.npy".into() },
+        files: CalibrationFiles {
+            matrix: "A.npy".into(),
+            gain: "gain.npy".into(),
+            dark: "dark.npy".into(),
+            residual: "residual.npy".into(),
+        },
     };
     Ok(Calibration { meta, matrix, gain, dark: sweep.dark.clone(), residual, response: Some(r) })
 }
@@ -348,13 +372,29 @@ impl Calibration {
             return Err(err(&path, format!("format {:?} version {}; expected {FORMAT:?} version {VERSION}", meta.format, meta.version)));
         }
         if meta.codes_digest != codes.digest() {
-            return Err(err(&path, format!("field codes_digest {}: the sensor was calibrated with other codes than {} ({})", meta.codes_digest, "these", codes.digest())));
+            return Err(err(
+                &path,
+                format!(
+                    "field codes_digest {}: the sensor was calibrated with other codes than {} ({})",
+                    meta.codes_digest,
+                    "these",
+                    codes.digest()
+                ),
+            ));
         }
         let (bh, bw) = nominal.block();
         if meta.taps != nominal.taps() || meta.block != [bh, bw] || meta.bins != nominal.bins() {
             return Err(err(
                 &path,
-                format!("fields taps/block/bins are {}/{:?}/{}, the sensor's {}/{:?}/{} (check --oversample/--heterodyne)", meta.taps, meta.block, meta.bins, nominal.taps(), [bh, bw], nominal.bins()),
+                format!(
+                    "fields taps/block/bins are {}/{:?}/{}, the sensor's {}/{:?}/{} (check --oversample/--heterodyne)",
+                    meta.taps,
+                    meta.block,
+                    meta.bins,
+                    nominal.taps(),
+                    [bh, bw],
+                    nominal.bins()
+                ),
             ));
         }
         let a = read_npy(&dir.join(&meta.files.matrix))?;
@@ -390,7 +430,10 @@ impl Calibration {
             return Err(SensorError::Shape {
                 what: "tap images to correct".into(),
                 got: y.shape().to_vec(),
-                expected: format!("[B, {}, {ch}, {cw}]: the calibration's taps and frame size (gain and dark maps are per pixel)", self.meta.taps),
+                expected: format!(
+                    "[B, {}, {ch}, {cw}]: the calibration's taps and frame size (gain and dark maps are per pixel)",
+                    self.meta.taps
+                ),
             });
         }
         let mut out = y.to_owned();
@@ -414,7 +457,9 @@ mod tests {
     fn sensor() -> (Codes, MeasurementMatrix) {
         let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 16, drain: false };
         let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, 3).unwrap();
-        let spec = SensorParams { irf: Irf::Physical { laser_fwhm_s: 0.8e-9, tap_tau_s: 0.3e-9 }, ..SensorParams::from_codes(&codes) }.validate().unwrap();
+        let spec = SensorParams { irf: Irf::Physical { laser_fwhm_s: 0.8e-9, tap_tau_s: 0.3e-9 }, ..SensorParams::from_codes(&codes) }
+            .validate()
+            .unwrap();
         let a = MeasurementMatrix::synthesize(&codes, &spec).unwrap();
         (codes, a)
     }
@@ -422,9 +467,30 @@ mod tests {
     #[test]
     fn a_simulated_sweep_calibrates_back_to_its_sensor() {
         let (codes, a) = sensor();
-        let truth = NonIdeal { tap_gain: 0.05, prnu: 0.02, dark: 0.01, dark_fpn: 0.002, crosstalk: 0.02, tail: 0.25, tail_tau_s: 0.4e-9, shift_s: 0.05e-9, gate_skew_s: 0.1e-9, seed: 11, ..NonIdeal::default() };
+        let truth = NonIdeal {
+            tap_gain: 0.05,
+            prnu: 0.02,
+            dark: 0.01,
+            dark_fpn: 0.002,
+            crosstalk: 0.02,
+            tail: 0.25,
+            tail_tau_s: 0.4e-9,
+            shift_s: 0.05e-9,
+            gate_skew_s: 0.1e-9,
+            seed: 11,
+            ..NonIdeal::default()
+        };
         let dir = tempfile::tempdir().unwrap();
-        let settings = SweepSettings { size: (8, 8), average: 256, noise: NoiseParams::default(), noisy: true, adc: false, png: false, level: 0.7, seed: 2 };
+        let settings = SweepSettings {
+            size: (8, 8),
+            average: 256,
+            noise: NoiseParams::default(),
+            noisy: true,
+            adc: false,
+            png: false,
+            level: 0.7,
+            seed: 2,
+        };
         simulate_sweep(&a, &codes, &truth, &settings, dir.path()).unwrap();
         let sweep = Sweep::load(dir.path()).unwrap();
         let cal = calibrate(&sweep, &a, &codes, Sampling::Oversample(1)).unwrap();
@@ -433,7 +499,8 @@ mod tests {
         let (mut worst, mut ss) = (0f64, 0f64);
         for c in 0..4 {
             for q in 0..4 {
-                let px: Vec<(usize, usize)> = (0..8).flat_map(|i| (0..8).map(move |j| (i, j))).filter(|(i, j)| (i % 2) * 2 + j % 2 == q).collect();
+                let px: Vec<(usize, usize)> =
+                    (0..8).flat_map(|i| (0..8).map(move |j| (i, j))).filter(|(i, j)| (i % 2) * 2 + j % 2 == q).collect();
                 let mean = px.iter().map(|&(i, j)| real.gain[(c, i, j)] as f64).sum::<f64>() / px.len() as f64;
                 for &(i, j) in &px {
                     let e = (cal.gain[(c, i, j)] as f64 - real.gain[(c, i, j)] as f64 / mean).abs();
@@ -454,7 +521,11 @@ mod tests {
         let aerr = (&cal.matrix.a().mapv(|v| v * scale) - &real.matrix.a()).mapv(f32::abs).iter().fold(0f32, |p, &v| p.max(v)) / peak;
         assert!(aerr < 0.01, "A off by {aerr} of its peak");
         // and much further from the nominal A (the calibration found something)
-        let nerr = (&a.a().mapv(|v| v * real.matrix.a().sum() / a.a().sum()) - &real.matrix.a()).mapv(f32::abs).iter().fold(0f32, |p, &v| p.max(v)) / peak;
+        let nerr = (&a.a().mapv(|v| v * real.matrix.a().sum() / a.a().sum()) - &real.matrix.a())
+            .mapv(f32::abs)
+            .iter()
+            .fold(0f32, |p, &v| p.max(v))
+            / peak;
         assert!(nerr > 5.0 * aerr, "nominal {nerr} vs calibrated {aerr}");
         // tap gains (crosstalk mixes 2 %: within 1 % of the true gains)
         let g = truth.tap_gains(4);
@@ -477,7 +548,16 @@ mod tests {
     fn delays_a_rounding_error_below_a_bin_edge_belong_to_that_bin() {
         let (codes, a) = sensor();
         let dir = tempfile::tempdir().unwrap();
-        let settings = SweepSettings { size: (4, 4), average: 1, noise: NoiseParams::default(), noisy: false, adc: false, png: false, level: 0.7, seed: 0 };
+        let settings = SweepSettings {
+            size: (4, 4),
+            average: 1,
+            noise: NoiseParams::default(),
+            noisy: false,
+            adc: false,
+            png: false,
+            level: 0.7,
+            seed: 0,
+        };
         simulate_sweep(&a, &codes, &NonIdeal::default(), &settings, dir.path()).unwrap();
         let centred = Sweep::load(dir.path()).unwrap();
         let want = calibrate(&centred, &a, &codes, Sampling::Oversample(1)).unwrap();
@@ -502,7 +582,16 @@ mod tests {
         let (codes, a) = sensor();
         let truth = NonIdeal { tap_gain: 0.05, prnu: 0.02, dark: 0.01, dark_fpn: 0.002, seed: 5, ..NonIdeal::default() };
         let dir = tempfile::tempdir().unwrap();
-        let settings = SweepSettings { size: (4, 4), average: 1, noise: NoiseParams::default(), noisy: false, adc: false, png: true, level: 0.7, seed: 0 };
+        let settings = SweepSettings {
+            size: (4, 4),
+            average: 1,
+            noise: NoiseParams::default(),
+            noisy: false,
+            adc: false,
+            png: true,
+            level: 0.7,
+            seed: 0,
+        };
         simulate_sweep(&a, &codes, &truth, &settings, dir.path()).unwrap();
         let cal = calibrate(&Sweep::load(dir.path()).unwrap(), &a, &codes, Sampling::Oversample(1)).unwrap();
         // a scene through the real sensor, corrected, equals the calibrated A applied to it

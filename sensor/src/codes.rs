@@ -82,11 +82,7 @@ impl CodeShape {
             return Err(invalid("length", self.length, "a multiple of 8 in 8..=256"));
         }
         if !(1..=16).contains(&self.bh) || !(1..=16).contains(&self.bw) {
-            return Err(invalid(
-                "block",
-                format!("{}x{}", self.bh, self.bw),
-                "sides in 1..=16 (e.g. 2x2)",
-            ));
+            return Err(invalid("block", format!("{}x{}", self.bh, self.bw), "sides in 1..=16 (e.g. 2x2)"));
         }
         Ok(self)
     }
@@ -180,13 +176,7 @@ impl Codes {
         let shape = shape.validate()?;
         check_clock(clock_hz)?;
         check_constraint_params(&constraints, &shape)?;
-        Ok(Codes {
-            shape,
-            clock_hz,
-            constraints,
-            provenance: serde_json::Value::Null,
-            bits: vec![0; shape.channels() * shape.length],
-        })
+        Ok(Codes { shape, clock_hz, constraints, provenance: serde_json::Value::Null, bits: vec![0; shape.channels() * shape.length] })
     }
 
     /// The geometry (block, taps, length, drain).
@@ -257,13 +247,7 @@ impl Codes {
                         } else {
                             format!("taps {on:?} on together, at most one allowed")
                         };
-                        out.push(Violation {
-                            kind: ConstraintKind::Tap,
-                            mask: l,
-                            subpixel: Some(n),
-                            channel: None,
-                            detail,
-                        });
+                        out.push(Violation { kind: ConstraintKind::Tap, mask: l, subpixel: Some(n), channel: None, detail });
                     }
                 }
             }
@@ -272,9 +256,7 @@ impl Codes {
             let channels = self.shape.channels();
             for l in 0..len {
                 let next = (l + 1) % len;
-                let flips: Vec<usize> = (0..channels)
-                    .filter(|&ch| self.channel(ch)[l] != self.channel(ch)[next])
-                    .collect();
+                let flips: Vec<usize> = (0..channels).filter(|&ch| self.channel(ch)[l] != self.channel(ch)[next]).collect();
                 if flips.len() > h {
                     out.push(Violation {
                         kind: ConstraintKind::Hamming,
@@ -300,10 +282,7 @@ impl Codes {
                             channel: Some(ch),
                             detail: format!(
                                 "run of {} {}s starting at mask {} lasts {} mask(s), at least {w} required",
-                                run.len,
-                                run.value,
-                                run.start,
-                                run.len
+                                run.len, run.value, run.start, run.len
                             ),
                         });
                     }
@@ -318,10 +297,7 @@ impl Codes {
         let v = self.violations();
         match v.first() {
             None => Ok(()),
-            Some(first) => Err(SensorError::Infeasible {
-                count: v.len(),
-                first: first.to_string(),
-            }),
+            Some(first) => Err(SensorError::Infeasible { count: v.len(), first: first.to_string() }),
         }
     }
 
@@ -336,24 +312,14 @@ impl Codes {
     /// Hamming distance between mask `l` and mask `l+1 mod L` over all channels.
     pub fn hamming_at(&self, l: usize) -> usize {
         let next = (l + 1) % self.length();
-        (0..self.shape.channels())
-            .filter(|&c| self.channel(c)[l] != self.channel(c)[next])
-            .count()
+        (0..self.shape.channels()).filter(|&c| self.channel(c)[l] != self.channel(c)[next]).count()
     }
 
     /// Serialise to the JSON format.
     pub fn to_json(&self) -> String {
         let (taps, len) = (self.shape.taps, self.shape.length);
         let bits = (0..self.subpixels())
-            .map(|n| {
-                (0..taps)
-                    .map(|m| {
-                        (0..len)
-                            .map(|l| if self.get(n, m, l) { '1' } else { '0' })
-                            .collect()
-                    })
-                    .collect()
-            })
+            .map(|n| (0..taps).map(|m| (0..len).map(|l| if self.get(n, m, l) { '1' } else { '0' }).collect()).collect())
             .collect();
         let f = CodesFile {
             format: "tcsense-codes".into(),
@@ -380,13 +346,7 @@ impl Codes {
         if f.version != 1 {
             return Err(format!("field 'version' is {}, expected 1", f.version));
         }
-        let shape = CodeShape {
-            bh: f.block[0],
-            bw: f.block[1],
-            taps: f.taps,
-            length: f.length,
-            drain: f.drain,
-        };
+        let shape = CodeShape { bh: f.block[0], bw: f.block[1], taps: f.taps, length: f.length, drain: f.drain };
         let mut codes = Codes::zeros(shape, f.clock_hz, f.constraints).map_err(|e| e.to_string())?;
         codes.provenance = f.provenance;
         if f.bits.len() != shape.subpixels() {
@@ -400,29 +360,17 @@ impl Codes {
         }
         for (n, per_tap) in f.bits.iter().enumerate() {
             if per_tap.len() != shape.taps {
-                return Err(format!(
-                    "field 'bits[{n}]' has {} tap entries, expected {} taps",
-                    per_tap.len(),
-                    shape.taps
-                ));
+                return Err(format!("field 'bits[{n}]' has {} tap entries, expected {} taps", per_tap.len(), shape.taps));
             }
             for (m, s) in per_tap.iter().enumerate() {
                 if s.len() != shape.length {
-                    return Err(format!(
-                        "field 'bits[{n}][{m}]' has {} characters, expected length {}",
-                        s.len(),
-                        shape.length
-                    ));
+                    return Err(format!("field 'bits[{n}][{m}]' has {} characters, expected length {}", s.len(), shape.length));
                 }
                 for (l, ch) in s.chars().enumerate() {
                     match ch {
                         '0' => {}
                         '1' => codes.set(n, m, l, true),
-                        other => {
-                            return Err(format!(
-                                "field 'bits[{n}][{m}]' has {other:?} at mask {l}, expected '0' or '1'"
-                            ))
-                        }
+                        other => return Err(format!("field 'bits[{n}][{m}]' has {other:?} at mask {l}, expected '0' or '1'")),
                     }
                 }
             }

@@ -39,13 +39,13 @@ use crate::codes::{CodeShape, Codes, Constraints};
 use crate::error::{Result, SensorError};
 use crate::generate::random_codes;
 use crate::identify::{self, Columns, Light};
-use rayon::prelude::*;
-use std::sync::atomic::{AtomicBool, Ordering};
 use crate::matrix::MeasurementMatrix;
 use crate::params::SensorSpec;
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
+use rayon::prelude::*;
 use serde::Serialize;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 /// Delays per bin of the range bound during design (as `codes analyze` reports it).
 const RANGE_PER_BIN: usize = 4;
@@ -217,7 +217,13 @@ pub struct SearchResult {
 
 /// Local search from `start` (feasible) for the highest score; `on_step` is called every 100
 /// moves tried with the best so far; `cancel` stops it early (the best so far is returned).
-pub fn search(obj: &Objective, start: Codes, opts: &SearchOptions, on_step: &mut dyn FnMut(&Score), cancel: &dyn Fn() -> bool) -> SearchResult {
+pub fn search(
+    obj: &Objective,
+    start: Codes,
+    opts: &SearchOptions,
+    on_step: &mut dyn FnMut(&Score),
+    cancel: &dyn Fn() -> bool,
+) -> SearchResult {
     let mut rng = StdRng::seed_from_u64(opts.seed);
     let mut best = start;
     let mut score = obj.score(&best);
@@ -337,7 +343,15 @@ impl DesignProgress for Quiet {}
 /// from each of the `opts.starts` best, in parallel; the best end wins (ties: the earlier
 /// candidate). Same options, same codes, whatever the thread count. `cancel` is polled between
 /// chunks of candidates and moves; a cancelled design returns [`SensorError::Cancelled`].
-pub fn design(obj: &Objective, shape: CodeShape, clock_hz: f64, constraints: Constraints, opts: &DesignOptions, progress: &dyn DesignProgress, cancel: &AtomicBool) -> Result<Designed> {
+pub fn design(
+    obj: &Objective,
+    shape: CodeShape,
+    clock_hz: f64,
+    constraints: Constraints,
+    opts: &DesignOptions,
+    progress: &dyn DesignProgress,
+    cancel: &AtomicBool,
+) -> Result<Designed> {
     if opts.candidates == 0 || opts.starts == 0 {
         return Err(crate::error::invalid("candidates", opts.candidates.min(opts.starts), "at least one candidate and one search"));
     }
@@ -354,7 +368,8 @@ pub fn design(obj: &Objective, shape: CodeShape, clock_hz: f64, constraints: Con
         if cancel.load(Ordering::SeqCst) {
             return Err(SensorError::Cancelled);
         }
-        let part: Vec<Result<(u64, Score)>> = chunk.par_iter().map(|&s| Ok((s, obj.score(&random_codes(shape, clock_hz, constraints, s)?)))).collect();
+        let part: Vec<Result<(u64, Score)>> =
+            chunk.par_iter().map(|&s| Ok((s, obj.score(&random_codes(shape, clock_hz, constraints, s)?)))).collect();
         for r in part {
             scored.push(r?);
         }
@@ -371,7 +386,13 @@ pub fn design(obj: &Objective, shape: CodeShape, clock_hz: f64, constraints: Con
         .enumerate()
         .map(|(i, &s)| {
             let start = random_codes(shape, clock_hz, constraints, s)?;
-            let out = search(obj, start, &SearchOptions { iterations: opts.moves, seed: opts.seed.wrapping_add(i as u64) }, &mut |sc| progress.moves(100, sc), &|| cancel.load(Ordering::SeqCst));
+            let out = search(
+                obj,
+                start,
+                &SearchOptions { iterations: opts.moves, seed: opts.seed.wrapping_add(i as u64) },
+                &mut |sc| progress.moves(100, sc),
+                &|| cancel.load(Ordering::SeqCst),
+            );
             Ok((s, out))
         })
         .collect();
@@ -414,7 +435,9 @@ mod tests {
 
     fn spec(sampling: Sampling) -> SensorSpec {
         let codes = generate::prototype_codes(1).unwrap();
-        SensorParams { irf: Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }, sampling, ..SensorParams::from_codes(&codes) }.validate().unwrap()
+        SensorParams { irf: Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }, sampling, ..SensorParams::from_codes(&codes) }
+            .validate()
+            .unwrap()
     }
 
     /// The code basis gives the synthesised matrix, so the design scores what `analyze` reports.

@@ -7,11 +7,7 @@ use std::path::PathBuf;
 pub enum SensorError {
     /// A parameter outside its valid range.
     #[error("invalid {field}: got {got}, expected {expected}")]
-    InvalidParam {
-        field: &'static str,
-        got: String,
-        expected: String,
-    },
+    InvalidParam { field: &'static str, got: String, expected: String },
     /// A file whose content is malformed.
     #[error("{}: {msg}", path.display())]
     File { path: PathBuf, msg: String },
@@ -21,20 +17,14 @@ pub enum SensorError {
     Io { path: PathBuf, cause: std::io::Error },
     /// An array of the wrong shape.
     #[error("{what}: shape {got:?} does not fit, expected {expected}")]
-    Shape {
-        what: String,
-        got: Vec<usize>,
-        expected: String,
-    },
+    Shape { what: String, got: Vec<usize>, expected: String },
     /// A NaN or infinity where finite values are required.
     #[error("{what}: non-finite value ({value}) at index {index:?}; inputs must be finite")]
-    NonFinite {
-        what: String,
-        index: Vec<usize>,
-        value: f32,
-    },
+    NonFinite { what: String, index: Vec<usize>, value: f32 },
     /// Codes that break the constraints they were declared with.
-    #[error("codes violate their declared constraints ({count} violation(s)); first: {first}. Run `tcsense codes check` for the full list")]
+    #[error(
+        "codes violate their declared constraints ({count} violation(s)); first: {first}. Run `tcsense codes check` for the full list"
+    )]
     Infeasible { count: usize, first: String },
     /// Long work stopped by the user (Ctrl-C); nothing was written.
     #[error("interrupted: nothing written")]
@@ -44,10 +34,7 @@ pub enum SensorError {
 impl SensorError {
     /// Attach a path to an error about a file's content.
     pub fn file(path: impl Into<PathBuf>, msg: impl Into<String>) -> Self {
-        SensorError::File {
-            path: path.into(),
-            msg: msg.into(),
-        }
+        SensorError::File { path: path.into(), msg: msg.into() }
     }
 
     /// Attach a path to an I/O error.
@@ -68,9 +55,5 @@ impl SensorError {
 pub type Result<T> = std::result::Result<T, SensorError>;
 
 pub(crate) fn invalid(field: &'static str, got: impl ToString, expected: impl Into<String>) -> SensorError {
-    SensorError::InvalidParam {
-        field,
-        got: got.to_string(),
-        expected: expected.into(),
-    }
+    SensorError::InvalidParam { field, got: got.to_string(), expected: expected.into() }
 }

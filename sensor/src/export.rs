@@ -60,9 +60,7 @@ const LAYOUT: &str = "channel-major: channel c at bytes [c*L/8, (c+1)*L/8)";
 
 /// Pack one channel's `L` bits into `L/8` bytes, MSB first.
 pub fn pack_channel(bits: &[u8]) -> Vec<u8> {
-    bits.chunks(8)
-        .map(|byte| byte.iter().enumerate().fold(0u8, |acc, (i, &b)| acc | ((b & 1) << (7 - i))))
-        .collect()
+    bits.chunks(8).map(|byte| byte.iter().enumerate().fold(0u8, |acc, (i, &b)| acc | ((b & 1) << (7 - i)))).collect()
 }
 
 /// Unpack `L/8` bytes into `L` bits, MSB first.
@@ -72,7 +70,12 @@ pub fn unpack_channel(bytes: &[u8]) -> Vec<u8> {
 
 /// Whether `name` is a file [`export`] writes (the names an earlier export may have left).
 fn is_export_file(name: &str) -> bool {
-    name == "codes.bin" || name == "registers.json" || (name.len() > 6 && name.starts_with("ch") && name.ends_with(".bin") && name[2..name.len() - 4].bytes().all(|b| b.is_ascii_digit()))
+    name == "codes.bin"
+        || name == "registers.json"
+        || (name.len() > 6
+            && name.starts_with("ch")
+            && name.ends_with(".bin")
+            && name[2..name.len() - 4].bytes().all(|b| b.is_ascii_digit()))
 }
 
 /// Write the code memory image to `dir`. Refuses infeasible codes. The directory is written
@@ -149,7 +152,10 @@ pub fn import(dir: &Path) -> Result<Codes> {
     }
     let n_ch = codes.subpixels() * regs.taps;
     if regs.channel_count != n_ch {
-        return Err(bad(format!("field channel_count is {}; expected N·M = {n_ch} for block {}x{} and {} taps", regs.channel_count, regs.block[0], regs.block[1], regs.taps)));
+        return Err(bad(format!(
+            "field channel_count is {}; expected N·M = {n_ch} for block {}x{} and {} taps",
+            regs.channel_count, regs.block[0], regs.block[1], regs.taps
+        )));
     }
     if regs.bit_order != BIT_ORDER {
         return Err(bad(format!("field bit_order is {:?}; this reader takes only {BIT_ORDER:?}", regs.bit_order)));
@@ -164,7 +170,14 @@ pub fn import(dir: &Path) -> Result<Codes> {
     let comb_path = dir.join(&regs.combined_file);
     let combined = std::fs::read(&comb_path).map_err(|e| SensorError::io(&comb_path, e))?;
     if combined.len() != n_ch * bpc {
-        return Err(SensorError::file(&comb_path, format!("{} bytes; expected N·M·L/8 = {n_ch}·{bpc} = {} (channel-major, nothing after the last channel)", combined.len(), n_ch * bpc)));
+        return Err(SensorError::file(
+            &comb_path,
+            format!(
+                "{} bytes; expected N·M·L/8 = {n_ch}·{bpc} = {} (channel-major, nothing after the last channel)",
+                combined.len(),
+                n_ch * bpc
+            ),
+        ));
     }
     let bw = regs.block[1];
     for (c, ch) in regs.channels.iter().enumerate() {
@@ -286,7 +299,8 @@ mod tests {
         // a re-export replaces the directory whole: a smaller code set leaves no extra channel
         let small = random_codes(CodeShape { bh: 1, bw: 1, taps: 2, length: 8, drain: false }, 607e6, Constraints::default(), 2).unwrap();
         export(&small, &dir).unwrap();
-        let mut names: Vec<String> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+        let mut names: Vec<String> =
+            std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
         names.sort();
         assert_eq!(names, ["ch00.bin", "ch01.bin", "codes.bin", "registers.json"]);
         assert_eq!(import(&dir).unwrap().digest(), small.digest());

@@ -108,11 +108,7 @@ fn fill_sequential(codes: &mut Codes, rng: &mut StdRng) {
     let CodeShape { taps, length: len, drain, .. } = codes.shape();
     let c = codes.constraints;
     let n_sub = codes.subpixels();
-    let (n_units, n_states) = if c.tap {
-        (n_sub, taps + drain as usize)
-    } else {
-        (n_sub * taps, 2)
-    };
+    let (n_units, n_states) = if c.tap { (n_sub, taps + drain as usize) } else { (n_sub * taps, 2) };
     let drain_state = if c.tap && drain { Some(taps) } else { None };
     // a tap-to-tap switch flips two channel bits; a channel flip or a switch to/from the drain one
     let cost = |a: usize, b: usize| -> usize {
@@ -126,9 +122,7 @@ fn fill_sequential(codes: &mut Codes, rng: &mut StdRng) {
     let w = c.window.unwrap_or(1).max(1);
     let h = c.hamming.unwrap_or(usize::MAX);
 
-    let mut units: Vec<Unit> = (0..n_units)
-        .map(|_| Unit { s0: rng.random_range(0..n_states), changes: Vec::new() })
-        .collect();
+    let mut units: Vec<Unit> = (0..n_units).map(|_| Unit { s0: rng.random_range(0..n_states), changes: Vec::new() }).collect();
     let mut used = vec![0usize; len];
     let mut order: Vec<usize> = (0..n_units).collect();
     let mut candidates = Vec::with_capacity(n_states);

@@ -327,7 +327,14 @@ pub fn range_bound_weighted(a: &Columns, light: &Light, per_bin: usize, weights:
     }
     let (worst_i, worst) = sigma.iter().enumerate().fold((0, 0.0f64), |(bi, bv), (i, &v)| if v > bv { (i, v) } else { (bi, bv) });
     let mean = sigma.iter().sum::<f64>() / sigma.len() as f64;
-    RangeBound { worst_at_bins: delays[worst_i], worst_bins: worst, mean_bins: mean, delays_bins: delays, sigma_bins: sigma, bin_width_s: a.bin_width_s }
+    RangeBound {
+        worst_at_bins: delays[worst_i],
+        worst_bins: worst,
+        mean_bins: mean,
+        delays_bins: delays,
+        sigma_bins: sigma,
+        bin_width_s: a.bin_width_s,
+    }
 }
 
 /// Buffers of one bound evaluation.

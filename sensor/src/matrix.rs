@@ -97,7 +97,11 @@ impl MeasurementMatrix {
     pub fn with_values(&self, a: Array3<f32>) -> Result<Self> {
         if a.dim() != self.a.dim() {
             let (n, m, t) = self.a.dim();
-            return Err(SensorError::Shape { what: "measurement matrix A".into(), got: a.shape().to_vec(), expected: format!("[N, M, T] = [{n}, {m}, {t}]") });
+            return Err(SensorError::Shape {
+                what: "measurement matrix A".into(),
+                got: a.shape().to_vec(),
+                expected: format!("[N, M, T] = [{n}, {m}, {t}]"),
+            });
         }
         npy::ensure_finite(&a.view(), "measurement matrix A")?;
         Ok(MeasurementMatrix { a, block: self.block, bin_width_s: self.bin_width_s })
@@ -277,9 +281,7 @@ fn physical(codes: &Codes, k: usize, dt: f64, fwhm: f64, tau: f64) -> Array3<f32
     let mut a = Array3::<f32>::zeros((n_sub, taps, len * k));
     let channels: Vec<(usize, Vec<f32>)> = (0..n_sub * taps).into_par_iter().map(|c| (c, irf.row(codes.channel(c)))).collect();
     for (c, row) in channels {
-        a.index_axis_mut(Axis(0), c / taps)
-            .index_axis_mut(Axis(0), c % taps)
-            .assign(&ndarray::ArrayView1::from(&row[..]));
+        a.index_axis_mut(Axis(0), c / taps).index_axis_mut(Axis(0), c % taps).assign(&ndarray::ArrayView1::from(&row[..]));
     }
     a
 }
@@ -344,13 +346,16 @@ impl MeasurementMatrix {
         let (len, k) = (spec.shape().length, spec.sampling().k());
         let t = len * k;
         let unit = |l: usize| -> Vec<u8> { (0..len).map(|i| u8::from(i == l)).collect() };
-        let fine = Array3::from_shape_vec((1, len, t), match spec.irf() {
-            Irf::Ideal => (0..len).flat_map(|l| (0..t).map(move |j| if j / k == l { 1.0 } else { 0.0 })).collect(),
-            Irf::Physical { laser_fwhm_s, tap_tau_s } => {
-                let irf = PhysicalIrf::new(len, k, spec.bin_width_s(), laser_fwhm_s, tap_tau_s);
-                (0..len).flat_map(|l| irf.row(&unit(l))).collect()
-            }
-        })
+        let fine = Array3::from_shape_vec(
+            (1, len, t),
+            match spec.irf() {
+                Irf::Ideal => (0..len).flat_map(|l| (0..t).map(move |j| if j / k == l { 1.0 } else { 0.0 })).collect(),
+                Irf::Physical { laser_fwhm_s, tap_tau_s } => {
+                    let irf = PhysicalIrf::new(len, k, spec.bin_width_s(), laser_fwhm_s, tap_tau_s);
+                    (0..len).flat_map(|l| irf.row(&unit(l))).collect()
+                }
+            },
+        )
         .expect("L·T values");
         let a = match spec.sampling() {
             Sampling::Oversample(_) => fine,
@@ -475,7 +480,11 @@ mod tests {
     #[test]
     fn matched_filters_find_the_return_and_ignore_ambient() {
         let c = codes();
-        let a = MeasurementMatrix::synthesize(&c, &spec(&c, Sampling::Oversample(1), Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 })).unwrap();
+        let a = MeasurementMatrix::synthesize(
+            &c,
+            &spec(&c, Sampling::Oversample(1), Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }),
+        )
+        .unwrap();
         let f = a.matched_filters();
         let (n, m, t) = a.a().dim();
         let mut checked = 0;
@@ -488,8 +497,12 @@ mod tests {
                     let norm: f64 = row.row(l).iter().map(|v| v * v).sum::<f64>().sqrt();
                     // a column along the ambient's template carries no range: a zero row
                     let col: Vec<f64> = (0..m).map(|i| a.a()[(k, i, l)] as f64).collect();
-                    let cos = col.iter().zip(&s).map(|(a, b)| a * b).sum::<f64>() / (col.iter().map(|v| v * v).sum::<f64>() * s.iter().map(|v| v * v).sum::<f64>()).sqrt();
-                    assert!((norm - 1.0).abs() < 1e-4 || (norm < 1e-6 && (cos - 1.0).abs() < 1e-9), "row {l} of type {k}: norm {norm}, column at cos {cos} to the ambient");
+                    let cos = col.iter().zip(&s).map(|(a, b)| a * b).sum::<f64>()
+                        / (col.iter().map(|v| v * v).sum::<f64>() * s.iter().map(|v| v * v).sum::<f64>()).sqrt();
+                    assert!(
+                        (norm - 1.0).abs() < 1e-4 || (norm < 1e-6 && (cos - 1.0).abs() < 1e-9),
+                        "row {l} of type {k}: norm {norm}, column at cos {cos} to the ambient"
+                    );
                     let amb: f64 = row.row(l).iter().zip(&s).map(|(a, b)| a * b).sum();
                     assert!(amb.abs() < 1e-9 * s.iter().map(|v| v.abs()).sum::<f64>(), "ambient leaks: {amb}");
                     norm > 0.5
@@ -505,7 +518,11 @@ mod tests {
                 let corr: Vec<f64> = (0..t).map(|l| (0..m).map(|i| f[(k, l, i)] * y[i]).sum()).collect();
                 let best = (0..t).max_by(|&i, &j| corr[i].total_cmp(&corr[j])).unwrap();
                 // M = 4 taps (two in some types): the best may tie within 10⁻⁵, never beat it
-                assert!(corr[t0] >= corr[best] - 1e-5 * corr[best].abs(), "type {k}, return at {t0}: best {best}; {corr:?}; column {:?} s {s:?}", a.a().index_axis(Axis(0), k).column(t0));
+                assert!(
+                    corr[t0] >= corr[best] - 1e-5 * corr[best].abs(),
+                    "type {k}, return at {t0}: best {best}; {corr:?}; column {:?} s {s:?}",
+                    a.a().index_axis(Axis(0), k).column(t0)
+                );
             }
         }
         assert!(checked >= 2, "{checked} subpixel types with range information");
@@ -597,7 +614,11 @@ mod tests {
     #[test]
     fn gram_eigen_reconstructs_a_at() {
         let c = codes();
-        let a = MeasurementMatrix::synthesize(&c, &spec(&c, Sampling::Oversample(2), Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 })).unwrap();
+        let a = MeasurementMatrix::synthesize(
+            &c,
+            &spec(&c, Sampling::Oversample(2), Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }),
+        )
+        .unwrap();
         let g = a.gram();
         let (l, q) = a.gram_eigen();
         let (n, m, _) = g.dim();

@@ -57,10 +57,20 @@ impl Measurement {
 ///
 /// # Shapes
 /// - `x`: `[T, H, W]` → `[M, H, W]`, or `[B, T, H, W]` → `[B, M, H, W]`
-pub fn measure(plan: &FramePlan, x: &ArrayViewD<'_, f32>, noise: Option<&NoiseParams>, exposure: Exposure, seed: u64) -> Result<Measurement> {
+pub fn measure(
+    plan: &FramePlan,
+    x: &ArrayViewD<'_, f32>,
+    noise: Option<&NoiseParams>,
+    exposure: Exposure,
+    seed: u64,
+) -> Result<Measurement> {
     let y = match x.ndim() {
-        3 => plan.forward(&x.view().into_dimensionality::<Ix3>().map_err(|e| invalid("cube", format!("{:?}", x.shape()), e.to_string()))?)?.into_dyn(),
-        4 => plan.forward_batch(&x.view().into_dimensionality::<Ix4>().map_err(|e| invalid("cube", format!("{:?}", x.shape()), e.to_string()))?)?.into_dyn(),
+        3 => plan
+            .forward(&x.view().into_dimensionality::<Ix3>().map_err(|e| invalid("cube", format!("{:?}", x.shape()), e.to_string()))?)?
+            .into_dyn(),
+        4 => plan
+            .forward_batch(&x.view().into_dimensionality::<Ix4>().map_err(|e| invalid("cube", format!("{:?}", x.shape()), e.to_string()))?)?
+            .into_dyn(),
         _ => return Err(invalid("cube", format!("{:?}", x.shape()), "[T, H, W] or [B, T, H, W]")),
     };
     match noise {
@@ -83,7 +93,13 @@ pub fn measure_batch(plan: &FramePlan, x: &ArrayView4<'_, f32>, noise: Option<&N
 ///
 /// # Shapes
 /// - `x`: `[B, T, H, W]` → `[B, M, H, W]`
-pub fn measure_batch_at(plan: &FramePlan, x: &ArrayView4<'_, f32>, noise: Option<&NoiseParams>, exposure: Exposure, seed: u64) -> Result<Array4<f32>> {
+pub fn measure_batch_at(
+    plan: &FramePlan,
+    x: &ArrayView4<'_, f32>,
+    noise: Option<&NoiseParams>,
+    exposure: Exposure,
+    seed: u64,
+) -> Result<Array4<f32>> {
     let y = measure(plan, &x.view().into_dyn(), noise, exposure, seed)?.into_input_units();
     y.into_dimensionality::<Ix4>().map_err(|e| invalid("measurements", "a batch".to_string(), e.to_string()))
 }

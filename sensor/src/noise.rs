@@ -88,27 +88,21 @@ pub fn add_noise(y: &ArrayViewD<'_, f32>, noise: &NoiseParams, exposure: Exposur
     let mut out = vec![0f32; input.len()];
     let read = Normal::new(0.0, noise.read_noise_e).map_err(|e| invalid("read_noise", noise.read_noise_e, e.to_string()))?;
     let q = lsb(&noise);
-    out.par_chunks_mut(CHUNK)
-        .zip(input.par_chunks(CHUNK))
-        .enumerate()
-        .for_each(|(ci, (o, inp))| {
-            let mut rng = StdRng::seed_from_u64(derive_seed(seed, ci as u64));
-            for (d, &v) in o.iter_mut().zip(inp) {
-                let lambda = (v as f64 * scale).max(0.0);
-                let shot = if lambda > 0.0 {
-                    Poisson::new(lambda).map(|p| p.sample(&mut rng)).unwrap_or(lambda)
-                } else {
-                    0.0
-                };
-                let mut e = shot + if noise.read_noise_e > 0.0 { read.sample(&mut rng) } else { 0.0 };
-                e = e.clamp(0.0, noise.full_well_e);
-                if let Some(l) = q {
-                    e = (e / l).round() * l;
-                }
-                *d = e as f32;
+    out.par_chunks_mut(CHUNK).zip(input.par_chunks(CHUNK)).enumerate().for_each(|(ci, (o, inp))| {
+        let mut rng = StdRng::seed_from_u64(derive_seed(seed, ci as u64));
+        for (d, &v) in o.iter_mut().zip(inp) {
+            let lambda = (v as f64 * scale).max(0.0);
+            let shot = if lambda > 0.0 { Poisson::new(lambda).map(|p| p.sample(&mut rng)).unwrap_or(lambda) } else { 0.0 };
+            let mut e = shot + if noise.read_noise_e > 0.0 { read.sample(&mut rng) } else { 0.0 };
+            e = e.clamp(0.0, noise.full_well_e);
+            if let Some(l) = q {
+                e = (e / l).round() * l;
             }
-        });
-    let electrons = ArrayD::from_shape_vec(y.raw_dim(), out).map_err(|e| invalid("noise input", format!("{:?}", y.shape()), e.to_string()))?;
+            *d = e as f32;
+        }
+    });
+    let electrons =
+        ArrayD::from_shape_vec(y.raw_dim(), out).map_err(|e| invalid("noise input", format!("{:?}", y.shape()), e.to_string()))?;
     Ok(NoisyMeasurement { electrons, electrons_per_unit: scale })
 }
 

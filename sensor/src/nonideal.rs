@@ -130,7 +130,11 @@ impl NonIdeal {
             return Err(invalid("modulation_contrast", self.modulation_contrast, "a contrast in (0, 1] (e.g. 0.925), or 0 for none given"));
         }
         if self.modulation_contrast > 0.0 && self.crosstalk > 0.0 {
-            return Err(invalid("modulation_contrast", self.modulation_contrast, "either a modulation contrast or a crosstalk share, not both (they state the same leakage)"));
+            return Err(invalid(
+                "modulation_contrast",
+                self.modulation_contrast,
+                "either a modulation contrast or a crosstalk share, not both (they state the same leakage)",
+            ));
         }
         frac("nonlinearity", self.nonlinearity, 0.5)?;
         Ok(self)
@@ -256,7 +260,14 @@ impl RealSensor {
     ///
     /// # Shapes
     /// - `x`: `[B, T, H, W]` → electrons `[B, M, H, W]`
-    pub fn measure(&self, x: &ArrayView4<'_, f32>, noise: &NoiseParams, noisy: bool, exposure: Exposure, seed: u64) -> Result<NoisyMeasurement> {
+    pub fn measure(
+        &self,
+        x: &ArrayView4<'_, f32>,
+        noise: &NoiseParams,
+        noisy: bool,
+        exposure: Exposure,
+        seed: u64,
+    ) -> Result<NoisyMeasurement> {
         let noise = noise.validate()?;
         let (_, _, h, w) = x.dim();
         let (_, gh, gw) = self.gain.dim();
@@ -329,7 +340,9 @@ mod tests {
                 assert!((s0 - s1).abs() < 1e-4 * s0.max(1.0), "tail changes the total: {s0} {s1}");
             }
         }
-        let expect = 0.75 * a.a()[(0, 0, 3)] as f64 + 0.25 * (1..t).map(|k| (-(k as f64)).exp() * a.a()[(0, 0, (3 + k) % t)] as f64).sum::<f64>() / (1..t).map(|k| (-(k as f64)).exp()).sum::<f64>();
+        let expect = 0.75 * a.a()[(0, 0, 3)] as f64
+            + 0.25 * (1..t).map(|k| (-(k as f64)).exp() * a.a()[(0, 0, (3 + k) % t)] as f64).sum::<f64>()
+                / (1..t).map(|k| (-(k as f64)).exp()).sum::<f64>();
         assert!((tl.a()[(0, 0, 3)] as f64 - expect).abs() < 1e-6);
         // crosstalk keeps Σ_m A per bin; gains scale whole tap rows
         let x = NonIdeal { crosstalk: 0.1, ..NonIdeal::default() }.matrix(&a).unwrap();
@@ -372,7 +385,11 @@ mod tests {
         let (open, other) = (1.0 - c, c / 3.0);
         assert!(((open - other) / (open + other) - 0.925).abs() < 1e-12);
         assert_eq!(mc.matrix(&a).unwrap(), NonIdeal { crosstalk: c, ..NonIdeal::default() }.matrix(&a).unwrap());
-        assert!(NonIdeal { modulation_contrast: 0.9, crosstalk: 0.1, ..NonIdeal::default() }.validate().unwrap_err().to_string().contains("not both"));
+        assert!(NonIdeal { modulation_contrast: 0.9, crosstalk: 0.1, ..NonIdeal::default() }
+            .validate()
+            .unwrap_err()
+            .to_string()
+            .contains("not both"));
         assert!(NonIdeal { modulation_contrast: 1.2, ..NonIdeal::default() }.validate().is_err());
         assert!(NonIdeal { modulation_contrast: 1.0, ..NonIdeal::default() }.is_ideal());
         // κ = 0.2: half a full well reads 10 % low, a tenth 2 % low, monotone up to full well

@@ -23,10 +23,7 @@ where
     if !dir.is_dir() {
         std::fs::create_dir_all(&dir).map_err(|e| SensorError::io(&dir, e))?;
     }
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "out".into());
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_else(|| "out".into());
     let tmp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
     let result = (|| -> std::io::Result<()> {
         let file = std::fs::File::create(&tmp)?;
@@ -76,7 +73,13 @@ pub fn parse_npy(bytes: &[u8]) -> std::result::Result<ArrayD<f32>, String> {
     let count = h.count();
     let data = &bytes[h.data_offset..];
     if data.len() < count * h.size {
-        return Err(format!("npy data truncated: shape {:?} of {} needs {} bytes, file has {}", h.shape, h.descr, count * h.size, data.len()));
+        return Err(format!(
+            "npy data truncated: shape {:?} of {} needs {} bytes, file has {}",
+            h.shape,
+            h.descr,
+            count * h.size,
+            data.len()
+        ));
     }
     let mut values = vec![0f32; count];
     h.decode_into(&data[..count * h.size], &mut values);
@@ -85,11 +88,7 @@ pub fn parse_npy(bytes: &[u8]) -> std::result::Result<ArrayD<f32>, String> {
     } else {
         ArrayD::from_shape_vec(IxDyn(&h.shape), values).map_err(|e| e.to_string())?
     };
-    Ok(if arr.is_standard_layout() {
-        arr
-    } else {
-        arr.as_standard_layout().into_owned()
-    })
+    Ok(if arr.is_standard_layout() { arr } else { arr.as_standard_layout().into_owned() })
 }
 
 /// A parsed `.npy` header.
@@ -214,9 +213,7 @@ fn parse_descr(d: &str) -> std::result::Result<(bool, char, usize), String> {
     let size: usize = chars.as_str().parse().map_err(|_| format!("unsupported dtype {d:?}"))?;
     let ok = matches!((kind, size), ('f', 4) | ('f', 8) | ('i', 1 | 2 | 4 | 8) | ('u', 1 | 2 | 4 | 8) | ('b', 1));
     if !ok {
-        return Err(format!(
-            "unsupported dtype {d:?} (expected float32/float64, an integer type or bool)"
-        ));
+        return Err(format!("unsupported dtype {d:?} (expected float32/float64, an integer type or bool)"));
     }
     Ok((little, kind, size))
 }
@@ -257,15 +254,8 @@ pub fn read_cube(path: &Path, allow_batch: bool) -> Result<ArrayD<f32>> {
     let a = read_npy(path)?;
     let ok = a.ndim() == 3 || (allow_batch && a.ndim() == 4);
     if !ok {
-        let expected = if allow_batch {
-            "rank 3 [T, H, W] or rank 4 [B, T, H, W]"
-        } else {
-            "rank 3 [T, H, W]"
-        };
-        return Err(SensorError::file(
-            path,
-            format!("array has shape {:?} (rank {}), expected {expected}", a.shape(), a.ndim()),
-        ));
+        let expected = if allow_batch { "rank 3 [T, H, W] or rank 4 [B, T, H, W]" } else { "rank 3 [T, H, W]" };
+        return Err(SensorError::file(path, format!("array has shape {:?} (rank {}), expected {expected}", a.shape(), a.ndim())));
     }
     ensure_finite(&a.view(), "cube").map_err(|e| e.in_file(path))?;
     Ok(a)

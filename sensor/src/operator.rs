@@ -126,32 +126,29 @@ impl FramePlan {
             }
         };
         let (h, w, m, t, bh) = (self.h, self.w, self.m, self.t, self.bh);
-        y.axis_iter_mut(Axis(1))
-            .into_par_iter()
-            .enumerate()
-            .for_each_init(
-                || vec![0f32; m * w],
-                |acc, (r, mut yrow)| {
-                    // yrow: [M, W]
-                    acc.fill(0.0);
-                    let rb = r % bh;
-                    for j in 0..t {
-                        let xr = &xs[(j * h + r) * w..][..w];
-                        for mm in 0..m {
-                            let cf = &self.coef[((rb * t + j) * m + mm) * w..][..w];
-                            let out = &mut acc[mm * w..(mm + 1) * w];
-                            for ((o, &c), &v) in out.iter_mut().zip(cf).zip(xr) {
-                                *o += c * v;
-                            }
+        y.axis_iter_mut(Axis(1)).into_par_iter().enumerate().for_each_init(
+            || vec![0f32; m * w],
+            |acc, (r, mut yrow)| {
+                // yrow: [M, W]
+                acc.fill(0.0);
+                let rb = r % bh;
+                for j in 0..t {
+                    let xr = &xs[(j * h + r) * w..][..w];
+                    for mm in 0..m {
+                        let cf = &self.coef[((rb * t + j) * m + mm) * w..][..w];
+                        let out = &mut acc[mm * w..(mm + 1) * w];
+                        for ((o, &c), &v) in out.iter_mut().zip(cf).zip(xr) {
+                            *o += c * v;
                         }
                     }
-                    for (mm, mut row) in yrow.axis_iter_mut(Axis(0)).enumerate() {
-                        for (d, &s) in row.iter_mut().zip(&acc[mm * w..(mm + 1) * w]) {
-                            *d = s;
-                        }
+                }
+                for (mm, mut row) in yrow.axis_iter_mut(Axis(0)).enumerate() {
+                    for (d, &s) in row.iter_mut().zip(&acc[mm * w..(mm + 1) * w]) {
+                        *d = s;
                     }
-                },
-            );
+                }
+            },
+        );
         Ok(())
     }
 
@@ -181,37 +178,34 @@ impl FramePlan {
             }
         };
         let (h, w, m, t, bh) = (self.h, self.w, self.m, self.t, self.bh);
-        x.axis_iter_mut(Axis(1))
-            .into_par_iter()
-            .enumerate()
-            .for_each_init(
-                || vec![0f32; w],
-                |acc, (r, mut xrow)| {
-                    // xrow: [T, W]
-                    let rb = r % bh;
-                    for (j, mut out_row) in xrow.axis_iter_mut(Axis(0)).enumerate() {
-                        // Accumulate straight into the output row when it is contiguous.
-                        let contiguous = out_row.as_slice_mut().is_some();
-                        let dst: &mut [f32] = match out_row.as_slice_mut() {
-                            Some(d) => d,
-                            None => &mut acc[..],
-                        };
-                        dst.fill(0.0);
-                        for mm in 0..m {
-                            let cf = &self.coef[((rb * t + j) * m + mm) * w..][..w];
-                            let yr = &ys[(mm * h + r) * w..][..w];
-                            for ((o, &c), &v) in dst.iter_mut().zip(cf).zip(yr) {
-                                *o += c * v;
-                            }
-                        }
-                        if !contiguous {
-                            for (d, &s) in out_row.iter_mut().zip(acc.iter()) {
-                                *d = s;
-                            }
+        x.axis_iter_mut(Axis(1)).into_par_iter().enumerate().for_each_init(
+            || vec![0f32; w],
+            |acc, (r, mut xrow)| {
+                // xrow: [T, W]
+                let rb = r % bh;
+                for (j, mut out_row) in xrow.axis_iter_mut(Axis(0)).enumerate() {
+                    // Accumulate straight into the output row when it is contiguous.
+                    let contiguous = out_row.as_slice_mut().is_some();
+                    let dst: &mut [f32] = match out_row.as_slice_mut() {
+                        Some(d) => d,
+                        None => &mut acc[..],
+                    };
+                    dst.fill(0.0);
+                    for mm in 0..m {
+                        let cf = &self.coef[((rb * t + j) * m + mm) * w..][..w];
+                        let yr = &ys[(mm * h + r) * w..][..w];
+                        for ((o, &c), &v) in dst.iter_mut().zip(cf).zip(yr) {
+                            *o += c * v;
                         }
                     }
-                },
-            );
+                    if !contiguous {
+                        for (d, &s) in out_row.iter_mut().zip(acc.iter()) {
+                            *d = s;
+                        }
+                    }
+                }
+            },
+        );
         Ok(())
     }
 

@@ -134,7 +134,11 @@ impl Drop for Outputs {
 /// then replaces `dir` (the old one removed only once the new one is complete). An existing
 /// `dir` is replaced only when every entry in it is one `ours` accepts (the command's own files);
 /// otherwise it is refused, naming the first foreign entry. On error nothing changes.
-pub fn replace_dir<T, E: From<SensorError>>(dir: &Path, ours: &dyn Fn(&str) -> bool, fill: impl FnOnce(&Path) -> std::result::Result<T, E>) -> std::result::Result<T, E> {
+pub fn replace_dir<T, E: From<SensorError>>(
+    dir: &Path,
+    ours: &dyn Fn(&str) -> bool,
+    fill: impl FnOnce(&Path) -> std::result::Result<T, E>,
+) -> std::result::Result<T, E> {
     if dir.as_os_str().is_empty() || dir.file_name().is_none() {
         return Err(E::from(SensorError::file(dir, "expected a directory name for the output")));
     }

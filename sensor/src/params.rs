@@ -33,7 +33,11 @@ impl Sampling {
     /// (T = L·K); `default` when neither is given. Both at once is an error.
     pub fn from_factors(oversample: Option<usize>, heterodyne: Option<usize>, default: Sampling) -> Result<Sampling> {
         match (oversample, heterodyne) {
-            (Some(o), Some(h)) => Err(invalid("sampling", format!("oversample {o} and heterodyne {h}"), "one of oversample and heterodyne (T = L·K either way)")),
+            (Some(o), Some(h)) => Err(invalid(
+                "sampling",
+                format!("oversample {o} and heterodyne {h}"),
+                "one of oversample and heterodyne (T = L·K either way)",
+            )),
             (None, Some(k)) => Ok(Sampling::Heterodyne(k)),
             (Some(k), None) => Ok(Sampling::Oversample(k)),
             (None, None) => Ok(default),
@@ -84,7 +88,11 @@ impl NoiseParams {
             return Err(invalid("read_noise", self.read_noise_e, "a non-negative number of electrons (e.g. 40)"));
         }
         if !(self.signal_fraction > 0.0 && self.signal_fraction <= MAX_SIGNAL_FRACTION) {
-            return Err(invalid("signal_fraction", self.signal_fraction, format!("a fraction of full well in (0, {MAX_SIGNAL_FRACTION}] (above 1 the brightest taps clip)")));
+            return Err(invalid(
+                "signal_fraction",
+                self.signal_fraction,
+                format!("a fraction of full well in (0, {MAX_SIGNAL_FRACTION}] (above 1 the brightest taps clip)"),
+            ));
         }
         if self.adc_bits > 24 {
             return Err(invalid("adc_bits", self.adc_bits, "0 (off) or 1..=24"));
@@ -142,20 +150,12 @@ impl SensorParams {
     /// Parameters taking block, taps, drain, length and clock from a code set.
     pub fn from_codes(codes: &Codes) -> Self {
         let s = codes.shape();
-        SensorParams {
-            block: (s.bh, s.bw),
-            taps: s.taps,
-            drain: s.drain,
-            length: s.length,
-            clock_hz: codes.clock_hz,
-            ..Default::default()
-        }
+        SensorParams { block: (s.bh, s.bw), taps: s.taps, drain: s.drain, length: s.length, clock_hz: codes.clock_hz, ..Default::default() }
     }
 
     /// Check every parameter against the hardware's limits.
     pub fn validate(self) -> Result<SensorSpec> {
-        CodeShape { bh: self.block.0, bw: self.block.1, taps: self.taps, length: self.length, drain: self.drain }
-            .validate()?;
+        CodeShape { bh: self.block.0, bw: self.block.1, taps: self.taps, length: self.length, drain: self.drain }.validate()?;
         if !(self.clock_hz.is_finite() && self.clock_hz > 0.0 && self.clock_hz <= 10e9) {
             return Err(invalid("clock_hz", self.clock_hz, "a positive frequency up to 10 GHz (e.g. 607e6)"));
         }
@@ -273,8 +273,11 @@ mod tests {
         assert!(e.to_string().contains("heterodyne"));
         let p = SensorParams { sampling: Sampling::Heterodyne(8), ..Default::default() }.validate().unwrap();
         assert_eq!(p.bins(), 256);
-        for (fwhm, tau, field) in [(1e20, 0.3e-9, "laser_fwhm"), (f64::NAN, 0.3e-9, "laser_fwhm"), (2.55e-9, 2e-6, "tap_tau"), (2.55e-9, -1e-9, "tap_tau")] {
-            let e = SensorParams { irf: Irf::Physical { laser_fwhm_s: fwhm, tap_tau_s: tau }, ..Default::default() }.validate().unwrap_err();
+        for (fwhm, tau, field) in
+            [(1e20, 0.3e-9, "laser_fwhm"), (f64::NAN, 0.3e-9, "laser_fwhm"), (2.55e-9, 2e-6, "tap_tau"), (2.55e-9, -1e-9, "tap_tau")]
+        {
+            let e =
+                SensorParams { irf: Irf::Physical { laser_fwhm_s: fwhm, tap_tau_s: tau }, ..Default::default() }.validate().unwrap_err();
             assert!(e.to_string().contains(field) && e.to_string().contains("1 µs"), "{e}");
         }
         assert!((p.bin_width_s() - 206e-12).abs() < 1e-12, "Δ ≈ 206 ps at 607 MHz");

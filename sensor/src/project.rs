@@ -104,7 +104,11 @@ pub fn project(shape: CodeShape, clock_hz: f64, constraints: Constraints, logits
     let (n_sub, taps, len) = (shape.subpixels(), shape.taps, shape.length);
     let c = choices(&shape, &constraints);
     if logits.dim() != (n_sub, c, len) {
-        return Err(SensorError::Shape { what: "code logits".into(), got: logits.shape().to_vec(), expected: format!("[N, C, L] = [{n_sub}, {c}, {len}]") });
+        return Err(SensorError::Shape {
+            what: "code logits".into(),
+            got: logits.shape().to_vec(),
+            expected: format!("[N, C, L] = [{n_sub}, {c}, {len}]"),
+        });
     }
     if let Some((i, v)) = logits.iter().enumerate().find(|(_, v)| !v.is_finite()) {
         return Err(invalid("code logits", v, format!("finite values (entry {i})")));
@@ -118,7 +122,11 @@ pub fn project(shape: CodeShape, clock_hz: f64, constraints: Constraints, logits
     let mut argmax_score = 0.0;
     for a in 0..atoms_total {
         for l in 0..len {
-            let (best, s) = patterns.iter().map(|&p| (p, atom_score(a, l, p))).fold((0u8, f64::NEG_INFINITY), |acc, x| if x.1 > acc.1 { x } else { acc });
+            let (best, s) =
+                patterns
+                    .iter()
+                    .map(|&p| (p, atom_score(a, l, p)))
+                    .fold((0u8, f64::NEG_INFINITY), |acc, x| if x.1 > acc.1 { x } else { acc });
             argmax_score += s;
             set_atom(&mut codes, &constraints, a, l, best);
         }
@@ -128,7 +136,8 @@ pub fn project(shape: CodeShape, clock_hz: f64, constraints: Constraints, logits
     }
 
     // independent units of atoms
-    let units: Vec<Vec<usize>> = if constraints.hamming.is_some() { vec![(0..atoms_total).collect()] } else { (0..atoms_total).map(|a| vec![a]).collect() };
+    let units: Vec<Vec<usize>> =
+        if constraints.hamming.is_some() { vec![(0..atoms_total).collect()] } else { (0..atoms_total).map(|a| vec![a]).collect() };
     let space = AtomSpace::new(&patterns, constraints.window.unwrap_or(1), if constraints.tap { taps } else { 1 });
     let budget = constraints.hamming.unwrap_or(usize::MAX);
     let mut method = Method::Exact;
@@ -387,7 +396,9 @@ fn solve_exact(space: &AtomSpace, atoms: usize, len: usize, budget: usize, score
     // upper bound per start state: the best path over masks 0..L from it, closed or not
     let mut bound = vec![0.0f64; n_states];
     for l in (0..len).rev() {
-        bound = (0..n_states).map(|s| succ[s].iter().map(|&t| sc[l][t as usize] + bound[t as usize]).fold(f64::NEG_INFINITY, f64::max)).collect();
+        bound = (0..n_states)
+            .map(|s| succ[s].iter().map(|&t| sc[l][t as usize] + bound[t as usize]).fold(f64::NEG_INFINITY, f64::max))
+            .collect();
     }
     let mut order: Vec<usize> = (0..n_states).filter(|&s| bound[s].is_finite()).collect();
     order.sort_by(|&a, &b| bound[b].total_cmp(&bound[a]));
@@ -450,7 +461,14 @@ fn solve_exact(space: &AtomSpace, atoms: usize, len: usize, budget: usize, score
 
 /// Beam search over the masks from the settled state of every atom's best constant pattern;
 /// the best closing path that is feasible, or the best constant code.
-fn solve_beam(space: &AtomSpace, atoms: usize, len: usize, budget: usize, w: usize, score: &dyn Fn(usize, usize, u32) -> f64) -> Vec<Vec<u32>> {
+fn solve_beam(
+    space: &AtomSpace,
+    atoms: usize,
+    len: usize,
+    budget: usize,
+    w: usize,
+    score: &dyn Fn(usize, usize, u32) -> f64,
+) -> Vec<Vec<u32>> {
     // the best constant code: each atom its pattern of highest total score
     let patterns: Vec<u8> = space.settled.keys().copied().collect();
     let constant: Vec<u32> = (0..atoms)
@@ -524,7 +542,14 @@ fn beam_successors(space: &AtomSpace, state: &[u32], budget: usize, score: &dyn 
     singles.truncate(8);
     let mut out = vec![base.clone()];
     // subsets of the best singles, distinct atoms, within the budget
-    fn rec(singles: &[(f64, usize, u32, usize)], i: usize, cur: &mut Vec<u32>, used: &mut Vec<usize>, left: usize, out: &mut Vec<Vec<u32>>) {
+    fn rec(
+        singles: &[(f64, usize, u32, usize)],
+        i: usize,
+        cur: &mut Vec<u32>,
+        used: &mut Vec<usize>,
+        left: usize,
+        out: &mut Vec<Vec<u32>>,
+    ) {
         for j in i..singles.len() {
             let (_, a, n, c) = singles[j];
             if c <= left && !used.contains(&a) {
@@ -631,7 +656,13 @@ mod tests {
                 let p = project(s, 607e6, c, &logits.view()).unwrap();
                 assert!(p.codes.violations().is_empty());
                 let bf = brute_force(s, c, &logits);
-                assert!((p.score - bf).abs() < 1e-6, "{} seed {seed}: projection {} vs brute force {bf} ({:?})", c.label(), p.score, p.method);
+                assert!(
+                    (p.score - bf).abs() < 1e-6,
+                    "{} seed {seed}: projection {} vs brute force {bf} ({:?})",
+                    c.label(),
+                    p.score,
+                    p.method
+                );
                 assert!(p.score <= p.argmax_score + 1e-9);
                 cases += 1;
             }
@@ -650,7 +681,15 @@ mod tests {
 
     #[test]
     fn feasible_for_random_logits_under_every_combination() {
-        let shapes = [shape(1, 1, 1, 8, false), shape(2, 2, 4, 32, false), shape(2, 2, 4, 32, true), shape(1, 2, 8, 16, true), shape(4, 4, 2, 8, false), shape(2, 1, 3, 64, true), shape(4, 4, 8, 16, true)];
+        let shapes = [
+            shape(1, 1, 1, 8, false),
+            shape(2, 2, 4, 32, false),
+            shape(2, 2, 4, 32, true),
+            shape(1, 2, 8, 16, true),
+            shape(4, 4, 2, 8, false),
+            shape(2, 1, 3, 64, true),
+            shape(4, 4, 8, 16, true),
+        ];
         for s in shapes {
             for c in combinations() {
                 let logits = random_logits(&s, &c, 11);
@@ -662,7 +701,10 @@ mod tests {
                 let pats = atom_patterns(&s, &c);
                 let atoms = if c.tap { s.subpixels() } else { s.subpixels() * s.taps };
                 for a in 0..atoms {
-                    best_const += pats.iter().map(|&q| (0..s.length).map(|l| pattern_score(&s, &c, &logits.view(), a, l, q)).sum::<f64>()).fold(f64::NEG_INFINITY, f64::max);
+                    best_const += pats
+                        .iter()
+                        .map(|&q| (0..s.length).map(|l| pattern_score(&s, &c, &logits.view(), a, l, q)).sum::<f64>())
+                        .fold(f64::NEG_INFINITY, f64::max);
                 }
                 if c.hamming.is_some() || p.method != Method::Beam {
                     assert!(p.score >= best_const - 1e-6, "{s:?} {}: {} below the best constant code {best_const}", c.label(), p.score);

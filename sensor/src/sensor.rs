@@ -146,7 +146,11 @@ impl Sensor {
         spec.check_codes(&codes)?;
         let (n, m, t) = nominal.a().dim();
         if (n, m, t) != (spec.subpixels(), spec.taps(), spec.bins()) {
-            return Err(SensorError::Shape { what: "measurement matrix".into(), got: vec![n, m, t], expected: format!("[N, M, T] = [{}, {}, {}] of the codes and sampling", spec.subpixels(), spec.taps(), spec.bins()) });
+            return Err(SensorError::Shape {
+                what: "measurement matrix".into(),
+                got: vec![n, m, t],
+                expected: format!("[N, M, T] = [{}, {}, {}] of the codes and sampling", spec.subpixels(), spec.taps(), spec.bins()),
+            });
         }
         Ok(Sensor { codes, spec, nominal, calibration: None, nonideal: NonIdeal::default() })
     }
@@ -245,7 +249,11 @@ impl Sensor {
     pub fn measure(&self, x: &ArrayViewD<'_, f32>, noise: &NoiseParams, noisy: bool, exposure: Exposure, seed: u64) -> Result<Measurement> {
         let rank = x.ndim();
         if !(rank == 3 || rank == 4) || x.shape()[rank - 3] != self.spec.bins() {
-            return Err(SensorError::Shape { what: "cube".into(), got: x.shape().to_vec(), expected: format!("[T, H, W] or [B, T, H, W] with T = L·K = {} bins", self.spec.bins()) });
+            return Err(SensorError::Shape {
+                what: "cube".into(),
+                got: x.shape().to_vec(),
+                expected: format!("[T, H, W] or [B, T, H, W] with T = L·K = {} bins", self.spec.bins()),
+            });
         }
         let (h, w) = (x.shape()[rank - 2], x.shape()[rank - 1]);
         if self.nonideal.is_ideal() {
@@ -285,7 +293,9 @@ mod tests {
         assert!(s.calibration().is_none());
         let e = Sensor::build(codes(), &SensorModel { sampling: Sampling::Oversample(0), ..Default::default() }).unwrap_err().to_string();
         assert!(e.contains("oversample"), "{e}");
-        let e = Sensor::build(codes(), &SensorModel { calibration: Some("/nonexistent/cal".into()), ..Default::default() }).unwrap_err().to_string();
+        let e = Sensor::build(codes(), &SensorModel { calibration: Some("/nonexistent/cal".into()), ..Default::default() })
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("/nonexistent/cal") && e.contains("tcsense calibrate"), "{e}");
         let bad = NonIdeal { prnu: 0.9, ..Default::default() };
         let e = Sensor::build(codes(), &SensorModel { nonideal: bad, ..Default::default() }).unwrap_err().to_string();

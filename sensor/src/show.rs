@@ -19,7 +19,11 @@ pub fn read_gray_png(path: &Path) -> Result<Array2<f32>> {
     }
     let (w, h) = (info.width as usize, info.height as usize);
     let vals: Vec<f32> = match info.bit_depth {
-        png::BitDepth::Sixteen => (0..h * w).map(|i| u16::from_be_bytes([buf[(i / w) * info.line_size + (i % w) * 2], buf[(i / w) * info.line_size + (i % w) * 2 + 1]]) as f32).collect(),
+        png::BitDepth::Sixteen => (0..h * w)
+            .map(|i| {
+                u16::from_be_bytes([buf[(i / w) * info.line_size + (i % w) * 2], buf[(i / w) * info.line_size + (i % w) * 2 + 1]]) as f32
+            })
+            .collect(),
         png::BitDepth::Eight => (0..h * w).map(|i| buf[(i / w) * info.line_size + i % w] as f32).collect(),
         d => return Err(err(format!("PNG bit depth {d:?}, expected 8 or 16"))),
     };

@@ -59,7 +59,14 @@ pub struct Sidecar {
 
 impl Sidecar {
     /// The sidecar of measurements of `a` (from `codes` under `sampling`).
-    pub fn new(codes: &Codes, a: &MeasurementMatrix, sampling: Sampling, noise: Option<NoiseParams>, seed: Option<u64>, units: &str) -> Self {
+    pub fn new(
+        codes: &Codes,
+        a: &MeasurementMatrix,
+        sampling: Sampling,
+        noise: Option<NoiseParams>,
+        seed: Option<u64>,
+        units: &str,
+    ) -> Self {
         let (bh, bw) = codes.block();
         Sidecar {
             format: FORMAT.into(),
@@ -101,7 +108,10 @@ impl Sidecar {
         let text = std::fs::read_to_string(&path).map_err(|e| SensorError::io(&path, e))?;
         let s: Sidecar = serde_json::from_str(&text).map_err(|e| SensorError::file(&path, format!("not a measurement sidecar: {e}")))?;
         if s.format != FORMAT || s.version != VERSION {
-            return Err(SensorError::file(&path, format!("format {:?} version {}; expected {FORMAT:?} version {VERSION}", s.format, s.version)));
+            return Err(SensorError::file(
+                &path,
+                format!("format {:?} version {}; expected {FORMAT:?} version {VERSION}", s.format, s.version),
+            ));
         }
         Ok(Some(s))
     }
@@ -118,11 +128,24 @@ impl Sidecar {
         } else if self.block != [bh, bw] {
             format!("block: the measurements come from {}x{} blocks, the decoder's sensor has {bh}x{bw}", self.block[0], self.block[1])
         } else if codes.is_some_and(|c| c.digest() != self.codes_digest) {
-            format!("codes_digest: the measurements were taken with other codes ({}) than the decoder's ({})", self.codes_digest, codes.map(Codes::digest).unwrap_or_default())
+            format!(
+                "codes_digest: the measurements were taken with other codes ({}) than the decoder's ({})",
+                self.codes_digest,
+                codes.map(Codes::digest).unwrap_or_default()
+            )
         } else if self.bins != a.bins() {
-            format!("bins: the measurements' sensor model has T = {} bins ({:?}), the decoder's T = {} (check --oversample/--heterodyne)", self.bins, self.sampling, a.bins())
+            format!(
+                "bins: the measurements' sensor model has T = {} bins ({:?}), the decoder's T = {} (check --oversample/--heterodyne)",
+                self.bins,
+                self.sampling,
+                a.bins()
+            )
         } else {
-            format!("matrix_digest: the measurement matrix differs ({} vs the decoder's {}): another IRF, sampling or calibration", self.matrix_digest, a.digest())
+            format!(
+                "matrix_digest: the measurement matrix differs ({} vs the decoder's {}): another IRF, sampling or calibration",
+                self.matrix_digest,
+                a.digest()
+            )
         };
         Err(SensorError::file(path, format!("{what}; decode them with the sensor they were taken with")))
     }

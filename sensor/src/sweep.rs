@@ -49,7 +49,10 @@ pub const MAX_AVERAGE: usize = 4096;
 
 /// Whether `name` is a file [`simulate_sweep`] writes (so that a rerun may replace them).
 fn is_sweep_file(name: &str) -> bool {
-    name == MANIFEST || ["sweep", "dark", "flat"].iter().any(|s| name == format!("{s}.npy") || (name.starts_with(&format!("{s}_")) && name.ends_with(".png")))
+    name == MANIFEST
+        || ["sweep", "dark", "flat"]
+            .iter()
+            .any(|s| name == format!("{s}.npy") || (name.starts_with(&format!("{s}_")) && name.ends_with(".png")))
 }
 
 /// Frames on disk: one `.npy` stack, or per frame the `M` tap images as PNGs.
@@ -132,7 +135,13 @@ fn read_frames(dir: &Path, files: &FrameFiles, field: &str) -> Result<Array4<f32
             let mut out: Option<Array4<f32>> = None;
             for (f, taps) in frames.iter().enumerate() {
                 if taps.len() != m || m == 0 {
-                    return Err(file_err(&manifest, format!("field {field}: frame {f} lists {} tap images, frame 0 lists {m}; every frame lists one PNG per tap", taps.len())));
+                    return Err(file_err(
+                        &manifest,
+                        format!(
+                            "field {field}: frame {f} lists {} tap images, frame 0 lists {m}; every frame lists one PNG per tap",
+                            taps.len()
+                        ),
+                    ));
                 }
                 for (t, name) in taps.iter().enumerate() {
                     let path = dir.join(name);
@@ -140,7 +149,10 @@ fn read_frames(dir: &Path, files: &FrameFiles, field: &str) -> Result<Array4<f32
                     let (h, w) = img.dim();
                     let a = out.get_or_insert_with(|| Array4::zeros((frames.len(), m, h, w)));
                     if a.dim().2 != h || a.dim().3 != w {
-                        return Err(file_err(&path, format!("image {h}x{w}, expected {}x{} like the first image of {field}", a.dim().2, a.dim().3)));
+                        return Err(file_err(
+                            &path,
+                            format!("image {h}x{w}, expected {}x{} like the first image of {field}", a.dim().2, a.dim().3),
+                        ));
                     }
                     a.slice_mut(s![f, t, .., ..]).assign(&img);
                 }
@@ -156,13 +168,25 @@ impl SweepManifest {
     pub fn parse(text: &str, path: &Path) -> Result<SweepManifest> {
         let manifest: SweepManifest = serde_json::from_str(text).map_err(|e| file_err(path, format!("not a sweep manifest: {e}")))?;
         if manifest.format != FORMAT || manifest.version != VERSION {
-            return Err(file_err(path, format!("format {:?} version {}; expected {FORMAT:?} version {VERSION}", manifest.format, manifest.version)));
+            return Err(file_err(
+                path,
+                format!("format {:?} version {}; expected {FORMAT:?} version {VERSION}", manifest.format, manifest.version),
+            ));
         }
         if !(manifest.full_scale.is_finite() && manifest.full_scale > 0.0) {
-            return Err(file_err(path, format!("field full_scale is {}, expected the positive saturation level of the frames", manifest.full_scale)));
+            return Err(file_err(
+                path,
+                format!("field full_scale is {}, expected the positive saturation level of the frames", manifest.full_scale),
+            ));
         }
         if crate::sensor::Units::parse(&manifest.units).is_err() {
-            return Err(file_err(path, format!("field units is {:?}; expected \"electrons\", \"adc\" or \"input\" (the units measurements name in their sidecars)", manifest.units)));
+            return Err(file_err(
+                path,
+                format!(
+                    "field units is {:?}; expected \"electrons\", \"adc\" or \"input\" (the units measurements name in their sidecars)",
+                    manifest.units
+                ),
+            ));
         }
         if let Some(sensor) = &manifest.sensor {
             sensor.validate().map_err(|e| file_err(path, format!("field sensor: {e}")))?;
@@ -185,13 +209,23 @@ impl Sweep {
         let manifest = SweepManifest::parse(&text, &path)?;
         let frames = read_frames(dir, &manifest.frames, "frames")?;
         if frames.dim().0 != manifest.delays_s.len() {
-            return Err(file_err(&path, format!("field delays_s lists {} delays, but frames holds {} frames; one delay per frame", manifest.delays_s.len(), frames.dim().0)));
+            return Err(file_err(
+                &path,
+                format!(
+                    "field delays_s lists {} delays, but frames holds {} frames; one delay per frame",
+                    manifest.delays_s.len(),
+                    frames.dim().0
+                ),
+            ));
         }
         let (_, m, h, w) = frames.dim();
         let same = |a: &Array4<f32>, field: &str| -> Result<()> {
             let (_, am, ah, aw) = a.dim();
             if (am, ah, aw) != (m, h, w) {
-                return Err(file_err(&path, format!("field {field}: frames of [M, H, W] = [{am}, {ah}, {aw}], the sweep's are [{m}, {h}, {w}]")));
+                return Err(file_err(
+                    &path,
+                    format!("field {field}: frames of [M, H, W] = [{am}, {ah}, {aw}], the sweep's are [{m}, {h}, {w}]"),
+                ));
             }
             Ok(())
         };
@@ -244,7 +278,13 @@ pub struct SweepSettings {
 /// the manifest) and write it to `dir`. The delays sit at the centres of the `T` bins: the model
 /// knows the response only per bin (a real sweep may sample finer; calibration averages the
 /// delays that fall in each bin). Returns the manifest.
-pub fn simulate_sweep(a: &MeasurementMatrix, codes: &Codes, sensor: &NonIdeal, settings: &SweepSettings, dir: &Path) -> Result<SweepManifest> {
+pub fn simulate_sweep(
+    a: &MeasurementMatrix,
+    codes: &Codes,
+    sensor: &NonIdeal,
+    settings: &SweepSettings,
+    dir: &Path,
+) -> Result<SweepManifest> {
     let (h, w) = settings.size;
     if settings.average == 0 {
         return Err(crate::error::invalid("frames averaged", 0, "at least 1"));
@@ -263,7 +303,11 @@ pub fn simulate_sweep(a: &MeasurementMatrix, codes: &Codes, sensor: &NonIdeal, s
     // delay's exposures, the scene and the realised sensor's per-pixel maps (f32)
     let (tf, mf, avg) = (a.bins() as f64, a.taps() as f64, settings.average as f64);
     let per_pixel = 4.0 * (tf * mf + 4.0 * avg * mf + 2.0 * tf + 8.0 * mf);
-    crate::mem::check_fits(&format!("a {h}x{w} sweep of {} delays", a.bins()), per_pixel * h as f64 * w as f64, "use a smaller --size or --average")?;
+    crate::mem::check_fits(
+        &format!("a {h}x{w} sweep of {} delays", a.bins()),
+        per_pixel * h as f64 * w as f64,
+        "use a smaller --size or --average",
+    )?;
     let real: RealSensor = sensor.realise(a, h, w)?;
     let t = a.bins();
     let dt = a.bin_width_s();
@@ -282,7 +326,11 @@ pub fn simulate_sweep(a: &MeasurementMatrix, codes: &Codes, sensor: &NonIdeal, s
         let mut out = Array4::<f32>::zeros((settings.average, a.taps(), h, w));
         for r in 0..settings.average {
             let e = real.measure(&x.view(), &noise, settings.noisy, exposure, derive_seed(settings.seed, stream * 100_003 + r as u64))?;
-            let e = e.electrons.index_axis_move(Axis(0), 0).into_dimensionality::<ndarray::Ix3>().map_err(|e| crate::error::invalid("frame", "[M, H, W]", e.to_string()))?;
+            let e = e
+                .electrons
+                .index_axis_move(Axis(0), 0)
+                .into_dimensionality::<ndarray::Ix3>()
+                .map_err(|e| crate::error::invalid("frame", "[M, H, W]", e.to_string()))?;
             out.slice_mut(s![r, .., .., ..]).assign(&e.mapv(|v| v * scale));
         }
         Ok(out)
@@ -302,15 +350,30 @@ pub fn simulate_sweep(a: &MeasurementMatrix, codes: &Codes, sensor: &NonIdeal, s
     let flat = singles(&Array4::from_elem((1, t, h, w), flat_level as f32), t as u64 + 1)?;
     let full_scale = if settings.adc { noise.full_well_e / lsb } else { noise.full_well_e };
     if settings.png && full_scale > 65535.0 {
-        return Err(crate::error::invalid("PNG sweep", format!("full scale {full_scale}"), "at most 65535 (write ADC codes of ≤ 16 bits, or .npy)"));
+        return Err(crate::error::invalid(
+            "PNG sweep",
+            format!("full scale {full_scale}"),
+            "at most 65535 (write ADC codes of ≤ 16 bits, or .npy)",
+        ));
     }
     // written whole: an earlier sweep's files (another size, PNGs instead of .npy) never remain
-    crate::output::replace_dir(dir, &is_sweep_file, |dir| write_sweep(dir, settings, codes, sensor, delays, [&frames, &dark, &flat], full_scale, units))
+    crate::output::replace_dir(dir, &is_sweep_file, |dir| {
+        write_sweep(dir, settings, codes, sensor, delays, [&frames, &dark, &flat], full_scale, units)
+    })
 }
 
 /// The files of a simulated sweep in `dir`.
 #[allow(clippy::too_many_arguments)]
-fn write_sweep(dir: &Path, settings: &SweepSettings, codes: &Codes, sensor: &NonIdeal, delays: Vec<f64>, [frames, dark, flat]: [&Array4<f32>; 3], full_scale: f64, units: &str) -> Result<SweepManifest> {
+fn write_sweep(
+    dir: &Path,
+    settings: &SweepSettings,
+    codes: &Codes,
+    sensor: &NonIdeal,
+    delays: Vec<f64>,
+    [frames, dark, flat]: [&Array4<f32>; 3],
+    full_scale: f64,
+    units: &str,
+) -> Result<SweepManifest> {
     // a stack of frames [F, M, H, W]: one .npy, or one PNG per frame and tap
     let files = |name: &str, stack: &Array4<f32>| -> Result<FrameFiles> {
         if settings.png {

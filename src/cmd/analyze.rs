@@ -114,7 +114,14 @@ fn print_checks(what: &str, unit: &str, scale: f64, checks: &[tcsense_infer::bou
     println!("  {what}: bound vs the estimator's spread ({unit}; RMS over {} pixels each)", checks.first().map_or(0, |c| c.pixels));
     println!("      at        bound      spread       bias   spread/bound");
     for c in checks {
-        println!("  {:>8.3}   {:>10.5}  {:>10.5}  {:>+9.5}   {:>6.3}", c.at * scale, c.bound * scale, c.spread * scale, c.bias * scale, c.ratio());
+        println!(
+            "  {:>8.3}   {:>10.5}  {:>10.5}  {:>+9.5}   {:>6.3}",
+            c.at * scale,
+            c.bound * scale,
+            c.spread * scale,
+            c.bias * scale,
+            c.ratio()
+        );
     }
 }
 
@@ -238,14 +245,22 @@ pub fn analyze_cmd(a: AnalyzeArgs) -> Result<ExitCode> {
             .zip(&all)
             .map(|(p, x)| {
                 let r = &x.report;
-                let mut pts: Vec<(f64, f64)> =
-                    r.range.delays_bins.iter().zip(&r.range.sigma_bins).map(|(&d, &s)| (d * r.bin_width_s * 1e9, metres(s, r) * 1e3)).collect();
+                let mut pts: Vec<(f64, f64)> = r
+                    .range
+                    .delays_bins
+                    .iter()
+                    .zip(&r.range.sigma_bins)
+                    .map(|(&d, &s)| (d * r.bin_width_s * 1e9, metres(s, r) * 1e3))
+                    .collect();
                 pts.sort_by(|u, v| u.0.total_cmp(&v.0));
                 Series { label: format!("{} (alias {:.2})", file_name(p), r.range_alias.distance), points: pts }
             })
             .collect();
         let light = all[0].report.light;
-        let title = format!("Range Cramér–Rao bound over the cycle ({} e⁻ signal, {} e⁻ ambient, σ_read {} e⁻)", light.photons, light.ambient, light.read_noise_e);
+        let title = format!(
+            "Range Cramér–Rao bound over the cycle ({} e⁻ signal, {} e⁻ ambient, σ_read {} e⁻)",
+            light.photons, light.ambient, light.read_noise_e
+        );
         let png = dir.join("range-bound.png");
         line_chart(&png, &title, "delay of the return (ns)", "σ of the range (mm)", &series)?;
         println!("wrote {}", png.display());
@@ -253,8 +268,14 @@ pub fn analyze_cmd(a: AnalyzeArgs) -> Result<ExitCode> {
             let mut series = Vec::new();
             for (p, x) in a.codes.iter().zip(&all) {
                 if let Some(pts) = &x.report.lifetime {
-                    series.push(Series { label: format!("{}: onset known (worst)", file_name(p)), points: pts.iter().map(|q| (q.tau_s * 1e9, q.known_worst_s * 1e9)).collect() });
-                    series.push(Series { label: format!("{}: onset fitted (worst)", file_name(p)), points: pts.iter().map(|q| (q.tau_s * 1e9, q.fitted_worst_s * 1e9)).collect() });
+                    series.push(Series {
+                        label: format!("{}: onset known (worst)", file_name(p)),
+                        points: pts.iter().map(|q| (q.tau_s * 1e9, q.known_worst_s * 1e9)).collect(),
+                    });
+                    series.push(Series {
+                        label: format!("{}: onset fitted (worst)", file_name(p)),
+                        points: pts.iter().map(|q| (q.tau_s * 1e9, q.fitted_worst_s * 1e9)).collect(),
+                    });
                 }
             }
             let png = dir.join("lifetime-bound.png");

@@ -6,9 +6,9 @@ use ndarray::Array3;
 use std::process::ExitCode;
 use std::time::Instant;
 use tcsense_kernels::timing::{median_by, median_ms};
+use tcsense_models::runs::ModelConfig;
 use tcsense_sensor::codes::{CodeShape, Constraints};
 use tcsense_sensor::generate::random_codes;
-use tcsense_models::runs::ModelConfig;
 use tcsense_sensor::{Irf, MeasurementMatrix, Sampling, Sensor};
 
 #[derive(Subcommand)]
@@ -146,7 +146,19 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
         }
         BenchCmd::Dataset(a) => super::dataset::bench(a)?,
         BenchCmd::Infer(a) => super::deploy::bench_infer(a)?,
-        BenchCmd::Train { size: (h, w), bins, stages, channels, delay_channels, steps, infer_size, unet_width, unet_levels, only, delay_path } => {
+        BenchCmd::Train {
+            size: (h, w),
+            bins,
+            stages,
+            channels,
+            delay_channels,
+            steps,
+            infer_size,
+            unet_width,
+            unet_levels,
+            only,
+            delay_path,
+        } => {
             tcsense_kernels::delay_op::use_composed(delay_path == DelayPath::Composed);
             if bins.is_empty() || bins.iter().any(|&t| t == 0 || t % 32 != 0) {
                 let list: Vec<String> = bins.iter().map(|t| t.to_string()).collect();
@@ -164,22 +176,36 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
                 tcsense_train::bench::BENCH_BATCH,
                 rayon::current_num_threads()
             );
-            println!("{:<36} {:>5} {:>10} {:>10} {:>10} {:>10} {:>8} {:>8}", "network", "T", "step ms", "fwd ms", "bwd ms", "GFLOP", "GFLOP/s", "non-conv");
+            println!(
+                "{:<36} {:>5} {:>10} {:>10} {:>10} {:>10} {:>8} {:>8}",
+                "network", "T", "step ms", "fwd ms", "bwd ms", "GFLOP", "GFLOP/s", "non-conv"
+            );
             let codes = super::prototype_codes()?;
             let mut inference = Vec::new();
             for &t in &bins {
                 let sensor = Sensor::ideal(codes.clone(), Sampling::Oversample(t / 32), Irf::Ideal)?;
                 let a = sensor.matrix();
-                let admm = |prior: Prior, cn: usize| tcsense_models::AdmmNetConfig::new(4, t).with_stages(stages).with_channels(cn).with_prior(prior);
+                let admm = |prior: Prior, cn: usize| {
+                    tcsense_models::AdmmNetConfig::new(4, t).with_stages(stages).with_channels(cn).with_prior(prior)
+                };
                 let range_m = tcsense_sensor::C * sensor.spec().cycle_s() / 2.0;
                 let bins_prior = ModelConfig::AdmmNet(admm(Prior::Bins, channels));
                 // (label, network, whether it learns its codes)
                 let nets = [
                     (format!("ADMM-Net bins prior S={stages} CN={channels}"), bins_prior.clone(), false),
-                    (format!("ADMM-Net delay prior S={stages} C={delay_channels}/bin"), ModelConfig::AdmmNet(admm(Prior::Delay, delay_channels)), false),
+                    (
+                        format!("ADMM-Net delay prior S={stages} C={delay_channels}/bin"),
+                        ModelConfig::AdmmNet(admm(Prior::Delay, delay_channels)),
+                        false,
+                    ),
                     (
                         format!("Aᵀ + U-Net K=2 width {unet_width}, {unet_levels} levels"),
-                        ModelConfig::Unet(tcsense_models::UnetConfig::new(4, t, range_m).with_base_width(unet_width).with_levels(unet_levels).with_head(tcsense_models::UnetHead::ScoreVolume)),
+                        ModelConfig::Unet(
+                            tcsense_models::UnetConfig::new(4, t, range_m)
+                                .with_base_width(unet_width)
+                                .with_levels(unet_levels)
+                                .with_head(tcsense_models::UnetHead::ScoreVolume),
+                        ),
                         false,
                     ),
                     ("ADMM-Net bins prior, learned codes".to_string(), bins_prior, true),
@@ -224,16 +250,29 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
                 anyhow::bail!("--bins {bins}: expected a multiple of 32 (L = 32, K = T/32)");
             }
             if h == 0 || w == 0 || h % 2 != 0 || w % 2 != 0 || batch == 0 || channels == 0 {
-                anyhow::bail!("--size {h}x{w}, --batch {batch}, --channels {channels}: expected non-zero sizes and an even frame (2x2 blocks)");
+                anyhow::bail!(
+                    "--size {h}x{w}, --batch {batch}, --channels {channels}: expected non-zero sizes and an even frame (2x2 blocks)"
+                );
             }
             let codes = super::prototype_codes()?;
             let sensor = Sensor::ideal(codes.clone(), Sampling::Oversample(bins / 32), Irf::Ideal)?;
             let a = sensor.matrix();
-            println!("kernels: batch {batch}, {h}x{w}, conv {channels}->{channels}, DC with T = {bins}, M = 4, 2x2 blocks, {} threads", rayon::current_num_threads());
+            println!(
+                "kernels: batch {batch}, {h}x{w}, conv {channels}->{channels}, DC with T = {bins}, M = 4, 2x2 blocks, {} threads",
+                rayon::current_num_threads()
+            );
             println!("{:<22} {:>10} {:>10} {:>10} {:>10} {:>8}", "op", "ours ms", "GFLOP/s", "burn ms", "GFLOP/s", "speedup");
             for r in tcsense_models::bench::bench_kernels(&a, batch, channels, h, w, reps)? {
                 let rate = |ms: f64| if r.flop > 0.0 { format!("{:.1}", r.flop / ms / 1e6) } else { "-".into() };
-                println!("{:<22} {:>10.3} {:>10} {:>10.3} {:>10} {:>7.1}x", r.name, r.ours_ms, rate(r.ours_ms), r.burn_ms, rate(r.burn_ms), r.burn_ms / r.ours_ms);
+                println!(
+                    "{:<22} {:>10.3} {:>10} {:>10.3} {:>10} {:>7.1}x",
+                    r.name,
+                    r.ours_ms,
+                    rate(r.ours_ms),
+                    r.burn_ms,
+                    rate(r.burn_ms),
+                    r.burn_ms / r.ours_ms
+                );
             }
             let (ops, whole) = tcsense_models::bench::bench_unet_ops(&a, 188, 212, reps)?;
             println!("\nU-Net resampling at 188x212 (default widths):");
@@ -251,7 +290,11 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             }
             let codes = super::prototype_codes()?;
             use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
-            let sensor = Sensor::ideal(codes.clone(), Sampling::Oversample(1), Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S })?;
+            let sensor = Sensor::ideal(
+                codes.clone(),
+                Sampling::Oversample(1),
+                Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S },
+            )?;
             let a = sensor.matrix();
             let plan = a.plan(h, w)?;
             let gen = LidarParams { height: h, width: w, ..LidarParams::paper() };
@@ -307,16 +350,26 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
             let (src, mut dst) = (vec![1f32; 1 << 26], vec![0f32; 1 << 26]);
             let copy_gbs = {
                 use rayon::prelude::*;
-                let ms = median_ms(|| -> Result<()> {
-                    dst.par_chunks_mut(1 << 16).zip(src.par_chunks(1 << 16)).for_each(|(d, s)| d.copy_from_slice(s));
-                    Ok(())
-                }, 5)?;
+                let ms = median_ms(
+                    || -> Result<()> {
+                        dst.par_chunks_mut(1 << 16).zip(src.par_chunks(1 << 16)).for_each(|(d, s)| d.copy_from_slice(s));
+                        Ok(())
+                    },
+                    5,
+                )?;
                 2.0 * (src.len() * 4) as f64 / ms / 1e6
             };
             drop((src, dst));
             let cube_mb = (bins * h * w * 4) as f64 / 1e6;
             println!("memory bandwidth (parallel copy, read + write): {copy_gbs:.1} GB/s; one pass over the cube = {cube_mb:.1} MB");
-            type Solve = fn(&MeasurementMatrix, &tcsense_sensor::FramePlan, &ndarray::ArrayView3<'_, f32>, &tcsense_models::Tval3Options, &(dyn Fn(usize, usize) + Sync), &std::sync::atomic::AtomicBool) -> tcsense_models::Result<(ndarray::Array3<f32>, tcsense_models::Tval3Report)>;
+            type Solve = fn(
+                &MeasurementMatrix,
+                &tcsense_sensor::FramePlan,
+                &ndarray::ArrayView3<'_, f32>,
+                &tcsense_models::Tval3Options,
+                &(dyn Fn(usize, usize) + Sync),
+                &std::sync::atomic::AtomicBool,
+            ) -> tcsense_models::Result<(ndarray::Array3<f32>, tcsense_models::Tval3Report)>;
             let solvers: [(&str, Solve); 2] = [("reference", tcsense_models::tval3::tval3_reference), ("optimised", tcsense_models::tval3)];
             let mut times = vec![Vec::new(); solvers.len()];
             for i in 0..frames.max(1) {

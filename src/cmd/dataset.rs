@@ -109,7 +109,14 @@ pub struct FlimRandomArgs {
 
 impl FlimRandomArgs {
     fn params(&self, height: usize, width: usize, max_cells: usize, grid: &TimeGrid) -> Result<FlimParams> {
-        let knobs = [self.onset_range.is_some(), self.irf_fwhm_ns.is_some(), self.lifetimes.is_some(), self.tau_ns.is_some(), self.background.is_some(), self.brightness.is_some()];
+        let knobs = [
+            self.onset_range.is_some(),
+            self.irf_fwhm_ns.is_some(),
+            self.lifetimes.is_some(),
+            self.tau_ns.is_some(),
+            self.background.is_some(),
+            self.brightness.is_some(),
+        ];
         if self.paper && knobs.iter().any(|&k| k) {
             bail!("--paper fixes every knob but the onset (--onset-ns); drop --paper to set ranges");
         }
@@ -182,7 +189,17 @@ pub struct LidarRandomArgs {
 impl LidarRandomArgs {
     fn randomization(&self) -> Result<Option<LidarRandomization>> {
         let d = LidarRandomization::default();
-        let set = [self.wall_range.is_some(), self.object_range.is_some(), self.noise_texture.is_some(), self.max_slopes.is_some(), self.sheet_transmission.is_some(), self.sheet_reflectance.is_some(), self.sheet_distance.is_some(), self.ambient_range.is_some(), self.interreflection_strength.is_some()];
+        let set = [
+            self.wall_range.is_some(),
+            self.object_range.is_some(),
+            self.noise_texture.is_some(),
+            self.max_slopes.is_some(),
+            self.sheet_transmission.is_some(),
+            self.sheet_reflectance.is_some(),
+            self.sheet_distance.is_some(),
+            self.ambient_range.is_some(),
+            self.interreflection_strength.is_some(),
+        ];
         if self.paper {
             if set.iter().any(|&k| k) {
                 bail!("--paper fixes every knob; drop it to set ranges");
@@ -322,7 +339,14 @@ fn run_generator(gen: Generator, grid: TimeGrid, c: &CommonArgs) -> Result<()> {
     let cancel = interrupt_flag();
     let progress = || pb.inc(1);
     let t0 = Instant::now();
-    let m = store::generate(&gen, &grid, c.count, c.seed, &c.output, &WriteOptions { shard_size: c.shard_size, force: c.force, progress: &progress, cancel: &cancel })?;
+    let m = store::generate(
+        &gen,
+        &grid,
+        c.count,
+        c.seed,
+        &c.output,
+        &WriteOptions { shard_size: c.shard_size, force: c.force, progress: &progress, cancel: &cancel },
+    )?;
     pb.finish_and_clear();
     let counts: Vec<String> = m.splits.iter().map(|s| format!("{} {}", s.count, s.name)).collect();
     println!(
@@ -343,7 +367,16 @@ pub fn run(cmd: DatasetCmd) -> Result<ExitCode> {
     match cmd {
         DatasetCmd::Lidar { common, grid, fov, max_objects, sheet_probability, interreflection, ambient, random } => {
             let grid = grid.grid(Sampling::Oversample(1))?;
-            let p = LidarParams { height: common.size.0, width: common.size.1, fov_deg: fov, max_objects, sheet_probability, interreflection, ambient, randomization: random.randomization()? };
+            let p = LidarParams {
+                height: common.size.0,
+                width: common.size.1,
+                fov_deg: fov,
+                max_objects,
+                sheet_probability,
+                interreflection,
+                ambient,
+                randomization: random.randomization()?,
+            };
             run_generator(Generator::Lidar(p), grid, &common)?;
         }
         DatasetCmd::Flim { common, grid, max_cells, random } => {
@@ -388,9 +421,21 @@ pub fn bench(a: BenchDatasetArgs) -> Result<()> {
     let (h, w) = a.size;
     println!("dataset generation, {h}x{w}, {} items, {} threads", a.count, rayon::current_num_threads());
     let cases = [
-        ("lidar T=32", Generator::Lidar(LidarParams { height: h, width: w, sheet_probability: 0.5, ..Default::default() }), TimeGrid::default()),
-        ("lidar T=128 (K=4)", Generator::Lidar(LidarParams { height: h, width: w, ..Default::default() }), TimeGrid { sampling: Sampling::Oversample(4), ..TimeGrid::default() }),
-        ("flim T=256 (het K=8)", Generator::Flim(FlimParams { height: h, width: w, ..Default::default() }), TimeGrid { sampling: Sampling::Heterodyne(8), ..TimeGrid::default() }),
+        (
+            "lidar T=32",
+            Generator::Lidar(LidarParams { height: h, width: w, sheet_probability: 0.5, ..Default::default() }),
+            TimeGrid::default(),
+        ),
+        (
+            "lidar T=128 (K=4)",
+            Generator::Lidar(LidarParams { height: h, width: w, ..Default::default() }),
+            TimeGrid { sampling: Sampling::Oversample(4), ..TimeGrid::default() },
+        ),
+        (
+            "flim T=256 (het K=8)",
+            Generator::Flim(FlimParams { height: h, width: w, ..Default::default() }),
+            TimeGrid { sampling: Sampling::Heterodyne(8), ..TimeGrid::default() },
+        ),
     ];
     for (name, gen, grid) in cases {
         gen.validate(&grid)?;

@@ -48,7 +48,11 @@ impl Terminal {
     /// Lines on stdout, item counts and trainings as bars on stderr.
     pub(crate) fn new() -> Self {
         let items = ProgressBar::hidden();
-        items.set_style(ProgressStyle::with_template("  {msg} [{bar:30}] {pos}/{len}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
+        items.set_style(
+            ProgressStyle::with_template("  {msg} [{bar:30}] {pos}/{len}")
+                .unwrap_or_else(|_| ProgressStyle::default_bar())
+                .progress_chars("=> "),
+        );
         items.set_draw_target(indicatif::ProgressDrawTarget::stderr());
         Terminal { items, training: super::train::Bar::new() }
     }
@@ -77,7 +81,14 @@ impl Observer for Terminal {
 }
 
 pub fn run(a: DemoArgs) -> Result<ExitCode> {
-    let options = DemoOptions { quick: a.quick, budget_minutes: a.budget_minutes, size: a.size, scenes: a.scenes, timing_size: a.timing_size, seed: a.seed };
+    let options = DemoOptions {
+        quick: a.quick,
+        budget_minutes: a.budget_minutes,
+        size: a.size,
+        scenes: a.scenes,
+        timing_size: a.timing_size,
+        seed: a.seed,
+    };
     let term = Terminal::new();
     let cancel = interrupt_flag();
     let res = demo::run(&options, &a.output, &term, &cancel);

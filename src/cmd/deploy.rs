@@ -54,7 +54,13 @@ pub fn export(cmd: ExportCmd) -> Result<ExitCode> {
                 meta.frame_multiple.0,
                 meta.frame_multiple.1,
                 match (&meta.calibration, matrix_input) {
-                    (Some(c), _) => format!(" (raw {} tap images of {}x{} only: calibration {} built in)", c.units, c.size[0], c.size[1], calibration.as_ref().map(|d| d.display().to_string()).unwrap_or_default()),
+                    (Some(c), _) => format!(
+                        " (raw {} tap images of {}x{} only: calibration {} built in)",
+                        c.units,
+                        c.size[0],
+                        c.size[1],
+                        calibration.as_ref().map(|d| d.display().to_string()).unwrap_or_default()
+                    ),
                     (None, true) => format!(" and sensor_matrix [{}, {}, {}]", loaded.sensor.spec().subpixels(), meta.taps, meta.bins),
                     (None, false) => String::new(),
                 },
@@ -143,7 +149,11 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
     // returns: a depth network gives its own number; a cube's peaks and the depth fit take one
     let returns = match (a.returns, kind, a.depth_fit) {
         (Some(r), ModelKind::Depth, false) if r != model.meta.returns => {
-            bail!("--returns {r}: {} gives {} return(s) per pixel (its network's); use --depth-fit for a fit of 1 or 2 returns to the taps", a.model.display(), model.meta.returns)
+            bail!(
+                "--returns {r}: {} gives {} return(s) per pixel (its network's); use --depth-fit for a fit of 1 or 2 returns to the taps",
+                a.model.display(),
+                model.meta.returns
+            )
         }
         (Some(r), _, true) if r > 2 => bail!("--depth-fit with --returns {r}: the fit gives 1 or 2 returns per pixel"),
         (Some(r), _, _) => r,
@@ -154,7 +164,11 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
     products.fov_deg = a.fov;
     if a.no_range_fit {
         if kind != ModelKind::Depth {
-            bail!("--no-range-fit: {} is a {} model; only a depth network's ranges are refined by the range fit", a.model.display(), model.meta.decoder);
+            bail!(
+                "--no-range-fit: {} is a {} model; only a depth network's ranges are refined by the range fit",
+                a.model.display(),
+                model.meta.decoder
+            );
         }
         products.range_fit = None;
     }
@@ -180,7 +194,9 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
         Some(p) => {
             let arr = read_npy(p)?;
             let shape = arr.shape().to_vec();
-            let arr = arr.into_dimensionality::<ndarray::Ix3>().map_err(|_| anyhow::anyhow!("{}: shape {shape:?}, expected [N, M, T]", p.display()))?;
+            let arr = arr
+                .into_dimensionality::<ndarray::Ix3>()
+                .map_err(|_| anyhow::anyhow!("{}: shape {shape:?}, expected [N, M, T]", p.display()))?;
             model.set_matrix_array(arr.view()).map_err(|e| anyhow::anyhow!("{}: {e}", p.display()))?;
             Some(tcsense_sensor::MeasurementMatrix::from_array(arr, &model.meta.spec()?)?)
         }
@@ -206,8 +222,16 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
     let frames = source.len();
     let cancel = interrupt_flag();
     let pb = ProgressBar::new(frames as u64);
-    pb.set_style(ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} {per_sec} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
-    pb.set_message(if a.lifetime_fit || a.depth_fit { format!("onnx {} + fit to the taps", model.meta.decoder) } else { format!("onnx {}", model.meta.decoder) });
+    pb.set_style(
+        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} {per_sec} eta {eta}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    pb.set_message(if a.lifetime_fit || a.depth_fit {
+        format!("onnx {} + fit to the taps", model.meta.decoder)
+    } else {
+        format!("onnx {}", model.meta.decoder)
+    });
     let on_frame = |done: usize, _total: usize| pb.set_position(done as u64);
     let report = run_stream(&mut model, source, &a.output, &products, &cancel, &on_frame);
     pb.finish_and_clear();
@@ -284,10 +308,19 @@ fn fresh_run(a: &BenchInferArgs) -> Result<runs::LoadedRun> {
     let codes = super::prototype_codes()?;
     let sampling = Sampling::Oversample(a.bins / 32);
     let model = match a.decoder.as_str() {
-        "unet" => runs::ModelConfig::Unet(tcsense_models::UnetConfig::new(4, a.bins, tcsense_sensor::C * 32.0 / 607e6 / 2.0).with_head(tcsense_models::UnetHead::ScoreVolume)),
+        "unet" => runs::ModelConfig::Unet(
+            tcsense_models::UnetConfig::new(4, a.bins, tcsense_sensor::C * 32.0 / 607e6 / 2.0)
+                .with_head(tcsense_models::UnetHead::ScoreVolume),
+        ),
         "admm-net" => {
             let prior = if a.prior == "delay" { tcsense_models::Prior::Delay } else { tcsense_models::Prior::Bins };
-            runs::ModelConfig::AdmmNet(tcsense_models::AdmmNetConfig::new(4, a.bins).with_stages(a.stages).with_channels(a.channels).with_normalize(true).with_prior(prior))
+            runs::ModelConfig::AdmmNet(
+                tcsense_models::AdmmNetConfig::new(4, a.bins)
+                    .with_stages(a.stages)
+                    .with_channels(a.channels)
+                    .with_normalize(true)
+                    .with_prior(prior),
+            )
         }
         "lifetime" => runs::ModelConfig::Lifetime(tcsense_models::LifetimeNetConfig::new(4, a.bins)),
         other => bail!("--decoder {other:?}: expected unet, admm-net or lifetime"),
@@ -323,7 +356,9 @@ pub fn bench_infer(a: BenchInferArgs) -> Result<()> {
         (None, None) => unreachable!("a run exists when no model is given"),
     };
     let timing = tcsense_infer::timing::time_decoder(run.as_ref(), &model_path, (h, w), &a.ort_threads, a.reps).map_err(|e| match e {
-        tcsense_infer::InferError::InvalidParam { field: "frame size", got, expected } => anyhow::anyhow!("--size {got}: the model takes frames that are {expected}"),
+        tcsense_infer::InferError::InvalidParam { field: "frame size", got, expected } => {
+            anyhow::anyhow!("--size {got}: the model takes frames that are {expected}")
+        }
         e => e.into(),
     });
     if a.save_model.is_none() {
@@ -344,7 +379,10 @@ pub fn bench_infer(a: BenchInferArgs) -> Result<()> {
         println!("{:<26} {:>10.2} {:>10.1} {rate}", e.engine, e.ms_per_frame, e.frames_per_s);
     }
     if t.engines.len() > 1 {
-        let ratios: Vec<String> = t.engines[1..].iter().map(|e| format!("{} / {}: {:.2}", t.engines[0].engine, e.engine, t.engines[0].ms_per_frame / e.ms_per_frame)).collect();
+        let ratios: Vec<String> = t.engines[1..]
+            .iter()
+            .map(|e| format!("{} / {}: {:.2}", t.engines[0].engine, e.engine, t.engines[0].ms_per_frame / e.ms_per_frame))
+            .collect();
         println!("time ratios: {}", ratios.join("; "));
     }
     Ok(())

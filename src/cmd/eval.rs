@@ -97,13 +97,23 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     }
     let opts = a.tval3.options()?;
     let mut decoders = Vec::new();
-    let device = if a.decoder.iter().any(|d| ["admm-net:", "unet:", "lifetime:", "zoo:"].iter().any(|k| d.starts_with(k))) { a.device.device()? } else { tcsense_models::Device::flex() };
+    let device = if a.decoder.iter().any(|d| ["admm-net:", "unet:", "lifetime:", "zoo:"].iter().any(|k| d.starts_with(k))) {
+        a.device.device()?
+    } else {
+        tcsense_models::Device::flex()
+    };
     for name in &a.decoder {
         let d = open_decoder(name, &opts, &device)?;
         if let (Some(run_codes), Some((_, run))) = (d.codes(), name.split_once(':')) {
-            if run_codes.shape() != codes.shape() || (0..codes.subpixels() * codes.taps()).any(|c| run_codes.channel(c) != codes.channel(c)) {
+            if run_codes.shape() != codes.shape() || (0..codes.subpixels() * codes.taps()).any(|c| run_codes.channel(c) != codes.channel(c))
+            {
                 let run = tcsense_models::zoo::resolve(if name.starts_with("zoo:") { name } else { run })?;
-                bail!("{}: the run was trained with other codes than {}; evaluate it with its own {}", run.display(), a.sensor.codes.display(), run.join("codes.json").display());
+                bail!(
+                    "{}: the run was trained with other codes than {}; evaluate it with its own {}",
+                    run.display(),
+                    a.sensor.codes.display(),
+                    run.join("codes.json").display()
+                );
             }
         }
         decoders.push(d);
@@ -111,10 +121,21 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     let noise = NoiseParams { signal_fraction: NoiseParams::default().signal_fraction * a.brightness, ..NoiseParams::default() };
     let noise = noise.validate().map_err(|e| anyhow::anyhow!("--brightness {}: {e}", a.brightness))?;
     let noisy = a.noise || !a.light.is_empty() || a.sbr.is_some();
-    let settings = EvalSettings { split: a.split.clone(), items: a.items, noise: noisy.then_some(noise), seed: a.seed, sensor: Some(nonideal), sbr: a.sbr };
+    let settings = EvalSettings {
+        split: a.split.clone(),
+        items: a.items,
+        noise: noisy.then_some(noise),
+        seed: a.seed,
+        sensor: Some(nonideal),
+        sbr: a.sbr,
+    };
     let cancel = interrupt_flag();
     let pb = ProgressBar::new(0);
-    pb.set_style(ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
+    pb.set_style(
+        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} eta {eta}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
     let on_item = |name: &str, done: usize, of: usize| {
         if done == 1 {
             pb.reset();
@@ -123,7 +144,11 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
         }
         pb.set_position(done as u64);
     };
-    let rows = if a.light.is_empty() { evaluate(&ds, &sensor, &mut decoders, &settings, &on_item, &cancel) } else { evaluate_ladder(&ds, &sensor, &mut decoders, &settings, &a.light, &on_item, &cancel) };
+    let rows = if a.light.is_empty() {
+        evaluate(&ds, &sensor, &mut decoders, &settings, &on_item, &cancel)
+    } else {
+        evaluate_ladder(&ds, &sensor, &mut decoders, &settings, &a.light, &on_item, &cancel)
+    };
     pb.finish_and_clear();
     let rows = rows?;
     let mut level = None;
@@ -158,7 +183,13 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
 /// Beside them, the codes' Cramér–Rao bound of one return seen by a whole block
 /// ([`tcsense_sensor::identify::range_bound`], mean over the cycle) whose brightest tap holds
 /// the level's signal electrons, with the noise model's read noise and the ambient light.
-fn photon_curve(png: &std::path::Path, rows: &[EvalRow], a: &tcsense_sensor::MeasurementMatrix, noise: &NoiseParams, sbr: Option<f64>) -> Result<()> {
+fn photon_curve(
+    png: &std::path::Path,
+    rows: &[EvalRow],
+    a: &tcsense_sensor::MeasurementMatrix,
+    noise: &NoiseParams,
+    sbr: Option<f64>,
+) -> Result<()> {
     use tcsense_infer::figures::Series;
     use tcsense_sensor::identify::{range_bound, Light};
     let bin_m = 299_792_458.0 * a.bin_width_s() / 2.0;
@@ -197,13 +228,18 @@ fn photon_curve(png: &std::path::Path, rows: &[EvalRow], a: &tcsense_sensor::Mea
     let series = |f: &dyn Fn(&EvalRow) -> Option<f64>| -> Vec<Series> {
         names
             .iter()
-            .map(|n| Series { label: n.to_string(), points: rows.iter().filter(|r| r.decoder == *n).filter_map(|r| Some((r.light?.signal_electrons, f(r)?))).collect() })
+            .map(|n| Series {
+                label: n.to_string(),
+                points: rows.iter().filter(|r| r.decoder == *n).filter_map(|r| Some((r.light?.signal_electrons, f(r)?))).collect(),
+            })
             .collect()
     };
     let errors = series(&|r| r.depth_median_m.first().map(|m| m / bin_m));
     let shares = series(&|r| r.depth_within_half_bin.first().map(|s| 100.0 * s));
     if errors.iter().all(|s| s.points.is_empty()) {
-        bail!("--plot: the decoders gave no first-return ranges (a LiDAR dataset with depth and decoders of depth or cubes draw the curve)");
+        bail!(
+            "--plot: the decoders gave no first-return ranges (a LiDAR dataset with depth and decoders of depth or cubes draw the curve)"
+        );
     }
     let ambient = sbr.map_or("no ambient light".to_string(), |s| format!("ambient at SBR {s}"));
     tcsense_infer::figures::photon_curve(

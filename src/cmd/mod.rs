@@ -1,8 +1,8 @@
 //! One module per subcommand family.
 
+pub mod analyze;
 pub mod bench;
 pub mod bringup;
-pub mod analyze;
 pub mod calibrate;
 pub mod code_shape;
 pub mod codes;
@@ -36,9 +36,7 @@ pub const MAX_THREADS: usize = 256;
 
 /// Parse `HxW` (e.g. `2x2`, `188x212`), each side from 1 to [`MAX_SIDE`].
 pub fn parse_hw(s: &str) -> Result<(usize, usize), String> {
-    let (a, b) = s
-        .split_once(['x', 'X'])
-        .ok_or_else(|| format!("{s:?} is not of the form HxW (e.g. 2x2)"))?;
+    let (a, b) = s.split_once(['x', 'X']).ok_or_else(|| format!("{s:?} is not of the form HxW (e.g. 2x2)"))?;
     let p = |v: &str| v.trim().parse::<usize>().map_err(|_| format!("{s:?} is not of the form HxW (e.g. 2x2)"));
     let (h, w) = (p(a)?, p(b)?);
     if !(1..=MAX_SIDE).contains(&h) || !(1..=MAX_SIDE).contains(&w) {

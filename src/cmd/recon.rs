@@ -9,7 +9,7 @@ use std::process::ExitCode;
 use tcsense_infer::figures;
 use tcsense_infer::products::{depth_map, plot_waveforms, write_ply, PeakOptions};
 use tcsense_models::decoder::{Control, Decoder, Step, Tval3Decoder};
-use tcsense_models::{runs, Tval3Options, TvNorm};
+use tcsense_models::{runs, TvNorm, Tval3Options};
 use tcsense_sensor::npy::{write_bytes, write_npy};
 use tcsense_sensor::output::Outputs;
 
@@ -105,8 +105,22 @@ pub struct TapFitArgs {
 
 impl TapFitArgs {
     pub fn options(&self) -> Result<tcsense_infer::tapfit::TapFitOptions> {
-        let r: Vec<f64> = self.tau_ns.split(',').map(|s| s.trim().parse::<f64>()).collect::<std::result::Result<_, _>>().ok().filter(|v: &Vec<f64>| v.len() == 2).with_context(|| format!("--tau-ns {:?}: expected LO,HI in ns (e.g. 0.1,25)", self.tau_ns))?;
-        let o = tcsense_infer::tapfit::TapFitOptions { tau_range_s: [r[0] * 1e-9, r[1] * 1e-9], window: self.window, min_intensity: self.min_intensity, onset_s: self.onset_ns.map(|t| t * 1e-9), background: !self.no_background, ..Default::default() };
+        let r: Vec<f64> = self
+            .tau_ns
+            .split(',')
+            .map(|s| s.trim().parse::<f64>())
+            .collect::<std::result::Result<_, _>>()
+            .ok()
+            .filter(|v: &Vec<f64>| v.len() == 2)
+            .with_context(|| format!("--tau-ns {:?}: expected LO,HI in ns (e.g. 0.1,25)", self.tau_ns))?;
+        let o = tcsense_infer::tapfit::TapFitOptions {
+            tau_range_s: [r[0] * 1e-9, r[1] * 1e-9],
+            window: self.window,
+            min_intensity: self.min_intensity,
+            onset_s: self.onset_ns.map(|t| t * 1e-9),
+            background: !self.no_background,
+            ..Default::default()
+        };
         if let Err(e) = o.validate() {
             bail!("lifetime fit settings (--onset-ns, --window, --tau-ns, --min-intensity): {e}");
         }
@@ -261,7 +275,11 @@ pub fn reconstruct(cmd: ReconstructCmd) -> Result<ExitCode> {
         }
         ReconstructCmd::DepthFit { sensor, measurements, returns, window, output, products } => {
             let fit = tcsense_models::range_fit::RangeFitOptions { window, ..Default::default() };
-            let mut decoder = tcsense_infer::ranged::DepthFitDecoder::new(tcsense_models::range_templates::DepthFitOptions { fit, returns, ..Default::default() })?;
+            let mut decoder = tcsense_infer::ranged::DepthFitDecoder::new(tcsense_models::range_templates::DepthFitOptions {
+                fit,
+                returns,
+                ..Default::default()
+            })?;
             let sensor = sensor.sensor()?;
             if let Some(w) = tcsense_infer::ranged::alias_warning(sensor.nominal(), sensor.codes().length()) {
                 eprintln!("{w}");
@@ -292,7 +310,13 @@ fn open_kind(run: &Path, kind: &str, device: &super::DeviceArgs, range_fit: bool
 /// Decode the tap images in `measurements` (`[M, H, W]` or a batch `[B, M, H, W]`) with any
 /// decoder on `sensor` ([`tcsense_infer::decode::decode_file`]) with a progress bar, print what
 /// was written and draw the products asked for.
-fn decode_file(decoder: &mut dyn Decoder, sensor: &tcsense_sensor::Sensor, measurements: &Path, output: &Path, products: &DepthProductArgs) -> Result<ExitCode> {
+fn decode_file(
+    decoder: &mut dyn Decoder,
+    sensor: &tcsense_sensor::Sensor,
+    measurements: &Path,
+    output: &Path,
+    products: &DepthProductArgs,
+) -> Result<ExitCode> {
     // every output checked before any work: distinct, not a directory, writable; all of them
     // appear together once the last is written
     let [confidence, intensity] = tcsense_infer::decode::companions(output);
@@ -306,13 +330,24 @@ fn decode_file(decoder: &mut dyn Decoder, sensor: &tcsense_sensor::Sensor, measu
     let mut outputs = Outputs::plan(&planned)?;
     let cancel = interrupt_flag();
     let pb = ProgressBar::new(1);
-    pb.set_style(ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
+    pb.set_style(
+        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} eta {eta}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
     pb.set_message(decoder.name().to_string());
     let progress = |s: Step| {
         pb.set_length((s.frames * s.total.max(1)) as u64);
         pb.set_position((s.frame * s.total.max(1) + s.done) as u64);
     };
-    let out = tcsense_infer::decode::decode_file(decoder, sensor, measurements, output, &Control { cancel: &cancel, progress: &progress }, &mut outputs);
+    let out = tcsense_infer::decode::decode_file(
+        decoder,
+        sensor,
+        measurements,
+        output,
+        &Control { cancel: &cancel, progress: &progress },
+        &mut outputs,
+    );
     pb.finish_and_clear();
     let out = match out {
         Err(tcsense_infer::InferError::Cancelled) => bail!("interrupted; {} was not written", output.display()),
@@ -320,7 +355,13 @@ fn decode_file(decoder: &mut dyn Decoder, sensor: &tcsense_sensor::Sensor, measu
     };
     let name = decoder.name();
     let time = human_time(out.seconds_per_frame);
-    let shape = |a: &Array4<f32>| -> Vec<usize> { if out.batched { a.shape().to_vec() } else { a.shape()[1..].to_vec() } };
+    let shape = |a: &Array4<f32>| -> Vec<usize> {
+        if out.batched {
+            a.shape().to_vec()
+        } else {
+            a.shape()[1..].to_vec()
+        }
+    };
     let d = &out.decoded;
     let mut lines = Vec::new();
     if let Some(cube) = &d.cube {
@@ -339,14 +380,25 @@ fn decode_file(decoder: &mut dyn Decoder, sensor: &tcsense_sensor::Sensor, measu
             mean * 1e9,
         ));
         if let Some(p) = &products.png {
-            figures::map(&outputs.stage(p)?, &format!("Fluorescence lifetime ({name})"), &first.index_axis(Axis(0), 0).mapv(|t| t * 1e9).view(), "lifetime τ_m (ns)")?;
+            figures::map(
+                &outputs.stage(p)?,
+                &format!("Fluorescence lifetime ({name})"),
+                &first.index_axis(Axis(0), 0).mapv(|t| t * 1e9).view(),
+                "lifetime τ_m (ns)",
+            )?;
             lines.push(format!("wrote {}", p.display()));
         }
     } else {
-        let (depth, confidence) = d.depth.as_ref().zip(d.confidence.as_ref()).with_context(|| format!("decoder {name} gives neither a cube nor depth"))?;
+        let (depth, confidence) =
+            d.depth.as_ref().zip(d.confidence.as_ref()).with_context(|| format!("decoder {name} gives neither a cube nor depth"))?;
         let (first_d, first_c) = (depth.index_axis(Axis(0), 0), confidence.index_axis(Axis(0), 0));
         let found: Vec<usize> = first_d.outer_iter().map(|d| d.iter().filter(|v| v.is_finite()).count()).collect();
-        lines.push(format!("wrote {} and {}: depth {:?}, returns per bounce {found:?} (first frame) ({time} per frame, {name})", out.written[0].display(), out.written[1].display(), shape(depth)));
+        lines.push(format!(
+            "wrote {} and {}: depth {:?}, returns per bounce {found:?} (first frame) ({time} per frame, {name})",
+            out.written[0].display(),
+            out.written[1].display(),
+            shape(depth)
+        ));
         if let Some(p) = &products.ply {
             let n = write_ply(&outputs.stage(p)?, &first_d, &first_c, products.fov)?;
             lines.push(format!("wrote {}: {n} points", p.display()));
@@ -395,7 +447,11 @@ impl BinArgs {
             return Ok(ps * 1e-12);
         }
         if self.length == 0 || t % self.length != 0 || self.clock_mhz.is_nan() || self.clock_mhz <= 0.0 {
-            bail!("{}: {t} time bins are not a multiple of L = {} (--length); pass --length or --bin-width-ps", file.display(), self.length);
+            bail!(
+                "{}: {t} time bins are not a multiple of L = {} (--length); pass --length or --bin-width-ps",
+                file.display(),
+                self.length
+            );
         }
         Ok(1.0 / (self.clock_mhz * 1e6) / (t / self.length) as f64)
     }
@@ -484,7 +540,12 @@ pub fn depth(a: DepthArgs) -> Result<ExitCode> {
     write_npy(&outputs.stage(&a.output)?, &out.view())?;
     let (d, amp) = &maps[0];
     let found: Vec<usize> = (0..a.peaks).map(|b| d.index_axis(Axis(0), b).iter().filter(|v| v.is_finite()).count()).collect();
-    let mut lines = vec![format!("wrote {}: range map {:?}, returns per bounce {found:?} (first cube), bin width {:.1} ps", a.output.display(), out.shape(), dt * 1e12)];
+    let mut lines = vec![format!(
+        "wrote {}: range map {:?}, returns per bounce {found:?} (first cube), bin width {:.1} ps",
+        a.output.display(),
+        out.shape(),
+        dt * 1e12
+    )];
     if let Some(p) = &a.products.ply {
         let n = write_ply(&outputs.stage(p)?, &d.view(), &amp.view(), a.products.fov)?;
         lines.push(format!("wrote {}: {n} points", p.display()));
@@ -556,11 +617,17 @@ pub fn lifetime(a: LifetimeArgs) -> Result<ExitCode> {
         (Some(p), _) => {
             let v = tcsense_sensor::npy::read_npy(p)?;
             if v.shape() != [t] || v.iter().any(|x| !x.is_finite() || *x < 0.0) || v.iter().all(|&x| x == 0.0) {
-                bail!("{}: the IRF has shape {:?}; expected [{t}] non-negative finite values, not all zero (one per bin of the cube)", p.display(), v.shape());
+                bail!(
+                    "{}: the IRF has shape {:?}; expected [{t}] non-negative finite values, not all zero (one per bin of the cube)",
+                    p.display(),
+                    v.shape()
+                );
             }
             IrfModel::Measured(v.iter().map(|&x| x as f64).collect())
         }
-        (None, Some(w)) if w.is_finite() && w >= 0.0 && w * 1e-9 <= tcsense_sensor::params::MAX_RESPONSE_S => IrfModel::Gaussian(Some(w * 1e-9)),
+        (None, Some(w)) if w.is_finite() && w >= 0.0 && w * 1e-9 <= tcsense_sensor::params::MAX_RESPONSE_S => {
+            IrfModel::Gaussian(Some(w * 1e-9))
+        }
         (None, Some(w)) => bail!("--irf-fwhm-ns {w}: expected a width ≥ 0 and at most 1000 ns"),
         (None, None) => IrfModel::Gaussian(None),
     };
@@ -588,7 +655,12 @@ pub fn lifetime(a: LifetimeArgs) -> Result<ExitCode> {
         lines.push(format!("wrote {}", p.display()));
     }
     if let Some(p) = &a.png {
-        figures::map(&outputs.stage(p)?, "Fluorescence lifetime (reconvolution fit, amplitude-weighted mean)", &tau.mapv(|t| t * 1e9).view(), "lifetime τ (ns)")?;
+        figures::map(
+            &outputs.stage(p)?,
+            "Fluorescence lifetime (reconvolution fit, amplitude-weighted mean)",
+            &tau.mapv(|t| t * 1e9).view(),
+            "lifetime τ (ns)",
+        )?;
         lines.push(format!("wrote {}", p.display()));
     }
     outputs.commit()?;
@@ -635,9 +707,17 @@ pub fn plot(cmd: PlotCmd) -> Result<ExitCode> {
                     bail!("{}: no metrics; train the run for at least one epoch", path.display());
                 }
                 let rows = tcsense_train::run_dir::read_rows(&path, usize::MAX)?;
-                let first = rows.first().and_then(|m| m.val.first()).map(|(n, _)| n.clone()).with_context(|| format!("{}: no epoch logged yet", path.display()))?;
+                let first = rows
+                    .first()
+                    .and_then(|m| m.val.first())
+                    .map(|(n, _)| n.clone())
+                    .with_context(|| format!("{}: no epoch logged yet", path.display()))?;
                 if !val_name.is_empty() && first != val_name {
-                    bail!("{}: validates {first}, but {} validates {val_name}; plot runs of one kind together", path.display(), run[0].display());
+                    bail!(
+                        "{}: validates {first}, but {} validates {val_name}; plot runs of one kind together",
+                        path.display(),
+                        run[0].display()
+                    );
                 }
                 val_name = first;
                 let label = r.display().to_string();
@@ -665,14 +745,18 @@ pub fn plot(cmd: PlotCmd) -> Result<ExitCode> {
                 .iter()
                 .map(|s| {
                     let (r, c) = s.split_once(',').with_context(|| format!("--pixel {s:?}: expected ROW,COL"))?;
-                    let (r, c): (usize, usize) = (r.trim().parse().with_context(|| format!("--pixel {s:?}: expected ROW,COL"))?, c.trim().parse().with_context(|| format!("--pixel {s:?}: expected ROW,COL"))?);
+                    let (r, c): (usize, usize) = (
+                        r.trim().parse().with_context(|| format!("--pixel {s:?}: expected ROW,COL"))?,
+                        c.trim().parse().with_context(|| format!("--pixel {s:?}: expected ROW,COL"))?,
+                    );
                     if r >= h || c >= w {
                         bail!("--pixel {s}: outside the {h}x{w} frame");
                     }
                     Ok((r, c))
                 })
                 .collect::<Result<_>>()?;
-            let names: Vec<String> = cube.iter().map(|p| p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default()).collect();
+            let names: Vec<String> =
+                cube.iter().map(|p| p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default()).collect();
             let views: Vec<(&str, ndarray::ArrayView3<f32>)> = names.iter().zip(&cubes).map(|(n, c)| (n.as_str(), c.view())).collect();
             let csv = plot_waveforms(&output, &views, &pixels)?;
             let csv_path = output.with_extension("csv");

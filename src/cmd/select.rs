@@ -7,8 +7,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use tcsense_infer::selection::select;
-use tcsense_sensor::SensorParams;
 use tcsense_sensor::design::{design, Criterion, DesignOptions, DesignProgress, Objective, Score};
+use tcsense_sensor::SensorParams;
 
 use super::code_shape::DesignArgs;
 use super::dataset::interrupt_flag;
@@ -58,9 +58,14 @@ struct Bars {
 impl Bars {
     fn new(candidates: usize, moves: usize) -> Bars {
         let style = |what: &str| {
-            ProgressStyle::with_template(&format!("{what} [{{bar:30}}] {{pos}}/{{len}} eta {{eta}} {{msg}}")).unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> ")
+            ProgressStyle::with_template(&format!("{what} [{{bar:30}}] {{pos}}/{{len}} eta {{eta}} {{msg}}"))
+                .unwrap_or_else(|_| ProgressStyle::default_bar())
+                .progress_chars("=> ")
         };
-        Bars { candidates: ProgressBar::new(candidates as u64).with_style(style("candidates")), moves: ProgressBar::new(moves as u64).with_style(style("local search")) }
+        Bars {
+            candidates: ProgressBar::new(candidates as u64).with_style(style("candidates")),
+            moves: ProgressBar::new(moves as u64).with_style(style("local search")),
+        }
     }
 
     fn done(&self) {
@@ -116,7 +121,17 @@ fn select_identifiable(a: SelectArgs, criterion: Criterion) -> Result<ExitCode> 
     let iterations = a.search.unwrap_or(defaults.moves);
     let irf = super::sensor::parse_irf(a.eval.irf.as_deref().unwrap_or("physical"))?;
     let sampling = tcsense_sensor::Sampling::from_factors(a.oversample, a.heterodyne, tcsense_sensor::Sampling::Oversample(1))?;
-    let spec = SensorParams { block: d.block, taps: d.taps, drain: d.drain, length: d.length, clock_hz: d.clock_hz(), sampling, irf, ..Default::default() }.validate()?;
+    let spec = SensorParams {
+        block: d.block,
+        taps: d.taps,
+        drain: d.drain,
+        length: d.length,
+        clock_hz: d.clock_hz(),
+        sampling,
+        irf,
+        ..Default::default()
+    }
+    .validate()?;
     let light = a.light.light()?;
     let threshold = a.light.alias_threshold;
     let obj = Objective::new(criterion, &spec, light, threshold);
@@ -148,11 +163,17 @@ fn select_identifiable(a: SelectArgs, criterion: Criterion) -> Result<ExitCode> 
         m.insert("sampling".into(), serde_json::json!(format!("{sampling:?}")));
     }
     if out.score.alias < threshold {
-        eprintln!("warning: the best codes found still alias ({:.3} < {threshold}): try more --candidates or --search, or relax the constraints", out.score.alias);
+        eprintln!(
+            "warning: the best codes found still alias ({:.3} < {threshold}): try more --candidates or --search, or relax the constraints",
+            out.score.alias
+        );
     }
     codes.save(&a.output)?;
     if out.score.alias < threshold {
-        eprintln!("warning: the best codes found still alias ({:.3} < {threshold}): try more --candidates or --search, or relax the constraints", out.score.alias);
+        eprintln!(
+            "warning: the best codes found still alias ({:.3} < {threshold}): try more --candidates or --search, or relax the constraints",
+            out.score.alias
+        );
     }
     println!("wrote {}", a.output.display());
     Ok(ExitCode::SUCCESS)
@@ -175,7 +196,11 @@ fn select_mse(a: SelectArgs) -> Result<ExitCode> {
     }
     let cancel = interrupt_flag();
     let pb = ProgressBar::new(candidates as u64);
-    pb.set_style(ProgressStyle::with_template("candidates [{bar:30}] {pos}/{len} eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
+    pb.set_style(
+        ProgressStyle::with_template("candidates [{bar:30}] {pos}/{len} eta {eta}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
     println!("candidate seed        MSE");
     let mut on = |c: &tcsense_infer::selection::Candidate| {
         pb.suspend(|| println!("{:>14} {:.4e}", c.seed, c.mse));
@@ -188,4 +213,3 @@ fn select_mse(a: SelectArgs) -> Result<ExitCode> {
     println!("wrote {}: best MSE {bm:.4e} of {} candidates ({})", a.output.display(), all.len(), d.constraints().label());
     Ok(ExitCode::SUCCESS)
 }
-

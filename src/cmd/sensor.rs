@@ -6,9 +6,9 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use tcsense_sensor::measure::Measurement;
 use tcsense_sensor::noise::Exposure;
+use tcsense_sensor::nonideal::NonIdeal;
 use tcsense_sensor::npy::{read_cube, write_npy};
 use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
-use tcsense_sensor::nonideal::NonIdeal;
 use tcsense_sensor::sweep::{simulate_sweep, SweepSettings};
 use tcsense_sensor::{Codes, Irf, NoiseParams, Sampling, Sensor, SensorModel};
 
@@ -254,26 +254,39 @@ pub struct SimulateArgs {
 }
 
 pub fn simulate(a: SimulateArgs) -> Result<ExitCode> {
-    let noise = NoiseParams {
-        full_well_e: a.full_well,
-        read_noise_e: a.read_noise,
-        signal_fraction: a.signal_fraction,
-        adc_bits: a.adc_bits,
-    }
-    .validate()?;
+    let noise =
+        NoiseParams { full_well_e: a.full_well, read_noise_e: a.read_noise, signal_fraction: a.signal_fraction, adc_bits: a.adc_bits }
+            .validate()?;
     if a.sensor.calibration.is_some() {
         bail!("--calibration describes a decoder's knowledge of a sensor; simulate a sensor with --tap-gain, --prnu, --dark, --tail, …");
     }
     let sensor = a.sensor.sensor()?.with_nonideal(a.nonideal.nonideal()?)?;
     let spec = sensor.spec();
     if let Some(dir) = &a.sweep {
-        let settings = SweepSettings { size: a.size, average: a.average, noise, noisy: a.noise, adc: matches!(a.units, Units::Adc), png: a.png, level: a.sweep_level, seed: a.seed };
+        let settings = SweepSettings {
+            size: a.size,
+            average: a.average,
+            noise,
+            noisy: a.noise,
+            adc: matches!(a.units, Units::Adc),
+            png: a.png,
+            level: a.sweep_level,
+            seed: a.seed,
+        };
         let (bh, bw) = sensor.block();
         if a.size.0 == 0 || a.size.1 == 0 || a.size.0 % bh != 0 || a.size.1 % bw != 0 {
             bail!("--size {}x{}: expected a non-zero multiple of the {bh}x{bw} code block", a.size.0, a.size.1);
         }
         let m = simulate_sweep(sensor.nominal(), sensor.codes(), sensor.nonideal(), &settings, dir)?;
-        println!("wrote {}: {} delays over {:.3} ns, {} frames averaged each, in {} (full scale {})", dir.join(tcsense_sensor::sweep::MANIFEST).display(), m.delays_s.len(), spec.cycle_s() * 1e9, a.average, m.units, m.full_scale);
+        println!(
+            "wrote {}: {} delays over {:.3} ns, {} frames averaged each, in {} (full scale {})",
+            dir.join(tcsense_sensor::sweep::MANIFEST).display(),
+            m.delays_s.len(),
+            spec.cycle_s() * 1e9,
+            a.average,
+            m.units,
+            m.full_scale
+        );
         return Ok(ExitCode::SUCCESS);
     }
     let (Some(cube), Some(output)) = (&a.cube, &a.output) else { bail!("--cube and --output are required (or --sweep DIR)") };
@@ -294,7 +307,10 @@ pub fn simulate(a: SimulateArgs) -> Result<ExitCode> {
     };
     let measured = sensor.measure(&x.view(), &noise, a.noise, exposure, a.seed).map_err(|e| anyhow::anyhow!("{}: {e}", cube.display()))?;
     if let Measurement::Noisy(noisy) = &measured {
-        eprintln!("noise: {:.4} e⁻ per unit, full well {} e⁻, read noise {} e⁻", noisy.electrons_per_unit, noise.full_well_e, noise.read_noise_e);
+        eprintln!(
+            "noise: {:.4} e⁻ per unit, full well {} e⁻, read noise {} e⁻",
+            noisy.electrons_per_unit, noise.full_well_e, noise.read_noise_e
+        );
     }
     let units = if a.noise || !sensor.nonideal().is_ideal() { a.units.into() } else { tcsense_sensor::Units::Input };
     let y = measured.in_units(units, &noise);

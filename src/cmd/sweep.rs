@@ -61,7 +61,13 @@ pub(super) fn load(e: &EvalArgs) -> Result<Loaded> {
     let irf = super::sensor::parse_irf(e.irf.as_deref().unwrap_or("ideal"))?;
     let g = ds.manifest.grid;
     let base = SensorParams { sampling: g.sampling, irf, length: g.length, clock_hz: g.clock_hz, ..Default::default() };
-    Ok(Loaded { cubes, setup: EvalSetup { base, tval3: e.tval3.options()? }, length: g.length, clock_hz: g.clock_hz, size: (ds.manifest.size[0], ds.manifest.size[1]) })
+    Ok(Loaded {
+        cubes,
+        setup: EvalSetup { base, tval3: e.tval3.options()? },
+        length: g.length,
+        clock_hz: g.clock_hz,
+        size: (ds.manifest.size[0], ds.manifest.size[1]),
+    })
 }
 
 /// Which sweep.
@@ -160,7 +166,11 @@ pub fn sweep(cmd: SweepCmd) -> Result<ExitCode> {
     let cancel = interrupt_flag();
     let total = (points.len() * a.candidates) as u64;
     let pb = ProgressBar::new(total);
-    pb.set_style(ProgressStyle::with_template("sweep [{bar:30}] {pos}/{len} eta {eta} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
+    pb.set_style(
+        ProgressStyle::with_template("sweep [{bar:30}] {pos}/{len} eta {eta} {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
     let mut csv = String::from("setting,param,candidate_seed,mse\n");
     let mut summary = String::from("setting,param,best_mse,mean_mse\n");
     let mut series: Vec<(String, Vec<(f64, f64)>)> = Vec::new();

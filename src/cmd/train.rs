@@ -271,7 +271,11 @@ pub(crate) struct Bar {
 impl Bar {
     pub fn new() -> Self {
         let pb = ProgressBar::new(1);
-        pb.set_style(ProgressStyle::with_template("[{bar:30}] {pos}/{len} steps {per_sec} eta {eta} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
+        pb.set_style(
+            ProgressStyle::with_template("[{bar:30}] {pos}/{len} steps {per_sec} eta {eta} {msg}")
+                .unwrap_or_else(|_| ProgressStyle::default_bar())
+                .progress_chars("=> "),
+        );
         Bar { pb, pause: None, epochs_done: Default::default() }
     }
 }
@@ -297,7 +301,9 @@ impl Progress for Bar {
                 n => format!("  {} {v:.4e}", n.replace('_', " ")),
             })
             .collect();
-        self.pb.suspend(|| println!("epoch {:>4}  step {:>6}  train loss {:.4e}  val{val}  {:.0} s", m.epoch, m.step, m.train_loss, m.seconds));
+        self.pb.suspend(|| {
+            println!("epoch {:>4}  step {:>6}  train loss {:.4e}  val{val}  {:.0} s", m.epoch, m.step, m.train_loss, m.seconds)
+        });
         let done = self.epochs_done.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1;
         if let Some((n, flag)) = &self.pause {
             if done >= *n {
@@ -363,11 +369,13 @@ impl TrainArgs {
         match net {
             NetArgs::Admm(n) => {
                 req.decoder = "admm-net".into();
-                (req.preset, req.stages, req.channels, req.prior) = (n.preset.and_then(name_of), n.stages, n.channels, n.prior.and_then(name_of));
+                (req.preset, req.stages, req.channels, req.prior) =
+                    (n.preset.and_then(name_of), n.stages, n.channels, n.prior.and_then(name_of));
             }
             NetArgs::Unet(n) => {
                 req.decoder = "unet".into();
-                (req.head, req.returns, req.base_width, req.levels, req.input) = (n.head.and_then(name_of), n.returns, n.base_width, n.levels, n.input.and_then(name_of));
+                (req.head, req.returns, req.base_width, req.levels, req.input) =
+                    (n.head.and_then(name_of), n.returns, n.base_width, n.levels, n.input.and_then(name_of));
             }
             NetArgs::Lifetime(n) => {
                 req.decoder = "lifetime".into();
@@ -398,7 +406,11 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     }
     let cancel = interrupt_flag();
     let pb = ProgressBar::new(1);
-    pb.set_style(ProgressStyle::with_template("[{bar:30}] {pos}/{len} steps {per_sec} eta {eta} {msg}").unwrap_or_else(|_| ProgressStyle::default_bar()).progress_chars("=> "));
+    pb.set_style(
+        ProgressStyle::with_template("[{bar:30}] {pos}/{len} steps {per_sec} eta {eta} {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
     let bar = Bar { pb: pb.clone(), pause: a.pause_after.map(|n| (n, cancel.clone())), epochs_done: Default::default() };
     let res = request::run(&prepared, &device, &bar, &cancel);
     pb.finish_and_clear();
@@ -413,7 +425,11 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Err(TrainError::Cancelled) if a.pause_after.is_some_and(|n| bar.epochs_done.load(std::sync::atomic::Ordering::SeqCst) >= n) => {
-            println!("paused after {} epochs: {} holds the checkpoint; continue with --resume", a.pause_after.unwrap_or(0), run_dir.display());
+            println!(
+                "paused after {} epochs: {} holds the checkpoint; continue with --resume",
+                a.pause_after.unwrap_or(0),
+                run_dir.display()
+            );
             Ok(ExitCode::SUCCESS)
         }
         Err(TrainError::Cancelled) => bail!("interrupted; the last checkpoint in {} is kept, continue with --resume", run_dir.display()),

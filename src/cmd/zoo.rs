@@ -24,9 +24,22 @@ pub fn run(cmd: ZooCmd) -> Result<ExitCode> {
         ZooCmd::List => {
             let entries = zoo::list()?;
             println!("zoo: {} ({} entries)", zoo::root().display(), entries.len());
-            println!("{:<28} {:<9} {:<6} {:<8} {:>6}  {:<6} {:<24} {}", "NAME", "DECODER", "DOMAIN", "CODES", "EPOCHS", "ALIAS", "LIGHT", "VALIDATION");
+            println!(
+                "{:<28} {:<9} {:<6} {:<8} {:>6}  {:<6} {:<24} {}",
+                "NAME", "DECODER", "DOMAIN", "CODES", "EPOCHS", "ALIAS", "LIGHT", "VALIDATION"
+            );
             for e in &entries {
-                println!("{:<28} {:<9} {:<6} {:<8} {:>6}  {:<6} {:<24} {}", e.name, e.model.name(), e.domain, codes_kind(e), e.epochs, alias(e), e.light, validation(e));
+                println!(
+                    "{:<28} {:<9} {:<6} {:<8} {:>6}  {:<6} {:<24} {}",
+                    e.name,
+                    e.model.name(),
+                    e.domain,
+                    codes_kind(e),
+                    e.epochs,
+                    alias(e),
+                    e.light,
+                    validation(e)
+                );
             }
             println!("LIGHT: the brightest tap's share of the full well it was trained at (a range: the photon ladder, drawn per item), and the ambient light as 1/SBR");
             if entries.iter().any(|e| e.range_alias.is_some_and(|a| a < tcsense_sensor::identify::DEFAULT_ALIAS_THRESHOLD)) {
@@ -37,7 +50,13 @@ pub fn run(cmd: ZooCmd) -> Result<ExitCode> {
             let e = zoo::entry(&name)?;
             println!("zoo:{} — {}", e.name, e.title);
             println!("  directory   {}", e.dir.display());
-            println!("  decoder     {} ({} taps, {} bins, {:.2} GFLOP per 188x212 frame)", e.model.name(), e.model.taps(), e.model.bins(), e.model.flops(188, 212) / 1e9);
+            println!(
+                "  decoder     {} ({} taps, {} bins, {:.2} GFLOP per 188x212 frame)",
+                e.model.name(),
+                e.model.taps(),
+                e.model.bins(),
+                e.model.flops(188, 212) / 1e9
+            );
             println!("  domain      {}", e.domain);
             println!("  codes       {} ({}), range alias {}", e.codes, codes_kind(&e), alias(&e));
             println!("  trained     {} epochs at light {}; last validation {}", e.epochs, e.light, validation(&e));

@@ -79,7 +79,17 @@ impl Default for Augmentation {
     /// read noise 10–60 e⁻, brightest tap at 5–90 % of full well (500 to 36 000 e⁻, against the
     /// paper's 16 000).
     fn default() -> Self {
-        Augmentation { time_shift: true, flips: true, crop: None, brightness: [0.01, 1.0], full_well_e: [1e4, 4e4], read_noise_e: [10.0, 60.0], signal_fraction: [0.05, 0.9], sensor_residue: [0.0; 3], ambient: [0.0; 2] }
+        Augmentation {
+            time_shift: true,
+            flips: true,
+            crop: None,
+            brightness: [0.01, 1.0],
+            full_well_e: [1e4, 4e4],
+            read_noise_e: [10.0, 60.0],
+            signal_fraction: [0.05, 0.9],
+            sensor_residue: [0.0; 3],
+            ambient: [0.0; 2],
+        }
     }
 }
 
@@ -165,7 +175,11 @@ impl Augmentation {
         self.validate_ranges()?;
         if let Some([ch, cw]) = self.crop {
             if ch == 0 || cw == 0 || ch > h || cw > w || ch % block.0 != 0 || cw % block.1 != 0 {
-                return Err(TrainError::InvalidParam { field: "augment.crop", got: format!("{ch}x{cw}"), expected: format!("a window within the {h}x{w} frames, a multiple of the {}x{} block", block.0, block.1) });
+                return Err(TrainError::InvalidParam {
+                    field: "augment.crop",
+                    got: format!("{ch}x{cw}"),
+                    expected: format!("a window within the {h}x{w} frames, a multiple of the {}x{} block", block.0, block.1),
+                });
             }
         }
         Ok(())
@@ -173,22 +187,45 @@ impl Augmentation {
 
     /// Check the ranges that need no frame (all but the crop's fit).
     pub fn validate_ranges(&self) -> Result<()> {
-        let bad = |field: &'static str, got: String, expected: &str| Err(TrainError::InvalidParam { field, got, expected: expected.into() });
+        let bad =
+            |field: &'static str, got: String, expected: &str| Err(TrainError::InvalidParam { field, got, expected: expected.into() });
         let [g, p, d] = self.sensor_residue;
-        if !(g.is_finite() && p.is_finite() && d.is_finite() && (0.0..=0.5).contains(&g) && (0.0..=0.2).contains(&p) && (0.0..=0.1).contains(&d)) {
-            return bad("augment.sensor_residue", format!("{:?}", self.sensor_residue), "[tap gain ≤ 0.5, PRNU ≤ 0.2, dark ≤ 0.1], each ≥ 0");
+        if !(g.is_finite()
+            && p.is_finite()
+            && d.is_finite()
+            && (0.0..=0.5).contains(&g)
+            && (0.0..=0.2).contains(&p)
+            && (0.0..=0.1).contains(&d))
+        {
+            return bad(
+                "augment.sensor_residue",
+                format!("{:?}", self.sensor_residue),
+                "[tap gain ≤ 0.5, PRNU ≤ 0.2, dark ≤ 0.1], each ≥ 0",
+            );
         }
-        for (name, r, lo) in [("augment.brightness", self.brightness, 1e-6), ("augment.full_well_e", self.full_well_e, 1.0), ("augment.signal_fraction", self.signal_fraction, 1e-6)] {
+        for (name, r, lo) in [
+            ("augment.brightness", self.brightness, 1e-6),
+            ("augment.full_well_e", self.full_well_e, 1.0),
+            ("augment.signal_fraction", self.signal_fraction, 1e-6),
+        ] {
             if !(r[0].is_finite() && r[1].is_finite() && lo <= r[0] && r[0] <= r[1]) {
                 return bad(name, format!("{r:?}"), "a range LO ≤ HI of positive numbers");
             }
         }
         if self.signal_fraction[1] > MAX_SIGNAL_FRACTION {
-            return bad("augment.signal_fraction", format!("{:?}", self.signal_fraction), &format!("fractions of full well up to {MAX_SIGNAL_FRACTION}"));
+            return bad(
+                "augment.signal_fraction",
+                format!("{:?}", self.signal_fraction),
+                &format!("fractions of full well up to {MAX_SIGNAL_FRACTION}"),
+            );
         }
         let [a0, a1] = self.ambient;
         if !(a0.is_finite() && a1.is_finite() && 0.0 <= a0 && a0 <= a1 && a1 <= MAX_AMBIENT) {
-            return bad("augment.ambient", format!("{:?}", self.ambient), &format!("a range 0 ≤ LO ≤ HI ≤ {MAX_AMBIENT} of ambient over signal (1/SBR)"));
+            return bad(
+                "augment.ambient",
+                format!("{:?}", self.ambient),
+                &format!("a range 0 ≤ LO ≤ HI ≤ {MAX_AMBIENT} of ambient over signal (1/SBR)"),
+            );
         }
         if !(self.read_noise_e[0] >= 0.0 && self.read_noise_e[0] <= self.read_noise_e[1] && self.read_noise_e[1].is_finite()) {
             return bad("augment.read_noise_e", format!("{:?}", self.read_noise_e), "a range 0 ≤ LO ≤ HI");
@@ -208,7 +245,16 @@ impl Augmentation {
     /// - `x`: `[B, T, H, W]` → `[B, T, H', W']` (`H' × W'` the crop, else `H × W`); labels
     ///   `[B, K, H, W]` → `[B, K, H', W']`; maps `[B, C, H, W]` → `[B, C, H', W']`
     #[allow(clippy::too_many_arguments)]
-    pub fn apply(&self, x: &ArrayView4<'_, f32>, labels: Option<DepthLabels<'_>>, maps: Option<ArrayView4<'_, f32>>, base: &NoiseParams, block: (usize, usize), seed: u64, step: u64) -> Augmented {
+    pub fn apply(
+        &self,
+        x: &ArrayView4<'_, f32>,
+        labels: Option<DepthLabels<'_>>,
+        maps: Option<ArrayView4<'_, f32>>,
+        base: &NoiseParams,
+        block: (usize, usize),
+        seed: u64,
+        step: u64,
+    ) -> Augmented {
         let mut rng = StdRng::seed_from_u64(derive_seed(seed ^ AUGMENT_STREAM, step));
         let (b, t, h, w) = x.dim();
         let (ch, cw) = self.frame(h, w);
@@ -234,7 +280,10 @@ impl Augmentation {
                 let delay = shift as f64 * l.bin_m;
                 for mut px in di.lanes_mut(Axis(0)) {
                     // shift every return, wrap around the cycle, keep arrival order (NaN last)
-                    let mut v: Vec<f32> = px.iter().map(|&d| if d.is_finite() { (d as f64 + delay).rem_euclid(l.range_m) as f32 } else { f32::NAN }).collect();
+                    let mut v: Vec<f32> = px
+                        .iter()
+                        .map(|&d| if d.is_finite() { (d as f64 + delay).rem_euclid(l.range_m) as f32 } else { f32::NAN })
+                        .collect();
                     v.sort_by(|a, b| a.is_nan().cmp(&b.is_nan()).then(a.total_cmp(b)));
                     px.iter_mut().zip(v).for_each(|(p, v)| *p = v);
                 }
@@ -273,10 +322,23 @@ mod tests {
     fn shifts_flips_crops_and_levels() {
         let x = cube();
         let base = NoiseParams::default();
-        let off = Augmentation { time_shift: false, flips: false, crop: None, brightness: [1.0, 1.0], full_well_e: [2e4, 2e4], read_noise_e: [40.0, 40.0], signal_fraction: [0.8, 0.8], sensor_residue: [0.0; 3], ambient: [0.0; 2] };
+        let off = Augmentation {
+            time_shift: false,
+            flips: false,
+            crop: None,
+            brightness: [1.0, 1.0],
+            full_well_e: [2e4, 2e4],
+            read_noise_e: [40.0, 40.0],
+            signal_fraction: [0.8, 0.8],
+            sensor_residue: [0.0; 3],
+            ambient: [0.0; 2],
+        };
         let same = off.apply(&x.view(), None, None, &base, (2, 2), 1, 1);
         assert_eq!(same.x, x, "everything off is the identity");
-        assert!(same.noise.iter().all(|n| n.full_well_e == 2e4 && n.read_noise_e == 40.0 && n.signal_fraction == 0.8 && n.adc_bits == base.adc_bits));
+        assert!(same
+            .noise
+            .iter()
+            .all(|n| n.full_well_e == 2e4 && n.read_noise_e == 40.0 && n.signal_fraction == 0.8 && n.adc_bits == base.adc_bits));
 
         // a time shift is a roll of every pixel's waveform by the same number of bins
         let shifted = Augmentation { time_shift: true, ..off }.apply(&x.view(), None, None, &base, (2, 2), 1, 2).x;
@@ -336,7 +398,8 @@ mod tests {
         let d = Augmentation::default();
         let a1 = d.apply(&x.view(), None, None, &base, (2, 2), 7, 3);
         for (i, g) in a1.gains.iter().enumerate() {
-            let ratio = a1.x.index_axis(Axis(0), i).iter().map(|v| v.abs()).sum::<f32>() / x.index_axis(Axis(0), i).iter().map(|v| v.abs()).sum::<f32>();
+            let ratio = a1.x.index_axis(Axis(0), i).iter().map(|v| v.abs()).sum::<f32>()
+                / x.index_axis(Axis(0), i).iter().map(|v| v.abs()).sum::<f32>();
             assert!((ratio / g - 1.0).abs() < 1e-4, "item {i}: scaled by {ratio}, gain {g}");
         }
         let a2 = d.apply(&x.view(), None, None, &base, (2, 2), 7, 3);
@@ -344,9 +407,18 @@ mod tests {
         assert_eq!(a1.x, a2.x);
         assert_ne!(a1.x, a3.x);
         for n in a1.noise.iter().chain(&a3.noise) {
-            assert!((1e4..=4e4).contains(&n.full_well_e) && (10.0..=60.0).contains(&n.read_noise_e) && (0.05..=0.9).contains(&n.signal_fraction));
+            assert!(
+                (1e4..=4e4).contains(&n.full_well_e)
+                    && (10.0..=60.0).contains(&n.read_noise_e)
+                    && (0.05..=0.9).contains(&n.signal_fraction)
+            );
         }
-        let gains: Vec<f32> = (0..200).map(|s| d.apply(&x.view(), None, None, &base, (2, 2), 7, s).x.iter().map(|v| v.abs()).sum::<f32>() / x.iter().map(|v| v.abs()).sum::<f32>()).collect();
+        let gains: Vec<f32> = (0..200)
+            .map(|s| {
+                d.apply(&x.view(), None, None, &base, (2, 2), 7, s).x.iter().map(|v| v.abs()).sum::<f32>()
+                    / x.iter().map(|v| v.abs()).sum::<f32>()
+            })
+            .collect();
         assert!(gains.iter().any(|&g| g < 0.05) && gains.iter().any(|&g| g > 0.5), "brightness over two decades");
     }
 

@@ -86,7 +86,14 @@ fn timed(a: &MeasurementMatrix, model: &ModelConfig, h: usize, w: usize, steps: 
 /// Time `steps` Adam steps after a warm-up one and return the median; with a `learner`, each
 /// step also learns the codes (measurements and sensor operators from `A(θ)`, the penalty added
 /// to the loss, the logits stepped by their own Adam).
-fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h: usize, w: usize, steps: usize, mut learner: Option<Learner>) -> Result<StepTiming> {
+fn time_steps<M: Network>(
+    a: &MeasurementMatrix,
+    init: impl Fn(&Device) -> M,
+    h: usize,
+    w: usize,
+    steps: usize,
+    mut learner: Option<Learner>,
+) -> Result<StepTiming> {
     let device = Device::flex().autodiff();
     let sensor = SensorTensors::new(a, h, w, &device)?;
     let plan = a.plan(h, w)?;
@@ -95,7 +102,11 @@ fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h:
     let x = Array4::from_shape_fn((BENCH_BATCH, a.bins(), h, w), |(b, j, r, c)| if (j + r / 8 + c / 8 + b) % 11 == 0 { 1.0 } else { 0.0 });
     let y = measure_batch(&plan, &x.view(), None, 0)?;
     // labels for depth networks: a return at a few metres in every other pixel
-    let depth = Array4::from_shape_fn((BENCH_BATCH, 2, h, w), |(b, k, r, c)| if (r + c + b) % 2 == 0 { 2.0 + k as f32 + (r % 7) as f32 * 0.1 } else { f32::NAN });
+    let depth =
+        Array4::from_shape_fn(
+            (BENCH_BATCH, 2, h, w),
+            |(b, k, r, c)| if (r + c + b) % 2 == 0 { 2.0 + k as f32 + (r % 7) as f32 * 0.1 } else { f32::NAN },
+        );
     // labels for lifetime networks: 1–3 ns where a fluorophore is, background elsewhere
     let lifetimes = Array4::from_shape_fn((BENCH_BATCH, 5, h, w), |(_, k, r, c)| match (k, (r + c) % 3) {
         (4, s) => (s != 0) as u8 as f32,
@@ -134,7 +145,11 @@ fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h:
         times.push([(t1 - t0).as_secs_f64(), (t2 - t1).as_secs_f64(), (t3 - t2).as_secs_f64(), conv]);
     }
     times.remove(0); // warm-up
-    let m = median_by(&times, |t| t[0] + t[1] + t[2]).ok_or(TrainError::InvalidParam { field: "steps", got: "0".into(), expected: "at least 1".into() })?;
+    let m = median_by(&times, |t| t[0] + t[1] + t[2]).ok_or(TrainError::InvalidParam {
+        field: "steps",
+        got: "0".into(),
+        expected: "at least 1".into(),
+    })?;
     Ok(StepTiming {
         step_ms: (m[0] + m[1] + m[2]) * 1e3,
         forward_ms: m[0] * 1e3,
@@ -151,9 +166,13 @@ fn time_steps<M: Network>(a: &MeasurementMatrix, init: impl Fn(&Device) -> M, h:
 pub fn bench_forward(a: &Sensor, model: &ModelConfig, h: usize, w: usize, reps: usize) -> Result<f64> {
     let device = Device::flex();
     let mut decoder: Box<dyn Decoder> = match model {
-        ModelConfig::AdmmNet(c) => Box::new(NetDecoder::new(model.name(), crate::fit::seeded_init(&device, 1, |d| c.init(d)), device.clone())),
+        ModelConfig::AdmmNet(c) => {
+            Box::new(NetDecoder::new(model.name(), crate::fit::seeded_init(&device, 1, |d| c.init(d)), device.clone()))
+        }
         ModelConfig::Unet(c) => Box::new(NetDecoder::new(model.name(), crate::fit::seeded_init(&device, 1, |d| c.init(d)), device.clone())),
-        ModelConfig::Lifetime(c) => Box::new(NetDecoder::new(model.name(), crate::fit::seeded_init(&device, 1, |d| c.init(d)), device.clone())),
+        ModelConfig::Lifetime(c) => {
+            Box::new(NetDecoder::new(model.name(), crate::fit::seeded_init(&device, 1, |d| c.init(d)), device.clone()))
+        }
     };
     let y = Array4::from_shape_fn((1, a.taps(), h, w), |(_, m, r, c)| ((m + r + c) % 7) as f32 * 0.1);
     let never = AtomicBool::new(false);

@@ -64,9 +64,11 @@ impl LrSchedule {
 
     fn validate(&self) -> Result<()> {
         match *self {
-            LrSchedule::Cosine { final_fraction, .. } if !(0.0..=1.0).contains(&final_fraction) => {
-                Err(TrainError::InvalidParam { field: "lr_schedule.final_fraction", got: final_fraction.to_string(), expected: "a fraction in [0, 1]".into() })
-            }
+            LrSchedule::Cosine { final_fraction, .. } if !(0.0..=1.0).contains(&final_fraction) => Err(TrainError::InvalidParam {
+                field: "lr_schedule.final_fraction",
+                got: final_fraction.to_string(),
+                expected: "a fraction in [0, 1]".into(),
+            }),
             _ => Ok(()),
         }
     }
@@ -113,8 +115,26 @@ impl TrainConfig {
     pub fn summary(&self) -> String {
         let network = match &self.run.model {
             ModelConfig::AdmmNet(m) => format!("ADMM-Net S = {}, CN = {}, M = {}, T = {}", m.stages, m.channels, m.taps, m.bins),
-            ModelConfig::Lifetime(m) => format!("lifetime decoder: {} harmonics, U-Net base width {}, {} levels, M = {}, T = {}, {:.2} GFLOP per 188x212 frame", m.harmonics, m.base_width, m.levels, m.taps, m.bins, m.flops(188, 212) / 1e9),
-            ModelConfig::Unet(m) => format!("{} + U-Net K = {}, base width {}, {} levels, M = {}, T = {}, range {:.2} m, {:.2} GFLOP per 188x212 frame", if m.input == tcsense_models::UnetInput::Matched { "matched filters" } else { "Aᵀ" }, m.returns, m.base_width, m.levels, m.taps, m.bins, m.range_m, m.flops(188, 212) / 1e9),
+            ModelConfig::Lifetime(m) => format!(
+                "lifetime decoder: {} harmonics, U-Net base width {}, {} levels, M = {}, T = {}, {:.2} GFLOP per 188x212 frame",
+                m.harmonics,
+                m.base_width,
+                m.levels,
+                m.taps,
+                m.bins,
+                m.flops(188, 212) / 1e9
+            ),
+            ModelConfig::Unet(m) => format!(
+                "{} + U-Net K = {}, base width {}, {} levels, M = {}, T = {}, range {:.2} m, {:.2} GFLOP per 188x212 frame",
+                if m.input == tcsense_models::UnetInput::Matched { "matched filters" } else { "Aᵀ" },
+                m.returns,
+                m.base_width,
+                m.levels,
+                m.taps,
+                m.bins,
+                m.range_m,
+                m.flops(188, 212) / 1e9
+            ),
         };
         format!(
             "{network}; {} epochs, batch {}, lr {} ({}), loss {:?}, noise {}, augmentation {}",
@@ -137,7 +157,11 @@ impl TrainConfig {
                     g.brightness,
                     g.signal_fraction,
                     if g.ambient[1] > 0.0 { format!(", ambient {:?} of the signal (1/SBR)", g.ambient) } else { String::new() },
-                    if g.sensor_residue.iter().any(|&v| v != 0.0) { format!(", sensor residue (tap gain, PRNU, dark) {:?}", g.sensor_residue) } else { String::new() }
+                    if g.sensor_residue.iter().any(|&v| v != 0.0) {
+                        format!(", sensor residue (tap gain, PRNU, dark) {:?}", g.sensor_residue)
+                    } else {
+                        String::new()
+                    }
                 ),
             }
         )
@@ -188,7 +212,8 @@ impl TrainConfig {
 
     /// Check the settings before any work starts.
     pub fn validate(&self) -> Result<()> {
-        let bad = |field: &'static str, got: String, expected: &str| Err(TrainError::InvalidParam { field, got, expected: expected.into() });
+        let bad =
+            |field: &'static str, got: String, expected: &str| Err(TrainError::InvalidParam { field, got, expected: expected.into() });
         self.run.model.validate()?;
         if self.epochs == 0 {
             return bad("epochs", "0".into(), "at least 1");
@@ -206,9 +231,17 @@ impl TrainConfig {
             }
             ModelConfig::AdmmNet(_) => {}
             ModelConfig::Unet(m) => {
-                let fits = m.base_width > 0 && (1..=6).contains(&m.levels) && (1..=2).contains(&m.returns) && m.range_m.is_finite() && m.range_m > 0.0;
+                let fits = m.base_width > 0
+                    && (1..=6).contains(&m.levels)
+                    && (1..=2).contains(&m.returns)
+                    && m.range_m.is_finite()
+                    && m.range_m > 0.0;
                 if !fits {
-                    return bad("model", format!("base width {}, {} levels, {} returns, range {} m", m.base_width, m.levels, m.returns, m.range_m), "base width ≥ 1, 1–6 levels, 1 or 2 returns, a positive range");
+                    return bad(
+                        "model",
+                        format!("base width {}, {} levels, {} returns, range {} m", m.base_width, m.levels, m.returns, m.range_m),
+                        "base width ≥ 1, 1–6 levels, 1 or 2 returns, a positive range",
+                    );
                 }
             }
             ModelConfig::Lifetime(_) => {}
@@ -263,10 +296,19 @@ mod tests {
         let rates: Vec<f64> = (10..=110).map(|k| s.rate(1e-3, k, 110)).collect();
         assert!(rates.windows(2).all(|w| w[1] < w[0]));
         assert!(close(LrSchedule::Constant.rate(2e-3, 77, 110), 2e-3));
-        let bad = TrainConfig { lr_schedule: LrSchedule::Cosine { final_fraction: 1.5, warmup_steps: 0 }, ..TrainConfig::new(ModelConfig::AdmmNet(AdmmNetConfig::new(4, 8)), Path::new("ds"), Loss::Rmse, Sampling::Oversample(1)) };
+        let bad = TrainConfig {
+            lr_schedule: LrSchedule::Cosine { final_fraction: 1.5, warmup_steps: 0 },
+            ..TrainConfig::new(ModelConfig::AdmmNet(AdmmNetConfig::new(4, 8)), Path::new("ds"), Loss::Rmse, Sampling::Oversample(1))
+        };
         assert!(bad.validate().is_err());
         // a config from before schedules reads as constant
-        let mut v = serde_json::to_value(TrainConfig::new(ModelConfig::AdmmNet(AdmmNetConfig::new(4, 8)), Path::new("ds"), Loss::Rmse, Sampling::Oversample(1))).unwrap();
+        let mut v = serde_json::to_value(TrainConfig::new(
+            ModelConfig::AdmmNet(AdmmNetConfig::new(4, 8)),
+            Path::new("ds"),
+            Loss::Rmse,
+            Sampling::Oversample(1),
+        ))
+        .unwrap();
         v.as_object_mut().unwrap().remove("lr_schedule");
         assert_eq!(serde_json::from_value::<TrainConfig>(v).unwrap().lr_schedule, LrSchedule::Constant);
     }

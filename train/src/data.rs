@@ -18,9 +18,15 @@ pub fn load_cubes(ds: &Dataset, split: &str, max: Option<usize>) -> Result<Array
 /// a depth network.
 pub fn load_depth(ds: &Dataset, split: &str, max: Option<usize>, k: usize) -> Result<Array4<f32>> {
     if !ds.manifest.fields.contains_key("depth") {
-        return Err(file_err(&ds.dir, "no depth field: a depth network trains on LiDAR data (tcsense dataset lidar or dataset import --depth)"));
+        return Err(file_err(
+            &ds.dir,
+            "no depth field: a depth network trains on LiDAR data (tcsense dataset lidar or dataset import --depth)",
+        ));
     }
-    let d = ds.load(split, "depth")?.into_dimensionality::<Ix4>().map_err(|e| file_err(&ds.dir, format!("field depth of split {split}: {e}")))?;
+    let d = ds
+        .load(split, "depth")?
+        .into_dimensionality::<Ix4>()
+        .map_err(|e| file_err(&ds.dir, format!("field depth of split {split}: {e}")))?;
     let (n, bounces, _, _) = d.dim();
     if k == 0 || k > bounces {
         return Err(file_err(&ds.dir, format!("the depth field has {bounces} returns per pixel; the network wants {k}")));
@@ -83,7 +89,16 @@ pub fn load_lifetime_labels(ds: &Dataset, split: &str, max: Option<usize>) -> Re
     let inten = ds.load(split, "intensity")?.into_dimensionality::<ndarray::Ix3>().map_err(|e| bad("intensity", e))?;
     let (n, h, wd) = life.dim();
     if w.dim() != (n, 3, h, wd) || tau.dim() != (n, 3) || inten.dim() != (n, h, wd) {
-        return Err(file_err(&ds.dir, format!("split {split}: weights {:?}, tau {:?}, intensity {:?} do not fit lifetime {:?}", w.shape(), tau.shape(), inten.shape(), life.shape())));
+        return Err(file_err(
+            &ds.dir,
+            format!(
+                "split {split}: weights {:?}, tau {:?}, intensity {:?} do not fit lifetime {:?}",
+                w.shape(),
+                tau.shape(),
+                inten.shape(),
+                life.shape()
+            ),
+        ));
     }
     let n = max.unwrap_or(n).min(n);
     let mut out = Array4::<f32>::from_elem((n, 5, h, wd), f32::NAN);
@@ -117,7 +132,9 @@ mod tests {
         assert!((l[0] - 2.0).abs() < 1e-6 && l[1] == l[2] && l[3] == 1.0);
         // two: amplitudes add up per lifetime
         let l = components([0.2, 0.3, 0.5], [1e-9, 3e-9, 3e-9]);
-        assert!((l[0] - (0.2 + 0.8 * 3.0)).abs() < 1e-5 && (l[1] - 1.0).abs() < 1e-6 && (l[2] - 3.0).abs() < 1e-6 && (l[3] - 0.2).abs() < 1e-6);
+        assert!(
+            (l[0] - (0.2 + 0.8 * 3.0)).abs() < 1e-5 && (l[1] - 1.0).abs() < 1e-6 && (l[2] - 3.0).abs() < 1e-6 && (l[3] - 0.2).abs() < 1e-6
+        );
         // three distinct: 1 and 1.2 ns merge (closest in log), the mean is kept
         let l = components([0.25, 0.25, 0.5], [1e-9, 1.2e-9, 4e-9]);
         assert!((l[0] - (0.25 + 0.3 + 2.0)).abs() < 1e-5, "{l:?}");

@@ -27,7 +27,9 @@ use burn::tensor::{Device, Tensor};
 use ndarray::Array4;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
-use tcsense_models::learned_codes::{alias_penalty, basis_tensor, forward, hamming_penalty, hard_codes, matrix, window_penalty, CodeLogits, CodeRelaxation};
+use tcsense_models::learned_codes::{
+    alias_penalty, basis_tensor, forward, hamming_penalty, hard_codes, matrix, window_penalty, CodeLogits, CodeRelaxation,
+};
 use tcsense_models::net::to_tensor;
 use tcsense_models::runs::RunSpec;
 use tcsense_sensor::Sensor;
@@ -100,7 +102,8 @@ impl LearnCodes {
     }
 
     pub fn validate(&self, epochs: usize) -> Result<()> {
-        let bad = |field: &'static str, got: String, expected: &str| Err(TrainError::InvalidParam { field, got, expected: expected.into() });
+        let bad =
+            |field: &'static str, got: String, expected: &str| Err(TrainError::InvalidParam { field, got, expected: expected.into() });
         if self.relaxed_epochs == 0 || self.relaxed_epochs > epochs {
             return bad("learn_codes.relaxed_epochs", self.relaxed_epochs.to_string(), "1 to the run's epochs");
         }
@@ -117,7 +120,11 @@ impl LearnCodes {
             return bad("learn_codes.alias_weight", self.alias_weight.to_string(), "a non-negative weight (0: no identifiability term)");
         }
         if !(self.alias_threshold >= 0.0 && self.alias_threshold <= 2f64.sqrt()) {
-            return bad("learn_codes.alias_threshold", self.alias_threshold.to_string(), "a distance in [0, 1.414] between unit signatures");
+            return bad(
+                "learn_codes.alias_threshold",
+                self.alias_threshold.to_string(),
+                "a distance in [0, 1.414] between unit signatures",
+            );
         }
         Ok(())
     }
@@ -156,7 +163,18 @@ impl Learner {
         logits.theta.id = ParamId::from(LOGITS_ID);
         let hard = hard_codes(&logits.to_array(), &relax, start)?;
         let min_shift = (tcsense_sensor::identify::ALIAS_MIN_MASKS * spec.sampling.k()).min(start.length() * spec.sampling.k() / 2).max(1);
-        Ok(Learner { lc: lc.clone(), relax, logits, optim: AdamConfig::new().init(), basis, block: start.block(), min_shift, hard, tau: lc.tau_start, weight: 0.0 })
+        Ok(Learner {
+            lc: lc.clone(),
+            relax,
+            logits,
+            optim: AdamConfig::new().init(),
+            basis,
+            block: start.block(),
+            min_shift,
+            hard,
+            tau: lc.tau_start,
+            weight: 0.0,
+        })
     }
 
     /// Temperature and penalty weight at `frac` ∈ [0, 1] of the relaxed phase.
@@ -227,7 +245,8 @@ impl Learner {
 
     /// Read them back from a checkpoint directory.
     pub fn load(&mut self, dir: &Path) -> Result<()> {
-        let logits = self.logits.clone().try_load_file(dir.join(LOGITS_FILE)).map_err(|e| file_err(&dir.join(format!("{LOGITS_FILE}.bpk")), e))?;
+        let logits =
+            self.logits.clone().try_load_file(dir.join(LOGITS_FILE)).map_err(|e| file_err(&dir.join(format!("{LOGITS_FILE}.bpk")), e))?;
         self.logits = logits;
         let optim = std::mem::replace(&mut self.optim, AdamConfig::new().init());
         self.optim = optim.load(dir.join(CODE_OPTIM_FILE)).map_err(|e| file_err(&dir.join(format!("{CODE_OPTIM_FILE}.bpk")), e))?;
@@ -256,7 +275,11 @@ pub(crate) fn log_line(epoch: usize, step: u64, l: &Learner) -> String {
 /// The rows of `codes_log.csv` up to epoch `upto` (none if it is missing).
 pub(crate) fn read_log(path: &Path, upto: usize) -> Vec<String> {
     let Ok(text) = std::fs::read_to_string(path) else { return Vec::new() };
-    text.lines().skip(1).filter(|l| l.split(',').next().and_then(|e| e.parse::<usize>().ok()).is_some_and(|e| e <= upto)).map(str::to_string).collect()
+    text.lines()
+        .skip(1)
+        .filter(|l| l.split(',').next().and_then(|e| e.parse::<usize>().ok()).is_some_and(|e| e <= upto))
+        .map(str::to_string)
+        .collect()
 }
 
 pub(crate) fn write_log(path: &Path, rows: &[String]) -> Result<()> {
@@ -270,7 +293,9 @@ pub(crate) fn project_and_record(l: &Learner, start: &Codes, cfg: &crate::TrainC
     let theta = l.logits.to_array();
     let p = tcsense_sensor::project::project(start.shape(), start.clock_hz, l.lc.constraints, &theta.view())?;
     let (tap, hamming, window) = l.distance();
-    let changed = (0..start.subpixels() * start.taps()).map(|c| p.codes.channel(c).iter().zip(l.hard.channel(c)).filter(|(a, b)| a != b).count()).sum::<usize>();
+    let changed = (0..start.subpixels() * start.taps())
+        .map(|c| p.codes.channel(c).iter().zip(l.hard.channel(c)).filter(|(a, b)| a != b).count())
+        .sum::<usize>();
     let record = serde_json::json!({
         "solver": p.method,
         "score": p.score,

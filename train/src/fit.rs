@@ -15,9 +15,9 @@ use rand::SeedableRng;
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
+use tcsense_datasets::grid::C;
 use tcsense_datasets::Dataset;
 use tcsense_models::decoder::{Control, Decoder};
-use tcsense_datasets::grid::C;
 use tcsense_models::metrics::{depth_errors, mse, psnr};
 use tcsense_models::net::{to_tensor, NetDecoder, Network, Prediction};
 use tcsense_models::runs::{ModelConfig, CODES_FILE, CONFIG_FILE};
@@ -26,13 +26,16 @@ use tcsense_sensor::measure::{measure_batch, measure_batch_at, signal_exposure};
 use tcsense_sensor::noise::derive_seed;
 use tcsense_sensor::{Codes, FramePlan, NoiseParams, Sensor};
 
-use crate::config::TrainConfig;
-use crate::deep_sensing::{LearnCodes, Learner};
 use crate::augment::DepthLabels;
 use crate::config::Loss;
+use crate::config::TrainConfig;
 use crate::data::{load_cubes, load_depth, load_lifetime_labels};
+use crate::deep_sensing::{LearnCodes, Learner};
 use crate::loss::{depth_loss, lifetime_loss, loss_fn};
-use crate::run_dir::{latest_checkpoint, load_checkpoint, read_json, read_rows, save_checkpoint, write_json, write_rows, EpochMetrics, RunLock, RunState, METRICS_FILE};
+use crate::run_dir::{
+    latest_checkpoint, load_checkpoint, read_json, read_rows, save_checkpoint, write_json, write_rows, EpochMetrics, RunLock, RunState,
+    METRICS_FILE,
+};
 use crate::{file_err, Result, TrainError};
 
 /// Stream of the validation noise seeds, apart from the training steps' `(seed, step)`.
@@ -57,7 +60,15 @@ impl Progress for Quiet {}
 ///
 /// # Shapes
 /// - `x`: `[N, T, H, W]`, `depth`: `[N, K, H, W]`
-pub fn validate(decoder: &mut dyn Decoder, plan: &FramePlan, sensor: &Sensor, x: &Array4<f32>, depth: Option<&Array4<f32>>, noise: Option<&NoiseParams>, seed: u64) -> Result<Vec<(String, f64)>> {
+pub fn validate(
+    decoder: &mut dyn Decoder,
+    plan: &FramePlan,
+    sensor: &Sensor,
+    x: &Array4<f32>,
+    depth: Option<&Array4<f32>>,
+    noise: Option<&NoiseParams>,
+    seed: u64,
+) -> Result<Vec<(String, f64)>> {
     let n = x.dim().0;
     let never = AtomicBool::new(false);
     let (mut total_mse, mut total_psnr) = (0.0, 0.0);
@@ -71,7 +82,9 @@ pub fn validate(decoder: &mut dyn Decoder, plan: &FramePlan, sensor: &Sensor, x:
             // τ_m where the truth holds a fluorophore: error (ns) where estimated, coverage
             lifetimes = true;
             let (est, l) = (est.index_axis(Axis(0), 0), l.index_axis(Axis(0), i));
-            for ((&e, &t), &sig) in est.index_axis(Axis(0), 0).iter().zip(l.index_axis(Axis(0), 0).iter()).zip(l.index_axis(Axis(0), 4).iter()) {
+            for ((&e, &t), &sig) in
+                est.index_axis(Axis(0), 0).iter().zip(l.index_axis(Axis(0), 0).iter()).zip(l.index_axis(Axis(0), 4).iter())
+            {
                 if sig > 0.5 && t.is_finite() {
                     truth += 1;
                     if e.is_finite() {
@@ -94,28 +107,51 @@ pub fn validate(decoder: &mut dyn Decoder, plan: &FramePlan, sensor: &Sensor, x:
             total_mse += mse(p, t);
             total_psnr += psnr(p, t);
         } else {
-            return Err(TrainError::InvalidParam { field: "decoder", got: decoder.name().into(), expected: "a cube, or depth with range labels".into() });
+            return Err(TrainError::InvalidParam {
+                field: "decoder",
+                got: decoder.name().into(),
+                expected: "a cube, or depth with range labels".into(),
+            });
         }
     }
     let per = |v: f64, k: usize| if k > 0 { v / k as f64 } else { f64::NAN };
     Ok(if lifetimes {
         vec![("val_lifetime_mae_ns".into(), per(ae, detected)), ("val_coverage".into(), per(detected as f64, truth))]
     } else if depth.is_some() {
-        vec![("val_depth_rmse_m".into(), per(se, detected).sqrt()), ("val_depth_mae_m".into(), per(ae, detected)), ("val_detection".into(), per(detected as f64, truth))]
+        vec![
+            ("val_depth_rmse_m".into(), per(se, detected).sqrt()),
+            ("val_depth_mae_m".into(), per(ae, detected)),
+            ("val_detection".into(), per(detected as f64, truth)),
+        ]
     } else {
         vec![("val_mse".into(), per(total_mse, n)), ("val_psnr_db".into(), per(total_psnr, n))]
     })
 }
 
 /// Train (or resume) a run in `run` on the CPU.
-pub fn train(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, progress: &dyn Progress, cancel: &AtomicBool) -> Result<Vec<EpochMetrics>> {
+pub fn train(
+    cfg: &TrainConfig,
+    codes: &Codes,
+    run: &Path,
+    resume: bool,
+    progress: &dyn Progress,
+    cancel: &AtomicBool,
+) -> Result<Vec<EpochMetrics>> {
     train_on(cfg, codes, run, resume, &Device::flex(), progress, cancel)
 }
 
 /// Train (or resume) a run in `run` on `device` (without autodiff: the loop adds it; see
 /// `tcsense_models::device`). The run directory is the same on every device: a run started on
 /// one resumes on another.
-pub fn train_on(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, device: &Device, progress: &dyn Progress, cancel: &AtomicBool) -> Result<Vec<EpochMetrics>> {
+pub fn train_on(
+    cfg: &TrainConfig,
+    codes: &Codes,
+    run: &Path,
+    resume: bool,
+    device: &Device,
+    progress: &dyn Progress,
+    cancel: &AtomicBool,
+) -> Result<Vec<EpochMetrics>> {
     let device = &device.clone().without_autodiff();
     match &cfg.run.model {
         ModelConfig::AdmmNet(m) => train_with(cfg, codes, run, resume, device, progress, cancel, |device| m.init(device)),
@@ -126,10 +162,21 @@ pub fn train_on(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, devi
 
 /// A fixed-codes run, or the three phases of deep sensing (see [`crate::deep_sensing`]).
 #[allow(clippy::too_many_arguments)]
-fn train_with<M: Network>(cfg: &TrainConfig, codes: &Codes, run: &Path, resume: bool, device: &Device, progress: &dyn Progress, cancel: &AtomicBool, init: impl Fn(&Device) -> M) -> Result<Vec<EpochMetrics>> {
+fn train_with<M: Network>(
+    cfg: &TrainConfig,
+    codes: &Codes,
+    run: &Path,
+    resume: bool,
+    device: &Device,
+    progress: &dyn Progress,
+    cancel: &AtomicBool,
+    init: impl Fn(&Device) -> M,
+) -> Result<Vec<EpochMetrics>> {
     cfg.validate()?;
     let start = match &cfg.init_from {
-        Some(dir) if !resume || latest_checkpoint(run)?.is_none() => Some(tcsense_models::runs::load_network(Path::new(dir), init(&device.clone().autodiff()))?),
+        Some(dir) if !resume || latest_checkpoint(run)?.is_none() => {
+            Some(tcsense_models::runs::load_network(Path::new(dir), init(&device.clone().autodiff()))?)
+        }
         _ => None,
     };
     let Some(lc) = &cfg.learn_codes else {
@@ -203,7 +250,9 @@ fn fit<M: Network>(
             let k = model_cfg.returns();
             (Some(load_depth(&ds, "train", cfg.max_train_items, k)?), Some(load_depth(&ds, "val", cfg.max_val_items, k)?))
         }
-        Prediction::Lifetime => (Some(load_lifetime_labels(&ds, "train", cfg.max_train_items)?), Some(load_lifetime_labels(&ds, "val", cfg.max_val_items)?)),
+        Prediction::Lifetime => {
+            (Some(load_lifetime_labels(&ds, "train", cfg.max_train_items)?), Some(load_lifetime_labels(&ds, "val", cfg.max_val_items)?))
+        }
     };
     let (bin_m, range_m) = (C * a.bin_width_s() / 2.0, C * a.bin_width_s() * a.bins() as f64 / 2.0);
     if train_x.dim().0 == 0 {
@@ -230,7 +279,10 @@ fn fit<M: Network>(
     let (mut model, mut optim, mut state, mut rows) = if resume {
         let saved = TrainConfig::load(&run.join(CONFIG_FILE))?;
         if saved.run.model != cfg.run.model || saved.seed != cfg.seed || saved.batch_size != cfg.batch_size {
-            return Err(file_err(&run.join(CONFIG_FILE), "the run was started with a different model, seed or batch size; resume with the saved config"));
+            return Err(file_err(
+                &run.join(CONFIG_FILE),
+                "the run was started with a different model, seed or batch size; resume with the saved config",
+            ));
         }
         match latest_checkpoint(run)? {
             Some(ckpt) => {
@@ -253,13 +305,23 @@ fn fit<M: Network>(
                 (model, optim, state, rows)
             }
             // killed before its first checkpoint: start over, as the run would have
-            None => (start.unwrap_or_else(|| seeded_init(&device, cfg.seed, init)), AdamConfig::new().init(), RunState { dataset: Some(ds_digest.clone()), ..RunState::default() }, Vec::new()),
+            None => (
+                start.unwrap_or_else(|| seeded_init(&device, cfg.seed, init)),
+                AdamConfig::new().init(),
+                RunState { dataset: Some(ds_digest.clone()), ..RunState::default() },
+                Vec::new(),
+            ),
         }
     } else {
         if run.join(crate::run_dir::CHECKPOINT_DIR).exists() {
             return Err(file_err(run, "a run already exists here; pass --resume to continue it or choose another directory"));
         }
-        (start.unwrap_or_else(|| seeded_init(&device, cfg.seed, init)), AdamConfig::new().init(), RunState { dataset: Some(ds_digest.clone()), ..RunState::default() }, Vec::new())
+        (
+            start.unwrap_or_else(|| seeded_init(&device, cfg.seed, init)),
+            AdamConfig::new().init(),
+            RunState { dataset: Some(ds_digest.clone()), ..RunState::default() },
+            Vec::new(),
+        )
     };
     write_json(&run.join(CONFIG_FILE), cfg)?;
     let mut codes_log = match &learner {
@@ -308,8 +370,17 @@ fn fit<M: Network>(
                     let lifetimes = M::PREDICTION == Prediction::Lifetime;
                     let labels = db.as_ref().filter(|_| !lifetimes).map(|d| DepthLabels { depth: d.view(), bin_m, range_m });
                     let maps = db.as_ref().filter(|_| lifetimes).map(|d| d.view());
-                    let out = aug.apply(&xb.view(), labels, maps, noise.as_ref().unwrap_or(&crate::config::TRAINING_NOISE), a.block(), cfg.seed, state.step);
-                    let mut yb = measure_items(&train_plan, &out.x, noise.as_ref().map(|_| out.noise.as_slice()), &out.ambient, noise_seed)?;
+                    let out = aug.apply(
+                        &xb.view(),
+                        labels,
+                        maps,
+                        noise.as_ref().unwrap_or(&crate::config::TRAINING_NOISE),
+                        a.block(),
+                        cfg.seed,
+                        state.step,
+                    );
+                    let mut yb =
+                        measure_items(&train_plan, &out.x, noise.as_ref().map(|_| out.noise.as_slice()), &out.ambient, noise_seed)?;
                     aug.perturb(&mut yb, cfg.seed, state.step);
                     // each item's loss on its own scale: its peak, brightness included
                     let peaks: Vec<f32> = out.x.outer_iter().map(|xi| xi.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-12)).collect();
@@ -329,7 +400,9 @@ fn fit<M: Network>(
             };
             let l;
             (model, l) = match learner.as_mut() {
-                Some(learner) => step_learned(model, &mut optim, learner, cfg, lr, &sensor, lit.as_ref().unwrap_or(&xb), &yb, target, &device),
+                Some(learner) => {
+                    step_learned(model, &mut optim, learner, cfg, lr, &sensor, lit.as_ref().unwrap_or(&xb), &yb, target, &device)
+                }
                 None => step(model, &mut optim, cfg, lr, &sensor, &yb, target, &device),
             };
             if !l.is_finite() {
@@ -343,7 +416,8 @@ fn fit<M: Network>(
         let val = validate(&mut valid, &plan, &a, &val_x, val_d.as_ref(), cfg.noise.as_ref(), cfg.seed)?;
         state.epoch = epoch + 1;
         state.seconds += t0.elapsed().as_secs_f64();
-        let m = EpochMetrics { epoch: epoch + 1, step: state.step, train_loss: loss_sum / steps_per_epoch as f64, val, seconds: state.seconds };
+        let m =
+            EpochMetrics { epoch: epoch + 1, step: state.step, train_loss: loss_sum / steps_per_epoch as f64, val, seconds: state.seconds };
         rows.push(m.clone());
         // the epoch's row first: a kill before the checkpoint lands leaves a row past the
         // checkpoint, which a resume drops and logs again (the other order would lose it)
@@ -364,7 +438,13 @@ fn fit<M: Network>(
 }
 
 /// The sensor of `codes` for validation (whole frames `hw`) and training (frames `thw`).
-fn sensing_for(cfg: &TrainConfig, codes: &Codes, hw: (usize, usize), thw: (usize, usize), device: &Device) -> Result<(Sensor, FramePlan, FramePlan, SensorTensors)> {
+fn sensing_for(
+    cfg: &TrainConfig,
+    codes: &Codes,
+    hw: (usize, usize),
+    thw: (usize, usize),
+    device: &Device,
+) -> Result<(Sensor, FramePlan, FramePlan, SensorTensors)> {
     let a = Sensor::ideal(codes.clone(), cfg.run.sampling, cfg.run.irf)?;
     let plan = a.plan(hw.0, hw.1)?;
     let train_plan = a.plan(thw.0, thw.1)?;
@@ -378,7 +458,18 @@ fn sensing_for(cfg: &TrainConfig, codes: &Codes, hw: (usize, usize), thw: (usize
 /// # Shapes
 /// - `x`: `[B, T, H, W]` (what was measured), `y`: `[B, M, H, W]`
 #[allow(clippy::too_many_arguments)]
-fn step_learned<M: Network>(model: M, optim: &mut ModuleOptimizer, learner: &mut Learner, cfg: &TrainConfig, lr: f64, sensor: &SensorTensors, x: &Array4<f32>, y: &Array4<f32>, target: Target<'_>, device: &Device) -> (M, f64) {
+fn step_learned<M: Network>(
+    model: M,
+    optim: &mut ModuleOptimizer,
+    learner: &mut Learner,
+    cfg: &TrainConfig,
+    lr: f64,
+    sensor: &SensorTensors,
+    x: &Array4<f32>,
+    y: &Array4<f32>,
+    target: Target<'_>,
+    device: &Device,
+) -> (M, f64) {
     let (yt, a, penalty) = learner.measurements(x, y, device);
     let pred = model.train_output(yt, &sensor.clone().with_matrix(a));
     let loss = objective(cfg.loss, pred, target, device) + penalty;
@@ -422,7 +513,11 @@ pub(crate) fn seeded_init<M: Module>(device: &Device, seed: u64, init: impl Fn(&
     model.visit(&mut Touch);
     let model = model.map(&mut Renumber(0));
     // `fork` keeps the parameters leaves of the autodiff graph (`to_device` would not)
-    if host == *device { model } else { model.fork(device) }
+    if host == *device {
+        model
+    } else {
+        model.fork(device)
+    }
 }
 
 /// Measure each item of `x` with its own noise model (`None`: noise-free), item `i`'s noise
@@ -438,7 +533,9 @@ fn measure_items(plan: &FramePlan, x: &Array4<f32>, noise: Option<&[NoiseParams]
         let xi = x.slice_axis(Axis(0), ndarray::Slice::from(i..i + 1));
         let item_seed = derive_seed(seed, i as u64);
         let item = match (noise, ambient.get(i).copied().filter(|&b| b > 0.0)) {
-            (Some(n), Some(b)) => measure_batch_at(plan, &xi.mapv(|v| v + b).view(), Some(&n[i]), signal_exposure(plan, &xi, &n[i])?, item_seed)?,
+            (Some(n), Some(b)) => {
+                measure_batch_at(plan, &xi.mapv(|v| v + b).view(), Some(&n[i]), signal_exposure(plan, &xi, &n[i])?, item_seed)?
+            }
             (n, Some(b)) => measure_batch(plan, &xi.mapv(|v| v + b).view(), n.map(|n| &n[i]), item_seed)?,
             (n, None) => measure_batch(plan, &xi, n.map(|n| &n[i]), item_seed)?,
         };
@@ -477,7 +574,10 @@ pub(crate) fn objective(loss: Loss, pred: Tensor<4>, target: Target<'_>, device:
         }
         Target::Lifetime { labels } => {
             let filled = labels.mapv(|v| if v.is_finite() { v } else { 0.0 });
-            let distinct = ndarray::Zip::from(labels.index_axis(Axis(1), 1)).and(labels.index_axis(Axis(1), 2)).map_collect(|a, b| if (a - b).abs() > 1e-3 { 1f32 } else { 0.0 }).insert_axis(Axis(1));
+            let distinct = ndarray::Zip::from(labels.index_axis(Axis(1), 1))
+                .and(labels.index_axis(Axis(1), 2))
+                .map_collect(|a, b| if (a - b).abs() > 1e-3 { 1f32 } else { 0.0 })
+                .insert_axis(Axis(1));
             lifetime_loss(pred, to_tensor(&filled.view(), device), to_tensor(&distinct.view(), device))
         }
     }
@@ -488,7 +588,16 @@ pub(crate) fn objective(loss: Loss, pred: Tensor<4>, target: Target<'_>, device:
 /// # Shapes
 /// - `y`: `[B, M, H, W]`; the target as in [`Target`]
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn step<M: Network>(model: M, optim: &mut ModuleOptimizer, cfg: &TrainConfig, lr: f64, sensor: &SensorTensors, y: &Array4<f32>, target: Target<'_>, device: &Device) -> (M, f64) {
+pub(crate) fn step<M: Network>(
+    model: M,
+    optim: &mut ModuleOptimizer,
+    cfg: &TrainConfig,
+    lr: f64,
+    sensor: &SensorTensors,
+    y: &Array4<f32>,
+    target: Target<'_>,
+    device: &Device,
+) -> (M, f64) {
     let pred = model.train_output(to_tensor(&y.view(), device), sensor);
     let loss = objective(cfg.loss, pred, target, device);
     let l: f32 = loss.clone().into_scalar();
@@ -498,6 +607,7 @@ pub(crate) fn step<M: Network>(model: M, optim: &mut ModuleOptimizer, cfg: &Trai
 
 /// Read `state.json` of a run's checkpoint (for tests and tools).
 pub fn run_state(run: &Path) -> Result<RunState> {
-    let ckpt = latest_checkpoint(run)?.ok_or_else(|| file_err(&run.join(crate::run_dir::CHECKPOINT_DIR).join(crate::run_dir::STATE_FILE), "no checkpoint yet"))?;
+    let ckpt = latest_checkpoint(run)?
+        .ok_or_else(|| file_err(&run.join(crate::run_dir::CHECKPOINT_DIR).join(crate::run_dir::STATE_FILE), "no checkpoint yet"))?;
     read_json(&ckpt.join(crate::run_dir::STATE_FILE))
 }

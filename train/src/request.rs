@@ -151,7 +151,9 @@ impl TrainRequest {
     fn default_model(&self, m: usize, t: usize, range_m: f64) -> Result<ModelConfig> {
         Ok(match self.decoder.as_str() {
             "admm-net" => ModelConfig::AdmmNet(preset(self.preset.as_deref().unwrap_or("cpu"), m, t)?.with_normalize(true)),
-            "unet" => ModelConfig::Unet(UnetConfig::new(m, t, range_m).with_returns(2).with_base_width(8).with_levels(3).with_head(UnetHead::ScoreVolume)),
+            "unet" => ModelConfig::Unet(
+                UnetConfig::new(m, t, range_m).with_returns(2).with_base_width(8).with_levels(3).with_head(UnetHead::ScoreVolume),
+            ),
             "lifetime" => ModelConfig::Lifetime(LifetimeNetConfig::new(m, t).with_harmonics(16).with_base_width(16).with_levels(3)),
             other => return Err(bad("decoder", other, "admm-net, unet or lifetime")),
         })
@@ -195,7 +197,10 @@ pub fn prepare(req: &TrainRequest) -> Result<Prepared> {
         let (mut cfg, from_config) = match &req.config {
             Some(p) => (TrainConfig::load(p)?, true),
             None => {
-                let ds_path = req.dataset.as_ref().ok_or_else(|| bad("dataset", "none", "a dataset directory (--dataset), or a config (--config) or --resume"))?;
+                let ds_path = req
+                    .dataset
+                    .as_ref()
+                    .ok_or_else(|| bad("dataset", "none", "a dataset directory (--dataset), or a config (--config) or --resume"))?;
                 let ds = Dataset::open(ds_path)?;
                 let codes_path = req.codes.as_ref().ok_or_else(|| bad("codes", "none", "a codes JSON file (--codes)"))?;
                 let codes = Codes::load(codes_path)?;
@@ -240,7 +245,11 @@ pub fn prepare(req: &TrainRequest) -> Result<Prepared> {
     }
     for (field, given) in [("signal", req.signal.is_some()), ("ambient", req.ambient.is_some())] {
         if given && req.no_augment {
-            return Err(bad("no_augment", &format!("with {field}"), &format!("either no augmentation or a {field} range (the photon ladder is drawn by the augmentation)")));
+            return Err(bad(
+                "no_augment",
+                &format!("with {field}"),
+                &format!("either no augmentation or a {field} range (the photon ladder is drawn by the augmentation)"),
+            ));
         }
     }
     if let Some(r) = req.signal {
@@ -279,12 +288,18 @@ pub fn prepare(req: &TrainRequest) -> Result<Prepared> {
         None => {}
         Some(p) if Path::new(p).extension().is_some_and(|e| e == "npy") => measured = Some(MeasuredSensor::Matrix(PathBuf::from(p))),
         Some("ideal") => (cfg.run.irf, cfg.run.measured) = (Irf::Ideal, false),
-        Some("physical") => (cfg.run.irf, cfg.run.measured) = (Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S }, false),
+        Some("physical") => {
+            (cfg.run.irf, cfg.run.measured) = (Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S }, false)
+        }
         Some(other) => return Err(bad("irf", other, "ideal, physical or a measured matrix A.npy")),
     }
     if let Some(dir) = &req.calibration {
         if measured.is_some() {
-            return Err(bad("calibration", &dir.display().to_string(), "either a calibration or a measured matrix (irf A.npy): both give the sensor matrix"));
+            return Err(bad(
+                "calibration",
+                &dir.display().to_string(),
+                "either a calibration or a measured matrix (irf A.npy): both give the sensor matrix",
+            ));
         }
         measured = Some(MeasuredSensor::Calibration(dir.clone()));
     }
@@ -304,7 +319,8 @@ pub fn prepare(req: &TrainRequest) -> Result<Prepared> {
     }
     if req.learn_codes && !req.resume {
         let given = req.tap_constraint || req.hamming.is_some() || req.window.is_some();
-        let constraints = if given { Constraints { tap: req.tap_constraint, hamming: req.hamming, window: req.window } } else { codes.constraints };
+        let constraints =
+            if given { Constraints { tap: req.tap_constraint, hamming: req.hamming, window: req.window } } else { codes.constraints };
         let mut lc = LearnCodes::new(constraints, cfg.epochs);
         lc.relaxed_epochs = req.relaxed_epochs.unwrap_or(lc.relaxed_epochs);
         lc.codes_lr = req.codes_lr.unwrap_or(lc.codes_lr);

@@ -130,7 +130,13 @@ fn save_optimizer(optim: &ModuleOptimizer, path: &Path) -> Result<()> {
 /// atomically: a kill at any point leaves a complete checkpoint behind.
 /// `extra` writes more files into the checkpoint (e.g. learned code logits) before it is
 /// moved into place.
-pub fn save_checkpoint<M: Module>(run: &Path, model: &M, optim: &ModuleOptimizer, state: &RunState, extra: &dyn Fn(&Path) -> Result<()>) -> Result<()> {
+pub fn save_checkpoint<M: Module>(
+    run: &Path,
+    model: &M,
+    optim: &ModuleOptimizer,
+    state: &RunState,
+    extra: &dyn Fn(&Path) -> Result<()>,
+) -> Result<()> {
     let tmp = run.join(CHECKPOINT_TMP);
     let _ = std::fs::remove_dir_all(&tmp);
     std::fs::create_dir_all(&tmp).map_err(|e| file_err(&tmp, e))?;
@@ -246,7 +252,9 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join(METRICS_FILE);
         let val = vec![("val_mse".to_string(), 1e-3), ("val_psnr_db".to_string(), 30.0)];
-        let rows: Vec<EpochMetrics> = (1..=3).map(|e| EpochMetrics { epoch: e, step: 3 * e as u64, train_loss: 0.5 / e as f64, val: val.clone(), seconds: e as f64 }).collect();
+        let rows: Vec<EpochMetrics> = (1..=3)
+            .map(|e| EpochMetrics { epoch: e, step: 3 * e as u64, train_loss: 0.5 / e as f64, val: val.clone(), seconds: e as f64 })
+            .collect();
         write_rows(&path, &rows).unwrap();
         assert!(std::fs::read_to_string(&path).unwrap().starts_with("epoch,step,train_loss,val_mse,val_psnr_db\n"));
         assert_eq!(std::fs::read_to_string(dir.join(TIMING_FILE)).unwrap(), "epoch,seconds\n1,1.00\n2,2.00\n3,3.00\n");

@@ -75,7 +75,11 @@ impl Architecture {
     /// another network is refused.
     pub fn apply(&self, model: &mut ModelConfig) -> Result<()> {
         if let Some((flag, _, _)) = self.against(model).into_iter().find(|(_, _, have)| have.is_none()) {
-            return Err(TrainError::InvalidParam { field: "architecture", got: format!("--{flag}"), expected: format!("settings of {}", model.name()) });
+            return Err(TrainError::InvalidParam {
+                field: "architecture",
+                got: format!("--{flag}"),
+                expected: format!("settings of {}", model.name()),
+            });
         }
         match model {
             ModelConfig::AdmmNet(c) => {
@@ -117,7 +121,12 @@ impl Architecture {
     pub fn check(&self, model: &ModelConfig, run: &Path) -> Result<()> {
         for (flag, given, have) in self.against(model) {
             match have {
-                None => return Err(file_err(&run.join(CONFIG_FILE), format!("a {} run has no --{flag}; leave it out (the architecture comes from the run)", model.name()))),
+                None => {
+                    return Err(file_err(
+                        &run.join(CONFIG_FILE),
+                        format!("a {} run has no --{flag}; leave it out (the architecture comes from the run)", model.name()),
+                    ))
+                }
                 Some(h) if h != given => {
                     return Err(file_err(&run.join(CONFIG_FILE), format!("--{flag} {given} contradicts the run's {flag} {h} (field model.{}); the architecture comes from the run, so leave --{flag} out", flag.replace('-', "_"))));
                 }
@@ -133,7 +142,10 @@ impl Architecture {
 pub fn model_of_run(source: &Path) -> Result<ModelConfig> {
     let path = source.join(CONFIG_FILE);
     if !path.exists() {
-        return Err(file_err(source, format!("not a run directory ({CONFIG_FILE} missing); --init-from takes a run of `tcsense train` or zoo:NAME")));
+        return Err(file_err(
+            source,
+            format!("not a run directory ({CONFIG_FILE} missing); --init-from takes a run of `tcsense train` or zoo:NAME"),
+        ));
     }
     let v = read_config_json(&path)?;
     let spec: RunSpec = serde_json::from_value(v).map_err(|e| file_err(&path, format!("not a run config: {e}")))?;
@@ -172,7 +184,9 @@ pub fn run_codes(run: &Path, codes: Option<&Path>, resume: bool) -> Result<Codes
         (Some(p), _) => Codes::load(p)?,
         (None, true) if !run.join(CODES_FILE).exists() && run.join(START_CODES_FILE).exists() => Codes::load(&run.join(START_CODES_FILE))?,
         (None, true) => Codes::load(&run.join(CODES_FILE))?,
-        (None, false) => return Err(TrainError::InvalidParam { field: "codes", got: "none".into(), expected: "a codes JSON file (--codes)".into() }),
+        (None, false) => {
+            return Err(TrainError::InvalidParam { field: "codes", got: "none".into(), expected: "a codes JSON file (--codes)".into() })
+        }
     })
 }
 
@@ -193,7 +207,11 @@ pub fn use_measured_sensor(cfg: &mut TrainConfig, source: &MeasuredSensor, resum
             MeasuredSensor::Matrix(p) => format!("--irf {}", p.display()),
             MeasuredSensor::Calibration(d) => format!("--calibration {}", d.display()),
         };
-        return Err(TrainError::InvalidParam { field: "sensor", got: what, expected: "no new sensor on --resume (a run's sensor does not change); start a new run from it with --init-from".into() });
+        return Err(TrainError::InvalidParam {
+            field: "sensor",
+            got: what,
+            expected: "no new sensor on --resume (a run's sensor does not change); start a new run from it with --init-from".into(),
+        });
     }
     cfg.run.measured = true;
     Ok(())
@@ -205,8 +223,12 @@ pub fn use_measured_sensor(cfg: &mut TrainConfig, source: &MeasuredSensor, resum
 pub fn write_measured_sensor(cfg: &TrainConfig, codes: &Codes, source: &MeasuredSensor, run: &Path) -> Result<()> {
     cfg.validate()?;
     let model = match source {
-        MeasuredSensor::Matrix(p) => SensorModel { sampling: cfg.run.sampling, irf: cfg.run.irf, measured: Some(p.clone()), ..Default::default() },
-        MeasuredSensor::Calibration(d) => SensorModel { sampling: cfg.run.sampling, irf: cfg.run.irf, calibration: Some(d.clone()), ..Default::default() },
+        MeasuredSensor::Matrix(p) => {
+            SensorModel { sampling: cfg.run.sampling, irf: cfg.run.irf, measured: Some(p.clone()), ..Default::default() }
+        }
+        MeasuredSensor::Calibration(d) => {
+            SensorModel { sampling: cfg.run.sampling, irf: cfg.run.irf, calibration: Some(d.clone()), ..Default::default() }
+        }
     };
     let sensor = Sensor::build(codes.clone(), &model)?;
     if run.join("checkpoint").exists() || run.join(crate::deep_sensing::RELAXED_DIR).exists() {

@@ -23,7 +23,13 @@ fn a_delay_prior_run_trains_the_same_on_either_path() {
     let grid = TimeGrid { length: 16, ..TimeGrid::default() };
     let cancel = AtomicBool::new(false);
     generate(&gen, &grid, 8, 3, &dir.join("ds"), &WriteOptions { shard_size: 8, force: false, progress: &|| {}, cancel: &cancel }).unwrap();
-    let codes = random_codes(CodeShape { bh: 2, bw: 2, taps: 4, length: 16, drain: false }, 607e6, Constraints { tap: true, ..Default::default() }, 5).unwrap();
+    let codes = random_codes(
+        CodeShape { bh: 2, bw: 2, taps: 4, length: 16, drain: false },
+        607e6,
+        Constraints { tap: true, ..Default::default() },
+        5,
+    )
+    .unwrap();
     let model = ModelConfig::AdmmNet(AdmmNetConfig::new(4, 16).with_stages(2).with_channels(3).with_prior(Prior::Delay));
     let mut cfg = TrainConfig::new(model, &dir.join("ds"), Loss::RmseMae, Sampling::Oversample(1));
     cfg.epochs = 3;
@@ -37,7 +43,11 @@ fn a_delay_prior_run_trains_the_same_on_either_path() {
     tcsense_kernels::delay_op::use_composed(false);
     let kernels = train(&cfg, &codes, &dir.join("kernels"), false, &Quiet, &never).unwrap();
     assert!(calls() > 0, "the kernels ran");
-    eprintln!("losses composed {:?}\n       kernels  {:?}", composed.iter().map(|m| m.train_loss).collect::<Vec<_>>(), kernels.iter().map(|m| m.train_loss).collect::<Vec<_>>());
+    eprintln!(
+        "losses composed {:?}\n       kernels  {:?}",
+        composed.iter().map(|m| m.train_loss).collect::<Vec<_>>(),
+        kernels.iter().map(|m| m.train_loss).collect::<Vec<_>>()
+    );
 
     assert_eq!(composed.len(), 3);
     assert!(kernels[2].train_loss < kernels[0].train_loss, "it trains: {} -> {}", kernels[0].train_loss, kernels[2].train_loss);

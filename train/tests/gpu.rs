@@ -22,7 +22,11 @@ use tcsense_sensor::{Codes, Sampling};
 use tcsense_train::{train_on, Loss, Quiet, TrainConfig};
 
 fn tmp() -> PathBuf {
-    let d = std::env::temp_dir().join(format!("tcsense-gpu-{}-{}", std::process::id(), std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos()));
+    let d = std::env::temp_dir().join(format!(
+        "tcsense-gpu-{}-{}",
+        std::process::id(),
+        std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos()
+    ));
     std::fs::create_dir_all(&d).unwrap();
     d
 }
@@ -49,7 +53,13 @@ fn setup(dir: &Path, model: ModelConfig) -> (TrainConfig, Codes) {
     let grid = TimeGrid { length: t, ..TimeGrid::default() };
     let cancel = AtomicBool::new(false);
     generate(&gen, &grid, 8, 1, &dir.join("ds"), &WriteOptions { shard_size: 8, force: false, progress: &|| {}, cancel: &cancel }).unwrap();
-    let codes = random_codes(CodeShape { bh: 2, bw: 2, taps: 4, length: t, drain: false }, 607e6, Constraints { tap: true, ..Default::default() }, 2).unwrap();
+    let codes = random_codes(
+        CodeShape { bh: 2, bw: 2, taps: 4, length: t, drain: false },
+        607e6,
+        Constraints { tap: true, ..Default::default() },
+        2,
+    )
+    .unwrap();
     let mut cfg = TrainConfig::new(model, &dir.join("ds"), Loss::RmseMae, Sampling::Oversample(1));
     cfg.epochs = 1;
     cfg.batch_size = 2;
@@ -98,7 +108,8 @@ fn same_on_both(model: ModelConfig) {
     let y = y();
     let reference = output(&dir.join("cpu"), &y, &cpu);
     // the step's weights: trained on the GPU, read on the CPU and on the GPU
-    for (run, dev, what) in [("gpu", &cpu, "gpu run on the cpu"), ("gpu", &gpu, "gpu run on the gpu"), ("cpu", &gpu, "cpu run on the gpu")] {
+    for (run, dev, what) in [("gpu", &cpu, "gpu run on the cpu"), ("gpu", &gpu, "gpu run on the gpu"), ("cpu", &gpu, "cpu run on the gpu")]
+    {
         let r = rel(&output(&dir.join(run), &y, dev), &reference);
         assert!(r <= 1e-4, "{what}: relative difference {r} from the cpu run on the cpu");
     }
@@ -121,7 +132,9 @@ fn admm_net_trains_and_runs_the_same_on_the_gpu() {
 /// (16 bins: more than the largest dilation, 9).
 #[test]
 fn the_delay_prior_trains_and_runs_the_same_on_the_gpu() {
-    same_on_both(ModelConfig::AdmmNet(AdmmNetConfig::new(4, 16).with_stages(2).with_channels(3).with_prior(tcsense_models::admm::Prior::Delay)));
+    same_on_both(ModelConfig::AdmmNet(
+        AdmmNetConfig::new(4, 16).with_stages(2).with_channels(3).with_prior(tcsense_models::admm::Prior::Delay),
+    ));
 }
 
 #[test]
@@ -148,9 +161,17 @@ fn learned_codes_train_the_same_on_the_gpu() {
     let on_gpu = train_on(&cfg, &codes, &dir.join("gpu"), false, &gpu, &Quiet, &never).unwrap();
     assert_eq!(on_cpu.len(), on_gpu.len());
     for (c, g) in on_cpu.iter().zip(&on_gpu) {
-        assert!((c.train_loss - g.train_loss).abs() <= 1e-3 * c.train_loss.abs(), "epoch {}: cpu {}, gpu {}", c.epoch, c.train_loss, g.train_loss);
+        assert!(
+            (c.train_loss - g.train_loss).abs() <= 1e-3 * c.train_loss.abs(),
+            "epoch {}: cpu {}, gpu {}",
+            c.epoch,
+            c.train_loss,
+            g.train_loss
+        );
     }
-    let read = |run: &str| -> serde_json::Value { serde_json::from_str(&std::fs::read_to_string(dir.join(run).join(runs::CODES_FILE)).unwrap()).unwrap() };
+    let read = |run: &str| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(dir.join(run).join(runs::CODES_FILE)).unwrap()).unwrap()
+    };
     let (c, g) = (read("cpu"), read("gpu"));
     assert_eq!(c["bits"], g["bits"], "the projected codes differ");
     // the relaxed logits' score at the projection: the same up to rounding

@@ -18,7 +18,11 @@ use tcsense_train::fit::run_state;
 use tcsense_train::{train, Loss, Quiet, TrainConfig, TrainError};
 
 fn tmp() -> PathBuf {
-    let d = std::env::temp_dir().join(format!("tcsense-train-{}-{}", std::process::id(), std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos()));
+    let d = std::env::temp_dir().join(format!(
+        "tcsense-train-{}-{}",
+        std::process::id(),
+        std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_nanos()
+    ));
     std::fs::create_dir_all(&d).unwrap();
     d
 }
@@ -28,7 +32,13 @@ fn setup(dir: &Path) -> (TrainConfig, Codes) {
     let grid = TimeGrid { length: 8, ..TimeGrid::default() };
     let cancel = AtomicBool::new(false);
     generate(&gen, &grid, 8, 1, &dir.join("ds"), &WriteOptions { shard_size: 8, force: false, progress: &|| {}, cancel: &cancel }).unwrap();
-    let codes = random_codes(CodeShape { bh: 2, bw: 2, taps: 4, length: 8, drain: false }, 607e6, Constraints { tap: true, ..Default::default() }, 2).unwrap();
+    let codes = random_codes(
+        CodeShape { bh: 2, bw: 2, taps: 4, length: 8, drain: false },
+        607e6,
+        Constraints { tap: true, ..Default::default() },
+        2,
+    )
+    .unwrap();
     let model = ModelConfig::AdmmNet(AdmmNetConfig::new(4, 8).with_stages(2).with_channels(4));
     let mut cfg = TrainConfig::new(model, &dir.join("ds"), Loss::RmseMae, Sampling::Oversample(1));
     cfg.epochs = 2;
@@ -57,7 +67,10 @@ fn training_reduces_loss_saves_and_resumes() {
     let csv = std::fs::read_to_string(dir.join("run/metrics.csv")).unwrap();
     assert_eq!(csv.lines().count(), 7);
     let saved: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("run/config.json")).unwrap()).unwrap();
-    assert_eq!((saved["decoder"].as_str(), saved["model"]["stages"].as_u64(), saved["epochs"].as_u64()), (Some("admm-net"), Some(2), Some(6)));
+    assert_eq!(
+        (saved["decoder"].as_str(), saved["model"]["stages"].as_u64(), saved["epochs"].as_u64()),
+        (Some("admm-net"), Some(2), Some(6))
+    );
     assert_eq!(TrainConfig::load(&dir.join("run/config.json")).unwrap(), long, "config.json reads back as written");
 
     // save -> load gives identical outputs
@@ -102,7 +115,12 @@ fn augmented_runs_crop_resume_exactly_and_shift_like_a_delayed_scene() {
     let first = train(&one, &codes, &dir.join("resumed"), false, &Quiet, &never).unwrap();
     let more = train(&cfg, &codes, &dir.join("resumed"), true, &Quiet, &never).unwrap();
     assert_eq!((first[0].train_loss, first[0].get("val_mse")), (straight[0].train_loss, straight[0].get("val_mse")));
-    assert!((more[0].train_loss - straight[1].train_loss).abs() < 1e-6 * straight[1].train_loss.abs().max(1e-9), "{} vs {}", more[0].train_loss, straight[1].train_loss);
+    assert!(
+        (more[0].train_loss - straight[1].train_loss).abs() < 1e-6 * straight[1].train_loss.abs().max(1e-9),
+        "{} vs {}",
+        more[0].train_loss,
+        straight[1].train_loss
+    );
     // validation runs on whole 8×8 frames
     let y = Array4::from_shape_fn((1, 4, 8, 8), |(_, m, r, c)| ((m + r * 3 + c) % 5) as f32 * 0.2);
     assert_eq!(weights_output(&dir.join("resumed"), &y).len(), 8 * 8 * 8);
@@ -124,7 +142,12 @@ fn augmented_runs_crop_resume_exactly_and_shift_like_a_delayed_scene() {
         let shifted = shift_only.apply(&x.view(), None, None, &noise, (2, 2), 11, step).x;
         let t = grid.bins();
         let k = (0..t).find(|&k| (0..t).all(|j| shifted[(0, (j + k) % t, 0, 0)] == x[(0, j, 0, 0)])).expect("a roll");
-        let delayed = tcsense_datasets::flim::render(&ch, &FlimKnobs { onset_s: (1e-9 + k as f64 * grid.bin_width_s()) % grid.cycle_s(), ..knobs }, &grid).x;
+        let delayed = tcsense_datasets::flim::render(
+            &ch,
+            &FlimKnobs { onset_s: (1e-9 + k as f64 * grid.bin_width_s()) % grid.cycle_s(), ..knobs },
+            &grid,
+        )
+        .x;
         let peak = x.iter().fold(0f32, |m, &v| m.max(v));
         let diff = shifted.index_axis(ndarray::Axis(0), 0).iter().zip(delayed.iter()).fold(0f32, |m, (a, b)| m.max((a - b).abs()));
         assert!(diff < 1e-5 * peak, "shift {k}: differs from the regenerated scene by {diff}");
@@ -166,6 +189,9 @@ fn unet_trains_on_depth_resumes_and_opens_as_a_depth_decoder() {
     assert!(out.cube.is_none());
     let (d, c) = (out.depth.unwrap(), out.confidence.unwrap());
     assert_eq!((d.dim(), c.dim()), ((1, 2, 8, 8), (1, 2, 8, 8)));
-    assert!(d.iter().zip(c.iter()).all(|(&d, &c)| (0.0..=1.0).contains(&c) && (d.is_nan() == (c < 0.5)) && (d.is_nan() || (0.0..=range_m as f32).contains(&d))));
+    assert!(d
+        .iter()
+        .zip(c.iter())
+        .all(|(&d, &c)| (0.0..=1.0).contains(&c) && (d.is_nan() == (c < 0.5)) && (d.is_nan() || (0.0..=range_m as f32).contains(&d))));
     std::fs::remove_dir_all(&dir).ok();
 }

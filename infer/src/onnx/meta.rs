@@ -96,7 +96,12 @@ impl OnnxMeta {
                 Some(c) => Some(c.matrix.a().iter().copied().collect()),
                 None => run.spec.measured.then(|| run.sensor.matrix().a().iter().copied().collect()),
             },
-            calibration: opts.calibration.map(|c| CalibrationNote { size: c.meta.size, units: c.meta.units.clone(), matrix_digest: c.meta.matrix_digest.clone(), sweep: c.meta.sweep.clone() }),
+            calibration: opts.calibration.map(|c| CalibrationNote {
+                size: c.meta.size,
+                units: c.meta.units.clone(),
+                matrix_digest: c.meta.matrix_digest.clone(),
+                sweep: c.meta.sweep.clone(),
+            }),
         }
     }
 
@@ -141,7 +146,11 @@ impl OnnxMeta {
         } else if self.decoder == "lifetime" {
             p.push(("units", "measurements: tap images, any scale; lifetime: channels tau_m (amplitude-weighted mean), tau_1 <= tau_2 in s and the amplitude fraction alpha_1 of tau_1; confidence: probability in [0, 1] that the pixel holds a fluorophore; intensity: the sum of the tap images".into()));
         } else {
-            p.push(("units", "measurements: tap images, any scale; cube: the measurements' scale per time bin (bin j covers [j*bin_s, (j+1)*bin_s))".into()));
+            p.push((
+                "units",
+                "measurements: tap images, any scale; cube: the measurements' scale per time bin (bin j covers [j*bin_s, (j+1)*bin_s))"
+                    .into(),
+            ));
         }
         p.into_iter().map(|(k, v)| (k.to_string(), v)).collect()
     }
@@ -158,7 +167,9 @@ impl OnnxMeta {
         if version != VERSION {
             return Err(err("version", format!("got {version}, this build reads version {VERSION}")));
         }
-        let num = |key: &str| -> Result<usize> { req(key)?.parse::<usize>().map_err(|e| err(key, format!("{e}; expected a non-negative integer"))) };
+        let num = |key: &str| -> Result<usize> {
+            req(key)?.parse::<usize>().map_err(|e| err(key, format!("{e}; expected a non-negative integer")))
+        };
         let float = |key: &str| -> Result<f64> { req(key)?.parse::<f64>().map_err(|e| err(key, format!("{e}; expected a number"))) };
         let pair = |key: &str| -> Result<(usize, usize)> {
             let v = req(key)?;
@@ -181,8 +192,13 @@ impl OnnxMeta {
             v => return Err(err("matrix_input", format!("got {v:?}, expected true or false"))),
         };
         let (returns, range_m) = if decoder == "unet" { (num("returns")?, float("range_m")?) } else { (0, 0.0) };
-        let matrix_values: Option<Vec<f32>> = get("sensor_matrix_values").map(|v| serde_json::from_str(&v).map_err(|e| err("sensor_matrix_values", format!("{e}; expected a JSON array of N·M·T numbers")))).transpose()?;
-        let calibration: Option<CalibrationNote> = get("calibration").map(|v| serde_json::from_str(&v).map_err(|e| err("calibration", e.to_string()))).transpose()?;
+        let matrix_values: Option<Vec<f32>> = get("sensor_matrix_values")
+            .map(|v| {
+                serde_json::from_str(&v).map_err(|e| err("sensor_matrix_values", format!("{e}; expected a JSON array of N·M·T numbers")))
+            })
+            .transpose()?;
+        let calibration: Option<CalibrationNote> =
+            get("calibration").map(|v| serde_json::from_str(&v).map_err(|e| err("calibration", e.to_string()))).transpose()?;
         let meta = OnnxMeta {
             decoder,
             taps: num("taps")?,
@@ -205,7 +221,15 @@ impl OnnxMeta {
         if a.taps() != meta.taps || a.bins() != meta.bins || a.block() != meta.block {
             return Err(err(
                 "codes",
-                format!("the codes give M = {}, T = {}, block {:?}; the metadata says M = {}, T = {}, block {:?}", a.taps(), a.bins(), a.block(), meta.taps, meta.bins, meta.block),
+                format!(
+                    "the codes give M = {}, T = {}, block {:?}; the metadata says M = {}, T = {}, block {:?}",
+                    a.taps(),
+                    a.bins(),
+                    a.block(),
+                    meta.taps,
+                    meta.bins,
+                    meta.block
+                ),
             ));
         }
         Ok(meta)
@@ -229,7 +253,11 @@ impl OnnxMeta {
         match &self.matrix_values {
             None => Ok(synthetic),
             Some(v) => {
-                let a = ndarray::Array3::from_shape_vec(synthetic.a().dim(), v.clone()).map_err(|e| InferError::InvalidParam { field: "sensor_matrix_values", got: format!("{} values", v.len()), expected: format!("N·M·T = {} ({e})", synthetic.a().len()) })?;
+                let a = ndarray::Array3::from_shape_vec(synthetic.a().dim(), v.clone()).map_err(|e| InferError::InvalidParam {
+                    field: "sensor_matrix_values",
+                    got: format!("{} values", v.len()),
+                    expected: format!("N·M·T = {} ({e})", synthetic.a().len()),
+                })?;
                 Ok(synthetic.with_values(a)?)
             }
         }

@@ -24,15 +24,15 @@ use burn::nn::conv::Conv2d;
 use protobuf::Message;
 use std::path::Path;
 
-use tcsense_models::runs::{LoadedRun, TrainedNet};
 use tcsense_models::admm::{Stage, DELAY_DILATIONS};
+use tcsense_models::runs::{LoadedRun, TrainedNet};
 use tcsense_models::{AdmmNet, LifetimeNet, Prior, Unet};
 
 use crate::{InferError, Result};
-use tcsense_sensor::calibration::Calibration;
 use graph::{Attr, Dim, Graph};
 pub use meta::OnnxMeta;
 use sensor::SensorGraph;
+use tcsense_sensor::calibration::Calibration;
 
 /// Name of the measurements input.
 pub const INPUT: &str = "measurements";
@@ -61,11 +61,31 @@ pub fn export(run: &LoadedRun, opts: ExportOptions<'_>) -> Result<Vec<u8>> {
             // raw tap images of the calibrated frame size, corrected in the graph: (y − d) / G
             let [h, w] = cal.meta.size;
             if cal.meta.taps != m || cal.matrix.a().dim() != (n, m, t) {
-                return Err(InferError::InvalidParam { field: "calibration", got: format!("A {:?}", cal.matrix.a().dim()), expected: format!("the run's sensor [N, M, T] = [{n}, {m}, {t}]") });
+                return Err(InferError::InvalidParam {
+                    field: "calibration",
+                    got: format!("A {:?}", cal.matrix.a().dim()),
+                    expected: format!("the run's sensor [N, M, T] = [{n}, {m}, {t}]"),
+                });
             }
             let raw = g.input(INPUT, &[Dim::Named("batch"), Dim::Fixed(m), Dim::Fixed(h), Dim::Fixed(w)]);
-            let dark = g.weight("calibration_dark", &[1, m, h, w], cal.dark.as_slice().ok_or_else(|| InferError::InvalidParam { field: "calibration", got: "a strided dark map".into(), expected: "a contiguous map".into() })?);
-            let gain = g.weight("calibration_gain", &[1, m, h, w], cal.gain.as_slice().ok_or_else(|| InferError::InvalidParam { field: "calibration", got: "a strided gain map".into(), expected: "a contiguous map".into() })?);
+            let dark = g.weight(
+                "calibration_dark",
+                &[1, m, h, w],
+                cal.dark.as_slice().ok_or_else(|| InferError::InvalidParam {
+                    field: "calibration",
+                    got: "a strided dark map".into(),
+                    expected: "a contiguous map".into(),
+                })?,
+            );
+            let gain = g.weight(
+                "calibration_gain",
+                &[1, m, h, w],
+                cal.gain.as_slice().ok_or_else(|| InferError::InvalidParam {
+                    field: "calibration",
+                    got: "a strided gain map".into(),
+                    expected: "a contiguous map".into(),
+                })?,
+            );
             let d = g.op("Sub", &[&raw, &dark]);
             g.op("Div", &[&d, &gain])
         }
@@ -105,7 +125,11 @@ pub fn export(run: &LoadedRun, opts: ExportOptions<'_>) -> Result<Vec<u8>> {
         }
     };
     let model = g.into_model(&doc, &meta.to_props());
-    model.write_to_bytes().map_err(|e| InferError::InvalidParam { field: "ONNX model", got: e.to_string(), expected: "a serialisable model".into() })
+    model.write_to_bytes().map_err(|e| InferError::InvalidParam {
+        field: "ONNX model",
+        got: e.to_string(),
+        expected: "a serialisable model".into(),
+    })
 }
 
 /// Export `run` to `path` (written to a temporary file, then renamed).
@@ -116,7 +140,11 @@ pub fn export_to(run: &LoadedRun, opts: ExportOptions<'_>, path: &Path) -> Resul
 }
 
 fn values(t: burn::tensor::TensorData) -> Result<Vec<f32>> {
-    t.try_into_vec::<f32>().map_err(|e| InferError::InvalidParam { field: "weights", got: format!("{e:?}"), expected: "f32 weights".into() })
+    t.try_into_vec::<f32>().map_err(|e| InferError::InvalidParam {
+        field: "weights",
+        got: format!("{e:?}"),
+        expected: "f32 weights".into(),
+    })
 }
 
 /// An ONNX `Conv` of `x` with weights `[dims]` and `layer`'s bias (if any).
@@ -137,7 +165,14 @@ fn conv(g: &mut Graph, layer: &Conv2d, x: &str) -> Result<String> {
     let dims = layer.weight.dims();
     let w = values(layer.weight.val().into_data())?;
     let pad = (dims[2] / 2) as i64;
-    conv_node(g, layer, x, &dims, &w, &[Attr::Ints("kernel_shape", &[dims[2] as i64, dims[3] as i64]), Attr::Ints("pads", &[pad, pad, pad, pad])])
+    conv_node(
+        g,
+        layer,
+        x,
+        &dims,
+        &w,
+        &[Attr::Ints("kernel_shape", &[dims[2] as i64, dims[3] as i64]), Attr::Ints("pads", &[pad, pad, pad, pad])],
+    )
 }
 
 /// One layer of the delay prior ([`Prior::Delay`]) on `x [B, C_in, T, H, W]` → `[B, C_out, T, H, W]`:
@@ -166,7 +201,11 @@ fn delay_conv(g: &mut Graph, layer: &Conv2d, x: &str, d: usize) -> Result<String
     let tail = g.op("Slice", &[x, &last_start, &last_end, &axis]);
     let head = g.op("Slice", &[x, &first_start, &first_end, &axis]);
     let padded = g.node("Concat", &[&tail, x, &head], &[Attr::Int("axis", 2)]);
-    let attrs = [Attr::Ints("kernel_shape", &[3, kh as i64, kw as i64]), Attr::Ints("dilations", &[d, 1, 1]), Attr::Ints("pads", &[0, 1, 1, 0, 1, 1])];
+    let attrs = [
+        Attr::Ints("kernel_shape", &[3, kh as i64, kw as i64]),
+        Attr::Ints("dilations", &[d, 1, 1]),
+        Attr::Ints("pads", &[0, 1, 1, 0, 1, 1]),
+    ];
     conv_node(g, layer, &padded, &[co, ci, 3, kh, kw], &w3, &attrs)
 }
 
@@ -300,7 +339,7 @@ fn channels(g: &mut Graph, x: &str, start: usize, len: usize) -> String {
 fn lifetime(g: &mut Graph, net: &LifetimeNet, sensor: &SensorGraph, y: &str) -> Result<(String, String, String)> {
     let (k, t) = (net.harmonics(), net.bins());
     let spec = sensor.adjoint_then(g, y, &tcsense_models::lifetime::dft_basis(k, t), 2 * k + 1); // [B, 2K+1, H, W]
-    // the delay reference e^{iφ} from the frame's summed first harmonic
+                                                                                                 // the delay reference e^{iφ} from the frame's summed first harmonic
     let axes23 = g.ints("axes23", &[2, 3]);
     let total = g.node("ReduceSum", &[&spec, &axes23], &[Attr::Int("keepdims", 1)]); // [B, 2K+1, 1, 1]
     let (re1, im1) = (channels(g, &total, 1, 1), channels(g, &total, k + 1, 1));

@@ -72,8 +72,8 @@ impl SensorGraph {
     pub fn from_input(g: &mut Graph, input: &str, n: usize, m: usize, t: usize, block: (usize, usize)) -> Self {
         let at = g.node("Transpose", &[input], &[Attr::Ints("perm", &[0, 2, 1])]); // [N, T, M]
         let gram = g.op("MatMul", &[input, &at]); // [N, M, M]
-        // λ_max of each A_nA_nᵀ by power iteration from the ones vector (the Gram matrices are
-        // non-negative, so their Perron vector is not orthogonal to it)
+                                                  // λ_max of each A_nA_nᵀ by power iteration from the ones vector (the Gram matrices are
+                                                  // non-negative, so their Perron vector is not orthogonal to it)
         let mut v = g.weight("power_v0", &[n, m, 1], &vec![1.0; n * m]);
         let ax1 = g.ints("axis1", &[1]);
         for _ in 0..POWER_STEPS {
@@ -198,7 +198,8 @@ impl SensorGraph {
                 let num = g.op("Sqrt", &[&pp]);
                 let scale = g.op("Div", &[&num, &den]);
                 let f = g.op("Mul", &[&p, &scale]); // [N, M, T]
-                Mats::Value(g.node("Transpose", &[&f], &[Attr::Ints("perm", &[0, 2, 1])])) // [N, T, M]
+                Mats::Value(g.node("Transpose", &[&f], &[Attr::Ints("perm", &[0, 2, 1])]))
+                // [N, T, M]
             }
         };
         let w = self.back_weight(g, "matched", mats, t, m);
@@ -397,7 +398,11 @@ impl SensorGraph {
     /// the block, which ONNX Runtime runs as a GEMM and a scatter.
     fn from_blocks(&self, g: &mut Graph, x: &str, w: &str) -> String {
         let (bh, bw) = self.block;
-        g.node("ConvTranspose", &[x, w], &[Attr::Ints("kernel_shape", &[bh as i64, bw as i64]), Attr::Ints("strides", &[bh as i64, bw as i64])])
+        g.node(
+            "ConvTranspose",
+            &[x, w],
+            &[Attr::Ints("kernel_shape", &[bh as i64, bw as i64]), Attr::Ints("strides", &[bh as i64, bw as i64])],
+        )
     }
 }
 

@@ -141,7 +141,11 @@ impl Tval3Options {
             return Err(ModelError::InvalidParam { field: "maxit", got: "0".into(), expected: "at least 1".into() });
         }
         if self.weights.iter().any(|w| !(w.is_finite() && *w >= 0.0)) {
-            return Err(ModelError::InvalidParam { field: "weights", got: format!("{:?}", self.weights), expected: "non-negative weights [t, y, x]".into() });
+            return Err(ModelError::InvalidParam {
+                field: "weights",
+                got: format!("{:?}", self.weights),
+                expected: "non-negative weights [t, y, x]".into(),
+            });
         }
         if !(self.gamma > 0.0 && self.gamma < 1.0) {
             return Err(ModelError::InvalidParam { field: "gamma", got: self.gamma.to_string(), expected: "in (0, 1)".into() });
@@ -223,7 +227,6 @@ fn axpy_into(out: &mut [f32], a: &[f32], s: f32, b: &[f32]) {
 fn shape_err(e: ndarray::ShapeError, what: &str) -> ModelError {
     ModelError::InvalidParam { field: "buffer", got: what.into(), expected: e.to_string() }
 }
-
 
 /// Sums of the optimised solver's accept sweep: `‖d‖²`, the next Barzilai–Borwein sums
 /// `‖u − up‖²`, `(u − up)ᵀ((g2 − g2p) + (μ/β)(g − gp))`, and `‖up‖²`.
@@ -474,7 +477,9 @@ mod tests {
         // paths (20-row frames did in 2 of the 8 cases with the first banded solver).
         let (h, w) = (28, 12);
         let (mut checked, mut updated) = (0, 0);
-        for (sampling, irf) in [(Sampling::Oversample(2), Irf::Ideal), (Sampling::Heterodyne(4), Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 })] {
+        for (sampling, irf) in
+            [(Sampling::Oversample(2), Irf::Ideal), (Sampling::Heterodyne(4), Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 })]
+        {
             let spec = SensorParams { sampling, irf, ..SensorParams::from_codes(&codes) }.validate().unwrap();
             let a = MeasurementMatrix::synthesize(&codes, &spec).unwrap();
             let plan = a.plan(h, w).unwrap();
@@ -492,7 +497,11 @@ mod tests {
                     let (xf, rf) = tval3(&a, &plan, &y.view(), &opts, &|_, _| {}, &never).unwrap();
                     let (xr, rr) = tval3_reference(&a, &plan, &y.view(), &opts, &|_, _| {}, &never).unwrap();
                     let what = format!("{sampling:?} {tv_norm:?} nonneg {nonneg}");
-                    assert_eq!((rf.iterations, rf.outer, rf.backtracks, rf.fallbacks), (rr.iterations, rr.outer, rr.backtracks, rr.fallbacks), "{what}: {rf:?} vs {rr:?}");
+                    assert_eq!(
+                        (rf.iterations, rf.outer, rf.backtracks, rf.fallbacks),
+                        (rr.iterations, rr.outer, rr.backtracks, rr.fallbacks),
+                        "{what}: {rf:?} vs {rr:?}"
+                    );
                     let diff = (&xf - &xr).mapv(|v| v * v).sum().sqrt();
                     let norm = xr.mapv(|v| v * v).sum().sqrt();
                     // measured: 1e-5 to 5.6e-4 (rounding: sums in other orders, carried through 60 BB steps)
@@ -526,7 +535,11 @@ mod tests {
             let (xf, rf) = tval3(&a, &plan, &y.view(), &opts, &|_, _| {}, &never).unwrap();
             let (xr, rr) = tval3_reference(&a, &plan, &y.view(), &opts, &|_, _| {}, &never).unwrap();
             assert_eq!(rr.fallbacks, rr.iterations, "{tv_norm:?}: {rr:?}");
-            assert_eq!((rf.iterations, rf.outer, rf.backtracks, rf.fallbacks), (rr.iterations, rr.outer, rr.backtracks, rr.fallbacks), "{tv_norm:?}");
+            assert_eq!(
+                (rf.iterations, rf.outer, rf.backtracks, rf.fallbacks),
+                (rr.iterations, rr.outer, rr.backtracks, rr.fallbacks),
+                "{tv_norm:?}"
+            );
             let diff = (&xf - &xr).mapv(|v| v * v).sum().sqrt();
             let norm = xr.mapv(|v| v * v).sum().sqrt();
             assert!(diff <= 1e-4 * norm, "{tv_norm:?}: relative difference {}", diff / norm);
@@ -571,7 +584,15 @@ mod tests {
         let a = MeasurementMatrix::synthesize(&codes, &spec).unwrap();
         let (h, w) = (8, 8);
         let plan = a.plan(h, w).unwrap();
-        let x = Array3::from_shape_fn((8, h, w), |(j, r, c)| if (2..5).contains(&j) && r < 5 && c >= 3 { 1.0 } else if j == 6 { 0.5 } else { 0.0 });
+        let x = Array3::from_shape_fn((8, h, w), |(j, r, c)| {
+            if (2..5).contains(&j) && r < 5 && c >= 3 {
+                1.0
+            } else if j == 6 {
+                0.5
+            } else {
+                0.0
+            }
+        });
         let y = plan.forward(&x.view()).unwrap();
         for tv_norm in [TvNorm::Anisotropic, TvNorm::Isotropic] {
             let opts = Tval3Options { maxit: 400, tol: 1e-8, tv_norm, ..Default::default() };

@@ -25,29 +25,25 @@ impl Grad {
     pub(super) fn apply(&self, u: &[f32], dt: &mut [f32], dy: &mut [f32], dx: &mut [f32]) {
         let (t, h, w) = (self.t, self.h, self.w);
         let plane = h * w;
-        dt.par_chunks_mut(plane)
-            .zip(dy.par_chunks_mut(plane))
-            .zip(dx.par_chunks_mut(plane))
-            .enumerate()
-            .for_each(|(j, ((pt, py), px))| {
-                let cur = &u[j * plane..(j + 1) * plane];
-                let next = &u[((j + 1) % t) * plane..((j + 1) % t + 1) * plane];
-                for ((o, &a), &b) in pt.iter_mut().zip(cur).zip(next) {
-                    *o = self.wt * (b - a);
+        dt.par_chunks_mut(plane).zip(dy.par_chunks_mut(plane)).zip(dx.par_chunks_mut(plane)).enumerate().for_each(|(j, ((pt, py), px))| {
+            let cur = &u[j * plane..(j + 1) * plane];
+            let next = &u[((j + 1) % t) * plane..((j + 1) % t + 1) * plane];
+            for ((o, &a), &b) in pt.iter_mut().zip(cur).zip(next) {
+                *o = self.wt * (b - a);
+            }
+            for r in 0..h {
+                let row = &cur[r * w..(r + 1) * w];
+                let below = &cur[((r + 1) % h) * w..((r + 1) % h + 1) * w];
+                for ((o, &a), &b) in py[r * w..(r + 1) * w].iter_mut().zip(row).zip(below) {
+                    *o = self.wy * (b - a);
                 }
-                for r in 0..h {
-                    let row = &cur[r * w..(r + 1) * w];
-                    let below = &cur[((r + 1) % h) * w..((r + 1) % h + 1) * w];
-                    for ((o, &a), &b) in py[r * w..(r + 1) * w].iter_mut().zip(row).zip(below) {
-                        *o = self.wy * (b - a);
-                    }
-                    let ox = &mut px[r * w..(r + 1) * w];
-                    for c in 0..w - 1 {
-                        ox[c] = self.wx * (row[c + 1] - row[c]);
-                    }
-                    ox[w - 1] = self.wx * (row[0] - row[w - 1]);
+                let ox = &mut px[r * w..(r + 1) * w];
+                for c in 0..w - 1 {
+                    ox[c] = self.wx * (row[c + 1] - row[c]);
                 }
-            });
+                ox[w - 1] = self.wx * (row[0] - row[w - 1]);
+            }
+        });
     }
 
     /// `out = Dᵀ (pt, py, px)`.
@@ -371,23 +367,22 @@ fn solve(
         }
         // step length: BB after the first iteration, exact steepest descent otherwise
         let tau = if have_prev {
-            let (ss, sy) = s
-                .u
-                .par_chunks(CH)
-                .zip(s.up.par_chunks(CH))
-                .zip(s.g.par_chunks(CH).zip(s.gp.par_chunks(CH)))
-                .zip(s.g2.par_chunks(CH).zip(s.g2p.par_chunks(CH)))
-                .map(|(((u, up), (g, gp)), (g2, g2p))| {
-                    let m = mdb as f32;
-                    let (mut a, mut b) = ([0f32; 8], [0f32; 8]);
-                    for i in 0..u.len() {
-                        let uu = u[i] - up[i];
-                        a[i % 8] += uu * uu;
-                        b[i % 8] += uu * ((g2[i] - g2p[i]) + m * (g[i] - gp[i]));
-                    }
-                    (a.iter().map(|&v| v as f64).sum::<f64>(), b.iter().map(|&v| v as f64).sum::<f64>())
-                })
-                .reduce(|| (0.0, 0.0), |x, y| (x.0 + y.0, x.1 + y.1));
+            let (ss, sy) =
+                s.u.par_chunks(CH)
+                    .zip(s.up.par_chunks(CH))
+                    .zip(s.g.par_chunks(CH).zip(s.gp.par_chunks(CH)))
+                    .zip(s.g2.par_chunks(CH).zip(s.g2p.par_chunks(CH)))
+                    .map(|(((u, up), (g, gp)), (g2, g2p))| {
+                        let m = mdb as f32;
+                        let (mut a, mut b) = ([0f32; 8], [0f32; 8]);
+                        for i in 0..u.len() {
+                            let uu = u[i] - up[i];
+                            a[i % 8] += uu * uu;
+                            b[i % 8] += uu * ((g2[i] - g2p[i]) + m * (g[i] - gp[i]));
+                        }
+                        (a.iter().map(|&v| v as f64).sum::<f64>(), b.iter().map(|&v| v as f64).sum::<f64>())
+                    })
+                    .reduce(|| (0.0, 0.0), |x, y| (x.0 + y.0, x.1 + y.1));
             (ss / sy.max(f64::EPSILON)).abs()
         } else {
             s.steepest_tau(mdb)?
@@ -488,4 +483,3 @@ fn solve(
     let out = Array3::from_shape_vec((t, h, w), s.u.iter().map(|v| v * inv).collect()).map_err(|e| shape_err(e, "x̂"))?;
     Ok((out, report))
 }
-

@@ -272,7 +272,18 @@ impl Drop for Tiled<'_> {
     fn drop(&mut self) {
         let [w0, w1, w2] = std::mem::take(&mut self.wv);
         let [s0, s1, s2] = std::mem::take(&mut self.sigma);
-        let bufs = [&mut self.b, &mut self.atb, &mut self.u, &mut self.up, &mut self.d, &mut self.dn, &mut self.resid, &mut self.resid_p, &mut self.delta].map(std::mem::take);
+        let bufs = [
+            &mut self.b,
+            &mut self.atb,
+            &mut self.u,
+            &mut self.up,
+            &mut self.d,
+            &mut self.dn,
+            &mut self.resid,
+            &mut self.resid_p,
+            &mut self.delta,
+        ]
+        .map(std::mem::take);
         unpool(bufs.into_iter().chain([w0, w1, w2, s0, s1, s2]));
     }
 }
@@ -397,87 +408,90 @@ impl<'a> Tiled<'a> {
         let this = &*self;
         let (up, d, wv, sg) = (&this.up, &this.d, &this.wv, &this.sigma);
         let chunk = chunk_len(w);
-        u
-            .par_chunks_mut(rows * plane)
+        u.par_chunks_mut(rows * plane)
             .zip(resid.par_chunks_mut(rows * m * w))
             .enumerate()
             .map(|(bi, (uc, rc))| {
                 with_scratch(&[plane], chunk, |[halo], sc| {
-                    simd(#[inline(always)] || {
-                        let r0 = bi * rows;
-                        let nr = uc.len() / plane;
-                        // u on the band's rows (in place) and the halo row below (scratch)
-                        for rr in 0..=nr {
-                            let src = ((r0 + rr) % h) * plane;
-                            let o = if rr < nr { &mut uc[rr * plane..(rr + 1) * plane] } else { &mut halo[..] };
-                            let (p, dd) = (&up[src..src + plane], &d[src..src + plane]);
-                            if nonneg {
-                                o.iter_mut().zip(p).zip(dd).for_each(|((o, &p), &d)| *o = (p - tau * d).max(0.0));
-                            } else {
-                                o.iter_mut().zip(p).zip(dd).for_each(|((o, &p), &d)| *o = p - tau * d);
-                            }
-                        }
-                        let (uc, halo) = (&*uc, &*halo);
-                        let row = |rr: usize| if rr < nr { &uc[rr * plane..(rr + 1) * plane] } else { halo };
-                        let mut acc = [0f64; 8];
-                        for rr in 0..nr {
-                            let r = r0 + rr;
-                            let rn = (r + 1) % h;
-                            let (cur, bl) = (row(rr), row(rr + 1));
-                            let gi = r * plane;
-                            let (pc, pb) = (&up[gi..gi + plane], &up[rn * plane..(rn + 1) * plane]);
-                            for k0 in (0..plane).step_by(chunk) {
-                                let k1 = (k0 + chunk).min(plane);
-                                let n = k1 - k0;
-                                diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
-                                diffs_tx(pc, w, k0, k1, wt, wx, sc.dt2, sc.dx2);
-                                let g = gi + k0;
-                                let (w0, w1, w2) = (&wv[0][g..g + n], &wv[1][g..g + n], &wv[2][g..g + n]);
-                                let (s0, s1, s2) = (&sg[0][g..g + n], &sg[1][g..g + n], &sg[2][g..g + n]);
-                                let (cu, bu, pcu, pbu) = (&cur[k0..k1], &bl[k0..k1], &pc[k0..k1], &pb[k0..k1]);
-                                let (dtt, dxt, dtp, dxp) = (&sc.dt[..n], &sc.dx[..n], &sc.dt2[..n], &sc.dx2[..n]);
-                                let (e0, e1, e2) = (&mut sc.e0[..n], &mut sc.e1[..n], &mut sc.e2[..n]);
-                                for k in 0..n {
-                                    let (q0, q1, q2) = (dtp[k], wy * (pbu[k] - pcu[k]), dxp[k]);
-                                    let (w0, w1, w2) = if IMPLICIT {
-                                        let (a, b, e, _) = w_step::<ISO>(q0 - s0[k] * inv, q1 - s1[k] * inv, q2 - s2[k] * inv, inv);
-                                        (a, b, e)
-                                    } else {
-                                        (w0[k], w1[k], w2[k])
-                                    };
-                                    let (a0, a1, a2) = (dtt[k] - w0, wy * (bu[k] - cu[k]) - w1, dxt[k] - w2);
-                                    let (p0, p1, p2) = (q0 - w0, q1 - w1, q2 - w2);
-                                    e0[k] = a0 * a0 + a1 * a1 + a2 * a2;
-                                    e1[k] = a0 * p0 + a1 * p1 + a2 * p2;
-                                    e2[k] = a0 * s0[k] + a1 * s1[k] + a2 * s2[k];
+                    simd(
+                        #[inline(always)]
+                        || {
+                            let r0 = bi * rows;
+                            let nr = uc.len() / plane;
+                            // u on the band's rows (in place) and the halo row below (scratch)
+                            for rr in 0..=nr {
+                                let src = ((r0 + rr) % h) * plane;
+                                let o = if rr < nr { &mut uc[rr * plane..(rr + 1) * plane] } else { &mut halo[..] };
+                                let (p, dd) = (&up[src..src + plane], &d[src..src + plane]);
+                                if nonneg {
+                                    o.iter_mut().zip(p).zip(dd).for_each(|((o, &p), &d)| *o = (p - tau * d).max(0.0));
+                                } else {
+                                    o.iter_mut().zip(p).zip(dd).for_each(|((o, &p), &d)| *o = p - tau * d);
                                 }
-                                acc[0] += lane_sum(e0);
-                                acc[1] += lane_sum(e1);
-                                acc[2] += lane_sum(e2);
                             }
-                            // A u − b of this row
-                            let ro = &mut rc[rr * m * w..(rr + 1) * m * w];
-                            this.forward_row(r, cur, ro);
-                            let off = r * m * w;
-                            let (b, rp, dl) = (&this.b[off..off + m * w], &this.resid_p[off..off + m * w], &this.delta[off..off + m * w]);
-                            for mm in 0..m {
-                                let k0 = mm * w;
-                                let (e0, e1, e2) = (&mut sc.e0[..w], &mut sc.e1[..w], &mut sc.e2[..w]);
-                                let o = &mut ro[k0..k0 + w];
-                                for c in 0..w {
-                                    let v = o[c] - b[k0 + c];
-                                    o[c] = v;
-                                    e0[c] = v * v;
-                                    e1[c] = v * rp[k0 + c];
-                                    e2[c] = v * dl[k0 + c];
+                            let (uc, halo) = (&*uc, &*halo);
+                            let row = |rr: usize| if rr < nr { &uc[rr * plane..(rr + 1) * plane] } else { halo };
+                            let mut acc = [0f64; 8];
+                            for rr in 0..nr {
+                                let r = r0 + rr;
+                                let rn = (r + 1) % h;
+                                let (cur, bl) = (row(rr), row(rr + 1));
+                                let gi = r * plane;
+                                let (pc, pb) = (&up[gi..gi + plane], &up[rn * plane..(rn + 1) * plane]);
+                                for k0 in (0..plane).step_by(chunk) {
+                                    let k1 = (k0 + chunk).min(plane);
+                                    let n = k1 - k0;
+                                    diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
+                                    diffs_tx(pc, w, k0, k1, wt, wx, sc.dt2, sc.dx2);
+                                    let g = gi + k0;
+                                    let (w0, w1, w2) = (&wv[0][g..g + n], &wv[1][g..g + n], &wv[2][g..g + n]);
+                                    let (s0, s1, s2) = (&sg[0][g..g + n], &sg[1][g..g + n], &sg[2][g..g + n]);
+                                    let (cu, bu, pcu, pbu) = (&cur[k0..k1], &bl[k0..k1], &pc[k0..k1], &pb[k0..k1]);
+                                    let (dtt, dxt, dtp, dxp) = (&sc.dt[..n], &sc.dx[..n], &sc.dt2[..n], &sc.dx2[..n]);
+                                    let (e0, e1, e2) = (&mut sc.e0[..n], &mut sc.e1[..n], &mut sc.e2[..n]);
+                                    for k in 0..n {
+                                        let (q0, q1, q2) = (dtp[k], wy * (pbu[k] - pcu[k]), dxp[k]);
+                                        let (w0, w1, w2) = if IMPLICIT {
+                                            let (a, b, e, _) = w_step::<ISO>(q0 - s0[k] * inv, q1 - s1[k] * inv, q2 - s2[k] * inv, inv);
+                                            (a, b, e)
+                                        } else {
+                                            (w0[k], w1[k], w2[k])
+                                        };
+                                        let (a0, a1, a2) = (dtt[k] - w0, wy * (bu[k] - cu[k]) - w1, dxt[k] - w2);
+                                        let (p0, p1, p2) = (q0 - w0, q1 - w1, q2 - w2);
+                                        e0[k] = a0 * a0 + a1 * a1 + a2 * a2;
+                                        e1[k] = a0 * p0 + a1 * p1 + a2 * p2;
+                                        e2[k] = a0 * s0[k] + a1 * s1[k] + a2 * s2[k];
+                                    }
+                                    acc[0] += lane_sum(e0);
+                                    acc[1] += lane_sum(e1);
+                                    acc[2] += lane_sum(e2);
                                 }
-                                acc[3] += lane_sum(e0);
-                                acc[4] += lane_sum(e1);
-                                acc[5] += lane_sum(e2);
+                                // A u − b of this row
+                                let ro = &mut rc[rr * m * w..(rr + 1) * m * w];
+                                this.forward_row(r, cur, ro);
+                                let off = r * m * w;
+                                let (b, rp, dl) =
+                                    (&this.b[off..off + m * w], &this.resid_p[off..off + m * w], &this.delta[off..off + m * w]);
+                                for mm in 0..m {
+                                    let k0 = mm * w;
+                                    let (e0, e1, e2) = (&mut sc.e0[..w], &mut sc.e1[..w], &mut sc.e2[..w]);
+                                    let o = &mut ro[k0..k0 + w];
+                                    for c in 0..w {
+                                        let v = o[c] - b[k0 + c];
+                                        o[c] = v;
+                                        e0[c] = v * v;
+                                        e1[c] = v * rp[k0 + c];
+                                        e2[c] = v * dl[k0 + c];
+                                    }
+                                    acc[3] += lane_sum(e0);
+                                    acc[4] += lane_sum(e1);
+                                    acc[5] += lane_sum(e2);
+                                }
                             }
-                        }
-                        acc
-                    })
+                            acc
+                        },
+                    )
                 })
             })
             .collect_into_vec(&mut partials);
@@ -539,82 +553,85 @@ impl<'a> Tiled<'a> {
             .enumerate()
             .map(|(bi, od)| {
                 with_scratch(&[3 * (rows + 1) * plane, m * w], chunk, |[v, rm], sc| {
-                    simd(#[inline(always)] || {
-                        let r0 = bi * rows;
-                        let nr = od.len() / plane;
-                        let vs = (nr + 1) * plane; // one component of V on the band and the halo row above
-                        let mut acc = [0f64; 8];
-                        // w-step and V − σ/β on rows r0 − 1 … r0 + nr − 1 (local row rr = 0 is the halo),
-                        // a chunk of planes at a time
-                        for rr in 0..=nr {
-                            let r = (r0 + h + rr - 1) % h;
-                            let rn = (r + 1) % h;
-                            let gi = r * plane;
-                            let (cur, bl) = (&u[gi..gi + plane], &u[rn * plane..(rn + 1) * plane]);
-                            if rr == 0 {
-                                // the halo row: the direction needs only the y component of V − σ/β
-                                let vb = &mut v[vs..2 * vs];
+                    simd(
+                        #[inline(always)]
+                        || {
+                            let r0 = bi * rows;
+                            let nr = od.len() / plane;
+                            let vs = (nr + 1) * plane; // one component of V on the band and the halo row above
+                            let mut acc = [0f64; 8];
+                            // w-step and V − σ/β on rows r0 − 1 … r0 + nr − 1 (local row rr = 0 is the halo),
+                            // a chunk of planes at a time
+                            for rr in 0..=nr {
+                                let r = (r0 + h + rr - 1) % h;
+                                let rn = (r + 1) % h;
+                                let gi = r * plane;
+                                let (cur, bl) = (&u[gi..gi + plane], &u[rn * plane..(rn + 1) * plane]);
+                                if rr == 0 {
+                                    // the halo row: the direction needs only the y component of V − σ/β
+                                    let vb = &mut v[vs..2 * vs];
+                                    for k0 in (0..plane).step_by(chunk) {
+                                        let k1 = (k0 + chunk).min(plane);
+                                        let n = k1 - k0;
+                                        let g = gi + k0;
+                                        let (cu, bu, s1) = (&cur[k0..k1], &bl[k0..k1], &sg[1][g..g + n]);
+                                        let v1 = &mut vb[k0..k1];
+                                        if ISO {
+                                            diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
+                                            let (dtt, dx, s0, s2) = (&sc.dt[..n], &sc.dx[..n], &sg[0][g..g + n], &sg[2][g..g + n]);
+                                            for k in 0..n {
+                                                let z1 = wy * (bu[k] - cu[k]) - s1[k] * inv;
+                                                let (_, b, _, _) = w_step::<true>(dtt[k] - s0[k] * inv, z1, dx[k] - s2[k] * inv, inv);
+                                                v1[k] = z1 - b;
+                                            }
+                                        } else {
+                                            for k in 0..n {
+                                                let z1 = wy * (bu[k] - cu[k]) - s1[k] * inv;
+                                                v1[k] = z1 - shrink1(z1, inv);
+                                            }
+                                        }
+                                    }
+                                    continue;
+                                }
                                 for k0 in (0..plane).step_by(chunk) {
                                     let k1 = (k0 + chunk).min(plane);
                                     let n = k1 - k0;
+                                    diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
+                                    let (dtt, dx) = (&sc.dt[..n], &sc.dx[..n]);
                                     let g = gi + k0;
-                                    let (cu, bu, s1) = (&cur[k0..k1], &bl[k0..k1], &sg[1][g..g + n]);
-                                    let v1 = &mut vb[k0..k1];
-                                    if ISO {
-                                        diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
-                                        let (dtt, dx, s0, s2) = (&sc.dt[..n], &sc.dx[..n], &sg[0][g..g + n], &sg[2][g..g + n]);
-                                        for k in 0..n {
-                                            let z1 = wy * (bu[k] - cu[k]) - s1[k] * inv;
-                                            let (_, b, _, _) = w_step::<true>(dtt[k] - s0[k] * inv, z1, dx[k] - s2[k] * inv, inv);
-                                            v1[k] = z1 - b;
-                                        }
-                                    } else {
-                                        for k in 0..n {
-                                            let z1 = wy * (bu[k] - cu[k]) - s1[k] * inv;
-                                            v1[k] = z1 - shrink1(z1, inv);
-                                        }
+                                    let (s0, s1, s2) = (&sg[0][g..g + n], &sg[1][g..g + n], &sg[2][g..g + n]);
+                                    let (cu, bu) = (&cur[k0..k1], &bl[k0..k1]);
+                                    let lo = rr * plane + k0;
+                                    let (va, rest) = v.split_at_mut(vs);
+                                    let (vb, vc) = rest.split_at_mut(vs);
+                                    let (v0, v1, v2) = (&mut va[lo..lo + n], &mut vb[lo..lo + n], &mut vc[lo..lo + n]);
+                                    let (e0, e1, e2) = (&mut sc.e0[..n], &mut sc.e1[..n], &mut sc.e2[..n]);
+                                    for k in 0..n {
+                                        let (d0, d1, d2) = (dtt[k], wy * (bu[k] - cu[k]), dx[k]);
+                                        let (z0, z1, z2) = (d0 - s0[k] * inv, d1 - s1[k] * inv, d2 - s2[k] * inv);
+                                        let (a, b, e, n1) = w_step::<ISO>(z0, z1, z2, inv);
+                                        let (p0, p1, p2) = (d0 - a, d1 - b, d2 - e);
+                                        // V − σ/β = z − w
+                                        v0[k] = z0 - a;
+                                        v1[k] = z1 - b;
+                                        v2[k] = z2 - e;
+                                        e0[k] = n1;
+                                        e1[k] = p0 * p0 + p1 * p1 + p2 * p2;
+                                        e2[k] = p0 * s0[k] + p1 * s1[k] + p2 * s2[k];
                                     }
+                                    acc[0] += lane_sum(e0);
+                                    acc[1] += lane_sum(e1);
+                                    acc[2] += lane_sum(e2);
                                 }
-                                continue;
                             }
-                            for k0 in (0..plane).step_by(chunk) {
-                                let k1 = (k0 + chunk).min(plane);
-                                let n = k1 - k0;
-                                diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
-                                let (dtt, dx) = (&sc.dt[..n], &sc.dx[..n]);
-                                let g = gi + k0;
-                                let (s0, s1, s2) = (&sg[0][g..g + n], &sg[1][g..g + n], &sg[2][g..g + n]);
-                                let (cu, bu) = (&cur[k0..k1], &bl[k0..k1]);
-                                let lo = rr * plane + k0;
-                                let (va, rest) = v.split_at_mut(vs);
-                                let (vb, vc) = rest.split_at_mut(vs);
-                                let (v0, v1, v2) = (&mut va[lo..lo + n], &mut vb[lo..lo + n], &mut vc[lo..lo + n]);
-                                let (e0, e1, e2) = (&mut sc.e0[..n], &mut sc.e1[..n], &mut sc.e2[..n]);
-                                for k in 0..n {
-                                    let (d0, d1, d2) = (dtt[k], wy * (bu[k] - cu[k]), dx[k]);
-                                    let (z0, z1, z2) = (d0 - s0[k] * inv, d1 - s1[k] * inv, d2 - s2[k] * inv);
-                                    let (a, b, e, n1) = w_step::<ISO>(z0, z1, z2, inv);
-                                    let (p0, p1, p2) = (d0 - a, d1 - b, d2 - e);
-                                    // V − σ/β = z − w
-                                    v0[k] = z0 - a;
-                                    v1[k] = z1 - b;
-                                    v2[k] = z2 - e;
-                                    e0[k] = n1;
-                                    e1[k] = p0 * p0 + p1 * p1 + p2 * p2;
-                                    e2[k] = p0 * s0[k] + p1 * s1[k] + p2 * s2[k];
-                                }
-                                acc[0] += lane_sum(e0);
-                                acc[1] += lane_sum(e1);
-                                acc[2] += lane_sum(e2);
-                            }
-                        }
-                        let [a3, a4, a5, a6] = this.band_direction(r0, nr, v, vs, od, rm, sc, mdb, inv);
-                        acc[3] = a3;
-                        acc[4] = a4;
-                        acc[5] = a5;
-                        acc[6] = a6;
-                        acc
-                    })
+                            let [a3, a4, a5, a6] = this.band_direction(r0, nr, v, vs, od, rm, sc, mdb, inv);
+                            acc[3] = a3;
+                            acc[4] = a4;
+                            acc[5] = a5;
+                            acc[6] = a6;
+                            acc
+                        },
+                    )
                 })
             })
             .collect_into_vec(&mut partials);
@@ -646,39 +663,42 @@ impl<'a> Tiled<'a> {
             .enumerate()
             .map(|(bi, od)| {
                 with_scratch(&[3 * (rows + 1) * plane, m * w], chunk, |[v, rm], sc| {
-                    simd(#[inline(always)] || {
-                        let r0 = bi * rows;
-                        let nr = od.len() / plane;
-                        let vs = (nr + 1) * plane;
-                        for rr in 0..=nr {
-                            let r = (r0 + h + rr - 1) % h;
-                            let rn = (r + 1) % h;
-                            let gi = r * plane;
-                            let (cur, bl) = (&u[gi..gi + plane], &u[rn * plane..(rn + 1) * plane]);
-                            for k0 in (0..plane).step_by(chunk) {
-                                let k1 = (k0 + chunk).min(plane);
-                                let n = k1 - k0;
-                                diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
-                                let (dtt, dx) = (&sc.dt[..n], &sc.dx[..n]);
-                                let g = gi + k0;
-                                let (cu, bu) = (&cur[k0..k1], &bl[k0..k1]);
-                                let lo = rr * plane + k0;
-                                let (va, rest) = v.split_at_mut(vs);
-                                let (vb, vc) = rest.split_at_mut(vs);
-                                let (v0, v1, v2) = (&mut va[lo..lo + n], &mut vb[lo..lo + n], &mut vc[lo..lo + n]);
-                                let (w0, w1, w2) = (&wv[0][g..g + n], &wv[1][g..g + n], &wv[2][g..g + n]);
-                                let (s0, s1, s2) = (&sg[0][g..g + n], &sg[1][g..g + n], &sg[2][g..g + n]);
-                                for k in 0..n {
-                                    v0[k] = dtt[k] - w0[k] - s0[k] * inv;
-                                    v1[k] = wy * (bu[k] - cu[k]) - w1[k] - s1[k] * inv;
-                                    v2[k] = dx[k] - w2[k] - s2[k] * inv;
+                    simd(
+                        #[inline(always)]
+                        || {
+                            let r0 = bi * rows;
+                            let nr = od.len() / plane;
+                            let vs = (nr + 1) * plane;
+                            for rr in 0..=nr {
+                                let r = (r0 + h + rr - 1) % h;
+                                let rn = (r + 1) % h;
+                                let gi = r * plane;
+                                let (cur, bl) = (&u[gi..gi + plane], &u[rn * plane..(rn + 1) * plane]);
+                                for k0 in (0..plane).step_by(chunk) {
+                                    let k1 = (k0 + chunk).min(plane);
+                                    let n = k1 - k0;
+                                    diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
+                                    let (dtt, dx) = (&sc.dt[..n], &sc.dx[..n]);
+                                    let g = gi + k0;
+                                    let (cu, bu) = (&cur[k0..k1], &bl[k0..k1]);
+                                    let lo = rr * plane + k0;
+                                    let (va, rest) = v.split_at_mut(vs);
+                                    let (vb, vc) = rest.split_at_mut(vs);
+                                    let (v0, v1, v2) = (&mut va[lo..lo + n], &mut vb[lo..lo + n], &mut vc[lo..lo + n]);
+                                    let (w0, w1, w2) = (&wv[0][g..g + n], &wv[1][g..g + n], &wv[2][g..g + n]);
+                                    let (s0, s1, s2) = (&sg[0][g..g + n], &sg[1][g..g + n], &sg[2][g..g + n]);
+                                    for k in 0..n {
+                                        v0[k] = dtt[k] - w0[k] - s0[k] * inv;
+                                        v1[k] = wy * (bu[k] - cu[k]) - w1[k] - s1[k] * inv;
+                                        v2[k] = dx[k] - w2[k] - s2[k] * inv;
+                                    }
                                 }
                             }
-                        }
-                        let mut acc = [0f64; 8];
-                        acc[0] = this.band_direction(r0, nr, v, vs, od, rm, sc, mdb, inv)[0];
-                        acc
-                    })
+                            let mut acc = [0f64; 8];
+                            acc[0] = this.band_direction(r0, nr, v, vs, od, rm, sc, mdb, inv)[0];
+                            acc
+                        },
+                    )
                 })
             })
             .collect_into_vec(&mut partials);
@@ -694,7 +714,18 @@ impl<'a> Tiled<'a> {
     /// direction: with the multipliers fixed, `dn − d` is the change of the gradient).
     #[allow(clippy::too_many_arguments)]
     #[inline(always)]
-    fn band_direction(&self, r0: usize, nr: usize, v: &[f32], vs: usize, dn: &mut [f32], rm: &mut [f32], sc: &mut Scratch<'_>, mdb: f32, inv_beta: f32) -> [f64; 4] {
+    fn band_direction(
+        &self,
+        r0: usize,
+        nr: usize,
+        v: &[f32],
+        vs: usize,
+        dn: &mut [f32],
+        rm: &mut [f32],
+        sc: &mut Scratch<'_>,
+        mdb: f32,
+        inv_beta: f32,
+    ) -> [f64; 4] {
         let (t, w, m) = (self.t, self.w, self.m);
         let (wt, wy, wx) = (self.wt, self.wy, self.wx);
         let plane = t * w;
@@ -764,53 +795,55 @@ impl<'a> Tiled<'a> {
         let mut partials = std::mem::take(&mut self.partials);
         let u = &self.u;
         let chunk = chunk_len(w);
-        s0
-            .par_chunks_mut(band)
+        s0.par_chunks_mut(band)
             .zip(s1.par_chunks_mut(band))
             .zip(s2.par_chunks_mut(band))
             .zip(w0.par_chunks_mut(band).zip(w1.par_chunks_mut(band)).zip(w2.par_chunks_mut(band)))
             .enumerate()
             .map(|(bi, (((o0, o1), o2), ((ws0, ws1), ws2)))| {
                 with_scratch(&[], chunk, |[], sc| {
-                    simd(#[inline(always)] || {
-                        let r0 = bi * rows;
-                        let mut l4 = [0f64; 8];
-                        for rr in 0..o0.len() / plane {
-                            let r = r0 + rr;
-                            let rn = (r + 1) % h;
-                            let gi = r * plane;
-                            let (cur, bl) = (&u[gi..gi + plane], &u[rn * plane..(rn + 1) * plane]);
-                            for k0 in (0..plane).step_by(chunk) {
-                                let k1 = (k0 + chunk).min(plane);
-                                let n = k1 - k0;
-                                diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
-                                let (dtt, dx) = (&sc.dt[..n], &sc.dx[..n]);
-                                let (cu, bu) = (&cur[k0..k1], &bl[k0..k1]);
-                                let lo = rr * plane + k0;
-                                let (a0, a1, a2) = (&mut o0[lo..lo + n], &mut o1[lo..lo + n], &mut o2[lo..lo + n]);
-                                let (w0, w1, w2) = (&mut ws0[lo..lo + n], &mut ws1[lo..lo + n], &mut ws2[lo..lo + n]);
-                                let e = &mut sc.e0[..n];
-                                for c in 0..n {
-                                    let (d0, d1, d2) = (dtt[c], wy * (bu[c] - cu[c]), dx[c]);
-                                    if IMPLICIT {
-                                        let (a, b, e, _) = w_step::<ISO>(d0 - a0[c] * inv, d1 - a1[c] * inv, d2 - a2[c] * inv, inv);
-                                        w0[c] = a;
-                                        w1[c] = b;
-                                        w2[c] = e;
+                    simd(
+                        #[inline(always)]
+                        || {
+                            let r0 = bi * rows;
+                            let mut l4 = [0f64; 8];
+                            for rr in 0..o0.len() / plane {
+                                let r = r0 + rr;
+                                let rn = (r + 1) % h;
+                                let gi = r * plane;
+                                let (cur, bl) = (&u[gi..gi + plane], &u[rn * plane..(rn + 1) * plane]);
+                                for k0 in (0..plane).step_by(chunk) {
+                                    let k1 = (k0 + chunk).min(plane);
+                                    let n = k1 - k0;
+                                    diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
+                                    let (dtt, dx) = (&sc.dt[..n], &sc.dx[..n]);
+                                    let (cu, bu) = (&cur[k0..k1], &bl[k0..k1]);
+                                    let lo = rr * plane + k0;
+                                    let (a0, a1, a2) = (&mut o0[lo..lo + n], &mut o1[lo..lo + n], &mut o2[lo..lo + n]);
+                                    let (w0, w1, w2) = (&mut ws0[lo..lo + n], &mut ws1[lo..lo + n], &mut ws2[lo..lo + n]);
+                                    let e = &mut sc.e0[..n];
+                                    for c in 0..n {
+                                        let (d0, d1, d2) = (dtt[c], wy * (bu[c] - cu[c]), dx[c]);
+                                        if IMPLICIT {
+                                            let (a, b, e, _) = w_step::<ISO>(d0 - a0[c] * inv, d1 - a1[c] * inv, d2 - a2[c] * inv, inv);
+                                            w0[c] = a;
+                                            w1[c] = b;
+                                            w2[c] = e;
+                                        }
+                                        let v0 = d0 - w0[c];
+                                        let v1 = d1 - w1[c];
+                                        let v2 = d2 - w2[c];
+                                        a0[c] -= beta * v0;
+                                        a1[c] -= beta * v1;
+                                        a2[c] -= beta * v2;
+                                        e[c] = a0[c] * v0 + a1[c] * v1 + a2[c] * v2;
                                     }
-                                    let v0 = d0 - w0[c];
-                                    let v1 = d1 - w1[c];
-                                    let v2 = d2 - w2[c];
-                                    a0[c] -= beta * v0;
-                                    a1[c] -= beta * v1;
-                                    a2[c] -= beta * v2;
-                                    e[c] = a0[c] * v0 + a1[c] * v1 + a2[c] * v2;
+                                    l4[0] += lane_sum(e);
                                 }
-                                l4[0] += lane_sum(e);
                             }
-                        }
-                        l4
-                    })
+                            l4
+                        },
+                    )
                 })
             })
             .collect_into_vec(&mut partials);
@@ -831,39 +864,41 @@ impl<'a> Tiled<'a> {
         let this = &*self;
         let d = &this.d;
         let chunk = chunk_len(w);
-        d
-            .par_chunks(rows * plane)
+        d.par_chunks(rows * plane)
             .enumerate()
             .map(|(bi, dc)| {
                 with_scratch(&[m * w], chunk, |[ad], sc| {
-                    simd(#[inline(always)] || {
-                        let r0 = bi * rows;
-                        let mut acc = [0f64; 8];
-                        for rr in 0..dc.len() / plane {
-                            let r = r0 + rr;
-                            let rn = (r + 1) % h;
-                            let gi = r * plane;
-                            let (cur, bl) = (&d[gi..gi + plane], &d[rn * plane..(rn + 1) * plane]);
-                            for k0 in (0..plane).step_by(chunk) {
-                                let k1 = (k0 + chunk).min(plane);
-                                let n = k1 - k0;
-                                diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
-                                let (dtt, dx) = (&sc.dt[..n], &sc.dx[..n]);
-                                let (cu, bu) = (&cur[k0..k1], &bl[k0..k1]);
-                                let (e0, e1) = (&mut sc.e0[..n], &mut sc.e1[..n]);
-                                for c in 0..n {
-                                    let a1 = wy * (bu[c] - cu[c]);
-                                    e0[c] = dtt[c] * dtt[c] + a1 * a1 + dx[c] * dx[c];
-                                    e1[c] = cu[c] * cu[c];
+                    simd(
+                        #[inline(always)]
+                        || {
+                            let r0 = bi * rows;
+                            let mut acc = [0f64; 8];
+                            for rr in 0..dc.len() / plane {
+                                let r = r0 + rr;
+                                let rn = (r + 1) % h;
+                                let gi = r * plane;
+                                let (cur, bl) = (&d[gi..gi + plane], &d[rn * plane..(rn + 1) * plane]);
+                                for k0 in (0..plane).step_by(chunk) {
+                                    let k1 = (k0 + chunk).min(plane);
+                                    let n = k1 - k0;
+                                    diffs_tx(cur, w, k0, k1, wt, wx, sc.dt, sc.dx);
+                                    let (dtt, dx) = (&sc.dt[..n], &sc.dx[..n]);
+                                    let (cu, bu) = (&cur[k0..k1], &bl[k0..k1]);
+                                    let (e0, e1) = (&mut sc.e0[..n], &mut sc.e1[..n]);
+                                    for c in 0..n {
+                                        let a1 = wy * (bu[c] - cu[c]);
+                                        e0[c] = dtt[c] * dtt[c] + a1 * a1 + dx[c] * dx[c];
+                                        e1[c] = cu[c] * cu[c];
+                                    }
+                                    acc[0] += lane_sum(e0);
+                                    acc[2] += lane_sum(e1);
                                 }
-                                acc[0] += lane_sum(e0);
-                                acc[2] += lane_sum(e1);
+                                this.forward_row(r, &d[r * plane..(r + 1) * plane], ad);
+                                acc[1] += ad.iter().map(|&v| (v * v) as f64).sum::<f64>();
                             }
-                            this.forward_row(r, &d[r * plane..(r + 1) * plane], ad);
-                            acc[1] += ad.iter().map(|&v| (v * v) as f64).sum::<f64>();
-                        }
-                        acc
-                    })
+                            acc
+                        },
+                    )
                 })
             })
             .collect_into_vec(&mut partials);

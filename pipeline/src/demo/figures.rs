@@ -40,8 +40,17 @@ pub(super) fn draw_figures(dir: &Path, lidar: &Dataset, flim: &Dataset, selected
     crate::identifiability::draw(&ident, &out("identifiability-range.png"), &out("identifiability-lifetime.png"))?;
     plot::codes(&out("codes-learned.png"), "learned codes (deep sensing, projected)", learned)?;
     let sel = read_json(&dir.join("results/selection.json"))?;
-    let pts: Vec<(f64, f64)> = sel["candidates"].as_array().map(|a| a.iter().filter_map(|c| Some((c["seed"].as_f64()?, c["mse"].as_f64()?))).collect()).unwrap_or_default();
-    plot::log_chart(&out("selection.png"), "Code selection: TVAL3 MSE of each random candidate (noise-free)", "candidate seed", "MSE of the reconstruction", &[Series { label: "candidate".into(), points: pts }])?;
+    let pts: Vec<(f64, f64)> = sel["candidates"]
+        .as_array()
+        .map(|a| a.iter().filter_map(|c| Some((c["seed"].as_f64()?, c["mse"].as_f64()?))).collect())
+        .unwrap_or_default();
+    plot::log_chart(
+        &out("selection.png"),
+        "Code selection: TVAL3 MSE of each random candidate (noise-free)",
+        "candidate seed",
+        "MSE of the reconstruction",
+        &[Series { label: "candidate".into(), points: pts }],
+    )?;
 
     // tap images of the LiDAR frame
     let y = read3(&fr.join("lidar-y.npy"))?;
@@ -61,10 +70,25 @@ pub(super) fn draw_figures(dir: &Path, lidar: &Dataset, flim: &Dataset, selected
     let admm_l = read3(&fr.join("lidar-learned-admm.npy"))?;
     let unet_d = read3(&fr.join("lidar-unet-depth.npy"))?;
     let two = truth_d.dim().0 > 1;
-    let second = if two { truth_d.index_axis(Axis(0), 1).indexed_iter().filter(|(_, v)| v.is_finite()).min_by_key(|((r, c), _)| r.abs_diff(h / 2) + c.abs_diff(w / 2)).map(|(p, _)| p) } else { None };
-    let far = truth_d.index_axis(Axis(0), 0).indexed_iter().filter(|(_, v)| v.is_finite()).max_by(|a, b| a.1.total_cmp(b.1)).map(|(p, _)| p);
+    let second = if two {
+        truth_d
+            .index_axis(Axis(0), 1)
+            .indexed_iter()
+            .filter(|(_, v)| v.is_finite())
+            .min_by_key(|((r, c), _)| r.abs_diff(h / 2) + c.abs_diff(w / 2))
+            .map(|(p, _)| p)
+    } else {
+        None
+    };
+    let far =
+        truth_d.index_axis(Axis(0), 0).indexed_iter().filter(|(_, v)| v.is_finite()).max_by(|a, b| a.1.total_cmp(b.1)).map(|(p, _)| p);
     let pixels = pick_pixels(h, w, second, far);
-    plot::waveforms(&out("waveforms-lidar.png"), &[("truth", x.view()), ("TVAL3", tv.view()), ("ADMM-Net", admm.view()), ("ADMM-Net, learned codes", admm_l.view())], &pixels, Some(bin_w * 1e9))?;
+    plot::waveforms(
+        &out("waveforms-lidar.png"),
+        &[("truth", x.view()), ("TVAL3", tv.view()), ("ADMM-Net", admm.view()), ("ADMM-Net, learned codes", admm_l.view())],
+        &pixels,
+        Some(bin_w * 1e9),
+    )?;
     let peaks = PeakOptions { max_peaks: 2, ..Default::default() };
     let d_tv = depth_map(&tv.view(), bin_w, &peaks).0;
     let d_admm = depth_map(&admm.view(), bin_w, &peaks).0;
@@ -76,17 +100,35 @@ pub(super) fn draw_figures(dir: &Path, lidar: &Dataset, flim: &Dataset, selected
         panels.push((format!("truth, return {}", b + 1), t.clone()));
         for (name, d) in [("TVAL3", &d_tv), ("ADMM-Net", &d_admm), ("Aᵀ + U-Net", &unet_d)] {
             let est = if b < d.dim().0 { d.index_axis(Axis(0), b).to_owned() } else { Array2::from_elem((h, w), f32::NAN) };
-            let err = ndarray::Zip::from(&est).and(&t).map_collect(|&e, &t| if e.is_finite() && t.is_finite() { (e - t).abs() } else { f32::NAN });
+            let err = ndarray::Zip::from(&est)
+                .and(&t)
+                .map_collect(|&e, &t| if e.is_finite() && t.is_finite() { (e - t).abs() } else { f32::NAN });
             panels.push((format!("{name}, return {}", b + 1), est));
             errors.push((format!("{name}, return {}", b + 1), err));
         }
     }
     let pv: Vec<(&str, ndarray::ArrayView2<f32>)> = panels.iter().map(|(n, a)| (n.as_str(), a.view())).collect();
-    plot::maps(&out("depth.png"), "Range of the two returns: truth and each decoder (grey: no return)", &pv, "range (m)", Some((0.0, range_m)))?;
+    plot::maps(
+        &out("depth.png"),
+        "Range of the two returns: truth and each decoder (grey: no return)",
+        &pv,
+        "range (m)",
+        Some((0.0, range_m)),
+    )?;
     let ev: Vec<(&str, ndarray::ArrayView2<f32>)> = errors.iter().map(|(n, a)| (n.as_str(), a.view())).collect();
     let emax = errors.iter().flat_map(|(_, a)| a.iter().copied()).filter(|v| v.is_finite()).fold(0f32, f32::max).max(1e-3) as f64;
-    plot::maps(&out("depth-error.png"), "Absolute range error where truth and estimate have a return", &ev, "|range error| (m)", Some((0.0, emax.min(range_m / 4.0))))?;
-    let clouds = [("truth", point_cloud(&truth_d.view(), FOV_DEG)), ("ADMM-Net (peaks of the cube)", point_cloud(&d_admm.view(), FOV_DEG)), ("Aᵀ + U-Net (direct depth)", point_cloud(&unet_d.view(), FOV_DEG))];
+    plot::maps(
+        &out("depth-error.png"),
+        "Absolute range error where truth and estimate have a return",
+        &ev,
+        "|range error| (m)",
+        Some((0.0, emax.min(range_m / 4.0))),
+    )?;
+    let clouds = [
+        ("truth", point_cloud(&truth_d.view(), FOV_DEG)),
+        ("ADMM-Net (peaks of the cube)", point_cloud(&d_admm.view(), FOV_DEG)),
+        ("Aᵀ + U-Net (direct depth)", point_cloud(&unet_d.view(), FOV_DEG)),
+    ];
     let clouds: Vec<(&str, Vec<[f32; 4]>)> = clouds.into_iter().collect();
     plot::point_clouds(&out("point-cloud.png"), "Point clouds of the test frame (camera coordinates)", &clouds)?;
 
@@ -100,27 +142,55 @@ pub(super) fn draw_figures(dir: &Path, lidar: &Dataset, flim: &Dataset, selected
     let short = truth_tau.indexed_iter().filter(|(_, v)| v.is_finite() && **v > 0.0).min_by(|a, b| a.1.total_cmp(b.1)).map(|(p, _)| p);
     let long = truth_tau.indexed_iter().filter(|(_, v)| v.is_finite() && **v > 0.0).max_by(|a, b| a.1.total_cmp(b.1)).map(|(p, _)| p);
     let pixels = pick_pixels(fh, fw, short, long);
-    plot::waveforms(&out("waveforms-flim.png"), &[("truth", fx.view()), ("TVAL3", ftv.view()), ("ADMM-Net", fadmm.view())], &pixels, Some(fbin * 1e9))?;
+    plot::waveforms(
+        &out("waveforms-flim.png"),
+        &[("truth", fx.view()), ("TVAL3", ftv.view()), ("ADMM-Net", fadmm.view())],
+        &pixels,
+        Some(fbin * 1e9),
+    )?;
     // the reconvolution fit (IRF fitted) of each cube, the fit to the taps as it was decoded
-    let lt = |c: &Array3<f32>| tcsense_infer::lifetime::fit_cube(&c.view(), fbin, &tcsense_infer::lifetime::FitOptions::default()).lifetimes.index_axis(Axis(0), 0).to_owned();
+    let lt = |c: &Array3<f32>| {
+        tcsense_infer::lifetime::fit_cube(&c.view(), fbin, &tcsense_infer::lifetime::FitOptions::default())
+            .lifetimes
+            .index_axis(Axis(0), 0)
+            .to_owned()
+    };
     let (tau_x, tau_tv, tau_admm) = (lt(&fx), lt(&ftv), lt(&fadmm));
     let tau_fit = read3(&fr.join("flim-fit-lifetime.npy"))?.index_axis(Axis(0), 0).to_owned();
     let ns = |a: &Array2<f32>| a.mapv(|v| v * 1e9);
     let truth_ns = truth_tau.mapv(|v| if v > 0.0 { v * 1e9 } else { f32::NAN });
-    let maps = [("truth (generator)", truth_ns), ("fit to the true cube", ns(&tau_x)), ("TVAL3 + fit", ns(&tau_tv)), ("ADMM-Net + fit", ns(&tau_admm)), ("fit to the taps", ns(&tau_fit))];
+    let maps = [
+        ("truth (generator)", truth_ns),
+        ("fit to the true cube", ns(&tau_x)),
+        ("TVAL3 + fit", ns(&tau_tv)),
+        ("ADMM-Net + fit", ns(&tau_admm)),
+        ("fit to the taps", ns(&tau_fit)),
+    ];
     let hi = maps[0].1.iter().copied().filter(|v| v.is_finite()).fold(0f32, f32::max).max(0.5) as f64 * 1.2;
     let mv: Vec<(&str, ndarray::ArrayView2<f32>)> = maps.iter().map(|(n, a)| (*n, a.view())).collect();
-    plot::maps(&out("lifetime.png"), "Fluorescence lifetime map of one test frame (grey: no fit)", &mv, "lifetime τ (ns)", Some((0.0, hi)))?;
+    plot::maps(
+        &out("lifetime.png"),
+        "Fluorescence lifetime map of one test frame (grey: no fit)",
+        &mv,
+        "lifetime τ (ns)",
+        Some((0.0, hi)),
+    )?;
     let phasors = |x: &Array3<f32>| -> Vec<(f64, f64)> {
         let p = referenced_phasors(&x.view(), 0.02);
         (0..fh * fw).map(|i| (p[(0, i / fw, i % fw)] as f64, p[(1, i / fw, i % fw)] as f64)).collect()
     };
     let period = fbin * flim.manifest.bins as f64;
-    plot::phasor(&out("phasor.png"), &format!("Phasors of the test frame (first harmonic, period {:.2} ns)", period * 1e9), &[("truth", phasors(&fx)), ("TVAL3", phasors(&ftv)), ("ADMM-Net", phasors(&fadmm))], period)?;
+    plot::phasor(
+        &out("phasor.png"),
+        &format!("Phasors of the test frame (first harmonic, period {:.2} ns)", period * 1e9),
+        &[("truth", phasors(&fx)), ("TVAL3", phasors(&ftv)), ("ADMM-Net", phasors(&fadmm))],
+        period,
+    )?;
 
     // training curves
     let runs_dir = dir.join("runs");
-    let mut lidar_runs = vec![("ADMM-Net, selected codes", runs_dir.join("admm-lidar")), ("ADMM-Net, learned codes", runs_dir.join("learned-lidar"))];
+    let mut lidar_runs =
+        vec![("ADMM-Net, selected codes", runs_dir.join("admm-lidar")), ("ADMM-Net, learned codes", runs_dir.join("learned-lidar"))];
     if runs_dir.join("zoo-lidar").join(tcsense_train::run_dir::METRICS_FILE).exists() {
         lidar_runs.push(("ADMM-Net from the zoo, fine-tuned", runs_dir.join("zoo-lidar")));
     }

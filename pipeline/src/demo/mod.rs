@@ -22,9 +22,9 @@ use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
-use tcsense_datasets::store::{self, Generator, WriteOptions, DEFAULT_SHARD};
 use tcsense_datasets::flim::FlimParams;
 use tcsense_datasets::lidar::LidarParams;
+use tcsense_datasets::store::{self, Generator, WriteOptions, DEFAULT_SHARD};
 use tcsense_datasets::{Dataset, TimeGrid};
 use tcsense_infer::eval::{evaluate, open_decoder, EvalRow, EvalSettings};
 use tcsense_infer::figures::{self as plot, Series};
@@ -32,18 +32,18 @@ use tcsense_infer::onnx::{export_to, ExportOptions};
 use tcsense_infer::products::{depth_map, point_cloud, referenced_phasors, PeakOptions};
 use tcsense_infer::report::{Block, Cell, Format, Report, Section, Table};
 use tcsense_infer::selection::{evaluate as evaluate_codes, select, EvalSetup};
-use tcsense_sensor::design::{design, Criterion, DesignOptions, Objective, Quiet};
-use tcsense_sensor::identify::{Light, DEFAULT_ALIAS_THRESHOLD};
 use tcsense_models::decoder::Control;
 use tcsense_models::runs::{self, ModelConfig, CODES_FILE, CONFIG_FILE};
 use tcsense_models::{AdmmNetConfig, Device, Prior, Tval3Options, UnetConfig};
 use tcsense_sensor::codes::{Codes, DEFAULT_CLOCK_HZ};
+use tcsense_sensor::design::{design, Criterion, DesignOptions, Objective, Quiet};
+use tcsense_sensor::identify::{Light, DEFAULT_ALIAS_THRESHOLD};
 use tcsense_sensor::measure::measure_batch;
-use tcsense_sensor::nonideal::NonIdeal;
-use tcsense_sensor::sweep::{simulate_sweep, SweepSettings};
 use tcsense_sensor::noise::derive_seed;
+use tcsense_sensor::nonideal::NonIdeal;
 use tcsense_sensor::npy::{read_npy, write_bytes, write_npy};
 use tcsense_sensor::params::{C, DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
+use tcsense_sensor::sweep::{simulate_sweep, SweepSettings};
 use tcsense_sensor::{export, generate, Irf, NoiseParams, Sampling, Sensor, SensorParams};
 use tcsense_train::deep_sensing::LearnCodes;
 use tcsense_train::{train, Progress, TrainConfig, TrainError};
@@ -68,7 +68,18 @@ const BRINGUP_SHARE: f64 = 0.1;
 /// tap gains, 2 % PRNU, a dark offset with a pattern, a diffusion tail, 0.1 ns gate skew and the
 /// lab's 92.5 % modulation contrast), seeded.
 fn bench_sensor(seed: u64) -> NonIdeal {
-    NonIdeal { tap_gain: 0.05, prnu: 0.02, dark: 0.01, dark_fpn: 0.002, tail: 0.1, tail_tau_s: 1e-9, gate_skew_s: 0.1e-9, modulation_contrast: 0.925, seed, ..NonIdeal::default() }
+    NonIdeal {
+        tap_gain: 0.05,
+        prnu: 0.02,
+        dark: 0.01,
+        dark_fpn: 0.002,
+        tail: 0.1,
+        tail_tau_s: 1e-9,
+        gate_skew_s: 0.1e-9,
+        modulation_contrast: 0.925,
+        seed,
+        ..NonIdeal::default()
+    }
 }
 /// Time per training step beyond the timed forward/backward/Adam step (ms): simulating the
 /// batch's measurements, augmentation, validation, checkpoints (measured on the default demo).
@@ -125,7 +136,6 @@ pub struct DemoSummary {
     pub resumed: bool,
 }
 
-
 /// The file that marks a directory as a demo's (so that an interrupted first run resumes).
 const DEMO_MARKER: &str = ".tcsense-demo";
 
@@ -142,7 +152,10 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
     }
     let marker = dir.join(DEMO_MARKER);
     if holds_files && !plan_path.exists() && !marker.exists() {
-        bail!("{}: the directory holds files but is no demo's (no plan.json), so it is not resumed; choose another output directory", dir.display());
+        bail!(
+            "{}: the directory holds files but is no demo's (no plan.json), so it is not resumed; choose another output directory",
+            dir.display()
+        );
     }
     std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
     // marks the directory as a demo's from its first moment (plan.json comes after the datasets)
@@ -196,14 +209,24 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
     let plan = match saved {
         Some(p) => p,
         None => {
-            let p = steps.run("plan: timing one training step of each network to size the epochs to the budget", || make_plan(&request, &lidar, &flim, obs))?;
+            let p = steps.run("plan: timing one training step of each network to size the epochs to the budget", || {
+                make_plan(&request, &lidar, &flim, obs)
+            })?;
             write_bytes(&plan_path, (serde_json::to_string_pretty(&p)? + "\n").as_bytes())?;
             p
         }
     };
     steps.of = steps.n + 1 + plan.trainings.len() + 6;
     for t in &plan.trainings {
-        obs.line(&format!("  {:<14} {:>4} epochs × {:>4} steps × {:>6.1} ms ≈ {:>5.0} s  ({})", t.name, t.epochs, t.steps_per_epoch, t.step_ms, (t.epochs * t.steps_per_epoch) as f64 * t.step_ms / 1e3, t.title));
+        obs.line(&format!(
+            "  {:<14} {:>4} epochs × {:>4} steps × {:>6.1} ms ≈ {:>5.0} s  ({})",
+            t.name,
+            t.epochs,
+            t.steps_per_epoch,
+            t.step_ms,
+            (t.epochs * t.steps_per_epoch) as f64 * t.step_ms / 1e3,
+            t.title
+        ));
     }
 
     // 2. codes: one random draw, the best of `candidates` by TVAL3 (the paper's selection), and
@@ -252,15 +275,26 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
     for t in &plan.trainings {
         cancelled(cancel)?;
         let (ds, ds_dir) = if t.name.ends_with("flim") { (&flim, &flim_dir) } else { (&lidar, &lidar_dir) };
-        steps.run(&format!("training {}: {} epochs", t.title, t.epochs), || train_one(t, &plan, ds, ds_dir, &selected, &runs_dir.join(&t.name), obs, cancel))?;
+        steps.run(&format!("training {}: {} epochs", t.title, t.epochs), || {
+            train_one(t, &plan, ds, ds_dir, &selected, &runs_dir.join(&t.name), obs, cancel)
+        })?;
     }
     let learned_dir = runs_dir.join("learned-lidar");
     let learned = Codes::load(&learned_dir.join(CODES_FILE))?;
     learned.save(&dir.join("codes/learned.json"))?;
     let regs = export::export(&learned, &dir.join("code-memory/learned"))?;
-    obs.line(&format!("  learned codes exported to {}: {} channels of {} bytes, ECLEN = {}", dir.join("code-memory/learned").display(), regs.channel_count, regs.bytes_per_channel, regs.ECLEN));
+    obs.line(&format!(
+        "  learned codes exported to {}: {} channels of {} bytes, ECLEN = {}",
+        dir.join("code-memory/learned").display(),
+        regs.channel_count,
+        regs.bytes_per_channel,
+        regs.ECLEN
+    ));
     // what every code set of the demo lets the taps tell apart
-    let ident = crate::identifiability::analyse(&[("random", &Codes::load(&random_path)?), ("best MSE", &Codes::load(&mse_path)?), ("selected", &selected), ("learned", &learned)], physical_irf())?;
+    let ident = crate::identifiability::analyse(
+        &[("random", &Codes::load(&random_path)?), ("best MSE", &Codes::load(&mse_path)?), ("selected", &selected), ("learned", &learned)],
+        physical_irf(),
+    )?;
     write_json(&dir.join("results/identifiability.json"), &ident)?;
     obs.line("  identifiability of the code sets (physical IRF, 1000 e⁻ signal):");
     for l in crate::identifiability::lines(&ident) {
@@ -337,23 +371,32 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
 
     // 7. timing at the sensor's frame size
     let timing_json = dir.join("results/timing.json");
-    steps.run(&format!("timing at {}x{}: ONNX Runtime (2 and 1 threads) and burn, per frame", request.timing_size[0], request.timing_size[1]), || {
-        if timing_json.exists() {
-            return Ok(());
-        }
-        let mut all = Vec::new();
-        for name in ["unet-lidar", "admm-lidar", "admm-flim"] {
-            cancelled(cancel)?;
-            let run = runs::load(&runs_dir.join(name), &Device::flex())?;
-            let model = dir.join("onnx").join(format!("{name}.onnx"));
-            let t = tcsense_infer::timing::time_decoder(Some(&run), &model, (request.timing_size[0], request.timing_size[1]), &[2, 1], plan.timing_rounds)?;
-            for e in &t.engines {
-                obs.line(&format!("  {name:<12} {:<26} {:>9.1} ms/frame {:>7.1} frames/s", e.engine, e.ms_per_frame, e.frames_per_s));
+    steps.run(
+        &format!("timing at {}x{}: ONNX Runtime (2 and 1 threads) and burn, per frame", request.timing_size[0], request.timing_size[1]),
+        || {
+            if timing_json.exists() {
+                return Ok(());
             }
-            all.push(json!({ "run": name, "timing": t }));
-        }
-        write_json(&timing_json, &json!({ "sensor_fps": SENSOR_FPS, "decoders": all }))
-    })?;
+            let mut all = Vec::new();
+            for name in ["unet-lidar", "admm-lidar", "admm-flim"] {
+                cancelled(cancel)?;
+                let run = runs::load(&runs_dir.join(name), &Device::flex())?;
+                let model = dir.join("onnx").join(format!("{name}.onnx"));
+                let t = tcsense_infer::timing::time_decoder(
+                    Some(&run),
+                    &model,
+                    (request.timing_size[0], request.timing_size[1]),
+                    &[2, 1],
+                    plan.timing_rounds,
+                )?;
+                for e in &t.engines {
+                    obs.line(&format!("  {name:<12} {:<26} {:>9.1} ms/frame {:>7.1} frames/s", e.engine, e.ms_per_frame, e.frames_per_s));
+                }
+                all.push(json!({ "run": name, "timing": t }));
+            }
+            write_json(&timing_json, &json!({ "sensor_fps": SENSOR_FPS, "decoders": all }))
+        },
+    )?;
 
     // 8. a non-ideal sensor brought up: its delay sweep, the calibration, the demo's LiDAR
     // decoders fine-tuned to it, ONNX for its raw tap images, the check (`crate::bringup`)
@@ -399,15 +442,37 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
 
 /// Generate a dataset unless a complete one is there (a partial one is never left: the
 /// generator writes atomically).
-fn generate_once(gen: &Generator, grid: &TimeGrid, count: usize, seed: u64, out: &Path, obs: &dyn Observer, cancel: &AtomicBool) -> Result<()> {
+fn generate_once(
+    gen: &Generator,
+    grid: &TimeGrid,
+    count: usize,
+    seed: u64,
+    out: &Path,
+    obs: &dyn Observer,
+    cancel: &AtomicBool,
+) -> Result<()> {
     if out.join("manifest.json").exists() && Dataset::open(out).is_ok() {
         return Ok(());
     }
     let what = out.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
     let done = std::sync::atomic::AtomicUsize::new(0);
     let progress = || obs.items(&what, done.fetch_add(1, Ordering::Relaxed) + 1, count);
-    let m = store::generate(gen, grid, count, seed, out, &WriteOptions { shard_size: DEFAULT_SHARD, force: true, progress: &progress, cancel })?;
-    obs.line(&format!("  wrote {}: {count} scenes, {}x{}, T = {} bins of {:.1} ps", out.display(), m.size[0], m.size[1], m.bins, m.bin_width_s * 1e12));
+    let m = store::generate(
+        gen,
+        grid,
+        count,
+        seed,
+        out,
+        &WriteOptions { shard_size: DEFAULT_SHARD, force: true, progress: &progress, cancel },
+    )?;
+    obs.line(&format!(
+        "  wrote {}: {count} scenes, {}x{}, T = {} bins of {:.1} ps",
+        out.display(),
+        m.size[0],
+        m.size[1],
+        m.bins,
+        m.bin_width_s * 1e12
+    ));
     Ok(())
 }
 

@@ -78,7 +78,8 @@ pub(super) const ZOO_FLIM_CUBE: &str = "admm-flim-delay";
 pub(super) fn zoo_entry_named(name: &str, ds: &Dataset) -> Option<(PathBuf, ModelConfig)> {
     let dir = tcsense_models::zoo::resolve(&format!("{}{name}", tcsense_models::zoo::PREFIX)).ok()?;
     let spec: runs::RunSpec = serde_json::from_value(runs::read_config_json(&dir.join(CONFIG_FILE)).ok()?).ok()?;
-    (spec.sampling == ds.manifest.grid.sampling && spec.model.bins() == ds.manifest.bins && spec.model.taps() == 4).then_some((dir, spec.model))
+    (spec.sampling == ds.manifest.grid.sampling && spec.model.bins() == ds.manifest.bins && spec.model.taps() == 4)
+        .then_some((dir, spec.model))
 }
 
 impl Request {
@@ -99,7 +100,15 @@ impl Request {
         if th == 0 || tw == 0 || th % 4 != 0 || tw % 4 != 0 {
             bail!("--timing-size {th}x{tw}: expected multiples of 4");
         }
-        Ok(Request { quick: a.quick, budget_minutes: budget, size: [h, w], lidar_scenes: lidar, flim_scenes: (lidar / 2).max(30), timing_size: [th, tw], seed: a.seed })
+        Ok(Request {
+            quick: a.quick,
+            budget_minutes: budget,
+            size: [h, w],
+            lidar_scenes: lidar,
+            flim_scenes: (lidar / 2).max(30),
+            timing_size: [th, tw],
+            seed: a.seed,
+        })
     }
 }
 
@@ -146,7 +155,14 @@ pub(super) fn make_plan(r: &Request, lidar: &Dataset, flim: &Dataset, obs: &dyn 
         // deep sensing needs relaxed epochs and at least one on the projected codes
         let epochs = fit.max(if name.starts_with("learned") { 3 } else { 1 });
         obs.line(&format!("  {name}: {step:.1} ms per step at {ch}x{cw}, {steps_per_epoch} steps per epoch → {epochs} epochs"));
-        trainings.push(TrainPlan { name: name.into(), title: title.into(), budget_s: share * budget_s, step_ms: step, steps_per_epoch, epochs });
+        trainings.push(TrainPlan {
+            name: name.into(),
+            title: title.into(),
+            budget_s: share * budget_s,
+            step_ms: step,
+            steps_per_epoch,
+            epochs,
+        });
     }
     let q = r.quick;
     Ok(Plan {

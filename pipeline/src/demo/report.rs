@@ -21,7 +21,14 @@ pub(super) fn result_rows(file: &str, results: &Value, text: &[&str], numbers: &
 /// the text follows whatever the run measured.
 pub(super) fn findings(results: &Value, metrics: &[(&str, &str, Format, &str)]) -> String {
     let rows = results["rows"].as_array().cloned().unwrap_or_default();
-    let name = |r: &Value| format!("{} ({} codes, {})", r["decoder"].as_str().unwrap_or(""), r["codes"].as_str().unwrap_or("selected"), r["engine"].as_str().unwrap_or(""));
+    let name = |r: &Value| {
+        format!(
+            "{} ({} codes, {})",
+            r["decoder"].as_str().unwrap_or(""),
+            r["codes"].as_str().unwrap_or("selected"),
+            r["engine"].as_str().unwrap_or("")
+        )
+    };
     let mut out = Vec::new();
     for &(ptr, label, format, unit) in metrics {
         let val = |r: &Value| r.pointer(&format!("/{ptr}")).and_then(Value::as_f64).filter(|v| v.is_finite());
@@ -40,7 +47,8 @@ pub(super) fn findings(results: &Value, metrics: &[(&str, &str, Format, &str)]) 
 }
 
 pub(super) fn read_json(path: &Path) -> Result<Value> {
-    serde_json::from_slice(&std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?).with_context(|| format!("{}: not JSON", path.display()))
+    serde_json::from_slice(&std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?)
+        .with_context(|| format!("{}: not JSON", path.display()))
 }
 
 /// The code memory's settings (`registers.json`'s fields but the channel map) as a table.
@@ -72,10 +80,13 @@ fn registers_table(r: &Value, src: &str) -> Table {
         rows: vec![
             row("ECLEN (L/8 − 1)", text(&r["ECLEN"])),
             row("masks per cycle L", text(&r["length"])),
-            row("channels", match (r["channel_count"].as_u64(), r["taps"].as_u64().filter(|&t| t > 0)) {
-                (Some(c), Some(t)) => format!("{c} ({} subpixels × {t} taps)", c / t),
-                _ => text(&r["channel_count"]),
-            }),
+            row(
+                "channels",
+                match (r["channel_count"].as_u64(), r["taps"].as_u64().filter(|&t| t > 0)) {
+                    (Some(c), Some(t)) => format!("{c} ({} subpixels × {t} taps)", c / t),
+                    _ => text(&r["channel_count"]),
+                },
+            ),
             row("pixel block", block),
             row("bytes per channel", text(&r["bytes_per_channel"])),
             row("modulation clock", r["clock_hz"].as_f64().map_or("–".into(), |hz| format!("{} MHz", hz / 1e6))),
@@ -95,12 +106,22 @@ fn channels_table(r: &Value, src: &str) -> Table {
             chs.iter()
                 .map(|c| {
                     let n = |k: &str| c[k].as_u64().map_or("–".into(), |v| v.to_string());
-                    vec![Cell::text(n("channel")), Cell::text(format!("{} (row {}, column {})", n("subpixel"), n("row"), n("col"))), Cell::text(n("tap")), Cell::text(c["file"].as_str().unwrap_or("–")), Cell::text(n("offset"))]
+                    vec![
+                        Cell::text(n("channel")),
+                        Cell::text(format!("{} (row {}, column {})", n("subpixel"), n("row"), n("col"))),
+                        Cell::text(n("tap")),
+                        Cell::text(c["file"].as_str().unwrap_or("–")),
+                        Cell::text(n("offset")),
+                    ]
                 })
                 .collect()
         })
         .unwrap_or_default();
-    Table { caption: format!("Code channels of the learned set ({src}: channels)"), headers: ["channel", "subpixel", "tap", "file", "offset in the combined image (bytes)"].map(String::from).to_vec(), rows }
+    Table {
+        caption: format!("Code channels of the learned set ({src}: channels)"),
+        headers: ["channel", "subpixel", "tap", "file", "offset in the combined image (bytes)"].map(String::from).to_vec(),
+        rows,
+    }
 }
 
 pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Value], total_s: f64) -> Result<Report> {
@@ -123,10 +144,21 @@ pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Val
             Cell::text(last.map_or("0".into(), |m| m.step.to_string())),
             Cell::text(format!("{:.1}", t.step_ms)),
             Cell::text(format!("{:.0}", last.map_or(0.0, |m| m.seconds))),
-            Cell::text(last.and_then(|m| m.val.first()).map_or("–".into(), |(n, v)| format!("{} {}", n.trim_start_matches("val_").replace('_', " "), if n.ends_with("_m") { format!("{v:.3} m") } else { format!("{v:.3e}") }))),
+            Cell::text(last.and_then(|m| m.val.first()).map_or("–".into(), |(n, v)| {
+                format!(
+                    "{} {}",
+                    n.trim_start_matches("val_").replace('_', " "),
+                    if n.ends_with("_m") { format!("{v:.3} m") } else { format!("{v:.3e}") }
+                )
+            })),
         ]);
     }
-    let mut step_rows: Vec<Vec<Cell>> = times.iter().map(|t| vec![Cell::text(t["step"].as_str().unwrap_or("")), Cell::text(format!("{:.1}", t["seconds"].as_f64().unwrap_or(f64::NAN)))]).collect();
+    let mut step_rows: Vec<Vec<Cell>> = times
+        .iter()
+        .map(|t| {
+            vec![Cell::text(t["step"].as_str().unwrap_or("")), Cell::text(format!("{:.1}", t["seconds"].as_f64().unwrap_or(f64::NAN)))]
+        })
+        .collect();
     step_rows.push(vec![Cell::text("this run of tcsense demo, in all"), Cell::text(format!("{total_s:.1}"))]);
     sections.push(Section {
         id: "overview".into(),
@@ -154,7 +186,10 @@ pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Val
     let n_cand = sel["candidates"].as_array().map_or(0, |a| a.len());
     let mut cand_rows = Vec::new();
     for i in 0..n_cand {
-        cand_rows.push(vec![Cell::from_json("results/selection.json", &sel, &format!("/candidates/{i}/seed"), Format::Fixed(0)), Cell::from_json("results/selection.json", &sel, &format!("/candidates/{i}/mse"), Format::Sci(3))]);
+        cand_rows.push(vec![
+            Cell::from_json("results/selection.json", &sel, &format!("/candidates/{i}/seed"), Format::Fixed(0)),
+            Cell::from_json("results/selection.json", &sel, &format!("/candidates/{i}/mse"), Format::Sci(3)),
+        ]);
     }
     let regs_src = "code-memory/learned/registers.json";
     let regs = read_json(&dir.join(regs_src)).unwrap_or(Value::Null);
@@ -209,16 +244,28 @@ pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Val
     // LiDAR
     let lj = read_json(&dir.join("results/lidar.json"))?;
     let src = "results/lidar.json";
-    let rows = result_rows(src, &lj, &["decoder", "codes", "engine"], &[
-        ("mse", Format::Sci(3)),
-        ("psnr_db", Format::Fixed(2)),
-        ("range_rmse_m/0", Format::Fixed(3)),
-        ("range_rmse_m/1", Format::Fixed(3)),
-        ("detection_pct/0", Format::Fixed(1)),
-        ("detection_pct/1", Format::Fixed(1)),
-        ("ms_per_frame", Format::Fixed(1)),
-    ]);
-    let findings_lidar = findings(&lj, &[("mse", "MSE", Format::Sci(3), ""), ("range_rmse_m/0", "range RMSE of return 1", Format::Fixed(3), " m"), ("range_rmse_m/1", "range RMSE of return 2", Format::Fixed(3), " m")]);
+    let rows = result_rows(
+        src,
+        &lj,
+        &["decoder", "codes", "engine"],
+        &[
+            ("mse", Format::Sci(3)),
+            ("psnr_db", Format::Fixed(2)),
+            ("range_rmse_m/0", Format::Fixed(3)),
+            ("range_rmse_m/1", Format::Fixed(3)),
+            ("detection_pct/0", Format::Fixed(1)),
+            ("detection_pct/1", Format::Fixed(1)),
+            ("ms_per_frame", Format::Fixed(1)),
+        ],
+    );
+    let findings_lidar = findings(
+        &lj,
+        &[
+            ("mse", "MSE", Format::Sci(3), ""),
+            ("range_rmse_m/0", "range RMSE of return 1", Format::Fixed(3), " m"),
+            ("range_rmse_m/1", "range RMSE of return 2", Format::Fixed(3), " m"),
+        ],
+    );
     sections.push(Section {
         id: "lidar".into(),
         title: "LiDAR with multipath".into(),
@@ -239,7 +286,18 @@ pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Val
     // FLIm
     let fj = read_json(&dir.join("results/flim.json"))?;
     let src = "results/flim.json";
-    let rows = result_rows(src, &fj, &["decoder", "engine"], &[("mse", Format::Sci(3)), ("psnr_db", Format::Fixed(2)), ("lifetime_mae_ns", Format::Fixed(3)), ("lifetime_within_02ns_pct", Format::Fixed(1)), ("ms_per_frame", Format::Fixed(1))]);
+    let rows = result_rows(
+        src,
+        &fj,
+        &["decoder", "engine"],
+        &[
+            ("mse", Format::Sci(3)),
+            ("psnr_db", Format::Fixed(2)),
+            ("lifetime_mae_ns", Format::Fixed(3)),
+            ("lifetime_within_02ns_pct", Format::Fixed(1)),
+            ("ms_per_frame", Format::Fixed(1)),
+        ],
+    );
     let findings_flim = findings(&fj, &[("mse", "MSE", Format::Sci(3), ""), ("lifetime_mae_ns", "lifetime MAE", Format::Fixed(3), " ns")]);
     sections.push(Section {
         id: "flim".into(),

@@ -40,7 +40,16 @@ pub(super) fn cancelled(cancel: &AtomicBool) -> Result<()> {
 
 /// Train (or resume) one run of the plan.
 #[allow(clippy::too_many_arguments)]
-pub(super) fn train_one(t: &TrainPlan, plan: &Plan, ds: &Dataset, ds_dir: &Path, codes: &Codes, run: &Path, obs: &dyn Observer, cancel: &AtomicBool) -> Result<()> {
+pub(super) fn train_one(
+    t: &TrainPlan,
+    plan: &Plan,
+    ds: &Dataset,
+    ds_dir: &Path,
+    codes: &Codes,
+    run: &Path,
+    obs: &dyn Observer,
+    cancel: &AtomicBool,
+) -> Result<()> {
     let resume = run.join(CONFIG_FILE).exists();
     let cfg = if resume {
         TrainConfig::load(&run.join(CONFIG_FILE))?
@@ -57,16 +66,26 @@ pub(super) fn train_one(t: &TrainPlan, plan: &Plan, ds: &Dataset, ds_dir: &Path,
             cfg.learn_codes = Some(LearnCodes::new(codes.constraints, t.epochs));
         }
         if t.name.starts_with("zoo") {
-            let Some((zoo_dir, _)) = zoo_entry(ds) else { bail!("the plan fine-tunes zoo:{ZOO_ENTRY}, but the zoo no longer holds it (see TCSENSE_ZOO)") };
+            let Some((zoo_dir, _)) = zoo_entry(ds) else {
+                bail!("the plan fine-tunes zoo:{ZOO_ENTRY}, but the zoo no longer holds it (see TCSENSE_ZOO)")
+            };
             cfg.init_from = Some(zoo_dir.display().to_string());
         }
         cfg
     };
-    let start = if resume && t.name.starts_with("learned") && !run.join(CODES_FILE).exists() { Codes::load(&run.join(tcsense_train::deep_sensing::START_CODES_FILE))? } else if resume { Codes::load(&run.join(CODES_FILE))? } else { codes.clone() };
+    let start = if resume && t.name.starts_with("learned") && !run.join(CODES_FILE).exists() {
+        Codes::load(&run.join(tcsense_train::deep_sensing::START_CODES_FILE))?
+    } else if resume {
+        Codes::load(&run.join(CODES_FILE))?
+    } else {
+        codes.clone()
+    };
     let res = train(&cfg, &start, run, resume, obs.training(), cancel);
     match res {
         Ok(_) => Ok(()),
-        Err(TrainError::Cancelled) => bail!("interrupted; the last checkpoint in {} is kept: rerun the same command to resume", run.display()),
+        Err(TrainError::Cancelled) => {
+            bail!("interrupted; the last checkpoint in {} is kept: rerun the same command to resume", run.display())
+        }
         Err(e) => Err(e.into()),
     }
 }
@@ -122,23 +141,54 @@ pub(super) fn flim_row(r: &EvalRow, codes: &str, decoder: &str, engine: &str) ->
 /// decoder and keep the inputs and outputs in `DIR/frames/` as `.npy`; which items, in
 /// `DIR/frames/frames.json`.
 #[allow(clippy::too_many_arguments)]
-pub(super) fn decode_frames(dir: &Path, lidar: &Dataset, flim: &Dataset, selected: &Codes, learned: &Codes, noise: &NoiseParams, seed: u64, cancel: &AtomicBool) -> Result<()> {
+pub(super) fn decode_frames(
+    dir: &Path,
+    lidar: &Dataset,
+    flim: &Dataset,
+    selected: &Codes,
+    learned: &Codes,
+    noise: &NoiseParams,
+    seed: u64,
+    cancel: &AtomicBool,
+) -> Result<()> {
     let frames = dir.join("frames");
     let runs_dir = dir.join("runs");
     let ctl = Control::quiet(cancel);
     // the LiDAR frame: the first test item with a return behind a sheet in ≥ 5 % of its pixels
     let depth = lidar.load("test", "depth")?.into_dimensionality::<Ix4>()?;
     let (n, k, fh, fw) = depth.dim();
-    let lidar_index = if k > 1 { (0..n).find(|&i| depth.slice(ndarray::s![i, 1, .., ..]).iter().filter(|v| v.is_finite()).count() * 20 >= fh * fw).unwrap_or(0) } else { 0 };
+    let lidar_index = if k > 1 {
+        (0..n).find(|&i| depth.slice(ndarray::s![i, 1, .., ..]).iter().filter(|v| v.is_finite()).count() * 20 >= fh * fw).unwrap_or(0)
+    } else {
+        0
+    };
     write_json(&frames.join("frames.json"), &json!({ "lidar_test_index": lidar_index, "flim_test_index": 0 }))?;
     let item = |ds: &Dataset, i: usize| -> Result<Array4<f32>> {
         let x = ds.load("test", "x")?.into_dimensionality::<Ix4>()?;
         Ok(x.slice_axis(Axis(0), ndarray::Slice::from(i..i + 1)).to_owned())
     };
     let jobs: [FrameJob<'_>; 3] = [
-        ("lidar", lidar, selected, vec![("tval3", "tval3".into()), ("admm", format!("admm-net:{}", runs_dir.join("admm-lidar").display())), ("unet", format!("unet:{}", runs_dir.join("unet-lidar").display()))]),
+        (
+            "lidar",
+            lidar,
+            selected,
+            vec![
+                ("tval3", "tval3".into()),
+                ("admm", format!("admm-net:{}", runs_dir.join("admm-lidar").display())),
+                ("unet", format!("unet:{}", runs_dir.join("unet-lidar").display())),
+            ],
+        ),
         ("lidar-learned", lidar, learned, vec![("admm", format!("admm-net:{}", runs_dir.join("learned-lidar").display()))]),
-        ("flim", flim, selected, vec![("tval3", "tval3".into()), ("admm", format!("admm-net:{}", runs_dir.join("admm-flim").display())), ("fit", "lifetime-fit".into())]),
+        (
+            "flim",
+            flim,
+            selected,
+            vec![
+                ("tval3", "tval3".into()),
+                ("admm", format!("admm-net:{}", runs_dir.join("admm-flim").display())),
+                ("fit", "lifetime-fit".into()),
+            ],
+        ),
     ];
     for (tag, ds, codes, decoders) in jobs {
         let a = sensor(codes, ds)?;
