@@ -75,13 +75,7 @@ enum Command {
 }
 
 fn main() -> ExitCode {
-    // output piped into a reader that stops early (`tcsense … | head`) ends the process quietly,
-    // as for any Unix tool, rather than a panic in `println!`
-    #[cfg(unix)]
-    // SAFETY: restoring the default disposition of SIGPIPE before any thread starts
-    unsafe {
-        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
-    }
+    tcsense_kernels::quiet_broken_pipe();
     tcsense_kernels::keep_freed_memory();
     let cli = Cli::parse();
     if let Some(n) = cli.threads {

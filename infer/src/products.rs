@@ -4,12 +4,6 @@
 //! bins apart, strongest first, refined by a parabola through the maximum and its two
 //! neighbours: `δ = ½ (y₋ − y₊) / (y₋ − 2y₀ + y₊)`. A peak at bin-centre coordinate `p` is the
 //! time `t = (p + ½)Δt` (bin `j` covers `[jΔt, (j+1)Δt)`); depth (range) `d = c·t/2`.
-//!
-//! **Lifetime**: a weighted log-linear least-squares fit of `x(t) ∝ exp(−t/τ)` over the bins
-//! after the peak while the decay stays above `min_rel` × peak (weights `x²`, the usual
-//! correction for fitting the logarithm). **Phasor**: `g = Σx cos ωt / Σx`,
-//! `s = Σx sin ωt / Σx` at `ω = 2π / (L·T_c)`; for a single exponential,
-//! `τ_φ = s / (ω g)`.
 
 use crate::Result;
 use ndarray::{Array2, Array3, ArrayView1, ArrayView3, Axis};
@@ -117,85 +111,6 @@ pub fn depth_map(x: &ArrayView3<'_, f32>, bin_width_s: f64, opts: &PeakOptions) 
         }
     }
     (depth, amp)
-}
-
-/// Lifetime of one decay by a weighted log-linear fit after the peak; `None` if too few bins.
-///
-/// A constant background (ambient light, dark counts, an offset in the reconstruction) is
-/// subtracted first: the mean of the bins a quarter to an eighth of the cycle before the peak
-/// (the periodic decay's tail just before the next onset, far from the rise), when positive.
-/// Without it, an offset of a few percent of the peak flattens the tail into lifetimes of tens
-/// of nanoseconds.
-pub fn fit_lifetime(wave: &ArrayView1<'_, f32>, bin_width_s: f64, min_rel: f32) -> Option<f64> {
-    let t = wave.len();
-    let (imax, _) = wave.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1))?;
-    let window: Vec<f32> = (t / 8..t / 4).map(|k| wave[(imax + t - k) % t]).collect();
-    let floor = (window.iter().sum::<f32>() / window.len().max(1) as f32).max(0.0);
-    let wave = wave.mapv(|v| v - floor);
-    let peak = wave[imax];
-    if peak <= 0.0 || !peak.is_finite() {
-        return None;
-    }
-    let (mut sw, mut sx, mut sy, mut sxx, mut sxy) = (0f64, 0f64, 0f64, 0f64, 0f64);
-    let mut n = 0;
-    for k in 1..t {
-        let v = wave[(imax + k) % t];
-        if v <= min_rel * peak {
-            break;
-        }
-        let (xv, yv, wv) = (k as f64 * bin_width_s, (v as f64).ln(), (v as f64) * (v as f64));
-        sw += wv;
-        sx += wv * xv;
-        sy += wv * yv;
-        sxx += wv * xv * xv;
-        sxy += wv * xv * yv;
-        n += 1;
-    }
-    if n < 2 {
-        return None;
-    }
-    let den = sw * sxx - sx * sx;
-    if den.abs() < f64::MIN_POSITIVE {
-        return None;
-    }
-    let slope = (sw * sxy - sx * sy) / den;
-    (slope < 0.0).then(|| -1.0 / slope)
-}
-
-/// Lifetime map `[H, W]` (s, NaN where no fit) and phasor `[2, H, W]` (g, s).
-///
-/// # Shapes
-/// - `x`: `[T, H, W]` → `([H, W], [2, H, W])`
-pub fn lifetime_map(x: &ArrayView3<'_, f32>, bin_width_s: f64, min_rel: f32, min_intensity: f32) -> (Array2<f32>, Array3<f32>) {
-    let (t, h, w) = x.dim();
-    let omega = 2.0 * std::f64::consts::PI / (t as f64 * bin_width_s);
-    let total_max = x.sum_axis(Axis(0)).iter().fold(0f32, |m, &v| m.max(v));
-    let res: Vec<(f32, f32, f32)> = (0..h * w)
-        .into_par_iter()
-        .map(|p| {
-            let wave = x.slice(ndarray::s![.., p / w, p % w]);
-            let sum: f64 = wave.iter().map(|&v| v as f64).sum();
-            if sum <= (min_intensity * total_max) as f64 || sum <= 0.0 {
-                return (f32::NAN, f32::NAN, f32::NAN);
-            }
-            let (mut g, mut s) = (0f64, 0f64);
-            for (j, &v) in wave.iter().enumerate() {
-                let tj = (j as f64 + 0.5) * bin_width_s;
-                g += v as f64 * (omega * tj).cos();
-                s += v as f64 * (omega * tj).sin();
-            }
-            let tau = fit_lifetime(&wave, bin_width_s, min_rel).map_or(f32::NAN, |v| v as f32);
-            (tau, (g / sum) as f32, (s / sum) as f32)
-        })
-        .collect();
-    let mut tau = Array2::<f32>::from_elem((h, w), f32::NAN);
-    let mut ph = Array3::<f32>::from_elem((2, h, w), f32::NAN);
-    for (p, (ta, g, s)) in res.into_iter().enumerate() {
-        tau[(p / w, p % w)] = ta;
-        ph[(0, p / w, p % w)] = g;
-        ph[(1, p / w, p % w)] = s;
-    }
-    (tau, ph)
 }
 
 /// Phasors `[2, H, W]` (g, s; NaN below `min_intensity` of the brightest pixel's total) at the
@@ -364,37 +279,5 @@ mod tests {
         let dt = 1.65e-9;
         let (d, _) = depth_map(&x.view(), dt, &PeakOptions::default());
         assert!((d[(1, 0, 0)] as f64 - C * (20.7 + 0.5) * dt / 2.0).abs() < 0.02);
-    }
-
-    #[test]
-    fn lifetime_fit_recovers_a_known_decay() {
-        let dt = 206e-12;
-        for &tau in &[0.8e-9, 2.0e-9, 3.3e-9] {
-            // bin-averaged decay starting at bin 10 + noise-free
-            let wave = Array1::from_iter((0..256).map(|j| {
-                let (a, b) = (j as f64 * dt, (j + 1) as f64 * dt);
-                let t0 = 10.0 * dt;
-                if b <= t0 {
-                    0.0
-                } else {
-                    let a = a.max(t0);
-                    (tau * ((-(a - t0) / tau).exp() - (-(b - t0) / tau).exp()) / dt) as f32
-                }
-            }));
-            let fit = fit_lifetime(&wave.view(), dt, 0.05).unwrap();
-            assert!((fit / tau - 1.0).abs() < 0.02, "fit {fit:e} tau {tau:e}");
-            // a background of 5 % of the peak is subtracted, not fitted into the tail
-            let peak = wave.iter().fold(0f32, |m, &v| m.max(v));
-            let lifted = wave.mapv(|v| v + 0.05 * peak);
-            let fit = fit_lifetime(&lifted.view(), dt, 0.05).unwrap();
-            assert!((fit / tau - 1.0).abs() < 0.02, "with a background: fit {fit:e} tau {tau:e}");
-            let x = wave.into_shape_with_order((256, 1, 1)).unwrap();
-            let (_, ph) = lifetime_map(&x.view(), dt, 0.05, 0.0);
-            let omega = 2.0 * std::f64::consts::PI / (256.0 * dt);
-            // the phasor of a (bin-averaged, delayed) exponential lies on the universal circle
-            let (g, s) = (ph[(0, 0, 0)] as f64, ph[(1, 0, 0)] as f64);
-            let r = ((g - 0.5).powi(2) + s * s).sqrt();
-            assert!((r - 0.5).abs() < 0.1, "phasor radius {r}, omega tau {}", omega * tau);
-        }
     }
 }

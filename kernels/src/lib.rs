@@ -21,7 +21,7 @@
 //! with a `SAFETY` note: the calls into `gemm::gemm` (an `unsafe fn`; every view is
 //! bounds-checked before it) in [`conv`]; the disjoint parallel writes into output planes
 //! through `plane::SharedOut` (used by [`conv`]'s bands, the direct loops' bands and
-//! [`pixel`]'s `par_bands`); and glibc's `mallopt` in [`keep_freed_memory`]. SIMD dispatch is
+//! [`pixel`]'s `par_bands`); glibc's `mallopt` in [`keep_freed_memory`]; and `signal` in [`quiet_broken_pipe`]. SIMD dispatch is
 //! also only here: `gemm` picks AVX2/AVX-512 at run time, and the per-pixel loops and the
 //! direct convolution loops are compiled for the best extension this CPU has through
 //! `pulp::Arch::dispatch`.
@@ -79,5 +79,19 @@ pub fn keep_freed_memory() {
     unsafe {
         libc::mallopt(libc::M_MMAP_MAX, 0);
         libc::mallopt(libc::M_TRIM_THRESHOLD, i32::MAX);
+    }
+}
+
+/// Restore the default disposition of SIGPIPE (Rust's runtime ignores it), so that output
+/// piped into a reader that stops early (`tcsense … | head`) ends the process quietly, as for
+/// any Unix tool, rather than with a panic in `println!`. Call it once, early, from a front
+/// end (the `tcsense` binary does), before any thread starts; a no-op off Unix.
+pub fn quiet_broken_pipe() {
+    #[cfg(unix)]
+    // SAFETY: `signal` with SIG_DFL installs no handler (no code runs in signal context); it is
+    // called before any other thread exists.
+    #[allow(unsafe_code)]
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
 }
