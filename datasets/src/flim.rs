@@ -33,6 +33,7 @@ use ndarray::{Array1, Array2, Array3};
 use rand::rngs::StdRng;
 use rand::{RngExt, SeedableRng};
 use serde::{Deserialize, Serialize};
+use tcsense_sensor::waveform::{decay_bin_averages, IrfKernel};
 
 /// Lifetime ranges of the three channels (s), as in the paper.
 pub const TAU_RANGES: [(f64, f64); 3] = [(0.5e-9, 1.5e-9), (1.5e-9, 2.5e-9), (2.5e-9, 3.5e-9)];
@@ -265,60 +266,13 @@ impl FlimParams {
     }
 }
 
-/// Bin averages of the periodic unit decay `Σ_k exp(−(t − t0 + kP)/τ)` over `T` bins.
-pub fn decay_bins(grid: &TimeGrid, tau: f64, t0: f64) -> Vec<f64> {
-    let (dt, period) = (grid.bin_width_s(), grid.cycle_s());
-    let norm = 1.0 / (1.0 - (-period / tau).exp());
-    // ∫_a^b e^{−(t−s)/τ} dt for a ≥ s
-    let integral = |a: f64, b: f64, s: f64| tau * ((-(a - s) / tau).exp() - (-(b - s) / tau).exp());
-    (0..grid.bins())
-        .map(|j| {
-            let (a, b) = (j as f64 * dt, (j + 1) as f64 * dt);
-            let mut acc = 0.0;
-            // part at or after the onset: decay of this cycle's pulse
-            if b > t0 {
-                acc += integral(a.max(t0), b, t0);
-            }
-            // part before the onset: tail of the previous cycle's pulse
-            if a < t0 {
-                acc += integral(a, b.min(t0), t0 - period);
-            }
-            acc * norm / dt
-        })
-        .collect()
-}
-
-/// `erf(x)` (Abramowitz & Stegun 7.1.26, |error| < 1.5e-7).
-pub fn erf(x: f64) -> f64 {
-    let t = 1.0 / (1.0 + 0.327_591_1 * x.abs());
-    let poly = t * (0.254_829_592 + t * (-0.284_496_736 + t * (1.421_413_741 + t * (-1.453_152_027 + t * 1.061_405_429))));
-    (1.0 - poly * (-x * x).exp()).copysign(x)
-}
-
-/// Cyclic convolution of bin averages with a Gaussian instrument response of `fwhm_s`,
-/// integrated over each bin (the response is normalised, so the area is kept).
-pub fn blur_cyclic(bins: &[f64], bin_width_s: f64, fwhm_s: f64) -> Vec<f64> {
-    let n = bins.len();
-    if fwhm_s <= 0.0 || n == 0 {
-        return bins.to_vec();
-    }
-    let sigma = fwhm_s / (8.0 * 2f64.ln()).sqrt() / bin_width_s; // in bins (FWHM = √(8 ln 2)·σ)
-    let reach = ((4.0 * sigma).ceil() as usize).min(n / 2).max(1);
-    let cdf = |x: f64| 0.5 * (1.0 + erf(x / (sigma * std::f64::consts::SQRT_2)));
-    let kernel: Vec<f64> = (0..=2 * reach).map(|i| i as f64 - reach as f64).map(|d| cdf(d + 0.5) - cdf(d - 0.5)).collect();
-    let total: f64 = kernel.iter().sum();
-    (0..n)
-        .map(|j| kernel.iter().enumerate().map(|(i, k)| k * bins[(j + reach + n - i) % n]).sum::<f64>() / total) // Σ_d k(d)·b[j − d], d = i − reach
-        .collect()
-}
-
 /// Render eq. (5) from channels `p` `[3, H, W]` with the scene's knobs.
 pub fn render(p: &Array3<f32>, knobs: &FlimKnobs, grid: &TimeGrid) -> FlimSample {
     let (_, h, w) = p.dim();
     let t = grid.bins();
     let (tau, t0) = (knobs.tau, knobs.onset_s);
-    let decays: Vec<Vec<f64>> =
-        tau.iter().map(|&ti| blur_cyclic(&decay_bins(grid, ti, t0), grid.bin_width_s(), knobs.irf_fwhm_s)).collect();
+    let irf = IrfKernel::gaussian(grid.cycle(), knobs.irf_fwhm_s);
+    let decays: Vec<Vec<f64>> = tau.iter().map(|&ti| irf.apply(&decay_bin_averages(grid.cycle(), ti, t0))).collect();
     let mut x = Array3::<f32>::zeros((t, h, w));
     let mut weights = Array3::<f32>::zeros((3, h, w));
     let mut lifetime = Array2::<f32>::from_elem((h, w), f32::NAN);
@@ -410,7 +364,7 @@ mod tests {
         let g = TimeGrid { length: 8, clock_hz: 607e6, sampling: Sampling::Oversample(1) };
         // the average over a whole cycle of the periodic decay is τ/P
         let tau = 3e-9;
-        let d = decay_bins(&g, tau, 4.3e-9);
+        let d = decay_bin_averages(g.cycle(), tau, 4.3e-9);
         let mean = d.iter().sum::<f64>() / d.len() as f64;
         assert!((mean - tau / g.cycle_s()).abs() < 1e-9);
     }
@@ -476,15 +430,13 @@ mod tests {
     #[test]
     fn irf_blur_keeps_the_area_and_widens_the_rise() {
         let g = het();
-        let d = decay_bins(&g, 1e-9, 3e-9);
-        let b = blur_cyclic(&d, g.bin_width_s(), 1e-9);
+        let d = decay_bin_averages(g.cycle(), 1e-9, 3e-9);
+        let b = IrfKernel::gaussian(g.cycle(), 1e-9).apply(&d);
         let (sd, sb): (f64, f64) = (d.iter().sum(), b.iter().sum());
         assert!((sd - sb).abs() < 1e-9 * sd, "area {sd} -> {sb}");
         // the sharp rise at the onset is spread over several bins: its peak drops
         let (pd, pb) = (d.iter().cloned().fold(0.0, f64::max), b.iter().cloned().fold(0.0, f64::max));
         assert!(pb < 0.9 * pd, "peak {pd} -> {pb}");
-        assert_eq!(blur_cyclic(&d, g.bin_width_s(), 0.0), d);
-        assert!((erf(0.5) - 0.520_499_877_8).abs() < 2e-7 && (erf(-1.2) + 0.910_313_978_2).abs() < 2e-7);
     }
 
     #[test]

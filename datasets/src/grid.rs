@@ -48,6 +48,10 @@ impl TimeGrid {
     pub fn cycle_s(&self) -> f64 {
         self.length as f64 / self.clock_hz
     }
+    /// The grid as the waveforms see it: `T` bins of `Δt`, period `L·T_c`.
+    pub fn cycle(&self) -> tcsense_sensor::waveform::Cycle {
+        tcsense_sensor::waveform::Cycle { bins: self.bins(), dt_s: self.bin_width_s(), period_s: self.cycle_s() }
+    }
     /// Unambiguous range `L·T_c·c/2` (m).
     pub fn range_m(&self) -> f64 {
         self.cycle_s() * C / 2.0

@@ -16,8 +16,9 @@
 
 use ndarray::{Array3, Array4, Axis};
 use tcsense_models::range_fit::{refine_ranges, RangeFitOptions};
-use tcsense_sensor::identify::{self, periodic_decay, Columns, Light};
+use tcsense_sensor::identify::{self, Columns, Light};
 use tcsense_sensor::noise::{add_noise, Exposure};
+use tcsense_sensor::waveform::{decay_unit_sum, Cycle};
 use tcsense_sensor::{MeasurementMatrix, NoiseParams, C};
 
 use crate::tapfit::{fit_taps, TapFitOptions};
@@ -67,7 +68,7 @@ fn inner(size: usize, block: (usize, usize)) -> Vec<(usize, usize, Vec<f64>)> {
     let r = WINDOW / 2;
     (r..size - r)
         .flat_map(|i| (r..size - r).map(move |j| (i, j)))
-        .map(|(i, j)| (i, j, identify::window_weights(block, WINDOW, (i % block.0) * block.1 + j % block.1)))
+        .map(|(i, j)| (i, j, identify::window_weights(block, WINDOW, tcsense_sensor::waveform::subpixel(i, j, block))))
         .collect()
 }
 
@@ -150,7 +151,7 @@ pub fn validate_lifetime(
     };
     let mut out = Vec::new();
     for (ti, &tau) in taus_s.iter().enumerate() {
-        let d = periodic_decay(t, a.bin_width_s(), tau, onset_s);
+        let d = decay_unit_sum(Cycle::new(t, a.bin_width_s()), tau, onset_s);
         let x: Vec<f64> = d.iter().map(|v| light.photons * v + light.ambient / t as f64).collect();
         let y = flat_frame(a, &x, size)?;
         let noisy = add_noise(

@@ -5,6 +5,7 @@
 use ndarray::Axis;
 use std::path::{Path, PathBuf};
 use tcsense_sensor::calibration::{Calibration, DESCRIPTION};
+use tcsense_sensor::waveform::subpixel;
 use tcsense_sensor::MeasurementMatrix;
 
 use crate::figures::{self, Series};
@@ -54,7 +55,7 @@ pub fn write_calibration_report(cal: &Calibration, nominal: &MeasurementMatrix, 
     // one pixel's sweep data against the fit
     let (_, _, h, w) = r.dim();
     let (pi, pj) = (h / 2 / bh * bh, w / 2 / bw * bw);
-    let q = (pi % bh) * bw + pj % bw;
+    let q = subpixel(pi, pj, (bh, bw));
     let model: Vec<Vec<f64>> =
         (0..m).map(|c| (0..t).map(|j| cal.gain[(c, pi, pj)] as f64 * cal.matrix.a()[(q, c, j)] as f64).collect()).collect();
     let data: Vec<Vec<f64>> = (0..m).map(|c| (0..t).map(|j| r[(j, c, pi, pj)] as f64).collect()).collect();

@@ -27,6 +27,7 @@
 
 use ndarray::{Array2, Array3, ArrayView3, Axis};
 use rayon::prelude::*;
+use tcsense_sensor::waveform::{decay_bin_averages, Cycle, IrfKernel};
 
 /// The instrument response the fit convolves with.
 #[derive(Debug, Clone, PartialEq)]
@@ -90,81 +91,11 @@ pub struct LifetimeFit {
     pub irf_fwhm_s: f64,
 }
 
-/// A cycle's time grid.
-#[derive(Debug, Clone, Copy)]
-pub(crate) struct Cycle {
-    pub(crate) bins: usize,
-    pub(crate) dt: f64,
-}
-
-impl Cycle {
-    pub(crate) fn period(&self) -> f64 {
-        self.bins as f64 * self.dt
-    }
-}
-
-/// Bin averages of the periodic unit decay with onset `t0` (`D_τ` above).
-pub(crate) fn periodic_decay(c: Cycle, tau: f64, t0: f64) -> Vec<f64> {
-    let norm = 1.0 / (1.0 - (-c.period() / tau).exp());
-    tcsense_sensor::identify::decay_integrals(c.bins, c.dt, tau, t0).into_iter().map(|v| v * norm / c.dt).collect()
-}
-
-/// Standard normal CDF.
-fn normal_cdf(x: f64) -> f64 {
-    0.5 * (1.0 + tcsense_datasets::flim::erf(x / std::f64::consts::SQRT_2))
-}
-
-/// The response the decays are convolved with, as a cyclic kernel `k[d]`, `d = −r..=r` bins
-/// (sums to 1).
-#[derive(Debug, Clone)]
-pub(crate) struct Kernel {
-    taps: Vec<f64>,
-    reach: usize,
-}
-
-impl Kernel {
-    /// A bin-integrated Gaussian of `fwhm` (s); a delta for 0.
-    pub(crate) fn gaussian(c: Cycle, fwhm: f64) -> Kernel {
-        if fwhm <= 0.0 {
-            return Kernel { taps: vec![1.0], reach: 0 };
-        }
-        let sigma = fwhm / (8.0 * 2f64.ln()).sqrt() / c.dt;
-        let reach = ((5.0 * sigma).ceil() as usize).clamp(1, c.bins / 2);
-        let taps: Vec<f64> = (0..=2 * reach)
-            .map(|i| i as f64 - reach as f64)
-            .map(|d| normal_cdf((d + 0.5) / sigma) - normal_cdf((d - 0.5) / sigma))
-            .collect();
-        let s: f64 = taps.iter().sum();
-        Kernel { taps: taps.into_iter().map(|v| v / s).collect(), reach }
-    }
-
-    /// A measured response (one value per bin) as a centred kernel: the IRF itself with its
-    /// peak moved to bin 0, so the fitted onset carries its delay.
-    fn measured(irf: &[f64]) -> Kernel {
-        let n = irf.len();
-        let s: f64 = irf.iter().sum::<f64>().max(1e-300);
-        let reach = n / 2;
-        let peak = irf.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).map_or(0, |(i, _)| i);
-        let taps = (0..=2 * reach).map(|i| if i < n { irf[(peak + n + i - reach) % n] / s } else { 0.0 }).collect();
-        Kernel { taps, reach }
-    }
-
-    /// The kernel of `irf` (a Gaussian of `fwhm` unless measured).
-    fn of(c: Cycle, irf: &IrfModel, fwhm: f64) -> Kernel {
-        match irf {
-            IrfModel::Measured(m) => Kernel::measured(m),
-            IrfModel::Gaussian(_) => Kernel::gaussian(c, fwhm),
-        }
-    }
-
-    /// Cyclic convolution `(k ⊛ v)[j] = Σ_d k[d]·v[j − d]`.
-    pub(crate) fn apply(&self, v: &[f64]) -> Vec<f64> {
-        if self.reach == 0 {
-            return v.to_vec();
-        }
-        let n = v.len();
-        (0..n).map(|j| self.taps.iter().enumerate().map(|(i, k)| k * v[(j + self.reach + n - i) % n]).sum()).collect()
-        // d = i − reach
+/// The kernel of `irf` (a Gaussian of `fwhm` unless measured).
+fn kernel_of(c: Cycle, irf: &IrfModel, fwhm: f64) -> IrfKernel {
+    match irf {
+        IrfModel::Measured(m) => IrfKernel::measured(m),
+        IrfModel::Gaussian(_) => IrfKernel::gaussian(c, fwhm),
     }
 }
 
@@ -179,10 +110,10 @@ struct Basis {
 }
 
 impl Basis {
-    fn new(c: Cycle, kernel: &Kernel, t0: f64, range: [f64; 2], points: usize) -> Basis {
+    fn new(c: Cycle, kernel: &IrfKernel, t0: f64, range: [f64; 2], points: usize) -> Basis {
         let (lo, hi) = (range[0].ln(), range[1].ln());
         let log_tau: Vec<f64> = (0..points).map(|i| lo + (hi - lo) * i as f64 / (points - 1) as f64).collect();
-        let curves: Vec<Vec<f64>> = log_tau.par_iter().map(|&l| kernel.apply(&periodic_decay(c, l.exp(), t0))).collect();
+        let curves: Vec<Vec<f64>> = log_tau.par_iter().map(|&l| kernel.apply(&decay_bin_averages(c, l.exp(), t0))).collect();
         let g = points;
         let rows: Vec<Vec<f64>> =
             (0..g).into_par_iter().map(|i| (0..g).map(|j| if j < i { 0.0 } else { dot(&curves[i], &curves[j]) }).collect()).collect();
@@ -437,7 +368,7 @@ fn instrument(c: Cycle, total: &[f64], pixels: &[Vec<f64>], irf: &IrfModel, rang
     // steepest cyclic rise of the summed decay
     let rise = (0..n).max_by(|&i, &j| (total[(i + 1) % n] - total[i]).total_cmp(&(total[(j + 1) % n] - total[j]))).unwrap_or(0);
     let sse = |t0: f64, fwhm: f64| -> f64 {
-        let k = Kernel::of(c, irf, fwhm);
+        let k = kernel_of(c, irf, fwhm);
         let b = Basis::new(c, &k, t0, range, 48);
         fit_pixel(&b, total, Components::Two, 0.0).map_or(f64::MAX, |f| f.sse)
     };
@@ -447,24 +378,24 @@ fn instrument(c: Cycle, total: &[f64], pixels: &[Vec<f64>], irf: &IrfModel, rang
         IrfModel::Measured(_) => vec![0.0],
     };
     let reach = 12.0; // bins before the steepest rise where the onset may be (a wide IRF)
-    let starts: Vec<f64> = (0..((reach + 4.0) * 4.0) as usize).map(|q| (rise as f64 + 1.0 + 4.0 - q as f64 * 0.25) * c.dt).collect();
+    let starts: Vec<f64> = (0..((reach + 4.0) * 4.0) as usize).map(|q| (rise as f64 + 1.0 + 4.0 - q as f64 * 0.25) * c.dt_s).collect();
     let grid: Vec<(f64, f64, f64)> =
         starts.par_iter().flat_map_iter(|&t0| widths.iter().map(move |&w| (t0, w))).map(|(t0, w)| (t0, w, sse(t0, w))).collect();
-    let (mut t0, mut w, _) = grid.iter().copied().min_by(|a, b| a.2.total_cmp(&b.2)).unwrap_or((rise as f64 * c.dt, 0.0, f64::MAX));
+    let (mut t0, mut w, _) = grid.iter().copied().min_by(|a, b| a.2.total_cmp(&b.2)).unwrap_or((rise as f64 * c.dt_s, 0.0, f64::MAX));
     // refine on the pixels themselves (a global analysis: the onset and IRF shared, one or two
     // lifetimes per pixel), the summed decay being a mixture of more lifetimes than two
     let step = (pixels.len() / 64).max(1);
     let sample: Vec<&Vec<f64>> = pixels.iter().step_by(step).take(64).collect();
     let global = |t0: f64, fwhm: f64| -> f64 {
-        let k = Kernel::of(c, irf, fwhm);
+        let k = kernel_of(c, irf, fwhm);
         let b = Basis::new(c, &k, t0, range, 120);
         sample.par_iter().map(|v| fit_pixel(&b, v, Components::Two, 0.0).map_or(f64::MAX, |f| f.sse)).sum()
     };
     let mut best = global(t0, w);
-    let mut dt0 = 0.25 * c.dt;
+    let mut dt0 = 0.25 * c.dt_s;
     let mut dw = if widths.len() > 1 { 0.125e-9 } else { 0.0 };
     for _ in 0..48 {
-        if dt0 < 0.0005 * c.dt && (dw == 0.0 || dw < 0.002e-9) {
+        if dt0 < 0.0005 * c.dt_s && (dw == 0.0 || dw < 0.002e-9) {
             break;
         }
         let cands: Vec<(f64, f64)> = [(-1.0, 0.0), (1.0, 0.0), (0.0, -1.0), (0.0, 1.0)]
@@ -481,7 +412,7 @@ fn instrument(c: Cycle, total: &[f64], pixels: &[Vec<f64>], irf: &IrfModel, rang
             }
         }
     }
-    (t0.rem_euclid(c.period()), w)
+    (t0.rem_euclid(c.period_s), w)
 }
 
 /// Fit every pixel of `x` `[T, H, W]` (one code cycle of bins `bin_width_s`).
@@ -490,7 +421,7 @@ fn instrument(c: Cycle, total: &[f64], pixels: &[Vec<f64>], irf: &IrfModel, rang
 /// - `x`: `[T, H, W]` → lifetimes `[4, H, W]`, background `[H, W]`, phasor `[2, H, W]`
 pub fn fit_cube(x: &ArrayView3<'_, f32>, bin_width_s: f64, opts: &FitOptions) -> LifetimeFit {
     let (t, h, w) = x.dim();
-    let c = Cycle { bins: t, dt: bin_width_s };
+    let c = Cycle::new(t, bin_width_s);
     let totals = x.sum_axis(Axis(0)); // [H, W]
     let max = totals.iter().fold(0f32, |m, &v| m.max(v));
     let bright = |r: usize, col: usize| totals[(r, col)] > opts.min_intensity * max && totals[(r, col)] > 0.0;
@@ -514,7 +445,7 @@ pub fn fit_cube(x: &ArrayView3<'_, f32>, bin_width_s: f64, opts: &FitOptions) ->
     order.sort_by(|a, b| totals[*b].total_cmp(&totals[*a]));
     let waves: Vec<Vec<f64>> = order.iter().take(256).map(|&(r, col)| (0..t).map(|j| x[(j, r, col)] as f64).collect()).collect();
     let (onset_s, fwhm) = instrument(c, &summed, &waves, &opts.irf, opts.tau_range_s);
-    let kernel = Kernel::of(c, &opts.irf, fwhm);
+    let kernel = kernel_of(c, &opts.irf, fwhm);
     let basis = Basis::new(c, &kernel, onset_s, opts.tau_range_s, 400);
     // the IRF's own phasor at the first harmonic: the delay e^{iωt₀} times the kernel's
     // transform (the bins' own box filter is common to both and within 3·10⁻⁵ of 1 here)
@@ -529,8 +460,8 @@ pub fn fit_cube(x: &ArrayView3<'_, f32>, bin_width_s: f64, opts: &FitOptions) ->
         }
         (s0, re, im)
     };
-    let (kre, kim) = kernel.taps.iter().enumerate().fold((0.0, 0.0), |(a, b), (i, k)| {
-        let ph = omega * (i as f64 - kernel.reach as f64);
+    let (kre, kim) = kernel.weights().fold((0.0, 0.0), |(a, b), (d, k)| {
+        let ph = omega * d as f64;
         (a + k * ph.cos(), b + k * ph.sin())
     });
     let d = omega * onset_s / bin_width_s;
@@ -586,13 +517,13 @@ mod tests {
     const DT: f64 = 32.0 / 607e6 / 256.0; // heterodyne K = 8 bins, 205.9 ps
 
     /// A cube of `[T, 2, 2]` pixels with the given decays, onset, Gaussian IRF and background,
-    /// built by the datasets crate's generator functions (an independent implementation).
+    /// built as the datasets crate's generator builds them.
     fn cube(pixels: &[&[(f64, f64)]], t0: f64, fwhm: f64, bg: f64) -> Array3<f32> {
         let grid = tcsense_datasets::grid::TimeGrid { length: 32, clock_hz: 607e6, sampling: tcsense_sensor::Sampling::Heterodyne(8) };
         let mut x = Array3::<f32>::zeros((256, 1, pixels.len()));
         for (p, comps) in pixels.iter().enumerate() {
             for &(tau, a) in comps.iter() {
-                let d = tcsense_datasets::flim::blur_cyclic(&tcsense_datasets::flim::decay_bins(&grid, tau, t0), grid.bin_width_s(), fwhm);
+                let d = IrfKernel::gaussian(grid.cycle(), fwhm).apply(&decay_bin_averages(grid.cycle(), tau, t0));
                 for j in 0..256 {
                     x[(j, 0, p)] += (a * d[j]) as f32;
                 }
@@ -687,10 +618,10 @@ mod tests {
         assert!(fit.lifetimes[(0, 0, 1)].is_nan() && fit.phasor[(0, 0, 1)].is_nan());
         assert_eq!(fit.irf_fwhm_s, 0.5e-9);
         // a measured IRF: the bin-integrated Gaussian itself, anywhere in the cycle
-        let k = Kernel::gaussian(Cycle { bins: 256, dt: DT }, 0.5e-9);
+        let k = IrfKernel::gaussian(Cycle::new(256, DT), 0.5e-9);
         let mut irf = vec![0.0; 256];
-        for (i, v) in k.taps.iter().enumerate() {
-            irf[(i + 100) % 256] = *v;
+        for (d, v) in k.weights() {
+            irf[(d + 100 + 256) as usize % 256] = v;
         }
         let fit = fit_cube(&x.view(), DT, &FitOptions { irf: IrfModel::Measured(irf), components: Components::One, ..Default::default() });
         assert!((fit.lifetimes[(0, 0, 0)] as f64 / 2e-9 - 1.0).abs() < 0.01, "{}", fit.lifetimes[(0, 0, 0)]);

@@ -25,9 +25,10 @@
 use ndarray::{Array2, ArrayView3, Axis};
 use rayon::prelude::*;
 use tcsense_models::range_templates::argmin;
+use tcsense_sensor::waveform::subpixel_flat;
 use tcsense_sensor::MeasurementMatrix;
 
-use crate::lifetime::{periodic_decay, Cycle, Kernel};
+use tcsense_sensor::waveform::{decay_bin_averages, Cycle, IrfKernel};
 
 /// Settings of [`fit_taps`].
 #[derive(Debug, Clone, PartialEq)]
@@ -213,8 +214,8 @@ fn grid(opts: &TapFitOptions, points: usize) -> Vec<f64> {
 
 /// IRF-convolved periodic decays with onset `t0` for each lifetime of `taus`.
 fn decays(c: Cycle, taus: &[f64], t0: f64, fwhm: f64) -> Vec<Vec<f64>> {
-    let k = Kernel::gaussian(c, fwhm);
-    taus.iter().map(|&tau| k.apply(&periodic_decay(c, tau, t0))).collect()
+    let k = IrfKernel::gaussian(c, fwhm);
+    taus.iter().map(|&tau| k.apply(&decay_bin_averages(c, tau, t0))).collect()
 }
 
 /// The instrument of a FLIm frame: its onset and the fluorescence IRF's width. One per
@@ -269,8 +270,8 @@ pub fn estimate_instrument(y: &ArrayView3<'_, f32>, a: &MeasurementMatrix, opts:
 /// [`estimate_instrument`] of a normalised frame of `[M, H, W]`.
 fn instrument_of(f: &Normalised, (m, _, w): (usize, usize, usize), a: &MeasurementMatrix, opts: &TapFitOptions) -> Instrument {
     let (bh, bw) = a.block();
-    let c = Cycle { bins: a.bins(), dt: a.bin_width_s() };
-    let kind = |p: usize| (p / w % bh) * bw + (p % w % bw);
+    let c = Cycle::new(a.bins(), a.bin_width_s());
+    let kind = |p: usize| subpixel_flat(p, w, (bh, bw));
     let signal: Vec<usize> = (0..f.weight.len()).filter(|&p| f.weight[p] > 0.0).collect();
     let (onset_s, irf_fwhm_s) = instrument(&a.a(), c, opts, &f.r, &f.weight, &signal, m, &kind);
     Instrument { onset_s, irf_fwhm_s }
@@ -480,7 +481,7 @@ impl LifetimeTemplates {
     /// The templates of sensor `a` at `instrument`, on `opts`' grid.
     pub fn new(a: &MeasurementMatrix, instrument: Instrument, opts: &TapFitOptions) -> LifetimeTemplates {
         let av = a.a();
-        let c = Cycle { bins: a.bins(), dt: a.bin_width_s() };
+        let c = Cycle::new(a.bins(), a.bin_width_s());
         let taus = grid(opts, opts.points);
         let halves = grid(opts, 2 * opts.points - 1);
         let coarse = TypeTable::of(&Templates::new(&av, &decays(c, &taus, instrument.onset_s, instrument.irf_fwhm_s)));
@@ -513,7 +514,7 @@ impl LifetimeTemplates {
         let (bh, bw) = self.block;
         let g = self.coarse[0].points;
         let Normalised { r, weight, intensity } = f;
-        let kind = |p: usize| (p / w % bh) * bw + (p % w % bw);
+        let kind = |p: usize| subpixel_flat(p, w, (bh, bw));
         // every pixel's cost on the grid, summed along the rows of the window
         let half = self.window / 2;
         let mut rows = vec![0f32; h * w * g];
@@ -615,11 +616,11 @@ const REFINE_STEPS: usize = 8;
 fn fit_taps_reference(y: &ArrayView3<'_, f32>, a: &MeasurementMatrix, opts: &TapFitOptions, inst: Instrument) -> Array2<f32> {
     let (m, h, w) = y.dim();
     let (bh, bw) = a.block();
-    let c = Cycle { bins: a.bins(), dt: a.bin_width_s() };
+    let c = Cycle::new(a.bins(), a.bin_width_s());
     let Normalised { r, weight, .. } = normalise(y, opts.min_intensity);
     let r: Vec<f64> = r.iter().map(|&v| v as f64).collect();
     let weight: Vec<f64> = weight.iter().map(|&v| v as f64).collect();
-    let kind = |p: usize| (p / w % bh) * bw + (p % w % bw);
+    let kind = |p: usize| subpixel_flat(p, w, (bh, bw));
     let taus = grid(opts, opts.points);
     let tpl = Templates::new(&a.a(), &decays(c, &taus, inst.onset_s, inst.irf_fwhm_s));
     let g = taus.len();
@@ -703,7 +704,7 @@ fn instrument(
     bright.truncate(opts.brightest);
     let widths = &opts.irf_fwhm_s;
     if bright.is_empty() {
-        return (opts.onset_s.unwrap_or(0.0).rem_euclid(c.period()), widths[0]);
+        return (opts.onset_s.unwrap_or(0.0).rem_euclid(c.period_s), widths[0]);
     }
     // the brightest pixels' normalised taps, weights and types
     let pixels: Vec<(Vec<f32>, f32, usize)> = bright.iter().map(|&p| (r[p * m..(p + 1) * m].to_vec(), weight[p], kind(p))).collect();
@@ -720,7 +721,7 @@ fn instrument(
             .unwrap_or((0.0, 0.0, widths[0]))
     };
     if let Some(t0) = opts.onset_s {
-        let known: Vec<(f64, f64)> = widths.iter().map(|&f| (t0.rem_euclid(c.period()), f)).collect();
+        let known: Vec<(f64, f64)> = widths.iter().map(|&f| (t0.rem_euclid(c.period_s), f)).collect();
         let (_, t0, f) = score(&known);
         return (t0, f);
     }
@@ -761,14 +762,14 @@ fn instrument(
         .min_by(|x, y| x.0.total_cmp(&y.0).then(x.2.cmp(&y.2)).then(x.1.cmp(&y.1)))
         .unwrap_or((0.0, 0, 0));
     // then every width within a bin of the best, a quarter bin apart
-    let t0 = j as f64 * c.dt;
+    let t0 = j as f64 * c.dt_s;
     let fine: Vec<(f64, f64)> =
-        (-4..=4).flat_map(|q| widths.iter().map(move |&w| ((t0 + q as f64 * 0.25 * c.dt).rem_euclid(c.period()), w))).collect();
+        (-4..=4).flat_map(|q| widths.iter().map(move |&w| ((t0 + q as f64 * 0.25 * c.dt_s).rem_euclid(c.period_s), w))).collect();
     let (_, t0, f) = score(&fine);
     // then continuously, by golden sections: the onset within a quarter bin, the width within a
     // quarter nanosecond
-    let q = 0.25 * c.dt;
-    let t0 = (t0 + (golden(1, 2, 12, &mut |u| frame_cost(t0 + (u - 1.0) * q, f)).0 - 1.0) * q).rem_euclid(c.period());
+    let q = 0.25 * c.dt_s;
+    let t0 = (t0 + (golden(1, 2, 12, &mut |u| frame_cost(t0 + (u - 1.0) * q, f)).0 - 1.0) * q).rem_euclid(c.period_s);
     let max_w = widths.iter().fold(0f64, |a, &b| a.max(b));
     let f = if widths.len() > 1 {
         let (lo, hi) = ((f - 0.25e-9).max(0.0), (f + 0.25e-9).min(max_w));
@@ -912,14 +913,10 @@ mod tests {
         let mut y = ndarray::Array3::<f32>::zeros((m, h, w));
         for i in 0..h {
             for j in 0..w {
-                let d = tcsense_datasets::flim::blur_cyclic(
-                    &tcsense_datasets::flim::decay_bins(&grid, tau(i, j), t0),
-                    grid.bin_width_s(),
-                    fwhm,
-                );
+                let d = IrfKernel::gaussian(grid.cycle(), fwhm).apply(&decay_bin_averages(grid.cycle(), tau(i, j), t0));
                 let total: f64 = d.iter().sum();
                 let bright = 0.3 + 0.7 * ((i * w + j) % 7) as f64 / 6.0;
-                let n = (i % bh) * bw + j % bw;
+                let n = tcsense_sensor::waveform::subpixel(i, j, (bh, bw));
                 for k in 0..m {
                     y[(k, i, j)] =
                         (bright * (0..t).map(|s| av[(n, k, s)] as f64 * ((1.0 - bg) * d[s] / total + bg / t as f64)).sum::<f64>()) as f32;

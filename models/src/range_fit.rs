@@ -41,6 +41,7 @@
 
 use ndarray::{Array4, ArrayView4, Axis};
 use rayon::prelude::*;
+use tcsense_sensor::waveform::subpixel;
 use tcsense_sensor::{MeasurementMatrix, C};
 
 /// Golden-section steps of the continuous refinement of a single return (the bracket of two
@@ -567,7 +568,7 @@ pub fn refine_ranges(y: ArrayView4<'_, f32>, sensor: &MeasurementMatrix, depth: 
     let (bh, bw) = sensor.block();
     let delta = C * sensor.bin_width_s() / 2.0; // metres per bin
     let half = opts.window / 2;
-    let kind = |i: usize, j: usize| (i % bh) * bw + (j % bw);
+    let kind = |i: usize, j: usize| subpixel(i, j, (bh, bw));
     let mut taps = vec![0.0f64; h * w * m];
     for bi in 0..b {
         let yf = y.index_axis(Axis(0), bi);
@@ -679,7 +680,7 @@ mod tests {
             x[(t0 + 1) % t] += amp * (p - p.floor());
         }
         Array4::from_shape_fn((1, m, 8, 8), |(_, mm, i, j)| {
-            let n = (i % bh) * bw + (j % bw);
+            let n = subpixel(i, j, (bh, bw));
             (0..t).map(|k| av[(n, mm, k)] as f64 * x[k]).sum::<f64>() as f32
         })
     }

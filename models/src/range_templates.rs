@@ -44,6 +44,7 @@
 
 use ndarray::{Array3, ArrayView3};
 use rayon::prelude::*;
+use tcsense_sensor::waveform::subpixel_flat;
 use tcsense_sensor::{MeasurementMatrix, C};
 
 use crate::range_fit::{cyclic_gap, RangeFitOptions, Templates, WindowFit, EXPLAINED, MIN_GAP};
@@ -344,7 +345,7 @@ impl RangeTemplates {
         let (tpl, jtpl, dense) = (&self.tpl, &self.jtpl, &self.dense);
         let cands = tpl.candidates();
         let (bh, bw) = self.block;
-        let kind = |p: usize| (p / w % bh) * bw + (p % w % bw);
+        let kind = |p: usize| subpixel_flat(p, w, (bh, bw));
         let delta = self.delta;
         let os = fit.oversample as f64;
         let half = fit.window / 2;
@@ -603,7 +604,7 @@ mod tests {
                     x[t0 % t] += amp * (1.0 - (p - p.floor()));
                     x[(t0 + 1) % t] += amp * (p - p.floor());
                 }
-                let n = (i % bh) * bw + (j % bw);
+                let n = tcsense_sensor::waveform::subpixel(i, j, (bh, bw));
                 for mm in 0..m {
                     y[(mm, i, j)] = (0..t).map(|k| av[(n, mm, k)] as f64 * x[k]).sum::<f64>() as f32;
                 }

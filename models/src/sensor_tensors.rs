@@ -22,6 +22,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use std::sync::Arc;
 use tcsense_kernels::pixel::{pixel_dc, pixel_linear, woodbury_matrices, PixelMap, PixelSensor};
 use tcsense_sensor::matrix::MATCHED_EPS;
+use tcsense_sensor::waveform::subpixel;
 use tcsense_sensor::MeasurementMatrix;
 
 /// The sensor model as tensors for one frame size, in *block layout*: a frame `[B, C, H, W]`
@@ -146,7 +147,7 @@ impl SensorTensors {
         for j in 0..m {
             for r in 0..height {
                 for c in 0..width {
-                    lf[(j * height + r) * width + c] = l_v[((r % bh) * bw + c % bw) * m + j];
+                    lf[(j * height + r) * width + c] = l_v[subpixel(r, c, (bh, bw)) * m + j];
                 }
             }
         }

@@ -136,13 +136,9 @@ fn bringup<'py>(
     seed: u64,
     quiet: bool,
 ) -> PyResult<Bound<'py, PyDict>> {
-    let irf = match irf {
-        "ideal" => tcsense_sensor::Irf::Ideal,
-        "physical" => tcsense_sensor::Irf::Physical {
-            laser_fwhm_s: tcsense_sensor::params::DEFAULT_LASER_FWHM_S,
-            tap_tau_s: tcsense_sensor::params::DEFAULT_TAP_TAU_S,
-        },
-        other => return Err(err(format!("irf {other:?}: expected \"physical\" or \"ideal\""))),
+    let irf = match tcsense_sensor::waveform::parse_irf_default(irf, "irf").map_err(err)? {
+        tcsense_sensor::waveform::IrfSpec::Model(irf) => irf,
+        tcsense_sensor::waveform::IrfSpec::Measured(_) => return Err(err(format!("irf {irf:?}: expected \"physical\" or \"ideal\""))),
     };
     let sampling = tcsense_sensor::Sampling::from_factors(None, heterodyne, tcsense_sensor::Sampling::Oversample(1)).map_err(err)?;
     let options = BringupOptions {

@@ -100,13 +100,10 @@ enum IrfArg {
 
 fn irf_arg(obj: &Bound<'_, PyAny>, laser_fwhm_ns: f64, tap_tau_ns: f64) -> PyResult<IrfArg> {
     if let Ok(s) = obj.extract::<String>() {
-        return match s.as_str() {
-            "ideal" => Ok(IrfArg::Named(Irf::Ideal, s)),
-            "physical" => Ok(IrfArg::Named(Irf::Physical { laser_fwhm_s: laser_fwhm_ns * 1e-9, tap_tau_s: tap_tau_ns * 1e-9 }, s)),
-            p if p.ends_with(".npy") => Ok(IrfArg::File(p.into())),
-            other => {
-                Err(err(format!("irf {other:?}: expected \"ideal\", \"physical\", a measured matrix file \"A.npy\" or an array [N, M, T]")))
-            }
+        return match tcsense_sensor::waveform::parse_irf(&s, laser_fwhm_ns * 1e-9, tap_tau_ns * 1e-9, "irf") {
+            Ok(tcsense_sensor::waveform::IrfSpec::Model(irf)) => Ok(IrfArg::Named(irf, s)),
+            Ok(tcsense_sensor::waveform::IrfSpec::Measured(p)) => Ok(IrfArg::File(p)),
+            Err(e) => Err(err(format!("{e} or an array [N, M, T]"))),
         };
     }
     if obj.cast::<numpy::PyUntypedArray>().is_ok() {

@@ -19,6 +19,7 @@
 //! `gain.npy`, `dark.npy`, `residual.npy`), written to a temporary directory first and
 //! renamed into place, so an error never leaves half of one.
 
+use crate::waveform::subpixel;
 use ndarray::{s, Array2, Array3, Array4, ArrayView4, Axis};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -224,7 +225,7 @@ pub fn calibrate(sweep: &Sweep, nominal: &MeasurementMatrix, codes: &Codes, samp
         Some(f) => f - &sweep.dark,
         None => r.sum_axis(Axis(0)),
     };
-    let ty = |i: usize, j: usize| (i % bh) * bw + (j % bw);
+    let ty = |i: usize, j: usize| subpixel(i, j, (bh, bw));
     let mut class_mean = Array2::<f64>::zeros((n, m));
     let mut class_count = vec![0usize; n];
     for i in 0..h {

@@ -40,6 +40,7 @@
 //! ```
 
 use crate::matrix::MeasurementMatrix;
+use crate::waveform::{decay_unit_sum, Cycle};
 use serde::Serialize;
 
 /// Masks two returns (or two onsets) must be apart to count as an alias: closer, they are one
@@ -511,43 +512,6 @@ fn inverse_3(m: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
     inv
 }
 
-/// The cyclic exponential decay of lifetime `tau_s` starting at `onset_s`, averaged over each
-/// of `t` bins of `dt_s` and of unit sum (period `t·dt`).
-///
-/// # Shapes
-/// - returns `[T]`
-pub fn periodic_decay(t: usize, dt_s: f64, tau_s: f64, onset_s: f64) -> Vec<f64> {
-    let p = t as f64 * dt_s;
-    let norm = 1.0 / (tau_s * (1.0 - (-p / tau_s).exp()));
-    decay_integrals(t, dt_s, tau_s, onset_s).into_iter().map(|v| v * norm).collect()
-}
-
-/// `∫_bin j e^{−(u − t₀)/τ} du` over each of `t` bins of `dt_s`, for a decay starting at
-/// `onset_s` and the tail of the previous cycle's (period `t·dt`), unnormalised: the one integral
-/// behind [`periodic_decay`] (unit sum) and the fits' bin averages (`tcsense_infer::lifetime`).
-///
-/// # Shapes
-/// - returns `[T]`
-pub fn decay_integrals(t: usize, dt_s: f64, tau_s: f64, onset_s: f64) -> Vec<f64> {
-    let p = t as f64 * dt_s;
-    let t0 = onset_s.rem_euclid(p);
-    // ∫_a^b e^{−(u−s)/τ} du for a ≥ s
-    let seg = |a: f64, b: f64, s: f64| tau_s * ((-(a - s) / tau_s).exp() - (-(b - s) / tau_s).exp());
-    (0..t)
-        .map(|j| {
-            let (a, b) = (j as f64 * dt_s, (j + 1) as f64 * dt_s);
-            let mut v = 0.0;
-            if b > t0 {
-                v += seg(a.max(t0), b, t0);
-            }
-            if a < t0 {
-                v += seg(a, b.min(t0), t0 - p);
-            }
-            v
-        })
-        .collect()
-}
-
 /// Lifetimes (s) the FLIm measures are stated over: `count` points, log-spaced over 0.2–8 ns.
 pub fn lifetime_grid(count: usize) -> Vec<f64> {
     let (lo, hi) = (0.2e-9f64, 8e-9f64);
@@ -599,11 +563,11 @@ pub fn lifetime_bound_at(a: &Columns, light: &Light, tau_s: f64, onset_s: f64, w
     let b = light.ambient / t as f64;
     let (mut sig, mut sp, mut sm, mut op, mut om) = (vec![0.0; nm], vec![0.0; nm], vec![0.0; nm], vec![0.0; nm], vec![0.0; nm]);
     let (ht, h0) = (tau_s * 1e-4, dt * 1e-3);
-    a.apply(&periodic_decay(t, dt, tau_s, onset_s), &mut sig);
-    a.apply(&periodic_decay(t, dt, tau_s + ht, onset_s), &mut sp);
-    a.apply(&periodic_decay(t, dt, tau_s - ht, onset_s), &mut sm);
-    a.apply(&periodic_decay(t, dt, tau_s, onset_s + h0), &mut op);
-    a.apply(&periodic_decay(t, dt, tau_s, onset_s - h0), &mut om);
+    a.apply(&decay_unit_sum(Cycle::new(t, dt), tau_s, onset_s), &mut sig);
+    a.apply(&decay_unit_sum(Cycle::new(t, dt), tau_s + ht, onset_s), &mut sp);
+    a.apply(&decay_unit_sum(Cycle::new(t, dt), tau_s - ht, onset_s), &mut sm);
+    a.apply(&decay_unit_sum(Cycle::new(t, dt), tau_s, onset_s + h0), &mut op);
+    a.apply(&decay_unit_sum(Cycle::new(t, dt), tau_s, onset_s - h0), &mut om);
     let mut var = vec![0.0; m];
     let mut known = [[0.0; 2]; 2];
     let mut fitted = [[0.0; 2]; 2];
@@ -656,7 +620,7 @@ pub fn lifetime_alias(a: &Columns, taus_s: &[f64], onsets: usize) -> LifetimeAli
     for &tau in taus_s {
         for o in 0..onsets {
             let ob = (o as f64 + 0.5) / onsets as f64 * t as f64;
-            a.apply(&periodic_decay(t, dt, tau, ob * dt), &mut sig);
+            a.apply(&decay_unit_sum(Cycle::new(t, dt), tau, ob * dt), &mut sig);
             let norm = sig.iter().map(|v| v * v).sum::<f64>().sqrt();
             sigs.push((tau, ob, sig.iter().map(|v| if norm > 0.0 { v / norm } else { 0.0 }).collect()));
         }
@@ -807,16 +771,6 @@ mod tests {
         let hi = Light { photons: 4000.0, ..lo };
         let (r1, r4) = (range_bound(&a, &lo, 2), range_bound(&a, &hi, 2));
         assert!((r1.mean_bins / r4.mean_bins - 2.0).abs() < 1e-6, "{} {}", r1.mean_bins, r4.mean_bins);
-    }
-
-    #[test]
-    fn decay_has_unit_sum_and_starts_at_the_onset() {
-        let d = periodic_decay(64, 0.2e-9, 2e-9, 3.1e-9);
-        assert!((d.iter().sum::<f64>() - 1.0).abs() < 1e-9);
-        let first = d.iter().position(|&v| v > 0.0).unwrap();
-        // onset 3.1 ns = bin 15.5 (the cyclic tail before it is tiny but not zero)
-        assert!(d[15] > d[14] * 10.0 && d[16] > d[15], "{:?}", &d[12..18]);
-        assert!(first <= 15);
     }
 
     #[test]

@@ -13,7 +13,8 @@
 //! forward/adjoint), [`noise`] (shot, read, clipping, ADC), [`measure`] (the one physics
 //! entry, `y = quantise(clip(noise(A x)))`), [`export`] (the sensor's code memory), [`show`]
 //! (PNG pictures of codes), [`npy`] (`.npy` I/O and atomic writes), [`output`] (a command's
-//! outputs written all or none).
+//! outputs written all or none), [`waveform`] (the subpixel index, the periodic decay, the IRF
+//! kernel, `erf` and IRF descriptions every crate shares).
 
 pub mod calibration;
 pub mod codes;
@@ -38,6 +39,7 @@ pub mod sensor;
 pub mod show;
 pub mod sidecar;
 pub mod sweep;
+pub mod waveform;
 
 pub use codes::{CodeShape, Codes, Constraints, Violation};
 pub use error::{Result, SensorError};

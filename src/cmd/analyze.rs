@@ -8,27 +8,13 @@ use tcsense_infer::figures::{line_chart, log_chart, Series};
 use tcsense_sensor::identify::{self, AnalyzeOptions, Light, Report, DEFAULT_ALIAS_THRESHOLD};
 use tcsense_sensor::{Codes, MeasurementMatrix, C};
 
-use super::sensor::SensorArgs;
+use super::sensor::{ResponseArgs, SensorArgs};
 
 /// The sensor a code set is analysed on (IRF and sampling) and the light it is stated at.
 #[derive(Args, Clone)]
 pub struct MeasureArgs {
-    /// Instrument response: `physical` (laser pulse ⋆ tap response; the default: real gates are
-    /// not rectangular), `ideal`, or a measured matrix `A.npy` [N, M, T].
-    #[arg(long, default_value = "physical")]
-    pub irf: String,
-    /// Oversampling factor K of the grid (T = L·K).
-    #[arg(long, value_name = "K", conflicts_with = "heterodyne")]
-    pub oversample: Option<usize>,
-    /// Heterodyne sweep with K steps (FLIm; adds the lifetime measures).
-    #[arg(long, value_name = "K")]
-    pub heterodyne: Option<usize>,
-    /// Laser pulse FWHM in ns (physical IRF).
-    #[arg(long, default_value_t = 2.55)]
-    pub laser_fwhm_ns: f64,
-    /// First-order tap time constant in ns (physical IRF).
-    #[arg(long, default_value_t = 0.3)]
-    pub tap_tau_ns: f64,
+    #[command(flatten)]
+    pub response: ResponseArgs,
     #[command(flatten)]
     pub light: LightArgs,
 }
@@ -66,19 +52,13 @@ impl LightArgs {
 
 impl MeasureArgs {
     /// The sensor flags with these codes.
+    /// The sensor flags with these codes (IRF `physical` unless named).
     pub fn sensor(&self, codes: &Path) -> SensorArgs {
-        SensorArgs {
-            codes: codes.to_path_buf(),
-            irf: self.irf.clone(),
-            oversample: self.oversample,
-            heterodyne: self.heterodyne,
-            laser_fwhm_ns: self.laser_fwhm_ns,
-            tap_tau_ns: self.tap_tau_ns,
-            calibration: None,
-        }
+        let irf = Some(self.response.irf.clone().unwrap_or_else(|| "physical".into()));
+        SensorArgs { codes: codes.to_path_buf(), response: ResponseArgs { irf, ..self.response.clone() }, calibration: None }
     }
     fn k(&self) -> usize {
-        self.heterodyne.or(self.oversample).unwrap_or(1)
+        self.response.k()
     }
 }
 
@@ -201,7 +181,7 @@ fn file_name(p: &Path) -> String {
 }
 
 pub fn analyze_cmd(a: AnalyzeArgs) -> Result<ExitCode> {
-    let lifetime = a.lifetime || a.measure.heterodyne.is_some();
+    let lifetime = a.lifetime || a.measure.response.heterodyne.is_some();
     let mut all = Vec::new();
     let mut checks = Vec::new();
     for path in &a.codes {
@@ -290,7 +270,7 @@ pub fn analyze_cmd(a: AnalyzeArgs) -> Result<ExitCode> {
 /// `codes check`'s identifiability lines: the report, and a warning on stderr below the
 /// threshold. Returns whether the codes alias.
 pub fn check_measures(path: &Path, m: &MeasureArgs) -> Result<bool> {
-    let (_, _, report) = analyse(path, m, m.heterodyne.is_some())?;
+    let (_, _, report) = analyse(path, m, m.response.heterodyne.is_some())?;
     print_report(&path.display().to_string(), &report, m.light.alias_threshold);
     let aliased = aliased(&report, m.light.alias_threshold);
     if let Some(msg) = &aliased {
@@ -316,7 +296,7 @@ pub fn export_gate(path: &Path, m: &MeasureArgs, force: bool) -> Result<()> {
     if force {
         return Ok(());
     }
-    let (_, _, report) = analyse(path, m, m.heterodyne.is_some())?;
+    let (_, _, report) = analyse(path, m, m.response.heterodyne.is_some())?;
     if let Some(msg) = aliased(&report, m.light.alias_threshold) {
         bail!("{}: {msg}; refusing to export aliased codes (design better ones with `tcsense codes select --criterion range`, or pass --force)", path.display());
     }

@@ -8,24 +8,24 @@ use tcsense_sensor::measure::Measurement;
 use tcsense_sensor::noise::Exposure;
 use tcsense_sensor::nonideal::NonIdeal;
 use tcsense_sensor::npy::{read_cube, write_npy};
-use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
 use tcsense_sensor::sweep::{simulate_sweep, SweepSettings};
+use tcsense_sensor::waveform::{self, IrfSpec};
 use tcsense_sensor::{Codes, Irf, NoiseParams, Sampling, Sensor, SensorModel};
 
-/// Sensor-model flags shared by every command that needs `A`.
-#[derive(Args, Clone)]
-pub struct SensorArgs {
-    /// Codes JSON file.
-    #[arg(long)]
-    pub codes: PathBuf,
+/// The sensor's response and time grid: the one set of flags every command that builds `A`
+/// flattens in (with the codes in [`SensorArgs`], with the light in `codes analyze`'s flags).
+#[derive(Args, Clone, Default)]
+pub struct ResponseArgs {
     /// Instrument response: `ideal` (rectangular gates), `physical` (laser pulse ⋆ tap
-    /// response), or a measured matrix `A.npy` of shape [N, M, T].
-    #[arg(long, default_value = "ideal")]
-    pub irf: String,
+    /// response), or a measured matrix `A.npy` of shape [N, M, T]. Default: `ideal` where
+    /// codes decode or simulate, `physical` where they are judged (`codes analyze`, `check`,
+    /// `export`; real gates are not rectangular).
+    #[arg(long)]
+    pub irf: Option<String>,
     /// Oversampling factor K of the reconstruction grid (T = L·K).
     #[arg(long, value_name = "K", conflicts_with = "heterodyne")]
     pub oversample: Option<usize>,
-    /// Heterodyne sweep with K steps of T_c/K (T = L·K).
+    /// Heterodyne sweep with K steps of T_c/K (T = L·K; FLIm).
     #[arg(long, value_name = "K")]
     pub heterodyne: Option<usize>,
     /// Laser pulse FWHM in ns (physical IRF).
@@ -34,6 +34,39 @@ pub struct SensorArgs {
     /// First-order tap time constant in ns (physical IRF).
     #[arg(long, default_value_t = 0.3)]
     pub tap_tau_ns: f64,
+}
+
+impl ResponseArgs {
+    /// The IRF these flags name, `default_irf` when `--irf` is not given.
+    pub fn irf_spec(&self, default_irf: &str) -> Result<IrfSpec> {
+        let desc = self.irf.as_deref().unwrap_or(default_irf);
+        Ok(waveform::parse_irf(desc, self.laser_fwhm_ns * 1e-9, self.tap_tau_ns * 1e-9, "--irf")?)
+    }
+
+    /// The sensor model these flags describe (no calibration, no non-idealities).
+    pub fn model(&self, default_irf: &str) -> Result<SensorModel> {
+        let sampling = Sampling::from_factors(self.oversample, self.heterodyne, Sampling::Oversample(1))?;
+        let (irf, measured) = match self.irf_spec(default_irf)? {
+            IrfSpec::Model(irf) => (irf, None),
+            IrfSpec::Measured(path) => (Irf::Ideal, Some(path)),
+        };
+        Ok(SensorModel { sampling, irf, measured, ..Default::default() })
+    }
+
+    /// The grid's factor K (T = L·K).
+    pub fn k(&self) -> usize {
+        self.heterodyne.or(self.oversample).unwrap_or(1)
+    }
+}
+
+/// The sensor a command decodes or simulates with: codes, response and calibration.
+#[derive(Args, Clone)]
+pub struct SensorArgs {
+    /// Codes JSON file.
+    #[arg(long)]
+    pub codes: PathBuf,
+    #[command(flatten)]
+    pub response: ResponseArgs,
     /// A calibration directory (`tcsense calibrate`): decode with its measured matrix, after
     /// correcting the tap images for its dark offset and gain maps.
     #[arg(long, value_name = "DIR")]
@@ -41,16 +74,10 @@ pub struct SensorArgs {
 }
 
 impl SensorArgs {
-    /// The flags as the sensor crate's one description of a sensor (without non-idealities).
+    /// The flags as the sensor crate's one description of a sensor (without non-idealities);
+    /// the IRF is `ideal` unless named.
     pub fn model(&self) -> Result<SensorModel> {
-        let sampling = Sampling::from_factors(self.oversample, self.heterodyne, Sampling::Oversample(1))?;
-        let (irf, measured) = match self.irf.as_str() {
-            "ideal" => (Irf::Ideal, None),
-            "physical" => (Irf::Physical { laser_fwhm_s: self.laser_fwhm_ns * 1e-9, tap_tau_s: self.tap_tau_ns * 1e-9 }, None),
-            path if path.ends_with(".npy") => (Irf::Ideal, Some(PathBuf::from(path))),
-            other => bail!("--irf {other:?}: expected `ideal`, `physical` or a measured matrix file `A.npy`"),
-        };
-        Ok(SensorModel { sampling, irf, measured, calibration: self.calibration.clone(), ..Default::default() })
+        Ok(SensorModel { calibration: self.calibration.clone(), ..self.response.model("ideal")? })
     }
 
     /// The sensor these flags describe: the codes loaded, `A` synthesised or loaded (`--irf
@@ -126,12 +153,12 @@ impl NonIdealArgs {
     }
 }
 
-/// `ideal`, or `physical` with the sensor crate's default laser pulse and tap response.
+/// `ideal`, or `physical` with the sensor crate's default laser pulse and tap response
+/// (commands that synthesise their sensor: a measured matrix is refused).
 pub fn parse_irf(name: &str) -> Result<Irf> {
-    match name {
-        "ideal" => Ok(Irf::Ideal),
-        "physical" => Ok(Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S }),
-        other => bail!("--irf {other:?}: expected ideal or physical"),
+    match waveform::parse_irf_default(name, "--irf")? {
+        IrfSpec::Model(irf) => Ok(irf),
+        IrfSpec::Measured(_) => bail!("--irf {name:?}: expected ideal or physical (this command synthesises its sensor)"),
     }
 }
 

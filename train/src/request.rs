@@ -17,8 +17,8 @@ use serde::{Deserialize, Serialize};
 use tcsense_datasets::Dataset;
 use tcsense_models::runs::{ModelConfig, CONFIG_FILE};
 use tcsense_models::{AdmmNetConfig, Device, LifetimeNetConfig, Prior, UnetConfig, UnetHead, UnetInput};
-use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
-use tcsense_sensor::{Codes, Constraints, Irf};
+use tcsense_sensor::waveform::{parse_irf_default, IrfSpec};
+use tcsense_sensor::{Codes, Constraints};
 
 use crate::deep_sensing::LearnCodes;
 use crate::setup::{self, Architecture, MeasuredSensor};
@@ -284,14 +284,11 @@ pub fn prepare(req: &TrainRequest) -> Result<Prepared> {
     }
     // a measured matrix replaces the synthetic sensor (a recalibrated instrument)
     let mut measured = None;
-    match req.irf.as_deref() {
-        None => {}
-        Some(p) if Path::new(p).extension().is_some_and(|e| e == "npy") => measured = Some(MeasuredSensor::Matrix(PathBuf::from(p))),
-        Some("ideal") => (cfg.run.irf, cfg.run.measured) = (Irf::Ideal, false),
-        Some("physical") => {
-            (cfg.run.irf, cfg.run.measured) = (Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S }, false)
+    if let Some(desc) = req.irf.as_deref() {
+        match parse_irf_default(desc, "irf").map_err(|_| bad("irf", desc, "ideal, physical or a measured matrix A.npy"))? {
+            IrfSpec::Measured(p) => measured = Some(MeasuredSensor::Matrix(p)),
+            IrfSpec::Model(irf) => (cfg.run.irf, cfg.run.measured) = (irf, false),
         }
-        Some(other) => return Err(bad("irf", other, "ideal, physical or a measured matrix A.npy")),
     }
     if let Some(dir) = &req.calibration {
         if measured.is_some() {
