@@ -7,6 +7,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 scripts/setup.sh
+# formatting is part of the suite (rustfmt.toml): a diff fails it
+cargo fmt --all --check
 # no incremental caches: a clean run never reuses them, and they doubled the size of target/
 export CARGO_INCREMENTAL="${CARGO_INCREMENTAL:-0}"
 cargo test --workspace --locked "$@"

@@ -33,15 +33,16 @@ enum Command {
     /// Synthetic and imported transient datasets.
     #[command(subcommand)]
     Dataset(cmd::dataset::DatasetCmd),
-    /// Reconstruct transient cubes from tap images.
-    #[command(subcommand)]
-    Reconstruct(cmd::recon::ReconstructCmd),
+    /// Decode tap images with any decoder by name: cubes, ranges or lifetimes.
+    #[command(after_help = cmd::recon::decoder_listing())]
+    Reconstruct(cmd::recon::ReconstructArgs),
     /// Train learned decoders.
     #[command(subcommand)]
     Train(cmd::train::TrainCmd),
     /// Depth (range) per return from a cube: peaks with parabolic sub-bin refinement.
     Depth(cmd::recon::DepthArgs),
-    /// Lifetime map (exponential fit after the peak) and phasor coordinates from a cube.
+    /// Lifetimes of a cube: a reconvolution fit of one or two exponentials (with the onset, the
+    /// IRF and a background) to every pixel's decay, and the IRF-referenced phasor.
     Lifetime(cmd::recon::LifetimeArgs),
     /// Plots.
     #[command(subcommand)]

@@ -22,8 +22,8 @@ pub enum InferError {
     #[error("{what} settings: {msg}")]
     Settings { what: &'static str, msg: String },
     /// A decoder name that names none.
-    #[error("decoder {0:?}: unknown decoder; expected `tval3`, `lifetime-fit`, `admm-net:RUN`, `unet:RUN` or `lifetime:RUN` (a training run directory), `zoo:NAME`, `onnx:MODEL.onnx` (an exported model), or a decoder of cubes followed by `+fit` (ranges refined in the tap domain)")]
-    UnknownDecoder(String),
+    #[error("decoder {name:?}: unknown decoder; expected one of {known}")]
+    UnknownDecoder { name: String, known: String },
     /// The ONNX Runtime shared library cannot be found or loaded.
     #[error("ONNX Runtime 1.31.1: {0}; install it with `scripts/setup.sh` (the PyPI wheel onnxruntime==1.31.1 into .venv) or set ORT_DYLIB_PATH to libonnxruntime.so")]
     OrtMissing(String),

@@ -9,16 +9,17 @@ use std::path::Path;
 use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 use tcsense_datasets::Dataset;
-use tcsense_models::decoder::{Control, Decoded, Decoder, Tval3Decoder};
-use tcsense_models::{runs, Device, ModelError, Tval3Options};
+use tcsense_models::decoder::{Control, Decoded};
+use tcsense_models::ModelError;
 use tcsense_sensor::measure::{measure_batch, measure_batch_at, signal_exposure};
 use tcsense_sensor::noise::derive_seed;
 use tcsense_sensor::noise::Exposure;
 use tcsense_sensor::nonideal::NonIdeal;
-use tcsense_sensor::{Codes, NoiseParams, Sensor};
+use tcsense_sensor::{NoiseParams, Sensor};
 
 use crate::metrics::{depth_errors, mse, psnr, DepthErrors, LifetimeErrors};
 use crate::products::{depth_map, PeakOptions};
+use crate::registry::NamedDecoder;
 use crate::{InferError, Result};
 
 /// Accumulates metrics over items.
@@ -278,88 +279,6 @@ fn median(v: &mut [f32]) -> f64 {
     let k = v.len() / 2;
     let (_, m, _) = v.select_nth_unstable_by(k, f32::total_cmp);
     *m as f64
-}
-
-/// A decoder chosen by name, with the sensor it was trained for (learned decoders and
-/// exported models).
-pub struct NamedDecoder {
-    /// The name as given (`tval3`, `admm-net:RUN`).
-    pub label: String,
-    pub decoder: Box<dyn Decoder>,
-    /// The run's or model's sensor (its codes, sampling, IRF and matrix): a learned decoder is
-    /// evaluated with its own codes only. `None` for decoders of any sensor (TVAL3, the fits).
-    pub sensor: Option<Sensor>,
-}
-
-impl NamedDecoder {
-    /// The codes it was trained with (learned decoders).
-    pub fn codes(&self) -> Option<&Codes> {
-        self.sensor.as_ref().map(Sensor::codes)
-    }
-}
-
-/// Open a decoder by name: `tval3` (with `tval3` options), `lifetime-fit` (lifetimes fitted
-/// to the tap images, [`crate::tapfit`]), `depth-fit` (ranges fitted to the tap images,
-/// [`tcsense_models::range_templates`]; `depth-fit:1` one return per pixel) or `KIND:RUN`, a training run
-/// directory of a learned decoder of that kind (`admm-net:RUN`, `unet:RUN`, `lifetime:RUN`;
-/// RUN may be `zoo:NAME`; `unet-raw:RUN`: the U-Net's ranges without the fit in the tap
-/// domain), on `device`, `zoo:NAME`, the zoo's entry whatever its kind, or
-/// `onnx:MODEL.onnx`, an exported model through ONNX Runtime. `NAME+fit`: the cube decoder
-/// `NAME` with ranges, its peaks refined in the tap domain ([`crate::ranged`]).
-pub fn open_decoder(name: &str, tval3: &Tval3Options, device: &Device) -> Result<NamedDecoder> {
-    if let Some(inner) = name.strip_suffix("+fit") {
-        // a cube decoder's peaks refined by the fit in the tap domain
-        if inner.ends_with("+fit") || inner.starts_with("unet") || inner.starts_with("lifetime") {
-            return Err(InferError::InvalidParam {
-                field: "decoder",
-                got: name.into(),
-                expected: "+fit after a decoder of cubes: tval3+fit, admm-net:RUN+fit, zoo:NAME+fit or onnx:MODEL.onnx+fit of an ADMM-Net"
-                    .into(),
-            });
-        }
-        let d = open_decoder(inner, tval3, device)?;
-        return Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::ranged::PeaksThenFit::new(d.decoder)), sensor: d.sensor });
-    }
-    match name.split_once(':') {
-        None if name == "tval3" => Ok(NamedDecoder { label: name.into(), decoder: Box::new(Tval3Decoder::new(*tval3)?), sensor: None }),
-        None if name == "lifetime-fit" => {
-            Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::tapfit::TapFitDecoder::default()), sensor: None })
-        }
-        None if name == "depth-fit" => {
-            Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::ranged::DepthFitDecoder::default()), sensor: None })
-        }
-        Some(("depth-fit", r)) => {
-            let returns: usize = r.parse().ok().filter(|r| (1..=2).contains(r)).ok_or_else(|| InferError::InvalidParam {
-                field: "decoder",
-                got: name.into(),
-                expected: "depth-fit:1 or depth-fit:2 (returns per pixel)".into(),
-            })?;
-            let opts = tcsense_models::range_templates::DepthFitOptions { returns, ..Default::default() };
-            Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::ranged::DepthFitDecoder::new(opts)?), sensor: None })
-        }
-        Some(("zoo", _)) => {
-            let run = runs::open(&tcsense_models::zoo::resolve(name)?, device)?;
-            Ok(NamedDecoder { label: name.into(), decoder: run.decoder, sensor: Some(run.sensor) })
-        }
-        Some((kind, dir)) if ["admm-net", "unet", "unet-raw", "lifetime"].contains(&kind) => {
-            // unet-raw: the U-Net's own ranges, without the fit in the tap domain
-            let (kind, range_fit) = if kind == "unet-raw" { ("unet", false) } else { (kind, true) };
-            let run = runs::open_with(&tcsense_models::zoo::resolve(dir)?, device, range_fit)?;
-            if run.spec.model.name() != kind {
-                return Err(InferError::File {
-                    path: run.dir.join(runs::CONFIG_FILE),
-                    msg: format!("a {} run, not {kind}; name it {}:{dir}", run.spec.model.name(), run.spec.model.name()),
-                });
-            }
-            Ok(NamedDecoder { label: name.into(), decoder: run.decoder, sensor: Some(run.sensor) })
-        }
-        Some(("onnx", file)) => {
-            let model = crate::runtime::OnnxModel::open(Path::new(file), 0)?;
-            let sensor = model.meta.sensor()?;
-            Ok(NamedDecoder { label: name.into(), decoder: Box::new(crate::runtime::OnnxDecoder::new(model)), sensor: Some(sensor) })
-        }
-        _ => Err(InferError::UnknownDecoder(name.into())),
-    }
 }
 
 /// What to evaluate on.

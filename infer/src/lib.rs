@@ -1,7 +1,9 @@
 //! `tcsense-infer`: from decoders to what users want — evaluation of any decoder through the
 //! contract, the products of a reconstructed cube, and code selection.
 //!
-//! - [`eval`]: decoders opened by name (`tval3`, `admm-net:RUN`) and evaluated side by side
+//! - [`registry`]: every decoder opened by name (`tval3`, `depth-fit`, `admm-net:RUN`,
+//!   `onnx:MODEL.onnx` …), the one table that `reconstruct`, `eval`, the demo and Python use.
+//! - [`eval`]: decoders evaluated side by side
 //!   on a dataset split with the same measurements ([`eval::evaluate`]), one [`eval::EvalRow`]
 //!   per decoder.
 //! - [`products`]: peak detection with parabolic sub-bin refinement (several returns per
@@ -33,6 +35,7 @@ pub mod metrics;
 pub mod onnx;
 pub mod products;
 pub mod ranged;
+pub mod registry;
 pub mod report;
 pub mod runtime;
 pub mod selection;

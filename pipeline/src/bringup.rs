@@ -26,8 +26,9 @@ use tcsense_datasets::flim::FlimParams;
 use tcsense_datasets::lidar::LidarParams;
 use tcsense_datasets::store::{self, Generator, WriteOptions, DEFAULT_SHARD};
 use tcsense_datasets::{Dataset, TimeGrid};
-use tcsense_infer::eval::{evaluate, open_decoder, EvalRow, EvalSettings};
+use tcsense_infer::eval::{evaluate, EvalRow, EvalSettings};
 use tcsense_infer::onnx::{export_to, ExportOptions};
+use tcsense_infer::registry::open_decoder;
 use tcsense_infer::report::{Block, Cell, Format, Report, Section, Table};
 use tcsense_models::runs::{self, CONFIG_FILE, WEIGHTS_FILE};
 use tcsense_models::{zoo, Device, Tval3Options};
@@ -36,8 +37,8 @@ use tcsense_sensor::sweep::Sweep;
 use tcsense_sensor::{Codes, Irf, NoiseParams, Sampling, Sensor, SensorModel};
 use tcsense_train::request::{self, TrainRequest};
 
-use crate::demo::Observer;
 use crate::error::{bail, Result};
+use crate::observer::Observer;
 use crate::write_json;
 
 /// Share of the budget given to the fine-tunings (the rest: calibration, data, export, check).

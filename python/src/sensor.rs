@@ -103,7 +103,7 @@ fn irf_arg(obj: &Bound<'_, PyAny>, laser_fwhm_ns: f64, tap_tau_ns: f64) -> PyRes
         return match tcsense_sensor::waveform::parse_irf(&s, laser_fwhm_ns * 1e-9, tap_tau_ns * 1e-9, "irf") {
             Ok(tcsense_sensor::waveform::IrfSpec::Model(irf)) => Ok(IrfArg::Named(irf, s)),
             Ok(tcsense_sensor::waveform::IrfSpec::Measured(p)) => Ok(IrfArg::File(p)),
-            Err(e) => Err(err(format!("{e} or an array [N, M, T]"))),
+            Err(_) => Err(err(format!("irf {s:?}: expected {} or an array [N, M, T]", tcsense_sensor::waveform::IRF_CHOICES))),
         };
     }
     if obj.cast::<numpy::PyUntypedArray>().is_ok() {

@@ -8,13 +8,14 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use tcsense_infer::figures;
 use tcsense_infer::products::{depth_map, plot_waveforms, write_ply, PeakOptions};
-use tcsense_models::decoder::{Control, Decoder, Step, Tval3Decoder};
-use tcsense_models::{runs, TvNorm, Tval3Options};
+use tcsense_infer::registry::{names, DecoderSettings, Registry};
+use tcsense_models::decoder::{Control, Decoder, Step};
+use tcsense_models::{TvNorm, Tval3Options};
 use tcsense_sensor::npy::{write_bytes, write_npy};
 use tcsense_sensor::output::Outputs;
 
 use super::dataset::interrupt_flag;
-use super::sensor::SensorArgs;
+use super::sensor::{ResponseArgs, SensorArgs};
 
 /// TVAL3 options (defaults: the paper's §IV settings).
 #[derive(Args, Clone)]
@@ -128,183 +129,124 @@ impl TapFitArgs {
     }
 }
 
-#[derive(Subcommand)]
-pub enum ReconstructCmd {
-    /// TVAL3: TV-regularised reconstruction (the paper's iterative decoder).
-    Tval3 {
-        #[command(flatten)]
-        sensor: SensorArgs,
-        /// Tap images .npy, [M, H, W] or [B, M, H, W].
-        #[arg(long)]
-        measurements: PathBuf,
-        #[command(flatten)]
-        tval3: Tval3Args,
-        /// Output cube .npy, [T, H, W] (or [B, T, H, W]).
-        #[arg(short, long)]
-        output: PathBuf,
-    },
-    /// Lifetimes fitted to the tap images themselves (no cube): a reconvolution fit in the
-    /// measurement domain with the onset and IRF fitted to the frame, costs summed over a small
-    /// window. Writes `[4, H, W]` like `reconstruct lifetime` (τ_m = τ₁ = τ₂, α₁ = 1), the
-    /// confidence and intensity next to it.
-    LifetimeFit {
-        #[command(flatten)]
-        sensor: SensorArgs,
-        /// Tap images .npy, [M, H, W] or [B, M, H, W].
-        #[arg(long)]
-        measurements: PathBuf,
-        #[command(flatten)]
-        fit: TapFitArgs,
-        /// Output lifetimes .npy, [4, H, W] (or [B, 4, H, W]).
-        #[arg(short, long)]
-        output: PathBuf,
-        /// Also draw the first frame's lifetime map as a PNG.
-        #[arg(long)]
-        png: Option<PathBuf>,
-    },
-    /// Ranges fitted to the tap images themselves (no network, no cube): every candidate range
-    /// of the cycle at once, the window's best, polished, and a second return where the taps
-    /// call for one. Needs codes that do not alias (`codes analyze`: alias ≥ 0.5). Writes depth
-    /// [K, H, W] (m, NaN where none) and the confidence next to it.
-    DepthFit {
-        #[command(flatten)]
-        sensor: SensorArgs,
-        /// Tap images .npy, [M, H, W] or [B, M, H, W].
-        #[arg(long)]
-        measurements: PathBuf,
-        /// Returns per pixel: 1, or 2 (a second where the taps call for it).
-        #[arg(long, default_value_t = 2)]
-        returns: usize,
-        /// Side of the square window of pixels whose costs are summed (odd).
-        #[arg(long, default_value_t = 3)]
-        window: usize,
-        /// Output depth .npy, [K, H, W] (or [B, K, H, W]).
-        #[arg(short, long)]
-        output: PathBuf,
-        #[command(flatten)]
-        products: DepthProductArgs,
-    },
-    /// Aᵀ + U-Net from a trained run directory: depth of K returns [K, H, W] (m, NaN where the
-    /// confidence is below ½), the confidence next to it (`OUTPUT.confidence.npy`).
-    Unet {
-        /// Run directory (from `tcsense train unet`) or a zoo entry, `zoo:NAME`.
-        #[arg(long, value_parser = super::parse_run)]
-        run: PathBuf,
-        /// Tap images .npy, [M, H, W] or [B, M, H, W].
-        #[arg(long)]
-        measurements: PathBuf,
-        /// Output depth .npy, [K, H, W] (or [B, K, H, W]).
-        #[arg(short, long)]
-        output: PathBuf,
-        #[command(flatten)]
-        products: DepthProductArgs,
-        /// A calibration directory (`tcsense calibrate`) of the sensor the run was trained
-        /// for: correct the tap images for its dark and gain maps and decode with its matrix.
-        #[arg(long, value_name = "DIR")]
-        calibration: Option<PathBuf>,
-        /// The network's own ranges, without the fit of the pulse template to the tap images
-        /// (what `tcsense infer --no-range-fit` gives from the exported model).
-        #[arg(long)]
-        no_range_fit: bool,
-        #[command(flatten)]
-        device: super::DeviceArgs,
-    },
-    /// The lifetime decoder from a trained run directory (`tcsense train lifetime`): per pixel
-    /// the amplitude-weighted mean lifetime τ_m, the components τ₁ ≤ τ₂ (s) and the fraction α₁,
-    /// `[4, H, W]` (NaN where no fluorophore), with the confidence (`OUTPUT.confidence.npy`,
-    /// `[1, H, W]`) and the intensity (`OUTPUT.intensity.npy`, `[1, H, W]`) next to it.
-    Lifetime {
-        /// Run directory (from `tcsense train lifetime`) or a zoo entry, `zoo:NAME`.
-        #[arg(long, value_parser = super::parse_run)]
-        run: PathBuf,
-        /// Tap images .npy, [M, H, W] or [B, M, H, W].
-        #[arg(long)]
-        measurements: PathBuf,
-        /// Output lifetimes .npy, [4, H, W] (or [B, 4, H, W]): τ_m, τ₁, τ₂ (s), α₁.
-        #[arg(short, long)]
-        output: PathBuf,
-        /// Also draw the first frame's mean lifetime map as a PNG.
-        #[arg(long)]
-        png: Option<PathBuf>,
-        /// A calibration directory (`tcsense calibrate`) of the sensor the run was trained
-        /// for: correct the tap images for its dark and gain maps and decode with its matrix.
-        #[arg(long, value_name = "DIR")]
-        calibration: Option<PathBuf>,
-        #[command(flatten)]
-        device: super::DeviceArgs,
-    },
-    /// ADMM-Net from a trained run directory.
-    AdmmNet {
-        /// Run directory (from `tcsense train admm-net`) or a zoo entry, `zoo:NAME`.
-        #[arg(long, value_parser = super::parse_run)]
-        run: PathBuf,
-        /// Tap images .npy, [M, H, W] or [B, M, H, W].
-        #[arg(long)]
-        measurements: PathBuf,
-        /// Output cube .npy.
-        #[arg(short, long)]
-        output: PathBuf,
-        /// A calibration directory (`tcsense calibrate`) of the sensor the run was trained
-        /// for: correct the tap images for its dark and gain maps and decode with its matrix.
-        #[arg(long, value_name = "DIR")]
-        calibration: Option<PathBuf>,
-        #[command(flatten)]
-        device: super::DeviceArgs,
-    },
+/// `tcsense reconstruct DECODER …`: any decoder of the registry
+/// ([`tcsense_infer::registry`]) on a file of tap images, through one path.
+#[derive(Args)]
+pub struct ReconstructArgs {
+    /// The decoder, by its registry name: `tval3` (cubes), `depth-fit[:K]` (ranges fitted to
+    /// the taps, K = 1 or 2 returns), `lifetime-fit` (lifetimes fitted to the taps),
+    /// `admm-net:RUN`, `unet:RUN` (ranges refined in the tap domain), `unet-raw:RUN`,
+    /// `lifetime:RUN` (training runs; `admm-net --run RUN` is the same), `zoo:NAME`,
+    /// `onnx:MODEL.onnx`; a decoder of cubes followed by `+fit` also gives ranges. The list
+    /// follows.
+    pub decoder: String,
+    /// A learned decoder's run directory or zoo entry (`zoo:NAME`), for DECODER `admm-net`,
+    /// `unet`, `unet-raw` or `lifetime`.
+    #[arg(long, value_parser = super::parse_run)]
+    pub run: Option<PathBuf>,
+    /// Tap images .npy, [M, H, W] or [B, M, H, W].
+    #[arg(long)]
+    pub measurements: PathBuf,
+    /// Output .npy: the cube [T, H, W], depth [K, H, W] (m, NaN where none; the confidence
+    /// next to it, `OUTPUT.confidence.npy`) or lifetimes [4, H, W] (τ_m, τ₁, τ₂ in s, α₁; the
+    /// confidence and intensity next to it), with a leading B for a batch.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Codes JSON file: the sensor of the decoders of any sensor (tval3, the fits). A learned
+    /// decoder or an exported model brings its own.
+    #[arg(long)]
+    pub codes: Option<PathBuf>,
+    #[command(flatten)]
+    pub response: ResponseArgs,
+    /// A calibration directory (`tcsense calibrate`): correct the tap images for its dark and
+    /// gain maps and decode with its matrix (checked against the decoder's codes).
+    #[arg(long, value_name = "DIR")]
+    pub calibration: Option<PathBuf>,
+    #[command(flatten)]
+    pub tval3: Tval3Args,
+    #[command(flatten)]
+    pub fit: TapFitArgs,
+    /// Returns per pixel of `depth-fit`: 1, or 2 (a second where the taps call for it).
+    #[arg(long)]
+    pub returns: Option<usize>,
+    /// The U-Net's own ranges, without the fit of the pulse template to the tap images
+    /// (`unet --run RUN --no-range-fit` is `unet-raw:RUN`).
+    #[arg(long)]
+    pub no_range_fit: bool,
+    #[command(flatten)]
+    pub products: DepthProductArgs,
+    #[command(flatten)]
+    pub device: super::DeviceArgs,
 }
 
-pub fn reconstruct(cmd: ReconstructCmd) -> Result<ExitCode> {
-    match cmd {
-        ReconstructCmd::AdmmNet { run, measurements, output, calibration, device } => {
-            let mut r = open_kind(&run, "admm-net", &device, false, calibration.as_deref())?;
-            decode_file(r.decoder.as_mut(), &r.sensor, &measurements, &output, &DepthProductArgs::default())
+impl ReconstructArgs {
+    /// The registry name: DECODER, with `--run` and `--no-range-fit` folded in.
+    fn name(&self) -> Result<String> {
+        let kinds = [names::ADMM_NET, names::UNET, names::UNET_RAW, names::LIFETIME];
+        let name = match &self.run {
+            Some(run) if kinds.contains(&self.decoder.as_str()) => format!("{}:{}", self.decoder, run.display()),
+            Some(_) => bail!("--run: {:?} takes no run; --run goes with admm-net, unet, unet-raw or lifetime", self.decoder),
+            None => self.decoder.clone(),
+        };
+        if !self.no_range_fit {
+            return Ok(name);
         }
-        ReconstructCmd::Unet { run, measurements, output, products, calibration, no_range_fit, device } => {
-            let mut r = open_kind(&run, "unet", &device, !no_range_fit, calibration.as_deref())?;
-            decode_file(r.decoder.as_mut(), &r.sensor, &measurements, &output, &products)
+        match name.strip_prefix("unet:") {
+            Some(run) => Ok(format!("{}:{run}", names::UNET_RAW)),
+            None => bail!("--no-range-fit: {name:?} is not a U-Net run (unet --run RUN)"),
         }
-        ReconstructCmd::Lifetime { run, measurements, output, png, calibration, device } => {
-            let mut r = open_kind(&run, "lifetime", &device, false, calibration.as_deref())?;
-            let products = DepthProductArgs { png, ..DepthProductArgs::default() };
-            decode_file(r.decoder.as_mut(), &r.sensor, &measurements, &output, &products)
+    }
+
+    /// The settings of every decoder, from the flags.
+    /// The settings of the decoder `name` from the flags (only its own are checked; the
+    /// others keep their defaults).
+    fn settings(&self, name: &str) -> Result<DecoderSettings> {
+        let mut s = DecoderSettings::default();
+        if name.starts_with(names::TVAL3) {
+            s.tval3 = self.tval3.options()?;
         }
-        ReconstructCmd::LifetimeFit { sensor, measurements, fit, output, png } => {
-            let mut decoder = tcsense_infer::tapfit::TapFitDecoder::new(fit.options()?)?;
-            let products = DepthProductArgs { png, ..DepthProductArgs::default() };
-            decode_file(&mut decoder, &sensor.sensor()?, &measurements, &output, &products)
+        if name.starts_with(names::LIFETIME_FIT) {
+            s.tap_fit = self.fit.options()?;
         }
-        ReconstructCmd::DepthFit { sensor, measurements, returns, window, output, products } => {
-            let fit = tcsense_models::range_fit::RangeFitOptions { window, ..Default::default() };
-            let mut decoder = tcsense_infer::ranged::DepthFitDecoder::new(tcsense_models::range_templates::DepthFitOptions {
-                fit,
-                returns,
-                ..Default::default()
-            })?;
-            let sensor = sensor.sensor()?;
-            if let Some(w) = tcsense_infer::ranged::alias_warning(sensor.nominal(), sensor.codes().length()) {
-                eprintln!("{w}");
+        if name.starts_with(names::DEPTH_FIT) {
+            s.depth_fit.fit.window = self.fit.window;
+            if let Some(r) = self.returns {
+                s.depth_fit.returns = r;
             }
-            decode_file(&mut decoder, &sensor, &measurements, &output, &products)
         }
-        ReconstructCmd::Tval3 { sensor, measurements, tval3: targs, output } => {
-            let mut decoder = Tval3Decoder::new(targs.options()?)?;
-            decode_file(&mut decoder, &sensor.sensor()?, &measurements, &output, &DepthProductArgs::default())
-        }
+        Ok(s)
     }
 }
 
-/// Open a run, check that it is of the decoder kind the subcommand names, and give its sensor
-/// the calibration `--calibration DIR` names (checked against the run's codes and sensor).
-fn open_kind(run: &Path, kind: &str, device: &super::DeviceArgs, range_fit: bool, calibration: Option<&Path>) -> Result<runs::Run> {
-    let mut r = runs::open_with(run, &device.device()?, range_fit)?;
-    let got = r.spec.model.name();
-    if got != kind {
-        bail!("{}: config.json field decoder is {got:?}, expected a {kind:?} run (use `tcsense reconstruct {got}`)", run.display());
+/// The registry's decoders, one per line, for `reconstruct --help`.
+pub fn decoder_listing() -> String {
+    format!("Decoders:\n{}", Registry::builtin().listing())
+}
+
+pub fn reconstruct(a: ReconstructArgs) -> Result<ExitCode> {
+    let name = a.name()?;
+    if a.returns.is_some() && !name.starts_with(names::DEPTH_FIT) {
+        bail!("--returns: {name:?} is not depth-fit (its returns are fixed by its training)");
     }
-    if let Some(dir) = calibration {
-        r.sensor = r.sensor.calibrated_from(dir)?;
+    let opened = Registry::builtin().open(&name, &a.settings(&name)?, &a.device.device()?)?;
+    let sensor = match (opened.sensor, &a.codes) {
+        (Some(_), Some(_)) => bail!("--codes: {name} brings its own sensor (the codes it was trained for); drop --codes"),
+        (Some(own), None) => match &a.calibration {
+            Some(dir) => own.calibrated_from(dir)?,
+            None => own,
+        },
+        (None, Some(codes)) => {
+            SensorArgs { codes: codes.clone(), response: a.response.clone(), calibration: a.calibration.clone() }.sensor()?
+        }
+        (None, None) => bail!("--codes: {name} decodes any sensor; give the codes the tap images were taken with"),
+    };
+    if name.starts_with(names::DEPTH_FIT) {
+        if let Some(w) = tcsense_infer::ranged::alias_warning(sensor.nominal(), sensor.codes().length()) {
+            eprintln!("{w}");
+        }
     }
-    Ok(r)
+    let mut decoder = opened.decoder;
+    decode_file(decoder.as_mut(), &sensor, &a.measurements, &a.output, &a.products)
 }
 
 /// Decode the tap images in `measurements` (`[M, H, W]` or a batch `[B, M, H, W]`) with any

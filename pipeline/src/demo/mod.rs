@@ -26,10 +26,11 @@ use tcsense_datasets::flim::FlimParams;
 use tcsense_datasets::lidar::LidarParams;
 use tcsense_datasets::store::{self, Generator, WriteOptions, DEFAULT_SHARD};
 use tcsense_datasets::{Dataset, TimeGrid};
-use tcsense_infer::eval::{evaluate, open_decoder, EvalRow, EvalSettings};
+use tcsense_infer::eval::{evaluate, EvalRow, EvalSettings};
 use tcsense_infer::figures::{self as plot, Series};
 use tcsense_infer::onnx::{export_to, ExportOptions};
 use tcsense_infer::products::{depth_map, point_cloud, referenced_phasors, PeakOptions};
+use tcsense_infer::registry::open_decoder;
 use tcsense_infer::report::{Block, Cell, Format, Report, Section, Table};
 use tcsense_infer::selection::{evaluate as evaluate_codes, select, EvalSetup};
 use tcsense_models::decoder::Control;
@@ -113,17 +114,7 @@ impl Default for DemoOptions {
     }
 }
 
-/// Where a running demo reports to: the binary prints lines and draws progress bars, the
-/// Python module writes lines to stderr. Called from the thread that runs the demo.
-pub trait Observer: Sync {
-    /// One line of the demo's log (steps, plans, files written, timings).
-    fn line(&self, text: &str);
-    /// Progress of a long step: `done` of `of` items of `what` (dataset scenes, evaluated
-    /// frames); `done == of` ends it.
-    fn items(&self, _what: &str, _done: usize, _of: usize) {}
-    /// Where a training reports its steps and epochs.
-    fn training(&self) -> &dyn Progress;
-}
+pub use crate::observer::Observer;
 
 /// What a finished demo left behind.
 #[derive(Debug, Clone, PartialEq)]

@@ -1,0 +1,379 @@
+//! The decoder registry, beside the contract: every decoder the toolkit opens by name, in one
+//! table ([`Registry::builtin`]). `tcsense reconstruct`, `eval`, the demo, the bring-up and
+//! Python's `open_decoder` open decoders only through it, so a new decoder is its
+//! implementation of [`Decoder`] plus one [`Entry`] in the table.
+//!
+//! A name is `NAME` or `NAME:ARG` (the entry says whether it takes an argument: a run
+//! directory, a zoo entry, a model file, a count), optionally followed by `+fit`: a decoder of
+//! cubes whose peaks are refined by the fit in the tap domain ([`crate::ranged::PeaksThenFit`]).
+//! A caller may extend the table ([`Registry::with`]); the names of the built-in decoders are
+//! constants in [`names`].
+//!
+//! ```
+//! use tcsense_infer::registry::{names, DecoderSettings, Registry};
+//! use tcsense_models::Device;
+//!
+//! let registry = Registry::builtin();
+//! let fit = registry.open("depth-fit:1", &DecoderSettings::default(), &Device::flex()).unwrap();
+//! assert_eq!(fit.decoder.name(), names::DEPTH_FIT);
+//! assert!(fit.sensor.is_none()); // a fit decodes any sensor
+//! assert!(registry.open("nonsense", &DecoderSettings::default(), &Device::flex()).is_err());
+//! ```
+
+use std::path::Path;
+
+use tcsense_models::decoder::Tval3Decoder;
+pub use tcsense_models::decoder::{check_measurements, Control, Decoded, Decoder, Step};
+use tcsense_models::range_templates::DepthFitOptions;
+use tcsense_models::{runs, Device, Tval3Options};
+use tcsense_sensor::{Codes, Sensor};
+
+use crate::tapfit::TapFitOptions;
+use crate::{InferError, Result};
+
+/// The names of the built-in decoders.
+pub mod names {
+    /// TVAL3, the paper's iterative decoder of cubes.
+    pub const TVAL3: &str = "tval3";
+    /// Ranges fitted to the tap images (`depth-fit:1`, `depth-fit:2` returns).
+    pub const DEPTH_FIT: &str = "depth-fit";
+    /// Lifetimes fitted to the tap images.
+    pub const LIFETIME_FIT: &str = "lifetime-fit";
+    /// An ADMM-Net run (`admm-net:RUN`).
+    pub const ADMM_NET: &str = "admm-net";
+    /// An Aᵀ + U-Net run, its ranges refined in the tap domain (`unet:RUN`).
+    pub const UNET: &str = "unet";
+    /// An Aᵀ + U-Net run, its own ranges (`unet-raw:RUN`).
+    pub const UNET_RAW: &str = "unet-raw";
+    /// A lifetime network run (`lifetime:RUN`).
+    pub const LIFETIME: &str = "lifetime";
+    /// A zoo entry of any kind (`zoo:NAME`).
+    pub const ZOO: &str = "zoo";
+    /// An exported model through ONNX Runtime (`onnx:MODEL.onnx`).
+    pub const ONNX: &str = "onnx";
+    /// The suffix that refines a cube decoder's peaks in the tap domain.
+    pub const PLUS_FIT: &str = "+fit";
+}
+
+/// A decoder opened by name, with the sensor it was trained for (learned decoders and
+/// exported models).
+pub struct NamedDecoder {
+    /// The name as given (`tval3`, `admm-net:RUN`).
+    pub label: String,
+    pub decoder: Box<dyn Decoder>,
+    /// The run's or model's sensor (its codes, sampling, IRF and matrix): a learned decoder is
+    /// evaluated with its own codes only. `None` for decoders of any sensor (TVAL3, the fits).
+    pub sensor: Option<Sensor>,
+}
+
+impl NamedDecoder {
+    /// The codes it was trained with (learned decoders).
+    pub fn codes(&self) -> Option<&Codes> {
+        self.sensor.as_ref().map(Sensor::codes)
+    }
+}
+
+/// The settings a decoder may take when it is opened; each decoder reads those that apply to
+/// it (the defaults are every decoder's own).
+#[derive(Debug, Clone, Default)]
+pub struct DecoderSettings {
+    /// TVAL3's options.
+    pub tval3: Tval3Options,
+    /// The fit of lifetimes to the taps.
+    pub tap_fit: TapFitOptions,
+    /// The fit of ranges to the taps (`depth-fit:K` sets its returns).
+    pub depth_fit: DepthFitOptions,
+}
+
+/// What an entry's `open` is given.
+pub struct Opening<'a> {
+    /// The whole name as given, for the decoder's label and messages.
+    pub label: &'a str,
+    /// The part after `NAME:`, for entries that take one.
+    pub arg: Option<&'a str>,
+    pub settings: &'a DecoderSettings,
+    pub device: &'a Device,
+}
+
+/// Whether an entry's name takes `:ARG`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ArgUse {
+    /// `NAME` only.
+    None,
+    /// `NAME` or `NAME:ARG`.
+    Optional,
+    /// `NAME:ARG`.
+    Required,
+}
+
+/// One decoder of the table.
+#[derive(Clone)]
+pub struct Entry {
+    /// The name before any `:` (one of [`names`] for the built-in decoders).
+    pub name: &'static str,
+    /// How it is written, e.g. `depth-fit[:K]`, `unet:RUN`.
+    pub usage: &'static str,
+    /// One line for help and listings.
+    pub summary: &'static str,
+    pub arg: ArgUse,
+    /// Whether it gives cubes, so that `NAME+fit` may refine their peaks.
+    pub cubes: bool,
+    /// Open it.
+    pub open: fn(&Opening<'_>) -> Result<NamedDecoder>,
+}
+
+/// The table of decoders.
+#[derive(Clone)]
+pub struct Registry {
+    entries: Vec<Entry>,
+}
+
+impl Registry {
+    /// Every decoder the toolkit ships.
+    pub fn builtin() -> Registry {
+        use names::*;
+        Registry {
+            entries: vec![
+                Entry {
+                    name: TVAL3,
+                    usage: "tval3",
+                    summary: "TV-regularised reconstruction of cubes (the paper's iterative decoder)",
+                    arg: ArgUse::None,
+                    cubes: true,
+                    open: open_tval3,
+                },
+                Entry {
+                    name: DEPTH_FIT,
+                    usage: "depth-fit[:K]",
+                    summary: "ranges fitted to the tap images, K = 1 or 2 returns per pixel (default 2); no network",
+                    arg: ArgUse::Optional,
+                    cubes: false,
+                    open: open_depth_fit,
+                },
+                Entry {
+                    name: LIFETIME_FIT,
+                    usage: "lifetime-fit",
+                    summary: "lifetimes fitted to the tap images (a reconvolution fit in the measurement domain)",
+                    arg: ArgUse::None,
+                    cubes: false,
+                    open: open_lifetime_fit,
+                },
+                Entry {
+                    name: ADMM_NET,
+                    usage: "admm-net:RUN",
+                    summary: "an ADMM-Net training run (RUN: a directory or zoo:NAME): cubes",
+                    arg: ArgUse::Required,
+                    cubes: true,
+                    open: open_admm_net,
+                },
+                Entry {
+                    name: UNET,
+                    usage: "unet:RUN",
+                    summary: "an Aᵀ + U-Net run: ranges with a confidence, refined in the tap domain",
+                    arg: ArgUse::Required,
+                    cubes: false,
+                    open: open_unet,
+                },
+                Entry {
+                    name: UNET_RAW,
+                    usage: "unet-raw:RUN",
+                    summary: "an Aᵀ + U-Net run: the network's own ranges, no fit",
+                    arg: ArgUse::Required,
+                    cubes: false,
+                    open: open_unet_raw,
+                },
+                Entry {
+                    name: LIFETIME,
+                    usage: "lifetime:RUN",
+                    summary: "a lifetime network run: τ_m, τ₁, τ₂, α₁ with a confidence and the intensity",
+                    arg: ArgUse::Required,
+                    cubes: false,
+                    open: open_lifetime,
+                },
+                Entry {
+                    name: ZOO,
+                    usage: "zoo:NAME",
+                    summary: "a zoo entry, whatever its kind (`tcsense zoo list`)",
+                    arg: ArgUse::Required,
+                    cubes: true,
+                    open: open_zoo,
+                },
+                Entry {
+                    name: ONNX,
+                    usage: "onnx:MODEL.onnx",
+                    summary: "an exported model through ONNX Runtime",
+                    arg: ArgUse::Required,
+                    cubes: true,
+                    open: open_onnx,
+                },
+            ],
+        }
+    }
+
+    /// This table and `entry` (which replaces an entry of the same name).
+    pub fn with(mut self, entry: Entry) -> Registry {
+        self.entries.retain(|e| e.name != entry.name);
+        self.entries.push(entry);
+        self
+    }
+
+    /// The entries, in the table's order.
+    pub fn entries(&self) -> &[Entry] {
+        &self.entries
+    }
+
+    /// The entry of `name` (the part before any `:`).
+    pub fn entry(&self, name: &str) -> Option<&Entry> {
+        self.entries.iter().find(|e| e.name == name)
+    }
+
+    /// Every usage, comma-separated, for messages.
+    pub fn usages(&self) -> String {
+        let mut u: Vec<&str> = self.entries.iter().map(|e| e.usage).collect();
+        u.push("NAME+fit");
+        u.join(", ")
+    }
+
+    /// One line per decoder: usage and summary, for help text.
+    pub fn listing(&self) -> String {
+        let w = self.entries.iter().map(|e| e.usage.chars().count()).max().unwrap_or(0);
+        let mut s: String = self.entries.iter().map(|e| format!("  {:w$}  {}\n", e.usage, e.summary)).collect();
+        s.push_str(&format!(
+            "  {:w$}  a decoder of cubes (tval3, admm-net:RUN, zoo:NAME, onnx:MODEL.onnx) whose peaks are refined in the tap domain\n",
+            "NAME+fit"
+        ));
+        s
+    }
+
+    /// Open the decoder `name` (`NAME`, `NAME:ARG`, either followed by `+fit`).
+    pub fn open(&self, name: &str, settings: &DecoderSettings, device: &Device) -> Result<NamedDecoder> {
+        if let Some(inner) = name.strip_suffix(names::PLUS_FIT) {
+            let entry = self.entry(inner.split_once(':').map_or(inner, |(k, _)| k));
+            if inner.ends_with(names::PLUS_FIT) || !entry.is_some_and(|e| e.cubes) {
+                return Err(InferError::InvalidParam {
+                    field: "decoder",
+                    got: name.into(),
+                    expected:
+                        "+fit after a decoder of cubes: tval3+fit, admm-net:RUN+fit, zoo:NAME+fit or onnx:MODEL.onnx+fit of an ADMM-Net"
+                            .into(),
+                });
+            }
+            let d = self.open(inner, settings, device)?;
+            return Ok(NamedDecoder {
+                label: name.into(),
+                decoder: Box::new(crate::ranged::PeaksThenFit::new(d.decoder)),
+                sensor: d.sensor,
+            });
+        }
+        let (key, arg) = match name.split_once(':') {
+            Some((k, a)) => (k, Some(a)),
+            None => (name, None),
+        };
+        let entry = self.entry(key).ok_or_else(|| InferError::UnknownDecoder { name: name.into(), known: self.usages() })?;
+        match (entry.arg, arg) {
+            (ArgUse::None, Some(_)) | (ArgUse::Required, None) | (_, Some("")) => {
+                return Err(InferError::InvalidParam {
+                    field: "decoder",
+                    got: name.into(),
+                    expected: format!("{} ({})", entry.usage, entry.summary),
+                })
+            }
+            _ => {}
+        }
+        (entry.open)(&Opening { label: name, arg, settings, device })
+    }
+}
+
+/// Open a decoder of the built-in table by name with TVAL3's options `tval3` and every other
+/// decoder's defaults ([`Registry::open`]).
+pub fn open_decoder(name: &str, tval3: &Tval3Options, device: &Device) -> Result<NamedDecoder> {
+    Registry::builtin().open(name, &DecoderSettings { tval3: *tval3, ..Default::default() }, device)
+}
+
+fn any_sensor(o: &Opening<'_>, decoder: Box<dyn Decoder>) -> Result<NamedDecoder> {
+    Ok(NamedDecoder { label: o.label.into(), decoder, sensor: None })
+}
+
+fn open_tval3(o: &Opening<'_>) -> Result<NamedDecoder> {
+    any_sensor(o, Box::new(Tval3Decoder::new(o.settings.tval3)?))
+}
+
+fn open_depth_fit(o: &Opening<'_>) -> Result<NamedDecoder> {
+    let mut opts = o.settings.depth_fit.clone();
+    if let Some(r) = o.arg {
+        opts.returns = r.parse().ok().filter(|r| (1..=2).contains(r)).ok_or_else(|| InferError::InvalidParam {
+            field: "decoder",
+            got: o.label.into(),
+            expected: "depth-fit:1 or depth-fit:2 (returns per pixel)".into(),
+        })?;
+    }
+    any_sensor(o, Box::new(crate::ranged::DepthFitDecoder::new(opts)?))
+}
+
+fn open_lifetime_fit(o: &Opening<'_>) -> Result<NamedDecoder> {
+    any_sensor(o, Box::new(crate::tapfit::TapFitDecoder::new(o.settings.tap_fit.clone())?))
+}
+
+/// A training run of the network `kind` (its ranges fitted in the tap domain or not).
+fn open_run(o: &Opening<'_>, kind: &str, range_fit: bool) -> Result<NamedDecoder> {
+    let dir = o.arg.unwrap_or_default();
+    let run = runs::open_with(&tcsense_models::zoo::resolve(dir)?, o.device, range_fit)?;
+    let got = run.spec.model.name();
+    if got != kind {
+        return Err(InferError::File {
+            path: run.dir.join(runs::CONFIG_FILE),
+            msg: format!("field decoder is {got:?}: a {got} run, not {kind}; name it {got}:{dir}"),
+        });
+    }
+    Ok(NamedDecoder { label: o.label.into(), decoder: run.decoder, sensor: Some(run.sensor) })
+}
+
+fn open_admm_net(o: &Opening<'_>) -> Result<NamedDecoder> {
+    open_run(o, names::ADMM_NET, false)
+}
+
+fn open_unet(o: &Opening<'_>) -> Result<NamedDecoder> {
+    open_run(o, names::UNET, true)
+}
+
+fn open_unet_raw(o: &Opening<'_>) -> Result<NamedDecoder> {
+    open_run(o, names::UNET, false)
+}
+
+fn open_lifetime(o: &Opening<'_>) -> Result<NamedDecoder> {
+    open_run(o, names::LIFETIME, false)
+}
+
+fn open_zoo(o: &Opening<'_>) -> Result<NamedDecoder> {
+    let run = runs::open(&tcsense_models::zoo::resolve(o.label)?, o.device)?;
+    Ok(NamedDecoder { label: o.label.into(), decoder: run.decoder, sensor: Some(run.sensor) })
+}
+
+fn open_onnx(o: &Opening<'_>) -> Result<NamedDecoder> {
+    let model = crate::runtime::OnnxModel::open(Path::new(o.arg.unwrap_or_default()), 0)?;
+    let sensor = model.meta.sensor()?;
+    Ok(NamedDecoder { label: o.label.into(), decoder: Box::new(crate::runtime::OnnxDecoder::new(model)), sensor: Some(sensor) })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_open_or_say_what_is_known() {
+        let r = Registry::builtin();
+        let s = DecoderSettings::default();
+        let d = Device::flex();
+        assert_eq!(r.open("tval3", &s, &d).unwrap().decoder.name(), names::TVAL3);
+        assert_eq!(r.open("lifetime-fit", &s, &d).unwrap().label, "lifetime-fit");
+        for bad in ["tval3:x", "unet", "depth-fit:3", "depth-fit:", "unet+fit", "depth-fit+fit", "tval3+fit+fit"] {
+            assert!(r.open(bad, &s, &d).is_err(), "{bad}");
+        }
+        let e = r.open("nope", &s, &d).err().unwrap().to_string();
+        assert!(e.contains("nope") && e.contains("depth-fit[:K]") && e.contains("onnx:MODEL.onnx"), "{e}");
+        assert!(r.open("tval3+fit", &s, &d).is_ok());
+        // every entry is listed once, with its summary
+        let l = r.listing();
+        assert!(r.entries().iter().all(|e| l.matches(e.summary).count() == 1));
+    }
+}
