@@ -1,10 +1,10 @@
 //! The Cramér–Rao bounds of [`tcsense_sensor::identify`] against the empirical spread of the
 //! project's own estimators on noisy simulated pixels:
 //!
-//! - the range fit in the tap domain ([`tcsense_models::range_fit::refine_ranges`], its default
+//! - the range fit in the tap domain ([`tcsense_fits::range::refine_ranges`], its default
 //!   3×3 window, started at the true range) on a flat frame whose every pixel has one return at
 //!   the same delay;
-//! - the fit to the taps ([`crate::tapfit::fit_taps`], its 3×3 window, the onset given) on a
+//! - the fit to the taps ([`tcsense_fits::lifetime_taps::fit_taps`], its 3×3 window, the onset given) on a
 //!   flat frame of one lifetime.
 //!
 //! The frames are noiseless `A x` in electrons (the bounds' `photons` and `ambient`) through the
@@ -15,14 +15,14 @@
 //! both over the frame.
 
 use ndarray::{Array3, Array4, Axis};
-use tcsense_models::range_fit::{refine_ranges, RangeFitOptions};
+use tcsense_fits::range::{refine_ranges, RangeFitOptions};
 use tcsense_sensor::identify::{self, Columns, Light};
 use tcsense_sensor::noise::{add_noise, Exposure};
 use tcsense_sensor::waveform::{decay_unit_sum, Cycle};
 use tcsense_sensor::{MeasurementMatrix, NoiseParams, C};
 
-use crate::tapfit::{fit_taps, TapFitOptions};
 use crate::Result;
+use tcsense_fits::lifetime_taps::{fit_taps, TapFitOptions};
 
 /// Window of both estimators.
 const WINDOW: usize = 3;

@@ -87,7 +87,7 @@ impl EvalRow {
 
     /// [`Self::add`] with the lifetime truth as `(τ_m [H, W], intensity [H, W], estimate)`: a
     /// lifetime decoder's own `τ_m` estimate `[H, W]` (s), else the fit of `x̂`
-    /// ([`crate::lifetime::fit_cube`], IRF fitted); without the intensity every pixel with a
+    /// ([`tcsense_fits::lifetime_cube::fit_cube`], IRF fitted); without the intensity every pixel with a
     /// true lifetime counts.
     #[allow(clippy::too_many_arguments, clippy::type_complexity)]
     pub fn add_with(
@@ -184,7 +184,7 @@ impl EvalRow {
             let est = match (est, xh) {
                 (Some(e), _) => Some(e.to_owned()),
                 (None, Some(xh)) => {
-                    fitted = crate::lifetime::fit_cube(xh, bin_width_s, &crate::lifetime::FitOptions::default());
+                    fitted = tcsense_fits::lifetime_cube::fit_cube(xh, bin_width_s, &tcsense_fits::lifetime_cube::FitOptions::default());
                     Some(fitted.lifetimes.index_axis(Axis(0), 0).to_owned())
                 }
                 (None, None) => None,

@@ -3,13 +3,19 @@
 //!
 //! - [`registry`]: every decoder opened by name (`tval3`, `depth-fit`, `admm-net:RUN`,
 //!   `onnx:MODEL.onnx` …), the one table that `reconstruct`, `eval`, the demo and Python use.
+//! - [`decode`]: decoding a file of tap images with any decoder, the one path `reconstruct`
+//!   and Python share.
+//! - [`stream`]: the streaming `infer` — frames from a file or directory through an exported
+//!   model to products on disk, in bounded memory.
+//! - [`bounds`]: the Cramér–Rao bounds against the spread of the project's own estimators.
+//! - [`calibration_report`]: the report page of a calibration.
 //! - [`eval`]: decoders evaluated side by side
 //!   on a dataset split with the same measurements ([`eval::evaluate`]), one [`eval::EvalRow`]
 //!   per decoder.
 //! - [`products`]: peak detection with parabolic sub-bin refinement (several returns per
-//!   pixel for multipath), depth maps `d = c·t/2`, point clouds (PLY), per-pixel lifetimes by
-//!   an exponential fit of the decay after the peak, phasor coordinates, waveform plots.
-//! - [`ranged`]: ranges from any cube decoder, its peaks refined by the fit in the tap
+//!   pixel for multipath), depth maps `d = c·t/2`, point clouds (PLY), waveform plots.
+//! - [`fitted`]: the fits of `tcsense_fits` behind the decoder contract — `depth-fit`,
+//!   `lifetime-fit`, and ranges from any cube decoder, its peaks refined by the fit in the tap
 //!   domain (`NAME+fit`).
 //! - [`metrics`]: MSE, PSNR, depth RMSE/MAE per bounce with detection rate, lifetime MAE.
 //! - [`selection`]: code selection — the TVAL3 MSE of a code set over a dataset, the best of
@@ -30,17 +36,15 @@ pub mod decode;
 pub mod error;
 pub mod eval;
 pub mod figures;
-pub mod lifetime;
+pub mod fitted;
 pub mod metrics;
 pub mod onnx;
 pub mod products;
-pub mod ranged;
 pub mod registry;
 pub mod report;
 pub mod runtime;
 pub mod selection;
 pub mod stream;
-pub mod tapfit;
 pub mod timing;
 
 pub use error::{InferError, Result};

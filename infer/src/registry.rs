@@ -5,7 +5,7 @@
 //!
 //! A name is `NAME` or `NAME:ARG` (the entry says whether it takes an argument: a run
 //! directory, a zoo entry, a model file, a count), optionally followed by `+fit`: a decoder of
-//! cubes whose peaks are refined by the fit in the tap domain ([`crate::ranged::PeaksThenFit`]).
+//! cubes whose peaks are refined by the fit in the tap domain ([`crate::fitted::PeaksThenFit`]).
 //! A caller may extend the table ([`Registry::with`]); the names of the built-in decoders are
 //! constants in [`names`].
 //!
@@ -22,14 +22,14 @@
 
 use std::path::Path;
 
+use tcsense_fits::depth::DepthFitOptions;
 use tcsense_models::decoder::Tval3Decoder;
 pub use tcsense_models::decoder::{check_measurements, Control, Decoded, Decoder, Step};
-use tcsense_models::range_templates::DepthFitOptions;
 use tcsense_models::{runs, Device, Tval3Options};
 use tcsense_sensor::{Codes, Sensor};
 
-use crate::tapfit::TapFitOptions;
 use crate::{InferError, Result};
+use tcsense_fits::lifetime_taps::TapFitOptions;
 
 /// The names of the built-in decoders.
 pub mod names {
@@ -261,7 +261,7 @@ impl Registry {
             let d = self.open(inner, settings, device)?;
             return Ok(NamedDecoder {
                 label: name.into(),
-                decoder: Box::new(crate::ranged::PeaksThenFit::new(d.decoder)),
+                decoder: Box::new(crate::fitted::PeaksThenFit::new(d.decoder)),
                 sensor: d.sensor,
             });
         }
@@ -307,11 +307,11 @@ fn open_depth_fit(o: &Opening<'_>) -> Result<NamedDecoder> {
             expected: "depth-fit:1 or depth-fit:2 (returns per pixel)".into(),
         })?;
     }
-    any_sensor(o, Box::new(crate::ranged::DepthFitDecoder::new(opts)?))
+    any_sensor(o, Box::new(crate::fitted::DepthFitDecoder::new(opts)?))
 }
 
 fn open_lifetime_fit(o: &Opening<'_>) -> Result<NamedDecoder> {
-    any_sensor(o, Box::new(crate::tapfit::TapFitDecoder::new(o.settings.tap_fit.clone())?))
+    any_sensor(o, Box::new(crate::fitted::TapFitDecoder::new(o.settings.tap_fit.clone())?))
 }
 
 /// A training run of the network `kind` (its ranges fitted in the tap domain or not).

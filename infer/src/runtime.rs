@@ -12,9 +12,9 @@ use ort::value::TensorRef;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
+use tcsense_fits::range::{refine_ranges, RangeFitOptions};
 use tcsense_models::decoder::{check_measurements, Control, Decoded, Decoder, Step};
 use tcsense_models::net::{mask_depth, mask_lifetime};
-use tcsense_models::range_fit::{refine_ranges, RangeFitOptions};
 use tcsense_sensor::MeasurementMatrix;
 
 use crate::onnx::{OnnxMeta, INPUT, MATRIX_INPUT};
@@ -239,7 +239,7 @@ impl OnnxModel {
 pub struct OnnxDecoder {
     name: String,
     model: OnnxModel,
-    /// A U-Net's ranges refined in the tap domain ([`tcsense_models::range_fit`]).
+    /// A U-Net's ranges refined in the tap domain ([`tcsense_fits::range`]).
     range_fit: Option<RangeFitOptions>,
 }
 

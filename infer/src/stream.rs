@@ -21,9 +21,9 @@
 //! What `reconstruct` applies after a network, the stream applies too: a depth model's ranges
 //! refined in the tap domain ([`Products::range_fit`], on by default). The fits to the taps
 //! replace a product where asked for, through the model's codes and sensor (its metadata):
-//! lifetimes by [`crate::tapfit::LifetimeTemplates`] ([`Products::lifetime_fit`], the onset and
+//! lifetimes by [`tcsense_fits::lifetime_taps::LifetimeTemplates`] ([`Products::lifetime_fit`], the onset and
 //! IRF width estimated once on the first frame) and depth by
-//! [`tcsense_models::range_templates::RangeTemplates`] ([`Products::depth_fit`]); the network is
+//! [`tcsense_fits::depth::RangeTemplates`] ([`Products::depth_fit`]); the network is
 //! then not run unless another product needs it.
 
 use ndarray::{Array3, Array4, ArrayView3, Axis};
@@ -38,11 +38,11 @@ use tcsense_sensor::npy::{f32_header, parse_header, read_npy, NpyHeader};
 
 use crate::products::{depth_map, write_ply, PeakOptions};
 use crate::runtime::OnnxModel;
-use crate::tapfit::{estimate_instrument, LifetimeTemplates, TapFit, TapFitOptions};
 use crate::{InferError, Result};
+use tcsense_fits::depth::{DepthFitOptions, RangeTemplates};
+use tcsense_fits::lifetime_taps::{estimate_instrument, LifetimeTemplates, TapFit, TapFitOptions};
+use tcsense_fits::range::{refine_ranges, RangeFitOptions};
 use tcsense_models::net::mask_depth;
-use tcsense_models::range_fit::{refine_ranges, RangeFitOptions};
-use tcsense_models::range_templates::{DepthFitOptions, RangeTemplates};
 
 fn file_err(path: &Path, msg: impl ToString) -> InferError {
     InferError::File { path: path.to_path_buf(), msg: msg.to_string() }
@@ -316,14 +316,14 @@ pub struct Products {
     /// Camera field of view for point clouds (degrees).
     pub fov_deg: f64,
     /// Lifetimes (and intensity, phasor) by the fit to the taps through the model's sensor
-    /// ([`crate::tapfit::LifetimeTemplates`], the instrument estimated once on the first frame
+    /// ([`tcsense_fits::lifetime_taps::LifetimeTemplates`], the instrument estimated once on the first frame
     /// unless its `onset_s` is given) instead of the model's own; `None`: the model's.
     pub lifetime_fit: Option<TapFitOptions>,
     /// A depth model's ranges refined by the fit in the tap domain, as `reconstruct unet`
-    /// applies it ([`tcsense_models::range_fit`]); `None`: as the network gives them.
+    /// applies it ([`tcsense_fits::range`]); `None`: as the network gives them.
     pub range_fit: Option<RangeFitOptions>,
     /// Depth (and the point cloud, the confidence) by the template fit of ranges to the taps
-    /// through the model's sensor ([`tcsense_models::range_templates`]) instead of the model's;
+    /// through the model's sensor ([`tcsense_fits::depth`]) instead of the model's;
     /// `None`: the model's.
     pub depth_fit: Option<DepthFitOptions>,
 }
@@ -736,7 +736,7 @@ fn write_frame(
             }
             if by_model && (p.lifetime || p.phasor) {
                 // the reconvolution fit (IRF fitted to the frame)
-                let fit = crate::lifetime::fit_cube(&cube, bin_s, &crate::lifetime::FitOptions::default());
+                let fit = tcsense_fits::lifetime_cube::fit_cube(&cube, bin_s, &tcsense_fits::lifetime_cube::FitOptions::default());
                 if let Some(w) = wr.lifetime.as_mut() {
                     w.push(fit.lifetimes.index_axis(Axis(0), 0).iter())?;
                 }

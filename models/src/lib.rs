@@ -17,6 +17,11 @@
 //!   a reference composed from burn ops.
 //! - [`runs`]: run directories (`config.json`, `codes.json`, `model.bpk`) opened as decoders
 //!   with one call, [`runs::open`].
+//! - [`lifetime`]: the lifetime network, tap images straight to lifetimes (FLI-Net-like).
+//! - [`learned_codes`]: learnable exposure codes for deep sensing (relaxed, then projected
+//!   onto the hardware's constraints).
+//! - [`device`]: where the learned decoders run (CPU `flex` or GPU `wgpu`).
+//! - [`zoo`]: the trained decoders shipped with the toolkit, `zoo:NAME`.
 //! - [`metrics`]: MSE and PSNR of a cube against its truth.
 //! - [`bench`]: the kernels timed against burn-flex's generic paths.
 //!
@@ -30,8 +35,6 @@ pub mod learned_codes;
 pub mod lifetime;
 pub mod metrics;
 pub mod net;
-pub mod range_fit;
-pub mod range_templates;
 pub mod runs;
 pub mod sensor_tensors;
 pub mod tval3;

@@ -12,9 +12,9 @@ use ndarray::{Array4, ArrayView4, Axis};
 use tcsense_sensor::MeasurementMatrix;
 
 use crate::decoder::{check_measurements, Control, Decoded, Decoder, Step};
-use crate::range_fit::{refine_ranges, RangeFitOptions};
 use crate::sensor_tensors::SensorTensors;
 use crate::{ModelError, Result};
+use tcsense_fits::range::{refine_ranges, RangeFitOptions};
 
 /// What a network predicts.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -143,7 +143,7 @@ pub struct NetDecoder<M> {
     device: Device,
     /// Sensor tensors of the last frame size and `A`.
     cache: Option<(MeasurementMatrix, SensorTensors)>,
-    /// Depth networks: the returns' ranges refined in the tap domain ([`crate::range_fit`]).
+    /// Depth networks: the returns' ranges refined in the tap domain ([`tcsense_fits::range`]).
     range_fit: Option<RangeFitOptions>,
 }
 

@@ -329,7 +329,7 @@ pub fn open(dir: &Path, device: &Device) -> Result<Run> {
     open_with(dir, device, true)
 }
 
-/// [`open`], with a U-Net's ranges refined in the tap domain ([`crate::range_fit`], the
+/// [`open`], with a U-Net's ranges refined in the tap domain ([`tcsense_fits::range`], the
 /// default) or as the network outputs them (`range_fit: false`).
 pub fn open_with(dir: &Path, device: &Device, range_fit: bool) -> Result<Run> {
     let LoadedRun { dir, spec, sensor, net } = load(dir, device)?;

@@ -9,9 +9,9 @@ use ndarray::{Array4, Axis, Ix4};
 use numpy::{IntoPyArray, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
+use tcsense_fits::lifetime_taps::{TapFitDecoder, TapFitOptions};
 use tcsense_infer::decode::{check_codes, decode_batch};
 use tcsense_infer::registry::open_decoder;
-use tcsense_infer::tapfit::{TapFitDecoder, TapFitOptions};
 use tcsense_models::decoder::{Control, Decoded, Decoder, Tval3Decoder};
 use tcsense_models::{runs, zoo, Device, Tval3Options};
 

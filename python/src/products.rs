@@ -5,7 +5,7 @@ use ndarray::{Ix1, Ix3};
 use numpy::{IntoPyArray, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList};
-use tcsense_infer::lifetime::{fit_cube, Components, FitOptions, IrfModel};
+use tcsense_fits::lifetime_cube::{fit_cube, Components, FitOptions, IrfModel};
 use tcsense_infer::products::{self, PeakOptions};
 
 use crate::{check_rank, err, f32_array, path_of, run_long};

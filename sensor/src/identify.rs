@@ -3,7 +3,7 @@
 //!
 //! A block of `N` subpixels, each with `M` taps, sees one surface. A return at delay `τ` (bins,
 //! continuous) is the datasets' sub-bin impulse, so subpixel `n` measures (the model of
-//! `tcsense_models::range_fit`)
+//! `tcsense_fits::range`)
 //!
 //! ```text
 //! μ_n = a_n·g_n(τ) + b_n·s_n,   g_n(τ) = (1 − f)·A[n][·][t₀] + f·A[n][·][t₀ + 1],  τ − ½ = t₀ + f,

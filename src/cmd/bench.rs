@@ -101,7 +101,7 @@ pub enum BenchCmd {
     /// intra-op threads) and of the same network in burn, interleaved, with the FLOP rate.
     /// Without --run or --model, a fresh network of --decoder on the prototype's codes.
     Infer(super::deploy::BenchInferArgs),
-    /// The U-Net's range fit in the tap domain (`models::range_fit`): time per frame on the
+    /// The U-Net's range fit in the tap domain (`tcsense_fits::range`): time per frame on the
     /// paper's LiDAR scenes (about half with a sheet in front), from the true ranges moved by
     /// about a bin, with one return per pixel and with two where the scene has them, and the
     /// error left.
@@ -284,7 +284,7 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
         }
         BenchCmd::RangeFit { size: (h, w), frames } => {
             use tcsense_datasets::{lidar::LidarParams, TimeGrid};
-            use tcsense_models::range_fit::{refine_ranges, RangeFitOptions};
+            use tcsense_fits::range::{refine_ranges, RangeFitOptions};
             if h == 0 || w == 0 || h % 2 != 0 || w % 2 != 0 {
                 anyhow::bail!("--size {h}x{w}: expected an even frame (2x2 blocks)");
             }

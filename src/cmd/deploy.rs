@@ -118,7 +118,7 @@ pub struct InferArgs {
     #[arg(long, requires = "lifetime_fit")]
     onset_ns: Option<f64>,
     /// Side of the square window of pixels whose costs the fit to the taps sums (odd).
-    #[arg(long, requires = "lifetime_fit", default_value_t = 3, value_parser = super::count_in(1, tcsense_models::range_fit::MAX_WINDOW))]
+    #[arg(long, requires = "lifetime_fit", default_value_t = 3, value_parser = super::count_in(1, tcsense_fits::range::MAX_WINDOW))]
     window: usize,
     /// Output directory.
     #[arg(short, long)]
@@ -176,8 +176,8 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
         if !(products.depth || products.ply) {
             bail!("--depth-fit with --products {list}: the fit gives depth and ply; ask for one of them");
         }
-        products.depth_fit = Some(tcsense_models::range_templates::DepthFitOptions { returns, ..Default::default() });
-        if let Some(w) = tcsense_infer::ranged::alias_warning(&model.sensor, model.meta.codes.length()) {
+        products.depth_fit = Some(tcsense_fits::depth::DepthFitOptions { returns, ..Default::default() });
+        if let Some(w) = tcsense_infer::fitted::alias_warning(&model.sensor, model.meta.codes.length()) {
             eprintln!("{w}");
         }
     }
@@ -185,7 +185,8 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
         if !(products.lifetime || products.intensity || products.phasor) {
             bail!("--lifetime-fit with --products {list}: the fit gives lifetime, intensity and phasor; ask for one of them");
         }
-        let opts = tcsense_infer::tapfit::TapFitOptions { onset_s: a.onset_ns.map(|t| t * 1e-9), window: a.window, ..Default::default() };
+        let opts =
+            tcsense_fits::lifetime_taps::TapFitOptions { onset_s: a.onset_ns.map(|t| t * 1e-9), window: a.window, ..Default::default() };
         opts.validate().map_err(|e| anyhow::anyhow!("--lifetime-fit settings (--onset-ns, --window): {e}"))?;
         products.lifetime_fit = Some(opts);
     }

@@ -84,7 +84,7 @@ impl Tval3Args {
     }
 }
 
-/// Settings of the tap-domain lifetime fit (`tcsense_infer::tapfit`).
+/// Settings of the tap-domain lifetime fit (`tcsense_fits::lifetime_taps`).
 #[derive(Args, Clone)]
 pub struct TapFitArgs {
     /// The decay onset in ns when known (e.g. from a calibration); default: fitted to each frame.
@@ -105,7 +105,7 @@ pub struct TapFitArgs {
 }
 
 impl TapFitArgs {
-    pub fn options(&self) -> Result<tcsense_infer::tapfit::TapFitOptions> {
+    pub fn options(&self) -> Result<tcsense_fits::lifetime_taps::TapFitOptions> {
         let r: Vec<f64> = self
             .tau_ns
             .split(',')
@@ -114,7 +114,7 @@ impl TapFitArgs {
             .ok()
             .filter(|v: &Vec<f64>| v.len() == 2)
             .with_context(|| format!("--tau-ns {:?}: expected LO,HI in ns (e.g. 0.1,25)", self.tau_ns))?;
-        let o = tcsense_infer::tapfit::TapFitOptions {
+        let o = tcsense_fits::lifetime_taps::TapFitOptions {
             tau_range_s: [r[0] * 1e-9, r[1] * 1e-9],
             window: self.window,
             min_intensity: self.min_intensity,
@@ -241,7 +241,7 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<ExitCode> {
         (None, None) => bail!("--codes: {name} decodes any sensor; give the codes the tap images were taken with"),
     };
     if name.starts_with(names::DEPTH_FIT) {
-        if let Some(w) = tcsense_infer::ranged::alias_warning(sensor.nominal(), sensor.codes().length()) {
+        if let Some(w) = tcsense_infer::fitted::alias_warning(sensor.nominal(), sensor.codes().length()) {
             eprintln!("{w}");
         }
     }
@@ -534,7 +534,7 @@ pub struct LifetimeArgs {
 }
 
 pub fn lifetime(a: LifetimeArgs) -> Result<ExitCode> {
-    use tcsense_infer::lifetime::{fit_cube, Components, FitOptions, IrfModel};
+    use tcsense_fits::lifetime_cube::{fit_cube, Components, FitOptions, IrfModel};
     let mut planned: Vec<(&str, &Path)> = vec![("-o", &a.output)];
     planned.extend(a.components_out.as_deref().map(|p| ("--components-out", p)));
     planned.extend(a.phasor.as_deref().map(|p| ("--phasor", p)));

@@ -150,7 +150,7 @@ pub(super) fn draw_figures(dir: &Path, lidar: &Dataset, flim: &Dataset, selected
     )?;
     // the reconvolution fit (IRF fitted) of each cube, the fit to the taps as it was decoded
     let lt = |c: &Array3<f32>| {
-        tcsense_infer::lifetime::fit_cube(&c.view(), fbin, &tcsense_infer::lifetime::FitOptions::default())
+        tcsense_fits::lifetime_cube::fit_cube(&c.view(), fbin, &tcsense_fits::lifetime_cube::FitOptions::default())
             .lifetimes
             .index_axis(Axis(0), 0)
             .to_owned()

@@ -47,7 +47,7 @@ use tcsense_sensor::params::{C, DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
 use tcsense_sensor::sweep::{simulate_sweep, SweepSettings};
 use tcsense_sensor::{export, generate, Irf, NoiseParams, Sampling, Sensor, SensorParams};
 use tcsense_train::deep_sensing::LearnCodes;
-use tcsense_train::{train, Progress, TrainConfig, TrainError};
+use tcsense_train::{train, TrainConfig, TrainError};
 
 mod figures;
 mod plan;

@@ -22,9 +22,9 @@
 //! A delayed scene therefore gives the same lifetimes: the search finds the delayed onset.
 //! The lifetimes are searched on a log grid and refined by a parabola through the minimum.
 
+use crate::engine::{argmin, golden, window_sums};
 use ndarray::{Array2, ArrayView3, Axis};
 use rayon::prelude::*;
-use tcsense_models::range_templates::argmin;
 use tcsense_sensor::waveform::subpixel_flat;
 use tcsense_sensor::MeasurementMatrix;
 
@@ -71,7 +71,7 @@ impl Default for TapFitOptions {
 impl TapFitOptions {
     /// Checks the settings; the error names the field.
     pub fn validate(&self) -> Result<(), String> {
-        use tcsense_models::range_fit::MAX_WINDOW;
+        use crate::range::MAX_WINDOW;
         let [lo, hi] = self.tau_range_s;
         if !(lo > 0.0 && hi > lo && hi.is_finite()) {
             return Err(format!("tau_range_s: [{lo:e}, {hi:e}], expected 0 < lo < hi"));
@@ -515,53 +515,37 @@ impl LifetimeTemplates {
         let g = self.coarse[0].points;
         let Normalised { r, weight, intensity } = f;
         let kind = |p: usize| subpixel_flat(p, w, (bh, bw));
-        // every pixel's cost on the grid, summed along the rows of the window
+        // every lit pixel's cost on the grid, summed over the window
         let half = self.window / 2;
-        let mut rows = vec![0f32; h * w * g];
-        rows.par_chunks_mut(w * g).enumerate().for_each(|(i, out)| {
-            let mut cost = vec![0f32; w * g];
+        let mut cost = vec![0f32; h * w * g];
+        cost.par_chunks_mut(w * g).enumerate().for_each(|(i, out)| {
             let mut beta = vec![0f32; g];
             for j in 0..w {
                 let p = i * w + j;
                 if weight[p] > 0.0 {
-                    self.coarse[kind(p)].costs(
-                        &r[p * m..(p + 1) * m],
-                        weight[p],
-                        self.background,
-                        &mut beta,
-                        &mut cost[j * g..(j + 1) * g],
-                    );
-                }
-            }
-            for j in 0..w {
-                let o = &mut out[j * g..(j + 1) * g];
-                for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
-                    if weight[i * w + jj] > 0.0 {
-                        o.iter_mut().zip(&cost[jj * g..(jj + 1) * g]).for_each(|(a, b)| *a += b);
-                    }
+                    self.coarse[kind(p)].costs(&r[p * m..(p + 1) * m], weight[p], self.background, &mut beta, &mut out[j * g..(j + 1) * g]);
                 }
             }
         });
-        // then down the columns, the argmin and the refinement
+        let lit: Vec<bool> = weight.iter().map(|&v| v > 0.0).collect();
+        let sums = window_sums(&cost, &lit, (h, w), g, self.window);
+        drop(cost);
+        // the argmin and the refinement
         let fits: Vec<(f32, f32)> = (0..h)
             .into_par_iter()
             .flat_map_iter(|i| {
-                let mut total = vec![0f32; g];
                 // the window's pixels (index, type) and the templates between the half steps
                 let mut win: Vec<(usize, usize)> = Vec::with_capacity(self.window * self.window);
                 let mut between = Between::new(self.fine.len(), m);
-                let (rows, r, weight) = (&rows, &r, &weight);
+                let (sums, r, weight) = (&sums, &r, &weight);
                 (0..w)
                     .map(move |j| {
                         let p = i * w + j;
                         if weight[p] <= 0.0 {
                             return (f32::NAN, f32::NAN);
                         }
-                        total.fill(0.0);
-                        for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
-                            total.iter_mut().zip(&rows[(ii * w + j) * g..(ii * w + j + 1) * g]).for_each(|(a, b)| *a += b);
-                        }
-                        let best = argmin(&total);
+                        let total = &sums[p * g..(p + 1) * g];
+                        let best = argmin(total);
                         if best == 0 || best + 1 == g {
                             return (f32::NAN, f32::NAN);
                         }
@@ -653,35 +637,6 @@ fn fit_taps_reference(y: &ArrayView3<'_, f32>, a: &MeasurementMatrix, opts: &Tap
         });
         (taus[0].ln() + u * (taus[1].ln() - taus[0].ln())).exp() as f32
     })
-}
-
-/// The minimum over `u ∈ [best − 1, best + 1]` of `cost(u)` by golden-section search
-/// (the interval shrinks by 0.618 per iteration): `(u, cost)`.
-fn golden(best: usize, last: usize, iterations: usize, cost: &mut dyn FnMut(f64) -> f64) -> (f64, f64) {
-    let (mut lo, mut hi) = ((best as f64 - 1.0).max(0.0), (best as f64 + 1.0).min(last as f64));
-    let phi = 0.5 * (5f64.sqrt() - 1.0);
-    let (mut x1, mut x2) = (hi - phi * (hi - lo), lo + phi * (hi - lo));
-    let (mut f1, mut f2) = (cost(x1), cost(x2));
-    for _ in 0..iterations {
-        if f1 <= f2 {
-            hi = x2;
-            x2 = x1;
-            f2 = f1;
-            x1 = hi - phi * (hi - lo);
-            f1 = cost(x1);
-        } else {
-            lo = x1;
-            x1 = x2;
-            f1 = f2;
-            x2 = lo + phi * (hi - lo);
-            f2 = cost(x2);
-        }
-    }
-    if f1 <= f2 {
-        (x1, f1)
-    } else {
-        (x2, f2)
-    }
 }
 
 /// The frame's onset and IRF width: the cost of the brightest pixels, each at its best
@@ -807,71 +762,6 @@ fn brightest_cost(tables: &[TypeTable], pixels: &[(Vec<f32>, f32, usize)], count
         };
     }
     total
-}
-
-/// [`fit_taps`] behind the decoder contract: lifetimes `[B, 4, H, W]` (`τ_m = τ₁ = τ₂`, `α₁ = 1`:
-/// one component), the charge as intensity and a confidence of 1 where a lifetime was fitted.
-#[derive(Debug, Clone, Default)]
-pub struct TapFitDecoder {
-    pub options: TapFitOptions,
-}
-
-impl TapFitDecoder {
-    /// A decoder with checked options.
-    pub fn new(options: TapFitOptions) -> crate::Result<Self> {
-        options.validate().map_err(|msg| crate::InferError::Settings { what: "lifetime-fit", msg })?;
-        Ok(TapFitDecoder { options })
-    }
-}
-
-impl tcsense_models::decoder::Decoder for TapFitDecoder {
-    fn name(&self) -> &str {
-        "lifetime-fit"
-    }
-
-    fn decode(
-        &mut self,
-        y: ndarray::ArrayView4<'_, f32>,
-        sensor: &tcsense_sensor::Sensor,
-        ctl: &tcsense_models::decoder::Control<'_>,
-    ) -> tcsense_models::Result<tcsense_models::decoder::Decoded> {
-        let sensor = sensor.matrix();
-        tcsense_models::decoder::check_measurements(&y, sensor)?;
-        let (b, _, h, w) = y.dim();
-        let mut lifetime = ndarray::Array4::<f32>::from_elem((b, 4, h, w), f32::NAN);
-        let mut confidence = ndarray::Array4::<f32>::zeros((b, 1, h, w));
-        let mut intensity = ndarray::Array4::<f32>::zeros((b, 1, h, w));
-        for (f, frame) in y.outer_iter().enumerate() {
-            ctl.check()?;
-            (ctl.progress)(tcsense_models::decoder::Step { frame: f, frames: b, done: 0, total: 1 });
-            let fit = fit_taps(&frame, sensor, &self.options);
-            for c in 0..3 {
-                lifetime.index_axis_mut(Axis(0), f).index_axis_mut(Axis(0), c).assign(&fit.lifetime);
-            }
-            lifetime.index_axis_mut(Axis(0), f).index_axis_mut(Axis(0), 3).assign(&fit.lifetime.mapv(|t| {
-                if t.is_finite() {
-                    1.0
-                } else {
-                    f32::NAN
-                }
-            }));
-            confidence.index_axis_mut(Axis(0), f).index_axis_mut(Axis(0), 0).assign(&fit.lifetime.mapv(|t| {
-                if t.is_finite() {
-                    1.0
-                } else {
-                    0.0
-                }
-            }));
-            intensity.index_axis_mut(Axis(0), f).index_axis_mut(Axis(0), 0).assign(&fit.intensity);
-            (ctl.progress)(tcsense_models::decoder::Step { frame: f, frames: b, done: 1, total: 1 });
-        }
-        Ok(tcsense_models::decoder::Decoded {
-            lifetime: Some(lifetime),
-            confidence: Some(confidence),
-            intensity: Some(intensity),
-            ..Default::default()
-        })
-    }
 }
 
 #[cfg(test)]
@@ -1045,16 +935,5 @@ mod tests {
                 assert!(v.is_nan(), "({i}, {j}): {v:e} for a decay of {:e} s searched over 0.5–10 ns", tau(i, j));
             }
         }
-        let mut dec = TapFitDecoder::new(TapFitOptions { onset_s: Some(3e-9), irf_fwhm_s: vec![0.0], ..opts }).unwrap();
-        let out = tcsense_models::decoder::Decoder::decode(
-            &mut dec,
-            y.view().insert_axis(Axis(0)),
-            &sensor_object(),
-            &tcsense_models::decoder::Control::quiet(&std::sync::atomic::AtomicBool::new(false)),
-        )
-        .unwrap();
-        let conf = out.confidence.unwrap();
-        assert_eq!(conf[(0, 0, 0, 0)], 1.0);
-        assert_eq!(conf[(0, 0, 0, 7)], 0.0);
     }
 }

@@ -1,6 +1,6 @@
 //! Ranges from any cube decoder, refined in the tap domain: the cube's peaks
 //! ([`crate::products::depth_map`]) are the estimates from which the pulse template is fitted
-//! to the tap images ([`tcsense_models::range_fit`]), as the U-Net's ranges are.
+//! to the tap images ([`tcsense_fits::range`]), as the U-Net's ranges are.
 //!
 //! Peak detection places a return to the precision of the reconstructed waveform: where the
 //! cube is smoothed or its pulse misshapen (a ranging decoder's regulariser, a far or dim
@@ -17,9 +17,10 @@
 //! `search_bins` of the estimate.
 
 use ndarray::{Array4, ArrayView4, Axis};
+use tcsense_fits::depth::{DepthFitOptions, RangeTemplates};
+use tcsense_fits::lifetime_taps::{fit_taps, TapFitOptions};
+use tcsense_fits::range::{refine_ranges, RangeFitOptions};
 use tcsense_models::decoder::{Control, Decoded, Decoder};
-use tcsense_models::range_fit::{refine_ranges, RangeFitOptions};
-use tcsense_models::range_templates::{DepthFitOptions, RangeTemplates};
 use tcsense_models::{ModelError, Result};
 use tcsense_sensor::MeasurementMatrix;
 
@@ -40,7 +41,7 @@ pub fn alias_warning(sensor: &MeasurementMatrix, code_length: usize) -> Option<S
     })
 }
 
-/// Ranges with no decoder before them: the template fit of [`tcsense_models::range_templates`]
+/// Ranges with no decoder before them: the template fit of [`tcsense_fits::depth`]
 /// behind the decoder contract (`depth-fit`): depth `[B, K, H, W]` with a confidence of 1 where
 /// a return was placed, 0 elsewhere.
 #[derive(Debug, Clone, Default)]
@@ -139,6 +140,71 @@ impl Decoder for PeaksThenFit {
             }
         });
         Ok(Decoded { depth: Some(depth), confidence: Some(confidence), ..out })
+    }
+}
+
+/// [`fit_taps`](tcsense_fits::lifetime_taps::fit_taps) behind the decoder contract: lifetimes `[B, 4, H, W]` (`τ_m = τ₁ = τ₂`, `α₁ = 1`:
+/// one component), the charge as intensity and a confidence of 1 where a lifetime was fitted.
+#[derive(Debug, Clone, Default)]
+pub struct TapFitDecoder {
+    pub options: TapFitOptions,
+}
+
+impl TapFitDecoder {
+    /// A decoder with checked options.
+    pub fn new(options: TapFitOptions) -> crate::Result<Self> {
+        options.validate().map_err(|msg| crate::InferError::Settings { what: "lifetime-fit", msg })?;
+        Ok(TapFitDecoder { options })
+    }
+}
+
+impl tcsense_models::decoder::Decoder for TapFitDecoder {
+    fn name(&self) -> &str {
+        "lifetime-fit"
+    }
+
+    fn decode(
+        &mut self,
+        y: ndarray::ArrayView4<'_, f32>,
+        sensor: &tcsense_sensor::Sensor,
+        ctl: &tcsense_models::decoder::Control<'_>,
+    ) -> tcsense_models::Result<tcsense_models::decoder::Decoded> {
+        let sensor = sensor.matrix();
+        tcsense_models::decoder::check_measurements(&y, sensor)?;
+        let (b, _, h, w) = y.dim();
+        let mut lifetime = ndarray::Array4::<f32>::from_elem((b, 4, h, w), f32::NAN);
+        let mut confidence = ndarray::Array4::<f32>::zeros((b, 1, h, w));
+        let mut intensity = ndarray::Array4::<f32>::zeros((b, 1, h, w));
+        for (f, frame) in y.outer_iter().enumerate() {
+            ctl.check()?;
+            (ctl.progress)(tcsense_models::decoder::Step { frame: f, frames: b, done: 0, total: 1 });
+            let fit = fit_taps(&frame, sensor, &self.options);
+            for c in 0..3 {
+                lifetime.index_axis_mut(Axis(0), f).index_axis_mut(Axis(0), c).assign(&fit.lifetime);
+            }
+            lifetime.index_axis_mut(Axis(0), f).index_axis_mut(Axis(0), 3).assign(&fit.lifetime.mapv(|t| {
+                if t.is_finite() {
+                    1.0
+                } else {
+                    f32::NAN
+                }
+            }));
+            confidence.index_axis_mut(Axis(0), f).index_axis_mut(Axis(0), 0).assign(&fit.lifetime.mapv(|t| {
+                if t.is_finite() {
+                    1.0
+                } else {
+                    0.0
+                }
+            }));
+            intensity.index_axis_mut(Axis(0), f).index_axis_mut(Axis(0), 0).assign(&fit.intensity);
+            (ctl.progress)(tcsense_models::decoder::Step { frame: f, frames: b, done: 1, total: 1 });
+        }
+        Ok(tcsense_models::decoder::Decoded {
+            lifetime: Some(lifetime),
+            confidence: Some(confidence),
+            intensity: Some(intensity),
+            ..Default::default()
+        })
     }
 }
 

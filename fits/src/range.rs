@@ -307,8 +307,7 @@ fn search(tpl: &Templates, centre: f64, half: f64, cost: &mut dyn FnMut(usize) -
     }
     let (r0, c) = best;
     let (rm, rp) = (cost(wrap(c - 1)), cost(wrap(c + 1)));
-    let den = rm - 2.0 * r0 + rp;
-    let off = if den > 0.0 && rm.is_finite() && rp.is_finite() { (0.5 * (rm - rp) / den).clamp(-0.5, 0.5) } else { 0.0 };
+    let off = crate::engine::parabola_min(rm, r0, rp);
     Some((((c as f64 + tpl.offset + off) / os).rem_euclid(tpl.t as f64), r0))
 }
 

@@ -1,5 +1,5 @@
 //! Ranges straight from the tap images with no decoder before them: the range fit's templates
-//! ([`crate::range_fit`]) as dense linear algebra, the way compressive single-photon LiDAR
+//! ([`crate::range`]) as dense linear algebra, the way compressive single-photon LiDAR
 //! decodes coded histograms against a table of templates.
 //!
 //! 1. **Every candidate at once.** A pixel of subpixel type `n` and taps `y` costs, at each of
@@ -47,7 +47,8 @@ use rayon::prelude::*;
 use tcsense_sensor::waveform::subpixel_flat;
 use tcsense_sensor::{MeasurementMatrix, C};
 
-use crate::range_fit::{cyclic_gap, RangeFitOptions, Templates, WindowFit, EXPLAINED, MIN_GAP};
+use crate::engine::{argmin, parabola_min, window_sums};
+use crate::range::{cyclic_gap, RangeFitOptions, Templates, WindowFit, EXPLAINED, MIN_GAP};
 
 /// The pre-screen of a second return: one return of one amplitude over the window must remove at
 /// least this share of the window's single-return residual.
@@ -71,9 +72,7 @@ fn refine(cost: &[f32], c: usize, os: usize, at: &mut dyn FnMut(f64) -> f64) -> 
     let n = cost.len();
     let v = |k: isize| cost[(c as isize + k).rem_euclid(n as isize) as usize] as f64;
     if !c.is_multiple_of(os) || os < 2 {
-        let (lo, mid, hi) = (v(-1), v(0), v(1));
-        let curv = lo - 2.0 * mid + hi;
-        return if curv > 0.0 { (0.5 * (lo - hi) / curv).clamp(-0.5, 0.5) } else { 0.0 };
+        return parabola_min(v(-1), v(0), v(1));
     }
     // on a kink: each side's parabola through the kink, half a candidate and one candidate away
     let (l, centre, r) = (at(-0.5), v(0), at(0.5));
@@ -269,17 +268,6 @@ fn residual(y: &[f64], g: &[f64], s: &[f64]) -> Vec<f64> {
     y.iter().zip(g).zip(s).map(|((y, g), s)| y - a * g - b * s).collect()
 }
 
-/// The index of the smallest value (the first of equals; 0 for an empty slice).
-pub fn argmin(v: &[f32]) -> usize {
-    let mut best = 0;
-    for (i, &x) in v.iter().enumerate() {
-        if x < v[best] {
-            best = i;
-        }
-    }
-    best
-}
-
 /// Ranges (m) of up to two returns per pixel from one frame of taps, with no estimate to start
 /// from (see the module's notes): [`RangeTemplates`] built for this one frame.
 ///
@@ -374,32 +362,14 @@ impl RangeTemplates {
                 }
             }
         });
-        let cost = &self.cost;
         // 2. summed over the window's lit pixels, the argmin over the cycle
-        let first: Vec<f64> = (0..h)
+        let total = window_sums(&self.cost, &lit, (h, w), cands, fit.window);
+        let first: Vec<f64> = (0..h * w)
             .into_par_iter()
-            .flat_map_iter(|i| {
-                let mut total = vec![0f32; cands];
-                let lit = &lit;
-                (0..w)
-                    .map(move |j| {
-                        if !lit[i * w + j] {
-                            return f64::NAN;
-                        }
-                        total.fill(0.0);
-                        for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
-                            for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
-                                let q = ii * w + jj;
-                                if lit[q] {
-                                    total.iter_mut().zip(&cost[q * cands..(q + 1) * cands]).for_each(|(a, b)| *a += b);
-                                }
-                            }
-                        }
-                        tpl.tau(argmin(&total))
-                    })
-                    .collect::<Vec<_>>()
-            })
+            .map(|p| if lit[p] { tpl.tau(argmin(&total[p * cands..(p + 1) * cands])) } else { f64::NAN })
             .collect();
+        drop(total);
+        let cost = &self.cost;
 
         // 3. the window on the pixel's surface: search near the first estimate, refine
         let t = tpl.t;
@@ -574,7 +544,7 @@ impl RangeTemplates {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::range_fit::refine_ranges;
+    use crate::range::refine_ranges;
     use ndarray::{Array4, Axis};
     use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
     use tcsense_sensor::{Codes, Irf, SensorParams};

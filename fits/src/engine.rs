@@ -1,0 +1,132 @@
+//! The template-and-window-cost engine every fit of this crate runs on: a cost per pixel and
+//! candidate (a range, a lifetime), summed over a square window of lit pixels by one separable
+//! box filter ([`window_sums`]), the best candidate by one [`argmin`], and one refinement
+//! between candidates: the parabola through the best and its neighbours ([`parabola_min`]),
+//! or golden sections where the cost has kinks ([`golden`]).
+
+use rayon::prelude::*;
+
+/// The index of the smallest value (the first of equals; 0 for an empty slice).
+pub fn argmin(v: &[f32]) -> usize {
+    let mut best = 0;
+    for (i, &x) in v.iter().enumerate() {
+        if x < v[best] {
+            best = i;
+        }
+    }
+    best
+}
+
+/// Every pixel's costs summed over the lit pixels of its `window × window` neighbourhood
+/// (clipped at the frame's edges): a separable box filter, along the rows, then down the
+/// columns. Unlit pixels' costs are not read; an unlit pixel still gets its window's sum.
+///
+/// # Shapes
+/// - `cost`: `[H·W·G]` (pixel-major, `G` candidates per pixel), `lit`: `[H·W]` → `[H·W·G]`
+pub fn window_sums(cost: &[f32], lit: &[bool], (h, w): (usize, usize), g: usize, window: usize) -> Vec<f32> {
+    assert!(cost.len() == h * w * g && lit.len() == h * w, "window_sums: cost [H·W·G], lit [H·W]");
+    let half = window / 2;
+    let mut rows = vec![0f32; h * w * g];
+    rows.par_chunks_mut(w * g).enumerate().for_each(|(i, out)| {
+        for j in 0..w {
+            let o = &mut out[j * g..(j + 1) * g];
+            for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
+                let q = i * w + jj;
+                if lit[q] {
+                    o.iter_mut().zip(&cost[q * g..(q + 1) * g]).for_each(|(a, b)| *a += b);
+                }
+            }
+        }
+    });
+    let mut total = vec![0f32; h * w * g];
+    total.par_chunks_mut(w * g).enumerate().for_each(|(i, out)| {
+        for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
+            out.iter_mut().zip(&rows[ii * w * g..(ii + 1) * w * g]).for_each(|(a, b)| *a += b);
+        }
+    });
+    total
+}
+
+/// The offset (within ±½ of the middle) of the minimum of the parabola through three costs
+/// one candidate apart; 0 where they do not curve upwards or one is not finite.
+pub fn parabola_min(lo: f64, mid: f64, hi: f64) -> f64 {
+    let curv = lo - 2.0 * mid + hi;
+    if curv > 0.0 && lo.is_finite() && hi.is_finite() {
+        (0.5 * (lo - hi) / curv).clamp(-0.5, 0.5)
+    } else {
+        0.0
+    }
+}
+
+/// The minimum over `u ∈ [best − 1, best + 1] ∩ [0, last]` of `cost(u)` by golden-section
+/// search (the interval shrinks by 0.618 per iteration): `(u, cost)`.
+pub fn golden(best: usize, last: usize, iterations: usize, cost: &mut dyn FnMut(f64) -> f64) -> (f64, f64) {
+    let (mut lo, mut hi) = ((best as f64 - 1.0).max(0.0), (best as f64 + 1.0).min(last as f64));
+    let phi = 0.5 * (5f64.sqrt() - 1.0);
+    let (mut x1, mut x2) = (hi - phi * (hi - lo), lo + phi * (hi - lo));
+    let (mut f1, mut f2) = (cost(x1), cost(x2));
+    for _ in 0..iterations {
+        if f1 <= f2 {
+            hi = x2;
+            x2 = x1;
+            f2 = f1;
+            x1 = hi - phi * (hi - lo);
+            f1 = cost(x1);
+        } else {
+            lo = x1;
+            x1 = x2;
+            f1 = f2;
+            x2 = lo + phi * (hi - lo);
+            f2 = cost(x2);
+        }
+    }
+    if f1 <= f2 {
+        (x1, f1)
+    } else {
+        (x2, f2)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn window_sums_equal_the_direct_sum_over_lit_neighbours() {
+        let (h, w, g) = (5, 6, 3);
+        let cost: Vec<f32> = (0..h * w * g).map(|k| ((k * 7919) % 13) as f32).collect();
+        let lit: Vec<bool> = (0..h * w).map(|p| p % 4 != 1).collect();
+        for window in [1, 3, 5] {
+            let s = window_sums(&cost, &lit, (h, w), g, window);
+            let half = window / 2;
+            for i in 0..h {
+                for j in 0..w {
+                    for c in 0..g {
+                        let mut want = 0.0;
+                        for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
+                            for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
+                                if lit[ii * w + jj] {
+                                    want += cost[(ii * w + jj) * g + c];
+                                }
+                            }
+                        }
+                        assert_eq!(s[(i * w + j) * g + c], want, "window {window} at ({i}, {j}, {c})");
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn argmin_parabola_and_golden_find_minima() {
+        assert_eq!(argmin(&[3.0, 1.0, 1.0, 2.0]), 1);
+        assert_eq!(argmin(&[]), 0);
+        // (x − 0.3)² sampled at −1, 0, 1
+        let f = |x: f64| (x - 0.3) * (x - 0.3);
+        assert!((parabola_min(f(-1.0), f(0.0), f(1.0)) - 0.3).abs() < 1e-12);
+        assert_eq!(parabola_min(1.0, 2.0, 1.0), 0.0);
+        assert_eq!(parabola_min(f64::INFINITY, 0.0, 1.0), 0.0);
+        let (u, v) = golden(3, 10, 40, &mut |u| (u - 3.4) * (u - 3.4));
+        assert!((u - 3.4).abs() < 1e-6 && v < 1e-12);
+    }
+}

@@ -1,0 +1,25 @@
+//! `tcsense-fits`: the fits in the measurement domain, one home for the estimators that match
+//! the sensor's templates to the tap images (or a cube) pixel by pixel, with no network.
+//!
+//! - [`engine`]: what every fit runs on — costs per pixel and candidate summed over a window
+//!   by one box filter, one argmin, one refinement (parabola or golden sections).
+//! - [`range`]: the range of one or two returns refined near a decoder's estimate (the
+//!   U-Net's range fit, `NAME+fit`).
+//! - [`depth`]: ranges from nothing — every candidate of the cycle at once as dense linear
+//!   algebra, the window's best, polished by [`range`] (the `depth-fit` decoder).
+//! - [`lifetime_taps`]: lifetimes fitted to the tap images, with the onset and IRF fitted to
+//!   the frame (the `lifetime-fit` decoder).
+//! - [`lifetime_cube`]: lifetimes of a reconstructed cube — a reconvolution fit of one or two
+//!   exponentials (`tcsense lifetime`).
+//!
+//! Why a crate of its own: the fits are used by the networks' crate (the U-Net ends in the
+//! range fit) and by inference (the decoders built on them, the streaming `infer`), and they
+//! need nothing of either — only the sensor's matrix and waveforms (`tcsense_sensor`). Below
+//! both, they are one place, and the decoder contract's adapters around them live with the
+//! other decoders in `tcsense_infer::fitted`.
+
+pub mod depth;
+pub mod engine;
+pub mod lifetime_cube;
+pub mod lifetime_taps;
+pub mod range;
