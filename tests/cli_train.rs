@@ -460,12 +460,12 @@ fn train_and_eval_the_lifetime_decoder() {
     fails(
         d,
         &["reconstruct", "unet", "--run", "lt", "--measurements", "y.npy", "-o", "d.npy"],
-        &["lt", "decoder", "\"lifetime\"", "reconstruct lifetime"],
+        &["lt", "decoder", "\"lifetime\"", "not unet", "name it lifetime:lt"],
     );
     fails(
         d,
         &["reconstruct", "unet", "--run", "lt", "--no-range-fit", "--measurements", "y.npy", "-o", "d.npy"],
-        &["lt", "decoder", "\"lifetime\"", "reconstruct lifetime"],
+        &["lt", "decoder", "\"lifetime\"", "not unet", "name it lifetime:lt"],
     );
     assert!(!d.join("d.npy").exists());
 }

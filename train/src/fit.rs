@@ -210,6 +210,146 @@ fn train_with<M: Network>(
     Ok(fit(cfg, &projected, run, resume, device, progress, cancel, &init, cfg.epochs - lc.relaxed_epochs, Some(net), None)?.0)
 }
 
+/// A run's cubes and labels: the train and validation splits `[N, T, H, W]`, and the range
+/// labels of the first `K` returns `[N, K, H, W]` (depth networks) or the lifetime labels
+/// `[N, 5, H, W]` (lifetime networks).
+struct Splits {
+    train_x: Array4<f32>,
+    val_x: Array4<f32>,
+    train_labels: Option<Array4<f32>>,
+    val_labels: Option<Array4<f32>>,
+}
+
+impl Splits {
+    /// The splits `M` trains on, at most `cfg`'s item counts.
+    fn load<M: Network>(cfg: &TrainConfig, ds: &Dataset) -> Result<Splits> {
+        let (tn, vn) = (cfg.max_train_items, cfg.max_val_items);
+        let (train_labels, val_labels) = match M::PREDICTION {
+            Prediction::Cube => (None, None),
+            Prediction::Depth => {
+                let k = cfg.run.model.returns();
+                (Some(load_depth(ds, "train", tn, k)?), Some(load_depth(ds, "val", vn, k)?))
+            }
+            Prediction::Lifetime => (Some(load_lifetime_labels(ds, "train", tn)?), Some(load_lifetime_labels(ds, "val", vn)?)),
+        };
+        let splits = Splits { train_x: load_cubes(ds, "train", tn)?, val_x: load_cubes(ds, "val", vn)?, train_labels, val_labels };
+        if splits.train_x.dim().0 == 0 {
+            return Err(file_err(&ds.dir, "the train split is empty"));
+        }
+        Ok(splits)
+    }
+}
+
+/// The sensor of a run in every form its loop needs: the [`Sensor`], its frame plans for
+/// validation (whole frames) and training (the augmentation's crop), and its tensors for the
+/// training frames.
+struct Sensing {
+    sensor: Sensor,
+    plan: FramePlan,
+    train_plan: FramePlan,
+    tensors: SensorTensors,
+}
+
+/// One batch as the network sees it: cubes `[B, T, H, W]` (after augmentation), labels, tap
+/// images `[B, M, H, W]`, each item's loss scale (its peak) and what the sensor saw where
+/// ambient light was added (for deep sensing's gradient).
+struct Batch {
+    x: Array4<f32>,
+    labels: Option<Array4<f32>>,
+    y: Array4<f32>,
+    scales: Option<Vec<f32>>,
+    lit: Option<Array4<f32>>,
+}
+
+/// The measurements of batch `x` (labels `labels`) at optimiser step `step`: through the
+/// augmentation and its light ladder where the run has one, else the frames as they are.
+fn measure_step<M: Network>(
+    cfg: &TrainConfig,
+    s: &Sensing,
+    x: Array4<f32>,
+    labels: Option<Array4<f32>>,
+    step: u64,
+    (bin_m, range_m): (f64, f64),
+) -> Result<Batch> {
+    let noise_seed = derive_seed(cfg.seed, step);
+    let Some(aug) = &cfg.augment else {
+        let y = measure_batch(&s.plan, &x.view(), cfg.noise.as_ref(), noise_seed)?;
+        return Ok(Batch { x, labels, y, scales: None, lit: None });
+    };
+    let noise = &cfg.noise;
+    let lifetimes = M::PREDICTION == Prediction::Lifetime;
+    let depth = labels.as_ref().filter(|_| !lifetimes).map(|d| DepthLabels { depth: d.view(), bin_m, range_m });
+    let maps = labels.as_ref().filter(|_| lifetimes).map(|d| d.view());
+    let out = aug.apply(&x.view(), depth, maps, noise.as_ref().unwrap_or(&crate::config::TRAINING_NOISE), s.sensor.block(), cfg.seed, step);
+    let mut y = measure_items(&s.train_plan, &out.x, noise.as_ref().map(|_| out.noise.as_slice()), &out.ambient, noise_seed)?;
+    aug.perturb(&mut y, cfg.seed, step);
+    // each item's loss on its own scale: its peak, brightness included
+    let peaks: Vec<f32> = out.x.outer_iter().map(|xi| xi.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-12)).collect();
+    // what the sensor saw (ambient light included), for deep sensing's gradient
+    let lit = out.ambient.iter().any(|&b| b > 0.0).then(|| {
+        let mut l = out.x.clone();
+        l.outer_iter_mut().zip(&out.ambient).for_each(|(mut li, &b)| li += b);
+        l
+    });
+    Ok(Batch { x: out.x, labels: out.depth.or(out.maps), y, scales: Some(peaks), lit })
+}
+
+/// The network, optimiser, state and metrics a run continues from: its latest checkpoint
+/// when resuming (checked against the config and the dataset's digest), else `start` or a
+/// seeded initialisation.
+#[allow(clippy::type_complexity)]
+fn start_or_resume<M: Network>(
+    cfg: &TrainConfig,
+    run: &Path,
+    resume: bool,
+    manifest: (&Path, &str),
+    learner: Option<&mut Learner>,
+    init: &impl Fn(&Device) -> M,
+    start: Option<M>,
+    device: &Device,
+) -> Result<(M, ModuleOptimizer, RunState, Vec<EpochMetrics>)> {
+    let (manifest, ds_digest) = manifest;
+    let fresh = |start: Option<M>| {
+        (
+            start.unwrap_or_else(|| seeded_init(device, cfg.seed, init)),
+            AdamConfig::new().init(),
+            RunState { dataset: Some(ds_digest.to_string()), ..RunState::default() },
+            Vec::new(),
+        )
+    };
+    if !resume {
+        if run.join(crate::run_dir::CHECKPOINT_DIR).exists() {
+            return Err(file_err(run, "a run already exists here; pass --resume to continue it or choose another directory"));
+        }
+        return Ok(fresh(start));
+    }
+    let saved = TrainConfig::load(&run.join(CONFIG_FILE))?;
+    if saved.run.model != cfg.run.model || saved.seed != cfg.seed || saved.batch_size != cfg.batch_size {
+        return Err(file_err(
+            &run.join(CONFIG_FILE),
+            "the run was started with a different model, seed or batch size; resume with the saved config",
+        ));
+    }
+    // killed before its first checkpoint: start over, as the run would have
+    let Some(ckpt) = latest_checkpoint(run)? else { return Ok(fresh(start)) };
+    let (model, optim, mut state) = load_checkpoint(&ckpt, init(device), AdamConfig::new().init())?;
+    if let Some(then) = state.dataset.as_ref().filter(|d| **d != ds_digest) {
+        return Err(file_err(
+            manifest,
+            format!("the dataset changed since the run started (its manifest's digest {then} then, {ds_digest} now); resume on the data the run started on, or start a new run (or fine-tune with --init-from) on this one"),
+        ));
+    }
+    if let Some(l) = learner {
+        l.load(&ckpt)?;
+    }
+    let rows = read_rows(&run.join(METRICS_FILE), state.epoch)?;
+    // the clock is in timing.csv (state.json has it only from before that file)
+    if let Some(last) = rows.last().filter(|r| r.epoch == state.epoch && r.seconds > 0.0) {
+        state.seconds = last.seconds;
+    }
+    Ok((model, optim, state, rows))
+}
+
 /// The loop for one network type; `init` builds the untrained network on a device, `start`
 /// (if given) replaces it when the run starts, and `learn` trains codes with it.
 #[allow(clippy::too_many_arguments)]
@@ -232,101 +372,45 @@ fn fit<M: Network>(
     // what the run trains on, recorded in its checkpoints and checked when it resumes
     let manifest = ds.dir.join("manifest.json");
     let ds_digest = tcsense_sensor::digest::digest(std::fs::read(&manifest).map_err(|e| file_err(&manifest, e))?);
-    let mut a = cfg.run.sensor(run, codes.clone())?;
+    let sensor = cfg.run.sensor(run, codes.clone())?;
     let model_cfg = &cfg.run.model;
-    if a.bins() != ds.manifest.bins || a.taps() != model_cfg.taps() || a.bins() != model_cfg.bins() {
+    if sensor.bins() != ds.manifest.bins || sensor.taps() != model_cfg.taps() || sensor.bins() != model_cfg.bins() {
         return Err(TrainError::InvalidParam {
             field: "model/codes",
-            got: format!("T = {}, M = {} (model T = {}, M = {})", a.bins(), a.taps(), model_cfg.bins(), model_cfg.taps()),
+            got: format!("T = {}, M = {} (model T = {}, M = {})", sensor.bins(), sensor.taps(), model_cfg.bins(), model_cfg.taps()),
             expected: format!("the dataset's T = {} and the codes' M", ds.manifest.bins),
         });
     }
-    let train_x = load_cubes(&ds, "train", cfg.max_train_items)?;
-    let val_x = load_cubes(&ds, "val", cfg.max_val_items)?;
-    // range labels of the first K returns for depth networks, lifetime labels for lifetime ones
-    let (train_d, val_d) = match M::PREDICTION {
-        Prediction::Cube => (None, None),
-        Prediction::Depth => {
-            let k = model_cfg.returns();
-            (Some(load_depth(&ds, "train", cfg.max_train_items, k)?), Some(load_depth(&ds, "val", cfg.max_val_items, k)?))
-        }
-        Prediction::Lifetime => {
-            (Some(load_lifetime_labels(&ds, "train", cfg.max_train_items)?), Some(load_lifetime_labels(&ds, "val", cfg.max_val_items)?))
-        }
-    };
-    let (bin_m, range_m) = (C * a.bin_width_s() / 2.0, C * a.bin_width_s() * a.bins() as f64 / 2.0);
-    if train_x.dim().0 == 0 {
-        return Err(file_err(&ds.dir, "the train split is empty"));
-    }
-    let (_, _, h, w) = train_x.dim();
-    let mut plan = a.plan(h, w)?;
+    let data = Splits::load::<M>(cfg, &ds)?;
+    let bins_m = (C * sensor.bin_width_s() / 2.0, C * sensor.bin_width_s() * sensor.bins() as f64 / 2.0);
+    let range_m = bins_m.1;
+    let (_, _, h, w) = data.train_x.dim();
     // the frame the network trains on: the crop of the augmentation, else the whole frame
     let (th, tw) = match &cfg.augment {
         Some(aug) => {
-            aug.validate(h, w, a.block())?;
+            aug.validate(h, w, sensor.block())?;
             aug.frame(h, w)
         }
         None => (h, w),
     };
-    let mut train_plan = a.plan(th, tw)?;
     let infer_device = on.clone();
     let device = on.clone().autodiff();
-    let mut sensor = SensorTensors::new(a.matrix(), th, tw, &device)?;
+    let mut sensing = Sensing {
+        plan: sensor.plan(h, w)?,
+        train_plan: sensor.plan(th, tw)?,
+        tensors: SensorTensors::new(sensor.matrix(), th, tw, &device)?,
+        sensor,
+    };
     let mut learner = learn.map(|lc| Learner::new(lc, codes, &cfg.run, &device)).transpose()?;
 
     std::fs::create_dir_all(run).map_err(|e| file_err(run, e))?;
     let _lock = RunLock::acquire(run)?;
-    let (mut model, mut optim, mut state, mut rows) = if resume {
-        let saved = TrainConfig::load(&run.join(CONFIG_FILE))?;
-        if saved.run.model != cfg.run.model || saved.seed != cfg.seed || saved.batch_size != cfg.batch_size {
-            return Err(file_err(
-                &run.join(CONFIG_FILE),
-                "the run was started with a different model, seed or batch size; resume with the saved config",
-            ));
-        }
-        match latest_checkpoint(run)? {
-            Some(ckpt) => {
-                let (model, optim, state) = load_checkpoint(&ckpt, init(&device), AdamConfig::new().init())?;
-                if let Some(then) = state.dataset.as_ref().filter(|d| **d != ds_digest) {
-                    return Err(file_err(
-                        &manifest,
-                        format!("the dataset changed since the run started (its manifest's digest {then} then, {ds_digest} now); resume on the data the run started on, or start a new run (or fine-tune with --init-from) on this one"),
-                    ));
-                }
-                if let Some(l) = learner.as_mut() {
-                    l.load(&ckpt)?;
-                }
-                let rows = read_rows(&run.join(METRICS_FILE), state.epoch)?;
-                // the clock is in timing.csv (state.json has it only from before that file)
-                let mut state = state;
-                if let Some(last) = rows.last().filter(|r| r.epoch == state.epoch && r.seconds > 0.0) {
-                    state.seconds = last.seconds;
-                }
-                (model, optim, state, rows)
-            }
-            // killed before its first checkpoint: start over, as the run would have
-            None => (
-                start.unwrap_or_else(|| seeded_init(&device, cfg.seed, init)),
-                AdamConfig::new().init(),
-                RunState { dataset: Some(ds_digest.clone()), ..RunState::default() },
-                Vec::new(),
-            ),
-        }
-    } else {
-        if run.join(crate::run_dir::CHECKPOINT_DIR).exists() {
-            return Err(file_err(run, "a run already exists here; pass --resume to continue it or choose another directory"));
-        }
-        (
-            start.unwrap_or_else(|| seeded_init(&device, cfg.seed, init)),
-            AdamConfig::new().init(),
-            RunState { dataset: Some(ds_digest.clone()), ..RunState::default() },
-            Vec::new(),
-        )
-    };
+    let (mut model, mut optim, mut state, mut rows) =
+        start_or_resume(cfg, run, resume, (&manifest, &ds_digest), learner.as_mut(), init, start, &device)?;
     write_json(&run.join(CONFIG_FILE), cfg)?;
     let mut codes_log = match &learner {
         Some(l) => {
-            (a, plan, train_plan, sensor) = sensing_for(cfg, &l.hard, (h, w), (th, tw), &device)?;
+            sensing = sensing_for(cfg, &l.hard, (h, w), (th, tw), &device)?;
             l.hard.save(&run.join(CODES_FILE))?;
             crate::deep_sensing::read_log(&run.join(crate::deep_sensing::CODES_LOG), state.epoch)
         }
@@ -336,7 +420,7 @@ fn fit<M: Network>(
         }
     };
 
-    let n = train_x.dim().0;
+    let n = data.train_x.dim().0;
     let steps_per_epoch = n.div_ceil(cfg.batch_size);
     let mut out = Vec::new();
     let total_steps = (epochs * steps_per_epoch).max(1) as f64;
@@ -349,61 +433,30 @@ fn fit<M: Network>(
             if cancel.load(Ordering::Relaxed) {
                 return Err(TrainError::Cancelled);
             }
-            let xb = train_x.select(Axis(0), idx); // [B, T, H, W]
-            let db = train_d.as_ref().map(|d| d.select(Axis(0), idx)); // [B, K, H, W] or [B, 5, H, W]
             state.step += 1;
             // the schedule spans this phase's steps (each phase of deep sensing has its own)
             let lr = cfg.lr_schedule.rate(cfg.learning_rate, (epoch * steps_per_epoch + bi + 1) as u64, total_steps as u64);
             if let Some(l) = learner.as_mut() {
                 l.schedule(state.step as f64 / total_steps);
                 if l.refresh()? {
-                    (a, plan, train_plan, sensor) = sensing_for(cfg, &l.hard, (h, w), (th, tw), &device)?;
+                    sensing = sensing_for(cfg, &l.hard, (h, w), (th, tw), &device)?;
                 }
             }
-            let noise_seed = derive_seed(cfg.seed, state.step);
-            let (xb, db, yb, scales, lit) = match (&cfg.augment, &cfg.noise) {
-                (None, _) => {
-                    let yb = measure_batch(&plan, &xb.view(), cfg.noise.as_ref(), noise_seed)?;
-                    (xb, db, yb, None, None)
-                }
-                (Some(aug), noise) => {
-                    let lifetimes = M::PREDICTION == Prediction::Lifetime;
-                    let labels = db.as_ref().filter(|_| !lifetimes).map(|d| DepthLabels { depth: d.view(), bin_m, range_m });
-                    let maps = db.as_ref().filter(|_| lifetimes).map(|d| d.view());
-                    let out = aug.apply(
-                        &xb.view(),
-                        labels,
-                        maps,
-                        noise.as_ref().unwrap_or(&crate::config::TRAINING_NOISE),
-                        a.block(),
-                        cfg.seed,
-                        state.step,
-                    );
-                    let mut yb =
-                        measure_items(&train_plan, &out.x, noise.as_ref().map(|_| out.noise.as_slice()), &out.ambient, noise_seed)?;
-                    aug.perturb(&mut yb, cfg.seed, state.step);
-                    // each item's loss on its own scale: its peak, brightness included
-                    let peaks: Vec<f32> = out.x.outer_iter().map(|xi| xi.iter().fold(0f32, |m, v| m.max(v.abs())).max(1e-12)).collect();
-                    // what the sensor saw (ambient light included), for deep sensing's gradient
-                    let lit = out.ambient.iter().any(|&b| b > 0.0).then(|| {
-                        let mut l = out.x.clone();
-                        l.outer_iter_mut().zip(&out.ambient).for_each(|(mut li, &b)| li += b);
-                        l
-                    });
-                    (out.x, out.depth.or(out.maps), yb, Some(peaks), lit)
-                }
-            };
-            let target = match (&db, M::PREDICTION) {
+            let xb = data.train_x.select(Axis(0), idx); // [B, T, H, W]
+            let lb = data.train_labels.as_ref().map(|d| d.select(Axis(0), idx)); // [B, K, H, W] or [B, 5, H, W]
+            let batch = measure_step::<M>(cfg, &sensing, xb, lb, state.step, bins_m)?;
+            let target = match (&batch.labels, M::PREDICTION) {
                 (Some(l), Prediction::Lifetime) => Target::Lifetime { labels: l },
                 (Some(d), _) => Target::Depth { depth: d, range_m },
-                (None, _) => Target::Cube { x: &xb, scales: scales.as_deref() },
+                (None, _) => Target::Cube { x: &batch.x, scales: batch.scales.as_deref() },
             };
             let l;
             (model, l) = match learner.as_mut() {
                 Some(learner) => {
-                    step_learned(model, &mut optim, learner, cfg, lr, &sensor, lit.as_ref().unwrap_or(&xb), &yb, target, &device)
+                    let seen = batch.lit.as_ref().unwrap_or(&batch.x);
+                    step_learned(model, &mut optim, learner, cfg, lr, &sensing.tensors, seen, &batch.y, target, &device)
                 }
-                None => step(model, &mut optim, cfg, lr, &sensor, &yb, target, &device),
+                None => step(model, &mut optim, cfg, lr, &sensing.tensors, &batch.y, target, &device),
             };
             if !l.is_finite() {
                 // the step already moved the weights: stop before a NaN checkpoint is written
@@ -413,7 +466,8 @@ fn fit<M: Network>(
             progress.step(epoch, bi + 1, steps_per_epoch, l);
         }
         let mut valid = NetDecoder::new(model_cfg.name(), model.valid().to_device(&infer_device), infer_device.clone());
-        let val = validate(&mut valid, &plan, &a, &val_x, val_d.as_ref(), cfg.noise.as_ref(), cfg.seed)?;
+        let val =
+            validate(&mut valid, &sensing.plan, &sensing.sensor, &data.val_x, data.val_labels.as_ref(), cfg.noise.as_ref(), cfg.seed)?;
         state.epoch = epoch + 1;
         state.seconds += t0.elapsed().as_secs_f64();
         let m =
@@ -438,18 +492,14 @@ fn fit<M: Network>(
 }
 
 /// The sensor of `codes` for validation (whole frames `hw`) and training (frames `thw`).
-fn sensing_for(
-    cfg: &TrainConfig,
-    codes: &Codes,
-    hw: (usize, usize),
-    thw: (usize, usize),
-    device: &Device,
-) -> Result<(Sensor, FramePlan, FramePlan, SensorTensors)> {
-    let a = Sensor::ideal(codes.clone(), cfg.run.sampling, cfg.run.irf)?;
-    let plan = a.plan(hw.0, hw.1)?;
-    let train_plan = a.plan(thw.0, thw.1)?;
-    let sensor = SensorTensors::new(a.matrix(), thw.0, thw.1, device)?;
-    Ok((a, plan, train_plan, sensor))
+fn sensing_for(cfg: &TrainConfig, codes: &Codes, hw: (usize, usize), thw: (usize, usize), device: &Device) -> Result<Sensing> {
+    let sensor = Sensor::ideal(codes.clone(), cfg.run.sampling, cfg.run.irf)?;
+    Ok(Sensing {
+        plan: sensor.plan(hw.0, hw.1)?,
+        train_plan: sensor.plan(thw.0, thw.1)?,
+        tensors: SensorTensors::new(sensor.matrix(), thw.0, thw.1, device)?,
+        sensor,
+    })
 }
 
 /// One Adam step of the network and the code logits on a batch whose measurements carry the
