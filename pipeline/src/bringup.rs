@@ -211,55 +211,8 @@ fn default_decoders(sampling: Sampling) -> Vec<String> {
 /// Bring the sensor of `options` up into `dir` (see the module docs).
 pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &AtomicBool) -> Result<BringupSummary> {
     // everything checked before anything is written
-    let codes = Codes::load(&options.codes)?;
-    let nominal = Sensor::build(codes.clone(), &SensorModel { sampling: options.sampling, irf: options.irf, ..Default::default() })?;
-    let sweep = Sweep::load(&options.sweep)?;
-    let names = if options.decoders.is_empty() { default_decoders(options.sampling) } else { options.decoders.clone() };
-    let mut entries = Vec::new();
-    for n in &names {
-        let e = Source::open(n)?;
-        if (e.model.taps(), e.model.bins()) != (nominal.taps(), nominal.bins()) {
-            bail!(
-                "{}: its network takes M = {} taps and T = {} bins, the sensor gives M = {}, T = {} (check --oversample/--heterodyne)",
-                e.label,
-                e.model.taps(),
-                e.model.bins(),
-                nominal.taps(),
-                nominal.bins()
-            );
-        }
-        if entries.iter().any(|o: &Source| o.name == e.name) {
-            bail!("{}: two decoders named {:?}; give each once", e.label, e.name);
-        }
-        entries.push(e);
-    }
+    let Checked { codes, nominal, sweep, names, entries } = checked_inputs(options)?;
     let (h, w) = options.size;
-    let (bh, bw) = nominal.block();
-    if h == 0 || w == 0 || h > MAX_SIDE || w > MAX_SIDE || h % bh != 0 || w % bw != 0 {
-        bail!("bring-up settings: --size {h}x{w}: expected whole {bh}x{bw} blocks, each side from 1 to {MAX_SIDE} pixels");
-    }
-    if !(MIN_SCENES..=MAX_SCENES).contains(&options.scenes) {
-        bail!("bring-up settings: --scenes {}: expected {MIN_SCENES} to {MAX_SCENES} training scenes", options.scenes);
-    }
-    if !(1..=MAX_CHECK_ITEMS).contains(&options.check_items) {
-        bail!("bring-up settings: --check-items {}: expected 1 to {MAX_CHECK_ITEMS} held-back scenes", options.check_items);
-    }
-    if !(options.budget_minutes.is_finite() && options.budget_minutes > 0.0 && options.budget_minutes <= MAX_BUDGET_MINUTES) {
-        bail!(
-            "bring-up settings: --budget-minutes {}: expected a time above 0 and at most {MAX_BUDGET_MINUTES} minutes (a week)",
-            options.budget_minutes
-        );
-    }
-    if let Some(e) = options.epochs.filter(|e| !(1..=MAX_EPOCHS).contains(e)) {
-        bail!("bring-up settings: --epochs {e}: expected 1 to {MAX_EPOCHS} epochs");
-    }
-    // the training scenes' working set, before anything is calibrated or generated
-    let item_bytes = 4.0 * (h * w) as f64 * (nominal.bins() + nominal.taps() + 4) as f64;
-    tcsense_sensor::mem::check_fits(
-        &format!("{} training scenes of {h}x{w}", options.scenes),
-        item_bytes * options.scenes as f64,
-        "use fewer --scenes or a smaller --size",
-    )?;
     // what the steps are made from: a directory brought up from other inputs is refused, never
     // resumed with them
     let inputs = Inputs::of(options, &names, &sweep, &codes);
@@ -315,22 +268,9 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
         if data.join("manifest.json").exists() && Dataset::open(&data).is_ok() {
             return Ok(false);
         }
-        let gen = if flim {
-            Generator::Flim(FlimParams { height: h, width: w, ..Default::default() })
-        } else {
-            Generator::Lidar(LidarParams { height: h, width: w, ..Default::default() })
-        };
-        let grid = TimeGrid { length: codes.length(), clock_hz: codes.clock_hz, sampling: options.sampling };
         let done = std::sync::atomic::AtomicUsize::new(0);
         let progress = || obs.items("scenes", done.fetch_add(1, Ordering::Relaxed) + 1, options.scenes);
-        store::generate(
-            &gen,
-            &grid,
-            options.scenes,
-            options.seed,
-            &data,
-            &WriteOptions { shard_size: DEFAULT_SHARD, force: true, progress: &progress, cancel },
-        )?;
+        generate_scenes(options, &codes, (h, w), options.scenes, options.seed, &data, &progress, cancel)?;
         Ok(true)
     })?;
     let ds = Dataset::open(&data)?;
@@ -339,78 +279,10 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
     // 3. fine-tuning, each decoder its share of the budget
     let share_s = TRAINING_SHARE * options.budget_minutes * 60.0 / entries.len().max(1) as f64;
     let runs_dir = dir.join("runs");
+    let tuning = Tuning { options, calibrated: &calibrated, data: &data, cal_dir: &cal_dir, share_s, train_items, obs, cancel };
     for e in &entries {
         let out = runs_dir.join(&e.name);
-        step(&format!("fine-tuning {} to the calibrated sensor", e.name), &mut || {
-            let resume = out.join(CONFIG_FILE).exists();
-            let req = if resume {
-                TrainRequest { decoder: e.model.name().into(), output: out.clone(), resume: true, ..Default::default() }
-            } else {
-                let epochs = match options.epochs {
-                    Some(n) => n,
-                    None => {
-                        let ms = tcsense_train::bench::bench_step(calibrated.matrix(), &e.model, h, w, 3)?.step_ms + STEP_OVERHEAD_MS;
-                        let n = ((share_s / (ms / 1e3 * train_items.div_ceil(2) as f64)).floor() as usize).max(1);
-                        obs.line(&format!(
-                            "  {}: {ms:.1} ms per step at {h}x{w}, {train_items} items → {n} epochs in {share_s:.0} s",
-                            e.name
-                        ));
-                        n
-                    }
-                };
-                TrainRequest {
-                    decoder: e.model.name().into(),
-                    output: out.clone(),
-                    dataset: Some(data.clone()),
-                    codes: Some(options.codes.clone()),
-                    init_from: Some(e.dir.clone()),
-                    calibration: Some(cal_dir.clone()),
-                    // the nominal sensor the calibration was measured against (raw frames name it)
-                    irf: Some(match options.irf {
-                        Irf::Ideal => "ideal".into(),
-                        Irf::Physical { .. } => "physical".into(),
-                    }),
-                    sensor_residue: Some(SENSOR_RESIDUE),
-                    epochs: Some(epochs),
-                    seed: Some(options.seed),
-                    ..Default::default()
-                }
-            };
-            let prepared = request::prepare(&req)?;
-            if resume && out.join(WEIGHTS_FILE).exists() && done_epochs(&out) >= prepared.cfg.epochs {
-                return Ok(false);
-            }
-            // the share is a budget, not an estimate: past DEADLINE_SLACK of it the training stops
-            // at the next step with its checkpoint kept (the model; a rerun continues it)
-            let (stop, finished) = (AtomicBool::new(false), AtomicBool::new(false));
-            let deadline = std::time::Duration::from_secs_f64(
-                if options.epochs.is_some() { f64::INFINITY } else { share_s * DEADLINE_SLACK }.min(1e9),
-            );
-            let res = std::thread::scope(|sc| {
-                sc.spawn(|| {
-                    let t0 = Instant::now();
-                    while !finished.load(Ordering::Relaxed) {
-                        if cancel.load(Ordering::Relaxed) || t0.elapsed() > deadline {
-                            stop.store(true, Ordering::Relaxed);
-                            break;
-                        }
-                        std::thread::sleep(std::time::Duration::from_millis(100));
-                    }
-                });
-                let r = request::run(&prepared, &Device::flex(), obs.training(), &stop);
-                finished.store(true, Ordering::Relaxed);
-                r
-            });
-            match res {
-                Err(tcsense_train::TrainError::Cancelled) if !cancel.load(Ordering::Relaxed) => {
-                    obs.line(&format!("  {}: its share of the budget is spent after {} of {} epochs; its last checkpoint is the model (rerun into the directory to continue)", e.name, done_epochs(&out), prepared.cfg.epochs));
-                }
-                r => {
-                    r?;
-                }
-            }
-            Ok(true)
-        })?;
+        step(&format!("fine-tuning {} to the calibrated sensor", e.name), &mut || tuning.fine_tune(e, &out))?;
     }
 
     // 4. export with the correction in the graph
@@ -455,22 +327,9 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
         let [ch, cw] = cal.meta.size;
         let check_dir = dir.join("check-scenes");
         if !(check_dir.join("manifest.json").exists() && Dataset::open(&check_dir).is_ok()) {
-            let gen = if flim {
-                Generator::Flim(FlimParams { height: ch, width: cw, ..Default::default() })
-            } else {
-                Generator::Lidar(LidarParams { height: ch, width: cw, ..Default::default() })
-            };
-            let grid = TimeGrid { length: codes.length(), clock_hz: codes.clock_hz, sampling: options.sampling };
             // the training split of this set holds about 80 % of it
             let count = (options.check_items as f64 / 0.75).ceil() as usize + 2;
-            store::generate(
-                &gen,
-                &grid,
-                count,
-                options.seed ^ CHECK_SEED,
-                &check_dir,
-                &WriteOptions { shard_size: DEFAULT_SHARD, force: true, progress: &|| {}, cancel },
-            )?;
+            generate_scenes(options, &codes, (ch, cw), count, options.seed ^ CHECK_SEED, &check_dir, &|| {}, cancel)?;
         }
         let ds = Dataset::open(&check_dir)?;
         let noise = Some(NoiseParams::default().validate()?);
@@ -526,6 +385,179 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
     build_report(options, &names, &cal, &check, &steps, total, flim).write(&report)?;
     obs.line(&format!("wrote {} ({total:.0} s in all)", report.display()));
     Ok(BringupSummary { report, models, steps })
+}
+
+/// The inputs of a bring-up, loaded and checked before anything is written.
+struct Checked {
+    codes: Codes,
+    nominal: Sensor,
+    sweep: Sweep,
+    names: Vec<String>,
+    entries: Vec<Source>,
+}
+
+/// Load the codes, the nominal sensor, the sweep and the decoders to fine-tune, and check the
+/// settings and the training scenes' working set.
+fn checked_inputs(options: &BringupOptions) -> Result<Checked> {
+    let codes = Codes::load(&options.codes)?;
+    let nominal = Sensor::build(codes.clone(), &SensorModel { sampling: options.sampling, irf: options.irf, ..Default::default() })?;
+    let sweep = Sweep::load(&options.sweep)?;
+    let names = if options.decoders.is_empty() { default_decoders(options.sampling) } else { options.decoders.clone() };
+    let mut entries = Vec::new();
+    for n in &names {
+        let e = Source::open(n)?;
+        if (e.model.taps(), e.model.bins()) != (nominal.taps(), nominal.bins()) {
+            bail!(
+                "{}: its network takes M = {} taps and T = {} bins, the sensor gives M = {}, T = {} (check --oversample/--heterodyne)",
+                e.label,
+                e.model.taps(),
+                e.model.bins(),
+                nominal.taps(),
+                nominal.bins()
+            );
+        }
+        if entries.iter().any(|o: &Source| o.name == e.name) {
+            bail!("{}: two decoders named {:?}; give each once", e.label, e.name);
+        }
+        entries.push(e);
+    }
+    let (h, w) = options.size;
+    let (bh, bw) = nominal.block();
+    if h == 0 || w == 0 || h > MAX_SIDE || w > MAX_SIDE || h % bh != 0 || w % bw != 0 {
+        bail!("bring-up settings: --size {h}x{w}: expected whole {bh}x{bw} blocks, each side from 1 to {MAX_SIDE} pixels");
+    }
+    if !(MIN_SCENES..=MAX_SCENES).contains(&options.scenes) {
+        bail!("bring-up settings: --scenes {}: expected {MIN_SCENES} to {MAX_SCENES} training scenes", options.scenes);
+    }
+    if !(1..=MAX_CHECK_ITEMS).contains(&options.check_items) {
+        bail!("bring-up settings: --check-items {}: expected 1 to {MAX_CHECK_ITEMS} held-back scenes", options.check_items);
+    }
+    if !(options.budget_minutes.is_finite() && options.budget_minutes > 0.0 && options.budget_minutes <= MAX_BUDGET_MINUTES) {
+        bail!(
+            "bring-up settings: --budget-minutes {}: expected a time above 0 and at most {MAX_BUDGET_MINUTES} minutes (a week)",
+            options.budget_minutes
+        );
+    }
+    if let Some(e) = options.epochs.filter(|e| !(1..=MAX_EPOCHS).contains(e)) {
+        bail!("bring-up settings: --epochs {e}: expected 1 to {MAX_EPOCHS} epochs");
+    }
+    // the training scenes' working set, before anything is calibrated or generated
+    let item_bytes = 4.0 * (h * w) as f64 * (nominal.bins() + nominal.taps() + 4) as f64;
+    tcsense_sensor::mem::check_fits(
+        &format!("{} training scenes of {h}x{w}", options.scenes),
+        item_bytes * options.scenes as f64,
+        "use fewer --scenes or a smaller --size",
+    )?;
+    Ok(Checked { codes, nominal, sweep, names, entries })
+}
+
+/// `count` scenes of the sensor's domain (FLIm on a heterodyne grid, else LiDAR) of `size`,
+/// seeded by `seed`, on the codes' grid, into `dir`.
+#[allow(clippy::too_many_arguments)]
+fn generate_scenes(
+    options: &BringupOptions,
+    codes: &Codes,
+    (h, w): (usize, usize),
+    count: usize,
+    seed: u64,
+    dir: &Path,
+    progress: &(dyn Fn() + Sync),
+    cancel: &AtomicBool,
+) -> Result<()> {
+    let gen = if matches!(options.sampling, Sampling::Heterodyne(_)) {
+        Generator::Flim(FlimParams { height: h, width: w, ..Default::default() })
+    } else {
+        Generator::Lidar(LidarParams { height: h, width: w, ..Default::default() })
+    };
+    let grid = TimeGrid { length: codes.length(), clock_hz: codes.clock_hz, sampling: options.sampling };
+    store::generate(&gen, &grid, count, seed, dir, &WriteOptions { shard_size: DEFAULT_SHARD, force: true, progress, cancel })?;
+    Ok(())
+}
+
+/// What every fine-tuning of a bring-up shares: the settings, the calibrated sensor, the
+/// training scenes, the calibration and each decoder's share of the budget.
+struct Tuning<'a> {
+    options: &'a BringupOptions,
+    calibrated: &'a Sensor,
+    data: &'a Path,
+    cal_dir: &'a Path,
+    share_s: f64,
+    train_items: usize,
+    obs: &'a dyn Observer,
+    cancel: &'a AtomicBool,
+}
+
+impl Tuning<'_> {
+    /// Fine-tune zoo decoder `e` into `out` within its share of the budget (or resume it);
+    /// whether it did any work.
+    fn fine_tune(&self, e: &Source, out: &Path) -> Result<bool> {
+        let Tuning { options, calibrated, data, cal_dir, share_s, train_items, obs, cancel } = *self;
+        let (h, w) = options.size;
+        let resume = out.join(CONFIG_FILE).exists();
+        let req = if resume {
+            TrainRequest { decoder: e.model.name().into(), output: out.to_path_buf(), resume: true, ..Default::default() }
+        } else {
+            let epochs = match options.epochs {
+                Some(n) => n,
+                None => {
+                    let ms = tcsense_train::bench::bench_step(calibrated.matrix(), &e.model, h, w, 3)?.step_ms + STEP_OVERHEAD_MS;
+                    let n = ((share_s / (ms / 1e3 * train_items.div_ceil(2) as f64)).floor() as usize).max(1);
+                    obs.line(&format!("  {}: {ms:.1} ms per step at {h}x{w}, {train_items} items → {n} epochs in {share_s:.0} s", e.name));
+                    n
+                }
+            };
+            TrainRequest {
+                decoder: e.model.name().into(),
+                output: out.to_path_buf(),
+                dataset: Some(data.to_path_buf()),
+                codes: Some(options.codes.clone()),
+                init_from: Some(e.dir.clone()),
+                calibration: Some(cal_dir.to_path_buf()),
+                // the nominal sensor the calibration was measured against (raw frames name it)
+                irf: Some(match options.irf {
+                    Irf::Ideal => "ideal".into(),
+                    Irf::Physical { .. } => "physical".into(),
+                }),
+                sensor_residue: Some(SENSOR_RESIDUE),
+                epochs: Some(epochs),
+                seed: Some(options.seed),
+                ..Default::default()
+            }
+        };
+        let prepared = request::prepare(&req)?;
+        if resume && out.join(WEIGHTS_FILE).exists() && done_epochs(&out) >= prepared.cfg.epochs {
+            return Ok(false);
+        }
+        // the share is a budget, not an estimate: past DEADLINE_SLACK of it the training stops
+        // at the next step with its checkpoint kept (the model; a rerun continues it)
+        let (stop, finished) = (AtomicBool::new(false), AtomicBool::new(false));
+        let deadline =
+            std::time::Duration::from_secs_f64(if options.epochs.is_some() { f64::INFINITY } else { share_s * DEADLINE_SLACK }.min(1e9));
+        let res = std::thread::scope(|sc| {
+            sc.spawn(|| {
+                let t0 = Instant::now();
+                while !finished.load(Ordering::Relaxed) {
+                    if cancel.load(Ordering::Relaxed) || t0.elapsed() > deadline {
+                        stop.store(true, Ordering::Relaxed);
+                        break;
+                    }
+                    std::thread::sleep(std::time::Duration::from_millis(100));
+                }
+            });
+            let r = request::run(&prepared, &Device::flex(), obs.training(), &stop);
+            finished.store(true, Ordering::Relaxed);
+            r
+        });
+        match res {
+            Err(tcsense_train::TrainError::Cancelled) if !cancel.load(Ordering::Relaxed) => {
+                obs.line(&format!("  {}: its share of the budget is spent after {} of {} epochs; its last checkpoint is the model (rerun into the directory to continue)", e.name, done_epochs(&out), prepared.cfg.epochs));
+            }
+            r => {
+                r?;
+            }
+        }
+        Ok(true)
+    }
 }
 
 /// Epochs a run has logged.

@@ -136,38 +136,7 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
     let t_start = Instant::now();
     let request = Request::from_options(options)?;
     let plan_path = dir.join("plan.json");
-    // a directory of something else is never written into: only a demo's (its plan) is resumed
-    let holds_files = std::fs::read_dir(dir).map(|mut d| d.next().is_some()).unwrap_or(false);
-    if dir.exists() && !dir.is_dir() {
-        bail!("{}: exists and is not a directory; choose another output directory", dir.display());
-    }
-    let marker = dir.join(DEMO_MARKER);
-    if holds_files && !plan_path.exists() && !marker.exists() {
-        bail!(
-            "{}: the directory holds files but is no demo's (no plan.json), so it is not resumed; choose another output directory",
-            dir.display()
-        );
-    }
-    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
-    // marks the directory as a demo's from its first moment (plan.json comes after the datasets)
-    write_bytes(&marker, b"a tcsense demo directory: rerun `tcsense demo` into it to resume\n")?;
-    for sub in ["codes", "runs", "onnx", "results", "figures", "frames"] {
-        std::fs::create_dir_all(dir.join(sub)).with_context(|| format!("cannot create {}", dir.join(sub).display()))?;
-    }
-    let saved: Option<Plan> = if plan_path.exists() {
-        let p: Plan = serde_json::from_slice(&std::fs::read(&plan_path).with_context(|| format!("cannot read {}", plan_path.display()))?)
-            .with_context(|| format!("{}: not a demo plan; choose another output directory", plan_path.display()))?;
-        if p.request != request {
-            bail!(
-                "{} holds a demo started with other settings ({}); rerun with the same flags to resume it, or choose another directory",
-                dir.display(),
-                serde_json::to_string(&p.request)?
-            );
-        }
-        Some(p)
-    } else {
-        None
-    };
+    let saved = open_demo_dir(dir, &request, &plan_path)?;
     let resumed = saved.is_some();
     // datasets and (on a first run) the plan, then codes, the trainings, export, evaluation,
     // frames, timing and the report: `of` is fixed once the plan is known
@@ -225,38 +194,8 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
     let random_path = dir.join("codes/random.json");
     let mse_path = dir.join("codes/best-mse.json");
     let selected_path = dir.join("codes/selected.json");
-    let selection_path = dir.join("results/selection.json");
     steps.run("codes: random under the constraints, the best of several by TVAL3 (noise-free), and codes designed for range identifiability (selected), exported to the code memory", || {
-        if !random_path.exists() {
-            generate::prototype_codes(seed)?.save(&random_path)?;
-        }
-        if !selected_path.exists() || !selection_path.exists() || !mse_path.exists() {
-            let x = lidar.load("val", "x")?.into_dimensionality::<Ix4>()?;
-            let cubes: Vec<Array3<f32>> = x.axis_iter(Axis(0)).take(plan.select_items).map(|v| v.to_owned()).collect();
-            let g = lidar.manifest.grid;
-            let setup = EvalSetup { base: SensorParams { sampling: g.sampling, irf: physical_irf(), length: g.length, clock_hz: g.clock_hz, ..Default::default() }, tval3: Tval3Options::default() };
-            let mut on = |c: &tcsense_infer::selection::Candidate| obs.line(&format!("  candidate seed {:>3}: TVAL3 MSE {:.4e}", c.seed, c.mse));
-            let (best, all) = select(generate::PROTOTYPE_SHAPE, DEFAULT_CLOCK_HZ, constraints, plan.candidates, seed, &setup, &cubes, &mut on, cancel)?;
-            // design by identifiability: closed form, seconds
-            let sensor = Sensor::ideal(best.clone(), g.sampling, physical_irf())?;
-            let obj = Objective::new(Criterion::Range, sensor.spec(), Light::default(), DEFAULT_ALIAS_THRESHOLD);
-            let designed = design(&obj, generate::PROTOTYPE_SHAPE, DEFAULT_CLOCK_HZ, constraints, &DesignOptions { seed, ..Default::default() }, &Quiet, cancel)?;
-            let designed_mse = evaluate_codes(&designed.codes, &setup, &cubes, cancel)?;
-            obs.line(&format!(
-                "  designed for range identifiability: alias {:.3}, worst range bound {:.3} bins, TVAL3 MSE {designed_mse:.4e}",
-                designed.score.alias, designed.score.worst
-            ));
-            let v = json!({
-                "items": cubes.len(), "split": "val", "noise": "none",
-                "candidates": all.iter().map(|c| json!({"seed": c.seed, "mse": c.mse})).collect::<Vec<_>>(),
-                "designed": { "criterion": "range", "mse": designed_mse, "alias": designed.score.alias, "worst_bound_bins": designed.score.worst, "mean_bound_bins": designed.score.mean, "provenance": designed.codes.provenance },
-            });
-            write_bytes(&selection_path, (serde_json::to_string_pretty(&v)? + "\n").as_bytes())?;
-            best.save(&mse_path)?;
-            designed.codes.save(&selected_path)?;
-        }
-        export::export(&Codes::load(&selected_path)?, &dir.join("code-memory/selected"))?;
-        Ok(())
+        choose_codes(dir, &lidar, &plan, seed, obs, cancel)
     })?;
     let selected = Codes::load(&selected_path)?;
 
@@ -270,27 +209,7 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
             train_one(t, &plan, ds, ds_dir, &selected, &runs_dir.join(&t.name), obs, cancel)
         })?;
     }
-    let learned_dir = runs_dir.join("learned-lidar");
-    let learned = Codes::load(&learned_dir.join(CODES_FILE))?;
-    learned.save(&dir.join("codes/learned.json"))?;
-    let regs = export::export(&learned, &dir.join("code-memory/learned"))?;
-    obs.line(&format!(
-        "  learned codes exported to {}: {} channels of {} bytes, ECLEN = {}",
-        dir.join("code-memory/learned").display(),
-        regs.channel_count,
-        regs.bytes_per_channel,
-        regs.ECLEN
-    ));
-    // what every code set of the demo lets the taps tell apart
-    let ident = crate::identifiability::analyse(
-        &[("random", &Codes::load(&random_path)?), ("best MSE", &Codes::load(&mse_path)?), ("selected", &selected), ("learned", &learned)],
-        physical_irf(),
-    )?;
-    write_json(&dir.join("results/identifiability.json"), &ident)?;
-    obs.line("  identifiability of the code sets (physical IRF, 1000 e⁻ signal):");
-    for l in crate::identifiability::lines(&ident) {
-        obs.line(&l);
-    }
+    let learned = code_sets_compared(dir, &runs_dir, [&random_path, &mse_path], &selected, obs)?;
 
     // 4. ONNX export
     steps.run("ONNX export of every trained decoder (opset 17)", || {
@@ -361,59 +280,15 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
     })?;
 
     // 7. timing at the sensor's frame size
-    let timing_json = dir.join("results/timing.json");
     steps.run(
         &format!("timing at {}x{}: ONNX Runtime (2 and 1 threads) and burn, per frame", request.timing_size[0], request.timing_size[1]),
-        || {
-            if timing_json.exists() {
-                return Ok(());
-            }
-            let mut all = Vec::new();
-            for name in ["unet-lidar", "admm-lidar", "admm-flim"] {
-                cancelled(cancel)?;
-                let run = runs::load(&runs_dir.join(name), &Device::flex())?;
-                let model = dir.join("onnx").join(format!("{name}.onnx"));
-                let t = tcsense_infer::timing::time_decoder(
-                    Some(&run),
-                    &model,
-                    (request.timing_size[0], request.timing_size[1]),
-                    &[2, 1],
-                    plan.timing_rounds,
-                )?;
-                for e in &t.engines {
-                    obs.line(&format!("  {name:<12} {:<26} {:>9.1} ms/frame {:>7.1} frames/s", e.engine, e.ms_per_frame, e.frames_per_s));
-                }
-                all.push(json!({ "run": name, "timing": t }));
-            }
-            write_json(&timing_json, &json!({ "sensor_fps": SENSOR_FPS, "decoders": all }))
-        },
+        || time_decoders(dir, &runs_dir, &request, &plan, obs, cancel),
     )?;
 
     // 8. a non-ideal sensor brought up: its delay sweep, the calibration, the demo's LiDAR
     // decoders fine-tuned to it, ONNX for its raw tap images, the check (`crate::bringup`)
     steps.run("bring-up of a non-ideal sensor: delay sweep, calibration, the LiDAR decoders fine-tuned to it, ONNX for its raw tap images, the check", || {
-        let sweep = dir.join("bench-sweep");
-        if !sweep.join(tcsense_sensor::sweep::MANIFEST).exists() {
-            let a = sensor(&selected, &lidar)?;
-            let settings = SweepSettings { size: (h, w), average: 64, noise: NoiseParams::default(), noisy: true, adc: false, png: false, level: 0.7, seed };
-            simulate_sweep(a.nominal(), a.codes(), &bench_sensor(seed), &settings, &sweep)?;
-        }
-        let options = crate::bringup::BringupOptions {
-            sweep,
-            codes: selected_path.clone(),
-            sampling: lidar.manifest.grid.sampling,
-            irf: physical_irf(),
-            decoders: ["admm-lidar", "unet-lidar"].iter().map(|n| runs_dir.join(n).display().to_string()).collect(),
-            budget_minutes: request.budget_minutes * BRINGUP_SHARE,
-            // fixed, so that a resumed demo finds its fine-tunings done whatever the machine's load
-            epochs: Some(if request.quick { 2 } else { 8 }),
-            scenes: (request.lidar_scenes / 4).max(8),
-            size: (h, w),
-            check_items: plan.lidar_eval_items,
-            seed,
-        };
-        crate::bringup::run(&options, &dir.join("bringup"), obs, cancel)?;
-        Ok(())
+        bring_up(dir, &runs_dir, &selected, &selected_path, &lidar, &request, &plan, obs, cancel)
     })?;
 
     // 9. figures and the report
@@ -429,6 +304,203 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
     write_json(&dir.join("results/steps.json"), &json!({ "total_seconds": total, "steps": record }))?;
     obs.line(&format!("wrote {} in {:.0} s ({:.1} min)", dir.join("report.html").display(), total, total / 60.0));
     Ok(DemoSummary { report: dir.join("report.html"), seconds: total, resumed })
+}
+
+/// Make `dir` a demo's directory, or find the plan of the demo it holds: a directory of
+/// something else is refused, and a demo started with other settings is never resumed.
+fn open_demo_dir(dir: &Path, request: &Request, plan_path: &Path) -> Result<Option<Plan>> {
+    // a directory of something else is never written into: only a demo's (its plan) is resumed
+    let holds_files = std::fs::read_dir(dir).map(|mut d| d.next().is_some()).unwrap_or(false);
+    if dir.exists() && !dir.is_dir() {
+        bail!("{}: exists and is not a directory; choose another output directory", dir.display());
+    }
+    let marker = dir.join(DEMO_MARKER);
+    if holds_files && !plan_path.exists() && !marker.exists() {
+        bail!(
+            "{}: the directory holds files but is no demo's (no plan.json), so it is not resumed; choose another output directory",
+            dir.display()
+        );
+    }
+    std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+    // marks the directory as a demo's from its first moment (plan.json comes after the datasets)
+    write_bytes(&marker, b"a tcsense demo directory: rerun `tcsense demo` into it to resume\n")?;
+    for sub in ["codes", "runs", "onnx", "results", "figures", "frames"] {
+        std::fs::create_dir_all(dir.join(sub)).with_context(|| format!("cannot create {}", dir.join(sub).display()))?;
+    }
+    let saved: Option<Plan> = if plan_path.exists() {
+        let p: Plan = serde_json::from_slice(&std::fs::read(&plan_path).with_context(|| format!("cannot read {}", plan_path.display()))?)
+            .with_context(|| format!("{}: not a demo plan; choose another output directory", plan_path.display()))?;
+        if p.request != *request {
+            bail!(
+                "{} holds a demo started with other settings ({}); rerun with the same flags to resume it, or choose another directory",
+                dir.display(),
+                serde_json::to_string(&p.request)?
+            );
+        }
+        Some(p)
+    } else {
+        None
+    };
+    Ok(saved)
+}
+
+/// The demo's code sets: one random draw (`codes/random.json`), the best of the plan's
+/// candidates by TVAL3 (`codes/best-mse.json`, the paper's selection) and codes designed for
+/// range identifiability (`codes/selected.json`, the set the demo decodes with), the
+/// selection's record in `results/selection.json`, and the selected set exported to the code
+/// memory. Sets already there are kept.
+fn choose_codes(dir: &Path, lidar: &Dataset, plan: &Plan, seed: u64, obs: &dyn Observer, cancel: &AtomicBool) -> Result<()> {
+    let constraints = generate::PROTOTYPE_CONSTRAINTS;
+    let random_path = dir.join("codes/random.json");
+    let mse_path = dir.join("codes/best-mse.json");
+    let selected_path = dir.join("codes/selected.json");
+    let selection_path = dir.join("results/selection.json");
+    if !random_path.exists() {
+        generate::prototype_codes(seed)?.save(&random_path)?;
+    }
+    if !selected_path.exists() || !selection_path.exists() || !mse_path.exists() {
+        let x = lidar.load("val", "x")?.into_dimensionality::<Ix4>()?;
+        let cubes: Vec<Array3<f32>> = x.axis_iter(Axis(0)).take(plan.select_items).map(|v| v.to_owned()).collect();
+        let g = lidar.manifest.grid;
+        let setup = EvalSetup {
+            base: SensorParams { sampling: g.sampling, irf: physical_irf(), length: g.length, clock_hz: g.clock_hz, ..Default::default() },
+            tval3: Tval3Options::default(),
+        };
+        let mut on =
+            |c: &tcsense_infer::selection::Candidate| obs.line(&format!("  candidate seed {:>3}: TVAL3 MSE {:.4e}", c.seed, c.mse));
+        let (best, all) =
+            select(generate::PROTOTYPE_SHAPE, DEFAULT_CLOCK_HZ, constraints, plan.candidates, seed, &setup, &cubes, &mut on, cancel)?;
+        // design by identifiability: closed form, seconds
+        let sensor = Sensor::ideal(best.clone(), g.sampling, physical_irf())?;
+        let obj = Objective::new(Criterion::Range, sensor.spec(), Light::default(), DEFAULT_ALIAS_THRESHOLD);
+        let designed = design(
+            &obj,
+            generate::PROTOTYPE_SHAPE,
+            DEFAULT_CLOCK_HZ,
+            constraints,
+            &DesignOptions { seed, ..Default::default() },
+            &Quiet,
+            cancel,
+        )?;
+        let designed_mse = evaluate_codes(&designed.codes, &setup, &cubes, cancel)?;
+        obs.line(&format!(
+            "  designed for range identifiability: alias {:.3}, worst range bound {:.3} bins, TVAL3 MSE {designed_mse:.4e}",
+            designed.score.alias, designed.score.worst
+        ));
+        let v = json!({
+            "items": cubes.len(), "split": "val", "noise": "none",
+            "candidates": all.iter().map(|c| json!({"seed": c.seed, "mse": c.mse})).collect::<Vec<_>>(),
+            "designed": { "criterion": "range", "mse": designed_mse, "alias": designed.score.alias, "worst_bound_bins": designed.score.worst, "mean_bound_bins": designed.score.mean, "provenance": designed.codes.provenance },
+        });
+        write_bytes(&selection_path, (serde_json::to_string_pretty(&v)? + "\n").as_bytes())?;
+        best.save(&mse_path)?;
+        designed.codes.save(&selected_path)?;
+    }
+    export::export(&Codes::load(&selected_path)?, &dir.join("code-memory/selected"))?;
+    Ok(())
+}
+
+/// The codes deep sensing learned (`runs/learned-lidar`), saved and exported to the code
+/// memory, and the identifiability of every code set of the demo (random, best MSE, `selected`,
+/// learned; `others` the first two files) in `results/identifiability.json`.
+fn code_sets_compared(dir: &Path, runs_dir: &Path, others: [&Path; 2], selected: &Codes, obs: &dyn Observer) -> Result<Codes> {
+    let learned_dir = runs_dir.join("learned-lidar");
+    let learned = Codes::load(&learned_dir.join(CODES_FILE))?;
+    learned.save(&dir.join("codes/learned.json"))?;
+    let regs = export::export(&learned, &dir.join("code-memory/learned"))?;
+    obs.line(&format!(
+        "  learned codes exported to {}: {} channels of {} bytes, ECLEN = {}",
+        dir.join("code-memory/learned").display(),
+        regs.channel_count,
+        regs.bytes_per_channel,
+        regs.ECLEN
+    ));
+    // what every code set of the demo lets the taps tell apart
+    let ident = crate::identifiability::analyse(
+        &[("random", &Codes::load(others[0])?), ("best MSE", &Codes::load(others[1])?), ("selected", &selected), ("learned", &learned)],
+        physical_irf(),
+    )?;
+    write_json(&dir.join("results/identifiability.json"), &ident)?;
+    obs.line("  identifiability of the code sets (physical IRF, 1000 e⁻ signal):");
+    for l in crate::identifiability::lines(&ident) {
+        obs.line(&l);
+    }
+    Ok(learned)
+}
+
+/// The demo's decoders timed at the sensor's frame size (ONNX Runtime on 2 and 1 threads,
+/// burn) into `results/timing.json`, unless there already.
+fn time_decoders(dir: &Path, runs_dir: &Path, request: &Request, plan: &Plan, obs: &dyn Observer, cancel: &AtomicBool) -> Result<()> {
+    if dir.join("results/timing.json").exists() {
+        return Ok(());
+    }
+    let mut all = Vec::new();
+    for name in ["unet-lidar", "admm-lidar", "admm-flim"] {
+        cancelled(cancel)?;
+        let run = runs::load(&runs_dir.join(name), &Device::flex())?;
+        let model = dir.join("onnx").join(format!("{name}.onnx"));
+        let t = tcsense_infer::timing::time_decoder(
+            Some(&run),
+            &model,
+            (request.timing_size[0], request.timing_size[1]),
+            &[2, 1],
+            plan.timing_rounds,
+        )?;
+        for e in &t.engines {
+            obs.line(&format!("  {name:<12} {:<26} {:>9.1} ms/frame {:>7.1} frames/s", e.engine, e.ms_per_frame, e.frames_per_s));
+        }
+        all.push(json!({ "run": name, "timing": t }));
+    }
+    write_json(&dir.join("results/timing.json"), &json!({ "sensor_fps": SENSOR_FPS, "decoders": all }))
+}
+
+/// A non-ideal sensor brought up (`crate::bringup`, into `bringup/`): its delay sweep, the
+/// calibration, the demo's LiDAR decoders fine-tuned to it, ONNX for its raw tap images, the
+/// check.
+#[allow(clippy::too_many_arguments)]
+fn bring_up(
+    dir: &Path,
+    runs_dir: &Path,
+    selected: &Codes,
+    selected_path: &Path,
+    lidar: &Dataset,
+    request: &Request,
+    plan: &Plan,
+    obs: &dyn Observer,
+    cancel: &AtomicBool,
+) -> Result<()> {
+    let (seed, [h, w]) = (request.seed, request.size);
+    let sweep = dir.join("bench-sweep");
+    if !sweep.join(tcsense_sensor::sweep::MANIFEST).exists() {
+        let a = sensor(selected, lidar)?;
+        let settings = SweepSettings {
+            size: (h, w),
+            average: 64,
+            noise: NoiseParams::default(),
+            noisy: true,
+            adc: false,
+            png: false,
+            level: 0.7,
+            seed,
+        };
+        simulate_sweep(a.nominal(), a.codes(), &bench_sensor(seed), &settings, &sweep)?;
+    }
+    let options = crate::bringup::BringupOptions {
+        sweep,
+        codes: selected_path.to_path_buf(),
+        sampling: lidar.manifest.grid.sampling,
+        irf: physical_irf(),
+        decoders: ["admm-lidar", "unet-lidar"].iter().map(|n| runs_dir.join(n).display().to_string()).collect(),
+        budget_minutes: request.budget_minutes * BRINGUP_SHARE,
+        // fixed, so that a resumed demo finds its fine-tunings done whatever the machine's load
+        epochs: Some(if request.quick { 2 } else { 8 }),
+        scenes: (request.lidar_scenes / 4).max(8),
+        size: (h, w),
+        check_items: plan.lidar_eval_items,
+        seed,
+    };
+    crate::bringup::run(&options, &dir.join("bringup"), obs, cancel)?;
+    Ok(())
 }
 
 /// Generate a dataset unless a complete one is there (a partial one is never left: the
