@@ -73,13 +73,9 @@ pub(super) fn train_one(
         }
         cfg
     };
-    let start = if resume && t.name.starts_with("learned") && !run.join(CODES_FILE).exists() {
-        Codes::load(&run.join(tcsense_train::deep_sensing::START_CODES_FILE))?
-    } else if resume {
-        Codes::load(&run.join(CODES_FILE))?
-    } else {
-        codes.clone()
-    };
+    // the codes it trains with, as every front end finds them (a resumed learned-codes run
+    // stopped before its projection starts from its start codes)
+    let start = if resume { tcsense_train::setup::run_codes(run, None, true)? } else { codes.clone() };
     let res = train(&cfg, &start, run, resume, obs.training(), cancel);
     match res {
         Ok(_) => Ok(()),

@@ -1,0 +1,134 @@
+//! The frame's onset and IRF width, fitted to its brightest pixels.
+
+use super::*;
+
+/// The frame's onset and IRF width: the cost of the brightest pixels, each at its best
+/// lifetime of a coarse grid, over every bin of the cycle and every candidate width (the
+/// templates of every shift at once, as a cyclic correlation of the sensor's rows with the
+/// decays), then refined to a quarter bin around the best and by golden sections.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn instrument(
+    a: &ArrayView3<'_, f32>,
+    c: Cycle,
+    opts: &TapFitOptions,
+    r: &[f32],
+    weight: &[f32],
+    signal: &[usize],
+    m: usize,
+    kind: &(dyn Fn(usize) -> usize + Sync),
+) -> (f64, f64) {
+    let mut bright = signal.to_vec();
+    bright.sort_by(|&p, &q| weight[q].total_cmp(&weight[p]).then(p.cmp(&q)));
+    bright.truncate(opts.brightest);
+    let widths = &opts.irf_fwhm_s;
+    if bright.is_empty() {
+        return (opts.onset_s.unwrap_or(0.0).rem_euclid(c.period_s), widths[0]);
+    }
+    // the brightest pixels' normalised taps, weights and types
+    let pixels: Vec<(Vec<f32>, f32, usize)> = bright.iter().map(|&p| (r[p * m..(p + 1) * m].to_vec(), weight[p], kind(p))).collect();
+    // (on the grid of half steps: the templates are linear between its points)
+    let full = grid(opts, 2 * opts.points - 1);
+    let frame_cost = |t0: f64, fwhm: f64| -> f64 {
+        brightest_cost(&TypeTable::of(&Templates::new(a, &decays(c, &full, t0, fwhm))), &pixels, usize::MAX, 16, opts.background)
+    };
+    let score = |cands: &[(f64, f64)]| -> (f64, f64, f64) {
+        cands
+            .par_iter()
+            .map(|&(t0, f)| (frame_cost(t0, f), t0, f))
+            .min_by(|x, y| x.0.total_cmp(&y.0).then(x.1.total_cmp(&y.1)).then(x.2.total_cmp(&y.2)))
+            .unwrap_or((0.0, 0.0, widths[0]))
+    };
+    if let Some(t0) = opts.onset_s {
+        let known: Vec<(f64, f64)> = widths.iter().map(|&f| (t0.rem_euclid(c.period_s), f)).collect();
+        let (_, t0, f) = score(&known);
+        return (t0, f);
+    }
+    // every bin of the cycle: the decays at onset 0 shifted by whole bins, through every row of
+    // the sensor at once: corr[w][n·M + k][i][j] = Σ_t A[n][k][t]·D_i(t − j)
+    let (n_types, _, bins) = a.dim();
+    let coarse = grid(opts, 32);
+    let g = coarse.len();
+    let rows: Vec<Vec<f32>> = (0..n_types * m).map(|nk| (0..bins).map(|t| a[(nk / m, nk % m, t)]).collect()).collect();
+    let corr: Vec<Vec<f32>> = widths
+        .par_iter()
+        .map(|&f| {
+            let curves = decays(c, &coarse, 0.0, f);
+            let mut out = vec![0f32; n_types * m * g * bins];
+            for (i, d) in curves.iter().enumerate() {
+                // e[s] = D_i(−s), doubled so that e[j − t + T] needs no wrap: D_i(t − j) = e[j − t]
+                let e: Vec<f32> = (0..2 * bins).map(|s| d[(2 * bins - s) % bins] as f32).collect();
+                for (nk, row) in rows.iter().enumerate() {
+                    let o = &mut out[(nk * g + i) * bins..(nk * g + i + 1) * bins];
+                    for (t, &at) in row.iter().enumerate() {
+                        if at != 0.0 {
+                            o.iter_mut().zip(&e[bins - t..2 * bins - t]).for_each(|(o, &ev)| *o += at * ev);
+                        }
+                    }
+                }
+            }
+            out
+        })
+        .collect();
+    let sums: Vec<f64> = rows.iter().map(|row| row.iter().map(|&v| v as f64).sum()).collect();
+    let coarse_cands: Vec<(usize, usize)> = (0..widths.len()).flat_map(|wi| (0..bins).map(move |j| (wi, j))).collect();
+    let (_, _, j) = coarse_cands
+        .par_iter()
+        .map(|&(wi, j)| {
+            let proj: Vec<f64> = (0..n_types * m * g).map(|q| corr[wi][q * bins + j] as f64).collect();
+            (brightest_cost(&TypeTable::from_projections(&proj, &sums, n_types, m, g), &pixels, 128, 10, opts.background), wi, j)
+        })
+        .min_by(|x, y| x.0.total_cmp(&y.0).then(x.2.cmp(&y.2)).then(x.1.cmp(&y.1)))
+        .unwrap_or((0.0, 0, 0));
+    // then every width within a bin of the best, a quarter bin apart
+    let t0 = j as f64 * c.dt_s;
+    let fine: Vec<(f64, f64)> =
+        (-4..=4).flat_map(|q| widths.iter().map(move |&w| ((t0 + q as f64 * 0.25 * c.dt_s).rem_euclid(c.period_s), w))).collect();
+    let (_, t0, f) = score(&fine);
+    // then continuously, by golden sections: the onset within a quarter bin, the width within a
+    // quarter nanosecond
+    let q = 0.25 * c.dt_s;
+    let t0 = (t0 + (golden(1, 2, 12, &mut |u| frame_cost(t0 + (u - 1.0) * q, f)).0 - 1.0) * q).rem_euclid(c.period_s);
+    let max_w = widths.iter().fold(0f64, |a, &b| a.max(b));
+    let f = if widths.len() > 1 {
+        let (lo, hi) = ((f - 0.25e-9).max(0.0), (f + 0.25e-9).min(max_w));
+        lo + (hi - lo) * 0.5 * golden(1, 2, 12, &mut |u| frame_cost(t0, lo + (hi - lo) * 0.5 * u)).0
+    } else {
+        f
+    };
+    (t0, f)
+}
+
+/// The cost of the first `count` of `pixels` (normalised taps, weight, type), each at its best
+/// lifetime of `tables`, between the grid's points by `refine` golden sections (a grid's steps
+/// bias the onset: at the lower cost of a later onset and a shorter lifetime, the coarse
+/// search placed a paper scene's onset 1.2 ns late with a parabola instead).
+pub(super) fn brightest_cost(
+    tables: &[TypeTable],
+    pixels: &[(Vec<f32>, f32, usize)],
+    count: usize,
+    refine: usize,
+    background: bool,
+) -> f64 {
+    let g = tables[0].points;
+    let mut cost = vec![0f32; g];
+    let mut beta = vec![0f32; g];
+    let mut between = Between::new(tables.len(), pixels.first().map_or(0, |p| p.0.len()));
+    let mut total = 0.0;
+    for (r, w, n) in pixels.iter().take(count) {
+        tables[*n].costs(r, *w, background, &mut beta, &mut cost);
+        let best = argmin(&cost);
+        let c0 = cost[best] as f64;
+        total += if best == 0 || best + 1 == g {
+            c0
+        } else if refine > 0 {
+            let (_, v) = golden(best, g - 1, refine, &mut |u| {
+                between.set_one(tables, *n, u);
+                between.cost(*n, r, *w, background).0 as f64
+            });
+            v.min(c0)
+        } else {
+            c0
+        };
+    }
+    total
+}

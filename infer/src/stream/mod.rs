@@ -1,0 +1,328 @@
+//! Streaming deployment inference: frames from a file or a directory, through an exported
+//! model, to products on disk, with bounded memory whatever the stack length.
+//!
+//! ```text
+//! reader thread ──(2 frames)──▶ inference (ONNX Runtime) ──(2 results)──▶ products + writer thread
+//! ```
+//!
+//! Inputs: one frame `.npy [M, H, W]`, a stack `.npy [F, M, H, W]` (read frame by frame from
+//! disk, any real dtype, C order), or a directory of frames: `.npy [M, H, W]` files and 16-bit
+//! (or 8-bit) grayscale PNGs holding the `M` tap images side by side (`[H, M·W]`, tap `m` in
+//! columns `m·W … (m+1)·W − 1`, as a sensor dumps them), taken in file-name order.
+//!
+//! Outputs in `OUT/` (stacks `[F, …]`, or without `F` for a single `[M, H, W]` frame), each
+//! streamed into a temporary file and renamed at the end, so an error or Ctrl-C leaves none:
+//! `cube.npy [F, T, H, W]`, `depth.npy [F, K, H, W]` (m, NaN where no return),
+//! `confidence.npy` (depth models) or `peaks.npy` (peak amplitudes, cube models),
+//! `lifetime.npy [F, H, W]` (s; the amplitude-weighted mean — a cube's by the reconvolution
+//! fit, the lifetime decoder's own), `intensity.npy [F, H, W]`, `phasor.npy [F, 2, H, W]`
+//! (IRF-referenced `g, s`) and `ply/frame_NNNNN.ply`.
+//!
+//! What `reconstruct` applies after a network, the stream applies too: a depth model's ranges
+//! refined in the tap domain ([`Products::range_fit`], on by default). The fits to the taps
+//! replace a product where asked for, through the model's codes and sensor (its metadata):
+//! lifetimes by [`tcsense_fits::lifetime_taps::LifetimeTemplates`] ([`Products::lifetime_fit`], the onset and
+//! IRF width estimated once on the first frame) and depth by
+//! [`tcsense_fits::depth::RangeTemplates`] ([`Products::depth_fit`]); the network is
+//! then not run unless another product needs it.
+//!
+//! The parts: [`read`] (the frame sources), [`policy`] (what a model gives and what to write),
+//! [`write`] (stacks written frame by frame, the products of a frame), and here the threads
+//! that connect them.
+
+mod policy;
+mod read;
+mod write;
+
+pub use policy::{phasor_of_components, ModelKind, Products};
+pub use read::{read_png_taps, FrameSource};
+pub use write::NpyStackWriter;
+use write::{write_frame, Writers};
+
+use ndarray::{Array3, Array4, ArrayView3, Axis};
+use std::fs::File;
+use std::io::{BufWriter, Read, Seek, SeekFrom, Write};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::sync_channel;
+use std::time::Instant;
+
+use tcsense_sensor::npy::{f32_header, parse_header, read_npy, NpyHeader};
+
+use crate::products::{depth_map, write_ply, PeakOptions};
+use crate::runtime::OnnxModel;
+use crate::{InferError, Result};
+use tcsense_fits::depth::{DepthFitOptions, RangeTemplates};
+use tcsense_fits::lifetime_taps::{estimate_instrument, LifetimeTemplates, TapFit, TapFitOptions};
+use tcsense_fits::range::{refine_ranges, RangeFitOptions};
+use tcsense_models::net::mask_depth;
+
+fn file_err(path: &Path, msg: impl ToString) -> InferError {
+    InferError::File { path: path.to_path_buf(), msg: msg.to_string() }
+}
+
+/// What a streamed run did.
+#[derive(Debug, Clone)]
+pub struct StreamReport {
+    pub frames: usize,
+    pub seconds: f64,
+    /// Seconds inside ONNX Runtime.
+    pub infer_seconds: f64,
+    pub written: Vec<PathBuf>,
+}
+
+/// Stream every frame of `source` through `model` into `out`, calling `on_frame(done, total)`
+/// after each; stops with [`InferError::Cancelled`] when `cancel` is set (writing nothing).
+///
+/// `out` is written whole: the products go into a temporary sibling that replaces `out` once
+/// every frame is done, so an earlier run's products (a longer run's point clouds, a product
+/// not asked for now) never remain beside the new ones, and a refusal, an error or an
+/// interruption leaves `out` as it was. A directory holding other files is refused.
+pub fn run_stream(
+    model: &mut OnnxModel,
+    source: FrameSource,
+    out: &Path,
+    products: &Products,
+    cancel: &AtomicBool,
+    on_frame: &(dyn Fn(usize, usize) + Sync),
+) -> Result<StreamReport> {
+    tcsense_sensor::output::replace_dir(out, &is_stream_output, |tmp| {
+        let mut report = stream_into(model, source, tmp, products, cancel, on_frame)?;
+        // the paths the products will have once the temporary directory is renamed
+        for p in &mut report.written {
+            if let Ok(rel) = p.strip_prefix(tmp) {
+                *p = out.join(rel);
+            }
+        }
+        Ok(report)
+    })
+}
+
+/// Whether `name` is a file or folder [`run_stream`] writes into its output directory.
+pub fn is_stream_output(name: &str) -> bool {
+    matches!(name, "cube.npy" | "depth.npy" | "peaks.npy" | "confidence.npy" | "lifetime.npy" | "intensity.npy" | "phasor.npy" | "ply")
+}
+
+/// [`run_stream`] into the directory `out` (fresh and empty).
+fn stream_into(
+    model: &mut OnnxModel,
+    mut source: FrameSource,
+    out: &Path,
+    products: &Products,
+    cancel: &AtomicBool,
+    on_frame: &(dyn Fn(usize, usize) + Sync),
+) -> Result<StreamReport> {
+    let frames = source.len();
+    let taps = model.meta.taps;
+    let (first, first_path) = source.read(0, taps)?;
+    let (m, h, w) = first.dim();
+    model.check(&first.view().insert_axis(Axis(0)), &first_path.display().to_string())?;
+    let kind = ModelKind::of(&model.meta.decoder);
+    let cube_model = kind == ModelKind::Cube;
+    let (t, k) = (
+        model.meta.bins,
+        match &products.depth_fit {
+            Some(f) => f.returns,
+            None if cube_model => products.returns,
+            None => model.meta.returns,
+        },
+    );
+    let lead: Vec<usize> = if source.single() { vec![] } else { vec![frames] };
+    let shape = |rest: &[usize]| -> Vec<usize> { lead.iter().chain(rest).copied().collect() };
+    let mut writers = Writers {
+        cube: if products.cube { Some(NpyStackWriter::create(&out.join("cube.npy"), &shape(&[t, h, w]))?) } else { None },
+        depth: if products.depth { Some(NpyStackWriter::create(&out.join("depth.npy"), &shape(&[k, h, w]))?) } else { None },
+        second: match (cube_model, products.peaks || (!cube_model && products.depth)) {
+            (true, true) => Some(NpyStackWriter::create(&out.join("peaks.npy"), &shape(&[k, h, w]))?),
+            (false, true) => Some(NpyStackWriter::create(&out.join("confidence.npy"), &shape(&[k, h, w]))?),
+            _ => None,
+        },
+        lifetime: if products.lifetime { Some(NpyStackWriter::create(&out.join("lifetime.npy"), &shape(&[h, w]))?) } else { None },
+        intensity: if products.intensity { Some(NpyStackWriter::create(&out.join("intensity.npy"), &shape(&[h, w]))?) } else { None },
+        phasor: if products.phasor { Some(NpyStackWriter::create(&out.join("phasor.npy"), &shape(&[2, h, w]))?) } else { None },
+    };
+    if products.ply {
+        std::fs::create_dir_all(out.join("ply")).map_err(|e| file_err(out, e))?;
+    }
+    // what this stream writes (not whatever an earlier run left in `out`)
+    let mut written: Vec<PathBuf> =
+        [&writers.cube, &writers.depth, &writers.second, &writers.lifetime, &writers.intensity, &writers.phasor]
+            .into_iter()
+            .flatten()
+            .map(|w| w.path.clone())
+            .collect();
+    if products.ply {
+        written.push(out.join("ply"));
+    }
+    let bin_s = model.meta.bin_s;
+    let peak_opts = PeakOptions { max_peaks: k, ..Default::default() };
+    let t0 = Instant::now();
+    // the fits to the taps need corrected tap images, and a built-in correction is in the graph
+    let uncalibrated = |field: &'static str| -> Result<()> {
+        match model.meta.calibration {
+            Some(_) => Err(InferError::InvalidParam {
+                field,
+                got: format!("{} (a calibration built into the graph)", model.path().display()),
+                expected: "a model exported without --calibration: the fit to the taps needs corrected tap images, and the correction is inside the graph".into(),
+            }),
+            None => Ok(()),
+        }
+    };
+    // the fit to the taps: the instrument from the first frame (or its given onset), once
+    let templates = match &products.lifetime_fit {
+        Some(opts) => {
+            uncalibrated("--lifetime-fit")?;
+            opts.validate().map_err(|msg| InferError::Settings { what: "--lifetime-fit", msg })?;
+            let instrument = estimate_instrument(&first.view(), &model.sensor, opts);
+            Some(LifetimeTemplates::new(&model.sensor, instrument, opts))
+        }
+        None => None,
+    };
+    let templates = templates.as_ref();
+    let need_model = products.need_model();
+    let range_fit = products
+        .range_fit
+        .as_ref()
+        .filter(|_| kind == ModelKind::Depth && (products.depth || products.ply) && products.depth_fit.is_none());
+    let mut range_templates = match &products.depth_fit {
+        Some(opts) => {
+            if kind == ModelKind::Lifetime {
+                return Err(InferError::InvalidParam {
+                    field: "--depth-fit",
+                    got: model.meta.decoder.clone(),
+                    expected: "a depth or cube model (the fit gives depth)".into(),
+                });
+            }
+            uncalibrated("--depth-fit")?;
+            if products.peaks {
+                return Err(InferError::InvalidParam {
+                    field: "--products",
+                    got: "peaks with --depth-fit".into(),
+                    expected: "depth, ply (the fit gives ranges, not the cube's peaks)".into(),
+                });
+            }
+            opts.validate().map_err(|msg| InferError::Settings { what: "--depth-fit", msg })?;
+            Some(RangeTemplates::new(&model.sensor, opts))
+        }
+        None => None,
+    };
+    let depth_fit = range_templates.is_some();
+    let sensor = &model.sensor.clone();
+    let mut infer_seconds = 0.0;
+    let result: Result<()> = std::thread::scope(|scope| {
+        let (ftx, frx) = sync_channel::<Result<(usize, Array3<f32>, PathBuf)>>(2);
+        let (otx, orx) = sync_channel::<(usize, Vec<Array4<f32>>, Option<Array3<f32>>)>(2);
+        // reader
+        let reader = scope.spawn(move || {
+            if ftx.send(Ok((0, first, first_path))).is_err() {
+                return;
+            }
+            for i in 1..frames {
+                if cancel.load(Ordering::Relaxed) {
+                    return;
+                }
+                let r = source.read(i, taps).map(|(a, p)| (i, a, p));
+                let stop = r.is_err();
+                if ftx.send(r).is_err() || stop {
+                    return;
+                }
+            }
+        });
+        // products + writer
+        let writer = scope.spawn(move || -> Result<()> {
+            let mut done = 0;
+            for (i, mut outs, y) in orx {
+                let fitted = templates.zip(y.as_ref()).map(|(tpl, y)| tpl.fit(&y.view()));
+                let ranges = range_templates.as_mut().zip(y.as_ref()).map(|(tpl, y)| tpl.fit(&y.view()));
+                if let (Some(opts), Some(y)) = (range_fit, y.as_ref()) {
+                    // the network's ranges refined in the tap domain (masked first, as the
+                    // decoder contract gives them to the fit)
+                    let (depth, conf) = outs.split_at_mut(1);
+                    mask_depth(&mut depth[0], &conf[0]);
+                    refine_ranges(y.view().insert_axis(Axis(0)), sensor, &mut depth[0], opts);
+                }
+                write_frame(i, outs, fitted, ranges, &mut writers, products, kind, bin_s, t, &peak_opts, out)?;
+                done += 1;
+                on_frame(i + 1, frames);
+            }
+            // only a complete stream is renamed into place; otherwise the writers are dropped
+            // and their temporary files removed
+            if done == frames {
+                for wr in
+                    [writers.cube, writers.depth, writers.second, writers.lifetime, writers.intensity, writers.phasor].into_iter().flatten()
+                {
+                    wr.finish()?;
+                }
+            }
+            Ok(())
+        });
+        let mut status = Ok(());
+        for msg in frx {
+            if cancel.load(Ordering::Relaxed) {
+                status = Err(InferError::Cancelled);
+                break;
+            }
+            let (i, y, path) = match msg {
+                Ok(v) => v,
+                Err(e) => {
+                    status = Err(e);
+                    break;
+                }
+            };
+            if y.dim() != (m, h, w) {
+                status = Err(file_err(&path, format!("frame of shape {:?}; the first frame was [{m}, {h}, {w}]", y.shape())));
+                break;
+            }
+            let ti = Instant::now();
+            let run = if need_model {
+                model.run(y.view().insert_axis(Axis(0)))
+            } else {
+                model.check(&y.view().insert_axis(Axis(0)), &path.display().to_string()).map(|_| Vec::new())
+            };
+            let outs = match run {
+                Ok(o) => o,
+                Err(e) => {
+                    status = Err(match e {
+                        InferError::InvalidParam { field, got, expected } => {
+                            file_err(&path, format!("{field}: got {got}, expected {expected}"))
+                        }
+                        e => e,
+                    });
+                    break;
+                }
+            };
+            infer_seconds += ti.elapsed().as_secs_f64();
+            if otx.send((i, outs, (templates.is_some() || range_fit.is_some() || depth_fit).then_some(y))).is_err() {
+                break;
+            }
+        }
+        drop(otx);
+        let _ = reader.join();
+        let written = writer.join().unwrap_or_else(|_| Err(file_err(out, "the writer thread panicked")));
+        // an early stop drops the writers unfinished (their temporary files removed)
+        status.and(written)
+    });
+    result?;
+    Ok(StreamReport { frames, seconds: t0.elapsed().as_secs_f64(), infer_seconds, written })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// One exponential lies on the universal semicircle at `g = 1/(1+ω²τ²)`; a mixture
+    /// weighted by intensity fractions `α_iτ_i` sits on the chord between its components.
+    #[test]
+    fn phasor_of_components_is_on_the_semicircle_and_its_chords() {
+        let omega = 2.0 * std::f64::consts::PI / 52.7e-9;
+        let (g, s) = phasor_of_components(3e-9, 3e-9, 1.0, omega);
+        let wt = omega * 3e-9;
+        assert!((g as f64 - 1.0 / (1.0 + wt * wt)).abs() < 1e-6 && (s as f64 - wt / (1.0 + wt * wt)).abs() < 1e-6);
+        let (p1, p2) = (phasor_of_components(1e-9, 1e-9, 1.0, omega), phasor_of_components(5e-9, 5e-9, 1.0, omega));
+        let (gm, sm) = phasor_of_components(1e-9, 5e-9, 0.5, omega);
+        // intensity fraction of τ₁: 0.5·1 / (0.5·1 + 0.5·5) = 1/6
+        let f = 1.0 / 6.0;
+        assert!((gm - (f * p1.0 + (1.0 - f) * p2.0)).abs() < 1e-6 && (sm - (f * p1.1 + (1.0 - f) * p2.1)).abs() < 1e-6);
+        assert!(phasor_of_components(f32::NAN, 1e-9, 0.5, omega).0.is_nan());
+    }
+}
