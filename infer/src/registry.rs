@@ -40,13 +40,13 @@ pub mod names {
     /// Lifetimes fitted to the tap images.
     pub const LIFETIME_FIT: &str = "lifetime-fit";
     /// An ADMM-Net run (`admm-net:RUN`).
-    pub const ADMM_NET: &str = "admm-net";
+    pub const ADMM_NET: &str = tcsense_models::runs::network_names::ADMM_NET;
     /// An Aᵀ + U-Net run, its ranges refined in the tap domain (`unet:RUN`).
-    pub const UNET: &str = "unet";
+    pub const UNET: &str = tcsense_models::runs::network_names::UNET;
     /// An Aᵀ + U-Net run, its own ranges (`unet-raw:RUN`).
     pub const UNET_RAW: &str = "unet-raw";
     /// A lifetime network run (`lifetime:RUN`).
-    pub const LIFETIME: &str = "lifetime";
+    pub const LIFETIME: &str = tcsense_models::runs::network_names::LIFETIME;
     /// A zoo entry of any kind (`zoo:NAME`).
     pub const ZOO: &str = "zoo";
     /// An exported model through ONNX Runtime (`onnx:MODEL.onnx`).

@@ -49,13 +49,26 @@ pub enum ModelConfig {
     Lifetime(LifetimeNetConfig),
 }
 
+/// The names of the trainable networks, as `config.json`'s `decoder`, training requests,
+/// exported models' metadata and the decoder registry spell them.
+pub mod network_names {
+    /// ADMM-Net.
+    pub const ADMM_NET: &str = "admm-net";
+    /// The Aᵀ + U-Net.
+    pub const UNET: &str = "unet";
+    /// The lifetime network.
+    pub const LIFETIME: &str = "lifetime";
+    /// All of them.
+    pub const ALL: [&str; 3] = [ADMM_NET, UNET, LIFETIME];
+}
+
 impl ModelConfig {
     /// The decoder's name as `config.json`, `eval` and `reconstruct` spell it.
     pub fn name(&self) -> &'static str {
         match self {
-            ModelConfig::AdmmNet(_) => "admm-net",
-            ModelConfig::Unet(_) => "unet",
-            ModelConfig::Lifetime(_) => "lifetime",
+            ModelConfig::AdmmNet(_) => network_names::ADMM_NET,
+            ModelConfig::Unet(_) => network_names::UNET,
+            ModelConfig::Lifetime(_) => network_names::LIFETIME,
         }
     }
 
@@ -210,9 +223,9 @@ fn file_err(path: &Path, msg: impl ToString) -> ModelError {
 pub fn upgrade_config(mut v: serde_json::Value) -> serde_json::Value {
     if let Some(obj) = v.as_object_mut() {
         if obj.contains_key("model") && !obj.contains_key("decoder") {
-            obj.insert("decoder".into(), serde_json::Value::String("admm-net".into()));
+            obj.insert("decoder".into(), serde_json::Value::String(network_names::ADMM_NET.into()));
         }
-        if obj.get("decoder").and_then(|d| d.as_str()) == Some("admm-net") {
+        if obj.get("decoder").and_then(|d| d.as_str()) == Some(network_names::ADMM_NET) {
             if let Some(model) = obj.get_mut("model").and_then(|m| m.as_object_mut()) {
                 model.entry("normalize").or_insert(serde_json::Value::Bool(false));
                 model.entry("prior").or_insert(serde_json::Value::String("Bins".into()));

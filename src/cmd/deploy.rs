@@ -308,12 +308,13 @@ fn fresh_run(a: &BenchInferArgs) -> Result<runs::LoadedRun> {
     }
     let codes = super::prototype_codes()?;
     let sampling = Sampling::Oversample(a.bins / 32);
+    use runs::network_names::{ADMM_NET, LIFETIME, UNET};
     let model = match a.decoder.as_str() {
-        "unet" => runs::ModelConfig::Unet(
+        UNET => runs::ModelConfig::Unet(
             tcsense_models::UnetConfig::new(4, a.bins, tcsense_sensor::C * 32.0 / 607e6 / 2.0)
                 .with_head(tcsense_models::UnetHead::ScoreVolume),
         ),
-        "admm-net" => {
+        ADMM_NET => {
             let prior = if a.prior == "delay" { tcsense_models::Prior::Delay } else { tcsense_models::Prior::Bins };
             runs::ModelConfig::AdmmNet(
                 tcsense_models::AdmmNetConfig::new(4, a.bins)
@@ -323,7 +324,7 @@ fn fresh_run(a: &BenchInferArgs) -> Result<runs::LoadedRun> {
                     .with_prior(prior),
             )
         }
-        "lifetime" => runs::ModelConfig::Lifetime(tcsense_models::LifetimeNetConfig::new(4, a.bins)),
+        LIFETIME => runs::ModelConfig::Lifetime(tcsense_models::LifetimeNetConfig::new(4, a.bins)),
         other => bail!("--decoder {other:?}: expected unet, admm-net or lifetime"),
     };
     let spec = runs::RunSpec { model, sampling, irf: Irf::Ideal, measured: false };

@@ -368,7 +368,7 @@ impl TrainArgs {
         };
         match net {
             NetArgs::Admm(n) => {
-                req.decoder = "admm-net".into();
+                req.decoder = tcsense_models::runs::network_names::ADMM_NET.into();
                 (req.preset, req.stages, req.channels, req.prior) =
                     (n.preset.and_then(name_of), n.stages, n.channels, n.prior.and_then(name_of));
             }

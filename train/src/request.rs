@@ -149,12 +149,13 @@ impl TrainRequest {
 
     /// The default network of a new run for `m` taps and `t` bins over `range_m` (U-Net).
     fn default_model(&self, m: usize, t: usize, range_m: f64) -> Result<ModelConfig> {
+        use tcsense_models::runs::network_names::{ADMM_NET, LIFETIME, UNET};
         Ok(match self.decoder.as_str() {
-            "admm-net" => ModelConfig::AdmmNet(preset(self.preset.as_deref().unwrap_or("cpu"), m, t)?.with_normalize(true)),
-            "unet" => ModelConfig::Unet(
+            ADMM_NET => ModelConfig::AdmmNet(preset(self.preset.as_deref().unwrap_or("cpu"), m, t)?.with_normalize(true)),
+            UNET => ModelConfig::Unet(
                 UnetConfig::new(m, t, range_m).with_returns(2).with_base_width(8).with_levels(3).with_head(UnetHead::ScoreVolume),
             ),
-            "lifetime" => ModelConfig::Lifetime(LifetimeNetConfig::new(m, t).with_harmonics(16).with_base_width(16).with_levels(3)),
+            LIFETIME => ModelConfig::Lifetime(LifetimeNetConfig::new(m, t).with_harmonics(16).with_base_width(16).with_levels(3)),
             other => return Err(bad("decoder", other, "admm-net, unet or lifetime")),
         })
     }

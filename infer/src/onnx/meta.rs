@@ -180,7 +180,7 @@ impl OnnxMeta {
             }
         };
         let decoder = req("decoder")?;
-        if !["admm-net", "unet", "lifetime"].contains(&decoder.as_str()) {
+        if !tcsense_models::runs::network_names::ALL.contains(&decoder.as_str()) {
             return Err(err("decoder", format!("got {decoder:?}, expected \"admm-net\", \"unet\" or \"lifetime\"")));
         }
         let codes = Codes::from_json(&req("codes")?).map_err(|e| err("codes", e))?;

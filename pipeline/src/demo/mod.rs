@@ -30,7 +30,7 @@ use tcsense_infer::eval::{evaluate, EvalRow, EvalSettings};
 use tcsense_infer::figures::{self as plot, Series};
 use tcsense_infer::onnx::{export_to, ExportOptions};
 use tcsense_infer::products::{depth_map, point_cloud, referenced_phasors, PeakOptions};
-use tcsense_infer::registry::open_decoder;
+use tcsense_infer::registry::{names, open_decoder};
 use tcsense_infer::report::{Block, Cell, Format, Report, Section, Table};
 use tcsense_infer::selection::{evaluate as evaluate_codes, select, EvalSetup};
 use tcsense_models::decoder::Control;
@@ -243,15 +243,15 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
             let codes = Codes::load(&zoo_dir.join(CODES_FILE))?;
             rows_of(ds, &sensor(&codes, ds)?, &[decoder], items, row)
         };
-        let cube_decoders = |run: &str| vec![("TVAL3", "tval3".to_string()), ("ADMM-Net", run_of("admm-net", run)), ("ADMM-Net", onnx(run))];
+        let cube_decoders = |run: &str| vec![("TVAL3", names::TVAL3.to_string()), ("ADMM-Net", run_of(names::ADMM_NET, run)), ("ADMM-Net", onnx(run))];
         if !lidar_json.exists() {
             let mut selected_set = cube_decoders("admm-lidar");
-            selected_set.extend([("Aᵀ + U-Net", run_of("unet", "unet-lidar")), ("Aᵀ + U-Net", onnx("unet-lidar"))]);
+            selected_set.extend([("Aᵀ + U-Net", run_of(names::UNET, "unet-lidar")), ("Aᵀ + U-Net", onnx("unet-lidar"))]);
             let mut rows = rows_of(&lidar, &sensor(&selected, &lidar)?, &selected_set, plan.lidar_eval_items, &|r, n, e| lidar_row(r, "selected", n, e))?;
             rows.extend(rows_of(&lidar, &sensor(&learned, &lidar)?, &cube_decoders("learned-lidar"), plan.lidar_eval_items, &|r, n, e| lidar_row(r, "learned", n, e))?);
             // the zoo's decoder fine-tuned to the selected codes, and as shipped on its own codes
             if let (true, Some((zoo_dir, _))) = (plan.trainings.iter().any(|t| t.name == "zoo-lidar"), zoo_entry(&lidar)) {
-                let tuned = [("ADMM-Net (zoo, fine-tuned)", run_of("admm-net", "zoo-lidar"))];
+                let tuned = [("ADMM-Net (zoo, fine-tuned)", run_of(names::ADMM_NET, "zoo-lidar"))];
                 rows.extend(rows_of(&lidar, &sensor(&selected, &lidar)?, &tuned, plan.lidar_eval_items, &|r, n, e| lidar_row(r, "selected", n, e))?);
                 let shipped = ("ADMM-Net (zoo, as shipped)", format!("admm-net:{}", zoo_dir.display()));
                 rows.extend(shipped_rows(&lidar, &zoo_dir, shipped, plan.lidar_eval_items, &|r, n, e| lidar_row(r, "the zoo's", n, e))?);
@@ -263,7 +263,7 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
             flim_set.push(("lifetime fit to the taps", "lifetime-fit".to_string()));
             let mut rows = rows_of(&flim, &sensor(&selected, &flim)?, &flim_set, plan.flim_eval_items, &|r, n, e| flim_row(r, "selected", n, e))?;
             // the zoo's FLIm decoders as shipped
-            for (entry, name, kind) in [(ZOO_FLIM_CUBE, "ADMM-Net (zoo, as shipped, its own codes)", "admm-net"), (ZOO_LIFETIME, "lifetime decoder (zoo, as shipped, its own codes)", "lifetime")] {
+            for (entry, name, kind) in [(ZOO_FLIM_CUBE, "ADMM-Net (zoo, as shipped, its own codes)", names::ADMM_NET), (ZOO_LIFETIME, "lifetime decoder (zoo, as shipped, its own codes)", names::LIFETIME)] {
                 if let Some((zoo_dir, _)) = zoo_entry_named(entry, &flim) {
                     let shipped = (name, format!("{kind}:{}", zoo_dir.display()));
                     rows.extend(shipped_rows(&flim, &zoo_dir, shipped, plan.flim_eval_items, &|r, n, e| flim_row(r, "the zoo's", n, e))?);

@@ -90,7 +90,7 @@ pub(super) fn train_one(
 pub(super) fn engine(spec: &str) -> &'static str {
     if spec.starts_with("onnx:") {
         "ONNX Runtime"
-    } else if spec == "tval3" {
+    } else if spec == names::TVAL3 {
         "Rust (TVAL3)"
     } else if spec == "lifetime-fit" {
         "Rust (fit to the taps)"
@@ -169,19 +169,19 @@ pub(super) fn decode_frames(
             lidar,
             selected,
             vec![
-                ("tval3", "tval3".into()),
-                ("admm", format!("admm-net:{}", runs_dir.join("admm-lidar").display())),
-                ("unet", format!("unet:{}", runs_dir.join("unet-lidar").display())),
+                ("tval3", names::TVAL3.into()),
+                ("admm", format!("{}:{}", names::ADMM_NET, runs_dir.join("admm-lidar").display())),
+                ("unet", format!("{}:{}", names::UNET, runs_dir.join("unet-lidar").display())),
             ],
         ),
-        ("lidar-learned", lidar, learned, vec![("admm", format!("admm-net:{}", runs_dir.join("learned-lidar").display()))]),
+        ("lidar-learned", lidar, learned, vec![("admm", format!("{}:{}", names::ADMM_NET, runs_dir.join("learned-lidar").display()))]),
         (
             "flim",
             flim,
             selected,
             vec![
-                ("tval3", "tval3".into()),
-                ("admm", format!("admm-net:{}", runs_dir.join("admm-flim").display())),
+                ("tval3", names::TVAL3.into()),
+                ("admm", format!("{}:{}", names::ADMM_NET, runs_dir.join("admm-flim").display())),
                 ("fit", "lifetime-fit".into()),
             ],
         ),
