@@ -180,6 +180,28 @@ pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Val
         ],
     };
 
+    sections.push(codes_section(dir, &fig)?);
+    sections.push(taps_section(&fig));
+    sections.push(lidar_section(dir, plan, &fig)?);
+    sections.push(flim_section(dir, plan, &fig)?);
+    sections.push(training_section(&fig));
+    sections.push(bringup_section(dir)?);
+    sections.push(deployment_section(dir, plan)?);
+    sections.push(run_log);
+    // results first: what was done, the two applications, then how (codes, tap images,
+    // training), deployment and the run's log
+    let order = ["overview", "lidar", "flim", "codes", "taps", "training", "deployment", "run"];
+    sections.sort_by_key(|s| order.iter().position(|o| *o == s.id).unwrap_or(order.len()));
+    let version = env!("CARGO_PKG_VERSION");
+    Ok(Report {
+        title: "tcsense demo report".into(),
+        subtitle: format!("tcsense {version}; prototype sensor 4 taps, 2×2, L = 32, 607 MHz; {}×{} frames; budget {} min; seed {}; written by `tcsense demo{}`", r.size[0], r.size[1], r.budget_minutes, r.seed, if r.quick { " --quick" } else { "" }),
+        sections,
+    })
+}
+
+/// The exposure codes: the sets, the selection by TVAL3, identifiability, the projection and the code memory.
+fn codes_section(dir: &Path, fig: &dyn Fn(&str, &str) -> Block) -> Result<Section> {
     // codes
     let sel = read_json(&dir.join("results/selection.json"))?;
     let ident = read_json(&dir.join("results/identifiability.json"))?;
@@ -205,7 +227,7 @@ pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Val
             Cell::from_json(psrc, &proj, "/bits", Format::Fixed(0)),
         ]],
     };
-    sections.push(Section {
+    Ok(Section {
         id: "codes".into(),
         title: "Exposure codes".into(),
         blocks: vec![
@@ -229,18 +251,24 @@ pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Val
             Block::Table(registers_table(&regs, regs_src)),
             Block::Table(channels_table(&regs, regs_src)),
         ],
-    });
+    })
+}
 
+/// The tap images of one LiDAR test frame.
+fn taps_section(fig: &dyn Fn(&str, &str) -> Block) -> Section {
     // tap images
-    sections.push(Section {
+    Section {
         id: "taps".into(),
         title: "Tap images".into(),
         blocks: vec![
             Block::Text("What the sensor reads out for one LiDAR test frame: one image per tap, each pixel the light of its 2×2 subpixel's code channel integrated over the frame, with shot and read noise (as in the paper's Fig. 15b). These are the decoders' only input.".into()),
             fig("taps.png", "The four tap images of the LiDAR test frame shown below (selected codes)."),
         ],
-    });
+    }
+}
 
+/// The LiDAR results: the metric table and the frames.
+fn lidar_section(dir: &Path, plan: &Plan, fig: &dyn Fn(&str, &str) -> Block) -> Result<Section> {
     // LiDAR
     let lj = read_json(&dir.join("results/lidar.json"))?;
     let src = "results/lidar.json";
@@ -266,7 +294,7 @@ pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Val
             ("range_rmse_m/1", "range RMSE of return 2", Format::Fixed(3), " m"),
         ],
     );
-    sections.push(Section {
+    Ok(Section {
         id: "lidar".into(),
         title: "LiDAR with multipath".into(),
         blocks: vec![
@@ -281,8 +309,11 @@ pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Val
             fig("depth-error.png", "Absolute range error of each decoder and return."),
             fig("point-cloud.png", "The same frame as point clouds (pinhole camera, 40° field of view; as in the paper's Fig. 17)."),
         ],
-    });
+    })
+}
 
+/// The FLIm results: the metric table and the lifetime maps.
+fn flim_section(dir: &Path, plan: &Plan, fig: &dyn Fn(&str, &str) -> Block) -> Result<Section> {
     // FLIm
     let fj = read_json(&dir.join("results/flim.json"))?;
     let src = "results/flim.json";
@@ -299,7 +330,7 @@ pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Val
         ],
     );
     let findings_flim = findings(&fj, &[("mse", "MSE", Format::Sci(3), ""), ("lifetime_mae_ns", "lifetime MAE", Format::Fixed(3), " ns")]);
-    sections.push(Section {
+    Ok(Section {
         id: "flim".into(),
         title: "Fluorescence lifetime imaging".into(),
         blocks: vec![
@@ -313,10 +344,13 @@ pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Val
             fig("lifetime.png", "Lifetime map: the generator's amplitude-weighted mean lifetimes, the reconvolution fit to the true cube (the fit's own error), the fits to each decoder's cube, and the lifetimes fitted to the tap images directly."),
             fig("phasor.png", "Phasor plot of every pixel (first harmonic, background removed, phase referenced to the frame's decay onset at the peak of its summed decay): single exponentials lie on the semicircle, mixtures of lifetimes inside it."),
         ],
-    });
+    })
+}
 
+/// The training curves.
+fn training_section(fig: &dyn Fn(&str, &str) -> Block) -> Section {
     // training
-    sections.push(Section {
+    Section {
         id: "training".into(),
         title: "Training curves".into(),
         blocks: vec![
@@ -324,8 +358,11 @@ pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Val
             fig("training-unet.png", "Aᵀ + U-Net: depth loss and validation range RMSE."),
             fig("training-flim.png", "ADMM-Net on FLIm."),
         ],
-    });
+    }
+}
 
+/// The bring-up of a non-ideal sensor: its check table.
+fn bringup_section(dir: &Path) -> Result<Section> {
     // the bring-up of a non-ideal sensor
     let bj = read_json(&dir.join("bringup/results/check.json"))?;
     let src = "bringup/results/check.json";
@@ -344,7 +381,7 @@ pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Val
             ]
         })
         .collect();
-    sections.push(Section {
+    Ok(Section {
         id: "bringup".into(),
         title: "Bring-up of a non-ideal sensor".into(),
         blocks: vec![
@@ -358,8 +395,12 @@ pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Val
                 rows,
             }),
         ],
-    });
+    })
+}
 
+/// Deployment: the timing table and the commands that run the exported models.
+fn deployment_section(dir: &Path, plan: &Plan) -> Result<Section> {
+    let r = &plan.request;
     // deployment timing
     let tj = read_json(&dir.join("results/timing.json"))?;
     let src = "results/timing.json";
@@ -378,7 +419,7 @@ pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Val
         }
     }
     let (th, tw) = (r.timing_size[0], r.timing_size[1]);
-    sections.push(Section {
+    Ok(Section {
         id: "deployment".into(),
         title: "Deployment: ONNX and timing".into(),
         blocks: vec![
@@ -393,16 +434,5 @@ pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Val
                 dir.display()
             )),
         ],
-    });
-    sections.push(run_log);
-    // results first: what was done, the two applications, then how (codes, tap images,
-    // training), deployment and the run's log
-    let order = ["overview", "lidar", "flim", "codes", "taps", "training", "deployment", "run"];
-    sections.sort_by_key(|s| order.iter().position(|o| *o == s.id).unwrap_or(order.len()));
-    let version = env!("CARGO_PKG_VERSION");
-    Ok(Report {
-        title: "tcsense demo report".into(),
-        subtitle: format!("tcsense {version}; prototype sensor 4 taps, 2×2, L = 32, 607 MHz; {}×{} frames; budget {} min; seed {}; written by `tcsense demo{}`", r.size[0], r.size[1], r.budget_minutes, r.seed, if r.quick { " --quick" } else { "" }),
-        sections,
     })
 }
