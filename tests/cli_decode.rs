@@ -259,6 +259,26 @@ fn depth_fit_to_the_taps() {
     let (est, first) = (depth.index_axis(ndarray::Axis(0), 0), truth.index_axis(ndarray::Axis(0), 0));
     let placed = est.iter().zip(first.index_axis(ndarray::Axis(0), 0).iter()).filter(|(e, t)| e.is_finite() && t.is_finite()).count();
     assert!(placed > 32, "{placed} of 64 pixels got a range");
+    // any registry name reaches reconstruct: a cube decoder with its peaks refined in the tap
+    // domain writes the cube and, beside it, the ranges with their confidence
+    let out = ok(d, &["reconstruct", "tval3+fit", "--codes", "codes.json", "--measurements", "y.npy", "--maxit", "20", "-o", "tv.npy"]);
+    assert!(out.contains("tv.depth.npy"), "{out}");
+    // (y.npy is a batch of one, [1, M, H, W], and so are the outputs)
+    assert_eq!(&read_npy(&d.join("tv.npy")).unwrap().shape()[2..], &[8, 8], "the cube [1, T, H, W]");
+    assert_eq!(read_npy(&d.join("tv.depth.npy")).unwrap().shape(), &[1, 2, 8, 8]);
+    assert_eq!(read_npy(&d.join("tv.confidence.npy")).unwrap().shape(), &[1, 2, 8, 8]);
+    fails(d, &["reconstruct", "depth-fit:1", "--measurements", "y.npy", "-o", "nocodes.npy"], &["--codes", "any sensor"]);
+    fails(
+        d,
+        &["reconstruct", "tval3", "--run", "ds", "--codes", "codes.json", "--measurements", "y.npy", "-o", "x.npy"],
+        &["--run", "tval3"],
+    );
+    fails(
+        d,
+        &["reconstruct", "magic", "--codes", "codes.json", "--measurements", "y.npy", "-o", "x.npy"],
+        &["unknown decoder", "depth-fit[:K]"],
+    );
+    assert!(!d.join("nocodes.npy").exists() && !d.join("x.npy").exists());
     let out = ok(
         d,
         &["eval", "--dataset", "ds", "--codes", "codes.json", "--decoder", "depth-fit", "--decoder", "depth-fit:1", "-o", "rep.json"],

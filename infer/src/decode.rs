@@ -84,13 +84,15 @@ pub struct DecodedFile {
 }
 
 /// The files beside a decoder's main output `output`: `OUTPUT.confidence.npy` (depth and
-/// lifetimes) and `OUTPUT.intensity.npy` (lifetimes).
-pub fn companions(output: &Path) -> [PathBuf; 2] {
-    [output.with_extension("confidence.npy"), output.with_extension("intensity.npy")]
+/// lifetimes), `OUTPUT.intensity.npy` (lifetimes) and `OUTPUT.depth.npy` (the ranges of a
+/// decoder of cubes that gives them too, `NAME+fit`).
+pub fn companions(output: &Path) -> [PathBuf; 3] {
+    [output.with_extension("confidence.npy"), output.with_extension("intensity.npy"), output.with_extension("depth.npy")]
 }
 
 /// Decode the tap images in `measurements` with `decoder` on `sensor` and write what it gives
-/// (same batching as the input) to `output`: the cube; or the depth `[K, H, W]` with the
+/// (same batching as the input) to `output`: the cube (with its ranges at `OUTPUT.depth.npy`
+/// and their confidence where the decoder gives them, `NAME+fit`); or the depth `[K, H, W]` with the
 /// confidence at `OUTPUT.confidence.npy`; or the lifetimes `[4, H, W]` with the confidence and
 /// the intensity (`OUTPUT.intensity.npy`) — staged in `outputs` (planned with `output` and its
 /// [`companions`]), which the caller commits once every other output of the command is
@@ -118,9 +120,10 @@ pub fn decode_file(
             a.index_axis(Axis(0), 0).to_owned().into_dyn()
         }
     };
-    let [confidence, intensity] = companions(output);
+    let [confidence, intensity, depth] = companions(output);
     let files: Vec<(PathBuf, &Array4<f32>)> =
         match (&decoded.cube, &decoded.lifetime, &decoded.depth, &decoded.confidence, &decoded.intensity) {
+            (Some(x), _, Some(d), Some(c), _) => vec![(output.to_path_buf(), x), (depth, d), (confidence, c)],
             (Some(c), ..) => vec![(output.to_path_buf(), c)],
             (None, Some(l), _, Some(c), Some(i)) => vec![(output.to_path_buf(), l), (confidence, c), (intensity, i)],
             (None, None, Some(d), Some(c), _) => vec![(output.to_path_buf(), d), (confidence, c)],

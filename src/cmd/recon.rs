@@ -261,8 +261,9 @@ fn decode_file(
 ) -> Result<ExitCode> {
     // every output checked before any work: distinct, not a directory, writable; all of them
     // appear together once the last is written
-    let [confidence, intensity] = tcsense_infer::decode::companions(output);
-    let mut planned: Vec<(&str, &Path)> = vec![("-o", output), ("-o's confidence", &confidence), ("-o's intensity", &intensity)];
+    let [confidence, intensity, depth] = tcsense_infer::decode::companions(output);
+    let mut planned: Vec<(&str, &Path)> =
+        vec![("-o", output), ("-o's confidence", &confidence), ("-o's intensity", &intensity), ("-o's depth", &depth)];
     if let Some(p) = &products.ply {
         planned.push(("--ply", p));
     }
@@ -308,6 +309,14 @@ fn decode_file(
     let mut lines = Vec::new();
     if let Some(cube) = &d.cube {
         lines.push(format!("wrote {}: x̂ {:?} ({time} per frame, {name})", output.display(), shape(cube)));
+        if let (Some(depth), true) = (&d.depth, out.written.len() == 3) {
+            lines.push(format!(
+                "wrote {} and {}: the ranges of its peaks refined in the tap domain, depth {:?}",
+                out.written[1].display(),
+                out.written[2].display(),
+                shape(depth)
+            ));
+        }
     } else if let Some(lifetime) = &d.lifetime {
         let first = lifetime.index_axis(Axis(0), 0);
         let tau_m: Vec<f64> = first.index_axis(Axis(0), 0).iter().filter(|v| v.is_finite()).map(|&v| v as f64).collect();
