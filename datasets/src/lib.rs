@@ -13,6 +13,7 @@
 //!   `(seed, i)`.
 //! - [`import`]: users' cubes and depth/albedo maps into the same format.
 //! - [`montage`]: a PNG overview of one item.
+//! - [`grid`]: the reconstruction time grid `T = L·K` bins of `Δt = T_c/K`; [`error`].
 //!
 //! ```
 //! use tcsense_datasets::{grid::TimeGrid, lidar::LidarParams};

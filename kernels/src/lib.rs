@@ -7,8 +7,8 @@
 //!   `Autodiff<Flex>`), used by ADMM-Net's prior and by any network with 3×3 convs.
 //! - [`delay`]: the delay-tap convolution of ADMM-Net's delay-equivariant prior — a 3×3
 //!   convolution over the frame of the bins `t − d`, `t`, `t + d` (circular in `t`) — whose
-//!   im2col reads the three bins straight from the input; [`delay_op::delay_conv3x3`] is it as
-//!   a burn op.
+//!   im2col reads the three bins straight from the input; [`delay_op`]'s
+//!   [`delay_op::delay_conv3x3`] is it as a burn op.
 //! - [`pixel`]: the block-periodic per-pixel sensor operators in frame layout —
 //!   `y(r, c) = P_{n(r,c)} x(r, c)` ([`pixel::pixel_linear`]: `A`, `Aᵀ`, the back-projection)
 //!   and ADMM-Net's exact data-consistency solve `x = (AᵀA + ρI)⁻¹ v` through Woodbury

@@ -15,6 +15,16 @@
 //! (PNG pictures of codes), [`npy`] (`.npy` I/O and atomic writes), [`output`] (a command's
 //! outputs written all or none), [`waveform`] (the subpixel index, the periodic decay, the IRF
 //! kernel, `erf` and IRF descriptions every crate shares).
+//!
+//! The sensor as one object and its life: [`sensor`] (`Sensor`: codes, spec, nominal `A`,
+//! calibration, non-idealities, built once from one description), [`nonideal`] (a real
+//! sensor's departures from the model), [`sweep`] (laser-delay sweeps), [`calibration`]
+//! (dark and gain maps and the measured `A` from a sweep), [`sidecar`] (`y.meta.json`: the
+//! sensor that took a file of tap images). Codes judged and made: [`identify`]
+//! (identifiability and Cramér–Rao bounds in closed form), [`design`] (codes designed by
+//! identifiability), [`project`] (learned code probabilities projected exactly onto the
+//! constraints). Plumbing: [`digest`] (stable fingerprints), [`json`] (strict JSON reading),
+//! [`mem`] (up-front memory checks), [`error`].
 
 pub mod calibration;
 pub mod codes;

@@ -17,7 +17,12 @@
 //! - [`data`]: training cubes from a dataset;
 //! - [`bench`]: step and inference timings for `tcsense bench train`;
 //! - [`setup`]: the rules of starting, resuming and fine-tuning a run (architecture from the
-//!   run, start codes, a measured sensor).
+//!   run, start codes, a measured sensor);
+//! - [`request`]: a training as a front end asks for it (the flags, Python's keywords)
+//!   resolved into a run's config, codes and sensor — what the binary, Python and the demo
+//!   fill;
+//! - [`deep_sensing`]: codes learned jointly with the decoder, then projected exactly onto
+//!   the hardware's constraints.
 //!
 //! Opening a trained run for inference needs none of this: `tcsense_models::runs::open`.
 
