@@ -54,6 +54,7 @@ enum Command {
     /// streamed, with products (cube, depth, peaks, point clouds, lifetimes).
     Infer(cmd::deploy::InferArgs),
     /// Compare decoders on a dataset split: MSE, PSNR, depth errors, lifetime error, time.
+    #[command(after_help = cmd::recon::decoder_listing())]
     Eval(cmd::eval::EvalArgs),
     /// Design sweeps of the paper's Fig. 13 and Table 1 (TVAL3 MSE over a dataset).
     #[command(subcommand)]

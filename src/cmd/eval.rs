@@ -33,7 +33,9 @@ pub struct EvalArgs {
     /// only the nominal model, or the calibration given with --calibration).
     #[command(flatten)]
     nonideal: super::sensor::NonIdealArgs,
-    /// Decoders to compare: `tval3`, `lifetime-fit`, `depth-fit` (ranges fitted to the taps, no network; `depth-fit:1` one return per pixel), `admm-net:RUN`, `unet:RUN` (its ranges refined in the tap domain; `unet-raw:RUN` without) and/or `lifetime:RUN` (training run directories; RUN may be `zoo:NAME`), `zoo:NAME` (a zoo entry of any kind), `onnx:MODEL.onnx`; a decoder of cubes followed by `+fit` (`tval3+fit`, `zoo:admm-lidar-delay+fit`) also gives ranges, the cube's peaks refined in the tap domain; repeat the flag. Lifetimes of cube decoders come from the reconvolution fit (`tcsense lifetime`).
+    /// Decoders to compare, by their registry names (the list follows): `tval3`, `depth-fit:1`,
+    /// `unet:RUN`, `zoo:NAME`, `onnx:MODEL.onnx`, `tval3+fit` …; repeat the flag. Lifetimes of
+    /// cube decoders come from the reconvolution fit (`tcsense lifetime`).
     #[arg(long, num_args = 1.., default_value = "tval3")]
     decoder: Vec<String>,
     #[command(flatten)]
