@@ -267,6 +267,31 @@ fn depth_fit_to_the_taps() {
     assert_eq!(&read_npy(&d.join("tv.npy")).unwrap().shape()[2..], &[8, 8], "the cube [1, T, H, W]");
     assert_eq!(read_npy(&d.join("tv.depth.npy")).unwrap().shape(), &[1, 2, 8, 8]);
     assert_eq!(read_npy(&d.join("tv.confidence.npy")).unwrap().shape(), &[1, 2, 8, 8]);
+    // the ranges' products come with them; a decoder of cubes alone has none to give
+    let out = ok(
+        d,
+        &[
+            "reconstruct",
+            "tval3+fit",
+            "--codes",
+            "codes.json",
+            "--measurements",
+            "y.npy",
+            "--maxit",
+            "5",
+            "--ply",
+            "tv.ply",
+            "-o",
+            "tv5.npy",
+        ],
+    );
+    assert!(out.contains("tv.ply") && d.join("tv.ply").exists(), "{out}");
+    fails(
+        d,
+        &["reconstruct", "tval3", "--codes", "codes.json", "--measurements", "y.npy", "--maxit", "5", "--ply", "c.ply", "-o", "cube.npy"],
+        &["--ply", "no ranges", "tval3+fit"],
+    );
+    assert!(!d.join("c.ply").exists() && !d.join("cube.npy").exists(), "a refused command leaves no file");
     fails(d, &["reconstruct", "depth-fit:1", "--measurements", "y.npy", "-o", "nocodes.npy"], &["--codes", "any sensor"]);
     fails(
         d,

@@ -248,7 +248,7 @@ impl Registry {
     /// Open the decoder `name` (`NAME`, `NAME:ARG`, either followed by `+fit`).
     pub fn open(&self, name: &str, settings: &DecoderSettings, device: &Device) -> Result<NamedDecoder> {
         if let Some(inner) = name.strip_suffix(names::PLUS_FIT) {
-            let entry = self.entry(inner.split_once(':').map_or(inner, |(k, _)| k));
+            let entry = self.entry(entry_name(inner));
             if inner.ends_with(names::PLUS_FIT) || !entry.is_some_and(|e| e.cubes) {
                 return Err(InferError::InvalidParam {
                     field: "decoder",
@@ -282,6 +282,13 @@ impl Registry {
         }
         (entry.open)(&Opening { label: name, arg, settings, device })
     }
+}
+
+/// The entry a decoder name opens: `NAME` of `NAME` and `NAME:ARG`, either followed by `+fit`
+/// (whose settings are the inner decoder's).
+pub fn entry_name(name: &str) -> &str {
+    let inner = name.strip_suffix(names::PLUS_FIT).unwrap_or(name);
+    inner.split_once(':').map_or(inner, |(k, _)| k)
 }
 
 /// Open a decoder of the built-in table by name with TVAL3's options `tval3` and every other

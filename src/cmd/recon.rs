@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use tcsense_infer::figures;
 use tcsense_infer::products::{depth_map, plot_waveforms, write_ply, PeakOptions};
-use tcsense_infer::registry::{names, DecoderSettings, Registry};
+use tcsense_infer::registry::{entry_name, names, DecoderSettings, Registry};
 use tcsense_models::decoder::{Control, Decoder, Step};
 use tcsense_models::{TvNorm, Tval3Options};
 use tcsense_sensor::npy::{write_bytes, write_npy};
@@ -197,18 +197,18 @@ impl ReconstructArgs {
         }
     }
 
-    /// The settings of every decoder, from the flags.
     /// The settings of the decoder `name` from the flags (only its own are checked; the
     /// others keep their defaults).
     fn settings(&self, name: &str) -> Result<DecoderSettings> {
         let mut s = DecoderSettings::default();
-        if name.starts_with(names::TVAL3) {
+        let entry = entry_name(name);
+        if entry == names::TVAL3 {
             s.tval3 = self.tval3.options()?;
         }
-        if name.starts_with(names::LIFETIME_FIT) {
+        if entry == names::LIFETIME_FIT {
             s.tap_fit = self.fit.options()?;
         }
-        if name.starts_with(names::DEPTH_FIT) {
+        if entry == names::DEPTH_FIT {
             s.depth_fit.fit.window = self.fit.window;
             if let Some(r) = self.returns {
                 s.depth_fit.returns = r;
@@ -225,7 +225,8 @@ pub fn decoder_listing() -> String {
 
 pub fn reconstruct(a: ReconstructArgs) -> Result<ExitCode> {
     let name = a.name()?;
-    if a.returns.is_some() && !name.starts_with(names::DEPTH_FIT) {
+    let depth_fit = entry_name(&name) == names::DEPTH_FIT;
+    if a.returns.is_some() && !depth_fit {
         bail!("--returns: {name:?} is not depth-fit (its returns are fixed by its training)");
     }
     let opened = Registry::builtin().open(&name, &a.settings(&name)?, &a.device.device()?)?;
@@ -240,7 +241,7 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<ExitCode> {
         }
         (None, None) => bail!("--codes: {name} decodes any sensor; give the codes the tap images were taken with"),
     };
-    if name.starts_with(names::DEPTH_FIT) {
+    if depth_fit {
         if let Some(w) = tcsense_infer::fitted::alias_warning(sensor.nominal(), sensor.codes().length()) {
             eprintln!("{w}");
         }
@@ -309,14 +310,6 @@ fn decode_file(
     let mut lines = Vec::new();
     if let Some(cube) = &d.cube {
         lines.push(format!("wrote {}: x̂ {:?} ({time} per frame, {name})", output.display(), shape(cube)));
-        if let (Some(depth), true) = (&d.depth, out.written.len() == 3) {
-            lines.push(format!(
-                "wrote {} and {}: the ranges of its peaks refined in the tap domain, depth {:?}",
-                out.written[1].display(),
-                out.written[2].display(),
-                shape(depth)
-            ));
-        }
     } else if let Some(lifetime) = &d.lifetime {
         let first = lifetime.index_axis(Axis(0), 0);
         let tau_m: Vec<f64> = first.index_axis(Axis(0), 0).iter().filter(|v| v.is_finite()).map(|&v| v as f64).collect();
@@ -339,25 +332,39 @@ fn decode_file(
             )?;
             lines.push(format!("wrote {}", p.display()));
         }
-    } else {
-        let (depth, confidence) =
-            d.depth.as_ref().zip(d.confidence.as_ref()).with_context(|| format!("decoder {name} gives neither a cube nor depth"))?;
-        let (first_d, first_c) = (depth.index_axis(Axis(0), 0), confidence.index_axis(Axis(0), 0));
-        let found: Vec<usize> = first_d.outer_iter().map(|d| d.iter().filter(|v| v.is_finite()).count()).collect();
-        lines.push(format!(
-            "wrote {} and {}: depth {:?}, returns per bounce {found:?} (first frame) ({time} per frame, {name})",
-            out.written[0].display(),
-            out.written[1].display(),
-            shape(depth)
-        ));
-        if let Some(p) = &products.ply {
-            let n = write_ply(&outputs.stage(p)?, &first_d, &first_c, products.fov)?;
-            lines.push(format!("wrote {}: {n} points", p.display()));
+    }
+    // ranges, from a decoder of depth or beside a cube (`NAME+fit`), and their products
+    match (&d.depth, &d.confidence, &d.lifetime) {
+        (Some(depth), Some(confidence), None) => {
+            // the depth file and its confidence follow the cube where there is one
+            let at = usize::from(d.cube.is_some());
+            let (first_d, first_c) = (depth.index_axis(Axis(0), 0), confidence.index_axis(Axis(0), 0));
+            let found: Vec<usize> = first_d.outer_iter().map(|d| d.iter().filter(|v| v.is_finite()).count()).collect();
+            lines.push(format!(
+                "wrote {} and {}: depth {:?}, returns per bounce {found:?} (first frame) ({time} per frame, {name})",
+                out.written[at].display(),
+                out.written[at + 1].display(),
+                shape(depth)
+            ));
+            if let Some(p) = &products.ply {
+                let n = write_ply(&outputs.stage(p)?, &first_d, &first_c, products.fov)?;
+                lines.push(format!("wrote {}: {n} points", p.display()));
+            }
+            if let Some(p) = &products.png {
+                figures::map(
+                    &outputs.stage(p)?,
+                    &format!("Range of the first return ({name})"),
+                    &first_d.index_axis(Axis(0), 0),
+                    "range (m)",
+                )?;
+                lines.push(format!("wrote {}", p.display()));
+            }
         }
-        if let Some(p) = &products.png {
-            figures::map(&outputs.stage(p)?, &format!("Range of the first return ({name})"), &first_d.index_axis(Axis(0), 0), "range (m)")?;
-            lines.push(format!("wrote {}", p.display()));
+        // a product asked for that this decoder does not give: refused, nothing written
+        _ if products.ply.is_some() || (products.png.is_some() && d.lifetime.is_none()) => {
+            bail!("--ply/--png: {name} gives no ranges (a cube only); name it {name}+fit for the ranges of its peaks")
         }
+        _ => {}
     }
     outputs.commit()?;
     for l in lines {
