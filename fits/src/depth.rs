@@ -47,7 +47,7 @@ use rayon::prelude::*;
 use tcsense_sensor::waveform::subpixel_flat;
 use tcsense_sensor::{MeasurementMatrix, C};
 
-use crate::engine::{argmin, parabola_min, window_sums};
+use crate::engine::{argmin, parabola_min, window_rows, window_total};
 use crate::range::{cyclic_gap, RangeFitOptions, Templates, WindowFit, EXPLAINED, MIN_GAP};
 
 /// The pre-screen of a second return: one return of one amplitude over the window must remove at
@@ -298,6 +298,8 @@ pub struct RangeTemplates {
     /// Every pixel's single-return cost at every candidate, then its residual's product with
     /// every candidate's template, `[H·W][C]` (scratch).
     cost: Vec<f32>,
+    /// The box filter's row sums of `cost`, `[H·W][C]` (reused from frame to frame).
+    rows: Vec<f32>,
     /// Every pixel's residual after its single return, `[H·W]` (scratch).
     rr: Vec<f32>,
 }
@@ -318,6 +320,7 @@ impl RangeTemplates {
             delta: C * sensor.bin_width_s() / 2.0,
             opts: opts.clone(),
             cost: Vec::new(),
+            rows: Vec::new(),
             rr: Vec::new(),
         }
     }
@@ -363,12 +366,22 @@ impl RangeTemplates {
             }
         });
         // 2. summed over the window's lit pixels, the argmin over the cycle
-        let total = window_sums(&self.cost, &lit, (h, w), cands, fit.window);
-        let first: Vec<f64> = (0..h * w)
+        window_rows(&self.cost, &lit, (h, w), cands, fit.window, &mut self.rows);
+        let rows = &self.rows;
+        let first: Vec<f64> = (0..h)
             .into_par_iter()
-            .map(|p| if lit[p] { tpl.tau(argmin(&total[p * cands..(p + 1) * cands])) } else { f64::NAN })
+            .flat_map_iter(|i| {
+                let mut total = vec![0f32; cands];
+                let lit = &lit;
+                (0..w).map(move |j| {
+                    if !lit[i * w + j] {
+                        return f64::NAN;
+                    }
+                    window_total(rows, (i, j), (h, w), fit.window, &mut total);
+                    tpl.tau(argmin(&total))
+                })
+            })
             .collect();
-        drop(total);
         let cost = &self.cost;
 
         // 3. the window on the pixel's surface: search near the first estimate, refine

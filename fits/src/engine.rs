@@ -1,6 +1,6 @@
 //! The template-and-window-cost engine every fit of this crate runs on: a cost per pixel and
 //! candidate (a range, a lifetime), summed over a square window of lit pixels by one separable
-//! box filter ([`window_sums`]), the best candidate by one [`argmin`], and one refinement
+//! box filter ([`window_rows`], then [`window_total`] per pixel), the best candidate by one [`argmin`], and one refinement
 //! between candidates: the parabola through the best and its neighbours ([`parabola_min`]),
 //! or golden sections where the cost has kinks ([`golden`]).
 
@@ -17,16 +17,18 @@ pub fn argmin(v: &[f32]) -> usize {
     best
 }
 
-/// Every pixel's costs summed over the lit pixels of its `window × window` neighbourhood
-/// (clipped at the frame's edges): a separable box filter, along the rows, then down the
-/// columns. Unlit pixels' costs are not read; an unlit pixel still gets its window's sum.
+/// The first pass of the box filter: every pixel's costs summed over the lit pixels of its
+/// window's row (clipped at the frame's edges) into `rows`, resized and reused from call to
+/// call. Unlit pixels' costs are not read. [`window_total`] is the second pass.
 ///
 /// # Shapes
-/// - `cost`: `[H·W·G]` (pixel-major, `G` candidates per pixel), `lit`: `[H·W]` → `[H·W·G]`
-pub fn window_sums(cost: &[f32], lit: &[bool], (h, w): (usize, usize), g: usize, window: usize) -> Vec<f32> {
-    assert!(cost.len() == h * w * g && lit.len() == h * w, "window_sums: cost [H·W·G], lit [H·W]");
+/// - `cost`: `[H·W·G]` (pixel-major, `G` candidates per pixel), `lit`: `[H·W]` → `rows`
+///   `[H·W·G]`
+pub fn window_rows(cost: &[f32], lit: &[bool], (h, w): (usize, usize), g: usize, window: usize, rows: &mut Vec<f32>) {
+    assert!(cost.len() == h * w * g && lit.len() == h * w, "window_rows: cost [H·W·G], lit [H·W]");
     let half = window / 2;
-    let mut rows = vec![0f32; h * w * g];
+    rows.clear();
+    rows.resize(h * w * g, 0.0);
     rows.par_chunks_mut(w * g).enumerate().for_each(|(i, out)| {
         for j in 0..w {
             let o = &mut out[j * g..(j + 1) * g];
@@ -38,13 +40,20 @@ pub fn window_sums(cost: &[f32], lit: &[bool], (h, w): (usize, usize), g: usize,
             }
         }
     });
-    let mut total = vec![0f32; h * w * g];
-    total.par_chunks_mut(w * g).enumerate().for_each(|(i, out)| {
-        for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
-            out.iter_mut().zip(&rows[ii * w * g..(ii + 1) * w * g]).for_each(|(a, b)| *a += b);
-        }
-    });
-    total
+}
+
+/// The second pass of the box filter for pixel `(i, j)`: its window's row sums
+/// ([`window_rows`]) down the column, into `total` — the costs summed over the lit pixels of
+/// its `window × window` neighbourhood, ready for [`argmin`].
+///
+/// # Shapes
+/// - `rows`: `[H·W·G]` → `total`: `[G]`
+pub fn window_total(rows: &[f32], (i, j): (usize, usize), (h, w): (usize, usize), window: usize, total: &mut [f32]) {
+    let (g, half) = (total.len(), window / 2);
+    total.fill(0.0);
+    for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
+        total.iter_mut().zip(&rows[(ii * w + j) * g..(ii * w + j + 1) * g]).for_each(|(a, b)| *a += b);
+    }
 }
 
 /// The offset (within ±½ of the middle) of the minimum of the parabola through three costs
@@ -92,15 +101,17 @@ mod tests {
     use super::*;
 
     #[test]
-    fn window_sums_equal_the_direct_sum_over_lit_neighbours() {
+    fn the_box_filter_equals_the_direct_sum_over_lit_neighbours() {
         let (h, w, g) = (5, 6, 3);
         let cost: Vec<f32> = (0..h * w * g).map(|k| ((k * 7919) % 13) as f32).collect();
         let lit: Vec<bool> = (0..h * w).map(|p| p % 4 != 1).collect();
+        let (mut rows, mut total) = (Vec::new(), vec![0f32; g]);
         for window in [1, 3, 5] {
-            let s = window_sums(&cost, &lit, (h, w), g, window);
+            window_rows(&cost, &lit, (h, w), g, window, &mut rows);
             let half = window / 2;
             for i in 0..h {
                 for j in 0..w {
+                    window_total(&rows, (i, j), (h, w), window, &mut total);
                     for c in 0..g {
                         let mut want = 0.0;
                         for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
@@ -110,7 +121,7 @@ mod tests {
                                 }
                             }
                         }
-                        assert_eq!(s[(i * w + j) * g + c], want, "window {window} at ({i}, {j}, {c})");
+                        assert_eq!(total[c], want, "window {window} at ({i}, {j}, {c})");
                     }
                 }
             }

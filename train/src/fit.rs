@@ -382,8 +382,7 @@ fn fit<M: Network>(
         });
     }
     let data = Splits::load::<M>(cfg, &ds)?;
-    let bins_m = (C * sensor.bin_width_s() / 2.0, C * sensor.bin_width_s() * sensor.bins() as f64 / 2.0);
-    let range_m = bins_m.1;
+    let (bin_m, range_m) = (C * sensor.bin_width_s() / 2.0, C * sensor.bin_width_s() * sensor.bins() as f64 / 2.0);
     let (_, _, h, w) = data.train_x.dim();
     // the frame the network trains on: the crop of the augmentation, else the whole frame
     let (th, tw) = match &cfg.augment {
@@ -444,7 +443,7 @@ fn fit<M: Network>(
             }
             let xb = data.train_x.select(Axis(0), idx); // [B, T, H, W]
             let lb = data.train_labels.as_ref().map(|d| d.select(Axis(0), idx)); // [B, K, H, W] or [B, 5, H, W]
-            let batch = measure_step::<M>(cfg, &sensing, xb, lb, state.step, bins_m)?;
+            let batch = measure_step::<M>(cfg, &sensing, xb, lb, state.step, (bin_m, range_m))?;
             let target = match (&batch.labels, M::PREDICTION) {
                 (Some(l), Prediction::Lifetime) => Target::Lifetime { labels: l },
                 (Some(d), _) => Target::Depth { depth: d, range_m },

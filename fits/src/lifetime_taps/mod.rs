@@ -28,7 +28,7 @@ mod tables;
 use instrument::*;
 use tables::*;
 
-use crate::engine::{argmin, golden, window_sums};
+use crate::engine::{argmin, golden, window_rows, window_total};
 use ndarray::{Array2, ArrayView3, Axis};
 use rayon::prelude::*;
 use tcsense_sensor::waveform::subpixel_flat;
@@ -263,7 +263,8 @@ impl LifetimeTemplates {
             }
         });
         let lit: Vec<bool> = weight.iter().map(|&v| v > 0.0).collect();
-        let sums = window_sums(&cost, &lit, (h, w), g, self.window);
+        let mut rows = Vec::new();
+        window_rows(&cost, &lit, (h, w), g, self.window, &mut rows);
         drop(cost);
         // the argmin and the refinement
         let fits: Vec<(f32, f32)> = (0..h)
@@ -272,15 +273,16 @@ impl LifetimeTemplates {
                 // the window's pixels (index, type) and the templates between the half steps
                 let mut win: Vec<(usize, usize)> = Vec::with_capacity(self.window * self.window);
                 let mut between = Between::new(self.fine.len(), m);
-                let (sums, r, weight) = (&sums, &r, &weight);
+                let mut total = vec![0f32; g];
+                let (rows, r, weight) = (&rows, &r, &weight);
                 (0..w)
                     .map(move |j| {
                         let p = i * w + j;
                         if weight[p] <= 0.0 {
                             return (f32::NAN, f32::NAN);
                         }
-                        let total = &sums[p * g..(p + 1) * g];
-                        let best = argmin(total);
+                        window_total(rows, (i, j), (h, w), self.window, &mut total);
+                        let best = argmin(&total);
                         if best == 0 || best + 1 == g {
                             return (f32::NAN, f32::NAN);
                         }
