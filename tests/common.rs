@@ -64,7 +64,8 @@ pub fn burn_outputs(run: &LoadedRun, y: &Array4<f32>) -> Vec<Array4<f32>> {
         }
         TrainedNet::Lifetime(net) => {
             // burn gives ns and the confidence logit; the graph seconds and the probability
-            let out = to_array(net.predict(yt.clone(), &st)).unwrap();
+            // (the network on the fit's evidence: its product, the modes refined in the tap domain)
+            let out = net.decode_frames(&y.view(), &st).unwrap_or_else(|| to_array(net.predict(yt.clone(), &st)).unwrap());
             let mut l = out.slice(ndarray::s![.., ..4, .., ..]).to_owned();
             l.slice_mut(ndarray::s![.., ..3, .., ..]).mapv_inplace(|t| t * 1e-9);
             let conf = out.slice(ndarray::s![.., 4..5, .., ..]).mapv(|v| 1.0 / (1.0 + (-v).exp()));

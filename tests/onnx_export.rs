@@ -249,6 +249,65 @@ fn lifetime_decoder_in_onnx_runtime_equals_burn() {
     }
 }
 
+/// Every float parameter plus seeded Gaussian noise (a zero-initialised head made random).
+struct Jitter(u64);
+
+impl burn::module::ModuleMapper for Jitter {
+    fn map_float<const D: usize>(
+        &mut self,
+        param: burn::module::Param<burn::tensor::Tensor<D>>,
+    ) -> burn::module::Param<burn::tensor::Tensor<D>> {
+        self.0 += 1;
+        let device = Device::flex();
+        device.seed(self.0);
+        param.map(|t| {
+            let noise = burn::tensor::Tensor::<D>::random(t.dims(), burn::tensor::Distribution::Normal(0.0, 0.3), &device);
+            t + noise
+        })
+    }
+}
+
+#[test]
+fn lifetime_decoder_on_the_fit_evidence_in_onnx_runtime_equals_burn() {
+    use burn::module::Module;
+    let net = |m: usize, t: usize| {
+        ModelConfig::Lifetime(
+            LifetimeNetConfig::new(m, t)
+                .with_base_width(4)
+                .with_levels(2)
+                .with_points(24)
+                .with_pool(3)
+                .with_tau_range_ns([0.2, 12.0])
+                .with_input(tcsense_models::LifetimeInput::Costs),
+        )
+    };
+    let physical = Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 };
+    let mut run = random_run(net, (2, 2), Sampling::Heterodyne(4), physical, 6);
+    if let TrainedNet::Lifetime(n) = run.net {
+        run.net = TrainedNet::Lifetime(n.map(&mut Jitter(40)));
+    }
+    let dir = tempfile::tempdir().unwrap();
+    for (h, w) in [(8, 8), (12, 16)] {
+        let y = random_y(4, h, w, 12);
+        let want = burn_outputs(&run, &y);
+        let got = ort_outputs(&run, ExportOptions::default(), &y, dir.path(), "lifetime-evidence.onnx");
+        assert_eq!(got.len(), 3, "lifetime, confidence and the intensity the runtime adds");
+        for (k, name) in ["lifetime", "confidence", "intensity"].iter().enumerate() {
+            let d = rel_diff(&got[k], &want[k]);
+            assert!(d <= 1e-4, "{h}x{w}, {name}: ort differs from burn by {d:e} of the output scale");
+        }
+        // lifetimes on the grid's span, one component, a probability
+        let span = (0.2e-9 * (1.0 - 1e-5))..=(12.0e-9 * (1.0 + 1e-5));
+        let bad: Vec<f32> = got[0].slice(ndarray::s![.., ..3, .., ..]).iter().copied().filter(|v| !span.contains(&(*v as f64))).collect();
+        assert!(bad.is_empty(), "lifetimes off the grid's span: {bad:?}");
+        assert!(got[0].slice(ndarray::s![.., 3, .., ..]).iter().all(|&a| a == 1.0));
+        assert!(got[1].iter().all(|v| (0.0..=1.0).contains(v)));
+    }
+    // the runtime computes the evidence from the sensor: no matrix input, no calibration
+    let refused = export(&run, ExportOptions { matrix_input: true, ..Default::default() }).unwrap_err();
+    assert!(refused.to_string().contains("--matrix-input"), "{refused}");
+}
+
 #[test]
 fn measurements_that_break_the_metadata_are_refused() {
     let dir = tempfile::tempdir().unwrap();

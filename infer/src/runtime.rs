@@ -17,8 +17,11 @@ use tcsense_models::decoder::{check_measurements, Control, Decoded, Decoder, Ste
 use tcsense_models::net::{mask_depth, mask_lifetime};
 use tcsense_sensor::MeasurementMatrix;
 
-use crate::onnx::{OnnxMeta, INPUT, MATRIX_INPUT};
+use crate::onnx::meta::EvidenceNote;
+use crate::onnx::{OnnxMeta, EVIDENCE_INPUT, INPUT, LOG_LIKELIHOOD_INPUT, MATRIX_INPUT};
 use crate::{InferError, Result};
+use tcsense_fits::lifetime_taps::{Instrument, LifetimeCosts, LifetimeTemplates};
+use tcsense_models::lifetime::{evidence_at, frame_templates};
 
 /// The ONNX Runtime release the toolkit is built and tested against.
 pub const ORT_VERSION: &str = "1.31.1";
@@ -83,6 +86,9 @@ pub struct OnnxModel {
     pub sensor: MeasurementMatrix,
     /// `A` as the `sensor_matrix` input, `[N, M, T]` (models exported with it).
     matrix: Option<ndarray::Array3<f32>>,
+    /// A lifetime decoder on the fit's evidence: the templates at a fixed instrument (a
+    /// stream's), else the instrument is fitted to every frame.
+    templates: Option<LifetimeTemplates>,
 }
 
 impl std::fmt::Debug for OnnxModel {
@@ -114,7 +120,7 @@ impl OnnxModel {
         };
         let sensor = meta.matrix()?;
         let inputs: Vec<&str> = session.inputs().iter().map(|i| i.name()).collect();
-        let want: Vec<&str> = if meta.matrix_input { vec![INPUT, MATRIX_INPUT] } else { vec![INPUT] };
+        let want: Vec<&str> = meta.graph_inputs();
         if inputs != want {
             return Err(InferError::File {
                 path: path.to_path_buf(),
@@ -122,14 +128,48 @@ impl OnnxModel {
             });
         }
         let outputs: Vec<&str> = session.outputs().iter().map(|o| o.name()).collect();
-        if outputs != meta.outputs() {
+        if outputs != meta.graph_outputs() {
             return Err(InferError::File {
                 path: path.to_path_buf(),
-                msg: format!("graph outputs {outputs:?}; its metadata expects {:?}", meta.outputs()),
+                msg: format!("graph outputs {outputs:?}; its metadata expects {:?}", meta.graph_outputs()),
             });
         }
         let matrix = meta.matrix_input.then(|| sensor.a().to_owned());
-        Ok(OnnxModel { path: path.to_path_buf(), session, meta, sensor, matrix })
+        Ok(OnnxModel { path: path.to_path_buf(), session, meta, sensor, matrix, templates: None })
+    }
+
+    /// A lifetime decoder on the fit's evidence: fix the instrument (a recording's onset and
+    /// IRF width, fitted once) instead of fitting it to every frame. No effect on other models.
+    pub fn set_instrument(&mut self, instrument: Instrument) {
+        if let Some(e) = &self.meta.evidence {
+            self.templates = Some(LifetimeTemplates::new(&self.sensor, instrument, &e.fit_options()));
+        }
+    }
+
+    /// The fit's evidence of every frame of `y` `[B, M, H, W]`: features `[B, F, H, W]`,
+    /// log-likelihood `[B, G, H, W]`, and per frame its templates (when not the fixed ones) and
+    /// costs, for the refinement (models on the evidence only).
+    fn evidence(
+        &self,
+        y: &ArrayView4<'_, f32>,
+        e: &EvidenceNote,
+    ) -> (Array4<f32>, Array4<f32>, Vec<(Option<LifetimeTemplates>, LifetimeCosts)>) {
+        let (b, _, h, w) = y.dim();
+        let f = tcsense_fits::lifetime_taps::evidence::feature_channels(e.points, e.pool);
+        let mut features = Array4::zeros((b, f, h, w));
+        let mut skip = Array4::zeros((b, e.points, h, w));
+        let mut frames = Vec::with_capacity(b);
+        let opts = e.fit_options();
+        for i in 0..b {
+            let yi = y.index_axis(ndarray::Axis(0), i);
+            let own = self.templates.is_none().then(|| frame_templates(&yi, &self.sensor, &opts));
+            let Some(templates) = own.as_ref().or(self.templates.as_ref()) else { unreachable!("templates fixed or fitted") };
+            let (ev, costs) = evidence_at(&yi, templates, e.pool);
+            features.index_axis_mut(ndarray::Axis(0), i).assign(&ev.features);
+            skip.index_axis_mut(ndarray::Axis(0), i).assign(&ev.skip);
+            frames.push((own, costs));
+        }
+        (features, skip, frames)
     }
 
     /// The model file.
@@ -163,6 +203,45 @@ impl OnnxModel {
         }
         m.assign(&a);
         Ok(())
+    }
+
+    /// [`Self::run`] of a lifetime decoder on the fit's evidence: the evidence, the graph (the
+    /// posterior's mode), the mode refined in the tap domain where it is the fit's own argmin
+    /// ([`LifetimeTemplates::refine_modes`], as burn's decoder does), and the intensity.
+    fn run_on_evidence(&mut self, y: &ArrayView4<'_, f32>, e: &EvidenceNote) -> Result<Vec<Array4<f32>>> {
+        let (features, skip, frames) = self.evidence(y, e);
+        let path = self.path.clone();
+        let fail = |e: ort::Error| InferError::File { path: path.clone(), msg: format!("ONNX Runtime: {e}") };
+        let f = TensorRef::from_array_view(features.view()).map_err(fail)?;
+        let s = TensorRef::from_array_view(skip.view()).map_err(fail)?;
+        let outputs = self.session.run(ort::inputs![EVIDENCE_INPUT => f, LOG_LIKELIHOOD_INPUT => s]).map_err(fail)?;
+        let mut out: Vec<Array4<f32>> = self
+            .meta
+            .graph_outputs()
+            .iter()
+            .map(|n| {
+                let v: ArrayViewD<'_, f32> = outputs[*n].try_extract_array::<f32>().map_err(fail)?;
+                v.into_dimensionality::<Ix4>()
+                    .map(|v| v.to_owned())
+                    .map_err(|e| InferError::File { path: path.clone(), msg: format!("output {n}: {e}") })
+            })
+            .collect::<Result<_>>()?;
+        drop(outputs);
+        let (_, _, h, w) = y.dim();
+        for (i, (own, costs)) in frames.iter().enumerate() {
+            let Some(templates) = own.as_ref().or(self.templates.as_ref()) else { unreachable!("templates fixed or fitted") };
+            let (l0, step) = templates.log_grid();
+            let lifetime = &mut out[0];
+            let u: Vec<f32> =
+                lifetime.slice(ndarray::s![i, 0, .., ..]).iter().map(|&t| ((t as f64).ln() - l0) as f32 / step as f32).collect();
+            let tau = templates.refine_modes(&y.index_axis(ndarray::Axis(0), i), costs, &u);
+            for c in 0..3 {
+                lifetime.slice_mut(ndarray::s![i, c, .., ..]).assign(&tau);
+            }
+            debug_assert_eq!(tau.dim(), (h, w));
+        }
+        out.push(y.sum_axis(ndarray::Axis(1)).insert_axis(ndarray::Axis(1)));
+        Ok(out)
     }
 
     /// Check measurements `[B, M, H, W]` against the metadata: taps, the frame rule, finite.
@@ -211,6 +290,9 @@ impl OnnxModel {
         self.check(&y, "input")?;
         let fail = |e: ort::Error| InferError::File { path: self.path.clone(), msg: format!("ONNX Runtime: {e}") };
         let y = y.as_standard_layout();
+        if let Some(e) = self.meta.evidence {
+            return self.run_on_evidence(&y.view(), &e);
+        }
         let input = TensorRef::from_array_view(y.view()).map_err(fail)?;
         let names = self.meta.outputs();
         let outputs = match &self.matrix {

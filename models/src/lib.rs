@@ -45,7 +45,7 @@ pub use admm::{AdmmNet, AdmmNetConfig, Prior};
 /// The burn device type (CPU `Device::flex()` by default).
 pub use burn::tensor::Device;
 pub use decoder::{Control, Decoded, Decoder};
-pub use lifetime::{LifetimeNet, LifetimeNetConfig};
+pub use lifetime::{LifetimeInput, LifetimeNet, LifetimeNetConfig};
 pub use sensor_tensors::SensorTensors;
 pub use tval3::{tval3, TvNorm, Tval3Options, Tval3Report};
 pub use unet::{Unet, UnetConfig, UnetHead, UnetInput};

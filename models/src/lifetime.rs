@@ -28,12 +28,17 @@
 use burn::config::Config;
 use burn::module::Module;
 use burn::nn::conv::{Conv2d, Conv2dConfig};
+use burn::nn::Initializer;
+use burn::tensor::activation::log_softmax;
 use burn::tensor::activation::sigmoid;
+use burn::tensor::Int;
 use burn::tensor::{Device, Tensor, TensorData};
 
 use crate::net::{Network, Prediction};
 use crate::sensor_tensors::SensorTensors;
 use crate::unet::{conv1x1, trunk, trunk_flops, Block, Unet, NORM_FLOOR};
+use tcsense_fits::lifetime_taps::evidence::{evidence, feature_channels, Evidence};
+use tcsense_fits::lifetime_taps::{estimate_instrument, LifetimeCosts, LifetimeTemplates, TapFitOptions};
 
 /// Channels of the prediction: `τ_m`, `τ₁`, `τ₂` (ns), `α₁`, confidence logit.
 pub const OUTPUTS: usize = 5;
@@ -59,6 +64,27 @@ pub struct LifetimeNetConfig {
     /// Lifetimes the outputs span, `[τ_lo, τ_hi]` (ns).
     #[config(default = "[0.05, 25.0]")]
     pub tau_range_ns: [f64; 2],
+    /// What the network reads (`harmonics` in runs written before the fit's evidence).
+    #[config(default = "LifetimeInput::Harmonics")]
+    pub input: LifetimeInput,
+    /// Points `G` of the log grid of lifetimes over `tau_range_ns` ([`LifetimeInput::Costs`]).
+    #[config(default = 96)]
+    pub points: usize,
+    /// Grid points pooled into one feature channel ([`LifetimeInput::Costs`]).
+    #[config(default = 2)]
+    pub pool: usize,
+}
+
+/// What the lifetime decoder reads from the taps (see the module documentation).
+#[derive(Config, Debug, PartialEq, Eq, Copy)]
+pub enum LifetimeInput {
+    /// The harmonics of `Aᵀy`, turned by the frame's own phase.
+    Harmonics,
+    /// The fit to the taps' evidence ([`tcsense_fits::lifetime_taps::evidence`]): its
+    /// log-likelihood of every lifetime of a log grid (the instrument estimated from the frame)
+    /// plus a learned log-prior over the grid, read from the per-pixel posteriors of the
+    /// neighbourhood; the lifetime is the posterior's mode, refined by a parabola.
+    Costs,
 }
 
 /// The network.
@@ -70,6 +96,10 @@ pub struct LifetimeNet {
     harmonics: usize,
     bins: usize,
     tau_range_ns: [f64; 2],
+    /// Grid points `G` of the fit's evidence; 0 for the harmonics ([`LifetimeInput::Costs`]).
+    points: usize,
+    /// Grid points pooled into one feature channel.
+    pool: usize,
 }
 
 impl LifetimeNetConfig {
@@ -78,9 +108,21 @@ impl LifetimeNetConfig {
         self.base_width << l
     }
 
-    /// Input channels of the U-Net: `2K + 1` harmonics and the relative brightness.
+    /// Input channels of the U-Net: `2K + 1` harmonics and the relative brightness, or the
+    /// pooled per-pixel posteriors, the log intensity and the lit mask.
     pub fn features(&self) -> usize {
-        2 * self.harmonics + 2
+        match self.input {
+            LifetimeInput::Harmonics => 2 * self.harmonics + 2,
+            LifetimeInput::Costs => feature_channels(self.points, self.pool),
+        }
+    }
+
+    /// Channels of the head: the five outputs, or a log-prior per grid point and the confidence.
+    pub fn head_channels(&self) -> usize {
+        match self.input {
+            LifetimeInput::Harmonics => OUTPUTS,
+            LifetimeInput::Costs => self.points + 1,
+        }
     }
 
     /// Frames must be multiples of this (the model pads to it internally).
@@ -93,17 +135,58 @@ impl LifetimeNetConfig {
         let down =
             (0..self.levels).map(|l| Block::new(if l == 0 { self.features() } else { self.width(l - 1) }, self.width(l), device)).collect();
         let up = (0..self.levels.saturating_sub(1)).map(|l| Block::new(self.width(l + 1) + self.width(l), self.width(l), device)).collect();
-        let head = Conv2dConfig::new([self.width(0), OUTPUTS], [1, 1]).init(device);
-        LifetimeNet { down, up, head, harmonics: self.harmonics, bins: self.bins, tau_range_ns: self.tau_range_ns }
+        let costs = self.input == LifetimeInput::Costs;
+        // the evidence's log-prior starts at zero: the untrained network is the fit
+        let mut head = Conv2dConfig::new([self.width(0), self.head_channels()], [1, 1]);
+        if costs {
+            head = head.with_initializer(Initializer::Zeros);
+        }
+        let head = head.init(device);
+        LifetimeNet {
+            down,
+            up,
+            head,
+            harmonics: self.harmonics,
+            bins: self.bins,
+            tau_range_ns: self.tau_range_ns,
+            points: if costs { self.points } else { 0 },
+            pool: self.pool,
+        }
     }
 
     /// Multiply-adds ×2 per frame of `h × w`: `Aᵀ` and the harmonics folded into one
     /// `(2K+1) × M` matrix per pixel (as exported), the U-Net and the head.
     pub fn flops(&self, h: usize, w: usize) -> f64 {
         let px = (h * w) as f64;
-        2.0 * px * ((2 * self.harmonics + 1) * self.taps) as f64
+        let input = match self.input {
+            LifetimeInput::Harmonics => 2.0 * px * ((2 * self.harmonics + 1) * self.taps) as f64,
+            LifetimeInput::Costs => 0.0, // the evidence is the fit's, counted with it
+        };
+        input
             + trunk_flops(self.features(), self.levels, |l| self.width(l), h, w)
-            + 2.0 * px * (self.width(0) * OUTPUTS) as f64
+            + 2.0 * px * (self.width(0) * self.head_channels()) as f64
+    }
+
+    /// The lifetime grid of the fit's evidence, `ln τ₀` (τ in ns) and the step of `ln τ`;
+    /// `None` for the harmonics.
+    pub fn log_grid_ns(&self) -> Option<(f64, f64)> {
+        let [lo, hi] = self.tau_range_ns;
+        (self.input == LifetimeInput::Costs).then(|| (lo.ln(), (hi / lo).ln() / (self.points.max(2) - 1) as f64))
+    }
+
+    /// Checks the settings; the error names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        let [lo, hi] = self.tau_range_ns;
+        if !(lo > 0.0 && hi > lo && hi.is_finite()) {
+            return Err(format!("tau_range_ns: [{lo}, {hi}], expected 0 < lo < hi"));
+        }
+        if self.input == LifetimeInput::Costs && !(3..=1024).contains(&self.points) {
+            return Err(format!("points: {}, expected 3 to 1024 points of the lifetime grid", self.points));
+        }
+        if self.pool == 0 || self.pool > self.points {
+            return Err(format!("pool: {}, expected 1 to points ({})", self.pool, self.points));
+        }
+        Ok(())
     }
 }
 
@@ -201,6 +284,102 @@ impl LifetimeNet {
         )
     }
 
+    /// Whether the network reads the fit's evidence ([`LifetimeInput::Costs`]).
+    pub fn input_kind(&self) -> LifetimeInput {
+        if self.points > 0 {
+            LifetimeInput::Costs
+        } else {
+            LifetimeInput::Harmonics
+        }
+    }
+
+    /// Points `G` of the lifetime grid and the points pooled per feature channel.
+    pub fn grid_points(&self) -> (usize, usize) {
+        (self.points, self.pool)
+    }
+
+    /// The lifetime grid: `ln τ₀` (τ in ns) and the step of `ln τ`.
+    pub fn log_grid_ns(&self) -> (f64, f64) {
+        let [lo, hi] = self.tau_range_ns;
+        (lo.ln(), (hi / lo).ln() / (self.points.max(2) - 1) as f64)
+    }
+
+    /// The settings of the fit whose evidence the network reads: its grid, every lit pixel
+    /// (no intensity floor: the network decides), the instrument fitted to the frame.
+    pub fn fit_options(&self) -> TapFitOptions {
+        let [lo, hi] = self.tau_range_ns;
+        TapFitOptions { tau_range_s: [lo * 1e-9, hi * 1e-9], points: self.points, min_intensity: 0.0, ..Default::default() }
+    }
+
+    /// The fit's evidence of every frame of a batch, on the CPU (no gradient reaches `y`).
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]` → features `[B, F, H, W]`, skip `[B, G, H, W]`
+    pub fn evidence(&self, y: Tensor<4>, sensor: &SensorTensors) -> (Tensor<4>, Tensor<4>) {
+        let [b, m, h, w] = y.dims();
+        let device = y.device();
+        let v: Vec<f32> = y.into_data().convert::<f32>().try_into_vec::<f32>().unwrap_or_default();
+        let opts = self.fit_options();
+        let (g, f) = (self.points, feature_channels(self.points, self.pool));
+        let mut features: Vec<f32> = Vec::with_capacity(b * f * h * w);
+        let mut skip: Vec<f32> = Vec::with_capacity(b * g * h * w);
+        for i in 0..b {
+            let yi = ndarray::ArrayView3::from_shape((m, h, w), &v[i * m * h * w..(i + 1) * m * h * w]).expect("[M, H, W] frame");
+            let e = frame_evidence(&yi, &sensor.matrix, &opts, self.pool);
+            features.extend(e.features.iter());
+            skip.extend(e.skip.iter());
+        }
+        (
+            Tensor::from_data(TensorData::new(features, [b, f, h, w]), &device),
+            Tensor::from_data(TensorData::new(skip, [b, g, h, w]), &device),
+        )
+    }
+
+    /// The posterior's logits over the grid (the fit's log-likelihood plus the learned
+    /// log-prior) and the confidence logit.
+    ///
+    /// # Shapes
+    /// - `features`: `[B, F, H, W]`, `skip`: `[B, G, H, W]` → `([B, G, H, W], [B, 1, H, W])`
+    pub fn posterior(&self, features: Tensor<4>, skip: Tensor<4>) -> (Tensor<4>, Tensor<4>) {
+        let o = conv1x1(&self.head, trunk(&self.down, &self.up, features)); // [B, G + 1, H, W]
+        (skip + o.clone().narrow(1, 0, self.points), o.narrow(1, self.points, 1))
+    }
+
+    /// The lifetime (ns) at a continuous grid coordinate `u`.
+    ///
+    /// # Shapes
+    /// - `u`: `[B, 1, H, W]` → `[B, 1, H, W]`
+    fn tau_at(&self, u: Tensor<4>) -> Tensor<4> {
+        let (l0, step) = self.log_grid_ns();
+        u.mul_scalar(step).add_scalar(l0).exp()
+    }
+
+    /// The five outputs from a lifetime and the confidence logit: `τ_m = τ₁ = τ₂`, `α₁ = 1`.
+    fn one_component(tau: Tensor<4>, logit: Tensor<4>) -> Tensor<4> {
+        let one = tau.ones_like();
+        Tensor::cat(vec![tau.clone(), tau.clone(), tau, one, logit], 1)
+    }
+
+    /// The posterior's mode refined by a parabola through its log at the neighbouring points
+    /// (within half a step; none at the grid's ends or where a neighbour ties with it).
+    ///
+    /// # Shapes
+    /// - `logits`: `[B, G, H, W]` → `u` `[B, 1, H, W]` (grid coordinate)
+    pub fn mode(logits: Tensor<4>) -> Tensor<4> {
+        let g = logits.dims()[1];
+        let best: Tensor<4, Int> = logits.clone().argmax(1); // [B, 1, H, W]
+        let lo = best.clone().sub_scalar(1).clamp_min(0);
+        let hi = best.clone().add_scalar(1).clamp_max(g as i64 - 1);
+        let (l0, lm, lp) = (logits.clone().gather(1, best.clone()), logits.clone().gather(1, lo), logits.gather(1, hi));
+        // an interior maximum: both neighbours below it (at either end of the grid a neighbour
+        // is the point itself)
+        let interior = lm.clone().lower(l0.clone()).bool_and(lp.clone().lower(l0.clone()));
+        let curv = lm.clone() + lp.clone() - l0.mul_scalar(2.0); // < 0 there
+        let delta = ((lm - lp) / curv.clone().clamp_max(-1e-12)).mul_scalar(0.5).clamp(-0.5, 0.5);
+        let delta = delta.mask_fill(interior.bool_not(), 0.0);
+        best.float() + delta
+    }
+
     /// Encoder blocks, finest level first (for exporters).
     pub fn down(&self) -> &[Block] {
         &self.down
@@ -237,8 +416,102 @@ impl Network for LifetimeNet {
 
     /// `[B, 5, H, W]`: `τ_m`, `τ₁`, `τ₂` (ns), `α₁`, confidence logit.
     fn predict(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
-        self.from_adjoint(sensor.adjoint(y))
+        match self.input_kind() {
+            LifetimeInput::Harmonics => self.from_adjoint(sensor.adjoint(y)),
+            LifetimeInput::Costs => {
+                let (features, skip) = self.evidence(y, sensor);
+                let (logits, confidence) = self.posterior(features, skip);
+                Self::one_component(self.tau_at(Self::mode(logits)), confidence)
+            }
+        }
     }
+
+    /// On the fit's evidence: per frame the instrument, the evidence, the posterior's mode, and
+    /// the mode refined in the tap domain where it is the fit's own argmin
+    /// ([`LifetimeTemplates::refine_modes`]), `[B, 5, H, W]` as [`Network::predict`].
+    fn decode_frames(&self, y: &ndarray::ArrayView4<'_, f32>, sensor: &SensorTensors) -> Option<ndarray::Array4<f32>> {
+        (self.input_kind() == LifetimeInput::Costs).then(|| {
+            let (b, _, h, w) = y.dim();
+            let device = sensor.lambda.device();
+            let opts = self.fit_options();
+            let mut out = ndarray::Array4::<f32>::zeros((b, OUTPUTS, h, w));
+            for i in 0..b {
+                let yi = y.index_axis(ndarray::Axis(0), i);
+                let templates = frame_templates(&yi, &sensor.matrix, &opts);
+                let (e, costs) = evidence_at(&yi, &templates, self.pool);
+                let tensor = |a: ndarray::Array3<f32>| {
+                    let (c, h, w) = a.dim();
+                    Tensor::<4>::from_data(TensorData::new(a.into_raw_vec_and_offset().0, [1, c, h, w]), &device)
+                };
+                let (logits, confidence) = self.posterior(tensor(e.features), tensor(e.skip));
+                let u: Vec<f32> = Self::mode(logits).into_data().try_into_vec().unwrap_or_default();
+                let conf: Vec<f32> = confidence.into_data().try_into_vec().unwrap_or_default();
+                let tau = templates.refine_modes(&yi, &costs, &u);
+                let mut o = out.index_axis_mut(ndarray::Axis(0), i);
+                for ((r, c), &t) in tau.indexed_iter() {
+                    let ns = t * 1e9;
+                    o[(0, r, c)] = ns;
+                    o[(1, r, c)] = ns;
+                    o[(2, r, c)] = ns;
+                    o[(3, r, c)] = 1.0;
+                    o[(4, r, c)] = conf[r * w + c];
+                }
+            }
+            out
+        })
+    }
+
+    /// The harmonics' five outputs; with the fit's evidence, the five outputs at the
+    /// posterior's mean grid point (differentiable) and the log-posterior over the grid,
+    /// `[B, 5 + G, H, W]`.
+    fn train_output(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
+        match self.input_kind() {
+            LifetimeInput::Harmonics => self.from_adjoint(sensor.adjoint(y)),
+            LifetimeInput::Costs => {
+                let (features, skip) = self.evidence(y, sensor);
+                let (logits, confidence) = self.posterior(features, skip);
+                let logp = log_softmax(logits, 1);
+                let g = self.points;
+                let index: Vec<f32> = (0..g).map(|i| i as f32).collect();
+                let index = Tensor::<1>::from_floats(index.as_slice(), &logp.device()).reshape([1, g, 1, 1]);
+                let mean = (logp.clone().exp() * index).sum_dim(1);
+                Tensor::cat(vec![Self::one_component(self.tau_at(mean), confidence), logp], 1)
+            }
+        }
+    }
+}
+
+/// The fit's templates for one frame through sensor `a`: the instrument estimated from the
+/// frame.
+///
+/// # Shapes
+/// - `y`: `[M, H, W]`
+pub fn frame_templates(y: &ndarray::ArrayView3<'_, f32>, a: &tcsense_sensor::MeasurementMatrix, opts: &TapFitOptions) -> LifetimeTemplates {
+    LifetimeTemplates::new(a, estimate_instrument(y, a, opts), opts)
+}
+
+/// The fit's evidence of one frame through sensor `a`: the instrument estimated from the
+/// frame, the templates at it, the costs, the evidence.
+///
+/// # Shapes
+/// - `y`: `[M, H, W]` → [`Evidence`] of `[·, H, W]`
+pub fn frame_evidence(
+    y: &ndarray::ArrayView3<'_, f32>,
+    a: &tcsense_sensor::MeasurementMatrix,
+    opts: &TapFitOptions,
+    pool: usize,
+) -> Evidence {
+    evidence_at(y, &frame_templates(y, a, opts), pool).0
+}
+
+/// The fit's evidence of one frame through templates built once (a stream's instrument), and
+/// the costs it came from (for [`LifetimeTemplates::refine_modes`]).
+///
+/// # Shapes
+/// - `y`: `[M, H, W]` → [`Evidence`] of `[·, H, W]`
+pub fn evidence_at(y: &ndarray::ArrayView3<'_, f32>, templates: &LifetimeTemplates, pool: usize) -> (Evidence, LifetimeCosts) {
+    let costs = templates.costs(y);
+    (evidence(&costs, &y.sum_axis(ndarray::Axis(0)), y.dim().0, pool), costs)
 }
 
 #[cfg(test)]
@@ -299,6 +572,77 @@ mod tests {
         // y and 10·y give the same lifetimes
         let d10 = (net.predict(y.clone() * 10.0, &st) - net.predict(y, &st)).abs().max().into_scalar::<f32>();
         assert!(d10 < 1e-4, "scale changes the output by {d10}");
+    }
+
+    /// The network on the fit's evidence, untrained (its log-prior is zero), is the fit: on
+    /// clean taps of a two-lifetime scene at an onset of its own, the posterior's mode is the
+    /// truth to a step of the grid and, refined in the tap domain, to 1 %; τ₁ = τ₂ = τ_m, α₁ = 1;
+    /// training sees the posterior's mean and the log-posterior.
+    #[test]
+    fn on_the_fit_evidence_an_untrained_network_is_the_fit() {
+        use tcsense_sensor::waveform::{decay_bin_averages, Cycle, IrfKernel};
+        let device = Device::flex();
+        let codes = tcsense_sensor::generate::prototype_codes(1).unwrap();
+        let spec = tcsense_sensor::SensorParams {
+            sampling: tcsense_sensor::Sampling::Heterodyne(4),
+            irf: tcsense_sensor::Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 },
+            ..tcsense_sensor::SensorParams::from_codes(&codes)
+        }
+        .validate()
+        .unwrap();
+        let a = MeasurementMatrix::synthesize(&codes, &spec).unwrap();
+        let (h, w, t) = (8, 8, a.bins());
+        let c = Cycle::new(t, a.bin_width_s());
+        let tau = |j: usize| -> f64 {
+            if j < 4 {
+                1.2e-9
+            } else {
+                3.5e-9
+            }
+        };
+        let k = IrfKernel::gaussian(c, 0.5e-9);
+        let curves = [k.apply(&decay_bin_averages(c, 1.2e-9, 9e-9)), k.apply(&decay_bin_averages(c, 3.5e-9, 9e-9))];
+        let x = Tensor::<4>::from_data(
+            TensorData::new(
+                (0..t * h * w).map(|i| (1e3 * curves[((i % w) >= 4) as usize][i / (h * w)]) as f32).collect::<Vec<f32>>(),
+                [1, t, h, w],
+            ),
+            &device,
+        );
+        let st = SensorTensors::new(&a, h, w, &device).unwrap();
+        let y = st.forward(x);
+        let cfg = LifetimeNetConfig::new(4, t).with_base_width(4).with_levels(2).with_input(LifetimeInput::Costs).with_points(64);
+        assert!(cfg.validate().is_ok() && cfg.clone().with_pool(0).validate().is_err());
+        let net = cfg.init(&device);
+        let out: Vec<f32> = net.predict(y.clone(), &st).into_data().try_into_vec().unwrap();
+        assert_eq!(out.len(), OUTPUTS * h * w);
+        let yv: Vec<f32> = y.clone().into_data().try_into_vec().unwrap();
+        let ya = ndarray::Array4::from_shape_vec((1, 4, h, w), yv).unwrap();
+        let refined = net.decode_frames(&ya.view(), &st).expect("the evidence's product");
+        let (_, step) = net.log_grid_ns();
+        for p in 0..h * w {
+            let (tm, t1, t2, a1) = (out[p], out[h * w + p], out[2 * h * w + p], out[3 * h * w + p]);
+            let want = tau(p % w) * 1e9;
+            // the window straddles the edge at columns 3 and 4
+            if !(3..=4).contains(&(p % w)) {
+                assert!(((tm as f64).ln() - want.ln()).abs() < step, "pixel {p}: mode τ {tm} ns, want {want}");
+                let r = refined[(0, 0, p / w, p % w)] as f64;
+                assert!((r - want).abs() < 0.01 * want, "pixel {p}: refined τ {r} ns, want {want}");
+            }
+            assert!(tm == t1 && tm == t2 && a1 == 1.0);
+            assert_eq!(refined[(0, 4, p / w, p % w)], out[4 * h * w + p], "the same confidence");
+        }
+        let train = net.train_output(y, &st);
+        assert_eq!(train.dims(), [1, OUTPUTS + 64, h, w]);
+        let total: Vec<f32> = train.narrow(1, OUTPUTS, 64).exp().sum_dim(1).into_data().try_into_vec().unwrap();
+        assert!(total.iter().all(|v| (v - 1.0).abs() < 1e-4), "a posterior sums to 1: {total:?}");
+        // the mode's parabola: a quadratic log-posterior peaking at 2.3 gives 2.3
+        let logits = Tensor::<4>::from_data(
+            TensorData::new((0..6).map(|i| -((i as f32 - 2.3).powi(2))).collect::<Vec<f32>>(), [1, 6, 1, 1]),
+            &device,
+        );
+        let u: f32 = LifetimeNet::mode(logits).into_scalar();
+        assert!((u - 2.3).abs() < 1e-5, "{u}");
     }
 
     #[test]

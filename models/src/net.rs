@@ -50,6 +50,17 @@ pub trait Network: Module + Sized + Send + 'static {
     fn train_output(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
         self.predict(y, sensor)
     }
+
+    /// The decoder's product of frames when it is more than [`Network::predict`] (work off
+    /// the tensors: the lifetime network on the fit's evidence refines its modes in the tap
+    /// domain); `None`: `predict`'s, frame by frame.
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]` → as [`Network::predict`]
+    fn decode_frames(&self, y: &ArrayView4<'_, f32>, sensor: &SensorTensors) -> Option<Array4<f32>> {
+        let _ = (y, sensor);
+        None
+    }
 }
 
 /// An ndarray batch as a tensor on `device`.
@@ -193,7 +204,10 @@ impl<M: Network> Decoder for NetDecoder<M> {
         for i in 0..b {
             ctl.check()?;
             let yi = y.slice_axis(Axis(0), ndarray::Slice::from(i..i + 1));
-            frames.push(to_array(self.model.predict(to_tensor(&yi, &device), &st))?);
+            match self.model.decode_frames(&yi, &st) {
+                Some(out) => frames.push(out),
+                None => frames.push(to_array(self.model.predict(to_tensor(&yi, &device), &st))?),
+            }
             (ctl.progress)(Step { frame: i, frames: b, done: 1, total: 1 });
         }
         let views: Vec<_> = frames.iter().map(|f| f.view()).collect();

@@ -90,6 +90,15 @@ impl ModelConfig {
         }
     }
 
+    /// A lifetime network's grid of lifetimes (`ln τ₀` in ns, step) where it reads the fit's
+    /// evidence ([`crate::LifetimeInput::Costs`]).
+    pub fn lifetime_grid(&self) -> Option<(f64, f64)> {
+        match self {
+            ModelConfig::Lifetime(c) => c.log_grid_ns(),
+            _ => None,
+        }
+    }
+
     /// Returns `K` per pixel a depth network estimates (1 for networks of cubes).
     pub fn returns(&self) -> usize {
         match self {

@@ -60,6 +60,8 @@ pub struct SensorTensors {
     /// Whether the device has no fused kernels (anything but the CPU `flex` device, e.g. the
     /// wgpu GPU backend): the operators then run in block layout from burn ops too.
     pub composed: bool,
+    /// The matrix itself, for what runs off the tensors (the lifetime fit's evidence).
+    pub matrix: MeasurementMatrix,
 }
 
 /// [`MeasurementMatrix::matched_filters`] from burn ops, differentiable in `A` (deep sensing):
@@ -176,6 +178,7 @@ impl SensorTensors {
             block: a.block(),
             differentiable: false,
             composed: !tcsense_kernels::runs_kernels(device),
+            matrix: a.clone(),
         })
     }
 

@@ -60,6 +60,17 @@ pub struct LifetimeArgs {
     /// Resolutions (frames are padded inside the model to a multiple of 2^(levels−1)) [default: 3].
     #[arg(long)]
     levels: Option<usize>,
+    /// What the network reads: `harmonics` of Aᵀy turned by the frame's own phase, or `costs`,
+    /// the fit to the taps' log-likelihood of every lifetime of a log grid (the instrument
+    /// fitted to the frame), to which it adds a learned log-prior [default: harmonics].
+    #[arg(long, value_enum)]
+    input: Option<LifetimeInputArg>,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum LifetimeInputArg {
+    Harmonics,
+    Costs,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -379,7 +390,7 @@ impl TrainArgs {
             }
             NetArgs::Lifetime(n) => {
                 req.decoder = "lifetime".into();
-                (req.harmonics, req.base_width, req.levels) = (n.harmonics, n.base_width, n.levels);
+                (req.harmonics, req.base_width, req.levels, req.input) = (n.harmonics, n.base_width, n.levels, n.input.and_then(name_of));
             }
         }
         Ok(req)

@@ -117,7 +117,7 @@ fn time_steps<M: Network>(
     let target = match M::PREDICTION {
         Prediction::Cube => Target::Cube { x: &x, scales: None },
         Prediction::Depth => Target::Depth { depth: &depth, range_m: 10.0 },
-        Prediction::Lifetime => Target::Lifetime { labels: &lifetimes },
+        Prediction::Lifetime => Target::Lifetime { labels: &lifetimes, grid: None },
     };
     let mut times: Vec<[f64; 4]> = Vec::new();
     for _ in 0..steps.max(1) + 1 {

@@ -116,8 +116,14 @@ impl TrainConfig {
         let network = match &self.run.model {
             ModelConfig::AdmmNet(m) => format!("ADMM-Net S = {}, CN = {}, M = {}, T = {}", m.stages, m.channels, m.taps, m.bins),
             ModelConfig::Lifetime(m) => format!(
-                "lifetime decoder: {} harmonics, U-Net base width {}, {} levels, M = {}, T = {}, {:.2} GFLOP per 188x212 frame",
-                m.harmonics,
+                "lifetime decoder: {}, U-Net base width {}, {} levels, M = {}, T = {}, {:.2} GFLOP per 188x212 frame",
+                match m.input {
+                    tcsense_models::LifetimeInput::Harmonics => format!("{} harmonics", m.harmonics),
+                    tcsense_models::LifetimeInput::Costs => format!(
+                        "the fit's evidence on {} lifetimes {}–{} ns (pooled by {})",
+                        m.points, m.tau_range_ns[0], m.tau_range_ns[1], m.pool
+                    ),
+                },
                 m.base_width,
                 m.levels,
                 m.taps,
@@ -244,7 +250,11 @@ impl TrainConfig {
                     );
                 }
             }
-            ModelConfig::Lifetime(_) => {}
+            ModelConfig::Lifetime(m) => {
+                if let Err(e) = m.validate() {
+                    return bad("model", e, "a lifetime grid 0 < lo < hi, 3–1024 points, a pool of 1 to points");
+                }
+            }
         }
         if let Some(n) = &self.noise {
             n.validate()?;

@@ -445,7 +445,7 @@ fn fit<M: Network>(
             let lb = data.train_labels.as_ref().map(|d| d.select(Axis(0), idx)); // [B, K, H, W] or [B, 5, H, W]
             let batch = measure_step::<M>(cfg, &sensing, xb, lb, state.step, (bin_m, range_m))?;
             let target = match (&batch.labels, M::PREDICTION) {
-                (Some(l), Prediction::Lifetime) => Target::Lifetime { labels: l },
+                (Some(l), Prediction::Lifetime) => Target::Lifetime { labels: l, grid: cfg.run.model.lifetime_grid() },
                 (Some(d), _) => Target::Depth { depth: d, range_m },
                 (None, _) => Target::Cube { x: &batch.x, scales: batch.scales.as_deref() },
             };
@@ -601,8 +601,9 @@ pub(crate) enum Target<'a> {
     Cube { x: &'a Array4<f32>, scales: Option<&'a [f32]> },
     /// Range labels `[B, K, H, W]` (m, NaN where none) and the unambiguous range.
     Depth { depth: &'a Array4<f32>, range_m: f64 },
-    /// Lifetime labels `[B, 5, H, W]` ([`crate::data::load_lifetime_labels`]).
-    Lifetime { labels: &'a Array4<f32> },
+    /// Lifetime labels `[B, 5, H, W]` ([`crate::data::load_lifetime_labels`]) and the
+    /// network's lifetime grid where it has one (`ln τ₀` in ns, step).
+    Lifetime { labels: &'a Array4<f32>, grid: Option<(f64, f64)> },
 }
 
 /// The loss of a prediction against its target.
@@ -621,13 +622,13 @@ pub(crate) fn objective(loss: Loss, pred: Tensor<4>, target: Target<'_>, device:
             let filled = depth.mapv(|d| if d.is_finite() { d } else { 0.0 });
             depth_loss(pred, to_tensor(&filled.view(), device), to_tensor(&mask.view(), device), range_m)
         }
-        Target::Lifetime { labels } => {
+        Target::Lifetime { labels, grid } => {
             let filled = labels.mapv(|v| if v.is_finite() { v } else { 0.0 });
             let distinct = ndarray::Zip::from(labels.index_axis(Axis(1), 1))
                 .and(labels.index_axis(Axis(1), 2))
                 .map_collect(|a, b| if (a - b).abs() > 1e-3 { 1f32 } else { 0.0 })
                 .insert_axis(Axis(1));
-            lifetime_loss(pred, to_tensor(&filled.view(), device), to_tensor(&distinct.view(), device))
+            lifetime_loss(pred, to_tensor(&filled.view(), device), to_tensor(&distinct.view(), device), grid)
         }
     }
 }

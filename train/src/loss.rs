@@ -75,21 +75,57 @@ pub const CE_WEIGHT: f64 = 0.1;
 
 /// The lifetime loss of a batch: mean absolute error (ns) of `τ_m` where the pixel holds a
 /// fluorophore, half that of `τ₁` and `τ₂`, the error of `α₁` where the two components differ,
-/// and the binary cross-entropy of the confidence against "holds a fluorophore".
+/// and the binary cross-entropy of the confidence against "holds a fluorophore". A network on
+/// a lifetime grid (`grid`: `ln τ₀` in ns and the step) appends its log-posterior over the grid,
+/// whose cross-entropy against the true `τ_m` split between its two neighbouring points adds
+/// [`GRID_CE_WEIGHT`] times its mean over the fluorophore, and whose confidence weighs a
+/// missed fluorophore [`COVERAGE_WEIGHT`] times.
 ///
 /// # Shapes
-/// - `pred`: `[B, 5, H, W]` (`τ_m`, `τ₁`, `τ₂` in ns, `α₁`, confidence logit), `labels`:
-///   `[B, 5, H, W]` (the same, 0 where unknown, then the signal mask), `distinct`:
-///   `[B, 1, H, W]` (1 where `τ₁ ≠ τ₂`) → `[1]`
-pub fn lifetime_loss(pred: Tensor<4>, labels: Tensor<4>, distinct: Tensor<4>) -> Tensor<1> {
+/// - `pred`: `[B, 5, H, W]` (`τ_m`, `τ₁`, `τ₂` in ns, `α₁`, confidence logit) or
+///   `[B, 5 + G, H, W]` (then the log-posterior), `labels`: `[B, 5, H, W]` (the same, 0 where
+///   unknown, then the signal mask), `distinct`: `[B, 1, H, W]` (1 where `τ₁ ≠ τ₂`) → `[1]`
+pub fn lifetime_loss(pred: Tensor<4>, labels: Tensor<4>, distinct: Tensor<4>, grid: Option<(f64, f64)>) -> Tensor<1> {
     let mask = labels.clone().narrow(1, 4, 1); // [B, 1, H, W]
     let count = mask.clone().sum().add_scalar(1.0);
     let err = |c: usize| (pred.clone().narrow(1, c, 1) - labels.clone().narrow(1, c, 1)).abs() * mask.clone();
-    let l1 = (err(0) + (err(1) + err(2)) * 0.5 + err(3) * distinct).sum() / count;
-    let logits = pred.narrow(1, 4, 1);
-    let bce = relu(logits.clone()) - logits.clone() * mask + logits.abs().neg().exp().add_scalar(1.0).log();
-    l1 + bce.mean()
+    let l1 = (err(0) + (err(1) + err(2)) * 0.5 + err(3) * distinct).sum() / count.clone();
+    let logits = pred.clone().narrow(1, 4, 1);
+    let c = pred.dims()[1];
+    match grid {
+        Some((l0, step)) if c > OUTPUTS => {
+            let g = c - OUTPUTS;
+            let logp = pred.narrow(1, OUTPUTS, g); // [B, G, H, W]
+                                                   // the true τ_m on the grid (0 where there is none; masked out)
+            let tau = labels.narrow(1, 0, 1).clamp_min(1e-6);
+            let u = tau.log().sub_scalar(l0).div_scalar(step).clamp(0.0, (g - 1) as f64); // [B, 1, H, W]
+            let index: Vec<f32> = (0..g).map(|j| j as f32).collect();
+            let index = Tensor::<1>::from_floats(index.as_slice(), &u.device()).reshape([1, g, 1, 1]);
+            let label = (index - u).abs().neg().add_scalar(1.0).clamp_min(0.0); // hat weights [B, G, H, W]
+            let ce = (label * logp).sum_dim(1).neg() * mask.clone();
+            // the confidence weighs a missed fluorophore COVERAGE_WEIGHT times a false one: a
+            // pixel gets a lifetime where the posterior of a fluorophore is above 1/(1 + w)
+            let softplus = |x: Tensor<4>| relu(x.clone()) + x.abs().neg().exp().add_scalar(1.0).log();
+            let weighted = softplus(logits.clone().neg()) * mask.clone() * COVERAGE_WEIGHT + softplus(logits) * mask.neg().add_scalar(1.0);
+            l1 + weighted.mean() + ce.sum() / count * GRID_CE_WEIGHT
+        }
+        _ => {
+            let bce = relu(logits.clone()) - logits.clone() * mask + logits.abs().neg().exp().add_scalar(1.0).log();
+            l1 + bce.mean()
+        }
+    }
 }
+
+/// Channels of a lifetime prediction before any log-posterior.
+const OUTPUTS: usize = 5;
+
+/// Weight of the lifetime grid's cross-entropy in [`lifetime_loss`].
+pub const GRID_CE_WEIGHT: f64 = 0.2;
+
+/// A lifetime network on a grid: weight of a missed fluorophore pixel in the confidence's
+/// cross-entropy against a false one (coverage matters more to a lifetime map than a few
+/// background pixels with a lifetime, which the intensity shows as dark anyway).
+pub const COVERAGE_WEIGHT: f64 = 8.0;
 
 #[cfg(test)]
 mod tests {
@@ -161,7 +197,7 @@ mod tests {
         let pred = Tensor::<4>::from_floats([[[[2.5, 9.0]], [[1.5, 9.0]], [[3.0, 9.0]], [[0.4, 0.9]], [[0.0, 0.0]]]], &device);
         let labels = Tensor::<4>::from_floats([[[[2.0, 0.0]], [[1.0, 0.0]], [[3.0, 0.0]], [[0.5, 0.0]], [[1.0, 0.0]]]], &device);
         let distinct = Tensor::<4>::from_floats([[[[1.0, 0.0]]]], &device);
-        let l: f32 = lifetime_loss(pred, labels, distinct).into_scalar();
+        let l: f32 = lifetime_loss(pred, labels, distinct, None).into_scalar();
         // (0.5 + 0.5·(0.5 + 0) + 0.1) / (1 + 1) + ln 2
         assert!((l - (0.85 / 2.0 + 2f32.ln())).abs() < 1e-6, "{l}");
     }

@@ -16,7 +16,7 @@ use std::sync::atomic::AtomicBool;
 use serde::{Deserialize, Serialize};
 use tcsense_datasets::Dataset;
 use tcsense_models::runs::{ModelConfig, CONFIG_FILE};
-use tcsense_models::{AdmmNetConfig, Device, LifetimeNetConfig, Prior, UnetConfig, UnetHead, UnetInput};
+use tcsense_models::{AdmmNetConfig, Device, LifetimeInput, LifetimeNetConfig, Prior, UnetConfig, UnetHead, UnetInput};
 use tcsense_sensor::waveform::{parse_irf_default, IrfSpec};
 use tcsense_sensor::{Codes, Constraints};
 
@@ -128,11 +128,15 @@ impl TrainRequest {
             Some("regression") => Some(UnetHead::Regression),
             Some(other) => return Err(bad("head", other, "score-volume or regression")),
         };
-        let input = match self.input.as_deref() {
-            None => None,
-            Some("backprojection") => Some(UnetInput::Backprojection),
-            Some("matched") => Some(UnetInput::Matched),
-            Some(other) => return Err(bad("input", other, "backprojection or matched")),
+        let lifetime = self.decoder == tcsense_models::runs::network_names::LIFETIME;
+        let (input, lifetime_input) = match (self.input.as_deref(), lifetime) {
+            (None, _) => (None, None),
+            (Some("harmonics"), true) => (None, Some(LifetimeInput::Harmonics)),
+            (Some("costs"), true) => (None, Some(LifetimeInput::Costs)),
+            (Some(other), true) => return Err(bad("input", other, "harmonics or costs")),
+            (Some("backprojection"), false) => (Some(UnetInput::Backprojection), None),
+            (Some("matched"), false) => (Some(UnetInput::Matched), None),
+            (Some(other), false) => return Err(bad("input", other, "backprojection or matched")),
         };
         Ok(Architecture {
             stages: self.stages.or(p.as_ref().map(|c| c.stages)),
@@ -144,6 +148,7 @@ impl TrainRequest {
             head,
             input,
             harmonics: self.harmonics,
+            lifetime_input,
         })
     }
 

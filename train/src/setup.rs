@@ -13,7 +13,7 @@
 use std::path::{Path, PathBuf};
 
 use tcsense_models::runs::{read_config_json, ModelConfig, RunSpec, CODES_FILE, CONFIG_FILE, SENSOR_MATRIX_FILE};
-use tcsense_models::{Prior, UnetHead, UnetInput};
+use tcsense_models::{LifetimeInput, Prior, UnetHead, UnetInput};
 use tcsense_sensor::npy::write_npy;
 use tcsense_sensor::{Codes, Sensor, SensorModel};
 
@@ -41,6 +41,8 @@ pub struct Architecture {
     pub input: Option<UnetInput>,
     /// Lifetime decoder: harmonics of the cycle.
     pub harmonics: Option<usize>,
+    /// Lifetime decoder: what the network reads.
+    pub lifetime_input: Option<LifetimeInput>,
 }
 
 impl Architecture {
@@ -68,6 +70,7 @@ impl Architecture {
         put("base-width", self.base_width.map(|v| s(&v)), u.map(|c| s(&c.base_width)).or(l.map(|c| s(&c.base_width))));
         put("levels", self.levels.map(|v| s(&v)), u.map(|c| s(&c.levels)).or(l.map(|c| s(&c.levels))));
         put("harmonics", self.harmonics.map(|v| s(&v)), l.map(|c| s(&c.harmonics)));
+        put("input", self.lifetime_input.map(|v| s(&v)), l.map(|c| s(&c.input)));
         out
     }
 
@@ -96,6 +99,7 @@ impl Architecture {
             }
             ModelConfig::Lifetime(c) => {
                 c.harmonics = self.harmonics.unwrap_or(c.harmonics);
+                c.input = self.lifetime_input.unwrap_or(c.input);
                 c.base_width = self.base_width.unwrap_or(c.base_width);
                 c.levels = self.levels.unwrap_or(c.levels);
             }

@@ -22,6 +22,7 @@
 //! A delayed scene therefore gives the same lifetimes: the search finds the delayed onset.
 //! The lifetimes are searched on a log grid and refined by a parabola through the minimum.
 
+pub mod evidence;
 mod instrument;
 mod tables;
 
@@ -243,17 +244,95 @@ impl LifetimeTemplates {
         self.fit_normalised(normalise(y, self.min_intensity), y.dim())
     }
 
-    /// [`Self::fit`] of a normalised frame of `[M, H, W]`.
-    fn fit_normalised(&self, f: Normalised, (m, h, w): (usize, usize, usize)) -> TapFit {
+    /// [`Self::fit`] of a normalised frame of `[M, H, W]`: each pixel's best point of the grid
+    /// is the argmin of its window's cost.
+    fn fit_normalised(&self, f: Normalised, dims: (usize, usize, usize)) -> TapFit {
+        let costs = self.costs_normalised(&f, dims);
+        let g = self.points();
+        self.refine_normalised(f, dims, &costs, |_, total| {
+            let best = argmin(total);
+            (best > 0 && best + 1 < g).then_some(best)
+        })
+    }
+
+    /// Points `G` of the lifetime grid.
+    pub fn points(&self) -> usize {
+        self.coarse[0].points
+    }
+
+    /// The grid: `ln τ` (τ in s) of its first point and its step; point `i` is
+    /// `τ_i = exp(ln τ₀ + i·step)`.
+    pub fn log_grid(&self) -> (f64, f64) {
+        self.log_tau
+    }
+
+    /// The instrument the templates are built for.
+    pub fn instrument(&self) -> Instrument {
+        self.instrument
+    }
+
+    /// The fit's evidence for every lifetime of the grid, before any choice is made: each lit
+    /// pixel's own cost and the cost summed over the window (what [`Self::fit`] minimises).
+    ///
+    /// # Shapes
+    /// - `y`: `[M, H, W]` → [`LifetimeCosts`] of `[H·W·G]`
+    pub fn costs(&self, y: &ArrayView3<'_, f32>) -> LifetimeCosts {
+        self.costs_normalised(&normalise(y, self.min_intensity), y.dim())
+    }
+
+    /// Lifetimes refined in the tap domain around a point of the grid chosen per pixel by
+    /// someone else (a network reading [`Self::costs`]): golden sections on the window's cost
+    /// within a step of `best[p]`, as [`Self::fit`] refines its own argmin. `best[p] < 0`, or on
+    /// either end of the grid, or an unlit pixel gives NaN.
+    ///
+    /// # Shapes
+    /// - `y`: `[M, H, W]`, `best`: `[H·W]` → maps `[H, W]`
+    pub fn refine(&self, y: &ArrayView3<'_, f32>, best: &[i32]) -> TapFit {
+        let f = normalise(y, self.min_intensity);
+        let costs = self.costs_normalised(&f, y.dim());
+        let g = self.points() as i32;
+        assert_eq!(best.len(), costs.lit.len(), "refine: one point of the grid per pixel");
+        self.refine_normalised(f, y.dim(), &costs, |p, _| (best[p] > 0 && best[p] + 1 < g).then_some(best[p] as usize))
+    }
+
+    /// The modes of a posterior over the grid (continuous grid coordinates `u`, NaN: none) as
+    /// lifetimes (s): where a mode's nearest point is the fit's own argmin of the window's cost
+    /// the fit's refinement in the tap domain (its precision in bright light), elsewhere the
+    /// mode itself (the posterior overruled the fit).
+    ///
+    /// # Shapes
+    /// - `y`: `[M, H, W]`, `costs`: [`Self::costs`] of `y`, `u`: `[H·W]` → `[H, W]`
+    pub fn refine_modes(&self, y: &ArrayView3<'_, f32>, costs: &LifetimeCosts, u: &[f32]) -> Array2<f32> {
+        let (_, h, w) = y.dim();
+        assert!(u.len() == h * w && costs.lit.len() == h * w, "refine_modes: one mode per pixel");
+        let g = self.points();
+        let f = normalise(y, self.min_intensity);
+        let fit = self.refine_normalised(f, y.dim(), costs, |p, total| {
+            let best = argmin(total);
+            let mode = u[p].round();
+            (mode.is_finite() && mode as usize == best && best > 0 && best + 1 < g).then_some(best)
+        });
+        let (l0, step) = self.log_tau;
+        Array2::from_shape_fn((h, w), |(i, j)| {
+            let t = fit.lifetime[(i, j)];
+            let v = u[i * w + j];
+            if t.is_finite() || !v.is_finite() {
+                t
+            } else {
+                (l0 + v as f64 * step).exp() as f32
+            }
+        })
+    }
+
+    /// Every lit pixel's cost on the grid, alone and summed over the window.
+    fn costs_normalised(&self, f: &Normalised, (m, h, w): (usize, usize, usize)) -> LifetimeCosts {
         assert_eq!(m, self.taps, "taps of the frame and the templates");
         let (bh, bw) = self.block;
-        let g = self.coarse[0].points;
-        let Normalised { r, weight, intensity } = f;
+        let g = self.points();
+        let Normalised { r, weight, .. } = f;
         let kind = |p: usize| subpixel_flat(p, w, (bh, bw));
-        // every lit pixel's cost on the grid, summed over the window
-        let half = self.window / 2;
-        let mut cost = vec![0f32; h * w * g];
-        cost.par_chunks_mut(w * g).enumerate().for_each(|(i, out)| {
+        let mut pixel = vec![0f32; h * w * g];
+        pixel.par_chunks_mut(w * g).enumerate().for_each(|(i, out)| {
             let mut beta = vec![0f32; g];
             for j in 0..w {
                 let p = i * w + j;
@@ -264,9 +343,24 @@ impl LifetimeTemplates {
         });
         let lit: Vec<bool> = weight.iter().map(|&v| v > 0.0).collect();
         let mut rows = Vec::new();
-        window_rows(&cost, &lit, (h, w), g, self.window, &mut rows);
-        drop(cost);
-        // the argmin and the refinement
+        window_rows(&pixel, &lit, (h, w), g, self.window, &mut rows);
+        LifetimeCosts { pixel, rows, lit, points: g, height: h, width: w, window: self.window }
+    }
+
+    /// The refinement of every pixel around the point of the grid `choose(p, window's cost)`
+    /// gives it (`None`: no lifetime).
+    fn refine_normalised(
+        &self,
+        f: Normalised,
+        (m, h, w): (usize, usize, usize),
+        costs: &LifetimeCosts,
+        choose: impl Fn(usize, &[f32]) -> Option<usize> + Sync,
+    ) -> TapFit {
+        let (bh, bw) = self.block;
+        let g = self.points();
+        let Normalised { r, weight, intensity } = f;
+        let kind = |p: usize| subpixel_flat(p, w, (bh, bw));
+        let half = self.window / 2;
         let fits: Vec<(f32, f32)> = (0..h)
             .into_par_iter()
             .flat_map_iter(|i| {
@@ -274,7 +368,7 @@ impl LifetimeTemplates {
                 let mut win: Vec<(usize, usize)> = Vec::with_capacity(self.window * self.window);
                 let mut between = Between::new(self.fine.len(), m);
                 let mut total = vec![0f32; g];
-                let (rows, r, weight) = (&rows, &r, &weight);
+                let (rows, r, weight, choose) = (&costs.rows, &r, &weight, &choose);
                 (0..w)
                     .map(move |j| {
                         let p = i * w + j;
@@ -282,10 +376,9 @@ impl LifetimeTemplates {
                             return (f32::NAN, f32::NAN);
                         }
                         window_total(rows, (i, j), (h, w), self.window, &mut total);
-                        let best = argmin(&total);
-                        if best == 0 || best + 1 == g {
+                        let Some(best) = choose(p, &total) else {
                             return (f32::NAN, f32::NAN);
-                        }
+                        };
                         win.clear();
                         for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
                             for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
@@ -324,6 +417,37 @@ impl LifetimeTemplates {
         let lifetime = Array2::from_shape_fn((h, w), |(i, j)| fits[i * w + j].0);
         let background = Array2::from_shape_fn((h, w), |(i, j)| fits[i * w + j].1);
         TapFit { lifetime, intensity, background, onset_s: self.instrument.onset_s, irf_fwhm_s: self.instrument.irf_fwhm_s }
+    }
+}
+
+/// The fit's evidence on its lifetime grid for one frame ([`LifetimeTemplates::costs`]).
+#[derive(Debug, Clone)]
+pub struct LifetimeCosts {
+    /// Each pixel's own cost of every lifetime of the grid `[H·W·G]` (pixel-major; 0 where
+    /// unlit): its squared residual times its charge.
+    pub pixel: Vec<f32>,
+    /// The first pass of the window's sum ([`window_rows`]) `[H·W·G]`.
+    rows: Vec<f32>,
+    /// Whether a pixel holds enough charge to be fitted `[H·W]`.
+    pub lit: Vec<bool>,
+    /// `G`, `H`, `W` and the window's side.
+    pub points: usize,
+    pub height: usize,
+    pub width: usize,
+    pub window: usize,
+}
+
+impl LifetimeCosts {
+    /// The cost summed over the window around every pixel, what the fit minimises `[H·W·G]`.
+    pub fn window_sums(&self) -> Vec<f32> {
+        let (h, w, g) = (self.height, self.width, self.points);
+        let mut out = vec![0f32; h * w * g];
+        out.par_chunks_mut(w * g).enumerate().for_each(|(i, row)| {
+            for (j, total) in row.chunks_mut(g).enumerate() {
+                window_total(&self.rows, (i, j), (h, w), self.window, total);
+            }
+        });
+        out
     }
 }
 
@@ -490,6 +614,53 @@ mod tests {
             }
         }
         out
+    }
+
+    /// The refinement around points chosen elsewhere is the fit's own where the choice is the
+    /// fit's argmin, and stays within a step of a choice one point off; the evidence puts its
+    /// maximum at the fit's argmin, in nats that do not change with the frame's scale.
+    #[test]
+    fn refinement_around_a_chosen_point_and_the_evidence() {
+        let a = sensor();
+        let tau = |i: usize, j: usize| 0.5e-9 * (1.0 + 0.4 * ((i / 4) * 2 + j / 4) as f64);
+        let inst = Instrument { onset_s: 11.0e-9, irf_fwhm_s: 0.5e-9 };
+        let y = noisy(&taps(&a, 8, 8, &tau, inst.onset_s, inst.irf_fwhm_s, 0.0), 2000.0, 5);
+        let opts = TapFitOptions::default();
+        let templates = LifetimeTemplates::new(&a, inst, &opts);
+        let own = templates.fit(&y.view());
+        let costs = templates.costs(&y.view());
+        let g = templates.points();
+        let sums = costs.window_sums();
+        let best: Vec<i32> = (0..64).map(|p| if costs.lit[p] { argmin(&sums[p * g..(p + 1) * g]) as i32 } else { -1 }).collect();
+        let chosen = templates.refine(&y.view(), &best);
+        for (x, y) in own.lifetime.iter().zip(chosen.lifetime.iter()) {
+            assert!(x.to_bits() == y.to_bits(), "{x:e} against {y:e}");
+        }
+        let (_, step) = templates.log_grid();
+        let off: Vec<i32> = best.iter().map(|&b| b + 1).collect();
+        let moved = templates.refine(&y.view(), &off);
+        for (x, y) in own.lifetime.iter().zip(moved.lifetime.iter()).filter(|(x, y)| x.is_finite() && y.is_finite()) {
+            assert!(((*y as f64).ln() - (*x as f64).ln()).abs() <= 1.5 * step, "{x:e} against {y:e}");
+        }
+        let no = templates.refine(&y.view(), &vec![-1; 64]);
+        assert!(no.lifetime.iter().all(|v| v.is_nan()));
+        // the evidence: 0 nats at the argmin of the window's cost, negative elsewhere; the same
+        // for the frame times 7 (the noise level takes the scale)
+        let e = evidence::evidence(&costs, &y.sum_axis(Axis(0)), 4, 2);
+        assert_eq!(e.features.dim(), (evidence::feature_channels(g, 2), 8, 8));
+        for p in (0..64).filter(|&p| costs.lit[p]) {
+            let col: Vec<f32> = (0..g).map(|k| e.skip[(k, p / 8, p % 8)]).collect();
+            assert_eq!(col[best[p] as usize], 0.0);
+            assert!(col.iter().all(|&v| v <= 0.0));
+            let posterior: f32 = (0..g / 2).map(|k| e.features[(k, p / 8, p % 8)]).sum();
+            assert!((posterior - (g / 2) as f32).abs() < 1e-2, "pooled posterior sums to {posterior}");
+        }
+        let y7 = y.mapv(|v| 7.0 * v);
+        let e7 = evidence::evidence(&templates.costs(&y7.view()), &y7.sum_axis(Axis(0)), 4, 2);
+        assert!((e7.noise / e.noise - 7.0).abs() < 1e-3, "noise level {} against {}", e7.noise, e.noise);
+        for (a, b) in e.skip.iter().zip(e7.skip.iter()) {
+            assert!((a - b).abs() <= 1e-3 * a.abs().max(1.0), "{a} against {b}");
+        }
     }
 
     /// The dense fit (grid, box filter, argmin, parabola at half steps) gives the reference's

@@ -48,6 +48,34 @@ pub struct OnnxMeta {
     pub matrix_values: Option<Vec<f32>>,
     /// The calibration built into the graph; key `calibration`.
     pub calibration: Option<CalibrationNote>,
+    /// A lifetime decoder on the fit's evidence: the lifetime grid the runtime computes the
+    /// evidence on; key `evidence`.
+    pub evidence: Option<EvidenceNote>,
+}
+
+/// The lifetime grid of a lifetime decoder on the fit's evidence
+/// ([`tcsense_models::LifetimeInput::Costs`]).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct EvidenceNote {
+    /// Points `G` of the log grid.
+    pub points: usize,
+    /// Grid points pooled per feature channel.
+    pub pool: usize,
+    /// Lifetimes the grid spans (ns).
+    pub tau_range_ns: [f64; 2],
+}
+
+impl EvidenceNote {
+    /// The settings of the fit whose evidence the model reads (as the network computes them).
+    pub fn fit_options(&self) -> tcsense_fits::lifetime_taps::TapFitOptions {
+        let [lo, hi] = self.tau_range_ns;
+        tcsense_fits::lifetime_taps::TapFitOptions {
+            tau_range_s: [lo * 1e-9, hi * 1e-9],
+            points: self.points,
+            min_intensity: 0.0,
+            ..Default::default()
+        }
+    }
 }
 
 /// What an exported model records of the calibration built into it.
@@ -102,6 +130,12 @@ impl OnnxMeta {
                 matrix_digest: c.meta.matrix_digest.clone(),
                 sweep: c.meta.sweep.clone(),
             }),
+            evidence: match &run.spec.model {
+                ModelConfig::Lifetime(c) if c.input == tcsense_models::LifetimeInput::Costs => {
+                    Some(EvidenceNote { points: c.points, pool: c.pool, tau_range_ns: c.tau_range_ns })
+                }
+                _ => None,
+            },
         }
     }
 
@@ -111,6 +145,26 @@ impl OnnxMeta {
             "unet" => &["depth", "confidence"],
             "lifetime" => &["lifetime", "confidence", "intensity"],
             _ => &["cube"],
+        }
+    }
+
+    /// The graph's inputs: the measurements (and the matrix), or the evidence computed from them.
+    pub fn graph_inputs(&self) -> Vec<&'static str> {
+        use super::{EVIDENCE_INPUT, INPUT, LOG_LIKELIHOOD_INPUT, MATRIX_INPUT};
+        match (self.evidence.is_some(), self.matrix_input) {
+            (true, _) => vec![EVIDENCE_INPUT, LOG_LIKELIHOOD_INPUT],
+            (false, true) => vec![INPUT, MATRIX_INPUT],
+            (false, false) => vec![INPUT],
+        }
+    }
+
+    /// The graph's outputs: [`Self::outputs`] but the intensity where the runtime computes
+    /// the evidence (and with it the intensity).
+    pub fn graph_outputs(&self) -> &'static [&'static str] {
+        if self.evidence.is_some() {
+            &["lifetime", "confidence"]
+        } else {
+            self.outputs()
         }
     }
 
@@ -138,6 +192,9 @@ impl OnnxMeta {
         }
         if let Some(c) = &self.calibration {
             p.push(("calibration", json(serde_json::to_string(c))));
+        }
+        if let Some(e) = &self.evidence {
+            p.push(("evidence", json(serde_json::to_string(e))));
         }
         if self.decoder == "unet" {
             p.push(("returns", self.returns.to_string()));
@@ -199,7 +256,20 @@ impl OnnxMeta {
             .transpose()?;
         let calibration: Option<CalibrationNote> =
             get("calibration").map(|v| serde_json::from_str(&v).map_err(|e| err("calibration", e.to_string()))).transpose()?;
+        let evidence: Option<EvidenceNote> =
+            get("evidence").map(|v| serde_json::from_str(&v).map_err(|e| err("evidence", e.to_string()))).transpose()?;
+        if let Some(e) = &evidence {
+            let opts = e.fit_options();
+            let fine = opts.validate().is_ok() && (3..=1024).contains(&e.points) && (1..=e.points).contains(&e.pool);
+            if decoder != "lifetime" || !fine {
+                return Err(err(
+                    "evidence",
+                    format!("{e:?}: expected a lifetime decoder's grid of 3–1024 points over 0 < lo < hi ns, a pool of 1 to points"),
+                ));
+            }
+        }
         let meta = OnnxMeta {
+            evidence,
             decoder,
             taps: num("taps")?,
             bins: num("bins")?,

@@ -38,6 +38,12 @@ use tcsense_sensor::calibration::Calibration;
 pub const INPUT: &str = "measurements";
 /// Name of the optional sensor-matrix input.
 pub const MATRIX_INPUT: &str = "sensor_matrix";
+/// Inputs of a lifetime decoder on the fit's evidence
+/// ([`tcsense_models::LifetimeInput::Costs`]): the pooled per-pixel posteriors, log intensity
+/// and lit mask, and the fit's window log-likelihood over the lifetime grid
+/// ([`tcsense_fits::lifetime_taps::evidence`]), computed by the runtime from the taps.
+pub const EVIDENCE_INPUT: &str = "evidence";
+pub const LOG_LIKELIHOOD_INPUT: &str = "log_likelihood";
 
 /// Export options.
 #[derive(Debug, Clone, Copy, Default)]
@@ -53,6 +59,11 @@ pub struct ExportOptions<'a> {
 /// The ONNX model of a trained run, serialised.
 pub fn export(run: &LoadedRun, opts: ExportOptions<'_>) -> Result<Vec<u8>> {
     let meta = OnnxMeta::of_run(run, opts);
+    if let TrainedNet::Lifetime(net) = &run.net {
+        if net.input_kind() == tcsense_models::LifetimeInput::Costs {
+            return lifetime_on_evidence(net, &meta, opts);
+        }
+    }
     let (n, m, t) = run.sensor.matrix().a().dim();
     let mut g = Graph::new(run.spec.model.name());
     let y = match opts.calibration {
@@ -400,6 +411,89 @@ fn lifetime(g: &mut Graph, net: &LifetimeNet, sensor: &SensorGraph, y: &str) -> 
     let axis1 = g.ints("axis1", &[1]);
     let intensity = g.node("ReduceSum", &[y, &axis1], &[Attr::Int("keepdims", 1)]);
     Ok((lifetime, conf, intensity))
+}
+
+/// The lifetime decoder on the fit's evidence ([`tcsense_models::LifetimeInput::Costs`]) as a
+/// whole model: the evidence in, the U-Net's log-prior added to the fit's log-likelihood, the
+/// posterior's mode refined by a parabola (ArgMax, GatherElements), the lifetime in seconds.
+/// The evidence itself (the instrument, the templates' costs) is computed by the runtime.
+///
+/// # Shapes
+/// - `evidence [B, F, H, W]`, `log_likelihood [B, G, H, W]` → `lifetime [B, 4, H, W]`, `confidence [B, 1, H, W]`
+fn lifetime_on_evidence(net: &LifetimeNet, meta: &OnnxMeta, opts: ExportOptions<'_>) -> Result<Vec<u8>> {
+    if opts.calibration.is_some() || opts.matrix_input {
+        return Err(InferError::InvalidParam {
+            field: "export",
+            got: if opts.matrix_input { "--matrix-input".into() } else { "--calibration".into() },
+            expected: "neither for a lifetime decoder on the fit's evidence (its runtime computes the evidence from the taps \
+                       with the run's sensor; decode a calibrated sensor with --calibration at inference)"
+                .into(),
+        });
+    }
+    let (points, pool) = net.grid_points();
+    let f = tcsense_fits::lifetime_taps::evidence::feature_channels(points, pool);
+    let mut g = Graph::new(tcsense_models::runs::network_names::LIFETIME);
+    let frame = |c: usize| [Dim::Named("batch"), Dim::Fixed(c), Dim::Named("height"), Dim::Named("width")];
+    let features = g.input(EVIDENCE_INPUT, &frame(f));
+    let skip = g.input(LOG_LIKELIHOOD_INPUT, &frame(points));
+    let trunk = unet_trunk(&mut g, net.down(), net.up(), &features)?;
+    let o = conv(&mut g, net.head(), &trunk)?; // [B, G + 1, H, W]
+    let prior = channels(&mut g, &o, 0, points);
+    let logit = channels(&mut g, &o, points, 1);
+    let logits = g.op("Add", &[&skip, &prior]);
+    // the mode and its neighbours (clamped to the grid)
+    let best = g.node("ArgMax", &[&logits], &[Attr::Int("axis", 1), Attr::Int("keepdims", 1)]); // int64 [B, 1, H, W]
+    let (one, zero, last) = (g.ints("one", &[1]), g.ints("zero", &[0]), g.ints("last", &[points as i64 - 1]));
+    let lo = g.op("Sub", &[&best, &one]);
+    let lo = g.op("Max", &[&lo, &zero]);
+    let hi = g.op("Add", &[&best, &one]);
+    let hi = g.op("Min", &[&hi, &last]);
+    let gather = |g: &mut Graph, idx: &str| g.node("GatherElements", &[&logits, idx], &[Attr::Int("axis", 1)]);
+    let (l0, lm, lp) = (gather(&mut g, &best), gather(&mut g, &lo), gather(&mut g, &hi));
+    let two = g.scalar("two", 2.0);
+    let twice = g.op("Mul", &[&l0, &two]);
+    let sides = g.op("Add", &[&lm, &lp]);
+    let curv = g.op("Sub", &[&sides, &twice]);
+    let eps = g.scalar("neg_eps", -1e-12);
+    // an interior maximum: both neighbours below it (at either end a neighbour is the point)
+    let below_lo = g.op("Less", &[&lm, &l0]);
+    let below_hi = g.op("Less", &[&lp, &l0]);
+    let interior = g.op("And", &[&below_lo, &below_hi]);
+    let den = g.op("Min", &[&curv, &eps]);
+    let num = g.op("Sub", &[&lm, &lp]);
+    let delta = g.op("Div", &[&num, &den]);
+    let half = g.scalar("half", 0.5);
+    let delta = g.op("Mul", &[&delta, &half]);
+    let neg_half = g.scalar("neg_half", -0.5);
+    let delta = g.op("Clip", &[&delta, &neg_half, &half]);
+    let nil = g.scalar("nil", 0.0);
+    let delta = g.op("Where", &[&interior, &delta, &nil]);
+    let u = g.node("Cast", &[&best], &[Attr::Int("to", 1)]); // FLOAT
+    let u = g.op("Add", &[&u, &delta]);
+    let (l0_ns, step) = net.log_grid_ns();
+    let (lt0, st) = (g.scalar("log_tau_0_s", (l0_ns + 1e-9f64.ln()) as f32), g.scalar("log_tau_step", step as f32));
+    let a = g.op("Mul", &[&u, &st]);
+    let a = g.op("Add", &[&a, &lt0]);
+    let tau = g.op("Exp", &[&a]);
+    let ones = g.op("Mul", &[&tau, &nil]);
+    let unit = g.scalar("unit", 1.0);
+    let ones = g.op("Add", &[&ones, &unit]);
+    let lifetime = g.node("Concat", &[&tau, &tau, &tau, &ones], &[Attr::Int("axis", 1)]);
+    let conf = g.op("Sigmoid", &[&logit]);
+    g.output(&lifetime, "lifetime", &frame(4));
+    g.output(&conf, "confidence", &frame(1));
+    let doc = format!(
+        "tcsense lifetime decoder on the fit's evidence ({points} lifetimes {}-{} ns, {} levels): evidence [B, {f}, H, W], log_likelihood [B, {points}, H, W] -> lifetime (s) [B, 4, H, W], confidence [B, 1, H, W]; the runtime computes the evidence from the taps",
+        net.tau_range_ns()[0],
+        net.tau_range_ns()[1],
+        net.down().len()
+    );
+    let model = g.into_model(&doc, &meta.to_props());
+    model.write_to_bytes().map_err(|e| InferError::InvalidParam {
+        field: "ONNX model",
+        got: e.to_string(),
+        expected: "a serialisable model".into(),
+    })
 }
 
 fn unet(g: &mut Graph, net: &Unet, sensor: &SensorGraph, y: &str) -> Result<(String, String)> {
