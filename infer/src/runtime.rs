@@ -146,8 +146,8 @@ impl OnnxModel {
         }
     }
 
-    /// The fit's evidence of every frame of `y` `[B, M, H, W]`: features `[B, F, H, W]`,
-    /// log-likelihood `[B, G, H, W]`, and per frame its templates (when not the fixed ones) and
+    /// The fit's evidence of every frame of `y` `[B, M, H, W]`, pixel-major: features
+    /// `[B, H, W, F]`, log-likelihood `[B, H, W, G]`, and per frame its templates (when not the fixed ones) and
     /// costs, for the refinement (models on the evidence only).
     fn evidence(
         &self,
@@ -156,8 +156,8 @@ impl OnnxModel {
     ) -> (Array4<f32>, Array4<f32>, Vec<(Option<LifetimeTemplates>, LifetimeCosts)>) {
         let (b, _, h, w) = y.dim();
         let f = tcsense_fits::lifetime_taps::evidence::feature_channels(e.points, e.pool);
-        let mut features = Array4::zeros((b, f, h, w));
-        let mut skip = Array4::zeros((b, e.points, h, w));
+        let mut features = Array4::zeros((b, h, w, f));
+        let mut skip = Array4::zeros((b, h, w, e.points));
         let mut frames = Vec::with_capacity(b);
         let opts = e.fit_options();
         for i in 0..b {

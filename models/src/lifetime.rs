@@ -329,9 +329,10 @@ impl LifetimeNet {
             features.extend(e.features.iter());
             skip.extend(e.skip.iter());
         }
+        // (the evidence is pixel-major)
         (
-            Tensor::from_data(TensorData::new(features, [b, f, h, w]), &device),
-            Tensor::from_data(TensorData::new(skip, [b, g, h, w]), &device),
+            Tensor::<4>::from_data(TensorData::new(features, [b, h, w, f]), &device).permute([0, 3, 1, 2]),
+            Tensor::<4>::from_data(TensorData::new(skip, [b, h, w, g]), &device).permute([0, 3, 1, 2]),
         )
     }
 
@@ -440,8 +441,8 @@ impl Network for LifetimeNet {
                 let templates = frame_templates(&yi, &sensor.matrix, &opts);
                 let (e, costs) = evidence_at(&yi, &templates, self.pool);
                 let tensor = |a: ndarray::Array3<f32>| {
-                    let (c, h, w) = a.dim();
-                    Tensor::<4>::from_data(TensorData::new(a.into_raw_vec_and_offset().0, [1, c, h, w]), &device)
+                    let (h, w, c) = a.dim();
+                    Tensor::<4>::from_data(TensorData::new(a.into_raw_vec_and_offset().0, [1, h, w, c]), &device).permute([0, 3, 1, 2])
                 };
                 let (logits, confidence) = self.posterior(tensor(e.features), tensor(e.skip));
                 let u: Vec<f32> = Self::mode(logits).into_data().try_into_vec().unwrap_or_default();

@@ -228,7 +228,8 @@ fn file_err(path: &Path, msg: impl ToString) -> ModelError {
 /// that field is missing (all such runs are ADMM-Net runs), `"normalize": false` to
 /// ADMM-Net models written before the input normalisation existed, `"prior": "Bins"` to
 /// those written before the delay prior and `"input": "Backprojection"` to U-Nets written
-/// before the matched filters; other configs are returned unchanged.
+/// before the matched filters, `"input": "Harmonics"` (96 points pooled by 2) to lifetime
+/// decoders written before the fit's evidence; other configs are returned unchanged.
 pub fn upgrade_config(mut v: serde_json::Value) -> serde_json::Value {
     if let Some(obj) = v.as_object_mut() {
         if obj.contains_key("model") && !obj.contains_key("decoder") {
@@ -243,6 +244,14 @@ pub fn upgrade_config(mut v: serde_json::Value) -> serde_json::Value {
         if obj.get("decoder").and_then(|d| d.as_str()) == Some("unet") {
             if let Some(model) = obj.get_mut("model").and_then(|m| m.as_object_mut()) {
                 model.entry("input").or_insert(serde_json::Value::String("Backprojection".into()));
+            }
+        }
+        if obj.get("decoder").and_then(|d| d.as_str()) == Some(network_names::LIFETIME) {
+            // runs written before the fit's evidence read the harmonics
+            if let Some(model) = obj.get_mut("model").and_then(|m| m.as_object_mut()) {
+                model.entry("input").or_insert(serde_json::Value::String("Harmonics".into()));
+                model.entry("points").or_insert(serde_json::Value::from(96));
+                model.entry("pool").or_insert(serde_json::Value::from(2));
             }
         }
     }

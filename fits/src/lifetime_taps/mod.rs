@@ -647,12 +647,12 @@ mod tests {
         // the evidence: 0 nats at the argmin of the window's cost, negative elsewhere; the same
         // for the frame times 7 (the noise level takes the scale)
         let e = evidence::evidence(&costs, &y.sum_axis(Axis(0)), 4, 2);
-        assert_eq!(e.features.dim(), (evidence::feature_channels(g, 2), 8, 8));
+        assert_eq!(e.features.dim(), (8, 8, evidence::feature_channels(g, 2)));
         for p in (0..64).filter(|&p| costs.lit[p]) {
-            let col: Vec<f32> = (0..g).map(|k| e.skip[(k, p / 8, p % 8)]).collect();
+            let col: Vec<f32> = (0..g).map(|k| e.skip[(p / 8, p % 8, k)]).collect();
             assert_eq!(col[best[p] as usize], 0.0);
             assert!(col.iter().all(|&v| v <= 0.0));
-            let posterior: f32 = (0..g / 2).map(|k| e.features[(k, p / 8, p % 8)]).sum();
+            let posterior: f32 = (0..g / 2).map(|k| e.features[(p / 8, p % 8, k)]).sum();
             assert!((posterior - (g / 2) as f32).abs() < 1e-2, "pooled posterior sums to {posterior}");
         }
         let y7 = y.mapv(|v| 7.0 * v);

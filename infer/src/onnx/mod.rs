@@ -419,7 +419,7 @@ fn lifetime(g: &mut Graph, net: &LifetimeNet, sensor: &SensorGraph, y: &str) -> 
 /// The evidence itself (the instrument, the templates' costs) is computed by the runtime.
 ///
 /// # Shapes
-/// - `evidence [B, F, H, W]`, `log_likelihood [B, G, H, W]` → `lifetime [B, 4, H, W]`, `confidence [B, 1, H, W]`
+/// - `evidence [B, H, W, F]`, `log_likelihood [B, H, W, G]` (pixel-major) → `lifetime [B, 4, H, W]`, `confidence [B, 1, H, W]`
 fn lifetime_on_evidence(net: &LifetimeNet, meta: &OnnxMeta, opts: ExportOptions<'_>) -> Result<Vec<u8>> {
     if opts.calibration.is_some() || opts.matrix_input {
         return Err(InferError::InvalidParam {
@@ -434,8 +434,12 @@ fn lifetime_on_evidence(net: &LifetimeNet, meta: &OnnxMeta, opts: ExportOptions<
     let f = tcsense_fits::lifetime_taps::evidence::feature_channels(points, pool);
     let mut g = Graph::new(tcsense_models::runs::network_names::LIFETIME);
     let frame = |c: usize| [Dim::Named("batch"), Dim::Fixed(c), Dim::Named("height"), Dim::Named("width")];
-    let features = g.input(EVIDENCE_INPUT, &frame(f));
-    let skip = g.input(LOG_LIKELIHOOD_INPUT, &frame(points));
+    let pixels = |c: usize| [Dim::Named("batch"), Dim::Named("height"), Dim::Named("width"), Dim::Fixed(c)];
+    // the evidence comes pixel-major, as the runtime computes it
+    let features = g.input(EVIDENCE_INPUT, &pixels(f));
+    let skip = g.input(LOG_LIKELIHOOD_INPUT, &pixels(points));
+    let features = g.node("Transpose", &[&features], &[Attr::Ints("perm", &[0, 3, 1, 2])]);
+    let skip = g.node("Transpose", &[&skip], &[Attr::Ints("perm", &[0, 3, 1, 2])]);
     let trunk = unet_trunk(&mut g, net.down(), net.up(), &features)?;
     let o = conv(&mut g, net.head(), &trunk)?; // [B, G + 1, H, W]
     let prior = channels(&mut g, &o, 0, points);
@@ -483,7 +487,7 @@ fn lifetime_on_evidence(net: &LifetimeNet, meta: &OnnxMeta, opts: ExportOptions<
     g.output(&lifetime, "lifetime", &frame(4));
     g.output(&conf, "confidence", &frame(1));
     let doc = format!(
-        "tcsense lifetime decoder on the fit's evidence ({points} lifetimes {}-{} ns, {} levels): evidence [B, {f}, H, W], log_likelihood [B, {points}, H, W] -> lifetime (s) [B, 4, H, W], confidence [B, 1, H, W]; the runtime computes the evidence from the taps",
+        "tcsense lifetime decoder on the fit's evidence ({points} lifetimes {}-{} ns, {} levels): evidence [B, H, W, {f}], log_likelihood [B, H, W, {points}] -> lifetime (s) [B, 4, H, W], confidence [B, 1, H, W]; the runtime computes the evidence from the taps",
         net.tau_range_ns()[0],
         net.tau_range_ns()[1],
         net.down().len()

@@ -157,6 +157,11 @@ fn stream_into(
     let bin_s = model.meta.bin_s;
     let peak_opts = PeakOptions { max_peaks: k, ..Default::default() };
     let t0 = Instant::now();
+    // a lifetime network on the fit's evidence: its instrument from the first frame, once
+    if let Some(e) = model.meta.evidence.filter(|_| products.need_model()) {
+        let instrument = estimate_instrument(&first.view(), &model.sensor, &e.fit_options());
+        model.set_instrument(instrument);
+    }
     // the fits to the taps need corrected tap images, and a built-in correction is in the graph
     let uncalibrated = |field: &'static str| -> Result<()> {
         match model.meta.calibration {
