@@ -373,6 +373,51 @@ fn ladder_ambient_and_the_matched_input() {
 }
 
 #[test]
+fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does_not_fit() {
+    let d = tempdir();
+    let d = d.path();
+    tiny_lidar_and_codes(d);
+    ok(d, &["dataset", "flim", "--count", "6", "--size", "8x8", "--length", "8", "--heterodyne", "2", "-o", "f"]);
+    let train = |extra: &[&str], out: &str| -> Vec<String> {
+        let mut a: Vec<String> =
+            ["train", "lifetime", "--dataset", "f", "--codes", "codes.json", "--base-width", "4", "--levels", "2", "--seed", "3"]
+                .iter()
+                .map(|s| s.to_string())
+                .collect();
+        a.extend(extra.iter().map(|s| s.to_string()));
+        a.extend(["-o".to_string(), out.to_string()]);
+        a
+    };
+    let args = train(&["--input", "costs", "--epochs", "1"], "ev");
+    let out = ok(d, &args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(out.contains("the fit's evidence on 96 lifetimes") && out.contains("lifetime MAE"), "{out}");
+    let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("ev/config.json")).unwrap()).unwrap();
+    assert_eq!((cfg["model"]["input"].as_str(), cfg["model"]["points"].as_u64()), (Some("Costs"), Some(96)));
+    let x = tcsense_sensor::npy::read_npy(&d.join("f/test/x_000.npy")).unwrap();
+    tcsense_sensor::npy::write_npy(&d.join("x.npy"), &x.index_axis(ndarray::Axis(0), 0)).unwrap();
+    ok(d, &["simulate", "--codes", "codes.json", "--heterodyne", "2", "--cube", "x.npy", "--noise", "-o", "y.npy"]);
+    ok(d, &["reconstruct", "lifetime", "--run", "ev", "--measurements", "y.npy", "-o", "tau.npy"]);
+    let tau = tcsense_sensor::npy::read_npy(&d.join("tau.npy")).unwrap();
+    assert_eq!(tau.shape(), &[4, 8, 8]);
+    // lifetimes on the grid (0.05–25 ns) where the confidence lets them through, one component
+    assert!(tau.index_axis(ndarray::Axis(0), 0).iter().all(|t| t.is_nan() || (0.05e-9..=25.0001e-9).contains(t)));
+    assert!(tau.index_axis(ndarray::Axis(0), 3).iter().all(|a| a.is_nan() || *a == 1.0));
+    // the same through the exported graph and ONNX Runtime, the evidence computed by infer
+    ok(d, &["export", "onnx", "--run", "ev", "-o", "ev.onnx"]);
+    ok(d, &["infer", "--model", "ev.onnx", "--measurements", "y.npy", "-o", "inf"]);
+    let streamed = tcsense_sensor::npy::read_npy(&d.join("inf/lifetime.npy")).unwrap();
+    for (a, b) in streamed.iter().zip(tau.index_axis(ndarray::Axis(0), 0).iter()) {
+        assert!((a.is_nan() && b.is_nan()) || (a - b).abs() <= 1e-4 * b.abs(), "infer {a:e} against reconstruct {b:e}");
+    }
+    // refused: an input of another network; a U-Net input for a lifetime run; the graph with the matrix as an input
+    fails(d, &["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--input", "costs", "-o", "u"], &["input", "costs"]);
+    let args = train(&["--input", "matched", "--epochs", "1"], "bad");
+    fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["input", "matched"]);
+    fails(d, &["export", "onnx", "--run", "ev", "--matrix-input", "-o", "m.onnx"], &["--matrix-input"]);
+    assert!(!d.join("bad").exists() && !d.join("m.onnx").exists());
+}
+
+#[test]
 fn train_and_eval_the_lifetime_decoder() {
     let d = tempdir();
     let d = d.path();

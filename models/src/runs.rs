@@ -154,7 +154,8 @@ impl ModelConfig {
                 }
             }
             ModelConfig::Lifetime(c) => {
-                if !(1..=bins / 2).contains(&c.harmonics) {
+                let harmonics = c.input == crate::LifetimeInput::Harmonics;
+                if harmonics && !(1..=bins / 2).contains(&c.harmonics) {
                     return bad("model.harmonics", c.harmonics.to_string(), &format!("1..={} harmonics (half the {bins} bins)", bins / 2));
                 }
                 if !(1..=256).contains(&c.base_width) {
@@ -166,6 +167,9 @@ impl ModelConfig {
                 let [lo, hi] = c.tau_range_ns;
                 if !(lo.is_finite() && hi.is_finite() && lo > 0.0 && lo < hi) {
                     return bad("model.tau_range_ns", format!("{:?}", c.tau_range_ns), "0 < lo < hi (ns)");
+                }
+                if let Err(e) = c.validate() {
+                    return bad("model", e, "a lifetime grid of 3–1024 points, a pool of 1 to points");
                 }
             }
         }

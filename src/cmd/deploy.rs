@@ -66,6 +66,16 @@ pub fn export(cmd: ExportCmd) -> Result<ExitCode> {
                 },
                 meta.outputs().join(", ")
             );
+            if let Some(e) = &meta.evidence {
+                println!(
+                    "  the graph reads the fit's evidence on {} lifetimes {}–{} ns, which `tcsense infer` (and eval onnx:) computes from the measurements; its own inputs: evidence [B, H, W, {}], log_likelihood [B, H, W, {}]",
+                    e.points,
+                    e.tau_range_ns[0],
+                    e.tau_range_ns[1],
+                    tcsense_fits::lifetime_taps::evidence::feature_channels(e.points, e.pool),
+                    e.points
+                );
+            }
             Ok(ExitCode::SUCCESS)
         }
     }
