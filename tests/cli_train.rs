@@ -409,6 +409,34 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
     for (a, b) in streamed.iter().zip(tau.index_axis(ndarray::Axis(0), 0).iter()) {
         assert!((a.is_nan() && b.is_nan()) || (a - b).abs() <= 1e-4 * b.abs(), "infer {a:e} against reconstruct {b:e}");
     }
+    // the photon ladder of lifetime decoders and its figure (lifetime MAE and coverage against the light)
+    let out = ok(
+        d,
+        &[
+            "eval",
+            "--dataset",
+            "f",
+            "--codes",
+            "codes.json",
+            "--heterodyne",
+            "2",
+            "--decoder",
+            "lifetime:ev",
+            "--decoder",
+            "lifetime-fit",
+            "--light",
+            "0.8,0.02",
+            "--plot",
+            "curve.png",
+            "-o",
+            "ladder.json",
+        ],
+    );
+    assert!(out.contains("wrote curve.png"), "{out}");
+    let png = std::fs::read(d.join("curve.png")).unwrap();
+    assert!(png.len() > 10_000 && png.starts_with(b"\x89PNG"), "a drawn figure");
+    let rows: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("ladder.json")).unwrap()).unwrap();
+    assert_eq!(rows.as_array().unwrap().len(), 4, "two decoders at two light levels");
     // refused: an input of another network; a U-Net input for a lifetime run; the graph with the matrix as an input
     fails(d, &["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--input", "costs", "-o", "u"], &["input", "costs"]);
     let args = train(&["--input", "matched", "--epochs", "1"], "bad");
