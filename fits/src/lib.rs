@@ -8,7 +8,8 @@
 //! - [`depth`]: ranges from nothing — every candidate of the cycle at once as dense linear
 //!   algebra, the window's best, polished by [`range`] (the `depth-fit` decoder).
 //! - [`lifetime_taps`]: lifetimes fitted to the tap images, with the onset and IRF fitted to
-//!   the frame (the `lifetime-fit` decoder).
+//!   the frame (the `lifetime-fit` decoder), and its costs on the lifetime grid as the evidence
+//!   a network reads ([`lifetime_taps::evidence`], the lifetime network on the evidence).
 //! - [`lifetime_cube`]: lifetimes of a reconstructed cube — a reconvolution fit of one or two
 //!   exponentials (`tcsense lifetime`).
 //!
