@@ -215,19 +215,8 @@ impl OnnxModel {
         let f = TensorRef::from_array_view(features.view()).map_err(fail)?;
         let s = TensorRef::from_array_view(skip.view()).map_err(fail)?;
         let outputs = self.session.run(ort::inputs![EVIDENCE_INPUT => f, LOG_LIKELIHOOD_INPUT => s]).map_err(fail)?;
-        let mut out: Vec<Array4<f32>> = self
-            .meta
-            .graph_outputs()
-            .iter()
-            .map(|n| {
-                let v: ArrayViewD<'_, f32> = outputs[*n].try_extract_array::<f32>().map_err(fail)?;
-                v.into_dimensionality::<Ix4>()
-                    .map(|v| v.to_owned())
-                    .map_err(|e| InferError::File { path: path.clone(), msg: format!("output {n}: {e}") })
-            })
-            .collect::<Result<_>>()?;
+        let mut out = named_outputs(&path, &outputs, self.meta.graph_outputs())?;
         drop(outputs);
-        let (_, _, h, w) = y.dim();
         for (i, (own, costs)) in frames.iter().enumerate() {
             let Some(templates) = own.as_ref().or(self.templates.as_ref()) else { unreachable!("templates fixed or fitted") };
             let (l0, step) = templates.log_grid();
@@ -238,7 +227,6 @@ impl OnnxModel {
             for c in 0..3 {
                 lifetime.slice_mut(ndarray::s![i, c, .., ..]).assign(&tau);
             }
-            debug_assert_eq!(tau.dim(), (h, w));
         }
         out.push(y.sum_axis(ndarray::Axis(1)).insert_axis(ndarray::Axis(1)));
         Ok(out)
@@ -305,16 +293,22 @@ impl OnnxModel {
         let path = self.path.clone();
         let fail = |e: ort::Error| InferError::File { path: path.clone(), msg: format!("ONNX Runtime: {e}") };
         let outputs = outputs.map_err(fail)?;
-        names
-            .iter()
-            .map(|n| {
-                let v: ArrayViewD<'_, f32> = outputs[*n].try_extract_array::<f32>().map_err(fail)?;
-                v.into_dimensionality::<Ix4>()
-                    .map(|v| v.to_owned())
-                    .map_err(|e| InferError::File { path: path.clone(), msg: format!("output {n}: {e}") })
-            })
-            .collect()
+        named_outputs(&path, &outputs, names)
     }
+}
+
+/// The session's outputs `names`, each `[B, C, H, W]`; errors name the model file `path`.
+fn named_outputs(path: &Path, outputs: &ort::session::SessionOutputs<'_>, names: &[&str]) -> Result<Vec<Array4<f32>>> {
+    let fail = |e: ort::Error| InferError::File { path: path.to_path_buf(), msg: format!("ONNX Runtime: {e}") };
+    names
+        .iter()
+        .map(|n| {
+            let v: ArrayViewD<'_, f32> = outputs[*n].try_extract_array::<f32>().map_err(fail)?;
+            v.into_dimensionality::<Ix4>()
+                .map(|v| v.to_owned())
+                .map_err(|e| InferError::File { path: path.to_path_buf(), msg: format!("output {n}: {e}") })
+        })
+        .collect()
 }
 
 /// An exported model behind the decoder contract (`eval --decoder onnx:model.onnx`).

@@ -185,6 +185,24 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// One series per decoder of ladder rows (in their order): `f` of each row against the
+/// brightest tap's signal electrons of its level.
+fn decoder_series(rows: &[EvalRow], f: &dyn Fn(&EvalRow) -> Option<f64>) -> Vec<tcsense_infer::figures::Series> {
+    let mut names: Vec<&str> = Vec::new();
+    for r in rows {
+        if !names.contains(&r.decoder.as_str()) {
+            names.push(&r.decoder);
+        }
+    }
+    names
+        .iter()
+        .map(|n| tcsense_infer::figures::Series {
+            label: n.to_string(),
+            points: rows.iter().filter(|r| r.decoder == *n).filter_map(|r| Some((r.light?.signal_electrons, f(r)?))).collect(),
+        })
+        .collect()
+}
+
 /// The largest share of a return's light one tap collects (photons = tap electrons / share).
 fn brightest_tap_share(a: &tcsense_sensor::MeasurementMatrix) -> f64 {
     let m = a.a();
@@ -233,21 +251,7 @@ fn lifetime_curve(
             })
             .collect(),
     });
-    let mut names: Vec<&str> = Vec::new();
-    for r in rows {
-        if !names.contains(&r.decoder.as_str()) {
-            names.push(&r.decoder);
-        }
-    }
-    let series = |f: &dyn Fn(&EvalRow) -> Option<f64>| -> Vec<Series> {
-        names
-            .iter()
-            .map(|n| Series {
-                label: n.to_string(),
-                points: rows.iter().filter(|r| r.decoder == *n).filter_map(|r| Some((r.light?.signal_electrons, f(r)?))).collect(),
-            })
-            .collect()
-    };
+    let series = |f: &dyn Fn(&EvalRow) -> Option<f64>| decoder_series(rows, f);
     let errors = series(&|r| r.lifetime_mae_s.map(|v| v * 1e9));
     let shares = series(&|r| r.lifetime_coverage.map(|v| 100.0 * v));
     let ambient = sbr.map_or("no ambient light".to_string(), |s| format!("ambient at SBR {s}"));
@@ -293,21 +297,7 @@ fn photon_curve(
             })
             .collect(),
     });
-    let mut names: Vec<&str> = Vec::new();
-    for r in rows {
-        if !names.contains(&r.decoder.as_str()) {
-            names.push(&r.decoder);
-        }
-    }
-    let series = |f: &dyn Fn(&EvalRow) -> Option<f64>| -> Vec<Series> {
-        names
-            .iter()
-            .map(|n| Series {
-                label: n.to_string(),
-                points: rows.iter().filter(|r| r.decoder == *n).filter_map(|r| Some((r.light?.signal_electrons, f(r)?))).collect(),
-            })
-            .collect()
-    };
+    let series = |f: &dyn Fn(&EvalRow) -> Option<f64>| decoder_series(rows, f);
     let errors = series(&|r| r.depth_median_m.first().map(|m| m / bin_m));
     let shares = series(&|r| r.depth_within_half_bin.first().map(|s| 100.0 * s));
     if errors.iter().all(|s| s.points.is_empty()) {
