@@ -58,10 +58,17 @@ pub fn burn_outputs(run: &LoadedRun, y: &Array4<f32>) -> Vec<Array4<f32>> {
     let yt = to_tensor(&y.view(), &device);
     match &run.net {
         TrainedNet::AdmmNet(net) => vec![to_array(net.predict(yt, &st)).unwrap()],
-        TrainedNet::Unet(net) => {
-            let (depth, conf) = net.forward(yt, &st);
-            vec![to_array(depth).unwrap(), to_array(conf).unwrap()]
-        }
+        TrainedNet::Unet(net) => match net.decode_frames(&y.view(), &st) {
+            // (the network on the range fit's evidence: its product, refined in the tap domain)
+            Some(out) => {
+                let (depth, conf) = tcsense_models::net::split_depth(&out);
+                vec![depth, conf]
+            }
+            None => {
+                let (depth, conf) = net.forward(yt, &st);
+                vec![to_array(depth).unwrap(), to_array(conf).unwrap()]
+            }
+        },
         TrainedNet::Lifetime(net) => {
             // burn gives ns and the confidence logit; the graph seconds and the probability
             // (the network on the fit's evidence: its product, the modes refined in the tap domain)

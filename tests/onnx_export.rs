@@ -308,6 +308,50 @@ fn lifetime_decoder_on_the_fit_evidence_in_onnx_runtime_equals_burn() {
     assert!(refused.to_string().contains("--matrix-input"), "{refused}");
 }
 
+/// The U-Net on the range fit's evidence (a randomised head, so its log-prior and temperature
+/// are not the fit's): ONNX Runtime with the runtime's evidence and refinement gives burn's
+/// product — the same pixels with a return, ranges and confidences to 1e-4 of their scale.
+#[test]
+fn unet_on_the_range_fit_evidence_in_onnx_runtime_equals_burn() {
+    use burn::module::Module;
+    let net = |m: usize, t: usize| {
+        ModelConfig::Unet(
+            UnetConfig::new(m, t, 12.0)
+                .with_base_width(4)
+                .with_levels(2)
+                .with_head(tcsense_models::UnetHead::ScoreVolume)
+                .with_input(tcsense_models::UnetInput::Costs)
+                .with_oversample(2)
+                .with_pool(3),
+        )
+    };
+    let physical = Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 };
+    let mut run = random_run(net, (2, 2), Sampling::Oversample(1), physical, 8);
+    if let TrainedNet::Unet(n) = run.net {
+        run.net = TrainedNet::Unet(n.map(&mut Jitter(41)));
+    }
+    let dir = tempfile::tempdir().unwrap();
+    for (h, w) in [(8, 8), (12, 16)] {
+        let y = random_y(4, h, w, 13);
+        let want = burn_outputs(&run, &y);
+        let got = ort_outputs(&run, ExportOptions::default(), &y, dir.path(), "unet-evidence.onnx");
+        assert_eq!(got.len(), 2, "depth and confidence");
+        for (k, name) in ["depth", "confidence"].iter().enumerate() {
+            assert_eq!(got[k].dim(), want[k].dim(), "{name}");
+            let mismatch = got[k].iter().zip(want[k].iter()).filter(|(a, b)| a.is_finite() != b.is_finite()).count();
+            assert_eq!(mismatch, 0, "{h}x{w}, {name}: NaN where burn has a value or the reverse");
+            let finite = |a: &Array4<f32>| a.mapv(|v| if v.is_finite() { v } else { 0.0 });
+            let d = rel_diff(&finite(&got[k]), &finite(&want[k]));
+            assert!(d <= 1e-4, "{h}x{w}, {name}: ort differs from burn by {d:e} of the output scale");
+        }
+        let lit = got[0].slice(ndarray::s![.., 0, .., ..]).iter().filter(|v| v.is_finite()).count();
+        assert!(lit > 0, "some first returns");
+        assert!(got[0].iter().filter(|v| v.is_finite()).all(|v| (0.0..12.0).contains(v)), "ranges within the cycle");
+    }
+    let refused = export(&run, ExportOptions { matrix_input: true, ..Default::default() }).unwrap_err();
+    assert!(refused.to_string().contains("--matrix-input"), "{refused}");
+}
+
 #[test]
 fn measurements_that_break_the_metadata_are_refused() {
     let dir = tempfile::tempdir().unwrap();

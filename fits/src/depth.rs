@@ -42,12 +42,13 @@
 //! Pixels whose charge is below [`DepthFitOptions::min_intensity`] of the frame's brightest get
 //! no return, and a best candidate on the bound of the restricted search is no estimate (NaN).
 
-use ndarray::{Array3, ArrayView3};
+use ndarray::{Array2, Array3, ArrayView3};
 use rayon::prelude::*;
 use tcsense_sensor::waveform::subpixel_flat;
 use tcsense_sensor::{MeasurementMatrix, C};
 
 use crate::engine::{argmin, parabola_min, window_rows, window_total};
+use crate::evidence::{CostVolume, Evidence};
 use crate::range::{cyclic_gap, RangeFitOptions, Templates, WindowFit, EXPLAINED, MIN_GAP};
 
 /// The pre-screen of a second return: one return of one amplitude over the window must remove at
@@ -278,6 +279,45 @@ pub fn fit_ranges(y: &ArrayView3<'_, f32>, sensor: &MeasurementMatrix, opts: &De
     RangeTemplates::new(sensor, opts).fit(y)
 }
 
+/// The sides of the wider windows whose posteriors the range fit's evidence gives beside each
+/// pixel's ([`RangeTemplates::evidence`]).
+pub const CONTEXT_WINDOWS: [usize; 2] = [3, 9];
+
+/// Channels of the range fit's evidence's features for `candidates` pooled by `pool`.
+pub fn range_feature_channels(candidates: usize, pool: usize) -> usize {
+    crate::evidence::feature_channels_with(candidates, pool, CONTEXT_WINDOWS.len())
+}
+
+/// One frame's costs at every candidate of the cycle ([`RangeTemplates::costs`]): what the
+/// fit and a network on its evidence start from.
+#[derive(Debug, Clone, Default)]
+pub struct RangeCosts {
+    /// The taps `[H·W·M]`, pixel-major.
+    taps: Vec<f64>,
+    /// Whether a pixel holds enough charge to be fitted `[H·W]`.
+    pub lit: Vec<bool>,
+    /// Each pixel's single-return cost at every candidate `[H·W·C]` (0 where unlit).
+    pub pixel: Vec<f32>,
+    /// The costs summed over the window's lit pixels `[H·W·C]`.
+    pub window: Vec<f32>,
+    /// The box filter's row sums (scratch).
+    rows: Vec<f32>,
+    /// `H`, `W`, `M`.
+    pub height: usize,
+    pub width: usize,
+    pub m: usize,
+}
+
+/// Where [`RangeTemplates::ranges`] starts each pixel.
+#[derive(Debug, Clone, Copy)]
+pub enum Seeds<'a> {
+    /// The window's best candidate over the whole cycle (the fit).
+    Argmin,
+    /// A continuous candidate coordinate per pixel `[H·W]` (a posterior's mode; NaN: no
+    /// return), `u` at [`RangeTemplates::range_at`]`(u)`.
+    Modes(&'a [f32]),
+}
+
 /// The template fit of ranges for one sensor, built once and applied to every frame of a
 /// stream (its cost volume reused from frame to frame).
 pub struct RangeTemplates {
@@ -295,11 +335,11 @@ pub struct RangeTemplates {
     /// its template outside the first's and the ambient's columns (infinite where nothing is
     /// left).
     perp: Vec<f32>,
-    /// Every pixel's single-return cost at every candidate, then its residual's product with
-    /// every candidate's template, `[H·W][C]` (scratch).
-    cost: Vec<f32>,
-    /// The box filter's row sums of `cost`, `[H·W][C]` (reused from frame to frame).
-    rows: Vec<f32>,
+    /// Every pixel's residual's product with every candidate's template, `[H·W][C]` (scratch,
+    /// reused from frame to frame).
+    scratch: Vec<f32>,
+    /// The last frame's costs (buffers reused by [`Self::fit`]).
+    frame: Option<RangeCosts>,
     /// Every pixel's residual after its single return, `[H·W]` (scratch).
     rr: Vec<f32>,
 }
@@ -319,8 +359,8 @@ impl RangeTemplates {
             block: sensor.block(),
             delta: C * sensor.bin_width_s() / 2.0,
             opts: opts.clone(),
-            cost: Vec::new(),
-            rows: Vec::new(),
+            scratch: Vec::new(),
+            frame: None,
             rr: Vec::new(),
         }
     }
@@ -330,7 +370,139 @@ impl RangeTemplates {
     /// # Shapes
     /// - `y`: `[M, H, W]` → `[returns, H, W]` (m, arrival order, NaN where none)
     pub fn fit(&mut self, y: &ArrayView3<'_, f32>) -> Array3<f32> {
+        let (_, h, w) = y.dim();
+        // (the cost volume's buffers kept from frame to frame)
+        let mut costs = self.frame.take().unwrap_or_default();
+        let out = if self.costs_into(y, &mut costs) {
+            self.ranges(&costs, Seeds::Argmin)
+        } else {
+            Array3::from_elem((self.opts.returns, h, w), f32::NAN)
+        };
+        self.frame = Some(costs);
+        out
+    }
+
+    /// Candidates `C` around the cycle (`T` bins × the candidates per bin).
+    pub fn candidates(&self) -> usize {
+        self.tpl.candidates()
+    }
+
+    /// The range (m) at a continuous candidate coordinate `u` (cyclic: `u` and `u + C` are the
+    /// same range).
+    pub fn range_at(&self, u: f64) -> f64 {
+        let c = self.tpl.candidates() as f64;
+        self.tpl.tau(0) * self.delta + u.rem_euclid(c) * self.delta / self.tpl.os as f64
+    }
+
+    /// Step 1 of the fit for one frame: every lit pixel's cost at every candidate and its sum
+    /// over the window; `None` where `y` has another number of taps than the sensor or no
+    /// pixel.
+    ///
+    /// # Shapes
+    /// - `y`: `[M, H, W]` → [`RangeCosts`] of `[H·W·C]`
+    pub fn costs(&self, y: &ArrayView3<'_, f32>) -> Option<RangeCosts> {
+        let mut costs = RangeCosts::default();
+        self.costs_into(y, &mut costs).then_some(costs)
+    }
+
+    /// [`Self::costs`] into the buffers of `costs` (a stream's, reused); `false` where there is
+    /// nothing to fit.
+    pub fn costs_into(&self, y: &ArrayView3<'_, f32>, costs: &mut RangeCosts) -> bool {
         let (m, h, w) = y.dim();
+        let (tpl, dense) = (&self.tpl, &self.dense);
+        let cands = tpl.candidates();
+        let (bh, bw) = self.block;
+        let kind = |p: usize| subpixel_flat(p, w, (bh, bw));
+        if m != tpl.m || h == 0 || w == 0 {
+            return false;
+        }
+        // taps [H·W][M] (f32 for the dense pass, f64 for the window fits) and who has light
+        let mut y32 = vec![0f32; h * w * m];
+        for ((k, i, j), &v) in y.indexed_iter() {
+            y32[(i * w + j) * m + k] = v;
+        }
+        let charge: Vec<f32> = (0..h * w).map(|p| y32[p * m..(p + 1) * m].iter().sum()).collect();
+        let floor = self.opts.min_intensity * charge.iter().fold(0f32, |a, &b| a.max(b));
+        let lit: Vec<bool> = charge.iter().map(|&c| c > 0.0 && c > floor).collect();
+        // every lit pixel's cost at every candidate, [H·W][C] (the others are never read)
+        let RangeCosts { taps, lit: lit_out, pixel, window, rows, .. } = costs;
+        pixel.clear();
+        pixel.resize(h * w * cands, 0.0);
+        pixel.par_chunks_mut(w * cands).enumerate().for_each(|(i, row)| {
+            let mut gy = vec![0f32; cands];
+            for j in 0..w {
+                let p = i * w + j;
+                if lit[p] {
+                    dense[kind(p)].costs(&y32[p * m..(p + 1) * m], &mut gy, &mut row[j * cands..(j + 1) * cands]);
+                }
+            }
+        });
+        // summed over the window's lit pixels
+        let side = self.opts.fit.window;
+        window_rows(pixel, &lit, (h, w), cands, side, rows);
+        window.resize(h * w * cands, 0.0);
+        window.par_chunks_mut(w * cands).enumerate().for_each(|(i, row)| {
+            for (j, total) in row.chunks_mut(cands).enumerate() {
+                window_total(rows, (i, j), (h, w), side, total);
+            }
+        });
+        taps.clear();
+        taps.extend(y32.iter().map(|&v| v as f64));
+        *lit_out = lit;
+        (costs.height, costs.width, costs.m) = (h, w, m);
+        true
+    }
+
+    /// The fit's evidence of one frame ([`crate::evidence`]): each pixel's amplitude and
+    /// ambient are its own, the window shares the range. Beside each pixel's posterior over the
+    /// candidates, those of its [`CONTEXT_WINDOWS`] (the costs summed over wider windows).
+    ///
+    /// # Shapes
+    /// - `costs`: of `[H·W·C]`, `intensity`: `[H, W]` → [`Evidence`] of `[H, W, ·]`
+    ///   ([`range_feature_channels`] features)
+    pub fn evidence(&self, costs: &RangeCosts, intensity: &Array2<f32>, pool: usize) -> Evidence {
+        let (h, w, cands) = (costs.height, costs.width, self.tpl.candidates());
+        let mut rows = Vec::new();
+        let wider: Vec<Vec<f32>> = CONTEXT_WINDOWS
+            .iter()
+            .map(|&side| {
+                window_rows(&costs.pixel, &costs.lit, (h, w), cands, side, &mut rows);
+                let mut sums = vec![0f32; h * w * cands];
+                sums.par_chunks_mut(w * cands).enumerate().for_each(|(i, row)| {
+                    for (j, total) in row.chunks_mut(cands).enumerate() {
+                        window_total(&rows, (i, j), (h, w), side, total);
+                    }
+                });
+                sums
+            })
+            .collect();
+        let wider: Vec<&[f32]> = wider.iter().map(|v| v.as_slice()).collect();
+        let volume = CostVolume {
+            pixel: &costs.pixel,
+            window: &costs.window,
+            lit: &costs.lit,
+            points: self.tpl.candidates(),
+            height: costs.height,
+            width: costs.width,
+            side: self.opts.fit.window,
+            free_per_pixel: costs.m.saturating_sub(2),
+            shared: 1,
+        };
+        crate::evidence::evidence_with(&volume, intensity, pool, &wider)
+    }
+
+    /// Steps 2 to 4 of the fit from a frame's costs: the first estimate of every pixel (the
+    /// window's argmin over the cycle, or `seeds`' modes), the window on its surface searched
+    /// near it and refined, a second return.
+    ///
+    /// With [`Seeds::Modes`] a pixel's range is its mode refined in the tap domain where the
+    /// window's best candidate within the search is the mode's own or its neighbour (as the fit
+    /// refines its argmin); elsewhere the mode itself. A pixel without a mode has no return.
+    ///
+    /// # Shapes
+    /// - `costs`: of `[H·W·C]` → `[returns, H, W]` (m, arrival order, NaN where none)
+    pub fn ranges(&mut self, costs: &RangeCosts, seeds: Seeds<'_>) -> Array3<f32> {
+        let (m, h, w) = (costs.m, costs.height, costs.width);
         let opts = &self.opts;
         let fit = &opts.fit;
         let (tpl, jtpl, dense) = (&self.tpl, &self.jtpl, &self.dense);
@@ -341,48 +513,22 @@ impl RangeTemplates {
         let os = fit.oversample as f64;
         let half = fit.window / 2;
         let mut out = Array3::from_elem((opts.returns, h, w), f32::NAN);
-        if m != tpl.m || h == 0 || w == 0 {
-            return out;
-        }
-        // taps [H·W][M] (f32 for the dense pass, f64 for the window fits) and who has light
-        let mut y32 = vec![0f32; h * w * m];
-        for ((k, i, j), &v) in y.indexed_iter() {
-            y32[(i * w + j) * m + k] = v;
-        }
-        let taps: Vec<f64> = y32.iter().map(|&v| v as f64).collect();
-        let charge: Vec<f32> = (0..h * w).map(|p| y32[p * m..(p + 1) * m].iter().sum()).collect();
-        let floor = opts.min_intensity * charge.iter().fold(0f32, |a, &b| a.max(b));
-        let lit: Vec<bool> = charge.iter().map(|&c| c > 0.0 && c > floor).collect();
-
-        // 1. every lit pixel's cost at every candidate, [H·W][C] (the others are never read)
-        self.cost.resize(h * w * cands, 0.0);
-        self.cost.par_chunks_mut(w * cands).enumerate().for_each(|(i, row)| {
-            let mut gy = vec![0f32; cands];
-            for j in 0..w {
-                let p = i * w + j;
-                if lit[p] {
-                    dense[kind(p)].costs(&y32[p * m..(p + 1) * m], &mut gy, &mut row[j * cands..(j + 1) * cands]);
-                }
+        let (taps, lit, cost) = (&costs.taps, &costs.lit, &costs.pixel);
+        // 2. the first estimate: the window's argmin over the cycle, or the seeds' modes
+        let first: Vec<f64> = match seeds {
+            Seeds::Argmin => (0..h * w)
+                .into_par_iter()
+                .map(|p| if lit[p] { tpl.tau(argmin(&costs.window[p * cands..(p + 1) * cands])) } else { f64::NAN })
+                .collect(),
+            Seeds::Modes(u) => {
+                assert_eq!(u.len(), h * w, "RangeTemplates::ranges: a mode per pixel");
+                u.iter()
+                    .zip(lit.iter())
+                    .map(|(&u, &l)| if l && u.is_finite() { (tpl.tau(0) + u as f64 / os).rem_euclid(tpl.t as f64) } else { f64::NAN })
+                    .collect()
             }
-        });
-        // 2. summed over the window's lit pixels, the argmin over the cycle
-        window_rows(&self.cost, &lit, (h, w), cands, fit.window, &mut self.rows);
-        let rows = &self.rows;
-        let first: Vec<f64> = (0..h)
-            .into_par_iter()
-            .flat_map_iter(|i| {
-                let mut total = vec![0f32; cands];
-                let lit = &lit;
-                (0..w).map(move |j| {
-                    if !lit[i * w + j] {
-                        return f64::NAN;
-                    }
-                    window_total(rows, (i, j), (h, w), fit.window, &mut total);
-                    tpl.tau(argmin(&total))
-                })
-            })
-            .collect();
-        let cost = &self.cost;
+        };
+        let moded = matches!(seeds, Seeds::Modes(_));
 
         // 3. the window on the pixel's surface: search near the first estimate, refine
         let t = tpl.t;
@@ -401,11 +547,11 @@ impl RangeTemplates {
         let tau1: Vec<f64> = (0..h)
             .into_par_iter()
             .flat_map_iter(|i| {
-                let mut win = WindowFit::new(jtpl, &taps, fit.window);
+                let mut win = WindowFit::new(jtpl, taps, fit.window);
                 let mut total = vec![0f32; cands];
                 let mut g = vec![0.0f64; m];
                 let mut hood: Vec<usize> = Vec::with_capacity(fit.window * fit.window);
-                let (first, lit) = (&first, &lit);
+                let first = &first;
                 (0..w)
                     .map(move |j| {
                         let p = i * w + j;
@@ -425,6 +571,9 @@ impl RangeTemplates {
                         let d = (-reach..=reach)
                             .min_by(|&a, &b| total[at(a)].total_cmp(&total[at(b)]).then(a.abs().cmp(&b.abs())))
                             .unwrap_or(0);
+                        if moded && d.abs() > 1 {
+                            return own; // the mode is not the window's best: the prior's choice stands
+                        }
                         if d.abs() == reach && reach > 0 {
                             return f64::NAN; // on the bound of the search
                         }
@@ -445,7 +594,8 @@ impl RangeTemplates {
             // `(Σ r·g(c))² / Σ ‖P⊥g(c)‖²` of the residual. Its highest local maxima two bins or
             // more from the first are the seeds of the joint fit.
             self.rr.resize(h * w, 0.0);
-            self.cost.par_chunks_mut(w * cands).zip(self.rr.par_chunks_mut(w)).enumerate().for_each(|(i, (row, rrow))| {
+            self.scratch.resize(h * w * cands, 0.0);
+            self.scratch.par_chunks_mut(w * cands).zip(self.rr.par_chunks_mut(w)).enumerate().for_each(|(i, (row, rrow))| {
                 let mut g1 = vec![0.0f64; m];
                 for j in 0..w {
                     let p = i * w + j;
@@ -460,11 +610,11 @@ impl RangeTemplates {
                     rrow[j] = r.iter().map(|v| v * v).sum::<f64>() as f32;
                 }
             });
-            let (zvol, perp, rr) = (&self.cost, &self.perp, &self.rr);
+            let (zvol, perp, rr) = (&self.scratch, &self.perp, &self.rr);
             let seconds: Vec<Option<(usize, f64, f64)>> = (0..h)
                 .into_par_iter()
                 .flat_map_iter(|i| {
-                    let mut win = WindowFit::new(jtpl, &taps, fit.window);
+                    let mut win = WindowFit::new(jtpl, taps, fit.window);
                     let mut total = vec![0f32; cands];
                     let mut zsum = vec![0f32; cands];
                     let mut psum = vec![0f32; cands];

@@ -7,6 +7,8 @@
 //!   U-Net's range fit, `NAME+fit`).
 //! - [`depth`]: ranges from nothing — every candidate of the cycle at once as dense linear
 //!   algebra, the window's best, polished by [`range`] (the `depth-fit` decoder).
+//! - [`evidence`]: a fit's costs as a network's input — the log-likelihood of every candidate
+//!   and the per-pixel posteriors (the depth and lifetime networks on the fits' evidence).
 //! - [`lifetime_taps`]: lifetimes fitted to the tap images, with the onset and IRF fitted to
 //!   the frame (the `lifetime-fit` decoder), and its costs on the lifetime grid as the evidence
 //!   a network reads ([`lifetime_taps::evidence`], the lifetime network on the evidence).
@@ -21,6 +23,7 @@
 
 pub mod depth;
 pub mod engine;
+pub mod evidence;
 pub mod lifetime_cube;
 pub mod lifetime_taps;
 pub mod range;

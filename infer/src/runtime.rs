@@ -12,12 +12,13 @@ use ort::value::TensorRef;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
+use tcsense_fits::depth::{RangeTemplates, Seeds};
 use tcsense_fits::range::{refine_ranges, RangeFitOptions};
 use tcsense_models::decoder::{check_measurements, Control, Decoded, Decoder, Step};
 use tcsense_models::net::{mask_depth, mask_lifetime};
 use tcsense_sensor::MeasurementMatrix;
 
-use crate::onnx::meta::EvidenceNote;
+use crate::onnx::meta::{EvidenceNote, RangeEvidenceNote};
 use crate::onnx::{OnnxMeta, EVIDENCE_INPUT, INPUT, LOG_LIKELIHOOD_INPUT, MATRIX_INPUT};
 use crate::{InferError, Result};
 use tcsense_fits::lifetime_taps::{Instrument, LifetimeCosts, LifetimeTemplates};
@@ -89,6 +90,8 @@ pub struct OnnxModel {
     /// A lifetime decoder on the fit's evidence: the templates at a fixed instrument (a
     /// stream's), else the instrument is fitted to every frame.
     templates: Option<LifetimeTemplates>,
+    /// A U-Net on the range fit's evidence: the fit's templates of the model's sensor.
+    ranges: Option<RangeTemplates>,
 }
 
 impl std::fmt::Debug for OnnxModel {
@@ -135,7 +138,8 @@ impl OnnxModel {
             });
         }
         let matrix = meta.matrix_input.then(|| sensor.a().to_owned());
-        Ok(OnnxModel { path: path.to_path_buf(), session, meta, sensor, matrix, templates: None })
+        let ranges = meta.range_evidence.map(|e| RangeTemplates::new(&sensor, &e.fit_options(meta.returns)));
+        Ok(OnnxModel { path: path.to_path_buf(), session, meta, sensor, matrix, templates: None, ranges })
     }
 
     /// A lifetime decoder on the fit's evidence: fix the instrument (a recording's onset and
@@ -232,6 +236,50 @@ impl OnnxModel {
         Ok(out)
     }
 
+    /// [`Self::run`] of a U-Net on the range fit's evidence, frame by frame (a frame's cost
+    /// volume is `H·W·C` floats): the evidence, the graph (the posterior's mode and the first
+    /// return's confidence), the mode refined in the tap domain with the fit's second return
+    /// beside it ([`RangeTemplates::ranges`], as burn's decoder does); depth NaN where the
+    /// confidence is below one half, the second return's confidence the first's where it has one.
+    fn run_on_range_evidence(&mut self, y: &ArrayView4<'_, f32>, e: &RangeEvidenceNote) -> Result<Vec<Array4<f32>>> {
+        let (b, _, h, w) = y.dim();
+        let k = self.meta.returns.max(1);
+        let c = self.meta.bins * e.oversample;
+        let (range_m, offset) = (self.meta.range_m, 0.5 * e.oversample as f64);
+        let mut depth = Array4::from_elem((b, k, h, w), f32::NAN);
+        let mut confidence = Array4::zeros((b, k, h, w));
+        let path = self.path.clone();
+        let fail = |e: ort::Error| InferError::File { path: path.clone(), msg: format!("ONNX Runtime: {e}") };
+        let Some(templates) = self.ranges.as_mut() else { unreachable!("templates built with the model") };
+        for i in 0..b {
+            let yi = y.index_axis(ndarray::Axis(0), i);
+            let Some(costs) = templates.costs(&yi) else { continue };
+            let ev = templates.evidence(&costs, &yi.sum_axis(ndarray::Axis(0)), e.pool);
+            let features = ev.features.insert_axis(ndarray::Axis(0));
+            let skip = ev.skip.insert_axis(ndarray::Axis(0));
+            let f = TensorRef::from_array_view(features.view()).map_err(fail)?;
+            let s = TensorRef::from_array_view(skip.view()).map_err(fail)?;
+            let outputs = self.session.run(ort::inputs![EVIDENCE_INPUT => f, LOG_LIKELIHOOD_INPUT => s]).map_err(fail)?;
+            let out = named_outputs(&path, &outputs, self.meta.graph_outputs())?;
+            drop(outputs);
+            let u: Vec<f32> = out[0].iter().map(|&r| ((r as f64 * c as f64 / range_m - offset).rem_euclid(c as f64)) as f32).collect();
+            let ranges = templates.ranges(&costs, Seeds::Modes(&u));
+            for p in 0..h * w {
+                let (r, q) = (p / w, p % w);
+                let p1 = out[1][(0, 0, r, q)];
+                for j in 0..k.min(ranges.dim().0) {
+                    let v = ranges[(j, r, q)];
+                    let cj = if j == 0 || v.is_finite() { p1 } else { 0.0 };
+                    confidence[(i, j, r, q)] = cj;
+                    if cj >= tcsense_models::net::DETECTION_THRESHOLD {
+                        depth[(i, j, r, q)] = v;
+                    }
+                }
+            }
+        }
+        Ok(vec![depth, confidence])
+    }
+
     /// Check measurements `[B, M, H, W]` against the metadata: taps, the frame rule, finite.
     pub fn check(&self, y: &ArrayView4<'_, f32>, what: &str) -> Result<()> {
         let (b, m, h, w) = y.dim();
@@ -280,6 +328,9 @@ impl OnnxModel {
         let y = y.as_standard_layout();
         if let Some(e) = self.meta.evidence {
             return self.run_on_evidence(&y.view(), &e);
+        }
+        if let Some(e) = self.meta.range_evidence {
+            return self.run_on_range_evidence(&y.view(), &e);
         }
         let input = TensorRef::from_array_view(y.view()).map_err(fail)?;
         let names = self.meta.outputs();
@@ -374,7 +425,8 @@ impl Decoder for OnnxDecoder {
         if self.model.meta.decoder == "unet" {
             let (mut depth, confidence) = (cat(0)?, cat(1)?);
             mask_depth(&mut depth, &confidence);
-            if let Some(opts) = &self.range_fit {
+            // (a U-Net on the range fit's evidence is refined in the tap domain already)
+            if let (Some(opts), None) = (&self.range_fit, self.model.meta.range_evidence) {
                 refine_ranges(y, sensor, &mut depth, opts);
             }
             Ok(Decoded { depth: Some(depth), confidence: Some(confidence), ..Default::default() })

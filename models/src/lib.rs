@@ -30,6 +30,7 @@
 pub mod admm;
 pub mod bench;
 pub mod decoder;
+pub mod depth_evidence;
 pub mod device;
 pub mod learned_codes;
 pub mod lifetime;

@@ -201,11 +201,16 @@ impl<M: Network> Decoder for NetDecoder<M> {
         let device = self.device.clone();
         let st = self.sensor_tensors(sensor, h, w)?.clone();
         let mut frames = Vec::with_capacity(b);
+        // a network's own product ([`Network::decode_frames`]) is already refined in the tap domain
+        let mut own = false;
         for i in 0..b {
             ctl.check()?;
             let yi = y.slice_axis(Axis(0), ndarray::Slice::from(i..i + 1));
             match self.model.decode_frames(&yi, &st) {
-                Some(out) => frames.push(out),
+                Some(out) => {
+                    own = true;
+                    frames.push(out)
+                }
                 None => frames.push(to_array(self.model.predict(to_tensor(&yi, &device), &st))?),
             }
             (ctl.progress)(Step { frame: i, frames: b, done: 1, total: 1 });
@@ -220,7 +225,7 @@ impl<M: Network> Decoder for NetDecoder<M> {
             Prediction::Cube => Ok(Decoded { cube: Some(out), ..Default::default() }),
             Prediction::Depth => {
                 let (mut depth, confidence) = split_depth(&out);
-                if let Some(opts) = &self.range_fit {
+                if let (Some(opts), false) = (&self.range_fit, own) {
                     refine_ranges(y, sensor, &mut depth, opts);
                 }
                 Ok(Decoded { depth: Some(depth), confidence: Some(confidence), ..Default::default() })

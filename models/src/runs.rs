@@ -99,6 +99,15 @@ impl ModelConfig {
         }
     }
 
+    /// A depth network's grid of candidate ranges (`u = r·scale − offset`, cyclic) where it
+    /// reads the range fit's evidence ([`crate::UnetInput::Costs`]).
+    pub fn range_grid(&self) -> Option<(f64, f64)> {
+        match self {
+            ModelConfig::Unet(c) => c.range_grid(),
+            _ => None,
+        }
+    }
+
     /// Returns `K` per pixel a depth network estimates (1 for networks of cubes).
     pub fn returns(&self) -> usize {
         match self {
@@ -151,6 +160,9 @@ impl ModelConfig {
                 }
                 if !(c.range_m.is_finite() && c.range_m > 0.0) {
                     return bad("model.range_m", c.range_m.to_string(), "a positive range in metres");
+                }
+                if let Err(e) = c.validate() {
+                    return bad("model", e, "1–16 candidates per bin, a pool of 1 to the candidates, the score-volume head");
                 }
             }
             ModelConfig::Lifetime(c) => {
@@ -248,6 +260,9 @@ pub fn upgrade_config(mut v: serde_json::Value) -> serde_json::Value {
         if obj.get("decoder").and_then(|d| d.as_str()) == Some("unet") {
             if let Some(model) = obj.get_mut("model").and_then(|m| m.as_object_mut()) {
                 model.entry("input").or_insert(serde_json::Value::String("Backprojection".into()));
+                // runs written before the range fit's evidence (which they do not read)
+                model.entry("oversample").or_insert(serde_json::Value::from(4));
+                model.entry("pool").or_insert(serde_json::Value::from(4));
             }
         }
         if obj.get("decoder").and_then(|d| d.as_str()) == Some(network_names::LIFETIME) {

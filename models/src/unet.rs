@@ -93,6 +93,13 @@ pub struct UnetConfig {
     /// What the network reads (`backprojection` in runs written before the matched filters).
     #[config(default = "UnetInput::Backprojection")]
     pub input: UnetInput,
+    /// Candidates per bin of the range fit whose evidence the network reads
+    /// ([`UnetInput::Costs`]; the fit's own default).
+    #[config(default = 4)]
+    pub oversample: usize,
+    /// Candidates pooled into one feature channel ([`UnetInput::Costs`]).
+    #[config(default = 4)]
+    pub pool: usize,
 }
 
 /// What the U-Net reads from the taps (see the module documentation).
@@ -106,6 +113,12 @@ pub enum UnetInput {
     /// and learns the spatial prior the fit does not have; ambient light does not reach it
     /// except through its shot noise.
     Matched,
+    /// The range fit's evidence ([`tcsense_fits::depth::RangeTemplates::evidence`]): its
+    /// log-likelihood of a return at every candidate range of the cycle, plus a learned
+    /// log-prior read from the per-pixel posteriors of the neighbourhood; the first return is
+    /// the posterior's mode refined in the tap domain, the second the fit's (see
+    /// [`crate::depth_evidence`]).
+    Costs,
 }
 
 /// The U-Net's read-out of the range (see the module documentation).
@@ -138,6 +151,12 @@ pub struct Unet {
     score_bins: usize,
     /// Reads the matched filters `F y` instead of `Aᵀy` ([`UnetInput::Matched`]).
     matched: bool,
+    /// Candidates `C` of the range fit's evidence; 0 for the other inputs ([`UnetInput::Costs`]).
+    pub(crate) candidates: usize,
+    /// Candidates per bin of that fit.
+    pub(crate) oversample: usize,
+    /// Candidates pooled into one feature channel.
+    pub(crate) pool: usize,
 }
 
 impl UnetConfig {
@@ -151,12 +170,55 @@ impl UnetConfig {
         1 << self.levels.saturating_sub(1)
     }
 
+    /// Candidates `C = T·oversample` of the range fit's evidence ([`UnetInput::Costs`]).
+    pub fn candidates(&self) -> usize {
+        self.bins * self.oversample
+    }
+
+    /// Input channels: `T` bins, or the pooled per-pixel posteriors, the log intensity and the
+    /// lit mask ([`UnetInput::Costs`]).
+    pub fn features(&self) -> usize {
+        match self.input {
+            UnetInput::Costs => tcsense_fits::depth::range_feature_channels(self.candidates(), self.pool),
+            _ => self.bins,
+        }
+    }
+
+    /// Checks the settings; the error names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.input == UnetInput::Costs {
+            if !(1..=16).contains(&self.oversample) {
+                return Err(format!("oversample: {}, expected 1 to 16 candidates per bin", self.oversample));
+            }
+            if self.pool == 0 || self.pool > self.candidates() {
+                return Err(format!("pool: {}, expected 1 to the candidates ({})", self.pool, self.candidates()));
+            }
+            if self.head != UnetHead::ScoreVolume {
+                return Err("head: the fit's evidence is read out as a posterior over the candidates, expected score-volume".into());
+            }
+        }
+        Ok(())
+    }
+
+    /// The grid of the range fit's evidence as the loss places a range on it: candidate
+    /// coordinate `u = r·scale − offset` (cyclic over `C`) for a range `r` in metres; `None` for
+    /// the other inputs.
+    pub fn range_grid(&self) -> Option<(f64, f64)> {
+        (self.input == UnetInput::Costs).then(|| (self.candidates() as f64 / self.range_m, 0.5 * self.oversample as f64))
+    }
+
     /// Build the network.
     pub fn init(&self, device: &Device) -> Unet {
         let block = |i: usize, o: usize| Block::new(i, o, device);
-        let down = (0..self.levels).map(|l| block(if l == 0 { self.bins } else { self.width(l - 1) }, self.width(l))).collect();
+        let down = (0..self.levels).map(|l| block(if l == 0 { self.features() } else { self.width(l - 1) }, self.width(l))).collect();
         let up = (0..self.levels.saturating_sub(1)).map(|l| block(self.width(l + 1) + self.width(l), self.width(l))).collect();
-        let head = Conv2dConfig::new([self.width(0), self.head_channels()], [1, 1]).init(device);
+        let costs = self.input == UnetInput::Costs;
+        let mut head = Conv2dConfig::new([self.width(0), self.head_channels()], [1, 1]);
+        if costs {
+            // the evidence's log-prior starts at zero: the untrained network is the fit
+            head = head.with_initializer(burn::nn::Initializer::Zeros);
+        }
+        let head = head.init(device);
         let score_bins = if self.head == UnetHead::ScoreVolume { self.bins } else { 0 };
         Unet {
             down,
@@ -167,11 +229,19 @@ impl UnetConfig {
             range_m: self.range_m,
             score_bins,
             matched: self.input == UnetInput::Matched,
+            candidates: if costs { self.candidates() } else { 0 },
+            oversample: self.oversample,
+            pool: self.pool,
         }
     }
 
-    /// Output channels of the 1×1 head: `K·T + K` (score volume) or `2K` (regression).
+    /// Output channels of the 1×1 head: `K·T + K` (score volume), `2K` (regression), or a
+    /// log-prior per candidate, the first return's confidence and the log-temperature of the
+    /// fit's likelihood ([`UnetInput::Costs`]).
     pub fn head_channels(&self) -> usize {
+        if self.input == UnetInput::Costs {
+            return self.candidates() + 2;
+        }
         match self.head {
             UnetHead::Regression => 2 * self.returns,
             UnetHead::ScoreVolume => (self.bins + 1) * self.returns,
@@ -182,8 +252,11 @@ impl UnetConfig {
     pub fn flops(&self, h: usize, w: usize) -> f64 {
         let s = self.stride();
         let (h, w) = (h.div_ceil(s) * s, w.div_ceil(s) * s);
-        let f = 2.0 * (self.taps * self.bins * h * w) as f64 // Aᵀ
-            + trunk_flops(self.bins, self.levels, |l| self.width(l), h, w);
+        let input = match self.input {
+            UnetInput::Costs => 0.0,                           // the evidence is the fit's, counted with it
+            _ => 2.0 * (self.taps * self.bins * h * w) as f64, // Aᵀ
+        };
+        let f = input + trunk_flops(self.features(), self.levels, |l| self.width(l), h, w);
         f + 2.0 * (h * w * self.width(0) * self.head_channels()) as f64
     }
 }
@@ -356,7 +429,9 @@ impl Unet {
 
     /// What the network reads.
     pub fn input_kind(&self) -> UnetInput {
-        if self.matched {
+        if self.candidates > 0 {
+            UnetInput::Costs
+        } else if self.matched {
             UnetInput::Matched
         } else {
             UnetInput::Backprojection
@@ -438,6 +513,9 @@ impl Network for Unet {
 
     /// `[B, 2K, H, W]`: depth in metres, then confidence logits.
     fn predict(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
+        if self.candidates > 0 {
+            return self.predict_on_evidence(y, sensor);
+        }
         let o = self.logits(y, sensor);
         let k = self.returns;
         if self.score_bins > 0 {
@@ -452,6 +530,9 @@ impl Network for Unet {
     /// `[B, 2K + K·T, H, W]` with the score volume: depth, confidence logits, and the scores'
     /// log-probabilities over the bins (for the cross-entropy against the true bin).
     fn train_output(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
+        if self.candidates > 0 {
+            return self.train_on_evidence(y, sensor);
+        }
         let (k, t) = (self.returns, self.score_bins);
         if t == 0 {
             return self.predict(y, sensor);
@@ -462,6 +543,12 @@ impl Network for Unet {
         let logp = burn::tensor::activation::log_softmax(o.clone().narrow(1, 0, k * t).reshape([b, k, t, h, w]), 2);
         let depth = self.expected_range(logp.clone().exp());
         Tensor::cat(vec![depth, o.narrow(1, k * t, k), logp.reshape([b, k * t, h, w])], 1)
+    }
+
+    /// On the range fit's evidence: the first return, the posterior's mode refined in the tap
+    /// domain, and the fit's second return ([`crate::depth_evidence`]).
+    fn decode_frames(&self, y: &ndarray::ArrayView4<'_, f32>, sensor: &SensorTensors) -> Option<ndarray::Array4<f32>> {
+        (self.candidates > 0).then(|| self.decode_on_evidence(y, sensor))
     }
 }
 

@@ -66,6 +66,14 @@ pub fn export(cmd: ExportCmd) -> Result<ExitCode> {
                 },
                 meta.outputs().join(", ")
             );
+            if let Some(e) = &meta.range_evidence {
+                let c = meta.bins * e.oversample;
+                println!(
+                    "  the graph reads the range fit's evidence on {c} candidate ranges over {:.3} m, which `tcsense infer` (and eval onnx:) computes from the measurements and refines in the tap domain (with the fit's second return); its own inputs: evidence [B, H, W, {}], log_likelihood [B, H, W, {c}]",
+                    meta.range_m,
+                    tcsense_fits::depth::range_feature_channels(c, e.pool),
+                );
+            }
             if let Some(e) = &meta.evidence {
                 println!(
                     "  the graph reads the fit's evidence on {} lifetimes {}–{} ns, which `tcsense infer` (and eval onnx:) computes from the measurements; its own inputs: evidence [B, H, W, {}], log_likelihood [B, H, W, {}]",

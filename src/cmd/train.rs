@@ -77,6 +77,7 @@ enum LifetimeInputArg {
 enum InputArg {
     Backprojection,
     Matched,
+    Costs,
 }
 
 /// ADMM-Net size.

@@ -116,7 +116,7 @@ fn time_steps<M: Network>(
     });
     let target = match M::PREDICTION {
         Prediction::Cube => Target::Cube { x: &x, scales: None },
-        Prediction::Depth => Target::Depth { depth: &depth, range_m: 10.0 },
+        Prediction::Depth => Target::Depth { depth: &depth, range_m: 10.0, grid: None },
         Prediction::Lifetime => Target::Lifetime { labels: &lifetimes, grid: None },
     };
     let mut times: Vec<[f64; 4]> = Vec::new();

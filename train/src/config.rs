@@ -132,7 +132,12 @@ impl TrainConfig {
             ),
             ModelConfig::Unet(m) => format!(
                 "{} + U-Net K = {}, base width {}, {} levels, M = {}, T = {}, range {:.2} m, {:.2} GFLOP per 188x212 frame",
-                if m.input == tcsense_models::UnetInput::Matched { "matched filters" } else { "Aᵀ" },
+                match m.input {
+                    tcsense_models::UnetInput::Matched => "matched filters".to_string(),
+                    tcsense_models::UnetInput::Costs =>
+                        format!("the range fit's evidence on {} candidates (pooled by {})", m.candidates(), m.pool),
+                    tcsense_models::UnetInput::Backprojection => "Aᵀ".to_string(),
+                },
                 m.returns,
                 m.base_width,
                 m.levels,

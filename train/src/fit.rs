@@ -31,7 +31,7 @@ use crate::config::Loss;
 use crate::config::TrainConfig;
 use crate::data::{load_cubes, load_depth, load_lifetime_labels};
 use crate::deep_sensing::{LearnCodes, Learner};
-use crate::loss::{depth_loss, lifetime_loss, loss_fn};
+use crate::loss::{depth_grid_loss, depth_loss, lifetime_loss, loss_fn};
 use crate::run_dir::{
     latest_checkpoint, load_checkpoint, read_json, read_rows, save_checkpoint, write_json, write_rows, EpochMetrics, RunLock, RunState,
     METRICS_FILE,
@@ -446,7 +446,7 @@ fn fit<M: Network>(
             let batch = measure_step::<M>(cfg, &sensing, xb, lb, state.step, (bin_m, range_m))?;
             let target = match (&batch.labels, M::PREDICTION) {
                 (Some(l), Prediction::Lifetime) => Target::Lifetime { labels: l, grid: cfg.run.model.lifetime_grid() },
-                (Some(d), _) => Target::Depth { depth: d, range_m },
+                (Some(d), _) => Target::Depth { depth: d, range_m, grid: cfg.run.model.range_grid() },
                 (None, _) => Target::Cube { x: &batch.x, scales: batch.scales.as_deref() },
             };
             let l;
@@ -599,8 +599,9 @@ pub(crate) enum Target<'a> {
     /// The cubes `[B, T, H, W]`, and a scale per item when augmented (the loss is taken on
     /// `x/s` and `x̂/s`, so dim items weigh as much as bright ones).
     Cube { x: &'a Array4<f32>, scales: Option<&'a [f32]> },
-    /// Range labels `[B, K, H, W]` (m, NaN where none) and the unambiguous range.
-    Depth { depth: &'a Array4<f32>, range_m: f64 },
+    /// Range labels `[B, K, H, W]` (m, NaN where none), the unambiguous range and the
+    /// network's grid of candidate ranges where it has one (`u = r·scale − offset`, cyclic).
+    Depth { depth: &'a Array4<f32>, range_m: f64, grid: Option<(f64, f64)> },
     /// Lifetime labels `[B, 5, H, W]` ([`crate::data::load_lifetime_labels`]) and the
     /// network's lifetime grid where it has one (`ln τ₀` in ns, step).
     Lifetime { labels: &'a Array4<f32>, grid: Option<(f64, f64)> },
@@ -617,10 +618,14 @@ pub(crate) fn objective(loss: Loss, pred: Tensor<4>, target: Target<'_>, device:
             let inv = Tensor::<4>::from_data(TensorData::new(s.iter().map(|s| 1.0 / s).collect::<Vec<f32>>(), [s.len(), 1, 1, 1]), device);
             loss_fn(loss, pred * inv.clone(), to_tensor(&x.view(), device) * inv)
         }
-        Target::Depth { depth, range_m } => {
+        Target::Depth { depth, range_m, grid } => {
             let mask = depth.mapv(|d| if d.is_finite() { 1.0 } else { 0.0 });
             let filled = depth.mapv(|d| if d.is_finite() { d } else { 0.0 });
-            depth_loss(pred, to_tensor(&filled.view(), device), to_tensor(&mask.view(), device), range_m)
+            let (depth, mask) = (to_tensor(&filled.view(), device), to_tensor(&mask.view(), device));
+            match grid {
+                Some(grid) => depth_grid_loss(pred, depth, mask, grid),
+                None => depth_loss(pred, depth, mask, range_m),
+            }
         }
         Target::Lifetime { labels, grid } => {
             let filled = labels.mapv(|v| if v.is_finite() { v } else { 0.0 });

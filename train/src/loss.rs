@@ -69,6 +69,41 @@ pub fn depth_loss(pred: Tensor<4>, depth: Tensor<4>, mask: Tensor<4>, range_m: f
     l1 + bce.mean() + ce.sum() / count * CE_WEIGHT
 }
 
+/// The loss of a depth network on a grid of candidate ranges (the U-Net on the range fit's
+/// evidence): the cross-entropy of its posterior over the `C` candidates against a true return
+/// split between the two candidates beside it (the grid is cyclic: the candidates go round the
+/// code cycle), where the pixel has a return; of two returns, the more probable one (the
+/// posterior is of one return: the first is either, and the fit's second finds the other),
+/// plus the binary cross-entropy of the first return's confidence against "has a return".
+/// The network's second return is the fit's, so nothing else is learned.
+///
+/// # Shapes
+/// - `pred`: `[B, 2K + C, H, W]` (depth in metres, confidence logits, log-posterior over the
+///   candidates), `depth`: `[B, K, H, W]` (m, 0 where none), `mask`: `[B, K, H, W]` (1 where
+///   the truth has a return), `grid`: `(scale, offset)`, a range `r` sits at candidate
+///   `r·scale − offset` → `[1]`
+pub fn depth_grid_loss(pred: Tensor<4>, depth: Tensor<4>, mask: Tensor<4>, (scale, offset): (f64, f64)) -> Tensor<1> {
+    const MISSING: f64 = 1e9; // (a return that is not there is never the most probable)
+    let [b, k, h, w] = depth.dims();
+    let c = pred.dims()[1] - 2 * k;
+    let logp = pred.clone().narrow(1, 2 * k, c); // [B, C, H, W]
+    let logit = pred.narrow(1, k, 1); // [B, 1, H, W]
+    let any = mask.clone().narrow(1, 0, 1); // [B, 1, H, W]
+    let u = depth.mul_scalar(scale).sub_scalar(offset).reshape([b, k, 1, h, w]);
+    let index: Vec<f32> = (0..c).map(|j| j as f32).collect();
+    let index = Tensor::<1>::from_floats(index.as_slice(), &logp.device()).reshape([1, 1, c, 1, 1]);
+    let d = (index - u).abs(); // [B, K, C, H, W], within C
+    let d = d.clone().min_pair(d.neg().add_scalar(c as f64)); // cyclic distance
+    let hat = d.neg().add_scalar(1.0).clamp_min(0.0);
+    // each return's cross-entropy; the pixel's is its most probable return's (either return
+    // is right for the first: the fit's second return finds the other)
+    let ce = (hat * logp.reshape([b, 1, c, h, w])).sum_dim(2).reshape([b, k, h, w]).neg(); // [B, K, H, W]
+    let ce = (ce * mask.clone() + mask.neg().add_scalar(1.0).mul_scalar(MISSING)).min_dim(1) * any.clone(); // [B, 1, H, W]
+    let count = any.clone().sum().add_scalar(1.0);
+    let bce = relu(logit.clone()) - logit.clone() * any + logit.abs().neg().exp().add_scalar(1.0).log();
+    ce.sum() / count + bce.mean()
+}
+
 /// Weight of the score volume's cross-entropy in [`depth_loss`] (an error of one bin costs
 /// the L1 term `1/T`; the cross-entropy of a two-bin split is at least ln 2).
 pub const CE_WEIGHT: f64 = 0.1;
@@ -131,6 +166,35 @@ pub const COVERAGE_WEIGHT: f64 = 8.0;
 mod tests {
     use super::*;
     use burn::tensor::Device;
+
+    /// The grid loss is least for the posterior that puts the truth's mass where the truth is
+    /// (across the cycle's wrap too), and its confidence term is the BCE.
+    #[test]
+    fn the_depth_grid_loss_places_the_truth_on_the_cyclic_grid() {
+        let device = Device::flex();
+        // C = 4 candidates, K = 1, two pixels: one return at candidate 3.5 (half on 3, half on 0
+        // across the wrap), and none
+        let (scale, offset) = (1.0, 0.0);
+        let post = |p: [f32; 4]| p.map(|v| v.ln());
+        let loss = |first: [f32; 4], logit: f32| -> f32 {
+            let mut v = vec![0.0f32, 0.0, logit, -2.0];
+            for (j, &l) in post(first).iter().enumerate() {
+                v.push(l);
+                v.push(-(4f32).ln());
+            }
+            let pred = Tensor::<4>::from_data(burn::tensor::TensorData::new(v, [1, 6, 1, 2]), &device);
+            let depth = Tensor::<4>::from_floats([[[[3.5, 0.0]]]], &device);
+            let mask = Tensor::<4>::from_floats([[[[1.0, 0.0]]]], &device);
+            depth_grid_loss(pred, depth, mask, (scale, offset)).into_scalar()
+        };
+        let right = loss([0.5, 1e-6, 1e-6, 0.5], 0.0);
+        let wrong = loss([1e-6, 0.5, 0.5, 1e-6], 0.0);
+        // CE: −(½ ln ½ + ½ ln ½) = ln 2 over one pixel with a return (count 2); BCE of logits 0
+        // and −2 against 1 and 0
+        let bce = (2f32).ln() + (1.0 + (-2f32).exp()).ln();
+        assert!((right - ((2f32).ln() / 2.0 + bce / 2.0)).abs() < 1e-4, "{right}");
+        assert!(wrong > right + 5.0, "{wrong} against {right}");
+    }
 
     #[test]
     fn rmse_and_mae_values() {

@@ -136,7 +136,8 @@ impl TrainRequest {
             (Some(other), true) => return Err(bad("input", other, "harmonics or costs")),
             (Some("backprojection"), false) => (Some(UnetInput::Backprojection), None),
             (Some("matched"), false) => (Some(UnetInput::Matched), None),
-            (Some(other), false) => return Err(bad("input", other, "backprojection or matched")),
+            (Some("costs"), false) => (Some(UnetInput::Costs), None),
+            (Some(other), false) => return Err(bad("input", other, "backprojection, matched or costs")),
         };
         Ok(Architecture {
             stages: self.stages.or(p.as_ref().map(|c| c.stages)),

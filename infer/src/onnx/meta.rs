@@ -51,6 +51,32 @@ pub struct OnnxMeta {
     /// A lifetime decoder on the fit's evidence: the lifetime grid the runtime computes the
     /// evidence on; key `evidence`.
     pub evidence: Option<EvidenceNote>,
+    /// A U-Net on the range fit's evidence: the candidate ranges the runtime computes the
+    /// evidence on; key `range_evidence`.
+    pub range_evidence: Option<RangeEvidenceNote>,
+}
+
+/// The candidate ranges of a U-Net on the range fit's evidence
+/// ([`tcsense_models::UnetInput::Costs`]): `C = T·oversample` around the code cycle.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct RangeEvidenceNote {
+    /// Candidates per bin.
+    pub oversample: usize,
+    /// Candidates pooled per feature channel.
+    pub pool: usize,
+}
+
+impl RangeEvidenceNote {
+    /// The settings of the range fit whose evidence the model reads, for `returns` per pixel
+    /// (as the network computes them: [`tcsense_models::Unet::fit_options`]).
+    pub fn fit_options(&self, returns: usize) -> tcsense_fits::depth::DepthFitOptions {
+        tcsense_fits::depth::DepthFitOptions {
+            fit: tcsense_fits::range::RangeFitOptions { oversample: self.oversample, ..Default::default() },
+            min_intensity: 0.0,
+            returns: returns.clamp(1, 2),
+            ..Default::default()
+        }
+    }
 }
 
 /// The lifetime grid of a lifetime decoder on the fit's evidence
@@ -136,6 +162,12 @@ impl OnnxMeta {
                 }
                 _ => None,
             },
+            range_evidence: match &run.spec.model {
+                ModelConfig::Unet(c) if c.input == tcsense_models::UnetInput::Costs => {
+                    Some(RangeEvidenceNote { oversample: c.oversample, pool: c.pool })
+                }
+                _ => None,
+            },
         }
     }
 
@@ -151,7 +183,7 @@ impl OnnxMeta {
     /// The graph's inputs: the measurements (and the matrix), or the evidence computed from them.
     pub fn graph_inputs(&self) -> Vec<&'static str> {
         use super::{EVIDENCE_INPUT, INPUT, LOG_LIKELIHOOD_INPUT, MATRIX_INPUT};
-        match (self.evidence.is_some(), self.matrix_input) {
+        match (self.evidence.is_some() || self.range_evidence.is_some(), self.matrix_input) {
             (true, _) => vec![EVIDENCE_INPUT, LOG_LIKELIHOOD_INPUT],
             (false, true) => vec![INPUT, MATRIX_INPUT],
             (false, false) => vec![INPUT],
@@ -161,7 +193,9 @@ impl OnnxMeta {
     /// The graph's outputs: [`Self::outputs`] but the intensity where the runtime computes
     /// the evidence (and with it the intensity).
     pub fn graph_outputs(&self) -> &'static [&'static str] {
-        if self.evidence.is_some() {
+        if self.range_evidence.is_some() {
+            &[super::MODE_RANGE_OUTPUT, super::FIRST_CONFIDENCE_OUTPUT]
+        } else if self.evidence.is_some() {
             &["lifetime", "confidence"]
         } else {
             self.outputs()
@@ -195,6 +229,9 @@ impl OnnxMeta {
         }
         if let Some(e) = &self.evidence {
             p.push(("evidence", json(serde_json::to_string(e))));
+        }
+        if let Some(e) = &self.range_evidence {
+            p.push(("range_evidence", json(serde_json::to_string(e))));
         }
         if self.decoder == "unet" {
             p.push(("returns", self.returns.to_string()));
@@ -268,8 +305,20 @@ impl OnnxMeta {
                 ));
             }
         }
+        let range_evidence: Option<RangeEvidenceNote> =
+            get("range_evidence").map(|v| serde_json::from_str(&v).map_err(|e| err("range_evidence", e.to_string()))).transpose()?;
+        if let Some(e) = &range_evidence {
+            let bins = num("bins")?;
+            if decoder != "unet" || !(1..=16).contains(&e.oversample) || !(1..=bins * e.oversample).contains(&e.pool) {
+                return Err(err(
+                    "range_evidence",
+                    format!("{e:?}: expected a U-Net's 1–16 candidates per bin and a pool of 1 to the candidates"),
+                ));
+            }
+        }
         let meta = OnnxMeta {
             evidence,
+            range_evidence,
             decoder,
             taps: num("taps")?,
             bins: num("bins")?,

@@ -44,6 +44,11 @@ pub const MATRIX_INPUT: &str = "sensor_matrix";
 /// ([`tcsense_fits::lifetime_taps::evidence`]), computed by the runtime from the taps.
 pub const EVIDENCE_INPUT: &str = "evidence";
 pub const LOG_LIKELIHOOD_INPUT: &str = "log_likelihood";
+/// Outputs of a U-Net on the range fit's evidence ([`tcsense_models::UnetInput::Costs`]): the
+/// range (m) of its posterior's mode and the first return's confidence, which the runtime
+/// turns into the product (the mode refined in the tap domain, the fit's second return).
+pub const MODE_RANGE_OUTPUT: &str = "mode_range";
+pub const FIRST_CONFIDENCE_OUTPUT: &str = "first_confidence";
 
 /// Export options.
 #[derive(Debug, Clone, Copy, Default)]
@@ -62,6 +67,11 @@ pub fn export(run: &LoadedRun, opts: ExportOptions<'_>) -> Result<Vec<u8>> {
     if let TrainedNet::Lifetime(net) = &run.net {
         if net.input_kind() == tcsense_models::LifetimeInput::Costs {
             return lifetime_on_evidence(net, &meta, opts);
+        }
+    }
+    if let TrainedNet::Unet(net) = &run.net {
+        if net.input_kind() == tcsense_models::UnetInput::Costs {
+            return unet_on_evidence(net, &meta, opts);
         }
     }
     let (n, m, t) = run.sensor.matrix().a().dim();
@@ -413,6 +423,114 @@ fn lifetime(g: &mut Graph, net: &LifetimeNet, sensor: &SensorGraph, y: &str) -> 
     Ok((lifetime, conf, intensity))
 }
 
+/// The mode of a posterior over `points` grid points (axis 1 of `logits` `[B, G, H, W]`),
+/// refined by the parabola through its log at the neighbouring points (within half a step;
+/// none where a neighbour is not below it), as a float grid coordinate `[B, 1, H, W]`. On a
+/// `cyclic` grid the neighbours wrap around; otherwise they are clamped to the grid, so at
+/// either end a neighbour is the point itself.
+fn posterior_mode(g: &mut Graph, logits: &str, points: usize, cyclic: bool) -> String {
+    let best = g.node("ArgMax", &[logits], &[Attr::Int("axis", 1), Attr::Int("keepdims", 1)]); // int64 [B, 1, H, W]
+    let one = g.ints("one", &[1]);
+    let (lo, hi) = if cyclic {
+        let (n, before) = (g.ints("points", &[points as i64]), g.ints("points_less_one", &[points as i64 - 1]));
+        let lo = g.op("Add", &[&best, &before]);
+        let hi = g.op("Add", &[&best, &one]);
+        (g.node("Mod", &[&lo, &n], &[]), g.node("Mod", &[&hi, &n], &[]))
+    } else {
+        let (zero, last) = (g.ints("zero", &[0]), g.ints("last", &[points as i64 - 1]));
+        let lo = g.op("Sub", &[&best, &one]);
+        let hi = g.op("Add", &[&best, &one]);
+        (g.op("Max", &[&lo, &zero]), g.op("Min", &[&hi, &last]))
+    };
+    let gather = |g: &mut Graph, idx: &str| g.node("GatherElements", &[logits, idx], &[Attr::Int("axis", 1)]);
+    let (l0, lm, lp) = (gather(g, &best), gather(g, &lo), gather(g, &hi));
+    let two = g.scalar("two", 2.0);
+    let twice = g.op("Mul", &[&l0, &two]);
+    let sides = g.op("Add", &[&lm, &lp]);
+    let curv = g.op("Sub", &[&sides, &twice]);
+    let eps = g.scalar("neg_eps", -1e-12);
+    // an interior maximum: both neighbours below it
+    let below_lo = g.op("Less", &[&lm, &l0]);
+    let below_hi = g.op("Less", &[&lp, &l0]);
+    let interior = g.op("And", &[&below_lo, &below_hi]);
+    let den = g.op("Min", &[&curv, &eps]);
+    let num = g.op("Sub", &[&lm, &lp]);
+    let delta = g.op("Div", &[&num, &den]);
+    let half = g.scalar("half", 0.5);
+    let delta = g.op("Mul", &[&delta, &half]);
+    let neg_half = g.scalar("neg_half", -0.5);
+    let delta = g.op("Clip", &[&delta, &neg_half, &half]);
+    let nil = g.scalar("nil", 0.0);
+    let delta = g.op("Where", &[&interior, &delta, &nil]);
+    let u = g.node("Cast", &[&best], &[Attr::Int("to", 1)]); // FLOAT
+    g.op("Add", &[&u, &delta])
+}
+
+/// The U-Net on the range fit's evidence ([`tcsense_models::UnetInput::Costs`]) as a whole
+/// model: the evidence in, the fit's log-likelihood at the learned temperature plus the
+/// learned log-prior, the posterior's cyclic mode refined by a parabola, its range in metres,
+/// and the first return's confidence. The evidence (the templates' costs) and the refinement
+/// in the tap domain with the second return ([`tcsense_fits::depth::RangeTemplates::ranges`])
+/// are the runtime's.
+///
+/// # Shapes
+/// - `evidence [B, H, W, F]`, `log_likelihood [B, H, W, C]` (pixel-major) → `mode_range [B, 1, H, W]` (m), `first_confidence [B, 1, H, W]`
+fn unet_on_evidence(net: &Unet, meta: &OnnxMeta, opts: ExportOptions<'_>) -> Result<Vec<u8>> {
+    if opts.calibration.is_some() || opts.matrix_input {
+        return Err(InferError::InvalidParam {
+            field: "export",
+            got: if opts.matrix_input { "--matrix-input".into() } else { "--calibration".into() },
+            expected: "neither for a U-Net on the range fit's evidence (its runtime computes the evidence from the taps with the \
+                       run's sensor)"
+                .into(),
+        });
+    }
+    let (c, pool) = net.grid();
+    let f = tcsense_fits::depth::range_feature_channels(c, pool);
+    let mut g = Graph::new(tcsense_models::runs::network_names::UNET);
+    let frame = [Dim::Named("batch"), Dim::Fixed(1), Dim::Named("height"), Dim::Named("width")];
+    let pixels = |c: usize| [Dim::Named("batch"), Dim::Named("height"), Dim::Named("width"), Dim::Fixed(c)];
+    let features = g.input(EVIDENCE_INPUT, &pixels(f));
+    let skip = g.input(LOG_LIKELIHOOD_INPUT, &pixels(c));
+    let features = g.node("Transpose", &[&features], &[Attr::Ints("perm", &[0, 3, 1, 2])]);
+    let skip = g.node("Transpose", &[&skip], &[Attr::Ints("perm", &[0, 3, 1, 2])]);
+    let trunk = unet_trunk(&mut g, net.down(), net.up(), &features)?;
+    let o = conv(&mut g, net.head(), &trunk)?; // [B, C + 2, H, W]
+    let prior = channels(&mut g, &o, 0, c);
+    let logit = channels(&mut g, &o, c, 1);
+    let s = channels(&mut g, &o, c + 1, 1);
+    let [lo, hi] = tcsense_models::depth_evidence::TEMPERATURE_RANGE;
+    let (lo, hi) = (g.scalar("log_scale_lo", lo as f32), g.scalar("log_scale_hi", hi as f32));
+    let s = g.op("Clip", &[&s, &lo, &hi]);
+    let scale = g.op("Exp", &[&s]);
+    let scaled = g.op("Mul", &[&skip, &scale]);
+    let logits = g.op("Add", &[&scaled, &prior]);
+    let u = posterior_mode(&mut g, &logits, c, true);
+    // the range of candidate u: (u + ½·os)/C · r_max, within the cycle
+    let (half_os, per) = (
+        g.scalar("half_oversample", 0.5 * net.grid_oversample() as f32),
+        g.scalar("metres_per_candidate", (net.range_m() / c as f64) as f32),
+    );
+    let r = g.op("Add", &[&u, &half_os]);
+    let r = g.op("Mul", &[&r, &per]);
+    let period = g.scalar("range_m", net.range_m() as f32);
+    let r = g.node("Mod", &[&r, &period], &[Attr::Int("fmod", 1)]);
+    let conf = g.op("Sigmoid", &[&logit]);
+    g.output(&r, MODE_RANGE_OUTPUT, &frame);
+    g.output(&conf, FIRST_CONFIDENCE_OUTPUT, &frame);
+    let doc = format!(
+        "tcsense U-Net on the range fit's evidence ({c} candidate ranges over {:.3} m, {} levels): evidence [B, H, W, {f}], log_likelihood [B, H, W, {c}] -> mode_range (m) [B, 1, H, W], first_confidence [B, 1, H, W]; the runtime computes the evidence from the taps and refines the first return with the fit's second beside it",
+        net.range_m(),
+        net.down().len()
+    );
+    let model = g.into_model(&doc, &meta.to_props());
+    model.write_to_bytes().map_err(|e| InferError::InvalidParam {
+        field: "ONNX model",
+        got: e.to_string(),
+        expected: "a serialisable model".into(),
+    })
+}
+
 /// The lifetime decoder on the fit's evidence ([`tcsense_models::LifetimeInput::Costs`]) as a
 /// whole model: the evidence in, the U-Net's log-prior added to the fit's log-likelihood, the
 /// posterior's mode refined by a parabola (ArgMax, GatherElements), the lifetime in seconds.
@@ -445,35 +563,8 @@ fn lifetime_on_evidence(net: &LifetimeNet, meta: &OnnxMeta, opts: ExportOptions<
     let prior = channels(&mut g, &o, 0, points);
     let logit = channels(&mut g, &o, points, 1);
     let logits = g.op("Add", &[&skip, &prior]);
-    // the mode and its neighbours (clamped to the grid)
-    let best = g.node("ArgMax", &[&logits], &[Attr::Int("axis", 1), Attr::Int("keepdims", 1)]); // int64 [B, 1, H, W]
-    let (one, zero, last) = (g.ints("one", &[1]), g.ints("zero", &[0]), g.ints("last", &[points as i64 - 1]));
-    let lo = g.op("Sub", &[&best, &one]);
-    let lo = g.op("Max", &[&lo, &zero]);
-    let hi = g.op("Add", &[&best, &one]);
-    let hi = g.op("Min", &[&hi, &last]);
-    let gather = |g: &mut Graph, idx: &str| g.node("GatherElements", &[&logits, idx], &[Attr::Int("axis", 1)]);
-    let (l0, lm, lp) = (gather(&mut g, &best), gather(&mut g, &lo), gather(&mut g, &hi));
-    let two = g.scalar("two", 2.0);
-    let twice = g.op("Mul", &[&l0, &two]);
-    let sides = g.op("Add", &[&lm, &lp]);
-    let curv = g.op("Sub", &[&sides, &twice]);
-    let eps = g.scalar("neg_eps", -1e-12);
-    // an interior maximum: both neighbours below it (at either end a neighbour is the point)
-    let below_lo = g.op("Less", &[&lm, &l0]);
-    let below_hi = g.op("Less", &[&lp, &l0]);
-    let interior = g.op("And", &[&below_lo, &below_hi]);
-    let den = g.op("Min", &[&curv, &eps]);
-    let num = g.op("Sub", &[&lm, &lp]);
-    let delta = g.op("Div", &[&num, &den]);
-    let half = g.scalar("half", 0.5);
-    let delta = g.op("Mul", &[&delta, &half]);
-    let neg_half = g.scalar("neg_half", -0.5);
-    let delta = g.op("Clip", &[&delta, &neg_half, &half]);
+    let u = posterior_mode(&mut g, &logits, points, false);
     let nil = g.scalar("nil", 0.0);
-    let delta = g.op("Where", &[&interior, &delta, &nil]);
-    let u = g.node("Cast", &[&best], &[Attr::Int("to", 1)]); // FLOAT
-    let u = g.op("Add", &[&u, &delta]);
     let (l0_ns, step) = net.log_grid_ns();
     let (lt0, st) = (g.scalar("log_tau_0_s", (l0_ns + 1e-9f64.ln()) as f32), g.scalar("log_tau_step", step as f32));
     let a = g.op("Mul", &[&u, &st]);
@@ -504,6 +595,13 @@ fn unet(g: &mut Graph, net: &Unet, sensor: &SensorGraph, y: &str) -> Result<(Str
     let x0 = match net.input_kind() {
         tcsense_models::UnetInput::Matched => sensor.matched(g, y),
         tcsense_models::UnetInput::Backprojection => sensor.adjoint(g, y),
+        tcsense_models::UnetInput::Costs => {
+            return Err(InferError::InvalidParam {
+                field: "model.input",
+                got: "Costs (the U-Net on the range fit's evidence)".into(),
+                expected: "a U-Net on Aᵀy or the matched filters: the range fit's evidence has no ONNX graph yet; decode with `tcsense reconstruct --run`".into(),
+            })
+        }
     };
     // per-pixel normalisation: x₀ / (‖x₀‖₂ + f·mean‖x₀‖₂ + 10⁻³⁰), f = Unet::norm_floor()
     let norm = g.node("ReduceL2", &[&x0], &[Attr::Ints("axes", &[1]), Attr::Int("keepdims", 1)]);

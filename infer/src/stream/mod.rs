@@ -188,7 +188,9 @@ fn stream_into(
     let range_fit = products
         .range_fit
         .as_ref()
-        .filter(|_| kind == ModelKind::Depth && (products.depth || products.ply) && products.depth_fit.is_none());
+        .filter(|_| kind == ModelKind::Depth && (products.depth || products.ply) && products.depth_fit.is_none())
+        // (a U-Net on the range fit's evidence is refined in the tap domain already)
+        .filter(|_| model.meta.range_evidence.is_none());
     let mut range_templates = match &products.depth_fit {
         Some(opts) => {
             if kind == ModelKind::Lifetime {

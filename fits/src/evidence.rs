@@ -1,0 +1,175 @@
+//! The fit's evidence as a network's input: what a learned decoder reads instead of the raw
+//! taps — the lifetime network on the lifetime fit's costs ([`crate::lifetime_taps::evidence`])
+//! and the depth network on the range fit's ([`crate::depth::RangeTemplates::evidence`]).
+//!
+//! A fit's costs are squared residuals in the measurements' units (times the charge for the
+//! lifetime fit). Divided by twice the frame's noise level they become negative
+//! log-likelihoods in nats, whatever the gain, the exposure and the read noise: the level is
+//! the median over the lit pixels of the window's least cost per degree of freedom (what a
+//! window of `n` lit pixels leaves free after the fit's own parameters, [`CostVolume::dof`]).
+//! Then, over the `G` candidates of the fit's grid (lifetimes, or ranges around the cycle):
+//!
+//! ```text
+//! skip     [H, W, G] = −(Ĉ_win − min_g Ĉ_win)                 the fit's log-likelihood of every candidate
+//! features [H, W, G/pool + 2] = (G/pool)·Σ_pool softmax_g(−Ĉ_pixel),  ln(I / median I), lit
+//! ```
+//!
+//! The network adds a learned log-prior to `skip` (so with a zero prior its most probable
+//! candidate is the fit's), read from the per-pixel posteriors of a neighbourhood, which is
+//! what lets it pool pixels of like lifetime or range beyond the fit's fixed window.
+
+use ndarray::{Array2, Array3};
+use rayon::prelude::*;
+
+/// Bounds of the log-intensity channel.
+const LOG_INTENSITY_CLAMP: f32 = 10.0;
+
+/// The network's input for one frame (see the module's notes), pixel-major.
+#[derive(Debug, Clone)]
+pub struct Evidence {
+    /// The fit's log-likelihood of every candidate of the grid, window summed, `[H, W, G]`
+    /// (0 at the best; 0 everywhere at an unlit pixel).
+    pub skip: Array3<f32>,
+    /// Per-pixel posteriors pooled over `pool` candidates, log relative intensity and the lit
+    /// mask, `[H, W, G/pool + 2]`.
+    pub features: Array3<f32>,
+    /// The frame's noise level: twice it turns a cost into nats.
+    pub noise: f32,
+}
+
+/// A fit's costs of one frame, pixel-major, as [`evidence`] reads them.
+#[derive(Debug, Clone, Copy)]
+pub struct CostVolume<'a> {
+    /// Each pixel's own cost of every candidate `[H·W·G]` (not read where unlit).
+    pub pixel: &'a [f32],
+    /// The cost summed over the window around every pixel, what the fit minimises `[H·W·G]`.
+    pub window: &'a [f32],
+    /// Whether a pixel holds enough charge to be fitted `[H·W]`.
+    pub lit: &'a [bool],
+    /// `G`, `H`, `W`.
+    pub points: usize,
+    pub height: usize,
+    pub width: usize,
+    /// The window's side.
+    pub side: usize,
+    /// Numbers each lit pixel of the window leaves free after its own parameters (the lifetime
+    /// fit: `M − 1`, the amplitude; the range fit: `M − 2`, the amplitude and the ambient).
+    pub free_per_pixel: usize,
+    /// Parameters the window shares (the lifetime fit: 2, the lifetime and the background; the
+    /// range fit: 1, the range).
+    pub shared: usize,
+}
+
+impl CostVolume<'_> {
+    /// Degrees of freedom of a window of `n` lit pixels (at least 1).
+    pub fn dof(&self, n: usize) -> usize {
+        (n * self.free_per_pixel).saturating_sub(self.shared).max(1)
+    }
+}
+
+/// Channels of [`Evidence::features`] for a grid of `points` pooled by `pool`.
+pub fn feature_channels(points: usize, pool: usize) -> usize {
+    points.div_ceil(pool.max(1)) + 2
+}
+
+/// Channels of [`Evidence::features`] for a grid of `points` pooled by `pool`, with the
+/// posteriors of `wider` windows beside the pixel's ([`evidence_with`]).
+pub fn feature_channels_with(points: usize, pool: usize, wider: usize) -> usize {
+    (1 + wider) * points.div_ceil(pool.max(1)) + 2
+}
+
+/// The evidence of one frame from a fit's costs and its intensity map.
+///
+/// # Shapes
+/// - `costs`: of `[H·W·G]`, `intensity`: `[H, W]` → [`Evidence`]
+pub fn evidence(costs: &CostVolume<'_>, intensity: &Array2<f32>, pool: usize) -> Evidence {
+    evidence_with(costs, intensity, pool, &[])
+}
+
+/// [`evidence`] with, after the pixel's posteriors, those of the costs summed over wider
+/// windows (multi-scale context for the network: in dim light a surface's pixels agree over a
+/// larger window than the fit's).
+///
+/// # Shapes
+/// - `costs`: of `[H·W·G]`, `intensity`: `[H, W]`, each of `wider`: `[H·W·G]` → [`Evidence`]
+///   with features `[H, W, (1 + wider)·G/pool + 2]`
+pub fn evidence_with(costs: &CostVolume<'_>, intensity: &Array2<f32>, pool: usize, wider: &[&[f32]]) -> Evidence {
+    let (g, h, w) = (costs.points, costs.height, costs.width);
+    let pool = pool.max(1);
+    let window = costs.window;
+    let half = costs.side / 2;
+    let lit = costs.lit;
+    // the noise level: median least window cost per degree of freedom
+    let mut per_dof: Vec<f32> = (0..h)
+        .into_par_iter()
+        .flat_map_iter(|i| {
+            (0..w).filter_map(move |j| {
+                let p = i * w + j;
+                if !lit[p] {
+                    return None;
+                }
+                let mut n = 0usize;
+                for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
+                    for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
+                        n += lit[ii * w + jj] as usize;
+                    }
+                }
+                let dof = costs.dof(n) as f32;
+                let least = window[p * g..(p + 1) * g].iter().fold(f32::INFINITY, |a, &b| a.min(b));
+                least.is_finite().then(|| least.max(0.0) / dof)
+            })
+        })
+        .collect();
+    let noise = median(&mut per_dof).filter(|v| *v > 0.0 && v.is_finite()).unwrap_or(1.0);
+    let nats = 1.0 / (2.0 * noise);
+    let channels = feature_channels_with(g, pool, wider.len());
+    let pooled = g.div_ceil(pool);
+    let mut lit_intensity: Vec<f32> = (0..h * w).filter(|&p| lit[p]).map(|p| intensity[(p / w, p % w)]).collect();
+    let reference = median(&mut lit_intensity).filter(|v| *v > 0.0).unwrap_or(1.0);
+    let mut skip = vec![0f32; h * w * g];
+    let mut features = vec![0f32; h * w * channels];
+    skip.par_chunks_mut(w * g).zip(features.par_chunks_mut(w * channels)).enumerate().for_each(|(i, (srow, frow))| {
+        let mut post = vec![0f32; g];
+        for j in 0..w {
+            let p = i * w + j;
+            let (sp, fp) = (&mut srow[j * g..(j + 1) * g], &mut frow[j * channels..(j + 1) * channels]);
+            let s = intensity[(i, j)];
+            fp[channels - 2] =
+                if s > 0.0 { (s / reference).ln().clamp(-LOG_INTENSITY_CLAMP, LOG_INTENSITY_CLAMP) } else { -LOG_INTENSITY_CLAMP };
+            if !lit[p] {
+                continue;
+            }
+            fp[channels - 1] = 1.0;
+            let win = &window[p * g..(p + 1) * g];
+            let least = win.iter().fold(f32::INFINITY, |a, &b| a.min(b));
+            for (o, &c) in sp.iter_mut().zip(win) {
+                *o = -(c - least) * nats;
+            }
+            for (b, volume) in std::iter::once(costs.pixel).chain(wider.iter().copied()).enumerate() {
+                let own = &volume[p * g..(p + 1) * g];
+                let least = own.iter().fold(f32::INFINITY, |a, &b| a.min(b));
+                let mut total = 0f32;
+                for (q, &c) in post.iter_mut().zip(own) {
+                    *q = (-(c - least) * nats).exp();
+                    total += *q;
+                }
+                let scale = pooled as f32 / total;
+                for (k, &q) in post.iter().enumerate() {
+                    fp[b * pooled + k / pool] += q * scale;
+                }
+            }
+        }
+    });
+    let shape = |c: usize, v: Vec<f32>| Array3::from_shape_vec((h, w, c), v).expect("[H, W, C] buffer");
+    Evidence { skip: shape(g, skip), features: shape(channels, features), noise }
+}
+
+/// The median of `v` (reordered), `None` when empty.
+fn median(v: &mut [f32]) -> Option<f32> {
+    if v.is_empty() {
+        return None;
+    }
+    let mid = v.len() / 2;
+    let (_, m, _) = v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
+    Some(*m)
+}

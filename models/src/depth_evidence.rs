@@ -1,0 +1,340 @@
+//! The U-Net on the range fit's evidence ([`UnetInput::Costs`](crate::UnetInput::Costs)): a
+//! photon-efficient depth decoder that is the fit where the fit is right and adds a spatial
+//! prior where it is not (in the manner of the learned single-photon LiDAR decoders, Lindell
+//! et al. 2018 and Peng et al. 2020, which decode a per-pixel evidence volume over the ranges
+//! with a learned non-local prior, here on the compressive taps through the fit's templates).
+//!
+//! ```text
+//! y [M, H, W] ──range fit, step 1 (tcsense_fits::depth)──▶ costs of every candidate range
+//!     ──evidence (tcsense_fits::evidence)──▶ skip [C, H, W]: the window's log-likelihood (nats)
+//!                                          features [C/pool + 2, H, W]: per-pixel posteriors,
+//!                                                                     ln intensity, lit
+//! features ──U-Net──1×1──▶ log-prior [C, H, W], confidence logit, log-scale s (both zero at
+//!                            initialisation)
+//! logits = skip·e^s + log-prior;  u = the cyclic argmax, refined by a parabola (within ½)
+//! first return: the mode refined in the tap domain where the window's best candidate near it
+//!               is its own (the fit's steps 3 and 4 seeded by the mode); else the mode
+//! second return: the fit's, beside that first one
+//! ```
+//!
+//! The candidates go round the code cycle (`C = T·oversample`; the ranges wrap at the cycle's
+//! unambiguous range), so the mode and its parabola are cyclic. Training takes the posterior's
+//! cross-entropy against the true returns (each present return an equal share, split between
+//! its two neighbouring candidates) and the confidence's against "has a return"
+//! (`tcsense_train::loss::depth_loss`). The untrained network (a zero log-prior) is the fit
+//! with its window's argmin as the seed: tested.
+
+use burn::tensor::activation::log_softmax;
+use burn::tensor::{Tensor, TensorData};
+use ndarray::{Array4, ArrayView3, ArrayView4, Axis};
+use tcsense_fits::depth::{DepthFitOptions, RangeTemplates, Seeds};
+use tcsense_fits::range::RangeFitOptions;
+
+use crate::sensor_tensors::SensorTensors;
+use crate::unet::{conv1x1, trunk, Unet};
+
+/// Bounds of the log of the learned scale of the fit's log-likelihood: the noise level is the
+/// frame's (one median), while a pixel's own noise grows with its light, and the templates are
+/// not exact, so the network learns how far to trust the likelihood pixel by pixel.
+pub const TEMPERATURE_RANGE: [f64; 2] = [-6.0, 3.0];
+
+/// The confidence logit of a return that is not there (the second where the fit finds none).
+const ABSENT: f32 = -30.0;
+
+impl Unet {
+    /// The settings of the range fit whose evidence the network reads: every lit pixel (no
+    /// intensity floor: the network's confidence decides), the network's returns.
+    pub fn fit_options(&self) -> DepthFitOptions {
+        DepthFitOptions {
+            fit: RangeFitOptions { oversample: self.oversample, ..Default::default() },
+            min_intensity: 0.0,
+            returns: self.returns().clamp(1, 2),
+            ..Default::default()
+        }
+    }
+
+    /// Candidates `C` of the evidence and candidates pooled per feature channel (0, · for a
+    /// network on other inputs).
+    pub fn grid(&self) -> (usize, usize) {
+        (self.candidates, self.pool)
+    }
+
+    /// Candidates per bin of the range fit whose evidence it reads.
+    pub fn grid_oversample(&self) -> usize {
+        self.oversample
+    }
+
+    /// The range (m) at a continuous candidate coordinate `u` (cyclic over `C`), as
+    /// [`RangeTemplates::range_at`].
+    pub fn range_of(&self, u: f32) -> f32 {
+        let c = self.candidates as f64;
+        let r = (u as f64 + 0.5 * self.oversample as f64) / c * self.range_m();
+        r.rem_euclid(self.range_m()) as f32
+    }
+
+    /// The evidence of every frame of a batch, on the CPU (no gradient reaches `y`).
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]` → features `[B, F, H, W]`, skip `[B, C, H, W]`
+    pub fn evidence(&self, y: Tensor<4>, sensor: &SensorTensors) -> (Tensor<4>, Tensor<4>) {
+        let [b, m, h, w] = y.dims();
+        let device = y.device();
+        let v: Vec<f32> = y.into_data().convert::<f32>().try_into_vec::<f32>().unwrap_or_default();
+        let templates = RangeTemplates::new(&sensor.matrix, &self.fit_options());
+        let c = self.candidates;
+        let f = tcsense_fits::depth::range_feature_channels(c, self.pool);
+        let (mut features, mut skip): (Vec<f32>, Vec<f32>) = (Vec::with_capacity(b * f * h * w), Vec::with_capacity(b * c * h * w));
+        for i in 0..b {
+            let yi = ArrayView3::from_shape((m, h, w), &v[i * m * h * w..(i + 1) * m * h * w]).expect("[M, H, W] frame");
+            let e = match templates.costs(&yi) {
+                Some(costs) => templates.evidence(&costs, &yi.sum_axis(Axis(0)), self.pool),
+                None => tcsense_fits::evidence::Evidence {
+                    skip: ndarray::Array3::zeros((h, w, c)),
+                    features: ndarray::Array3::zeros((h, w, f)),
+                    noise: 1.0,
+                },
+            };
+            features.extend(e.features.iter());
+            skip.extend(e.skip.iter());
+        }
+        // (the evidence is pixel-major)
+        (
+            Tensor::<4>::from_data(TensorData::new(features, [b, h, w, f]), &device).permute([0, 3, 1, 2]),
+            Tensor::<4>::from_data(TensorData::new(skip, [b, h, w, c]), &device).permute([0, 3, 1, 2]),
+        )
+    }
+
+    /// The posterior's logits over the candidates (the fit's log-likelihood at a learned
+    /// temperature plus the learned log-prior) and the first return's confidence logit.
+    ///
+    /// # Shapes
+    /// - `features`: `[B, F, H, W]`, `skip`: `[B, C, H, W]` → `([B, C, H, W], [B, 1, H, W])`
+    pub fn posterior(&self, features: Tensor<4>, skip: Tensor<4>) -> (Tensor<4>, Tensor<4>) {
+        let o = conv1x1(self.head(), trunk(self.down(), self.up(), features)); // [B, C + 2, H, W]
+        let c = self.candidates;
+        let scale = o.clone().narrow(1, c + 1, 1).clamp(TEMPERATURE_RANGE[0], TEMPERATURE_RANGE[1]).exp();
+        (skip * scale + o.clone().narrow(1, 0, c), o.narrow(1, c, 1))
+    }
+
+    /// `[B, 2K, H, W]` from the posterior's modes, without the tap domain (the second return,
+    /// which is the fit's, absent).
+    pub(crate) fn predict_on_evidence(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
+        let (features, skip) = self.evidence(y, sensor);
+        let (logits, confidence) = self.posterior(features, skip);
+        self.depth_channels(logits, confidence)
+    }
+
+    /// The depth channels `[B, 2K, H, W]` of the modes of `logits` `[B, C, H, W]` with the
+    /// first return's `confidence` `[B, 1, H, W]`.
+    fn depth_channels(&self, logits: Tensor<4>, confidence: Tensor<4>) -> Tensor<4> {
+        let [b, c, h, w] = logits.dims();
+        let device = logits.device();
+        let v: Vec<f32> = logits.into_data().try_into_vec().unwrap_or_default();
+        let k = self.returns();
+        let mut depth = vec![0f32; b * k * h * w];
+        for i in 0..b {
+            let u = cyclic_modes(&v[i * c * h * w..(i + 1) * c * h * w], c);
+            for (p, &u) in u.iter().enumerate() {
+                depth[i * k * h * w + p] = if u.is_finite() { self.range_of(u) } else { 0.0 };
+            }
+        }
+        let depth = Tensor::<4>::from_data(TensorData::new(depth, [b, k, h, w]), &device);
+        let mut conf = vec![confidence];
+        if k > 1 {
+            conf.push(Tensor::<4>::full([b, k - 1, h, w], ABSENT, &device));
+        }
+        Tensor::cat(vec![depth, Tensor::cat(conf, 1)], 1)
+    }
+
+    /// What the loss sees: [`Self::depth_channels`] and the log-posterior over the
+    /// candidates, `[B, 2K + C, H, W]`.
+    pub(crate) fn train_on_evidence(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
+        let (features, skip) = self.evidence(y, sensor);
+        let (logits, confidence) = self.posterior(features, skip);
+        let depth = self.depth_channels(logits.clone().detach(), confidence);
+        Tensor::cat(vec![depth, log_softmax(logits, 1)], 1)
+    }
+
+    /// The decoder's product, frame by frame: the evidence, the posterior, its modes, the fit's
+    /// steps 3 and 4 seeded by them ([`RangeTemplates::ranges`] with [`Seeds::Modes`]).
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]` → `[B, 2K, H, W]` (m in arrival order, NaN where none; confidence logits)
+    pub(crate) fn decode_on_evidence(&self, y: &ArrayView4<'_, f32>, sensor: &SensorTensors) -> Array4<f32> {
+        let (b, _, h, w) = y.dim();
+        let k = self.returns();
+        let device = sensor.lambda.device();
+        let mut templates = RangeTemplates::new(&sensor.matrix, &self.fit_options());
+        let mut out = Array4::<f32>::from_elem((b, 2 * k, h, w), f32::NAN);
+        let c = self.candidates;
+        for i in 0..b {
+            let yi = y.index_axis(Axis(0), i);
+            let Some(costs) = templates.costs(&yi) else {
+                out.index_axis_mut(Axis(0), i).slice_mut(ndarray::s![k.., .., ..]).fill(ABSENT);
+                continue;
+            };
+            let e = templates.evidence(&costs, &yi.sum_axis(Axis(0)), self.pool);
+            let tensor = |a: ndarray::Array3<f32>| {
+                let (h, w, c) = a.dim();
+                Tensor::<4>::from_data(TensorData::new(a.into_raw_vec_and_offset().0, [1, h, w, c]), &device).permute([0, 3, 1, 2])
+            };
+            let (logits, confidence) = self.posterior(tensor(e.features), tensor(e.skip));
+            let logits: Vec<f32> = logits.into_data().try_into_vec().unwrap_or_default();
+            let conf: Vec<f32> = confidence.into_data().try_into_vec().unwrap_or_default();
+            let u = cyclic_modes(&logits, c);
+            let ranges = templates.ranges(&costs, Seeds::Modes(&u));
+            let mut o = out.index_axis_mut(Axis(0), i);
+            for p in 0..h * w {
+                let (r, q) = (p / w, p % w);
+                for j in 0..k.min(ranges.dim().0) {
+                    o[(j, r, q)] = ranges[(j, r, q)];
+                }
+                o[(k, r, q)] = conf[p];
+                for j in 1..k {
+                    o[(k + j, r, q)] = if ranges[(j, r, q)].is_finite() { conf[p] } else { ABSENT };
+                }
+            }
+        }
+        out
+    }
+}
+
+/// The mode of every pixel's posterior over `c` cyclic candidates, refined by the parabola
+/// through its log at the two neighbours (within ½; none where a neighbour ties with it or a
+/// value is not finite). NaN where every logit is equal (an unlit pixel: no evidence, no prior).
+///
+/// # Shapes
+/// - `logits`: `[C, H·W]` (candidate-major) → `[H·W]` (candidate coordinates in `[0, C)`)
+pub fn cyclic_modes(logits: &[f32], c: usize) -> Vec<f32> {
+    let hw = logits.len() / c.max(1);
+    (0..hw)
+        .map(|p| {
+            let at = |k: usize| logits[(k % c) * hw + p];
+            let (mut best, mut lo, mut hi) = (0usize, f32::INFINITY, f32::NEG_INFINITY);
+            for k in 0..c {
+                let v = at(k);
+                lo = lo.min(v);
+                if v > hi {
+                    (hi, best) = (v, k);
+                }
+            }
+            if !(hi > lo) {
+                return f32::NAN;
+            }
+            let (l, m, r) = (at(best + c - 1), hi, at(best + 1));
+            let curv = l + r - 2.0 * m;
+            let delta = if l < m && r < m && curv < 0.0 { (0.5 * (l - r) / curv).clamp(-0.5, 0.5) } else { 0.0 };
+            (best as f32 + delta).rem_euclid(c as f32)
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::net::Network;
+    use crate::{UnetConfig, UnetHead, UnetInput};
+    use burn::tensor::Device;
+    use tcsense_fits::depth::fit_ranges;
+    use tcsense_sensor::{Codes, Irf, MeasurementMatrix, SensorParams};
+
+    /// The zoo's codes designed for range (4 taps, 2×2, L = 32, alias 0.77), physical IRF.
+    fn sensor() -> MeasurementMatrix {
+        let codes = Codes::from_json(include_str!("../../zoo/unet-lidar-designed/codes.json")).unwrap();
+        let params = SensorParams { irf: Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 }, ..SensorParams::from_codes(&codes) };
+        MeasurementMatrix::synthesize(&codes, &params.validate().unwrap()).unwrap()
+    }
+
+    /// Untrained (a zero log-prior), the network on the range fit's evidence is the fit: on
+    /// clean taps of a scene with two surfaces and a sheet in front of one, its first return
+    /// is the fit's to 0.02 bins and the truth's to 0.05, its second returns are the fit's,
+    /// and training sees the log-posterior over the candidates.
+    #[test]
+    fn on_the_range_fit_evidence_an_untrained_network_is_the_fit() {
+        let device = Device::flex();
+        let a = sensor();
+        let (h, w, t) = (16, 16, a.bins());
+        let range = tcsense_sensor::C * a.bin_width_s() / 2.0 * t as f64;
+        let dz = range / t as f64;
+        // returns (bins, amplitude): a wall at 19.7 on the left with a sheet at 6.4 in its top
+        // half, a wall at 27.3 on the right, ambient 0.01
+        let returns = |i: usize, j: usize| -> Vec<(f64, f64)> {
+            match (i < 8, j < 8) {
+                (true, true) => vec![(6.4, 0.4), (19.7, 1.0)],
+                (false, true) => vec![(19.7, 1.0)],
+                _ => vec![(27.3, 0.8)],
+            }
+        };
+        let mut x = vec![0.01f32; t * h * w];
+        for i in 0..h {
+            for j in 0..w {
+                for (tau, amp) in returns(i, j) {
+                    let p = tau - 0.5;
+                    let t0 = p.floor() as usize;
+                    x[(t0 % t) * h * w + i * w + j] += (amp * (1.0 - (p - p.floor()))) as f32;
+                    x[((t0 + 1) % t) * h * w + i * w + j] += (amp * (p - p.floor())) as f32;
+                }
+            }
+        }
+        let st = SensorTensors::new(&a, h, w, &device).unwrap();
+        let y = st.forward(Tensor::<4>::from_data(TensorData::new(x, [1, t, h, w]), &device));
+        let cfg =
+            UnetConfig::new(4, t, range).with_base_width(4).with_levels(2).with_head(UnetHead::ScoreVolume).with_input(UnetInput::Costs);
+        assert!(cfg.validate().is_ok() && cfg.clone().with_pool(0).validate().is_err());
+        assert!(cfg.clone().with_head(UnetHead::Regression).validate().is_err());
+        let net = cfg.init(&device);
+        let yv: Vec<f32> = y.clone().into_data().try_into_vec().unwrap();
+        let ya = Array4::from_shape_vec((1, 4, h, w), yv).unwrap();
+        let got = net.decode_frames(&ya.view(), &st).expect("the evidence's product");
+        assert_eq!(got.dim(), (1, 4, h, w));
+        let fit = fit_ranges(&ya.index_axis(Axis(0), 0), &a, &net.fit_options());
+        let bins = |v: f32| v as f64 / dz;
+        let (mut same_second, mut seconds) = (0, 0);
+        for i in 0..h {
+            for j in 0..w {
+                if (6..=9).contains(&j) || (6..=9).contains(&i) {
+                    continue; // windows across an edge
+                }
+                let (first, second) = (got[(0, 0, i, j)], got[(0, 1, i, j)]);
+                assert!(
+                    (bins(first) - bins(fit[(0, i, j)])).abs() < 0.02,
+                    "({i}, {j}): {} against the fit's {}",
+                    bins(first),
+                    bins(fit[(0, i, j)])
+                );
+                let want = returns(i, j)[0].0;
+                assert!((bins(first) - want).abs() < 0.25, "({i}, {j}): {} against {want}", bins(first));
+                if returns(i, j).len() == 1 {
+                    assert!((bins(first) - want).abs() < 0.05, "({i}, {j}): {} against {want}", bins(first));
+                }
+                seconds += fit[(1, i, j)].is_finite() as usize;
+                same_second += (fit[(1, i, j)].is_finite() == second.is_finite()
+                    && (!second.is_finite() || (bins(second) - bins(fit[(1, i, j)])).abs() < 0.02)) as usize;
+                // the untrained confidence is 0.5: a return
+                assert_eq!(got[(0, 2, i, j)], 0.0);
+            }
+        }
+        assert!(seconds >= 20, "the fit finds the sheet's second returns ({seconds})");
+        assert_eq!(same_second, 144, "second returns as the fit's");
+        let train = net.train_output(y, &st);
+        assert_eq!(train.dims(), [1, 4 + cfg.candidates(), h, w]);
+        let total: Vec<f32> = train.narrow(1, 4, cfg.candidates()).exp().sum_dim(1).into_data().try_into_vec().unwrap();
+        assert!(total.iter().all(|v| (v - 1.0).abs() < 1e-4), "a posterior sums to 1");
+    }
+
+    #[test]
+    fn the_cyclic_mode_wraps_and_refines() {
+        // 8 candidates, 3 pixels: a quadratic peak at 2.3; a peak at 7.6 across the wrap; flat
+        let c = 8;
+        let mut v = vec![0f32; c * 3];
+        for k in 0..c {
+            v[k * 3] = -((k as f32 - 2.3).powi(2));
+            let d = ((k as f32 - 7.6 + 4.0).rem_euclid(8.0)) - 4.0;
+            v[k * 3 + 1] = -d * d;
+        }
+        let u = cyclic_modes(&v, c);
+        assert!((u[0] - 2.3).abs() < 1e-5, "{u:?}");
+        assert!((u[1] - 7.6).abs() < 1e-5, "{u:?}");
+        assert!(u[2].is_nan());
+    }
+}
