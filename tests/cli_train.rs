@@ -438,9 +438,89 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
     let rows: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("ladder.json")).unwrap()).unwrap();
     assert_eq!(rows.as_array().unwrap().len(), 4, "two decoders at two light levels");
     // refused: an input of another network; a U-Net input for a lifetime run; the graph with the matrix as an input
-    fails(d, &["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--input", "costs", "-o", "u"], &["input", "costs"]);
+    fails(d, &["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--input", "harmonics", "-o", "u"], &["input", "harmonics"]);
     let args = train(&["--input", "matched", "--epochs", "1"], "bad");
     fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["input", "matched"]);
+    fails(d, &["export", "onnx", "--run", "ev", "--matrix-input", "-o", "m.onnx"], &["--matrix-input"]);
+    assert!(!d.join("bad").exists() && !d.join("m.onnx").exists());
+}
+
+/// The U-Net on the range fit's evidence: trains, reconstructs (depth NaN exactly where the
+/// confidence is below one half), streams through its exported graph as reconstruct decodes,
+/// takes its place on the photon ladder, and refuses what does not fit it.
+#[test]
+fn the_unet_on_the_range_fit_evidence_trains_decodes_and_streams_as_reconstruct() {
+    let d = tempdir();
+    let d = d.path();
+    tiny_lidar_and_codes(d);
+    let train = |extra: &[&str], out: &str| -> Vec<String> {
+        let mut a: Vec<String> = [
+            "train",
+            "unet",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--input",
+            "costs",
+            "--base-width",
+            "4",
+            "--levels",
+            "2",
+            "--seed",
+            "3",
+        ]
+        .iter()
+        .map(|s| s.to_string())
+        .collect();
+        a.extend(extra.iter().map(|s| s.to_string()));
+        a.extend(["-o".to_string(), out.to_string()]);
+        a
+    };
+    let args = train(&["--epochs", "1", "--signal", "0.01,0.9", "--ambient", "0,1"], "ev");
+    let out = ok(d, &args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(out.contains("the range fit's evidence on 32 candidates") && out.contains("depth_rmse_m"), "{out}");
+    let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("ev/config.json")).unwrap()).unwrap();
+    assert_eq!((cfg["model"]["input"].as_str(), cfg["model"]["oversample"].as_u64()), (Some("Costs"), Some(4)));
+    ok(d, &["simulate", "--codes", "codes.json", "--cube", "ds/test/x_000.npy", "--noise", "-o", "y.npy"]);
+    ok(d, &["reconstruct", "unet", "--run", "ev", "--measurements", "y.npy", "-o", "depth.npy"]);
+    let depth = read_npy(&d.join("depth.npy")).unwrap();
+    let conf = read_npy(&d.join("depth.confidence.npy")).unwrap();
+    assert_eq!(depth.shape(), &[1, 2, 8, 8]);
+    assert!(depth.iter().zip(conf.iter()).all(|(d, c)| d.is_nan() == (*c < 0.5)));
+    assert!(depth.iter().any(|v| v.is_finite()), "some returns");
+    // the same through the exported graph and ONNX Runtime, the evidence and refinement by infer
+    let out = ok(d, &["export", "onnx", "--run", "ev", "-o", "ev.onnx"]);
+    assert!(out.contains("range fit's evidence"), "{out}");
+    ok(d, &["infer", "--model", "ev.onnx", "--measurements", "y.npy", "-o", "inf"]);
+    let streamed = read_npy(&d.join("inf/depth.npy")).unwrap();
+    for (a, b) in streamed.iter().zip(depth.index_axis(ndarray::Axis(1), 0).iter()) {
+        assert!((a.is_nan() && b.is_nan()) || (a - b).abs() <= 1e-4 * b.abs().max(1.0), "infer {a} against reconstruct {b}");
+    }
+    // the photon ladder beside the fit
+    ok(
+        d,
+        &[
+            "eval",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--decoder",
+            "unet:ev",
+            "--decoder",
+            "depth-fit",
+            "--light",
+            "0.8,0.02",
+            "-o",
+            "ladder.json",
+        ],
+    );
+    let rows: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("ladder.json")).unwrap()).unwrap();
+    assert_eq!(rows.as_array().unwrap().len(), 4, "two decoders at two light levels");
+    // refused: the regression head on the evidence; the graph with the matrix as an input
+    let args = train(&["--head", "regression", "--epochs", "1"], "bad");
+    fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["score-volume"]);
     fails(d, &["export", "onnx", "--run", "ev", "--matrix-input", "-o", "m.onnx"], &["--matrix-input"]);
     assert!(!d.join("bad").exists() && !d.join("m.onnx").exists());
 }

@@ -98,7 +98,16 @@ fn every_entry_decodes_and_exports_with_burn_and_onnx_runtime_agreeing() {
         let run = runs::load(&dir, &Device::flex()).unwrap_or_else(|e| panic!("zoo:{name} opens: {e}"));
         let y = realistic_frame(&run, d.path());
         let want = burn_outputs(&run, &y);
-        assert!(want.iter().all(|o| o.iter().all(|v| v.is_finite())), "zoo:{name}: finite outputs");
+        // finite outputs; a depth is NaN only where its return's confidence is below one half
+        // (a decoder that masks its own product: the U-Net on the range fit's evidence)
+        assert!(want.iter().all(|o| o.iter().all(|v| !v.is_infinite())), "zoo:{name}: no infinite outputs");
+        match (run.spec.model.name(), want.as_slice()) {
+            ("unet", [depth, confidence]) => assert!(
+                depth.iter().zip(confidence.iter()).all(|(d, c)| d.is_finite() || *c < 0.5) && confidence.iter().all(|c| c.is_finite()),
+                "zoo:{name}: a depth wherever a return is confident"
+            ),
+            _ => assert!(want.iter().all(|o| o.iter().all(|v| v.is_finite())), "zoo:{name}: finite outputs"),
+        }
         let onnx = d.path().join(format!("{name}.onnx"));
         std::fs::write(&onnx, export(&run, ExportOptions::default()).unwrap()).unwrap();
         for threads in [1, 2] {
@@ -107,6 +116,8 @@ fn every_entry_decodes_and_exports_with_burn_and_onnx_runtime_agreeing() {
                 .run(y.view())
                 .unwrap();
             for (k, want) in want.iter().enumerate() {
+                let nan = got[k].iter().zip(want.iter()).filter(|(a, b)| a.is_nan() != b.is_nan()).count();
+                assert_eq!(nan, 0, "zoo:{name}, output {k}, {threads} threads: ONNX Runtime and burn have values at other pixels");
                 let diff = rel_diff(&got[k], want);
                 assert!(diff <= 1e-4, "zoo:{name}, output {k}, {threads} threads: ONNX Runtime differs from burn by {diff:e} of the scale");
             }

@@ -28,7 +28,8 @@ const LOG_INTENSITY_CLAMP: f32 = 10.0;
 #[derive(Debug, Clone)]
 pub struct Evidence {
     /// The fit's log-likelihood of every candidate of the grid, window summed, `[H, W, G]`
-    /// (0 at the best; 0 everywhere at an unlit pixel).
+    /// (0 at the best; 0 everywhere at an unlit pixel); with wider windows ([`evidence_with`])
+    /// theirs after it, `[H, W, S·G]`.
     pub skip: Array3<f32>,
     /// Per-pixel posteriors pooled over `pool` candidates, log relative intensity and the lit
     /// mask, `[H, W, G/pool + 2]`.
@@ -86,13 +87,14 @@ pub fn evidence(costs: &CostVolume<'_>, intensity: &Array2<f32>, pool: usize) ->
     evidence_with(costs, intensity, pool, &[])
 }
 
-/// [`evidence`] with, after the pixel's posteriors, those of the costs summed over wider
-/// windows (multi-scale context for the network: in dim light a surface's pixels agree over a
-/// larger window than the fit's).
+/// [`evidence`] with the costs summed over wider windows besides (multi-scale context for the
+/// network: in dim light a surface's pixels agree over a larger window than the fit's): their
+/// log-likelihoods after the fit's window's in `skip`, their posteriors after the pixel's in
+/// the features.
 ///
 /// # Shapes
 /// - `costs`: of `[H·W·G]`, `intensity`: `[H, W]`, each of `wider`: `[H·W·G]` → [`Evidence`]
-///   with features `[H, W, (1 + wider)·G/pool + 2]`
+///   with skip `[H, W, (1 + wider)·G]`, features `[H, W, (1 + wider)·G/pool + 2]`
 pub fn evidence_with(costs: &CostVolume<'_>, intensity: &Array2<f32>, pool: usize, wider: &[&[f32]]) -> Evidence {
     let (g, h, w) = (costs.points, costs.height, costs.width);
     let pool = pool.max(1);
@@ -126,13 +128,15 @@ pub fn evidence_with(costs: &CostVolume<'_>, intensity: &Array2<f32>, pool: usiz
     let pooled = g.div_ceil(pool);
     let mut lit_intensity: Vec<f32> = (0..h * w).filter(|&p| lit[p]).map(|p| intensity[(p / w, p % w)]).collect();
     let reference = median(&mut lit_intensity).filter(|v| *v > 0.0).unwrap_or(1.0);
-    let mut skip = vec![0f32; h * w * g];
+    // the log-likelihoods: the fit's window's, then the wider windows'
+    let sg = (1 + wider.len()) * g;
+    let mut skip = vec![0f32; h * w * sg];
     let mut features = vec![0f32; h * w * channels];
-    skip.par_chunks_mut(w * g).zip(features.par_chunks_mut(w * channels)).enumerate().for_each(|(i, (srow, frow))| {
+    skip.par_chunks_mut(w * sg).zip(features.par_chunks_mut(w * channels)).enumerate().for_each(|(i, (srow, frow))| {
         let mut post = vec![0f32; g];
         for j in 0..w {
             let p = i * w + j;
-            let (sp, fp) = (&mut srow[j * g..(j + 1) * g], &mut frow[j * channels..(j + 1) * channels]);
+            let (sp, fp) = (&mut srow[j * sg..(j + 1) * sg], &mut frow[j * channels..(j + 1) * channels]);
             let s = intensity[(i, j)];
             fp[channels - 2] =
                 if s > 0.0 { (s / reference).ln().clamp(-LOG_INTENSITY_CLAMP, LOG_INTENSITY_CLAMP) } else { -LOG_INTENSITY_CLAMP };
@@ -140,10 +144,12 @@ pub fn evidence_with(costs: &CostVolume<'_>, intensity: &Array2<f32>, pool: usiz
                 continue;
             }
             fp[channels - 1] = 1.0;
-            let win = &window[p * g..(p + 1) * g];
-            let least = win.iter().fold(f32::INFINITY, |a, &b| a.min(b));
-            for (o, &c) in sp.iter_mut().zip(win) {
-                *o = -(c - least) * nats;
+            for (b, volume) in std::iter::once(window).chain(wider.iter().copied()).enumerate() {
+                let win = &volume[p * g..(p + 1) * g];
+                let least = win.iter().fold(f32::INFINITY, |a, &b| a.min(b));
+                for (o, &c) in sp[b * g..(b + 1) * g].iter_mut().zip(win) {
+                    *o = -(c - least) * nats;
+                }
             }
             for (b, volume) in std::iter::once(costs.pixel).chain(wider.iter().copied()).enumerate() {
                 let own = &volume[p * g..(p + 1) * g];
@@ -161,7 +167,7 @@ pub fn evidence_with(costs: &CostVolume<'_>, intensity: &Array2<f32>, pool: usiz
         }
     });
     let shape = |c: usize, v: Vec<f32>| Array3::from_shape_vec((h, w, c), v).expect("[H, W, C] buffer");
-    Evidence { skip: shape(g, skip), features: shape(channels, features), noise }
+    Evidence { skip: shape(sg, skip), features: shape(channels, features), noise }
 }
 
 /// The median of `v` (reordered), `None` when empty.

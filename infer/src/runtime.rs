@@ -269,7 +269,7 @@ impl OnnxModel {
                 let p1 = out[1][(0, 0, r, q)];
                 for j in 0..k.min(ranges.dim().0) {
                     let v = ranges[(j, r, q)];
-                    let cj = if j == 0 || v.is_finite() { p1 } else { 0.0 };
+                    let cj = if v.is_finite() { p1 } else { 0.0 };
                     confidence[(i, j, r, q)] = cj;
                     if cj >= tcsense_models::net::DETECTION_THRESHOLD {
                         depth[(i, j, r, q)] = v;

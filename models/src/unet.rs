@@ -201,8 +201,8 @@ impl UnetConfig {
     }
 
     /// The grid of the range fit's evidence as the loss places a range on it: candidate
-    /// coordinate `u = r·scale − offset` (cyclic over `C`) for a range `r` in metres; `None` for
-    /// the other inputs.
+    /// coordinate `u = r·scale − offset` (cyclic over `C`) for a range `r` in metres (the
+    /// offset, half the candidates of a bin, is also half a bin); `None` for the other inputs.
     pub fn range_grid(&self) -> Option<(f64, f64)> {
         (self.input == UnetInput::Costs).then(|| (self.candidates() as f64 / self.range_m, 0.5 * self.oversample as f64))
     }
@@ -236,11 +236,11 @@ impl UnetConfig {
     }
 
     /// Output channels of the 1×1 head: `K·T + K` (score volume), `2K` (regression), or a
-    /// log-prior per candidate, the first return's confidence and the log-temperature of the
+    /// log-prior per candidate, the first return's confidence and a log-weight per window of the
     /// fit's likelihood ([`UnetInput::Costs`]).
     pub fn head_channels(&self) -> usize {
         if self.input == UnetInput::Costs {
-            return self.candidates() + 2;
+            return self.candidates() + tcsense_fits::depth::SCALES;
         }
         match self.head {
             UnetHead::Regression => 2 * self.returns,

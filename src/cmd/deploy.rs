@@ -69,9 +69,11 @@ pub fn export(cmd: ExportCmd) -> Result<ExitCode> {
             if let Some(e) = &meta.range_evidence {
                 let c = meta.bins * e.oversample;
                 println!(
-                    "  the graph reads the range fit's evidence on {c} candidate ranges over {:.3} m, which `tcsense infer` (and eval onnx:) computes from the measurements and refines in the tap domain (with the fit's second return); its own inputs: evidence [B, H, W, {}], log_likelihood [B, H, W, {c}]",
+                    "  the graph reads the range fit's evidence on {c} candidate ranges over {:.3} m, which `tcsense infer` (and eval onnx:) computes from the measurements and refines in the tap domain (with the fit's second return); its own inputs: evidence [B, H, W, {}], log_likelihood [B, H, W, {}] (the log-likelihoods of {} windows)",
                     meta.range_m,
                     tcsense_fits::depth::range_feature_channels(c, e.pool),
+                    tcsense_fits::depth::SCALES * c,
+                    tcsense_fits::depth::SCALES,
                 );
             }
             if let Some(e) = &meta.evidence {

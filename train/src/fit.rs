@@ -623,7 +623,8 @@ pub(crate) fn objective(loss: Loss, pred: Tensor<4>, target: Target<'_>, device:
             let filled = depth.mapv(|d| if d.is_finite() { d } else { 0.0 });
             let (depth, mask) = (to_tensor(&filled.view(), device), to_tensor(&mask.view(), device));
             match grid {
-                Some(grid) => depth_grid_loss(pred, depth, mask, grid),
+                // (the grid's offset is half a bin: the tolerance of "within half a bin")
+                Some(grid) => depth_grid_loss(pred, depth, mask, grid, grid.1),
                 None => depth_loss(pred, depth, mask, range_m),
             }
         }

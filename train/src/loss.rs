@@ -70,19 +70,23 @@ pub fn depth_loss(pred: Tensor<4>, depth: Tensor<4>, mask: Tensor<4>, range_m: f
 }
 
 /// The loss of a depth network on a grid of candidate ranges (the U-Net on the range fit's
-/// evidence): the cross-entropy of its posterior over the `C` candidates against a true return
-/// split between the two candidates beside it (the grid is cyclic: the candidates go round the
-/// code cycle), where the pixel has a return; of two returns, the more probable one (the
-/// posterior is of one return: the first is either, and the fit's second finds the other),
-/// plus the binary cross-entropy of the first return's confidence against "has a return".
-/// The network's second return is the fit's, so nothing else is learned.
+/// evidence): `−ln P(|r − r_true| ≤ tolerance)` under its posterior over the `C` candidates —
+/// the posterior's mass within `tolerance` candidates of a true return (the grid is cyclic: the
+/// candidates go round the code cycle), where the pixel has a return; of two returns, the more
+/// probable one (the posterior is of one return: the first is either, and the fit's second
+/// finds the other). With `tolerance` half a bin it is what the share of returns within half a
+/// bin counts, and a sharp posterior whose mode is right costs nothing, however sharp (a
+/// cross-entropy against the exact range made bright pixels, whose likelihood is sharper than
+/// the candidates, dominate the loss with their calibration). Plus the binary cross-entropy of
+/// the first return's confidence against "has a return". The network's second return is the
+/// fit's, so nothing else is learned.
 ///
 /// # Shapes
 /// - `pred`: `[B, 2K + C, H, W]` (depth in metres, confidence logits, log-posterior over the
 ///   candidates), `depth`: `[B, K, H, W]` (m, 0 where none), `mask`: `[B, K, H, W]` (1 where
 ///   the truth has a return), `grid`: `(scale, offset)`, a range `r` sits at candidate
-///   `r·scale − offset` → `[1]`
-pub fn depth_grid_loss(pred: Tensor<4>, depth: Tensor<4>, mask: Tensor<4>, (scale, offset): (f64, f64)) -> Tensor<1> {
+///   `r·scale − offset`; `tolerance` in candidates → `[1]`
+pub fn depth_grid_loss(pred: Tensor<4>, depth: Tensor<4>, mask: Tensor<4>, (scale, offset): (f64, f64), tolerance: f64) -> Tensor<1> {
     const MISSING: f64 = 1e9; // (a return that is not there is never the most probable)
     let [b, k, h, w] = depth.dims();
     let c = pred.dims()[1] - 2 * k;
@@ -94,14 +98,16 @@ pub fn depth_grid_loss(pred: Tensor<4>, depth: Tensor<4>, mask: Tensor<4>, (scal
     let index = Tensor::<1>::from_floats(index.as_slice(), &logp.device()).reshape([1, 1, c, 1, 1]);
     let d = (index - u).abs(); // [B, K, C, H, W], within C
     let d = d.clone().min_pair(d.neg().add_scalar(c as f64)); // cyclic distance
-    let hat = d.neg().add_scalar(1.0).clamp_min(0.0);
-    // each return's cross-entropy; the pixel's is its most probable return's (either return
-    // is right for the first: the fit's second return finds the other)
-    let ce = (hat * logp.reshape([b, 1, c, h, w])).sum_dim(2).reshape([b, k, h, w]).neg(); // [B, K, H, W]
-    let ce = (ce * mask.clone() + mask.neg().add_scalar(1.0).mul_scalar(MISSING)).min_dim(1) * any.clone(); // [B, 1, H, W]
+    let near = d.lower_equal_elem(tolerance);
+    // ln of the mass near each return: a log-sum-exp over the candidates near it
+    let x = logp.reshape([b, 1, c, h, w]).expand([b, k, c, h, w]).mask_fill(near.bool_not(), -1e4);
+    let top = x.clone().max_dim(2); // [B, K, 1, H, W]
+    let lse = (x - top.clone()).exp().sum_dim(2).log() + top;
+    let nll = lse.reshape([b, k, h, w]).neg();
+    let nll = (nll * mask.clone() + mask.neg().add_scalar(1.0).mul_scalar(MISSING)).min_dim(1) * any.clone(); // [B, 1, H, W]
     let count = any.clone().sum().add_scalar(1.0);
     let bce = relu(logit.clone()) - logit.clone() * any + logit.abs().neg().exp().add_scalar(1.0).log();
-    ce.sum() / count + bce.mean()
+    nll.sum() / count + bce.mean()
 }
 
 /// Weight of the score volume's cross-entropy in [`depth_loss`] (an error of one bin costs
@@ -167,33 +173,32 @@ mod tests {
     use super::*;
     use burn::tensor::Device;
 
-    /// The grid loss is least for the posterior that puts the truth's mass where the truth is
-    /// (across the cycle's wrap too), and its confidence term is the BCE.
+    /// The grid loss is the posterior's mass within the tolerance of the truth (across the
+    /// cycle's wrap too), whatever its shape there, and its confidence term is the BCE.
     #[test]
-    fn the_depth_grid_loss_places_the_truth_on_the_cyclic_grid() {
+    fn the_depth_grid_loss_counts_the_mass_near_the_truth_on_the_cyclic_grid() {
         let device = Device::flex();
-        // C = 4 candidates, K = 1, two pixels: one return at candidate 3.5 (half on 3, half on 0
-        // across the wrap), and none
-        let (scale, offset) = (1.0, 0.0);
-        let post = |p: [f32; 4]| p.map(|v| v.ln());
+        // C = 4 candidates, K = 1, two pixels: one return at candidate 3.5 (candidates 3 and 0
+        // within 0.5 across the wrap), and none
         let loss = |first: [f32; 4], logit: f32| -> f32 {
             let mut v = vec![0.0f32, 0.0, logit, -2.0];
-            for (j, &l) in post(first).iter().enumerate() {
-                v.push(l);
+            for &p in first.iter() {
+                v.push(p.ln());
                 v.push(-(4f32).ln());
             }
             let pred = Tensor::<4>::from_data(burn::tensor::TensorData::new(v, [1, 6, 1, 2]), &device);
             let depth = Tensor::<4>::from_floats([[[[3.5, 0.0]]]], &device);
             let mask = Tensor::<4>::from_floats([[[[1.0, 0.0]]]], &device);
-            depth_grid_loss(pred, depth, mask, (scale, offset)).into_scalar()
+            depth_grid_loss(pred, depth, mask, (1.0, 0.0), 0.5).into_scalar()
         };
-        let right = loss([0.5, 1e-6, 1e-6, 0.5], 0.0);
-        let wrong = loss([1e-6, 0.5, 0.5, 1e-6], 0.0);
-        // CE: −(½ ln ½ + ½ ln ½) = ln 2 over one pixel with a return (count 2); BCE of logits 0
-        // and −2 against 1 and 0
         let bce = (2f32).ln() + (1.0 + (-2f32).exp()).ln();
-        assert!((right - ((2f32).ln() / 2.0 + bce / 2.0)).abs() < 1e-4, "{right}");
-        assert!(wrong > right + 5.0, "{wrong} against {right}");
+        // all the mass near the truth, split or on one side: no cost but the confidence's
+        for p in [[0.5, 1e-6, 1e-6, 0.5], [1.0 - 2e-6, 1e-6, 1e-6, 1e-6]] {
+            assert!((loss(p, 0.0) - bce / 2.0).abs() < 1e-4, "{p:?}: {}", loss(p, 0.0));
+        }
+        // a quarter of it: ln 4 over the one pixel with a return (count 2)
+        let quarter = loss([0.125, 0.375, 0.375, 0.125], 0.0);
+        assert!((quarter - ((4f32).ln() / 2.0 + bce / 2.0)).abs() < 1e-4, "{quarter}");
     }
 
     #[test]

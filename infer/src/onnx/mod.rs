@@ -491,20 +491,44 @@ fn unet_on_evidence(net: &Unet, meta: &OnnxMeta, opts: ExportOptions<'_>) -> Res
     let frame = [Dim::Named("batch"), Dim::Fixed(1), Dim::Named("height"), Dim::Named("width")];
     let pixels = |c: usize| [Dim::Named("batch"), Dim::Named("height"), Dim::Named("width"), Dim::Fixed(c)];
     let features = g.input(EVIDENCE_INPUT, &pixels(f));
-    let skip = g.input(LOG_LIKELIHOOD_INPUT, &pixels(c));
+    let skip = g.input(LOG_LIKELIHOOD_INPUT, &pixels(tcsense_fits::depth::SCALES * c));
     let features = g.node("Transpose", &[&features], &[Attr::Ints("perm", &[0, 3, 1, 2])]);
     let skip = g.node("Transpose", &[&skip], &[Attr::Ints("perm", &[0, 3, 1, 2])]);
     let trunk = unet_trunk(&mut g, net.down(), net.up(), &features)?;
-    let o = conv(&mut g, net.head(), &trunk)?; // [B, C + 2, H, W]
+    let o = conv(&mut g, net.head(), &trunk)?; // [B, C + S, H, W]
+    let bound = g.scalar("prior_bound", tcsense_models::depth_evidence::PRIOR_BOUND as f32);
     let prior = channels(&mut g, &o, 0, c);
+    let prior = g.op("Div", &[&prior, &bound]);
+    let prior = g.op("Tanh", &[&prior]);
+    let prior = g.op("Mul", &[&prior, &bound]);
     let logit = channels(&mut g, &o, c, 1);
-    let s = channels(&mut g, &o, c + 1, 1);
+    // the fit's window's log-likelihood plus the wider windows' at the learned weights:
+    // L_0 + Σ_s e^{clip(6·o_s − 6)}·L_s
+    let wide = tcsense_fits::depth::SCALES - 1;
+    let o_s = channels(&mut g, &o, c + 1, wide); // [B, S − 1, H, W]
+    let (gain, offset) = (
+        g.scalar("window_gain", tcsense_models::depth_evidence::WIDER_GAIN as f32),
+        g.scalar("window_offset", tcsense_models::depth_evidence::WIDER_OFFSET as f32),
+    );
+    let o_s = g.op("Mul", &[&o_s, &gain]);
+    let o_s = g.op("Add", &[&o_s, &offset]);
     let [lo, hi] = tcsense_models::depth_evidence::TEMPERATURE_RANGE;
-    let (lo, hi) = (g.scalar("log_scale_lo", lo as f32), g.scalar("log_scale_hi", hi as f32));
-    let s = g.op("Clip", &[&s, &lo, &hi]);
-    let scale = g.op("Exp", &[&s]);
-    let scaled = g.op("Mul", &[&skip, &scale]);
-    let logits = g.op("Add", &[&scaled, &prior]);
+    let (lo, hi) = (g.scalar("log_weight_lo", lo as f32), g.scalar("log_weight_hi", hi as f32));
+    let o_s = g.op("Clip", &[&o_s, &lo, &hi]);
+    let weights = g.op("Exp", &[&o_s]);
+    // (flattened pixels: [B, S − 1, 1, H·W] times [B, S − 1, C, H·W], summed over the windows)
+    let (wshape, vshape) = (g.ints("weights_shape", &[0, wide as i64, 1, -1]), g.ints("volume_shape", &[0, wide as i64, c as i64, -1]));
+    let own = channels(&mut g, &skip, 0, c);
+    let wider = channels(&mut g, &skip, c, wide * c);
+    let weights = g.op("Reshape", &[&weights, &wshape]);
+    let volume = g.op("Reshape", &[&wider, &vshape]);
+    let weighted = g.op("Mul", &[&volume, &weights]);
+    let axis1 = g.ints("axis_windows", &[1]);
+    let wider = g.node("ReduceSum", &[&weighted, &axis1], &[Attr::Int("keepdims", 0)]); // [B, C, H·W]
+    let shape = g.op("Shape", &[&own]);
+    let wider = g.op("Reshape", &[&wider, &shape]); // [B, C, H, W]
+    let likelihood = g.op("Add", &[&own, &wider]);
+    let logits = g.op("Add", &[&likelihood, &prior]);
     let u = posterior_mode(&mut g, &logits, c, true);
     // the range of candidate u: (u + ½·os)/C · r_max, within the cycle
     let (half_os, per) = (
@@ -519,9 +543,10 @@ fn unet_on_evidence(net: &Unet, meta: &OnnxMeta, opts: ExportOptions<'_>) -> Res
     g.output(&r, MODE_RANGE_OUTPUT, &frame);
     g.output(&conf, FIRST_CONFIDENCE_OUTPUT, &frame);
     let doc = format!(
-        "tcsense U-Net on the range fit's evidence ({c} candidate ranges over {:.3} m, {} levels): evidence [B, H, W, {f}], log_likelihood [B, H, W, {c}] -> mode_range (m) [B, 1, H, W], first_confidence [B, 1, H, W]; the runtime computes the evidence from the taps and refines the first return with the fit's second beside it",
+        "tcsense U-Net on the range fit's evidence ({c} candidate ranges over {:.3} m, {} levels): evidence [B, H, W, {f}], log_likelihood [B, H, W, {}] (the windows' log-likelihoods, window-major) -> mode_range (m) [B, 1, H, W], first_confidence [B, 1, H, W]; the runtime computes the evidence from the taps and refines the first return with the fit's second beside it",
         net.range_m(),
-        net.down().len()
+        net.down().len(),
+        tcsense_fits::depth::SCALES * c
     );
     let model = g.into_model(&doc, &meta.to_props());
     model.write_to_bytes().map_err(|e| InferError::InvalidParam {
