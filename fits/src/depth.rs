@@ -47,7 +47,7 @@ use rayon::prelude::*;
 use tcsense_sensor::waveform::subpixel_flat;
 use tcsense_sensor::{MeasurementMatrix, C};
 
-use crate::engine::{argmin, parabola_min, window_rows, window_total};
+use crate::engine::{argmin, parabola_min, window_sums};
 use crate::evidence::{CostVolume, Evidence};
 use crate::range::{cyclic_gap, RangeFitOptions, Templates, WindowFit, EXPLAINED, MIN_GAP};
 
@@ -447,13 +447,7 @@ impl RangeTemplates {
         });
         // summed over the window's lit pixels
         let side = self.opts.fit.window;
-        window_rows(pixel, &lit, (h, w), cands, side, rows);
-        window.resize(h * w * cands, 0.0);
-        window.par_chunks_mut(w * cands).enumerate().for_each(|(i, row)| {
-            for (j, total) in row.chunks_mut(cands).enumerate() {
-                window_total(rows, (i, j), (h, w), side, total);
-            }
-        });
+        window_sums(pixel, &lit, (h, w), cands, side, rows, window);
         taps.clear();
         taps.extend(y32.iter().map(|&v| v as f64));
         *lit_out = lit;
@@ -475,13 +469,8 @@ impl RangeTemplates {
         let wider: Vec<Vec<f32>> = CONTEXT_WINDOWS
             .iter()
             .map(|&side| {
-                window_rows(&costs.pixel, &costs.lit, (h, w), cands, side, &mut rows);
-                let mut sums = vec![0f32; h * w * cands];
-                sums.par_chunks_mut(w * cands).enumerate().for_each(|(i, row)| {
-                    for (j, total) in row.chunks_mut(cands).enumerate() {
-                        window_total(&rows, (i, j), (h, w), side, total);
-                    }
-                });
+                let mut sums = Vec::new();
+                window_sums(&costs.pixel, &costs.lit, (h, w), cands, side, &mut rows, &mut sums);
                 sums
             })
             .collect();

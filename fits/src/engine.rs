@@ -56,6 +56,22 @@ pub fn window_total(rows: &[f32], (i, j): (usize, usize), (h, w): (usize, usize)
     }
 }
 
+/// Both passes of the box filter for every pixel: its costs summed over the lit pixels of its
+/// `window × window` neighbourhood, into `out` (resized; `rows` is the first pass's scratch).
+///
+/// # Shapes
+/// - `cost`: `[H·W·G]`, `lit`: `[H·W]` → `out`: `[H·W·G]`
+pub fn window_sums(cost: &[f32], lit: &[bool], (h, w): (usize, usize), g: usize, window: usize, rows: &mut Vec<f32>, out: &mut Vec<f32>) {
+    window_rows(cost, lit, (h, w), g, window, rows);
+    out.resize(h * w * g, 0.0);
+    let rows = &*rows;
+    out.par_chunks_mut(w * g).enumerate().for_each(|(i, row)| {
+        for (j, total) in row.chunks_mut(g).enumerate() {
+            window_total(rows, (i, j), (h, w), window, total);
+        }
+    });
+}
+
 /// The offset (within ±½ of the middle) of the minimum of the parabola through three costs
 /// one candidate apart; 0 where they do not curve upwards or one is not finite.
 pub fn parabola_min(lo: f64, mid: f64, hi: f64) -> f64 {
