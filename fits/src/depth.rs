@@ -134,6 +134,18 @@ impl Default for DepthFitOptions {
 }
 
 impl DepthFitOptions {
+    /// The settings of the fit whose evidence a network reads ([`RangeTemplates::evidence`]):
+    /// `oversample` candidates per bin, every lit pixel (no intensity floor: the network's
+    /// confidence decides), `returns` (1 or 2).
+    pub fn for_evidence(oversample: usize, returns: usize) -> DepthFitOptions {
+        DepthFitOptions {
+            fit: RangeFitOptions { oversample, ..Default::default() },
+            min_intensity: 0.0,
+            returns: returns.clamp(1, 2),
+            ..Default::default()
+        }
+    }
+
     /// `Err(what was expected)` for settings the fit cannot use.
     pub fn validate(&self) -> Result<(), String> {
         self.fit.validate()?;
@@ -296,6 +308,28 @@ pub fn range_feature_channels(candidates: usize, pool: usize) -> usize {
     crate::evidence::feature_channels_with(candidates, pool, CONTEXT_WINDOWS.len())
 }
 
+/// The candidate ranges of the dense pass: `C = T·oversample` round a code cycle of `range_m`,
+/// candidate `u` (continuous, cyclic) at `(u + oversample/2)·range_m/C`, so every
+/// `oversample`-th sits on a bin's centre.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CandidateGrid {
+    pub candidates: usize,
+    pub oversample: usize,
+    pub range_m: f64,
+}
+
+impl CandidateGrid {
+    /// The range (m) of candidate coordinate `u`, within the cycle.
+    pub fn range(&self, u: f64) -> f64 {
+        ((u + 0.5 * self.oversample as f64) / self.candidates as f64 * self.range_m).rem_euclid(self.range_m)
+    }
+
+    /// The candidate coordinate of range `r` (m), in `[0, C)`.
+    pub fn candidate(&self, r: f64) -> f64 {
+        (r * self.candidates as f64 / self.range_m - 0.5 * self.oversample as f64).rem_euclid(self.candidates as f64)
+    }
+}
+
 /// One frame's costs at every candidate of the cycle ([`RangeTemplates::costs`]): what the
 /// fit and a network on its evidence start from.
 #[derive(Debug, Clone, Default)]
@@ -322,7 +356,7 @@ pub enum Seeds<'a> {
     /// The window's best candidate over the whole cycle (the fit).
     Argmin,
     /// A continuous candidate coordinate per pixel `[H·W]` (a posterior's mode; NaN: no
-    /// return), `u` at [`RangeTemplates::range_at`]`(u)`.
+    /// return), `u` at [`CandidateGrid::range`]`(u)`.
     Modes(&'a [f32]),
 }
 
@@ -393,13 +427,6 @@ impl RangeTemplates {
     /// Candidates `C` around the cycle (`T` bins × the candidates per bin).
     pub fn candidates(&self) -> usize {
         self.tpl.candidates()
-    }
-
-    /// The range (m) at a continuous candidate coordinate `u` (cyclic: `u` and `u + C` are the
-    /// same range).
-    pub fn range_at(&self, u: f64) -> f64 {
-        let c = self.tpl.candidates() as f64;
-        self.tpl.tau(0) * self.delta + u.rem_euclid(c) * self.delta / self.tpl.os as f64
     }
 
     /// Step 1 of the fit for one frame: every lit pixel's cost at every candidate and its sum

@@ -245,7 +245,7 @@ impl OnnxModel {
         let (b, _, h, w) = y.dim();
         let k = self.meta.returns.max(1);
         let c = self.meta.bins * e.oversample;
-        let (range_m, offset) = (self.meta.range_m, 0.5 * e.oversample as f64);
+        let grid = tcsense_fits::depth::CandidateGrid { candidates: c, oversample: e.oversample, range_m: self.meta.range_m };
         let mut depth = Array4::from_elem((b, k, h, w), f32::NAN);
         let mut confidence = Array4::zeros((b, k, h, w));
         let path = self.path.clone();
@@ -262,7 +262,7 @@ impl OnnxModel {
             let outputs = self.session.run(ort::inputs![EVIDENCE_INPUT => f, LOG_LIKELIHOOD_INPUT => s]).map_err(fail)?;
             let out = named_outputs(&path, &outputs, self.meta.graph_outputs())?;
             drop(outputs);
-            let u: Vec<f32> = out[0].iter().map(|&r| ((r as f64 * c as f64 / range_m - offset).rem_euclid(c as f64)) as f32).collect();
+            let u: Vec<f32> = out[0].iter().map(|&r| grid.candidate(r as f64) as f32).collect();
             let ranges = templates.ranges(&costs, Seeds::Modes(&u));
             for p in 0..h * w {
                 let (r, q) = (p / w, p % w);

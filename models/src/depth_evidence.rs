@@ -34,8 +34,7 @@
 use burn::tensor::activation::log_softmax;
 use burn::tensor::{Tensor, TensorData};
 use ndarray::{Array4, ArrayView3, ArrayView4, Axis};
-use tcsense_fits::depth::{DepthFitOptions, RangeTemplates, Seeds, SCALES};
-use tcsense_fits::range::RangeFitOptions;
+use tcsense_fits::depth::{CandidateGrid, DepthFitOptions, RangeTemplates, Seeds, SCALES};
 
 use crate::sensor_tensors::SensorTensors;
 use crate::unet::{conv1x1, trunk, Unet};
@@ -64,12 +63,7 @@ impl Unet {
     /// The settings of the range fit whose evidence the network reads: every lit pixel (no
     /// intensity floor: the network's confidence decides), the network's returns.
     pub fn fit_options(&self) -> DepthFitOptions {
-        DepthFitOptions {
-            fit: RangeFitOptions { oversample: self.oversample, ..Default::default() },
-            min_intensity: 0.0,
-            returns: self.returns().clamp(1, 2),
-            ..Default::default()
-        }
+        DepthFitOptions::for_evidence(self.oversample, self.returns())
     }
 
     /// Candidates `C` of the evidence and candidates pooled per feature channel (0, · for a
@@ -84,11 +78,9 @@ impl Unet {
     }
 
     /// The range (m) at a continuous candidate coordinate `u` (cyclic over `C`), as
-    /// [`RangeTemplates::range_at`].
+    /// [`CandidateGrid::range`].
     pub fn range_of(&self, u: f32) -> f32 {
-        let c = self.candidates as f64;
-        let r = (u as f64 + 0.5 * self.oversample as f64) / c * self.range_m();
-        r.rem_euclid(self.range_m()) as f32
+        CandidateGrid { candidates: self.candidates, oversample: self.oversample, range_m: self.range_m() }.range(u as f64) as f32
     }
 
     /// The evidence of every frame of a batch, on the CPU (no gradient reaches `y`).

@@ -70,12 +70,7 @@ impl RangeEvidenceNote {
     /// The settings of the range fit whose evidence the model reads, for `returns` per pixel
     /// (as the network computes them: [`tcsense_models::Unet::fit_options`]).
     pub fn fit_options(&self, returns: usize) -> tcsense_fits::depth::DepthFitOptions {
-        tcsense_fits::depth::DepthFitOptions {
-            fit: tcsense_fits::range::RangeFitOptions { oversample: self.oversample, ..Default::default() },
-            min_intensity: 0.0,
-            returns: returns.clamp(1, 2),
-            ..Default::default()
-        }
+        tcsense_fits::depth::DepthFitOptions::for_evidence(self.oversample, returns)
     }
 }
 
