@@ -56,7 +56,7 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
     args.extend(["-o", "demo"]);
     let out = ok(d, &args);
     assert!(
-        out.contains("[12/14] timing") && out.contains("[13/14] bring-up of a non-ideal sensor") && out.contains("wrote demo/report.html"),
+        out.contains("[13/15] timing") && out.contains("[14/15] bring-up of a non-ideal sensor") && out.contains("wrote demo/report.html"),
         "{out}"
     );
     let demo = d.join("demo");
@@ -88,7 +88,7 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
 
     // every figure exists, is a PNG and is not empty; the ones the issue names are there
     let images = attributes(&html, "img", "src");
-    assert!(images.len() >= 15, "{images:?}");
+    assert!(images.len() >= 17, "{images:?}");
     for src in &images {
         let bytes = std::fs::read(demo.join(src)).unwrap_or_else(|e| panic!("{src}: {e}"));
         assert!(bytes.len() > 5000 && bytes.starts_with(b"\x89PNG\r\n\x1a\n"), "{src}: {} bytes", bytes.len());
@@ -108,6 +108,8 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
         "training-lidar",
         "training-unet",
         "training-flim",
+        "photon-lidar",
+        "photon-flim",
     ] {
         assert!(images.contains(&format!("figures/{name}.png").as_str()), "no {name} in {images:?}");
     }
@@ -126,14 +128,25 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
     let lidar = json(&demo.join("results/lidar.json"));
     let flim = json(&demo.join("results/flim.json"));
     let timing = json(&demo.join("results/timing.json"));
-    // LiDAR: TVAL3, ADMM-Net (burn, ONNX), U-Net (burn, ONNX) with the selected codes; TVAL3 and
-    // ADMM-Net (burn, ONNX) with the learned codes; FLIm: TVAL3, ADMM-Net (burn, ONNX), the fit
+    // LiDAR: TVAL3, ADMM-Net (burn, ONNX), U-Net (burn, ONNX), the range fit to the taps with
+    // the selected codes; TVAL3, ADMM-Net (burn, ONNX) and the fit with the learned codes; FLIm: TVAL3, ADMM-Net (burn, ONNX), the fit
     // to the taps, and the zoo's FLIm ADMM-Net and lifetime decoder as shipped on their own
     // codes; then the zoo's LiDAR ADMM-Net fine-tuned to the selected codes, and as shipped
     let rows = lidar["rows"].as_array().unwrap();
-    assert_eq!(rows.len(), 10);
-    assert_eq!((rows[8]["codes"].as_str(), rows[9]["codes"].as_str()), (Some("selected"), Some("the zoo's")));
-    for r in &rows[8..] {
+    assert_eq!(rows.len(), 12);
+    assert_eq!((rows[10]["codes"].as_str(), rows[11]["codes"].as_str()), (Some("selected"), Some("the zoo's")));
+    for fit in [&rows[5], &rows[9]] {
+        assert!(
+            fit["decoder"].as_str().is_some_and(|d| d.starts_with("range fit")) && fit["mse"].is_null(),
+            "the range fit is a row of each code set, with ranges and no cube: {fit}"
+        );
+        assert!(
+            fit["range_rmse_m"][0].as_f64().is_some_and(|v| v.is_finite() && v < 1.0)
+                && fit["detection_pct"][0].as_f64().is_some_and(|v| v > 50.0),
+            "{fit}"
+        );
+    }
+    for r in &rows[10..] {
         assert!(r["psnr_db"].as_f64().is_some_and(|v| v.is_finite() && v > 10.0), "{r}");
     }
     assert_eq!(flim["rows"].as_array().unwrap().len(), 6);
@@ -154,18 +167,35 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
         assert_eq!(r["codes"].as_str(), Some("the zoo's"));
         assert!(r["decoder"].as_str().is_some_and(|d| d.contains("zoo")), "{r}");
     }
-    for (file, n) in [("results/lidar.json", 10 * 7), ("results/flim.json", 6 * 5), ("results/timing.json", 9 * 2)] {
+    for (file, n) in [("results/lidar.json", 12 * 7), ("results/flim.json", 6 * 5), ("results/timing.json", 9 * 2)] {
         assert_eq!(cells.iter().filter(|c| c.0 == file).count(), n, "cells from {file}");
     }
     assert_eq!(timing["decoders"].as_array().unwrap().len(), 3);
     // burn and ONNX Runtime give the same reconstructions of the same measurements
-    for (burn, onnx) in [(1, 2), (6, 7)] {
+    for (burn, onnx) in [(1, 2), (7, 8)] {
         let (a, b) = (rows[burn]["mse"].as_f64().unwrap(), rows[onnx]["mse"].as_f64().unwrap());
         assert!((a - b).abs() <= 1e-3 * a.abs(), "rows {burn}/{onnx}: burn MSE {a}, ONNX {b}");
     }
     let (a, b) = (rows[3]["range_rmse_m"][0].as_f64().unwrap(), rows[4]["range_rmse_m"][0].as_f64().unwrap());
     assert!((a - b).abs() <= 1e-3 * a.abs().max(1e-3), "U-Net burn range RMSE {a}, ONNX {b}");
     assert!(rows[3]["mse"].is_null(), "the U-Net has no cube");
+
+    // the light axis: every decoder at every rung, the fits beside the networks; the fit's
+    // share within half a bin falls with the light
+    let photon = json(&demo.join("results/photon-lidar.json"));
+    let prow = photon["rows"].as_array().unwrap();
+    assert_eq!(prow.len(), 5 * 4, "four decoders on the selected codes and the zoo's evidence U-Net, at four levels");
+    let share = |d: &str, level: f64| {
+        prow.iter()
+            .find(|r| r["decoder"].as_str() == Some(d) && r["light"]["signal_fraction"].as_f64() == Some(level))
+            .and_then(|r| r["depth_within_half_bin"][0].as_f64())
+            .unwrap_or_else(|| panic!("{d} at {level}: {prow:?}"))
+    };
+    let fit = "range fit to the taps, 2 returns";
+    assert!(share(fit, 0.8) > 0.5 && share(fit, 0.8) > share(fit, 0.005), "{} at 0.8, {} at 0.005", share(fit, 0.8), share(fit, 0.005));
+    let photon_flim = json(&demo.join("results/photon-flim.json"));
+    assert_eq!(photon_flim["rows"].as_array().unwrap().len(), 3 * 4);
+    assert!(html.contains("The light axis (results/photon-lidar.json)") && html.contains("signal 0.005 ("), "photon tables missing");
 
     // the codes: learned ones exported and feasible; the plan sized the trainings
     ok(&demo, &["codes", "check", "codes/learned.json"]);

@@ -269,6 +269,49 @@ pub fn photon_curve(
     })
 }
 
+/// Speed against accuracy of decoders: one series per decoder, its points `(frames/s, error)`
+/// at each light level in `levels`' order (both axes logarithmic), so that a decoder is a
+/// vertical run of dots at its speed from its error in bright light to its error in dim light;
+/// each dot is labelled with its level. Points with a non-positive or non-finite value are left
+/// out.
+pub fn speed_accuracy(path: &Path, title: &str, x_label: &str, y_label: &str, series: &[Series], levels: &[String]) -> Result<()> {
+    let keep = |x: f64, y: f64| x > 0.0 && y > 0.0;
+    let (x0, x1, y0, y1) = extent(series, keep, (1.0, 10.0, 0.1, 10.0));
+    let decade = |v: f64, up: bool| 10f64.powf(if up { v.log10().ceil() } else { v.log10().floor() });
+    let (x0, x1) = (decade(x0, false), decade(x1, true).max(decade(x0, false) * 10.0));
+    let (y0, y1) = (decade(y0, false), decade(y1, true).max(decade(y0, false) * 10.0));
+    render(path, (1000, 640), |root| {
+        let (title_area, body) = root.split_vertically(40);
+        title_area.titled(title, (FONT, 22)).map_err(err)?;
+        let mut chart = ChartBuilder::on(&body)
+            .margin(14)
+            .x_label_area_size(48)
+            .y_label_area_size(80)
+            .build_cartesian_2d((x0..x1).log_scale(), (y0..y1).log_scale())
+            .map_err(err)?;
+        chart
+            .configure_mesh()
+            .x_desc(x_label)
+            .y_desc(y_label)
+            .x_label_formatter(&|v| if *v >= 1.0 { format!("{v:.0}") } else { format!("{v}") })
+            .y_label_formatter(&|v| if *v >= 1.0 { format!("{v:.0}") } else { format!("{v}") })
+            .label_style((FONT, 15))
+            .axis_desc_style((FONT, 17))
+            .draw()
+            .map_err(err)?;
+        marked_lines(&mut chart, series, keep)?;
+        for (i, s) in series.iter().enumerate() {
+            let c = PALETTE[(i + 1) % PALETTE.len()];
+            let labelled = s.points.iter().zip(levels).filter(|((x, y), _)| x.is_finite() && y.is_finite() && keep(*x, *y));
+            chart
+                .draw_series(labelled.map(|(&(x, y), l)| Text::new(format!(" {l}"), (x, y), (FONT, 12).into_font().color(&c))))
+                .map_err(err)?;
+        }
+        legend(&mut chart, 14, SeriesLabelPosition::UpperRight)?;
+        Ok(())
+    })
+}
+
 /// Waveforms at pixels, one panel per pixel and one line per cube (the first black: the
 /// truth), like the paper's Figs. 18 and 20.
 ///

@@ -11,7 +11,9 @@
 //! - [`calibration_report`]: the report page of a calibration.
 //! - [`eval`]: decoders evaluated side by side
 //!   on a dataset split with the same measurements ([`eval::evaluate`]), one [`eval::EvalRow`]
-//!   per decoder.
+//!   per decoder; [`curves`]: the photon-efficiency curves of a light ladder
+//!   ([`eval::evaluate_ladder`]) beside the codes' Cramér–Rao bound, for `eval --plot` and the
+//!   demo's report.
 //! - [`products`]: peak detection with parabolic sub-bin refinement (several returns per
 //!   pixel for multipath), depth maps `d = c·t/2`, point clouds (PLY), waveform plots.
 //! - [`fitted`]: the fits of `tcsense_fits` behind the decoder contract — `depth-fit`,
@@ -22,6 +24,8 @@
 //!   random candidates, and the constraint settings of the paper's Table 1.
 //! - [`figures`]: the figures (plotters, bundled font): charts, maps with colour bars, codes,
 //!   waveforms, point clouds, phasors; [`report`]: the HTML report of `tcsense demo`.
+//! - [`speed`]: frames/s of decoders on a stream at the sensor's frame size, beside their
+//!   accuracy on a light ladder (`tcsense bench decoders`).
 //! - [`timing`]: time per frame of exported models (ONNX Runtime) and their runs (burn).
 //! - [`onnx`]: export of trained runs to ONNX (hand-built graphs, opset 17) with their codes
 //!   and sensor model in the metadata.
@@ -32,6 +36,7 @@
 
 pub mod bounds;
 pub mod calibration_report;
+pub mod curves;
 pub mod decode;
 pub mod error;
 pub mod eval;
@@ -44,6 +49,7 @@ pub mod registry;
 pub mod report;
 pub mod runtime;
 pub mod selection;
+pub mod speed;
 pub mod stream;
 pub mod timing;
 

@@ -32,6 +32,12 @@ pub(super) fn draw_figures(dir: &Path, lidar: &Dataset, flim: &Dataset, selected
         files.push(name);
         f.join(name)
     };
+    // the photon-efficiency curves, drawn by their step beside their numbers
+    for name in ["photon-lidar.png", "photon-flim.png"] {
+        if !out(name).exists() {
+            bail!("{}: missing (the photon-efficiency step draws it)", f.join(name).display());
+        }
+    }
     // codes
     plot::codes(&out("codes-random.png"), "random codes", &Codes::load(&dir.join("codes/random.json"))?)?;
     plot::codes(&out("codes-selected.png"), "selected codes (designed for range identifiability)", selected)?;

@@ -140,7 +140,7 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
     let resumed = saved.is_some();
     // datasets and (on a first run) the plan, then codes, the trainings, export, evaluation,
     // frames, timing and the report: `of` is fixed once the plan is known
-    let mut steps = Steps { obs, n: 0, of: if saved.is_some() { 11 } else { 12 }, times: Vec::new() };
+    let mut steps = Steps { obs, n: 0, of: if saved.is_some() { 12 } else { 13 }, times: Vec::new() };
     let seed = request.seed;
     let [h, w] = request.size;
     let constraints = generate::PROTOTYPE_CONSTRAINTS;
@@ -176,7 +176,7 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
             p
         }
     };
-    steps.of = steps.n + 1 + plan.trainings.len() + 6;
+    steps.of = steps.n + 1 + plan.trainings.len() + 7;
     for t in &plan.trainings {
         obs.line(&format!(
             "  {:<14} {:>4} epochs × {:>4} steps × {:>6.1} ms ≈ {:>5.0} s  ({})",
@@ -245,10 +245,14 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
         };
         let cube_decoders = |run: &str| vec![("TVAL3", names::TVAL3.to_string()), ("ADMM-Net", run_of(names::ADMM_NET, run)), ("ADMM-Net", onnx(run))];
         if !lidar_json.exists() {
+            // the template fit to the taps is a row of every code set: the model the networks must beat
+            let fit = ("range fit to the taps (2 returns)", names::DEPTH_FIT.to_string());
             let mut selected_set = cube_decoders("admm-lidar");
-            selected_set.extend([("Aᵀ + U-Net", run_of(names::UNET, "unet-lidar")), ("Aᵀ + U-Net", onnx("unet-lidar"))]);
+            selected_set.extend([("Aᵀ + U-Net", run_of(names::UNET, "unet-lidar")), ("Aᵀ + U-Net", onnx("unet-lidar")), fit.clone()]);
             let mut rows = rows_of(&lidar, &sensor(&selected, &lidar)?, &selected_set, plan.lidar_eval_items, &|r, n, e| lidar_row(r, "selected", n, e))?;
-            rows.extend(rows_of(&lidar, &sensor(&learned, &lidar)?, &cube_decoders("learned-lidar"), plan.lidar_eval_items, &|r, n, e| lidar_row(r, "learned", n, e))?);
+            let mut learned_set = cube_decoders("learned-lidar");
+            learned_set.push(fit);
+            rows.extend(rows_of(&lidar, &sensor(&learned, &lidar)?, &learned_set, plan.lidar_eval_items, &|r, n, e| lidar_row(r, "learned", n, e))?);
             // the zoo's decoder fine-tuned to the selected codes, and as shipped on its own codes
             if let (true, Some((zoo_dir, _))) = (plan.trainings.iter().any(|t| t.name == "zoo-lidar"), zoo_entry(&lidar)) {
                 let tuned = [("ADMM-Net (zoo, fine-tuned)", run_of(names::ADMM_NET, "zoo-lidar"))];
@@ -273,6 +277,27 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
         }
         Ok(())
     })?;
+
+    // 5b. the light axis: the decoders of each application at every rung of a photon ladder,
+    // beside the codes' Cramér–Rao bound (`results/photon-*.json`, `figures/photon-*.png`)
+    steps.run(
+        "photon-efficiency curves: the template fits beside the networks at signal 0.8, 0.1, 0.02 and 0.005 of the full well",
+        || {
+            photon_curves(
+                dir,
+                &lidar,
+                &flim,
+                &selected,
+                &runs_dir,
+                plan.lidar_eval_items,
+                plan.flim_eval_items,
+                &eval_noise,
+                seed,
+                obs,
+                cancel,
+            )
+        },
+    )?;
 
     // 6. one frame of each dataset through every decoder, kept for the figures
     steps.run("one test frame of each dataset through every decoder (for the figures)", || {

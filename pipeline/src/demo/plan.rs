@@ -73,6 +73,10 @@ pub(super) const ZOO_LIFETIME: &str = "lifetime-flim";
 /// The zoo's FLIm ADMM-Net, evaluated as shipped (on its own codes) in the FLIm table.
 pub(super) const ZOO_FLIM_CUBE: &str = "admm-flim-delay";
 
+/// The zoo's decoders on the fits' evidence, evaluated as shipped on the photon ladder.
+pub(super) const ZOO_EVIDENCE_UNET: &str = "unet-lidar-evidence";
+pub(super) const ZOO_EVIDENCE_LIFETIME: &str = "lifetime-flim-evidence";
+
 /// Zoo entry `name`'s run directory and network, when the zoo holds it for the dataset's
 /// sampling and bins with 4 taps.
 pub(super) fn zoo_entry_named(name: &str, ds: &Dataset) -> Option<(PathBuf, ModelConfig)> {

@@ -92,7 +92,7 @@ pub(super) fn engine(spec: &str) -> &'static str {
         "ONNX Runtime"
     } else if spec == names::TVAL3 {
         "Rust (TVAL3)"
-    } else if spec == "lifetime-fit" {
+    } else if spec == names::LIFETIME_FIT || spec == names::DEPTH_FIT {
         "Rust (fit to the taps)"
     } else {
         "burn (flex)"
@@ -225,3 +225,92 @@ pub(super) fn decode_frames(
 
 /// One dataset's test frame through decoders: (file tag, dataset, codes, [(name, decoder spec)]).
 pub(super) type FrameJob<'a> = (&'a str, &'a Dataset, &'a Codes, Vec<(&'a str, String)>);
+
+/// The rungs of the demo's photon ladder: the brightest tap's share of the full well.
+pub(super) const LADDER: [f64; 4] = [0.8, 0.1, 0.02, 0.005];
+
+/// The photon-efficiency curves of the demo's decoders on their test splits (noise on, no
+/// ambient light): LiDAR — the range fit to the taps with one and two returns, the ADMM-Net by
+/// peaks, the Aᵀ + U-Net (with its range fit), on the selected codes, and the zoo's U-Net on
+/// the fit's evidence as shipped on its own codes; FLIm — the lifetime fit to the taps and the
+/// ADMM-Net's cube by the reconvolution fit on the selected codes, and the zoo's lifetime
+/// network on the fit's evidence as shipped. Writes `results/photon-lidar.json`,
+/// `results/photon-flim.json` (every [`EvalRow`] with its light) and their figures
+/// `figures/photon-lidar.png`, `figures/photon-flim.png`; a resumed demo keeps them.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn photon_curves(
+    dir: &Path,
+    lidar: &Dataset,
+    flim: &Dataset,
+    selected: &Codes,
+    runs_dir: &Path,
+    lidar_items: usize,
+    flim_items: usize,
+    noise: &NoiseParams,
+    seed: u64,
+    obs: &dyn Observer,
+    cancel: &AtomicBool,
+) -> Result<()> {
+    let settings = |items| EvalSettings { split: "test".into(), items: Some(items), noise: Some(*noise), seed, sensor: None, sbr: None };
+    let on_item = |label: &str, done: usize, of: usize| obs.items(label.rsplit('/').next().unwrap_or(label), done, of);
+    let run_of = |kind: &str, name: &str| format!("{kind}:{}", runs_dir.join(name).display());
+    // (label, decoder) evaluated on `a`, the rows renamed to their labels
+    let ladder = |ds: &Dataset, a: &Sensor, decoders: &[(&str, String)], items: usize| -> Result<Vec<EvalRow>> {
+        let mut dec = decoders
+            .iter()
+            .map(|(_, spec)| open_decoder(spec, &Tval3Options::default(), &Device::flex()))
+            .collect::<std::result::Result<Vec<_>, _>>()?;
+        let mut rows = tcsense_infer::eval::evaluate_ladder(ds, a, &mut dec, &settings(items), &LADDER, &on_item, cancel)?;
+        for r in &mut rows {
+            if let Some((label, _)) = decoders.iter().find(|(_, spec)| *spec == r.decoder) {
+                r.decoder = label.to_string();
+            }
+        }
+        Ok(rows)
+    };
+    let figures = dir.join("figures");
+    std::fs::create_dir_all(&figures).with_context(|| figures.display().to_string())?;
+    let lidar_json = dir.join("results/photon-lidar.json");
+    if !lidar_json.exists() {
+        let a = sensor(selected, lidar)?;
+        let decoders = [
+            ("range fit to the taps, 1 return", format!("{}:1", names::DEPTH_FIT)),
+            ("range fit to the taps, 2 returns", names::DEPTH_FIT.to_string()),
+            ("ADMM-Net + peaks", run_of(names::ADMM_NET, "admm-lidar")),
+            ("Aᵀ + U-Net + range fit", run_of(names::UNET, "unet-lidar")),
+        ];
+        let mut rows = ladder(lidar, &a, &decoders, lidar_items)?;
+        if let Some((zoo_dir, _)) = zoo_entry_named(ZOO_EVIDENCE_UNET, lidar) {
+            let own = sensor(&Codes::load(&zoo_dir.join(CODES_FILE))?, lidar)?;
+            let shipped =
+                [("U-Net on the fit's evidence (zoo, as shipped, its own codes)", format!("{}:{}", names::UNET, zoo_dir.display()))];
+            rows.extend(ladder(lidar, &own, &shipped, lidar_items)?);
+        }
+        tcsense_infer::curves::range_curve(&figures.join("photon-lidar.png"), &rows, a.nominal(), noise, None)?;
+        let bin_m = C * a.nominal().bin_width_s() / 2.0;
+        write_json(
+            &lidar_json,
+            &json!({ "split": "test", "items": lidar_items, "noise_seed": seed, "ladder": LADDER, "bin_m": bin_m, "rows": rows }),
+        )?;
+    }
+    let flim_json = dir.join("results/photon-flim.json");
+    if !flim_json.exists() {
+        let a = sensor(selected, flim)?;
+        let decoders = [
+            ("lifetime fit to the taps", names::LIFETIME_FIT.to_string()),
+            ("ADMM-Net + reconvolution fit", run_of(names::ADMM_NET, "admm-flim")),
+        ];
+        let mut rows = ladder(flim, &a, &decoders, flim_items)?;
+        if let Some((zoo_dir, _)) = zoo_entry_named(ZOO_EVIDENCE_LIFETIME, flim) {
+            let own = sensor(&Codes::load(&zoo_dir.join(CODES_FILE))?, flim)?;
+            let shipped = [(
+                "lifetime network on the fit's evidence (zoo, as shipped, its own codes)",
+                format!("{}:{}", names::LIFETIME, zoo_dir.display()),
+            )];
+            rows.extend(ladder(flim, &own, &shipped, flim_items)?);
+        }
+        tcsense_infer::curves::lifetime_curve(&figures.join("photon-flim.png"), &rows, a.nominal(), a.spec().sampling().k(), noise, None)?;
+        write_json(&flim_json, &json!({ "split": "test", "items": flim_items, "noise_seed": seed, "ladder": LADDER, "rows": rows }))?;
+    }
+    Ok(())
+}
