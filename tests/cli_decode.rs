@@ -408,3 +408,68 @@ fn eval_photon_ladder() {
         &["t.json", "named by both"],
     );
 }
+
+/// `bench decoders`: the speed of each decoder on a stream at a frame size larger than the
+/// dataset's items, beside its error on the ladder; the one-return fit is faster than the
+/// two-return fit; the files and the figure; bad settings refused with nothing written.
+#[test]
+fn bench_decoders_speed_beside_accuracy() {
+    let t = tempdir();
+    let d = t.path();
+    let zoo_codes = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("zoo/unet-lidar-designed/codes.json");
+    std::fs::copy(zoo_codes, d.join("codes.json")).unwrap();
+    ok(d, &["dataset", "lidar", "--count", "12", "--size", "16x16", "--seed", "5", "-o", "ds"]);
+    let bench = [
+        "bench",
+        "decoders",
+        "--dataset",
+        "ds",
+        "--split",
+        "train",
+        "--items",
+        "3",
+        "--codes",
+        "codes.json",
+        "--irf",
+        "physical",
+        "--decoder",
+        "depth-fit:1",
+        "--decoder",
+        "depth-fit",
+        "--rounds",
+        "3",
+    ];
+    let with = |extra: &[&'static str]| -> Vec<&'static str> { bench.iter().copied().chain(extra.iter().copied()).collect() };
+    let out = ok(d, &with(&["--light", "0.8,0.01", "--frame", "24x40", "--frames", "4", "-o", "b/bench.json"]));
+    assert!(out.contains("4 frames of 24x40") && out.contains("depth-fit:1") && out.contains("wrote b/bench.json"), "{out}");
+    let doc: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("b/bench.json")).unwrap()).unwrap();
+    let speed = doc["speed"].as_array().unwrap();
+    assert_eq!(speed.len(), 2);
+    let fps = |i: usize| speed[i]["frames_per_s"].as_f64().unwrap();
+    assert!(fps(0) > 0.0 && fps(1) > 0.0 && speed[0]["frames"] == 4 && speed[0]["rounds"] == 3, "{speed:?}");
+    let acc = doc["accuracy"].as_array().unwrap();
+    assert_eq!(acc.len(), 4, "two decoders at two levels");
+    let within = |name: &str, level: f64| {
+        acc.iter().find(|r| r["decoder"] == name && r["light"]["signal_fraction"].as_f64() == Some(level)).unwrap()["depth_within_half_bin"]
+            [0]
+        .as_f64()
+        .unwrap()
+    };
+    assert!(within("depth-fit", 0.8) > 0.6 && within("depth-fit", 0.01) < within("depth-fit", 0.8));
+    let csv = std::fs::read_to_string(d.join("b/bench.csv")).unwrap();
+    assert!(csv.starts_with("decoder,frames_per_s,ms_per_frame,signal_fraction") && csv.lines().count() == 5, "{csv}");
+    for png in ["b/bench.png", "b/bench.photon.png"] {
+        let bytes = std::fs::read(d.join(png)).unwrap();
+        assert!(bytes.starts_with(b"\x89PNG") && bytes.len() > 20_000, "{png}");
+    }
+    // bad settings: exit 2, nothing written
+    fails(d, &with(&["--frame", "25x40", "--frames", "2", "-o", "bad/b.json"]), &["--frame", "block"]);
+    fails(d, &with(&["--frames", "0", "-o", "bad/b.json"]), &["--frames"]);
+    fails(d, &with(&["--light", "2", "-o", "bad/b.json"]), &["--light"]);
+    fails(
+        d,
+        &["bench", "decoders", "--dataset", "nowhere", "--codes", "codes.json", "--decoder", "depth-fit", "-o", "bad/b.json"],
+        &["nowhere"],
+    );
+    assert!(!d.join("bad").exists(), "a refused bench leaves no files");
+}

@@ -35,6 +35,11 @@ pub enum BenchCmd {
     /// about a bin, with one return per pixel and with two where the scene has them, and the
     /// error left.
     RangeFit(RangeFitArgs),
+    /// Speed against accuracy of decoders: each one's frames/s on a stream of noisy frames at
+    /// the sensor's frame size (the dataset's items mirrored to it; `onnx:MODEL` is the
+    /// deployed path), beside its error at every level of a light ladder on the dataset; a
+    /// table, JSON, CSV, a speed–accuracy figure and the photon-efficiency curve.
+    Decoders(super::bench_decoders::BenchDecodersArgs),
 }
 
 /// The settings of `tcsense bench forward`.
@@ -153,6 +158,7 @@ pub fn run(cmd: BenchCmd) -> Result<ExitCode> {
         BenchCmd::Kernels(a) => kernels(a)?,
         BenchCmd::RangeFit(a) => range_fit(a)?,
         BenchCmd::Tval3(a) => tval3(a)?,
+        BenchCmd::Decoders(a) => super::bench_decoders::run(a)?,
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -81,46 +81,8 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     let mut outputs = Outputs::plan(&planned)?;
     let ds = Dataset::open(&a.dataset)?;
     let sensor = a.sensor.sensor()?;
-    let (codes, spec) = (sensor.codes(), sensor.spec());
     let nonideal = a.nonideal.nonideal()?;
-    let g = ds.manifest.grid;
-    if spec.bins() != ds.manifest.bins || (spec.bin_width_s() - ds.manifest.bin_width_s).abs() > 1e-6 * spec.bin_width_s() {
-        bail!(
-            "sensor grid (T = {}, Δt = {:.1} ps) differs from the dataset's (T = {}, Δt = {:.1} ps, L = {}, {}): pass matching --oversample/--heterodyne and codes",
-            spec.bins(),
-            spec.bin_width_s() * 1e12,
-            ds.manifest.bins,
-            ds.manifest.bin_width_s * 1e12,
-            g.length,
-            match g.sampling {
-                Sampling::Oversample(k) => format!("oversample {k}"),
-                Sampling::Heterodyne(k) => format!("heterodyne {k}"),
-            }
-        );
-    }
-    let opts = a.tval3.options()?;
-    let mut decoders = Vec::new();
-    let device = if a.decoder.iter().any(|d| ["admm-net:", "unet:", "lifetime:", "zoo:"].iter().any(|k| d.starts_with(k))) {
-        a.device.device()?
-    } else {
-        tcsense_models::Device::flex()
-    };
-    for name in &a.decoder {
-        let d = open_decoder(name, &opts, &device)?;
-        if let (Some(run_codes), Some((_, run))) = (d.codes(), name.split_once(':')) {
-            if run_codes.shape() != codes.shape() || (0..codes.subpixels() * codes.taps()).any(|c| run_codes.channel(c) != codes.channel(c))
-            {
-                let run = tcsense_models::zoo::resolve(if name.starts_with("zoo:") { name } else { run })?;
-                bail!(
-                    "{}: the run was trained with other codes than {}; evaluate it with its own {}",
-                    run.display(),
-                    a.sensor.codes.display(),
-                    run.join("codes.json").display()
-                );
-            }
-        }
-        decoders.push(d);
-    }
+    let mut decoders = open_for(&ds, &a.sensor, &sensor, &a.decoder, &a.tval3, &a.device)?;
     let noise = NoiseParams { signal_fraction: NoiseParams::default().signal_fraction * a.brightness, ..NoiseParams::default() };
     let noise = noise.validate().map_err(|e| anyhow::anyhow!("--brightness {}: {e}", a.brightness))?;
     let noisy = a.noise || !a.light.is_empty() || a.sbr.is_some();
@@ -190,4 +152,56 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     outputs.commit()?;
     lines.iter().for_each(|l| println!("{l}"));
     Ok(ExitCode::SUCCESS)
+}
+
+/// The decoders `names` opened for evaluating `ds` through `sensor` (from `args`): the sensor's
+/// grid must be the dataset's, and a trained run must have been trained with the sensor's codes.
+pub(super) fn open_for(
+    ds: &Dataset,
+    args: &SensorArgs,
+    sensor: &tcsense_sensor::Sensor,
+    names: &[String],
+    tval3: &Tval3Args,
+    device: &super::DeviceArgs,
+) -> Result<Vec<tcsense_infer::registry::NamedDecoder>> {
+    let (codes, spec) = (sensor.codes(), sensor.spec());
+    let g = ds.manifest.grid;
+    if spec.bins() != ds.manifest.bins || (spec.bin_width_s() - ds.manifest.bin_width_s).abs() > 1e-6 * spec.bin_width_s() {
+        bail!(
+            "sensor grid (T = {}, Δt = {:.1} ps) differs from the dataset's (T = {}, Δt = {:.1} ps, L = {}, {}): pass matching --oversample/--heterodyne and codes",
+            spec.bins(),
+            spec.bin_width_s() * 1e12,
+            ds.manifest.bins,
+            ds.manifest.bin_width_s * 1e12,
+            g.length,
+            match g.sampling {
+                Sampling::Oversample(k) => format!("oversample {k}"),
+                Sampling::Heterodyne(k) => format!("heterodyne {k}"),
+            }
+        );
+    }
+    let opts = tval3.options()?;
+    let mut decoders = Vec::new();
+    let device = if names.iter().any(|d| ["admm-net:", "unet:", "lifetime:", "zoo:"].iter().any(|k| d.starts_with(k))) {
+        device.device()?
+    } else {
+        tcsense_models::Device::flex()
+    };
+    for name in names {
+        let d = open_decoder(name, &opts, &device)?;
+        if let (Some(run_codes), Some((_, run))) = (d.codes(), name.split_once(':')) {
+            if run_codes.shape() != codes.shape() || (0..codes.subpixels() * codes.taps()).any(|c| run_codes.channel(c) != codes.channel(c))
+            {
+                let run = tcsense_models::zoo::resolve(if name.starts_with("zoo:") { name } else { run })?;
+                bail!(
+                    "{}: the run was trained with other codes than {}; evaluate it with its own {}",
+                    run.display(),
+                    args.codes.display(),
+                    run.join("codes.json").display()
+                );
+            }
+        }
+        decoders.push(d);
+    }
+    Ok(decoders)
 }

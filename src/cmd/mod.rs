@@ -2,6 +2,7 @@
 
 pub mod analyze;
 pub mod bench;
+pub mod bench_decoders;
 pub mod bringup;
 pub mod calibrate;
 pub mod code_shape;
