@@ -54,6 +54,7 @@ pub fn brightest_tap_share(a: &MeasurementMatrix) -> f64 {
 pub fn lifetime_curve(png: &Path, rows: &[EvalRow], a: &MeasurementMatrix, k: usize, noise: &NoiseParams, sbr: Option<f64>) -> Result<()> {
     let share = brightest_tap_share(a);
     let mut levels: Vec<f64> = rows.iter().filter_map(|r| r.light.map(|l| l.signal_electrons)).collect();
+    levels.sort_by(f64::total_cmp);
     levels.dedup();
     let cols = Columns::new(a, k);
     let weights = vec![1.0; a.a().dim().0];
@@ -94,6 +95,7 @@ pub fn range_curve(png: &Path, rows: &[EvalRow], a: &MeasurementMatrix, noise: &
     let bin_m = 299_792_458.0 * a.bin_width_s() / 2.0;
     let share = brightest_tap_share(a);
     let mut levels: Vec<f64> = rows.iter().filter_map(|r| r.light.map(|l| l.signal_electrons)).collect();
+    levels.sort_by(f64::total_cmp);
     levels.dedup();
     let bound = (share > 0.0).then(|| Series {
         label: "Cramér–Rao bound (a block, one return)".into(),

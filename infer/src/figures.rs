@@ -246,7 +246,8 @@ pub fn photon_curve(
                 .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK.stroke_width(2)));
         }
         marked_lines(&mut chart, errors, |x, y| x > 0.0 && y > 0.0)?;
-        legend(&mut chart, 14, SeriesLabelPosition::UpperRight)?;
+        // the lower left is empty: low light, low error
+        legend(&mut chart, 14, SeriesLabelPosition::LowerLeft)?;
         let mut chart = ChartBuilder::on(&right)
             .margin(12)
             .x_label_area_size(48)
