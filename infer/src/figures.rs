@@ -280,7 +280,8 @@ pub fn speed_accuracy(path: &Path, title: &str, x_label: &str, y_label: &str, se
     let (x0, x1, y0, y1) = extent(series, keep, (1.0, 10.0, 0.1, 10.0));
     let decade = |v: f64, up: bool| 10f64.powf(if up { v.log10().ceil() } else { v.log10().floor() });
     let (x0, x1) = (decade(x0, false), decade(x1, true).max(decade(x0, false) * 10.0));
-    let (y0, y1) = (decade(y0, false), decade(y1, true).max(decade(y0, false) * 10.0));
+    // a decade below the lowest error left free for the legend
+    let (y0, y1) = (decade(y0, false) / 10.0, decade(y1, true).max(decade(y0, false) * 10.0));
     render(path, (1000, 640), |root| {
         let (title_area, body) = root.split_vertically(40);
         title_area.titled(title, (FONT, 22)).map_err(err)?;
@@ -308,7 +309,8 @@ pub fn speed_accuracy(path: &Path, title: &str, x_label: &str, y_label: &str, se
                 .draw_series(labelled.map(|(&(x, y), l)| Text::new(format!(" {l}"), (x, y), (FONT, 12).into_font().color(&c))))
                 .map_err(err)?;
         }
-        legend(&mut chart, 14, SeriesLabelPosition::UpperRight)?;
+        // fast and accurate is the lower right, seldom reached
+        legend(&mut chart, 14, SeriesLabelPosition::LowerRight)?;
         Ok(())
     })
 }
