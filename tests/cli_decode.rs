@@ -465,6 +465,7 @@ fn bench_decoders_speed_beside_accuracy() {
     // bad settings: exit 2, nothing written
     fails(d, &with(&["--frame", "25x40", "--frames", "2", "-o", "bad/b.json"]), &["--frame", "block"]);
     fails(d, &with(&["--frames", "0", "-o", "bad/b.json"]), &["--frames"]);
+    fails(d, &with(&["--frames", "100000", "--frame", "65536x65536", "-o", "bad/b.json"]), &["--frames", "GiB"]);
     fails(d, &with(&["--light", "2", "-o", "bad/b.json"]), &["--light"]);
     fails(
         d,

@@ -19,6 +19,9 @@ use super::dataset::interrupt_flag;
 use super::recon::Tval3Args;
 use super::sensor::SensorArgs;
 
+/// The most tap-image bytes the speed's stream holds in memory.
+const MAX_STREAM_BYTES: u128 = 2 << 30;
+
 /// The settings of `tcsense bench decoders`.
 #[derive(Args)]
 pub struct BenchDecodersArgs {
@@ -80,6 +83,16 @@ pub fn run(a: BenchDecodersArgs) -> Result<()> {
     if h % bh != 0 || w % bw != 0 {
         anyhow::bail!("--frame {h}x{w}: expected multiples of the sensor's {bh}x{bw} block");
     }
+    // the stream is held in memory: at most 2 GiB of tap images
+    let bytes = (a.frames as u128) * (sensor.nominal().taps() as u128) * (h as u128) * (w as u128) * 4;
+    if bytes > MAX_STREAM_BYTES {
+        anyhow::bail!(
+            "--frames {} of --frame {h}x{w}: {:.1} GiB of tap images; expected a stream of at most {} GiB (fewer or smaller frames)",
+            a.frames,
+            bytes as f64 / (1u64 << 30) as f64,
+            MAX_STREAM_BYTES >> 30
+        );
+    }
     let cancel = interrupt_flag();
     let pb = ProgressBar::new(0);
     pb.set_style(
@@ -111,6 +124,12 @@ pub fn run(a: BenchDecodersArgs) -> Result<()> {
 
     // the measure of accuracy: ranges in bins, else lifetimes in ns
     let lidar = rows.iter().any(|r| !r.depth_median_m.is_empty());
+    if !lidar && rows.iter().all(|r| r.lifetime_mae_s.is_none()) {
+        anyhow::bail!(
+            "{}: the decoders gave no first-return ranges nor lifetimes on it (a LiDAR dataset with depth and decoders of depth or cubes, or a FLIm dataset and lifetime decoders)",
+            a.dataset.display()
+        );
+    }
     let bin_m = 299_792_458.0 * sensor.nominal().bin_width_s() / 2.0;
     let error = |r: &EvalRow| -> Option<f64> {
         if lidar {
