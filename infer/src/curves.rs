@@ -46,28 +46,44 @@ pub fn brightest_tap_share(a: &MeasurementMatrix) -> f64 {
     share
 }
 
+/// A bound against the light at the ladder levels of `rows` (signal electrons in the brightest
+/// tap, sorted): `bound` of the [`Light`] whose photons put those electrons in the brightest tap
+/// of `a`, with the noise model's read noise and the ambient light at `sbr`; `None` where no tap
+/// collects light.
+fn bound_series(
+    rows: &[EvalRow],
+    a: &MeasurementMatrix,
+    noise: &NoiseParams,
+    sbr: Option<f64>,
+    label: &str,
+    bound: impl Fn(&Light) -> f64,
+) -> Option<Series> {
+    let share = brightest_tap_share(a);
+    let mut levels: Vec<f64> = rows.iter().filter_map(|r| r.light.map(|l| l.signal_electrons)).collect();
+    levels.sort_by(f64::total_cmp);
+    levels.dedup();
+    (share > 0.0).then(|| Series {
+        label: label.into(),
+        points: levels
+            .iter()
+            .map(|&e| {
+                let photons = e / share;
+                (e, bound(&Light { photons, ambient: sbr.map_or(0.0, |s| photons / s), read_noise_e: noise.read_noise_e }))
+            })
+            .collect(),
+    })
+}
+
 /// The photon-efficiency figure of FLIm ladder rows: each decoder's lifetime MAE (ns) and the
 /// share of the fluorophore pixels with a lifetime against the brightest tap's signal
 /// electrons, beside the codes' Cramér–Rao bound of a 2 ns lifetime seen by a whole block with
 /// its onset known ([`tcsense_sensor::identify::lifetime_bound`], mean over 8 onsets), under the
 /// noise model's read noise and the ambient light.
 pub fn lifetime_curve(png: &Path, rows: &[EvalRow], a: &MeasurementMatrix, k: usize, noise: &NoiseParams, sbr: Option<f64>) -> Result<()> {
-    let share = brightest_tap_share(a);
-    let mut levels: Vec<f64> = rows.iter().filter_map(|r| r.light.map(|l| l.signal_electrons)).collect();
-    levels.sort_by(f64::total_cmp);
-    levels.dedup();
     let cols = Columns::new(a, k);
     let weights = vec![1.0; a.a().dim().0];
-    let bound = (share > 0.0).then(|| Series {
-        label: "Cramér–Rao bound (a block, τ = 2 ns, onset known)".into(),
-        points: levels
-            .iter()
-            .map(|&e| {
-                let photons = e / share;
-                let light = Light { photons, ambient: sbr.map_or(0.0, |s| photons / s), read_noise_e: noise.read_noise_e };
-                (e, lifetime_bound(&cols, &light, &[2e-9], 8, &weights)[0].known_mean_s * 1e9)
-            })
-            .collect(),
+    let bound = bound_series(rows, a, noise, sbr, "Cramér–Rao bound (a block, τ = 2 ns, onset known)", |light| {
+        lifetime_bound(&cols, light, &[2e-9], 8, &weights)[0].known_mean_s * 1e9
     });
     let series = |f: &dyn Fn(&EvalRow) -> Option<f64>| decoder_series(rows, f);
     let errors = series(&|r| r.lifetime_mae_s.map(|v| v * 1e9));
@@ -93,21 +109,7 @@ pub fn lifetime_curve(png: &Path, rows: &[EvalRow], a: &MeasurementMatrix, k: us
 /// the level's signal electrons, with the noise model's read noise and the ambient light.
 pub fn range_curve(png: &Path, rows: &[EvalRow], a: &MeasurementMatrix, noise: &NoiseParams, sbr: Option<f64>) -> Result<()> {
     let bin_m = 299_792_458.0 * a.bin_width_s() / 2.0;
-    let share = brightest_tap_share(a);
-    let mut levels: Vec<f64> = rows.iter().filter_map(|r| r.light.map(|l| l.signal_electrons)).collect();
-    levels.sort_by(f64::total_cmp);
-    levels.dedup();
-    let bound = (share > 0.0).then(|| Series {
-        label: "Cramér–Rao bound (a block, one return)".into(),
-        points: levels
-            .iter()
-            .map(|&e| {
-                let photons = e / share;
-                let light = Light { photons, ambient: sbr.map_or(0.0, |s| photons / s), read_noise_e: noise.read_noise_e };
-                (e, range_bound(a, &light, 2).mean_bins)
-            })
-            .collect(),
-    });
+    let bound = bound_series(rows, a, noise, sbr, "Cramér–Rao bound (a block, one return)", |light| range_bound(a, light, 2).mean_bins);
     let series = |f: &dyn Fn(&EvalRow) -> Option<f64>| decoder_series(rows, f);
     let errors = series(&|r| r.depth_median_m.first().map(|m| m / bin_m));
     let shares = series(&|r| r.depth_within_half_bin.first().map(|s| 100.0 * s));

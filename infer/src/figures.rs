@@ -135,6 +135,12 @@ fn padded(y0: f64, y1: f64, floor: f64) -> (f64, f64) {
     (y0 - pad, y1 + pad)
 }
 
+/// A logarithmic axis's range around `[lo, hi]` (both positive): whole decades, at least one.
+fn decades(lo: f64, hi: f64) -> (f64, f64) {
+    let (down, up) = (10f64.powf(lo.log10().floor()), 10f64.powf(hi.log10().ceil()));
+    (down, up.max(down * 10.0))
+}
+
 /// One line of a chart.
 #[derive(Debug, Clone)]
 pub struct Series {
@@ -213,9 +219,7 @@ pub fn photon_curve(
 ) -> Result<()> {
     let all: Vec<Series> = errors.iter().chain(bound).cloned().collect();
     let (x0, x1, y0, y1) = extent(&all, |x, y| x > 0.0 && y > 0.0, (1.0, 10.0, 0.1, 10.0));
-    let decade = |v: f64, up: bool| 10f64.powf(if up { v.log10().ceil() } else { v.log10().floor() });
-    let (x0, x1) = (decade(x0, false), decade(x1, true).max(decade(x0, false) * 10.0));
-    let (y0, y1) = (decade(y0, false), decade(y1, true).max(decade(y0, false) * 10.0));
+    let ((x0, x1), (y0, y1)) = (decades(x0, x1), decades(y0, y1));
     render(path, (1400, 560), |root| {
         let (title_area, body) = root.split_vertically(40);
         title_area.titled(title, (FONT, 22)).map_err(err)?;
@@ -278,10 +282,9 @@ pub fn photon_curve(
 pub fn speed_accuracy(path: &Path, title: &str, x_label: &str, y_label: &str, series: &[Series], levels: &[String]) -> Result<()> {
     let keep = |x: f64, y: f64| x > 0.0 && y > 0.0;
     let (x0, x1, y0, y1) = extent(series, keep, (1.0, 10.0, 0.1, 10.0));
-    let decade = |v: f64, up: bool| 10f64.powf(if up { v.log10().ceil() } else { v.log10().floor() });
-    let (x0, x1) = (decade(x0, false), decade(x1, true).max(decade(x0, false) * 10.0));
     // a decade below the lowest error left free for the legend
-    let (y0, y1) = (decade(y0, false) / 10.0, decade(y1, true).max(decade(y0, false) * 10.0));
+    let ((x0, x1), (y0, y1)) = (decades(x0, x1), decades(y0, y1));
+    let y0 = y0 / 10.0;
     render(path, (1000, 640), |root| {
         let (title_area, body) = root.split_vertically(40);
         title_area.titled(title, (FONT, 22)).map_err(err)?;

@@ -4,7 +4,6 @@
 
 use anyhow::Result;
 use clap::Args;
-use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 use std::path::PathBuf;
 use tcsense_datasets::Dataset;
@@ -94,15 +93,11 @@ pub fn run(a: BenchDecodersArgs) -> Result<()> {
         );
     }
     let cancel = interrupt_flag();
-    let pb = ProgressBar::new(0);
-    pb.set_style(
-        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} eta {eta}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
-    );
+    let pb = super::eval::item_bar();
     // speed: a stream at the first light level
-    let noise = |level: f64| NoiseParams { signal_fraction: level, ..NoiseParams::default() }.validate();
-    let first = noise(a.light[0]).map_err(|e| anyhow::anyhow!("--light {}: {e}", a.light[0]))?;
+    let first = NoiseParams { signal_fraction: a.light[0], ..NoiseParams::default() }
+        .validate()
+        .map_err(|e| anyhow::anyhow!("--light {}: {e}", a.light[0]))?;
     pb.set_message(format!("speed: {} frames of {h}x{w}", a.frames));
     pb.set_length(a.rounds as u64);
     let y = tiled_frames(&ds, &a.split, &sensor, (h, w), a.frames, &first, a.seed)?;
@@ -110,14 +105,7 @@ pub fn run(a: BenchDecodersArgs) -> Result<()> {
     // accuracy: the ladder
     let settings =
         EvalSettings { split: a.split.clone(), items: Some(a.items), noise: Some(first), seed: a.seed, sensor: None, sbr: a.sbr };
-    let on_item = |name: &str, done: usize, of: usize| {
-        if done == 1 {
-            pb.reset();
-            pb.set_length(of as u64);
-            pb.set_message(name.to_string());
-        }
-        pb.set_position(done as u64);
-    };
+    let on_item = |name: &str, done: usize, of: usize| super::eval::item_done(&pb, name, done, of);
     let rows = evaluate_ladder(&ds, &sensor, &mut decoders, &settings, &a.light, &on_item, &cancel);
     pb.finish_and_clear();
     let rows = rows?;
@@ -205,16 +193,15 @@ pub fn run(a: BenchDecodersArgs) -> Result<()> {
         &series,
         &a.light.iter().map(|l| l.to_string()).collect::<Vec<_>>(),
     )?;
-    let noise0 = NoiseParams::default();
     if lidar {
-        tcsense_infer::curves::range_curve(&outputs.stage(&photon)?, &rows, sensor.nominal(), &noise0, a.sbr)?;
+        tcsense_infer::curves::range_curve(&outputs.stage(&photon)?, &rows, sensor.nominal(), &first, a.sbr)?;
     } else {
         tcsense_infer::curves::lifetime_curve(
             &outputs.stage(&photon)?,
             &rows,
             sensor.nominal(),
             sensor.spec().sampling().k(),
-            &noise0,
+            &first,
             a.sbr,
         )?;
     }

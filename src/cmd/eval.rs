@@ -95,20 +95,8 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
         sbr: a.sbr,
     };
     let cancel = interrupt_flag();
-    let pb = ProgressBar::new(0);
-    pb.set_style(
-        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} eta {eta}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
-    );
-    let on_item = |name: &str, done: usize, of: usize| {
-        if done == 1 {
-            pb.reset();
-            pb.set_length(of as u64);
-            pb.set_message(name.to_string());
-        }
-        pb.set_position(done as u64);
-    };
+    let pb = item_bar();
+    let on_item = |name: &str, done: usize, of: usize| item_done(&pb, name, done, of);
     let rows = if a.light.is_empty() {
         evaluate(&ds, &sensor, &mut decoders, &settings, &on_item, &cancel)
     } else {
@@ -204,4 +192,25 @@ pub(super) fn open_for(
         decoders.push(d);
     }
     Ok(decoders)
+}
+
+/// The progress bar of an evaluation: a decoder's items, one bar per decoder and level.
+pub(super) fn item_bar() -> ProgressBar {
+    let pb = ProgressBar::new(0);
+    pb.set_style(
+        ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} eta {eta}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    pb
+}
+
+/// The evaluation's `on_item(decoder, done, of)` on `pb`: a new bar at each decoder's first item.
+pub(super) fn item_done(pb: &ProgressBar, name: &str, done: usize, of: usize) {
+    if done == 1 {
+        pb.reset();
+        pb.set_length(of as u64);
+        pb.set_message(name.to_string());
+    }
+    pb.set_position(done as u64);
 }
