@@ -115,6 +115,9 @@ pub(super) struct TypeTable {
     pub(super) d: Vec<f32>,
     pub(super) inv_dd: Vec<f32>,
     pub(super) points: usize,
+    /// The same, point-major for the refinement's reads of two neighbouring points:
+    /// `[G][g[M], d[M]]`.
+    pm: Vec<f32>,
 }
 
 impl TypeTable {
@@ -157,7 +160,14 @@ impl TypeTable {
                     }
                     inv_dd[i] = if dd > 1e-300 { (1.0 / dd) as f32 } else { 0.0 };
                 }
-                TypeTable { g, d, inv_dd, points }
+                let mut pm = vec![0f32; 2 * m * points];
+                for i in 0..points {
+                    for k in 0..m {
+                        pm[2 * m * i + k] = g[k * points + i];
+                        pm[2 * m * i + m + k] = d[k * points + i];
+                    }
+                }
+                TypeTable { g, d, inv_dd, points, pm }
             })
             .collect()
     }
@@ -241,7 +251,28 @@ impl Between {
     }
 
     /// [`Self::set`] for type `t` alone.
+    #[inline]
     pub(super) fn set_one(&mut self, tables: &[TypeTable], t: usize, u: f64) {
+        let (m, table) = (self.m, &tables[t]);
+        let n = table.points;
+        let u = u.clamp(0.0, (n - 1) as f64);
+        let i = (u as usize).min(n - 2);
+        let f = (u - i as f64) as f32;
+        let (g, d) = (&mut self.g[t * m..(t + 1) * m], &mut self.d[t * m..(t + 1) * m]);
+        let pm = &table.pm[2 * m * i..2 * m * (i + 2)];
+        let dd = match m {
+            2 => lerp_fixed::<2>(pm, f, g, d),
+            4 => lerp_fixed::<4>(pm, f, g, d),
+            8 => lerp_fixed::<8>(pm, f, g, d),
+            _ => lerp_any(pm, m, f, g, d),
+        };
+        self.inv_dd[t] = if dd > 0.0 { 1.0 / dd } else { 0.0 };
+    }
+
+    /// [`Self::set_one`] as first written, reading the tap-major tables (the reference the
+    /// fixed-size paths are tested against).
+    #[cfg(test)]
+    pub(super) fn set_one_reference(&mut self, tables: &[TypeTable], t: usize, u: f64) {
         let (m, table) = (self.m, &tables[t]);
         let n = table.points;
         let u = u.clamp(0.0, (n - 1) as f64);
@@ -264,6 +295,19 @@ impl Between {
     #[inline]
     pub(super) fn cost(&self, n: usize, r: &[f32], w: f32, background: bool) -> (f32, f32) {
         let (g, d) = (&self.g[n * self.m..(n + 1) * self.m], &self.d[n * self.m..(n + 1) * self.m]);
+        let inv = self.inv_dd[n];
+        match self.m {
+            2 => cost_fixed::<2>(g, d, inv, r, w, background),
+            4 => cost_fixed::<4>(g, d, inv, r, w, background),
+            8 => cost_fixed::<8>(g, d, inv, r, w, background),
+            _ => cost_any(g, d, inv, r, w, background),
+        }
+    }
+
+    /// [`Self::cost`] as first written (the reference of the fixed-size paths).
+    #[cfg(test)]
+    pub(super) fn cost_reference(&self, n: usize, r: &[f32], w: f32, background: bool) -> (f32, f32) {
+        let (g, d) = (&self.g[n * self.m..(n + 1) * self.m], &self.d[n * self.m..(n + 1) * self.m]);
         let beta = if background {
             let num: f32 = r.iter().zip(g).zip(d).map(|((r, g), d)| (r - g) * d).sum();
             (num * self.inv_dd[n]).clamp(0.0, 1.0)
@@ -272,5 +316,110 @@ impl Between {
         };
         let c: f32 = r.iter().zip(g).zip(d).map(|((r, g), d)| (r - g - beta * d) * (r - g - beta * d)).sum();
         (w * c, beta)
+    }
+}
+
+/// The templates `g`, `d` `[M]` a fraction `f` of the way from point `i` to `i + 1` of the
+/// point-major rows `pm` `[2][2M]`, and `‖d‖²`: the refinement's inner loop with the taps known
+/// at compile time (unrolled, no bounds checks), the same operations in the same order as
+/// [`lerp_any`].
+#[inline(always)]
+fn lerp_fixed<const M: usize>(pm: &[f32], f: f32, g: &mut [f32], d: &mut [f32]) -> f32 {
+    let fixed = |v: &[f32]| -> [f32; M] { v.try_into().unwrap_or_else(|_| unreachable!("M taps")) };
+    let (g0, d0, g1, d1) = (fixed(&pm[..M]), fixed(&pm[M..2 * M]), fixed(&pm[2 * M..3 * M]), fixed(&pm[3 * M..4 * M]));
+    let (Ok(g), Ok(d)) = (<&mut [f32; M]>::try_from(g), <&mut [f32; M]>::try_from(d)) else { unreachable!("M taps") };
+    let mut dd = 0.0;
+    for k in 0..M {
+        let dk = d0[k] + f * (d1[k] - d0[k]);
+        g[k] = g0[k] + f * (g1[k] - g0[k]);
+        d[k] = dk;
+        dd += dk * dk;
+    }
+    dd
+}
+
+/// [`lerp_fixed`] for any number of taps.
+#[inline]
+fn lerp_any(pm: &[f32], m: usize, f: f32, g: &mut [f32], d: &mut [f32]) -> f32 {
+    let (a, b) = pm.split_at(2 * m);
+    let mut dd = 0.0;
+    for k in 0..m {
+        let dk = a[m + k] + f * (b[m + k] - a[m + k]);
+        g[k] = a[k] + f * (b[k] - a[k]);
+        d[k] = dk;
+        dd += dk * dk;
+    }
+    dd
+}
+
+/// The cost of normalised taps `r` against template `g` with background direction `d`
+/// (`inv = 1/‖d‖²`) weighted by `w`, and the background share: [`cost_any`] with the taps
+/// known at compile time.
+#[inline(always)]
+fn cost_fixed<const M: usize>(g: &[f32], d: &[f32], inv: f32, r: &[f32], w: f32, background: bool) -> (f32, f32) {
+    let (Ok(g), Ok(d), Ok(r)) = (<&[f32; M]>::try_from(g), <&[f32; M]>::try_from(d), <&[f32; M]>::try_from(r)) else {
+        unreachable!("M taps")
+    };
+    let beta = if background {
+        let num: f32 = r.iter().zip(g).zip(d).map(|((r, g), d)| (r - g) * d).sum();
+        (num * inv).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    let c: f32 = r.iter().zip(g).zip(d).map(|((r, g), d)| (r - g - beta * d) * (r - g - beta * d)).sum();
+    (w * c, beta)
+}
+
+/// [`cost_fixed`] for any number of taps.
+#[inline]
+fn cost_any(g: &[f32], d: &[f32], inv: f32, r: &[f32], w: f32, background: bool) -> (f32, f32) {
+    let beta = if background {
+        let num: f32 = r.iter().zip(g).zip(d).map(|((r, g), d)| (r - g) * d).sum();
+        (num * inv).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    let c: f32 = r.iter().zip(g).zip(d).map(|((r, g), d)| (r - g - beta * d) * (r - g - beta * d)).sum();
+    (w * c, beta)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The refinement's fixed-size paths (2, 4 and 8 taps) and the general one give the
+    /// reference's templates, shares and costs bit for bit, at any point between the grid's.
+    #[test]
+    fn fixed_size_refinement_paths_equal_the_reference_bit_for_bit() {
+        let mut state = 0x2545_f491_4f6c_dd1du64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 40) as f64 / (1u64 << 24) as f64
+        };
+        for m in [1, 2, 3, 4, 5, 8] {
+            let (types, points) = (4, 17);
+            let g: Vec<f64> = (0..types * m * points).map(|_| next()).collect();
+            let bg: Vec<f64> = (0..types * m).map(|_| next()).collect();
+            let tables = TypeTable::build(types, m, points, |n, k, i| g[(n * m + k) * points + i], |n, k| bg[n * m + k]);
+            let (mut fast, mut reference) = (Between::new(types, m), Between::new(types, m));
+            for trial in 0..200 {
+                let u = next() * (points + 2) as f64 - 1.0; // beyond both ends too
+                let t = trial % types;
+                fast.set_one(&tables, t, u);
+                reference.set_one_reference(&tables, t, u);
+                assert_eq!(
+                    fast.g[t * m..(t + 1) * m].iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                    reference.g[t * m..(t + 1) * m].iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+                );
+                assert_eq!(fast.inv_dd[t].to_bits(), reference.inv_dd[t].to_bits(), "m {m}, u {u}");
+                let r: Vec<f32> = (0..m).map(|_| next() as f32).collect();
+                for background in [false, true] {
+                    let (a, b) = (fast.cost(t, &r, 1.7, background), reference.cost_reference(t, &r, 1.7, background));
+                    assert_eq!((a.0.to_bits(), a.1.to_bits()), (b.0.to_bits(), b.1.to_bits()), "m {m}, u {u}, background {background}");
+                }
+            }
+        }
     }
 }
