@@ -164,5 +164,6 @@ fn bad_bringups_exit_2_and_write_nothing() {
     fails(dir, &with(&[("--decoder", "no-such-entry")]), &["no-such-entry"]);
     fails(dir, &with(&[("--heterodyne", "8")]), &["zoo:admm-lidar-designed", "T = 256"]);
     fails(dir, &with(&[("--size", "15x16")]), &["--size 15x16"]);
+    fails(dir, &with(&[("--decoder", "unet-lidar-evidence")]), &["zoo:unet-lidar-evidence", "fit's evidence", "calibration"]);
     assert!(!dir.join("out").exists(), "a refused bring-up writes nothing");
 }

@@ -388,11 +388,12 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
         a.extend(["-o".to_string(), out.to_string()]);
         a
     };
-    let args = train(&["--input", "costs", "--epochs", "1"], "ev");
+    // a coarser grid than the default 96 points: the runtime and the graph follow the run's
+    let args = train(&["--input", "costs", "--points", "40", "--epochs", "1"], "ev");
     let out = ok(d, &args.iter().map(String::as_str).collect::<Vec<_>>());
-    assert!(out.contains("the fit's evidence on 96 lifetimes") && out.contains("lifetime MAE"), "{out}");
+    assert!(out.contains("the fit's evidence on 40 lifetimes") && out.contains("lifetime MAE"), "{out}");
     let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("ev/config.json")).unwrap()).unwrap();
-    assert_eq!((cfg["model"]["input"].as_str(), cfg["model"]["points"].as_u64()), (Some("Costs"), Some(96)));
+    assert_eq!((cfg["model"]["input"].as_str(), cfg["model"]["points"].as_u64()), (Some("Costs"), Some(40)));
     let x = tcsense_sensor::npy::read_npy(&d.join("f/test/x_000.npy")).unwrap();
     tcsense_sensor::npy::write_npy(&d.join("x.npy"), &x.index_axis(ndarray::Axis(0), 0)).unwrap();
     ok(d, &["simulate", "--codes", "codes.json", "--heterodyne", "2", "--cube", "x.npy", "--noise", "-o", "y.npy"]);
@@ -442,6 +443,11 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
     let args = train(&["--input", "matched", "--epochs", "1"], "bad");
     fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["input", "matched"]);
     fails(d, &["export", "onnx", "--run", "ev", "--matrix-input", "-o", "m.onnx"], &["--matrix-input"]);
+    // a lifetime grid for the harmonics, which have none; a grid of 2 points
+    let args = train(&["--points", "40", "--epochs", "1"], "bad");
+    fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["points", "--input costs"]);
+    let args = train(&["--input", "costs", "--points", "2", "--epochs", "1"], "bad");
+    fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["--points", "2"]);
     assert!(!d.join("bad").exists() && !d.join("m.onnx").exists());
 }
 

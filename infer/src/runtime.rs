@@ -160,8 +160,8 @@ impl OnnxModel {
     ) -> (Array4<f32>, Array4<f32>, Vec<(Option<LifetimeTemplates>, LifetimeCosts)>) {
         let (b, _, h, w) = y.dim();
         let f = tcsense_fits::lifetime_taps::evidence::feature_channels(e.points, e.pool);
-        let mut features = Array4::zeros((b, h, w, f));
-        let mut skip = Array4::zeros((b, h, w, e.points));
+        let mut features = Vec::with_capacity(b * h * w * f);
+        let mut skip = Vec::with_capacity(b * h * w * e.points);
         let mut frames = Vec::with_capacity(b);
         let opts = e.fit_options();
         for i in 0..b {
@@ -169,11 +169,18 @@ impl OnnxModel {
             let own = self.templates.is_none().then(|| frame_templates(&yi, &self.sensor, &opts));
             let Some(templates) = own.as_ref().or(self.templates.as_ref()) else { unreachable!("templates fixed or fitted") };
             let (ev, costs) = evidence_at(&yi, templates, e.pool);
-            features.index_axis_mut(ndarray::Axis(0), i).assign(&ev.features);
-            skip.index_axis_mut(ndarray::Axis(0), i).assign(&ev.skip);
+            // a stream's single frame is moved, not copied (tens of MB a frame)
+            if b == 1 {
+                features = ev.features.into_raw_vec_and_offset().0;
+                skip = ev.skip.into_raw_vec_and_offset().0;
+            } else {
+                features.extend(ev.features.iter());
+                skip.extend(ev.skip.iter());
+            }
             frames.push((own, costs));
         }
-        (features, skip, frames)
+        let shaped = |c: usize, v: Vec<f32>| Array4::from_shape_vec((b, h, w, c), v).expect("[B, H, W, C] of the frames' evidence");
+        (shaped(f, features), shaped(e.points, skip), frames)
     }
 
     /// The model file.

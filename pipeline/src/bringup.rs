@@ -416,6 +416,14 @@ fn checked_inputs(options: &BringupOptions) -> Result<Checked> {
                 nominal.bins()
             );
         }
+        if e.model.lifetime_grid().is_some() || e.model.range_grid().is_some() {
+            // checked here, not after the calibration and the fine-tunings: its export is refused
+            bail!(
+                "{}: a decoder on the fit's evidence (`--input costs`) cannot be brought up yet: its runtime computes the evidence from the taps through the nominal sensor, and its export takes no calibration; bring up a decoder that reads the taps (e.g. {})",
+                e.label,
+                default_decoders(options.sampling).join(", ")
+            );
+        }
         if entries.iter().any(|o: &Source| o.name == e.name) {
             bail!("{}: two decoders named {:?}; give each once", e.label, e.name);
         }

@@ -60,6 +60,10 @@ pub struct LifetimeArgs {
     /// Resolutions (frames are padded inside the model to a multiple of 2^(levels−1)) [default: 3].
     #[arg(long)]
     levels: Option<usize>,
+    /// With `--input costs`: points of the log grid of lifetimes over 0.05–25 ns whose costs the
+    /// fit's evidence holds (fewer is faster, more is finer before the refinement) [default: 96].
+    #[arg(long, value_parser = super::count_in(3, 1024))]
+    points: Option<usize>,
     /// What the network reads: `harmonics` of Aᵀy turned by the frame's own phase, or `costs`,
     /// the fit to the taps' log-likelihood of every lifetime of a log grid (the instrument
     /// fitted to the frame), to which it adds a learned log-prior [default: harmonics].
@@ -391,7 +395,8 @@ impl TrainArgs {
             }
             NetArgs::Lifetime(n) => {
                 req.decoder = "lifetime".into();
-                (req.harmonics, req.base_width, req.levels, req.input) = (n.harmonics, n.base_width, n.levels, n.input.and_then(name_of));
+                (req.harmonics, req.base_width, req.levels, req.input, req.points) =
+                    (n.harmonics, n.base_width, n.levels, n.input.and_then(name_of), n.points);
             }
         }
         Ok(req)

@@ -55,6 +55,8 @@ pub struct TrainRequest {
     /// U-Net: `backprojection` or `matched` (what the network reads).
     pub input: Option<String>,
     pub harmonics: Option<usize>,
+    /// Lifetime decoder on the fit's evidence: points of the lifetime grid.
+    pub points: Option<usize>,
     pub epochs: Option<usize>,
     pub lr: Option<f64>,
     /// `cosine` or `constant`.
@@ -149,6 +151,7 @@ impl TrainRequest {
             head,
             input,
             harmonics: self.harmonics,
+            points: self.points,
             lifetime_input,
         })
     }

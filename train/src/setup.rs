@@ -41,6 +41,8 @@ pub struct Architecture {
     pub input: Option<UnetInput>,
     /// Lifetime decoder: harmonics of the cycle.
     pub harmonics: Option<usize>,
+    /// Lifetime decoder on the fit's evidence: points `G` of the lifetime grid.
+    pub points: Option<usize>,
     /// Lifetime decoder: what the network reads.
     pub lifetime_input: Option<LifetimeInput>,
 }
@@ -70,6 +72,7 @@ impl Architecture {
         put("base-width", self.base_width.map(|v| s(&v)), u.map(|c| s(&c.base_width)).or(l.map(|c| s(&c.base_width))));
         put("levels", self.levels.map(|v| s(&v)), u.map(|c| s(&c.levels)).or(l.map(|c| s(&c.levels))));
         put("harmonics", self.harmonics.map(|v| s(&v)), l.map(|c| s(&c.harmonics)));
+        put("points", self.points.map(|v| s(&v)), l.map(|c| s(&c.points)));
         put("input", self.lifetime_input.map(|v| s(&v)), l.map(|c| s(&c.input)));
         out
     }
@@ -99,9 +102,17 @@ impl Architecture {
             }
             ModelConfig::Lifetime(c) => {
                 c.harmonics = self.harmonics.unwrap_or(c.harmonics);
+                c.points = self.points.unwrap_or(c.points);
                 c.input = self.lifetime_input.unwrap_or(c.input);
                 c.base_width = self.base_width.unwrap_or(c.base_width);
                 c.levels = self.levels.unwrap_or(c.levels);
+                if self.points.is_some() && c.input != LifetimeInput::Costs {
+                    return Err(TrainError::InvalidParam {
+                        field: "points",
+                        got: format!("{} with the harmonics input", c.points),
+                        expected: "--input costs: the grid is the fit's evidence's".into(),
+                    });
+                }
             }
         }
         Ok(())
