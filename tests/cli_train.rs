@@ -438,6 +438,14 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
     assert!(png.len() > 10_000 && png.starts_with(b"\x89PNG"), "a drawn figure");
     let rows: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("ladder.json")).unwrap()).unwrap();
     assert_eq!(rows.as_array().unwrap().len(), 4, "two decoders at two light levels");
+    // deep sensing on the fit's evidence: the lifetime loss reaches the codes through the
+    // evidence's differentiable copy (models/src/lifetime_evidence.rs); the codes come out exact
+    let args = train(&["--input", "costs", "--points", "40", "--epochs", "2", "--relaxed-epochs", "1", "--learn-codes"], "evl");
+    let out = ok(d, &args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(out.contains("1 relaxed epochs"), "{out}");
+    ok(d, &["codes", "check", "evl/codes.json"]);
+    let learned: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("evl/codes.json")).unwrap()).unwrap();
+    assert_eq!(learned["provenance"]["method"], "learned");
     // refused: an input of another network; a U-Net input for a lifetime run; the graph with the matrix as an input
     fails(d, &["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--input", "harmonics", "-o", "u"], &["input", "harmonics"]);
     let args = train(&["--input", "matched", "--epochs", "1"], "bad");
@@ -528,6 +536,12 @@ fn the_unet_on_the_range_fit_evidence_trains_decodes_and_streams_as_reconstruct(
     let args = train(&["--head", "regression", "--epochs", "1"], "bad");
     fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["score-volume"]);
     fails(d, &["export", "onnx", "--run", "ev", "--matrix-input", "-o", "m.onnx"], &["--matrix-input"]);
+    // deep sensing on the fit's evidence: the range loss reaches the codes through the
+    // evidence's differentiable copy (models/src/range_evidence.rs); the codes come out exact
+    let args = train(&["--epochs", "2", "--relaxed-epochs", "1", "--learn-codes"], "evl");
+    let out = ok(d, &args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(out.contains("1 relaxed epochs"), "{out}");
+    ok(d, &["codes", "check", "evl/codes.json"]);
     assert!(!d.join("bad").exists() && !d.join("m.onnx").exists());
 }
 

@@ -330,6 +330,14 @@ impl CandidateGrid {
     }
 }
 
+/// The dense pass's templates as a linear map of `A`'s columns, for a differentiable copy of
+/// the costs (`tcsense_models::range_evidence`): candidate `c` of `bins·oversample` (at
+/// `c/oversample + ½` bins) has the template `(1 − f)·A[:, t0] + f·A[:, t1]`, given as
+/// `(t0, t1, f)`.
+pub fn candidate_columns(bins: usize, oversample: usize) -> Vec<(usize, usize, f64)> {
+    (0..bins * oversample).map(|c| crate::range::columns(bins, c as f64 / oversample as f64 + 0.5)).collect()
+}
+
 /// One frame's costs at every candidate of the cycle ([`RangeTemplates::costs`]): what the
 /// fit and a network on its evidence start from.
 #[derive(Debug, Clone, Default)]

@@ -185,10 +185,7 @@ impl Templates {
 
     /// `g_n(τ)` for any `τ` (bins), cyclic.
     pub(crate) fn at(&self, n: usize, tau: f64, out: &mut [f64]) {
-        let p = (tau - 0.5).rem_euclid(self.t as f64);
-        let t0 = p.floor() as usize % self.t;
-        let f = p - p.floor();
-        let t1 = (t0 + 1) % self.t;
+        let (t0, t1, f) = columns(self.t, tau);
         for (mm, o) in out.iter_mut().enumerate() {
             let row = &self.a[(n * self.m + mm) * self.t..][..self.t];
             *o = (1.0 - f) * row[t0] + f * row[t1];
@@ -202,6 +199,14 @@ impl Templates {
     pub(crate) fn s(&self, n: usize) -> &[f64] {
         &self.s[n * self.m..][..self.m]
     }
+}
+
+/// Where a template at `τ` (bins, cyclic over `t`) reads `A`: `(1 − f)·A[:, t0] + f·A[:, t1]`
+/// (bin `t`'s column is the response to light at its centre, `t + ½`).
+pub(crate) fn columns(t: usize, tau: f64) -> (usize, usize, f64) {
+    let p = (tau - 0.5).rem_euclid(t as f64);
+    let t0 = p.floor() as usize % t;
+    (t0, (t0 + 1) % t, p - p.floor())
 }
 
 fn dot(a: &[f64], b: &[f64]) -> f64 {

@@ -36,6 +36,7 @@ use burn::tensor::{Tensor, TensorData};
 use ndarray::{Array4, ArrayView3, ArrayView4, Axis};
 use tcsense_fits::depth::{CandidateGrid, DepthFitOptions, RangeTemplates, Seeds, SCALES};
 
+use crate::range_evidence::range_evidence;
 use crate::sensor_tensors::SensorTensors;
 use crate::unet::{conv1x1, trunk, Unet};
 
@@ -88,6 +89,12 @@ impl Unet {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → features `[B, F, H, W]`, skip `[B, S·C, H, W]` (`S` windows)
     pub fn evidence(&self, y: Tensor<4>, sensor: &SensorTensors) -> (Tensor<4>, Tensor<4>) {
+        let (features, skip, _) = self.evidence_frames(y, sensor);
+        (features, skip)
+    }
+
+    /// [`Self::evidence`] and each frame's noise level.
+    pub(crate) fn evidence_frames(&self, y: Tensor<4>, sensor: &SensorTensors) -> (Tensor<4>, Tensor<4>, Vec<f32>) {
         let [b, m, h, w] = y.dims();
         let device = y.device();
         let v: Vec<f32> = y.into_data().convert::<f32>().try_into_vec::<f32>().unwrap_or_default();
@@ -95,6 +102,7 @@ impl Unet {
         let sc = self.candidates * SCALES;
         let f = tcsense_fits::depth::range_feature_channels(self.candidates, self.pool);
         let (mut features, mut skip): (Vec<f32>, Vec<f32>) = (Vec::with_capacity(b * f * h * w), Vec::with_capacity(b * sc * h * w));
+        let mut noise = Vec::with_capacity(b);
         for i in 0..b {
             let yi = ArrayView3::from_shape((m, h, w), &v[i * m * h * w..(i + 1) * m * h * w]).expect("[M, H, W] frame");
             let e = match templates.costs(&yi) {
@@ -107,12 +115,34 @@ impl Unet {
             };
             features.extend(e.features.iter());
             skip.extend(e.skip.iter());
+            noise.push(e.noise);
         }
         // (the evidence is pixel-major)
         (
             Tensor::<4>::from_data(TensorData::new(features, [b, h, w, f]), &device).permute([0, 3, 1, 2]),
             Tensor::<4>::from_data(TensorData::new(skip, [b, h, w, sc]), &device).permute([0, 3, 1, 2]),
+            noise,
         )
+    }
+
+    /// [`Self::evidence`] carrying the gradient of the evidence in the taps and in the sensor's
+    /// `A` (deep sensing): the fit's values, the gradient of its differentiable copy
+    /// ([`crate::range_evidence`]).
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]` → features `[B, F, H, W]`, skip `[B, S·C, H, W]`
+    pub fn evidence_with_gradient(&self, y: Tensor<4>, sensor: &SensorTensors) -> (Tensor<4>, Tensor<4>) {
+        let [b, _, h, w] = y.dims();
+        let device = y.device();
+        let (features, skip, noise) = self.evidence_frames(y.clone().detach(), sensor);
+        let nats: Vec<f32> = noise.iter().map(|v| 1.0 / (2.0 * v)).collect();
+        let nats = Tensor::<1>::from_data(TensorData::new(nats, [b]), &device);
+        let opts = self.fit_options();
+        let (post, copy) = range_evidence(y, sensor.a.clone(), sensor.block, self.oversample, nats, opts.fit.window, self.pool);
+        // (the intensity and lit channels carry no gradient; `x − stop(x)` is exactly 0: the
+        // values are the fit's to the bit)
+        let post = Tensor::cat(vec![post, Tensor::zeros([b, 2, h, w], &device)], 1);
+        (features + (post.clone() - post.detach()), skip + (copy.clone() - copy.detach()))
     }
 
     /// The posterior's logits over the candidates (the windows' log-likelihoods at learned
@@ -170,7 +200,7 @@ impl Unet {
     /// What the loss sees: [`Self::depth_channels`] and the log-posterior over the
     /// candidates, `[B, 2K + C, H, W]`.
     pub(crate) fn train_on_evidence(&self, y: Tensor<4>, sensor: &SensorTensors) -> Tensor<4> {
-        let (features, skip) = self.evidence(y, sensor);
+        let (features, skip) = if sensor.differentiable { self.evidence_with_gradient(y, sensor) } else { self.evidence(y, sensor) };
         let (logits, confidence) = self.posterior(features, skip);
         let depth = self.depth_channels(logits.clone().detach(), confidence);
         Tensor::cat(vec![depth, log_softmax(logits, 1)], 1)

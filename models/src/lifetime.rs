@@ -34,11 +34,12 @@ use burn::tensor::activation::sigmoid;
 use burn::tensor::Int;
 use burn::tensor::{Device, Tensor, TensorData};
 
+use crate::lifetime_evidence::lifetime_evidence;
 use crate::net::{Network, Prediction};
 use crate::sensor_tensors::SensorTensors;
 use crate::unet::{conv1x1, trunk, trunk_flops, Block, Unet, NORM_FLOOR};
 use tcsense_fits::lifetime_taps::evidence::{evidence, feature_channels, Evidence};
-use tcsense_fits::lifetime_taps::{estimate_instrument, LifetimeCosts, LifetimeTemplates, TapFitOptions};
+use tcsense_fits::lifetime_taps::{estimate_instrument, grid_decays, Instrument, LifetimeCosts, LifetimeTemplates, TapFitOptions};
 
 /// Channels of the prediction: `τ_m`, `τ₁`, `τ₂` (ns), `α₁`, confidence logit.
 pub const OUTPUTS: usize = 5;
@@ -316,6 +317,12 @@ impl LifetimeNet {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → features `[B, F, H, W]`, skip `[B, G, H, W]`
     pub fn evidence(&self, y: Tensor<4>, sensor: &SensorTensors) -> (Tensor<4>, Tensor<4>) {
+        let (features, skip, _) = self.evidence_frames(y, sensor);
+        (features, skip)
+    }
+
+    /// [`Self::evidence`] and, per frame, the instrument the fit found and the noise level.
+    fn evidence_frames(&self, y: Tensor<4>, sensor: &SensorTensors) -> (Tensor<4>, Tensor<4>, Vec<(Instrument, f32)>) {
         let [b, m, h, w] = y.dims();
         let device = y.device();
         let v: Vec<f32> = y.into_data().convert::<f32>().try_into_vec::<f32>().unwrap_or_default();
@@ -323,17 +330,52 @@ impl LifetimeNet {
         let (g, f) = (self.points, feature_channels(self.points, self.pool));
         let mut features: Vec<f32> = Vec::with_capacity(b * f * h * w);
         let mut skip: Vec<f32> = Vec::with_capacity(b * g * h * w);
+        let mut frames = Vec::with_capacity(b);
         for i in 0..b {
             let yi = ndarray::ArrayView3::from_shape((m, h, w), &v[i * m * h * w..(i + 1) * m * h * w]).expect("[M, H, W] frame");
-            let e = frame_evidence(&yi, &sensor.matrix, &opts, self.pool);
+            let templates = frame_templates(&yi, &sensor.matrix, &opts);
+            let (e, _) = evidence_at(&yi, &templates, self.pool);
             features.extend(e.features.iter());
             skip.extend(e.skip.iter());
+            frames.push((templates.instrument(), e.noise));
         }
         // (the evidence is pixel-major)
         (
             Tensor::<4>::from_data(TensorData::new(features, [b, h, w, f]), &device).permute([0, 3, 1, 2]),
             Tensor::<4>::from_data(TensorData::new(skip, [b, h, w, g]), &device).permute([0, 3, 1, 2]),
+            frames,
         )
+    }
+
+    /// [`Self::evidence`] carrying the gradient of the evidence in the taps and in the sensor's
+    /// `A` (deep sensing): the fit's values, the gradient of its differentiable copy at the
+    /// instrument the fit found ([`crate::lifetime_evidence`]).
+    ///
+    /// # Shapes
+    /// - `y`: `[B, M, H, W]` → features `[B, F, H, W]`, skip `[B, G, H, W]`
+    pub fn evidence_with_gradient(&self, y: Tensor<4>, sensor: &SensorTensors) -> (Tensor<4>, Tensor<4>) {
+        let [b, _, h, w] = y.dims();
+        let device = y.device();
+        let (features, skip, frames) = self.evidence_frames(y.clone().detach(), sensor);
+        let opts = self.fit_options();
+        let (g, t) = (self.points, sensor.bins);
+        // each frame's decays, [B, T, G]
+        let mut decays = vec![0f32; b * t * g];
+        for (i, (instrument, _)) in frames.iter().enumerate() {
+            for (k, curve) in grid_decays(&sensor.matrix, *instrument, &opts).iter().enumerate() {
+                for (j, v) in curve.iter().enumerate() {
+                    decays[(i * t + j) * g + k] = *v as f32;
+                }
+            }
+        }
+        let decays = Tensor::<3>::from_data(TensorData::new(decays, [b, t, g]), &device);
+        let nats: Vec<f32> = frames.iter().map(|(_, noise)| 1.0 / (2.0 * noise)).collect();
+        let nats = Tensor::<1>::from_data(TensorData::new(nats, [b]), &device);
+        let (post, copy) = lifetime_evidence(y, sensor.a.clone(), sensor.block, decays, nats, opts.window, self.pool, opts.background);
+        // (the intensity and lit channels carry no gradient)
+        let post = Tensor::cat(vec![post, Tensor::zeros([b, 2, h, w], &device)], 1);
+        // (`x − stop(x)` is exactly 0: the values are the fit's to the bit)
+        (features + (post.clone() - post.detach()), skip + (copy.clone() - copy.detach()))
     }
 
     /// The posterior's logits over the grid (the fit's log-likelihood plus the learned
@@ -469,7 +511,8 @@ impl Network for LifetimeNet {
         match self.input_kind() {
             LifetimeInput::Harmonics => self.from_adjoint(sensor.adjoint(y)),
             LifetimeInput::Costs => {
-                let (features, skip) = self.evidence(y, sensor);
+                let (features, skip) =
+                    if sensor.differentiable { self.evidence_with_gradient(y, sensor) } else { self.evidence(y, sensor) };
                 let (logits, confidence) = self.posterior(features, skip);
                 let logp = log_softmax(logits, 1);
                 let g = self.points;

@@ -191,6 +191,15 @@ pub fn fit_taps(y: &ArrayView3<'_, f32>, a: &MeasurementMatrix, opts: &TapFitOpt
     LifetimeTemplates::new(a, instrument, opts).fit_normalised(f, y.dim())
 }
 
+/// What the fit's templates are made of: for every lifetime of `opts`' grid, the periodic
+/// decay convolved with the instrument's IRF and starting at its onset, averaged over the bins
+/// of `a`'s cycle, `[G][T]`. The template of subpixel type `n` at lifetime `i` is
+/// `A_n · curve_i` divided by its sum over the taps (what a differentiable copy of the fit,
+/// `tcsense_models::lifetime`, projects through learned codes).
+pub fn grid_decays(a: &MeasurementMatrix, instrument: Instrument, opts: &TapFitOptions) -> Vec<Vec<f64>> {
+    decays(Cycle::new(a.bins(), a.bin_width_s()), &grid(opts, opts.points), instrument.onset_s, instrument.irf_fwhm_s)
+}
+
 /// The fit to the taps as dense linear algebra, for one sensor and instrument: the templates
 /// of every subpixel type on a log grid of lifetimes (and on the grid of half steps), every
 /// pixel's cost on the grid at once (a pixel's 4 taps against the `G` templates of its type,
@@ -218,10 +227,10 @@ impl LifetimeTemplates {
     pub fn new(a: &MeasurementMatrix, instrument: Instrument, opts: &TapFitOptions) -> LifetimeTemplates {
         let av = a.a();
         let c = Cycle::new(a.bins(), a.bin_width_s());
-        let taus = grid(opts, opts.points);
         let halves = grid(opts, 2 * opts.points - 1);
-        let coarse = TypeTable::of(&Templates::new(&av, &decays(c, &taus, instrument.onset_s, instrument.irf_fwhm_s)));
+        let coarse = TypeTable::of(&Templates::new(&av, &grid_decays(a, instrument, opts)));
         let fine = TypeTable::of(&Templates::new(&av, &decays(c, &halves, instrument.onset_s, instrument.irf_fwhm_s)));
+        let taus = grid(opts, opts.points);
         let log_tau = (taus[0].ln(), taus[1].ln() - taus[0].ln());
         LifetimeTemplates {
             coarse,
