@@ -40,6 +40,12 @@ fn learned_codes_are_exact_exportable_and_decode() {
         ],
     );
     assert!(out.contains("4 relaxed epochs") && out.contains("tap+H2+W2"), "{out}");
+    // the learned codes' range alias is reported (a warning below the threshold) and recorded
+    assert!(out.contains("range alias"), "{out}");
+    let projection: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("run/relaxed/projection.json")).unwrap()).unwrap();
+    let alias = projection["range_alias"].as_f64().unwrap();
+    assert!(alias > 0.0 && alias <= 2f64.sqrt() && out.contains(&format!("{alias:.3}")), "{alias} {out}");
     // the learned codes meet the constraints exactly and say where they come from
     let learned = Codes::load(&d.join("run/codes.json")).unwrap();
     let start = Codes::load(&d.join("start.json")).unwrap();

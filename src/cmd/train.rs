@@ -436,6 +436,9 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
             if let Some(last) = rows.last() {
                 let (name, v) = last.val.first().map_or(("val", f64::NAN), |(n, v)| (n.as_str(), *v));
                 println!("wrote {}: epoch {}, {name} {v:.4e}", run_dir.display(), last.epoch);
+                if let Some(lc) = &cfg.learn_codes {
+                    report_learned_alias(run_dir, lc.alias_threshold);
+                }
             } else {
                 println!("{}: already trained for {} epochs", run_dir.display(), cfg.epochs);
             }
@@ -451,5 +454,23 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
         }
         Err(TrainError::Cancelled) => bail!("interrupted; the last checkpoint in {} is kept, continue with --resume", run_dir.display()),
         Err(e) => Err(e.into()),
+    }
+}
+
+/// After deep sensing: the learned codes' range alias (from `RUN/relaxed/projection.json`), with
+/// a warning where it fell below the threshold (`codes export` refuses such codes without
+/// `--force`; a lower `--codes-lr` or a higher `--alias-weight` keeps them apart).
+fn report_learned_alias(run_dir: &std::path::Path, threshold: f64) {
+    let path = run_dir.join(tcsense_train::deep_sensing::RELAXED_DIR).join(tcsense_train::deep_sensing::PROJECTION_FILE);
+    let alias = std::fs::read_to_string(&path)
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        .and_then(|v| v["range_alias"].as_f64());
+    match alias {
+        Some(a) if a < threshold => println!(
+            "warning: the learned codes' range alias is {a:.3}, below {threshold}: two ranges give nearly the same taps, and `codes export` refuses them without --force (try a lower --codes-lr or a higher --alias-weight)"
+        ),
+        Some(a) => println!("learned codes: range alias {a:.3} (at least {threshold})"),
+        None => {}
     }
 }

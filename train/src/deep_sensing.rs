@@ -296,7 +296,12 @@ pub(crate) fn project_and_record(l: &Learner, start: &Codes, cfg: &crate::TrainC
     let changed = (0..start.subpixels() * start.taps())
         .map(|c| p.codes.channel(c).iter().zip(l.hard.channel(c)).filter(|(a, b)| a != b).count())
         .sum::<usize>();
+    // what the identifiability term was for: the projected codes' range alias on the run's sensor
+    let sensor = Sensor::ideal(p.codes.clone(), cfg.run.sampling, cfg.run.irf)?;
+    let alias = tcsense_sensor::identify::range_alias(&tcsense_sensor::identify::Columns::new(sensor.matrix(), cfg.run.sampling.k()));
     let record = serde_json::json!({
+        "range_alias": alias.distance,
+        "alias_threshold": l.lc.alias_threshold,
         "solver": p.method,
         "score": p.score,
         "argmax_score": p.argmax_score,
