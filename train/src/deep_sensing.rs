@@ -16,7 +16,7 @@
 //!    window penalties rise linearly from 0 to `penalty_weight`. `RUN/relaxed/codes_log.csv`
 //!    logs per epoch how far the hard codes are from feasible.
 //! 2. *projection*: [`tcsense_sensor::project::project`] of `θ` onto the constraints
-//!    (`RUN/relaxed/projection.json`: solver, score, and what the projection changed).
+//!    (`RUN/relaxed/projection.json`: solver, score, what the projection changed, and the codes' range alias).
 //! 3. *fine-tuning* (`epochs − relaxed_epochs`, in `RUN/`): the decoder, from the relaxed
 //!    phase's weights, on the projected codes, which become `RUN/codes.json` (provenance
 //!    `learned`).
