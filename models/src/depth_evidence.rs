@@ -36,6 +36,7 @@ use burn::tensor::{Tensor, TensorData};
 use ndarray::{Array4, ArrayView3, ArrayView4, Axis};
 use tcsense_fits::depth::{CandidateGrid, DepthFitOptions, RangeTemplates, Seeds, SCALES};
 
+use crate::evidence_tensors::with_gradient_of;
 use crate::range_evidence::range_evidence;
 use crate::sensor_tensors::SensorTensors;
 use crate::unet::{conv1x1, trunk, Unet};
@@ -132,17 +133,14 @@ impl Unet {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → features `[B, F, H, W]`, skip `[B, S·C, H, W]`
     pub fn evidence_with_gradient(&self, y: Tensor<4>, sensor: &SensorTensors) -> (Tensor<4>, Tensor<4>) {
-        let [b, _, h, w] = y.dims();
+        let b = y.dims()[0];
         let device = y.device();
         let (features, skip, noise) = self.evidence_frames(y.clone().detach(), sensor);
         let nats: Vec<f32> = noise.iter().map(|v| 1.0 / (2.0 * v)).collect();
         let nats = Tensor::<1>::from_data(TensorData::new(nats, [b]), &device);
         let opts = self.fit_options();
         let (post, copy) = range_evidence(y, sensor.a.clone(), sensor.block, self.oversample, nats, opts.fit.window, self.pool);
-        // (the intensity and lit channels carry no gradient; `x − stop(x)` is exactly 0: the
-        // values are the fit's to the bit)
-        let post = Tensor::cat(vec![post, Tensor::zeros([b, 2, h, w], &device)], 1);
-        (features + (post.clone() - post.detach()), skip + (copy.clone() - copy.detach()))
+        with_gradient_of(features, skip, post, copy)
     }
 
     /// The posterior's logits over the candidates (the windows' log-likelihoods at learned

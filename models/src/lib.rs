@@ -32,6 +32,7 @@ pub mod bench;
 pub mod decoder;
 pub mod depth_evidence;
 pub mod device;
+mod evidence_tensors;
 pub mod learned_codes;
 pub mod lifetime;
 pub mod lifetime_evidence;

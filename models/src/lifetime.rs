@@ -34,12 +34,13 @@ use burn::tensor::activation::sigmoid;
 use burn::tensor::Int;
 use burn::tensor::{Device, Tensor, TensorData};
 
-use crate::lifetime_evidence::lifetime_evidence;
+use crate::evidence_tensors::with_gradient_of;
+use crate::lifetime_evidence::{decays_tensor, lifetime_evidence};
 use crate::net::{Network, Prediction};
 use crate::sensor_tensors::SensorTensors;
 use crate::unet::{conv1x1, trunk, trunk_flops, Block, Unet, NORM_FLOOR};
 use tcsense_fits::lifetime_taps::evidence::{evidence, feature_channels, Evidence};
-use tcsense_fits::lifetime_taps::{estimate_instrument, grid_decays, Instrument, LifetimeCosts, LifetimeTemplates, TapFitOptions};
+use tcsense_fits::lifetime_taps::{estimate_instrument, Instrument, LifetimeCosts, LifetimeTemplates, TapFitOptions};
 
 /// Channels of the prediction: `τ_m`, `τ₁`, `τ₂` (ns), `α₁`, confidence logit.
 pub const OUTPUTS: usize = 5;
@@ -354,28 +355,16 @@ impl LifetimeNet {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → features `[B, F, H, W]`, skip `[B, G, H, W]`
     pub fn evidence_with_gradient(&self, y: Tensor<4>, sensor: &SensorTensors) -> (Tensor<4>, Tensor<4>) {
-        let [b, _, h, w] = y.dims();
+        let b = y.dims()[0];
         let device = y.device();
         let (features, skip, frames) = self.evidence_frames(y.clone().detach(), sensor);
         let opts = self.fit_options();
-        let (g, t) = (self.points, sensor.bins);
-        // each frame's decays, [B, T, G]
-        let mut decays = vec![0f32; b * t * g];
-        for (i, (instrument, _)) in frames.iter().enumerate() {
-            for (k, curve) in grid_decays(&sensor.matrix, *instrument, &opts).iter().enumerate() {
-                for (j, v) in curve.iter().enumerate() {
-                    decays[(i * t + j) * g + k] = *v as f32;
-                }
-            }
-        }
-        let decays = Tensor::<3>::from_data(TensorData::new(decays, [b, t, g]), &device);
+        let instruments: Vec<Instrument> = frames.iter().map(|(instrument, _)| *instrument).collect();
+        let decays = decays_tensor(&sensor.matrix, &instruments, &opts, &device);
         let nats: Vec<f32> = frames.iter().map(|(_, noise)| 1.0 / (2.0 * noise)).collect();
         let nats = Tensor::<1>::from_data(TensorData::new(nats, [b]), &device);
         let (post, copy) = lifetime_evidence(y, sensor.a.clone(), sensor.block, decays, nats, opts.window, self.pool, opts.background);
-        // (the intensity and lit channels carry no gradient)
-        let post = Tensor::cat(vec![post, Tensor::zeros([b, 2, h, w], &device)], 1);
-        // (`x − stop(x)` is exactly 0: the values are the fit's to the bit)
-        (features + (post.clone() - post.detach()), skip + (copy.clone() - copy.detach()))
+        with_gradient_of(features, skip, post, copy)
     }
 
     /// The posterior's logits over the grid (the fit's log-likelihood plus the learned
@@ -534,20 +523,6 @@ pub fn frame_templates(y: &ndarray::ArrayView3<'_, f32>, a: &tcsense_sensor::Mea
     LifetimeTemplates::new(a, estimate_instrument(y, a, opts), opts)
 }
 
-/// The fit's evidence of one frame through sensor `a`: the instrument estimated from the
-/// frame, the templates at it, the costs, the evidence.
-///
-/// # Shapes
-/// - `y`: `[M, H, W]` → [`Evidence`] of `[·, H, W]`
-pub fn frame_evidence(
-    y: &ndarray::ArrayView3<'_, f32>,
-    a: &tcsense_sensor::MeasurementMatrix,
-    opts: &TapFitOptions,
-    pool: usize,
-) -> Evidence {
-    evidence_at(y, &frame_templates(y, a, opts), pool).0
-}
-
 /// The fit's evidence of one frame through templates built once (a stream's instrument), and
 /// the costs it came from (for [`LifetimeTemplates::refine_modes`]).
 ///
@@ -626,15 +601,7 @@ mod tests {
     fn on_the_fit_evidence_an_untrained_network_is_the_fit() {
         use tcsense_sensor::waveform::{decay_bin_averages, Cycle, IrfKernel};
         let device = Device::flex();
-        let codes = tcsense_sensor::generate::prototype_codes(1).unwrap();
-        let spec = tcsense_sensor::SensorParams {
-            sampling: tcsense_sensor::Sampling::Heterodyne(4),
-            irf: tcsense_sensor::Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 },
-            ..tcsense_sensor::SensorParams::from_codes(&codes)
-        }
-        .validate()
-        .unwrap();
-        let a = MeasurementMatrix::synthesize(&codes, &spec).unwrap();
+        let a = crate::evidence_tensors::testing::prototype_flim_matrix();
         let (h, w, t) = (8, 8, a.bins());
         let c = Cycle::new(t, a.bin_width_s());
         let tau = |j: usize| -> f64 {

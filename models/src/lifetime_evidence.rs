@@ -22,22 +22,40 @@
 //! posterior  = (G/pool) · Σ_pool softmax_i(−c_i · ν)
 //! ```
 
-use burn::tensor::activation::softmax;
-use burn::tensor::module::avg_pool2d;
-use burn::tensor::ops::AvgPoolOptions;
-use burn::tensor::{Tensor, TensorData};
-use tcsense_sensor::waveform::subpixel_flat;
+use burn::tensor::{Device, Tensor, TensorData};
+use tcsense_fits::lifetime_taps::{grid_decays, Instrument, TapFitOptions};
+use tcsense_sensor::MeasurementMatrix;
+
+use crate::evidence_tensors::{log_likelihood, pooled_posterior, type_onehot, window_sum};
 
 /// Least denominator of the normalisations (a template of no charge).
 const FLOOR: f32 = 1e-30;
+
+/// The decays of `opts`' grid at each frame's instrument ([`grid_decays`]), as
+/// [`lifetime_evidence`] reads them.
+///
+/// # Shapes
+/// - `instruments`: one per frame `[B]` → `[B, T, G]`
+pub fn decays_tensor(a: &MeasurementMatrix, instruments: &[Instrument], opts: &TapFitOptions, device: &Device) -> Tensor<3> {
+    let (b, t, g) = (instruments.len(), a.bins(), opts.points);
+    let mut decays = vec![0f32; b * t * g];
+    for (i, instrument) in instruments.iter().enumerate() {
+        for (k, curve) in grid_decays(a, *instrument, opts).iter().enumerate() {
+            for (j, v) in curve.iter().enumerate() {
+                decays[(i * t + j) * g + k] = *v as f32;
+            }
+        }
+    }
+    Tensor::<3>::from_data(TensorData::new(decays, [b, t, g]), device)
+}
 
 /// The evidence of a batch of frames as the fit computes it (see the module's notes), from the
 /// decays of each frame's instrument.
 ///
 /// # Shapes
 /// - `y`: `[B, M, H, W]`, `a`: `A` per subpixel type `[1, N, M, T]`, `decays`: each frame's
-///   curves of the grid's lifetimes `[B, T, G]`, `nats`: `ν` per frame `[B]` → pooled
-///   posteriors `[B, ⌈G/pool⌉, H, W]`, skip `[B, G, H, W]`
+///   curves of the grid's lifetimes `[B, T, G]` ([`decays_tensor`]), `nats`: `ν` per frame
+///   `[B]` → pooled posteriors `[B, ⌈G/pool⌉, H, W]`, skip `[B, G, H, W]`
 #[allow(clippy::too_many_arguments)]
 pub fn lifetime_evidence(
     y: Tensor<4>,
@@ -51,21 +69,15 @@ pub fn lifetime_evidence(
 ) -> (Tensor<4>, Tensor<4>) {
     let [b, m, h, w] = y.dims();
     let [_, n, _, t] = a.dims();
-    let pool = pool.max(1);
     let g = decays.dims()[2];
     let hw = h * w;
-    let device = y.device();
     // the templates of every type, normalised over the taps
     let proj = a.clone().reshape([1, n * m, t]).expand([b, n * m, t]).matmul(decays).reshape([b, n, m, g]);
     let tpl = proj.clone() / proj.sum_dim(2).clamp_min(FLOOR); // [B, N, M, G]
     let bg = a.sum_dim(3).reshape([1, n, m]);
     let bg = bg.clone() / bg.sum_dim(2).clamp_min(FLOOR); // [1, N, M]
                                                           // onto the pixels: each pixel takes its type's row
-    let mut onehot = vec![0f32; n * hw];
-    for p in 0..hw {
-        onehot[subpixel_flat(p, w, block) * hw + p] = 1.0;
-    }
-    let onehot = Tensor::<2>::from_data(TensorData::new(onehot, [n, hw]), &device);
+    let onehot = type_onehot(n, (h, w), block, &y.device());
     let tpl = tpl.reshape([b, n, m * g]).swap_dims(1, 2).matmul(onehot.clone().unsqueeze::<3>().expand([b, n, hw])).reshape([b, m, g, hw]);
     let bg = bg.swap_dims(1, 2).matmul(onehot.unsqueeze::<3>()).reshape([1, m, 1, hw]);
     // the taps over their sum
@@ -81,43 +93,24 @@ pub fn lifetime_evidence(
         e
     };
     let weight = (s * lit.clone()).reshape([b, 1, 1, hw]);
-    let pixel = (e.clone() * e).sum_dim(1) * weight; // [B, 1, G, HW]
-    let pixel = pixel.reshape([b, g, h, w]);
-    // the window's sum (zero outside the frame, as the fit's)
-    let opts =
-        AvgPoolOptions::new([window, window]).with_stride([1, 1]).with_padding([window / 2, window / 2]).with_count_include_pad(true);
-    let total = avg_pool2d(pixel.clone(), opts).mul_scalar((window * window) as f32);
+    let pixel = ((e.clone() * e).sum_dim(1) * weight).reshape([b, g, h, w]);
     let nats = nats.reshape([b, 1, 1, 1]);
-    let skip = (total.clone().min_dim(1) - total) * nats.clone() * lit.clone();
-    // the pixel's posterior, pooled
-    let post = softmax((pixel.clone().min_dim(1) - pixel) * nats, 1); // [B, G, H, W]
-    let pooled = g.div_ceil(pool);
-    let post = if pooled * pool > g { Tensor::cat(vec![post, Tensor::zeros([b, pooled * pool - g, h, w], &device)], 1) } else { post };
-    let post = post.reshape([b, pooled, pool, h, w]).sum_dim(2).reshape([b, pooled, h, w]).mul_scalar(pooled as f32) * lit;
-    (post, skip)
+    let skip = log_likelihood(window_sum(pixel.clone(), window), nats.clone(), lit.clone());
+    (pooled_posterior(pixel, nats, lit, pool), skip)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::evidence_tensors::testing::{assert_the_gradient_is_the_derivative, noisy_with_a_dark_pixel, prototype_flim_matrix};
     use crate::lifetime::{evidence_at, frame_templates, LifetimeInput, LifetimeNetConfig};
     use crate::sensor_tensors::SensorTensors;
-    use burn::tensor::Device;
     use tcsense_sensor::waveform::{decay_bin_averages, Cycle, IrfKernel};
-    use tcsense_sensor::MeasurementMatrix;
 
     /// A noisy 8×8 frame of lifetimes 0.6–6 ns on a background, at an onset of its own, through
-    /// the prototype codes (heterodyne 4, physical IRF), and its sensor.
+    /// the prototype codes (heterodyne 4, physical IRF), pixel 9 dark, and its sensor.
     fn frame(device: &Device) -> (MeasurementMatrix, Vec<f32>, (usize, usize)) {
-        let codes = tcsense_sensor::generate::prototype_codes(1).unwrap();
-        let spec = tcsense_sensor::SensorParams {
-            sampling: tcsense_sensor::Sampling::Heterodyne(4),
-            irf: tcsense_sensor::Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 },
-            ..tcsense_sensor::SensorParams::from_codes(&codes)
-        }
-        .validate()
-        .unwrap();
-        let a = MeasurementMatrix::synthesize(&codes, &spec).unwrap();
+        let a = prototype_flim_matrix();
         let (h, w, t) = (8, 8, a.bins());
         let c = Cycle::new(t, a.bin_width_s());
         let k = IrfKernel::gaussian(c, 0.5e-9);
@@ -132,12 +125,19 @@ mod tests {
         }
         let st = SensorTensors::new(&a, h, w, device).unwrap();
         let y: Vec<f32> = st.forward(Tensor::<4>::from_data(TensorData::new(x, [1, t, h, w]), device)).into_data().try_into_vec().unwrap();
-        // deterministic "shot noise" of about √y, one pixel dark
-        let mut y: Vec<f32> = y.iter().enumerate().map(|(i, v)| v + v.sqrt() * (((i * 7919) % 13) as f32 / 6.0 - 1.0)).collect();
-        for m in 0..4 {
-            y[m * h * w + 9] = 0.0;
-        }
-        (a, y, (h, w))
+        (a, noisy_with_a_dark_pixel(y, h * w, 9), (h, w))
+    }
+
+    /// What the fit found on the frame that the copy takes as given: the decays at its instrument
+    /// `[1, T, G]` and `ν` `[1]`.
+    fn fit_of(a: &MeasurementMatrix, y: &[f32], (h, w): (usize, usize), opts: &TapFitOptions, device: &Device) -> (Tensor<3>, Tensor<1>) {
+        let ya = ndarray::ArrayView3::from_shape((4, h, w), y).unwrap();
+        let templates = frame_templates(&ya, a, opts);
+        let (e, _) = evidence_at(&ya, &templates, 2);
+        (
+            decays_tensor(a, &[templates.instrument()], opts, device),
+            Tensor::<1>::from_data(TensorData::new(vec![1.0 / (2.0 * e.noise)], [1]), device),
+        )
     }
 
     /// The tensor copy gives the fit's evidence: the same log-likelihoods and pooled posteriors
@@ -154,22 +154,8 @@ mod tests {
         let yt = Tensor::<4>::from_data(TensorData::new(y.clone(), [1, 4, h, w]), &device);
         let (features, skip) = net.evidence(yt.clone(), &st);
         let opts = net.fit_options();
-        let ya = ndarray::ArrayView3::from_shape((4, h, w), &y).unwrap();
-        let templates = frame_templates(&ya, &a, &opts);
-        let (e, _) = evidence_at(&ya, &templates, 5);
-        let g = 24;
-        let curves = tcsense_fits::lifetime_taps::grid_decays(&a, templates.instrument(), &opts);
-        let decays: Vec<f32> = (0..t * g).map(|i| curves[i % g][i / g] as f32).collect();
-        let (post, copy) = lifetime_evidence(
-            yt,
-            st.a.clone(),
-            st.block,
-            Tensor::<3>::from_data(TensorData::new(decays, [1, t, g]), &device),
-            Tensor::<1>::from_data(TensorData::new(vec![1.0 / (2.0 * e.noise)], [1]), &device),
-            opts.window,
-            5,
-            opts.background,
-        );
+        let (decays, nats) = fit_of(&a, &y, (h, w), &opts, &device);
+        let (post, copy) = lifetime_evidence(yt, st.a.clone(), st.block, decays, nats, opts.window, 5, opts.background);
         assert_eq!(post.dims(), [1, 5, h, w]);
         let v = |x: Tensor<4>| -> Vec<f32> { x.into_data().try_into_vec().unwrap() };
         let (fit_skip, copy_skip) = (v(skip), v(copy));
@@ -191,49 +177,17 @@ mod tests {
     fn the_gradient_in_a_is_the_derivative() {
         let device = Device::flex().autodiff();
         let (a, y, (h, w)) = frame(&device);
-        let t = a.bins();
         let st = SensorTensors::new(&a, h, w, &device).unwrap();
-        let opts = LifetimeNetConfig::new(4, t).with_input(LifetimeInput::Costs).with_points(24).init(&device).fit_options();
-        let ya = ndarray::ArrayView3::from_shape((4, h, w), &y).unwrap();
-        let templates = frame_templates(&ya, &a, &opts);
-        let (e, _) = evidence_at(&ya, &templates, 2);
+        let opts = LifetimeNetConfig::new(4, a.bins()).with_input(LifetimeInput::Costs).with_points(24).init(&device).fit_options();
+        let (decays, nats) = fit_of(&a, &y, (h, w), &opts, &device);
         let g = 24;
-        let curves = tcsense_fits::lifetime_taps::grid_decays(&a, templates.instrument(), &opts);
-        let decays: Vec<f32> = (0..t * g).map(|i| curves[i % g][i / g] as f32).collect();
-        let av: Vec<f32> = st.a.clone().into_data().try_into_vec().unwrap();
-        let n = av.len();
-        let dir: Vec<f32> = (0..n).map(|i| ((i * 2654435761usize) % 1000) as f32 / 1000.0 - 0.5).collect();
         let wk: Vec<f32> = (0..g * h * w).map(|i| ((i * 40503) % 17) as f32 / 17.0).collect();
-        let loss = |a_v: &[f32], grad: bool| {
-            let mut a_t = Tensor::<4>::from_data(TensorData::new(a_v.to_vec(), st.a.dims()), &device);
-            if grad {
-                a_t = a_t.require_grad();
-            }
-            let (post, skip) = lifetime_evidence(
-                Tensor::<4>::from_data(TensorData::new(y.clone(), [1, 4, h, w]), &device),
-                a_t.clone(),
-                st.block,
-                Tensor::<3>::from_data(TensorData::new(decays.clone(), [1, t, g]), &device),
-                Tensor::<1>::from_data(TensorData::new(vec![1.0 / (2.0 * e.noise)], [1]), &device),
-                3,
-                2,
-                true,
-            );
+        assert_the_gradient_is_the_derivative(&st.a, 1e-3, |a_t| {
+            let yt = Tensor::<4>::from_data(TensorData::new(y.clone(), [1, 4, h, w]), &device);
+            let (post, skip) = lifetime_evidence(yt, a_t, st.block, decays.clone(), nats.clone(), 3, 2, true);
             let wt = Tensor::<4>::from_data(TensorData::new(wk.clone(), [1, g, h, w]), &device);
-            let l = (skip * wt.clone()).sum() + (post * wt.narrow(1, 0, g / 2)).sum().mul_scalar(10.0);
-            (l, a_t)
-        };
-        let (l, a_t) = loss(&av, true);
-        let grad: Vec<f32> = a_t.grad(&l.backward()).expect("a gradient in A").into_data().try_into_vec().unwrap();
-        let analytic: f64 = grad.iter().zip(&dir).map(|(g, d)| (*g as f64) * (*d as f64)).sum();
-        let scale = av.iter().fold(0f32, |m, v| m.max(v.abs())) * 1e-3;
-        let at = |s: f32| -> f64 {
-            let moved: Vec<f32> = av.iter().zip(&dir).map(|(a, d)| a + s * scale * d).collect();
-            loss(&moved, false).0.into_scalar::<f32>() as f64
-        };
-        let numeric = (at(1.0) - at(-1.0)) / (2.0 * scale as f64);
-        assert!(analytic.abs() > 1e-3, "a gradient: {analytic}");
-        assert!((analytic - numeric).abs() <= 0.05 * numeric.abs(), "autodiff {analytic}, central differences {numeric}");
+            (skip * wt.clone()).sum() + (post * wt.narrow(1, 0, g / 2)).sum().mul_scalar(10.0)
+        });
     }
 
     /// Deep sensing's path: on a sensor whose `A` is learnable ([`SensorTensors::with_matrix`]),

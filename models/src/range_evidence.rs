@@ -19,12 +19,10 @@
 //! posteriors: softmax(−c·ν) and softmax(−C_w·ν) of the wider windows, pooled
 //! ```
 
-use burn::tensor::activation::softmax;
-use burn::tensor::module::avg_pool2d;
-use burn::tensor::ops::AvgPoolOptions;
 use burn::tensor::{Tensor, TensorData};
 use tcsense_fits::depth::{candidate_columns, CONTEXT_WINDOWS};
-use tcsense_sensor::waveform::subpixel_flat;
+
+use crate::evidence_tensors::{log_likelihood, pooled_posterior, type_onehot, window_sum};
 
 /// The evidence of a batch of frames as the fit computes it (see the module's notes).
 ///
@@ -43,7 +41,6 @@ pub fn range_evidence(
 ) -> (Tensor<4>, Tensor<4>) {
     let [b, m, h, w] = y.dims();
     let [_, n, _, t] = a.dims();
-    let pool = pool.max(1);
     let hw = h * w;
     let device = y.device();
     // the candidates' templates [N, M, C] and the ambient's column [N, M]
@@ -59,11 +56,7 @@ pub fn range_evidence(
     let g = a3.clone().matmul(p).reshape([n, m, c]);
     let s = a3.sum_dim(1).reshape([n, m, 1]);
     // onto the pixels
-    let mut onehot = vec![0f32; n * hw];
-    for q in 0..hw {
-        onehot[subpixel_flat(q, w, block) * hw + q] = 1.0;
-    }
-    let onehot = Tensor::<2>::from_data(TensorData::new(onehot, [n, hw]), &device);
+    let onehot = type_onehot(n, (h, w), block, &device);
     let per_pixel = |v: Tensor<3>, k: usize| v.reshape([n, m * k]).swap_dims(0, 1).matmul(onehot.clone()).reshape([1, m, k, hw]);
     let g = per_pixel(g, c); // [1, M, C, HW]
     let s = per_pixel(s, 1); // [1, M, 1, HW]
@@ -87,27 +80,19 @@ pub fn range_evidence(
     let lit = y.sum_dim(1).greater_elem(0.0).float().detach(); // [B, 1, H, W]
     let pixel = cost.reshape([b, c, h, w]) * lit.clone();
     // the fit's window and the wider ones
-    let sum_over = |side: usize| {
-        let opts = AvgPoolOptions::new([side, side]).with_stride([1, 1]).with_padding([side / 2, side / 2]).with_count_include_pad(true);
-        avg_pool2d(pixel.clone(), opts).mul_scalar((side * side) as f32)
-    };
-    let windows: Vec<Tensor<4>> = std::iter::once(window).chain(CONTEXT_WINDOWS).map(sum_over).collect();
+    let windows: Vec<Tensor<4>> = std::iter::once(window).chain(CONTEXT_WINDOWS).map(|side| window_sum(pixel.clone(), side)).collect();
     let nats = nats.reshape([b, 1, 1, 1]);
-    let skip: Vec<Tensor<4>> = windows.iter().map(|v| (v.clone().min_dim(1) - v.clone()) * nats.clone() * lit.clone()).collect();
+    let skip: Vec<Tensor<4>> = windows.iter().map(|v| log_likelihood(v.clone(), nats.clone(), lit.clone())).collect();
     // the posteriors of the pixel and of the wider windows, pooled
-    let pooled = c.div_ceil(pool);
-    let posterior = |v: Tensor<4>| {
-        let q = softmax((v.clone().min_dim(1) - v) * nats.clone(), 1);
-        let q = if pooled * pool > c { Tensor::cat(vec![q, Tensor::zeros([b, pooled * pool - c, h, w], &device)], 1) } else { q };
-        q.reshape([b, pooled, pool, h, w]).sum_dim(2).reshape([b, pooled, h, w]).mul_scalar(pooled as f32) * lit.clone()
-    };
-    let posts: Vec<Tensor<4>> = std::iter::once(pixel.clone()).chain(windows.into_iter().skip(1)).map(posterior).collect();
+    let posts: Vec<Tensor<4>> =
+        std::iter::once(pixel).chain(windows.into_iter().skip(1)).map(|v| pooled_posterior(v, nats.clone(), lit.clone(), pool)).collect();
     (Tensor::cat(posts, 1), Tensor::cat(skip, 1))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::evidence_tensors::testing::{assert_the_gradient_is_the_derivative, noisy_with_a_dark_pixel};
     use crate::net::Network;
     use crate::sensor_tensors::SensorTensors;
     use crate::{Unet, UnetConfig, UnetHead, UnetInput};
@@ -135,10 +120,7 @@ mod tests {
         }
         let st = SensorTensors::new(&a, h, w, device).unwrap();
         let y: Vec<f32> = st.forward(Tensor::<4>::from_data(TensorData::new(x, [1, t, h, w]), device)).into_data().try_into_vec().unwrap();
-        let mut y: Vec<f32> = y.iter().enumerate().map(|(i, v)| v + v.sqrt() * (((i * 7919) % 13) as f32 / 6.0 - 1.0)).collect();
-        for m in 0..4 {
-            y[m * h * w + 37] = 0.0;
-        }
+        let y = noisy_with_a_dark_pixel(y, h * w, 37);
         let range = tcsense_sensor::C * a.bin_width_s() / 2.0 * t as f64;
         let net = UnetConfig::new(4, t, range)
             .with_base_width(4)
@@ -198,28 +180,12 @@ mod tests {
         let (_, _, noise) = net.evidence_frames(yt(), &st);
         let (c, pool) = net.grid();
         let wk: Vec<f32> = (0..4 * c * h * w).map(|i| ((i * 40503) % 17) as f32 / 17.0).collect();
-        let av: Vec<f32> = st.a.clone().into_data().try_into_vec().unwrap();
-        let dir: Vec<f32> = (0..av.len()).map(|i| ((i * 2654435761usize) % 1000) as f32 / 1000.0 - 0.5).collect();
-        let loss = |a_v: &[f32], grad: bool| {
-            let mut a_t = Tensor::<4>::from_data(TensorData::new(a_v.to_vec(), st.a.dims()), &device);
-            if grad {
-                a_t = a_t.require_grad();
-            }
-            let nats = Tensor::<1>::from_data(TensorData::new(vec![1.0 / (2.0 * noise[0])], [1]), &device);
-            let (post, skip) = range_evidence(yt(), a_t.clone(), st.block, 2, nats, 3, pool);
+        let nats = Tensor::<1>::from_data(TensorData::new(vec![1.0 / (2.0 * noise[0])], [1]), &device);
+        assert_the_gradient_is_the_derivative(&st.a, 1e-4, |a_t| {
+            let (post, skip) = range_evidence(yt(), a_t, st.block, 2, nats.clone(), 3, pool);
             let wt = Tensor::<4>::from_data(TensorData::new(wk.clone(), [1, 4 * c, h, w]), &device);
             let pc = post.dims()[1];
-            ((skip * wt.clone()).sum() + (post * wt.narrow(1, 0, pc)).sum().mul_scalar(10.0), a_t)
-        };
-        let (l, a_t) = loss(&av, true);
-        let grad: Vec<f32> = a_t.grad(&l.backward()).expect("a gradient").into_data().try_into_vec().unwrap();
-        let analytic: f64 = grad.iter().zip(&dir).map(|(g, d)| (*g as f64) * (*d as f64)).sum();
-        let step = av.iter().fold(0f32, |m, v| m.max(v.abs())) * 1e-4;
-        let at = |s: f32| -> f64 {
-            let moved: Vec<f32> = av.iter().zip(&dir).map(|(a, d)| a + s * step * d).collect();
-            loss(&moved, false).0.into_scalar::<f32>() as f64
-        };
-        let numeric = (at(1.0) - at(-1.0)) / (2.0 * step as f64);
-        assert!((analytic - numeric).abs() <= 0.05 * numeric.abs(), "autodiff {analytic}, central differences {numeric}");
+            (skip * wt.clone()).sum() + (post * wt.narrow(1, 0, pc)).sum().mul_scalar(10.0)
+        });
     }
 }
