@@ -11,57 +11,40 @@
 # LiDAR: from zoo:unet-lidar-evidence-wide2, 3 relaxed + 1 (learned) against 4 (control), 600
 # training items of its recipe's data; about 50 minutes. One table of the first return's median
 # error (bins) or the lifetime MAE (ns) per set and light level, learned against control.
-# CODES_LR (0.05, the default of --codes-lr) from the environment; docs/results.md has FLIm at
-# 0.05 and at 0.01.
+# The ladders are scripts/lifetime_ladder.sh and scripts/lidar_ladder.sh (OUT/RUN-ladder). CODES_LR
+# (0.05, the default of --codes-lr) from the environment; docs/results.md has FLIm at 0.05 and 0.01.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 DOMAIN=${1:?flim or lidar}
 OUT=${2:-deep-sensing-$DOMAIN}
+case "$DOMAIN" in
+  flim | lidar) ;;
+  *) echo "deep_sensing_ladder.sh: $DOMAIN: expected flim or lidar" >&2; exit 2 ;;
+esac
 cargo build --release --locked
 B=$PWD/target/release/tcsense
-SIZE=64x64
-. scripts/ood_sets.sh
-mkdir -p "$OUT/sets"
-LIGHT=0.8,0.1,0.02,0.005
+mkdir -p "$OUT"
 CODES_LR=${CODES_LR:-0.05}
 case "$DOMAIN" in
   flim)
     ZOO=zoo/lifetime-flim-evidence-fast
     [ -d "$OUT/data" ] || $B dataset flim --count 1600 --size 64x64 --heterodyne 8 --tau-ns 0.2,10 --irf-fwhm-ns 0,2 --background 0,0.1 --seed 21 -o "$OUT/data"
-    flim_test_sets "$OUT/sets/" 80 >/dev/null
     T=(train lifetime --input costs --dataset "$OUT/data" --codes "$ZOO/codes.json" --irf physical --epochs 6 --batch-size 8 --lr 5e-4 --max-train 640 --max-val 16 --crop 32x32 --signal 0.003,0.9 --ambient 0,1 --seed 7 --base-width 8 --points 64 --init-from "$ZOO")
-    [ -f "$OUT/learned/model.bpk" ] || $B "${T[@]}" --learn-codes --relaxed-epochs 4 --codes-lr "$CODES_LR" -o "$OUT/learned"
-    [ -f "$OUT/control/model.bpk" ] || $B "${T[@]}" -o "$OUT/control"
-    for run in learned control; do
-      for s in standard onset-0ns onset-30ns irf-1.5ns long-lifetimes background; do
-        $B eval --dataset "$OUT/sets/$s" --items 8 --codes "$OUT/$run/codes.json" --heterodyne 8 --irf physical --seed 5 --light "$LIGHT" \
-          --decoder "lifetime:$OUT/$run" -o "$OUT/$run-$s.json" >/dev/null
-      done
-    done
+    RELAXED=4 LADDER=scripts/lifetime_ladder.sh NET=lifetime
     ;;
   lidar)
     ZOO=zoo/unet-lidar-evidence-wide2
     [ -d "$OUT/data" ] || $B dataset lidar --count 2000 --size 64x64 --seed 101 -o "$OUT/data"
-    lidar_test_sets "$OUT/sets/" 80 >/dev/null
-    motorcycle_set "$OUT/sets" >/dev/null
     T=(train unet --dataset "$OUT/data" --codes "$ZOO/codes.json" --irf physical --input costs --head score-volume --returns 2 --signal 0.002,0.9 --ambient 0,2 --crop 64x64 --epochs 4 --batch-size 4 --lr 1e-4 --seed 9 --max-train 600 --max-val 16 --init-from "$ZOO")
-    [ -f "$OUT/learned/model.bpk" ] || $B "${T[@]}" --learn-codes --relaxed-epochs 3 --codes-lr "$CODES_LR" -o "$OUT/learned"
-    [ -f "$OUT/control/model.bpk" ] || $B "${T[@]}" -o "$OUT/control"
-    for run in learned control; do
-      for s in standard far near textures dense-sheet lidar-test-motorcycle; do
-        split=train
-        [ "$s" = lidar-test-motorcycle ] && split=test
-        for sbr in none 1; do
-          extra=()
-          [ "$sbr" != none ] && extra=(--sbr "$sbr")
-          $B eval --dataset "$OUT/sets/$s" --split "$split" --items 8 --codes "$OUT/$run/codes.json" --irf physical --seed 5 --light "$LIGHT" "${extra[@]}" \
-            --decoder "unet:$OUT/$run" -o "$OUT/$run-$s-sbr$sbr.json" >/dev/null
-        done
-      done
-    done
+    RELAXED=3 LADDER=scripts/lidar_ladder.sh NET=unet
     ;;
-  *) echo "deep_sensing_ladder.sh: $DOMAIN: expected flim or lidar" >&2; exit 2 ;;
 esac
+[ -f "$OUT/learned/model.bpk" ] || $B "${T[@]}" --learn-codes --relaxed-epochs "$RELAXED" --codes-lr "$CODES_LR" -o "$OUT/learned"
+[ -f "$OUT/control/model.bpk" ] || $B "${T[@]}" -o "$OUT/control"
+# the domain's photon ladder (its sets, levels, items and seed), each run through its own codes
+for run in learned control; do
+  CODES="$OUT/$run/codes.json" "$LADDER" "$OUT/$run-ladder" --decoder "$NET:$OUT/$run" >/dev/null
+done
 analyze=()
 [ "$DOMAIN" = flim ] && analyze=(--heterodyne 8)
 $B codes analyze "$OUT/control/codes.json" "$OUT/learned/codes.json" "${analyze[@]}" | grep -E "json:|alias|bound  " || true
@@ -69,16 +52,17 @@ python3 - "$OUT" "$DOMAIN" <<'PY'
 import json, sys, glob, os
 out, domain = sys.argv[1], sys.argv[2]
 rows, levels = {}, []
-for f in sorted(glob.glob(f"{out}/learned-*.json")) + sorted(glob.glob(f"{out}/control-*.json")):
-    run, s = os.path.basename(f)[:-5].split("-", 1)
-    for r in json.load(open(f)):
-        l = r["light"]["signal_fraction"]
-        levels += [l] if l not in levels else []
-        rows.setdefault(s, {}).setdefault(l, {})[run] = r
+for run in ("learned", "control"):
+    for f in sorted(glob.glob(f"{out}/{run}-ladder/ladder-*.json")):
+        s = os.path.basename(f)[len("ladder-"):-5]
+        for r in json.load(open(f)):
+            l = r["light"]["signal_fraction"]
+            levels += [l] if l not in levels else []
+            rows.setdefault(s, {}).setdefault(l, {})[run] = r
 def value(r, s):
     if domain == "flim":
         return None if r["lifetime_mae_s"] is None else r["lifetime_mae_s"] * 1e9
-    m = json.load(open(f"{out}/sets/{s.rsplit('-sbr', 1)[0]}/manifest.json"))
+    m = json.load(open(f"{out}/control-ladder/{s.rsplit('-sbr', 1)[0]}/manifest.json"))
     med = r["depth_median_m"][0]
     return None if med is None else med / (299792458.0 * m["bin_width_s"] / 2)
 unit = "lifetime MAE (ns)" if domain == "flim" else "first return's median error (bins)"
