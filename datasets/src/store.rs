@@ -19,7 +19,7 @@ use crate::error::{file_err, invalid, DatasetError, Result};
 use crate::flim::FlimParams;
 use crate::grid::TimeGrid;
 use crate::lidar::{LidarParams, BOUNCES};
-use ndarray::{concatenate, stack, ArrayD, Axis, IxDyn};
+use ndarray::{stack, ArrayD, Axis, IxDyn, Slice};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -434,14 +434,30 @@ impl Dataset {
 
     /// Load one field of a whole split, `[count, …item shape]`.
     pub fn load(&self, split: &str, field: &str) -> Result<ArrayD<f32>> {
+        self.load_first(split, field, None)
+    }
+
+    /// Load one field of the first `max` items of a split (all where `None`),
+    /// `[min(max, count), …item shape]`: only the shards that hold them are read, each straight
+    /// into the result (a training run on 640 of a FLIm split's 1 278 cubes of 4 MB read the
+    /// whole split and copied it twice).
+    pub fn load_first(&self, split: &str, field: &str, max: Option<usize>) -> Result<ArrayD<f32>> {
         let s = self.split(split)?;
         let item_shape = self
             .manifest
             .fields
             .get(field)
             .ok_or_else(|| file_err(self.dir.join("manifest.json"), format!("no field {field:?} in 'fields'")))?;
-        let mut parts = Vec::new();
+        let listed: usize = s.shards.iter().map(|sh| sh.count).sum();
+        let n = max.unwrap_or(listed).min(listed);
+        let mut shape = vec![n];
+        shape.extend_from_slice(item_shape);
+        let mut out = ArrayD::zeros(IxDyn(&shape));
+        let mut at = 0;
         for sh in &s.shards {
+            if at == n {
+                break;
+            }
             let rel = sh
                 .files
                 .get(field)
@@ -453,15 +469,11 @@ impl Dataset {
             if a.shape() != want.as_slice() {
                 return Err(file_err(&path, format!("shape {:?}, expected {want:?} from the manifest", a.shape())));
             }
-            parts.push(a);
+            let take = sh.count.min(n - at);
+            out.slice_axis_mut(Axis(0), Slice::from(at..at + take)).assign(&a.slice_axis(Axis(0), Slice::from(0..take)));
+            at += take;
         }
-        if parts.is_empty() {
-            let mut shape = vec![0];
-            shape.extend_from_slice(item_shape);
-            return Ok(ArrayD::zeros(IxDyn(&shape)));
-        }
-        let views: Vec<_> = parts.iter().map(|a| a.view()).collect();
-        concatenate(Axis(0), &views).map_err(|e| invalid("shards", split, e.to_string()))
+        Ok(out)
     }
 
     /// Load one item's field (`[…item shape]`), index within the split.
@@ -486,6 +498,34 @@ impl Dataset {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The first `max` items read from the shards that hold them are the whole split's first
+    /// items, across a shard boundary, and `None` or too large a `max` gives the whole split.
+    #[test]
+    fn the_first_items_of_a_split_are_read_from_their_shards_only() {
+        let dir = std::env::temp_dir().join(format!("tcsense-store-first-{}", std::process::id()));
+        let gen = Generator::Lidar(crate::lidar::LidarParams { height: 8, width: 8, ..Default::default() });
+        let grid = TimeGrid { length: 8, ..TimeGrid::default() };
+        let cancel = AtomicBool::new(false);
+        generate(&gen, &grid, 20, 4, &dir, &WriteOptions { shard_size: 3, force: true, progress: &|| {}, cancel: &cancel })
+            .expect("a dataset");
+        let ds = Dataset::open(&dir).expect("the dataset opens");
+        let all = ds.load("train", "x").expect("the split");
+        assert!(all.shape()[0] > 3 && ds.split("train").expect("train").shards.len() > 1, "{:?}", all.shape());
+        for max in [1, 3, 5] {
+            let first = ds.load_first("train", "x", Some(max)).expect("the first items");
+            assert_eq!(first.shape()[0], max);
+            assert_eq!(first, all.slice_axis(Axis(0), Slice::from(0..max)));
+        }
+        assert_eq!(ds.load_first("train", "x", Some(1000)).expect("all items"), all);
+        assert_eq!(ds.load_first("train", "depth", None).expect("all labels").shape()[0], all.shape()[0]);
+        // the shards after the items asked for are not read: a missing one does not matter
+        let last = ds.split("train").expect("train").shards.last().expect("a shard").files["x"].clone();
+        std::fs::remove_file(dir.join(last)).expect("the last shard removed");
+        assert!(ds.load_first("train", "x", Some(3)).is_ok());
+        assert!(ds.load("train", "x").is_err(), "the whole split needs the removed shard");
+        std::fs::remove_dir_all(&dir).ok();
+    }
 
     #[test]
     fn splits_follow_the_paper() {

@@ -7,10 +7,9 @@ use crate::{file_err, Result};
 
 /// Load the cubes of a split, `[N, T, H, W]`, at most `max` of them.
 pub fn load_cubes(ds: &Dataset, split: &str, max: Option<usize>) -> Result<Array4<f32>> {
-    let x = ds.load(split, "x")?;
-    let x = x.into_dimensionality::<Ix4>().map_err(|e| file_err(&ds.dir, format!("field x of split {split}: {e}")))?;
-    let n = max.unwrap_or(x.dim().0).min(x.dim().0);
-    Ok(x.slice_axis(Axis(0), ndarray::Slice::from(0..n)).to_owned())
+    // only the shards that hold the first `max` items are read
+    let x = ds.load_first(split, "x", max)?;
+    x.into_dimensionality::<Ix4>().map_err(|e| file_err(&ds.dir, format!("field x of split {split}: {e}")))
 }
 
 /// Load the range labels of a split's first `k` returns, `[N, K, H, W]` (m, NaN where none),
@@ -24,7 +23,7 @@ pub fn load_depth(ds: &Dataset, split: &str, max: Option<usize>, k: usize) -> Re
         ));
     }
     let d = ds
-        .load(split, "depth")?
+        .load_first(split, "depth", max)?
         .into_dimensionality::<Ix4>()
         .map_err(|e| file_err(&ds.dir, format!("field depth of split {split}: {e}")))?;
     let (n, bounces, _, _) = d.dim();
@@ -83,10 +82,10 @@ pub fn load_lifetime_labels(ds: &Dataset, split: &str, max: Option<usize>) -> Re
         }
     }
     let bad = |f: &str, e: ndarray::ShapeError| file_err(&ds.dir, format!("field {f} of split {split}: {e}"));
-    let life = ds.load(split, "lifetime")?.into_dimensionality::<ndarray::Ix3>().map_err(|e| bad("lifetime", e))?;
-    let w = ds.load(split, "weights")?.into_dimensionality::<Ix4>().map_err(|e| bad("weights", e))?;
-    let tau = ds.load(split, "tau")?.into_dimensionality::<ndarray::Ix2>().map_err(|e| bad("tau", e))?;
-    let inten = ds.load(split, "intensity")?.into_dimensionality::<ndarray::Ix3>().map_err(|e| bad("intensity", e))?;
+    let life = ds.load_first(split, "lifetime", max)?.into_dimensionality::<ndarray::Ix3>().map_err(|e| bad("lifetime", e))?;
+    let w = ds.load_first(split, "weights", max)?.into_dimensionality::<Ix4>().map_err(|e| bad("weights", e))?;
+    let tau = ds.load_first(split, "tau", max)?.into_dimensionality::<ndarray::Ix2>().map_err(|e| bad("tau", e))?;
+    let inten = ds.load_first(split, "intensity", max)?.into_dimensionality::<ndarray::Ix3>().map_err(|e| bad("intensity", e))?;
     let (n, h, wd) = life.dim();
     if w.dim() != (n, 3, h, wd) || tau.dim() != (n, 3) || inten.dim() != (n, h, wd) {
         return Err(file_err(

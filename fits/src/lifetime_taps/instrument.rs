@@ -58,12 +58,7 @@ pub(super) fn instrument(
                 // e[s] = D_i(−s), doubled so that e[j − t + T] needs no wrap: D_i(t − j) = e[j − t]
                 let e: Vec<f32> = (0..2 * bins).map(|s| d[(2 * bins - s) % bins] as f32).collect();
                 for (nk, row) in rows.iter().enumerate() {
-                    let o = &mut out[(nk * g + i) * bins..(nk * g + i + 1) * bins];
-                    for (t, &at) in row.iter().enumerate() {
-                        if at != 0.0 {
-                            o.iter_mut().zip(&e[bins - t..2 * bins - t]).for_each(|(o, &ev)| *o += at * ev);
-                        }
-                    }
+                    correlate(row, &e, &mut out[(nk * g + i) * bins..(nk * g + i + 1) * bins]);
                 }
             }
             out
@@ -96,6 +91,38 @@ pub(super) fn instrument(
         f
     };
     (t0, f)
+}
+
+/// One row of the sensor `row` `[T]` against one doubled, reversed decay `e` `[2T]`:
+/// `o[j] = Σ_t row[t]·e[j − t + T]` `[T]`, summed in the order of `t` (skipping the zeros of
+/// the row), sixteen outputs at a time in registers (the plain loop over `j` for every `t`
+/// did not vectorise: a fifth of a stream's start-up).
+fn correlate(row: &[f32], e: &[f32], o: &mut [f32]) {
+    const L: usize = 16;
+    let bins = row.len();
+    assert!(e.len() == 2 * bins && o.len() == bins, "correlate: [T], [2T] → [T]");
+    let taps: Vec<(usize, f32)> = row.iter().copied().enumerate().filter(|&(_, at)| at != 0.0).collect();
+    let mut j0 = 0;
+    while j0 < bins {
+        let l = L.min(bins - j0);
+        let mut acc = [0f32; L];
+        if l == L {
+            for &(t, at) in &taps {
+                let seg: &[f32; L] = e[bins - t + j0..bins - t + j0 + L].try_into().expect("L values");
+                for (a, &v) in acc.iter_mut().zip(seg) {
+                    *a += at * v;
+                }
+            }
+        } else {
+            for &(t, at) in &taps {
+                for (a, &v) in acc[..l].iter_mut().zip(&e[bins - t + j0..bins - t + j0 + l]) {
+                    *a += at * v;
+                }
+            }
+        }
+        o[j0..j0 + l].copy_from_slice(&acc[..l]);
+        j0 += l;
+    }
 }
 
 /// The cost of the first `count` of `pixels` (normalised taps, weight, type), each at its best
@@ -131,4 +158,33 @@ pub(super) fn brightest_cost(
         };
     }
     total
+}
+
+#[cfg(test)]
+mod tests {
+    use super::correlate;
+
+    /// The register-blocked correlation gives the plain loop's numbers bit for bit (same sum
+    /// order per output), on lengths with and without a remainder and rows with zeros.
+    #[test]
+    fn the_blocked_correlation_is_the_plain_loop_bit_for_bit() {
+        for bins in [5usize, 16, 37, 256] {
+            let row: Vec<f32> = (0..bins).map(|t| if t % 3 == 1 { 0.0 } else { ((t * 7919) % 101) as f32 / 37.0 - 1.1 }).collect();
+            let e: Vec<f32> = (0..2 * bins).map(|s| (((s * 104729) % 997) as f32 / 311.0).exp() * 1e-3).collect();
+            let mut plain = vec![0f32; bins];
+            for (t, &at) in row.iter().enumerate() {
+                if at != 0.0 {
+                    plain.iter_mut().zip(&e[bins - t..2 * bins - t]).for_each(|(o, &ev)| *o += at * ev);
+                }
+            }
+            let mut blocked = vec![f32::NAN; bins];
+            correlate(&row, &e, &mut blocked);
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&blocked), bits(&plain), "{bins} bins");
+            // and it is the correlation: o[j] = Σ_t row[t]·e[j − t + T]
+            let j = bins / 2;
+            let want: f64 = (0..bins).map(|t| row[t] as f64 * e[j + bins - t] as f64).sum();
+            assert!((blocked[j] as f64 - want).abs() <= 1e-4 * want.abs().max(1.0), "{} against {want}", blocked[j]);
+        }
+    }
 }
