@@ -43,35 +43,14 @@ pub(super) fn instrument(
         let (_, t0, f) = score(&known);
         return (t0, f);
     }
-    // every bin of the cycle: the decays at onset 0 shifted by whole bins, through every row of
-    // the sensor at once: corr[w][n·M + k][i][j] = Σ_t A[n][k][t]·D_i(t − j)
-    let (n_types, _, bins) = a.dim();
-    let coarse = grid(opts, 32);
-    let g = coarse.len();
-    let rows: Vec<Vec<f32>> = (0..n_types * m).map(|nk| (0..bins).map(|t| a[(nk / m, nk % m, t)]).collect()).collect();
-    let corr: Vec<Vec<f32>> = widths
-        .par_iter()
-        .map(|&f| {
-            let curves = decays(c, &coarse, 0.0, f);
-            let mut out = vec![0f32; n_types * m * g * bins];
-            for (i, d) in curves.iter().enumerate() {
-                // e[s] = D_i(−s), doubled so that e[j − t + T] needs no wrap: D_i(t − j) = e[j − t]
-                let e: Vec<f32> = (0..2 * bins).map(|s| d[(2 * bins - s) % bins] as f32).collect();
-                for (nk, row) in rows.iter().enumerate() {
-                    correlate(row, &e, &mut out[(nk * g + i) * bins..(nk * g + i + 1) * bins]);
-                }
-            }
-            out
-        })
-        .collect();
-    let sums: Vec<f64> = rows.iter().map(|row| row.iter().map(|&v| v as f64).sum()).collect();
+    // every bin of the cycle and every width: the coarse grid's tables, the same for every
+    // frame through this sensor (built once, see `coarse_tables`)
+    let bins = c.bins;
+    let coarse = coarse_tables(a, c, opts, m);
     let coarse_cands: Vec<(usize, usize)> = (0..widths.len()).flat_map(|wi| (0..bins).map(move |j| (wi, j))).collect();
     let (_, _, j) = coarse_cands
         .par_iter()
-        .map(|&(wi, j)| {
-            let proj: Vec<f64> = (0..n_types * m * g).map(|q| corr[wi][q * bins + j] as f64).collect();
-            (brightest_cost(&TypeTable::from_projections(&proj, &sums, n_types, m, g), &pixels, 128, 10, opts.background), wi, j)
-        })
+        .map(|&(wi, j)| (brightest_cost(&coarse.tables[wi * bins + j], &pixels, 128, 10, opts.background), wi, j))
         .min_by(|x, y| x.0.total_cmp(&y.0).then(x.2.cmp(&y.2)).then(x.1.cmp(&y.1)))
         .unwrap_or((0.0, 0, 0));
     // then every width within a bin of the best, a quarter bin apart
@@ -91,6 +70,70 @@ pub(super) fn instrument(
         f
     };
     (t0, f)
+}
+
+/// The instrument search's coarse tables: for every candidate width `wi` and onset bin `j`,
+/// the tables of every subpixel type on a coarse grid of 32 lifetimes,
+/// `tables[wi·T + j]`. They depend on the sensor's matrix and the options only, not on the
+/// frame.
+struct CoarseTables {
+    /// What they were built from: the matrix `[N·M·T]` (bits), its dims, the bin width, the
+    /// lifetimes searched and the widths (bits).
+    key: (Vec<u32>, [usize; 3], u64, [u64; 2], Vec<u64>),
+    tables: Vec<Vec<TypeTable>>,
+}
+
+/// The coarse tables of [`CoarseTables`] for this matrix and these options: the last ones
+/// built, when they were built from the same (a stream's frames, a training run's items: the
+/// search over every onset bin took 168 M multiply-adds a frame at T = 256, whatever its
+/// size), else built and kept.
+///
+/// The decays at onset 0 shifted by whole bins go through every row of the sensor at once:
+/// `corr[w][n·M + k][i][j] = Σ_t A[n][k][t]·D_i(t − j)`.
+fn coarse_tables(a: &ArrayView3<'_, f32>, c: Cycle, opts: &TapFitOptions, m: usize) -> std::sync::Arc<CoarseTables> {
+    static LAST: std::sync::Mutex<Option<std::sync::Arc<CoarseTables>>> = std::sync::Mutex::new(None);
+    let (n_types, taps, bins) = a.dim();
+    let widths = &opts.irf_fwhm_s;
+    let key = (
+        a.iter().map(|v| v.to_bits()).collect::<Vec<u32>>(),
+        [n_types, taps, bins],
+        c.dt_s.to_bits(),
+        opts.tau_range_s.map(f64::to_bits),
+        widths.iter().map(|w| w.to_bits()).collect::<Vec<u64>>(),
+    );
+    if let Some(last) = LAST.lock().unwrap_or_else(|e| e.into_inner()).as_ref().filter(|t| t.key == key) {
+        return last.clone();
+    }
+    let coarse = grid(opts, 32);
+    let g = coarse.len();
+    let rows: Vec<Vec<f32>> = (0..n_types * m).map(|nk| (0..bins).map(|t| a[(nk / m, nk % m, t)]).collect()).collect();
+    let corr: Vec<Vec<f32>> = widths
+        .par_iter()
+        .map(|&f| {
+            let curves = decays(c, &coarse, 0.0, f);
+            let mut out = vec![0f32; n_types * m * g * bins];
+            for (i, d) in curves.iter().enumerate() {
+                // e[s] = D_i(−s), doubled so that e[j − t + T] needs no wrap: D_i(t − j) = e[j − t]
+                let e: Vec<f32> = (0..2 * bins).map(|s| d[(2 * bins - s) % bins] as f32).collect();
+                for (nk, row) in rows.iter().enumerate() {
+                    correlate(row, &e, &mut out[(nk * g + i) * bins..(nk * g + i + 1) * bins]);
+                }
+            }
+            out
+        })
+        .collect();
+    let sums: Vec<f64> = rows.iter().map(|row| row.iter().map(|&v| v as f64).sum()).collect();
+    let tables = (0..widths.len() * bins)
+        .into_par_iter()
+        .map(|q| {
+            let (wi, j) = (q / bins, q % bins);
+            let proj: Vec<f64> = (0..n_types * m * g).map(|r| corr[wi][r * bins + j] as f64).collect();
+            TypeTable::from_projections(&proj, &sums, n_types, m, g)
+        })
+        .collect();
+    let built = std::sync::Arc::new(CoarseTables { key, tables });
+    *LAST.lock().unwrap_or_else(|e| e.into_inner()) = Some(built.clone());
+    built
 }
 
 /// One row of the sensor `row` `[T]` against one doubled, reversed decay `e` `[2T]`:

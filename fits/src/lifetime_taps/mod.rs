@@ -598,6 +598,36 @@ mod tests {
         }
     }
 
+    /// The instrument search keeps its coarse tables for the last matrix and options: another
+    /// sensor or other widths in between give each its own instrument, and coming back gives
+    /// the first answer again, to the bit.
+    #[test]
+    fn the_instrument_search_keeps_its_tables_per_sensor_and_options() {
+        let a = sensor();
+        let other = tcsense_sensor::Sensor::ideal(
+            prototype_codes(2).unwrap(),
+            Sampling::Heterodyne(8),
+            Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 },
+        )
+        .unwrap()
+        .matrix()
+        .clone();
+        let tau = |_: usize, j: usize| if j < 4 { 0.6e-9 } else { 3.5e-9 };
+        let y = taps(&a, 8, 8, &tau, 31.7e-9, 1.0e-9, 0.0);
+        let y2 = taps(&other, 8, 8, &tau, 12.3e-9, 0.5e-9, 0.0);
+        let opts = TapFitOptions::default();
+        let narrow = TapFitOptions { irf_fwhm_s: vec![0.0, 0.5e-9], ..Default::default() };
+        let first = estimate_instrument(&y.view(), &a, &opts);
+        let o = estimate_instrument(&y2.view(), &other, &opts);
+        let n = estimate_instrument(&y2.view(), &other, &narrow);
+        let again = estimate_instrument(&y.view(), &a, &opts);
+        assert_eq!((first.onset_s.to_bits(), first.irf_fwhm_s.to_bits()), (again.onset_s.to_bits(), again.irf_fwhm_s.to_bits()));
+        for (i, t0, fwhm) in [(o, 12.3e-9, 0.5e-9), (n, 12.3e-9, 0.5e-9), (first, 31.7e-9, 1.0e-9)] {
+            let dt = (i.onset_s - t0 + 26.35e-9).rem_euclid(52.7e-9) - 26.35e-9;
+            assert!(dt.abs() < 0.01e-9 && (i.irf_fwhm_s - fwhm).abs() < 0.1e-9, "{i:?} against onset {t0:e}, IRF {fwhm:e}");
+        }
+    }
+
     /// Noise on taps: Poisson-like (Gaussian of the charge's variance) at `photons` per pixel.
     fn noisy(y: &ndarray::Array3<f32>, photons: f64, seed: u64) -> ndarray::Array3<f32> {
         // a splitmix64 stream of uniforms
