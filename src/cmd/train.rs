@@ -252,7 +252,8 @@ pub struct TrainArgs {
     /// 0 leaves it out (default 1).
     #[arg(long, requires = "learn_codes")]
     alias_weight: Option<f64>,
-    /// Learned codes: the alias distance the identifiability term enforces (default 0.5).
+    /// Learned codes: the alias distance the identifiability term enforces and the projection
+    /// onto the constraints keeps, pulling towards the start codes where needed (default 0.5).
     #[arg(long, requires = "learn_codes")]
     alias_threshold: Option<f64>,
     /// Run directory.

@@ -15,8 +15,11 @@
 //!    The temperature falls geometrically from `tau_start` to `tau_end`, and the Hamming and
 //!    window penalties rise linearly from 0 to `penalty_weight`. `RUN/relaxed/codes_log.csv`
 //!    logs per epoch how far the hard codes are from feasible.
-//! 2. *projection*: [`tcsense_sensor::project::project`] of `θ` onto the constraints
-//!    (`RUN/relaxed/projection.json`: solver, score, what the projection changed, and the codes' range alias).
+//! 2. *projection*: [`tcsense_sensor::project::project`] of `θ` onto the constraints,
+//!    pulled towards the start codes by the least amount that keeps the range alias at the
+//!    threshold where the plain projection would not ([`project_identifiable`])
+//!    (`RUN/relaxed/projection.json`: solver, score, what the projection changed, the pull and
+//!    the codes' range alias).
 //! 3. *fine-tuning* (`epochs − relaxed_epochs`, in `RUN/`): the decoder, from the relaxed
 //!    phase's weights, on the projected codes, which become `RUN/codes.json` (provenance
 //!    `learned`).
@@ -287,26 +290,134 @@ pub(crate) fn write_log(path: &Path, rows: &[String]) -> Result<()> {
     Ok(tcsense_sensor::npy::write_bytes(path, text.as_bytes())?)
 }
 
-/// Project the learned logits onto the constraints, record what it did in
-/// `RELAXED/projection.json`, and return the codes (provenance `learned`).
+/// The range alias of `codes` on the run's sensor (what the identifiability term is for).
+fn alias_of(codes: &Codes, cfg: &crate::TrainConfig) -> Result<f64> {
+    let sensor = Sensor::ideal(codes.clone(), cfg.run.sampling, cfg.run.irf)?;
+    Ok(tcsense_sensor::identify::range_alias(&tcsense_sensor::identify::Columns::new(sensor.matrix(), cfg.run.sampling.k())).distance)
+}
+
+/// `logits` `[N, C, L]` pulled by `lambda` towards `start`: with the tap constraint its choice of
+/// every subpixel and mask gains `lambda`; without, each of its bits gains `lambda` where on and
+/// loses it where off. A pull above the logits' spread makes `start` the argmax.
+fn pulled(logits: &ndarray::Array3<f32>, start: &Codes, tap: bool, lambda: f32) -> ndarray::Array3<f32> {
+    let mut out = logits.clone();
+    let (taps, drain) = (start.taps(), start.drain());
+    for n in 0..start.subpixels() {
+        for l in 0..start.length() {
+            if tap {
+                let c = (0..taps).find(|&m| start.get(n, m, l)).or(drain.then_some(taps));
+                if let Some(c) = c {
+                    out[(n, c, l)] += lambda;
+                }
+            } else {
+                for m in 0..taps {
+                    out[(n, m, l)] += if start.get(n, m, l) { lambda } else { -lambda };
+                }
+            }
+        }
+    }
+    out
+}
+
+/// The projection of `logits` onto the constraints that also keeps the range alias at the
+/// threshold: the plain projection ([`tcsense_sensor::project::project`], blind to the alias)
+/// when its alias is at least `threshold` (or the start codes' is not), else the projection of
+/// the logits pulled towards the start codes ([`pulled`]) by the least pull, found by doubling
+/// then bisection, whose codes' alias reaches it. A large enough pull gives the start codes
+/// back, so the answer always holds the alias the start codes hold.
+struct Identifiable {
+    /// The projection; its `score` and `argmax_score` under the learned logits, not the pulled.
+    projection: tcsense_sensor::project::Projection,
+    alias: f64,
+    /// The pull (0: none was needed).
+    pull: f32,
+    /// The plain projection's alias.
+    alias_without_pull: f64,
+    /// Projections solved.
+    solved: usize,
+}
+
+/// See [`Identifiable`].
+fn project_identifiable(
+    logits: &ndarray::Array3<f32>,
+    start: &Codes,
+    constraints: Constraints,
+    threshold: f64,
+    alias_of: &dyn Fn(&Codes) -> Result<f64>,
+) -> Result<Identifiable> {
+    let project = |lambda: f32| -> Result<(tcsense_sensor::project::Projection, f64)> {
+        let theta = if lambda > 0.0 { pulled(logits, start, constraints.tap, lambda) } else { logits.clone() };
+        let p = tcsense_sensor::project::project(start.shape(), start.clock_hz, constraints, &theta.view())?;
+        let a = alias_of(&p.codes)?;
+        Ok((p, a))
+    };
+    let (plain, plain_alias) = project(0.0)?;
+    if plain_alias >= threshold || alias_of(start)? < threshold {
+        return Ok(Identifiable { projection: plain, alias: plain_alias, pull: 0.0, alias_without_pull: plain_alias, solved: 1 });
+    }
+    // scored under the learned logits, the bound the plain projection's
+    let unpulled = |(mut p, a, pull): (tcsense_sensor::project::Projection, f64, f32), solved: usize| {
+        p.score = tcsense_sensor::project::score(&p.codes, &logits.view());
+        p.argmax_score = plain.argmax_score;
+        Identifiable { projection: p, alias: a, pull, alias_without_pull: plain_alias, solved }
+    };
+    // the logits' spread: a pull of twice it makes the start codes the argmax
+    let spread = logits.iter().fold(0f32, |a, &v| a.max(v.abs())).max(1e-6);
+    let (mut lo, mut hi) = (0f32, spread / 64.0);
+    let mut solved = 1;
+    let mut best = loop {
+        let (p, a) = project(hi)?;
+        solved += 1;
+        if a >= threshold {
+            break (p, a, hi);
+        }
+        if hi > 4.0 * spread {
+            // (not reached: the start codes hold the alias) the start codes themselves
+            let (p, a) = project(1e3 * spread)?;
+            return Ok(unpulled((p, a, 1e3 * spread), solved + 1));
+        }
+        lo = hi;
+        hi *= 2.0;
+    };
+    for _ in 0..6 {
+        let mid = 0.5 * (lo + best.2);
+        let (p, a) = project(mid)?;
+        solved += 1;
+        if a >= threshold {
+            best = (p, a, mid);
+        } else {
+            lo = mid;
+        }
+    }
+    Ok(unpulled(best, solved))
+}
+
+/// Project the learned logits onto the constraints, keeping the range alias at the threshold
+/// ([`project_identifiable`]), record what it did in `RELAXED/projection.json`, and return the
+/// codes (provenance `learned`).
 pub(crate) fn project_and_record(l: &Learner, start: &Codes, cfg: &crate::TrainConfig, relaxed: &Path) -> Result<Codes> {
     let theta = l.logits.to_array();
-    let p = tcsense_sensor::project::project(start.shape(), start.clock_hz, l.lc.constraints, &theta.view())?;
+    let Identifiable { projection: p, alias, pull, alias_without_pull, solved } =
+        project_identifiable(&theta, start, l.lc.constraints, l.lc.alias_threshold, &|c| alias_of(c, cfg))?;
     let (tap, hamming, window) = l.distance();
     let changed = (0..start.subpixels() * start.taps())
         .map(|c| p.codes.channel(c).iter().zip(l.hard.channel(c)).filter(|(a, b)| a != b).count())
         .sum::<usize>();
-    // what the identifiability term was for: the projected codes' range alias on the run's sensor
-    let sensor = Sensor::ideal(p.codes.clone(), cfg.run.sampling, cfg.run.irf)?;
-    let alias = tcsense_sensor::identify::range_alias(&tcsense_sensor::identify::Columns::new(sensor.matrix(), cfg.run.sampling.k()));
+    let from_start = (0..start.subpixels() * start.taps())
+        .map(|c| p.codes.channel(c).iter().zip(start.channel(c)).filter(|(a, b)| a != b).count())
+        .sum::<usize>();
     let record = serde_json::json!({
-        "range_alias": alias.distance,
+        "range_alias": alias,
         "alias_threshold": l.lc.alias_threshold,
         "solver": p.method,
         "score": p.score,
         "argmax_score": p.argmax_score,
         "relaxed_violations": {"tap": tap, "hamming": hamming, "window": window},
         "bits_changed": changed,
+        "bits_from_start": from_start,
+        "alias_pull": pull,
+        "alias_without_pull": alias_without_pull,
+        "projections": solved,
         "bits": start.subpixels() * start.taps() * start.length(),
     });
     let mut codes = p.codes;
@@ -322,4 +433,50 @@ pub(crate) fn project_and_record(l: &Learner, start: &Codes, cfg: &crate::TrainC
     let text = serde_json::to_string_pretty(&record).map_err(|e| file_err(&relaxed.join(PROJECTION_FILE), e))? + "\n";
     tcsense_sensor::npy::write_bytes(&relaxed.join(PROJECTION_FILE), text.as_bytes())?;
     Ok(codes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tcsense_sensor::generate::{prototype_codes, random_codes};
+    use tcsense_sensor::{Irf, Sampling};
+
+    /// Logits that prefer codes of poor alias are projected to feasible codes that hold the
+    /// start codes' alias, scoring at least the start codes under the learned logits (the pull
+    /// trades agreement with the start codes for score, never below them).
+    #[test]
+    fn the_projection_keeps_the_alias_of_the_start_codes() {
+        let proto = prototype_codes(1).expect("the prototype's codes");
+        let sampling = Sampling::Oversample(1);
+        let alias = |c: &Codes| -> Result<f64> {
+            let sensor = Sensor::ideal(c.clone(), sampling, Irf::Physical { laser_fwhm_s: 0.3e-9, tap_tau_s: 0.3e-9 })?;
+            Ok(tcsense_sensor::identify::range_alias(&tcsense_sensor::identify::Columns::new(sensor.matrix(), sampling.k())).distance)
+        };
+        let (shape, constraints) = (proto.shape(), proto.constraints);
+        // start from the random feasible codes of the highest alias, learned logits that prefer
+        // those of the lowest
+        let mut codes: Vec<(f64, Codes)> = (1..24)
+            .map(|seed| random_codes(shape, proto.clock_hz, constraints, seed).expect("random codes"))
+            .map(|c| (alias(&c).expect("alias"), c))
+            .collect();
+        codes.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let (worst, start) = (codes[0].1.clone(), codes[codes.len() - 1].1.clone());
+        let choices = tcsense_sensor::project::choices(&shape, &constraints);
+        let logits = ndarray::Array3::from_shape_fn((shape.subpixels(), choices, shape.length), |(n, c, l)| {
+            let on = (0..shape.taps).find(|&m| worst.get(n, m, l)) == Some(c);
+            (if on { 1.0 } else { 0.0 }) + 0.01 * (((n * 31 + c * 7 + l * 13) % 17) as f32 / 17.0)
+        });
+        let threshold = alias(&start).expect("alias");
+        assert!(alias(&worst).expect("alias") < threshold, "{:?}", codes.iter().map(|c| c.0).collect::<Vec<_>>());
+        let r = project_identifiable(&logits, &start, constraints, threshold, &alias).expect("a projection");
+        assert!(r.alias_without_pull < threshold && r.pull > 0.0, "the plain projection is the low-alias code");
+        assert!(r.alias >= threshold && r.projection.codes.violations_of(&constraints).is_empty(), "{}", r.alias);
+        let score = |c: &Codes| tcsense_sensor::project::score(c, &logits.view());
+        assert!((r.projection.score - score(&r.projection.codes)).abs() < 1e-9, "scored under the learned logits");
+        assert!(r.projection.score >= score(&start) - 1e-9, "{} against the start's {}", r.projection.score, score(&start));
+        // with the alias already held no pull is applied
+        let plain = project_identifiable(&logits, &start, constraints, 0.0, &alias).expect("a projection");
+        assert_eq!((plain.pull, plain.solved), (0.0, 1));
+        assert_eq!(plain.projection.codes.digest(), worst.digest());
+    }
 }
