@@ -26,12 +26,11 @@ pub fn load_depth(ds: &Dataset, split: &str, max: Option<usize>, k: usize) -> Re
         .load_first(split, "depth", max)?
         .into_dimensionality::<Ix4>()
         .map_err(|e| file_err(&ds.dir, format!("field depth of split {split}: {e}")))?;
-    let (n, bounces, _, _) = d.dim();
+    let (_, bounces, _, _) = d.dim();
     if k == 0 || k > bounces {
         return Err(file_err(&ds.dir, format!("the depth field has {bounces} returns per pixel; the network wants {k}")));
     }
-    let n = max.unwrap_or(n).min(n);
-    Ok(d.slice(ndarray::s![..n, ..k, .., ..]).to_owned())
+    Ok(d.slice(ndarray::s![.., ..k, .., ..]).to_owned())
 }
 
 /// Lifetime labels of one pixel from its channel weights `w_i` and lifetimes `τ_i` (s): the
@@ -99,7 +98,6 @@ pub fn load_lifetime_labels(ds: &Dataset, split: &str, max: Option<usize>) -> Re
             ),
         ));
     }
-    let n = max.unwrap_or(n).min(n);
     let mut out = Array4::<f32>::from_elem((n, 5, h, wd), f32::NAN);
     for i in 0..n {
         let peak = inten.index_axis(Axis(0), i).iter().fold(0f32, |m, &v| m.max(v));

@@ -290,10 +290,16 @@ pub(crate) fn write_log(path: &Path, rows: &[String]) -> Result<()> {
     Ok(tcsense_sensor::npy::write_bytes(path, text.as_bytes())?)
 }
 
-/// The range alias of `codes` on the run's sensor (what the identifiability term is for).
-fn alias_of(codes: &Codes, cfg: &crate::TrainConfig) -> Result<f64> {
-    let sensor = Sensor::ideal(codes.clone(), cfg.run.sampling, cfg.run.irf)?;
-    Ok(tcsense_sensor::identify::range_alias(&tcsense_sensor::identify::Columns::new(sensor.matrix(), cfg.run.sampling.k())).distance)
+/// The range alias of `codes` on an ideal sensor of this sampling and IRF (what the
+/// identifiability term is for).
+fn alias_of(codes: &Codes, sampling: tcsense_sensor::Sampling, irf: tcsense_sensor::Irf) -> Result<f64> {
+    let sensor = Sensor::ideal(codes.clone(), sampling, irf)?;
+    Ok(tcsense_sensor::identify::range_alias(&tcsense_sensor::identify::Columns::new(sensor.matrix(), sampling.k())).distance)
+}
+
+/// Bits in which two codes of the same shape differ.
+fn bits_apart(a: &Codes, b: &Codes) -> usize {
+    (0..a.subpixels() * a.taps()).map(|c| a.channel(c).iter().zip(b.channel(c)).filter(|(x, y)| x != y).count()).sum()
 }
 
 /// `logits` `[N, C, L]` pulled by `lambda` towards `start`: with the tap constraint its choice of
@@ -398,14 +404,9 @@ fn project_identifiable(
 pub(crate) fn project_and_record(l: &Learner, start: &Codes, cfg: &crate::TrainConfig, relaxed: &Path) -> Result<Codes> {
     let theta = l.logits.to_array();
     let Identifiable { projection: p, alias, pull, alias_without_pull, solved } =
-        project_identifiable(&theta, start, l.lc.constraints, l.lc.alias_threshold, &|c| alias_of(c, cfg))?;
+        project_identifiable(&theta, start, l.lc.constraints, l.lc.alias_threshold, &|c| alias_of(c, cfg.run.sampling, cfg.run.irf))?;
     let (tap, hamming, window) = l.distance();
-    let changed = (0..start.subpixels() * start.taps())
-        .map(|c| p.codes.channel(c).iter().zip(l.hard.channel(c)).filter(|(a, b)| a != b).count())
-        .sum::<usize>();
-    let from_start = (0..start.subpixels() * start.taps())
-        .map(|c| p.codes.channel(c).iter().zip(start.channel(c)).filter(|(a, b)| a != b).count())
-        .sum::<usize>();
+    let (changed, from_start) = (bits_apart(&p.codes, &l.hard), bits_apart(&p.codes, start));
     let record = serde_json::json!({
         "range_alias": alias,
         "alias_threshold": l.lc.alias_threshold,
@@ -448,10 +449,7 @@ mod tests {
     fn the_projection_keeps_the_alias_of_the_start_codes() {
         let proto = prototype_codes(1).expect("the prototype's codes");
         let sampling = Sampling::Oversample(1);
-        let alias = |c: &Codes| -> Result<f64> {
-            let sensor = Sensor::ideal(c.clone(), sampling, Irf::Physical { laser_fwhm_s: 0.3e-9, tap_tau_s: 0.3e-9 })?;
-            Ok(tcsense_sensor::identify::range_alias(&tcsense_sensor::identify::Columns::new(sensor.matrix(), sampling.k())).distance)
-        };
+        let alias = |c: &Codes| alias_of(c, sampling, Irf::Physical { laser_fwhm_s: 0.3e-9, tap_tau_s: 0.3e-9 });
         let (shape, constraints) = (proto.shape(), proto.constraints);
         // start from the random feasible codes of the highest alias, learned logits that prefer
         // those of the lowest

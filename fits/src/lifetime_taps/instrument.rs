@@ -46,7 +46,7 @@ pub(super) fn instrument(
     // every bin of the cycle and every width: the coarse grid's tables, the same for every
     // frame through this sensor (built once, see `coarse_tables`)
     let bins = c.bins;
-    let coarse = coarse_tables(a, c, opts, m);
+    let coarse = coarse_tables(a, c, opts);
     let coarse_cands: Vec<(usize, usize)> = (0..widths.len()).flat_map(|wi| (0..bins).map(move |j| (wi, j))).collect();
     let (_, _, j) = coarse_cands
         .par_iter()
@@ -90,13 +90,13 @@ struct CoarseTables {
 ///
 /// The decays at onset 0 shifted by whole bins go through every row of the sensor at once:
 /// `corr[w][n·M + k][i][j] = Σ_t A[n][k][t]·D_i(t − j)`.
-fn coarse_tables(a: &ArrayView3<'_, f32>, c: Cycle, opts: &TapFitOptions, m: usize) -> std::sync::Arc<CoarseTables> {
+fn coarse_tables(a: &ArrayView3<'_, f32>, c: Cycle, opts: &TapFitOptions) -> std::sync::Arc<CoarseTables> {
     static LAST: std::sync::Mutex<Option<std::sync::Arc<CoarseTables>>> = std::sync::Mutex::new(None);
-    let (n_types, taps, bins) = a.dim();
+    let (n_types, m, bins) = a.dim();
     let widths = &opts.irf_fwhm_s;
     let key = (
         a.iter().map(|v| v.to_bits()).collect::<Vec<u32>>(),
-        [n_types, taps, bins],
+        [n_types, m, bins],
         c.dt_s.to_bits(),
         opts.tau_range_s.map(f64::to_bits),
         widths.iter().map(|w| w.to_bits()).collect::<Vec<u64>>(),
