@@ -128,83 +128,123 @@ fn every_entry_decodes_and_exports_with_burn_and_onnx_runtime_agreeing() {
     }
 }
 
+/// A dataset step's output, shared by the entries whose recipes run the same step: the first to
+/// need it generates it (the others wait for it), the later ones link it.
+#[derive(Default)]
+struct SharedDatasets(std::sync::Mutex<std::collections::HashMap<Vec<String>, std::sync::Arc<std::sync::Mutex<Option<PathBuf>>>>>);
+
+impl SharedDatasets {
+    /// Runs dataset step `s` (output `out`) in `dir`, or links its earlier output there.
+    fn provide(&self, s: &[String], out: &str, dir: &Path) {
+        let slot = self.0.lock().unwrap().entry(s.to_vec()).or_default().clone();
+        let mut slot = slot.lock().unwrap_or_else(|e| e.into_inner());
+        match slot.as_ref() {
+            Some(earlier) => std::os::unix::fs::symlink(earlier, dir.join(out)).unwrap(),
+            None => {
+                ok(dir, &s.iter().map(String::as_str).collect::<Vec<_>>());
+                *slot = Some(dir.join(out));
+            }
+        }
+    }
+}
+
 #[test]
 fn every_entry_reproduces_its_first_logged_epoch_from_its_recipe() {
-    // a dataset step that an earlier entry's recipe ran with the same arguments is linked from
-    // there, not generated again (the LiDAR entries share one dataset, the FLIm ones another)
-    let mut made: std::collections::HashMap<Vec<String>, PathBuf> = std::collections::HashMap::new();
-    let mut dirs = Vec::new();
-    for name in entries() {
-        let d = tempdir();
-        let steps = recipe(&name);
-        let (train, setup) = steps.split_last().expect("a recipe ends with its train command");
-        assert_eq!(train[0], "train", "zoo:{name}: the recipe's last step trains");
-        for s in setup {
-            let out = s.iter().position(|a| a == "-o").map(|i| s[i + 1].clone());
-            match (s[0].as_str(), out, made.get(s)) {
-                ("dataset", Some(out), Some(earlier)) => std::os::unix::fs::symlink(earlier, d.path().join(&out)).unwrap(),
-                ("dataset", Some(out), None) => {
-                    ok(d.path(), &s.iter().map(String::as_str).collect::<Vec<_>>());
-                    made.insert(s.clone(), d.path().join(out));
+    // two entries at a time: one training keeps about 1.4 of 2 cores busy. A dataset step that
+    // an earlier entry's recipe ran with the same arguments is linked from there, not generated
+    // again (the LiDAR entries share one dataset, the FLIm ones another); every entry's
+    // directory lives to the end, for the links into it
+    let names = entries();
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let failed = std::sync::atomic::AtomicBool::new(false);
+    let datasets = SharedDatasets::default();
+    let dirs = std::sync::Mutex::new(Vec::new());
+    std::thread::scope(|scope| {
+        for _ in 0..2 {
+            scope.spawn(|| loop {
+                let k = next.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+                if k >= names.len() || failed.load(std::sync::atomic::Ordering::SeqCst) {
+                    break;
                 }
-                _ => {
-                    ok(d.path(), &s.iter().map(String::as_str).collect::<Vec<_>>());
+                let d = tempdir();
+                let replayed =
+                    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| replay_first_epoch(&names[k], d.path(), &datasets)));
+                dirs.lock().unwrap_or_else(|e| e.into_inner()).push(d);
+                if let Err(e) = replayed {
+                    failed.store(true, std::sync::atomic::Ordering::SeqCst);
+                    std::panic::resume_unwind(e);
                 }
+            });
+        }
+    });
+}
+
+/// Replays zoo entry `name`'s recipe in `dir` up to its first epoch and checks it against the
+/// entry's log.
+fn replay_first_epoch(name: &str, dir: &Path, datasets: &SharedDatasets) {
+    let name = name.to_string();
+    let steps = recipe(&name);
+    let (train, setup) = steps.split_last().expect("a recipe ends with its train command");
+    assert_eq!(train[0], "train", "zoo:{name}: the recipe's last step trains");
+    for s in setup {
+        let out = s.iter().position(|a| a == "-o").map(|i| s[i + 1].clone());
+        match (s[0].as_str(), out) {
+            ("dataset", Some(out)) => datasets.provide(s, &out, dir),
+            _ => {
+                ok(dir, &s.iter().map(String::as_str).collect::<Vec<_>>());
             }
         }
-        let out =
-            train.iter().position(|a| a == "-o" || a == "--output").map(|i| train[i + 1].clone()).expect("the train step names its run");
-        let mut args: Vec<&str> = train.iter().map(String::as_str).collect();
-        args.extend(["--pause-after", "1"]);
-        let stdout = ok(d.path(), &args);
-        assert!(stdout.contains("paused after 1 epochs"), "{stdout}");
-        let first = |p: &Path| std::fs::read_to_string(p).unwrap().lines().nth(1).map(str::to_string).unwrap_or_default();
-        // the clock is in timing.csv; a metrics.csv from before it ends in seconds
-        let strip = |row: String, header: &str| {
-            if header.ends_with(",seconds") {
-                row.rsplit_once(',').map(|(a, _)| a.to_string()).unwrap_or(row)
-            } else {
-                row
-            }
-        };
-        // an entry with learned codes starts with its relaxed phase, a run of its own in RUN/relaxed
-        let phase = if train.iter().any(|a| a == "--learn-codes") { "relaxed" } else { "" };
-        let zoo_metrics = zoo_dir().join(&name).join(phase).join("metrics.csv");
-        let header = std::fs::read_to_string(&zoo_metrics).unwrap().lines().next().unwrap_or_default().to_string();
-        let want = strip(first(&zoo_metrics), &header);
-        let got = first(&d.path().join(&out).join(phase).join("metrics.csv"));
-        assert!(!want.is_empty(), "zoo:{name} logs its epochs");
-        // epoch, step and training loss: the same bytes (the weights' path is this code's)
-        let (gv, wv): (Vec<&str>, Vec<&str>) = (got.split(',').collect(), want.split(',').collect());
-        assert_eq!(gv.len(), wv.len(), "zoo:{name}: the first epoch re-run from its recipe: {got} against {want}");
-        assert_eq!(gv[..3], wv[..3], "zoo:{name}: the first epoch's training loss re-run from its recipe: {got} against {want}");
-        // validation: exact for cube and lifetime networks. A depth network's ranges go through
-        // its read-out and the range fit in the tap domain, both improved since the U-Net entry
-        // logged its first epoch (the local soft-argmax moved its epoch-1 RMSE 1.836 → 2.110 m,
-        // MAE 1.318 → 1.246 m: a one-epoch network's scores are spread over the range); its
-        // detection rate within 1 %, its errors within 25 %
-        let columns: Vec<&str> = header.split(',').collect();
-        for (k, (g, w)) in gv.iter().zip(&wv).enumerate().skip(3) {
-            let (g, w): (f64, f64) = (g.parse().unwrap(), w.parse().unwrap());
-            let tolerance = match columns.get(k) {
-                _ if !header.contains("depth") => 0.0,
-                Some(&"val_detection") => 0.01,
-                _ => 0.25,
-            };
-            assert!(
-                (g - w).abs() <= tolerance * w.abs(),
-                "zoo:{name}: validation column {k} of the first epoch re-run: {got} against {want} (within {tolerance})"
-            );
-        }
-        // the first epoch's checkpoint is a resumable run of the recorded config
-        let cfg = |p: &Path| serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(p.join("config.json")).unwrap()).unwrap();
-        let (zc, rc) = (cfg(&zoo_dir().join(&name)), cfg(&d.path().join(&out)));
-        for key in ["decoder", "model", "sampling", "irf", "epochs", "batch_size", "learning_rate", "seed", "augment"] {
-            assert_eq!(zc[key], rc[key], "zoo:{name}: config.{key} of the re-run");
-        }
-        let state: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(d.path().join(&out).join(phase).join("checkpoint/state.json")).unwrap()).unwrap();
-        assert_eq!(state["epoch"], 1, "zoo:{name}: paused after one epoch, its checkpoint in place");
-        dirs.push(d);
     }
+    let out = train.iter().position(|a| a == "-o" || a == "--output").map(|i| train[i + 1].clone()).expect("the train step names its run");
+    let mut args: Vec<&str> = train.iter().map(String::as_str).collect();
+    args.extend(["--pause-after", "1"]);
+    let stdout = ok(dir, &args);
+    assert!(stdout.contains("paused after 1 epochs"), "{stdout}");
+    let first = |p: &Path| std::fs::read_to_string(p).unwrap().lines().nth(1).map(str::to_string).unwrap_or_default();
+    // the clock is in timing.csv; a metrics.csv from before it ends in seconds
+    let strip = |row: String, header: &str| {
+        if header.ends_with(",seconds") {
+            row.rsplit_once(',').map(|(a, _)| a.to_string()).unwrap_or(row)
+        } else {
+            row
+        }
+    };
+    // an entry with learned codes starts with its relaxed phase, a run of its own in RUN/relaxed
+    let phase = if train.iter().any(|a| a == "--learn-codes") { "relaxed" } else { "" };
+    let zoo_metrics = zoo_dir().join(&name).join(phase).join("metrics.csv");
+    let header = std::fs::read_to_string(&zoo_metrics).unwrap().lines().next().unwrap_or_default().to_string();
+    let want = strip(first(&zoo_metrics), &header);
+    let got = first(&dir.join(&out).join(phase).join("metrics.csv"));
+    assert!(!want.is_empty(), "zoo:{name} logs its epochs");
+    // epoch, step and training loss: the same bytes (the weights' path is this code's)
+    let (gv, wv): (Vec<&str>, Vec<&str>) = (got.split(',').collect(), want.split(',').collect());
+    assert_eq!(gv.len(), wv.len(), "zoo:{name}: the first epoch re-run from its recipe: {got} against {want}");
+    assert_eq!(gv[..3], wv[..3], "zoo:{name}: the first epoch's training loss re-run from its recipe: {got} against {want}");
+    // validation: exact for cube and lifetime networks. A depth network's ranges go through
+    // its read-out and the range fit in the tap domain, both improved since the U-Net entry
+    // logged its first epoch (the local soft-argmax moved its epoch-1 RMSE 1.836 → 2.110 m,
+    // MAE 1.318 → 1.246 m: a one-epoch network's scores are spread over the range); its
+    // detection rate within 1 %, its errors within 25 %
+    let columns: Vec<&str> = header.split(',').collect();
+    for (k, (g, w)) in gv.iter().zip(&wv).enumerate().skip(3) {
+        let (g, w): (f64, f64) = (g.parse().unwrap(), w.parse().unwrap());
+        let tolerance = match columns.get(k) {
+            _ if !header.contains("depth") => 0.0,
+            Some(&"val_detection") => 0.01,
+            _ => 0.25,
+        };
+        assert!(
+            (g - w).abs() <= tolerance * w.abs(),
+            "zoo:{name}: validation column {k} of the first epoch re-run: {got} against {want} (within {tolerance})"
+        );
+    }
+    // the first epoch's checkpoint is a resumable run of the recorded config
+    let cfg = |p: &Path| serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(p.join("config.json")).unwrap()).unwrap();
+    let (zc, rc) = (cfg(&zoo_dir().join(&name)), cfg(&dir.join(&out)));
+    for key in ["decoder", "model", "sampling", "irf", "epochs", "batch_size", "learning_rate", "seed", "augment"] {
+        assert_eq!(zc[key], rc[key], "zoo:{name}: config.{key} of the re-run");
+    }
+    let state: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join(&out).join(phase).join("checkpoint/state.json")).unwrap()).unwrap();
+    assert_eq!(state["epoch"], 1, "zoo:{name}: paused after one epoch, its checkpoint in place");
 }
