@@ -184,7 +184,11 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
     // share within half a bin falls with the light
     let photon = json(&demo.join("results/photon-lidar.json"));
     let prow = photon["rows"].as_array().unwrap();
-    assert_eq!(prow.len(), 5 * 4, "four decoders on the selected codes and the zoo's evidence U-Net, at four levels");
+    assert_eq!(
+        prow.len(),
+        7 * 4,
+        "four decoders on the selected codes, the ADMM-Net and the fit on the learned codes and the zoo's evidence U-Net, at four levels"
+    );
     let share = |d: &str, level: f64| {
         prow.iter()
             .find(|r| r["decoder"].as_str() == Some(d) && r["light"]["signal_fraction"].as_f64() == Some(level))
@@ -193,6 +197,16 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
     };
     let fit = "range fit to the taps, 2 returns";
     assert!(share(fit, 0.8) > 0.5 && share(fit, 0.8) > share(fit, 0.005), "{} at 0.8, {} at 0.005", share(fit, 0.8), share(fit, 0.005));
+    // both code sets with one architecture: the learned codes' rows are measured through them
+    // (the fit on the learned codes reads their ranges too), and the report compares them
+    let learned_fit = "range fit to the taps, 2 returns, learned codes";
+    assert!(share(learned_fit, 0.8) > 0.3, "{learned_fit} at 0.8: {}", share(learned_fit, 0.8));
+    assert!(share(learned_fit, 0.8) != share(fit, 0.8), "the learned codes' rows are measured through their own codes");
+    share("ADMM-Net + peaks, learned codes", 0.02);
+    assert!(
+        html.contains("The two code sets with one decoder architecture") && html.contains("selected codes → learned codes"),
+        "codes on the ladder"
+    );
     let photon_flim = json(&demo.join("results/photon-flim.json"));
     assert_eq!(photon_flim["rows"].as_array().unwrap().len(), 3 * 4);
     assert!(html.contains("The light axis (results/photon-lidar.json)") && html.contains("signal 0.005 ("), "photon tables missing");

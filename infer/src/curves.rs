@@ -74,16 +74,42 @@ fn bound_series(
     })
 }
 
+/// Code sets to draw the bound of: a name (for the legend) and the sensor's matrix. One set is
+/// drawn as "the codes"; several are named.
+pub type CodeSets<'a> = [(&'a str, &'a MeasurementMatrix)];
+
+/// One bound per code set of `codes` (see [`bound_series`]), labelled `what` and, where there
+/// are several sets, the set's name.
+fn bounds_of(
+    rows: &[EvalRow],
+    codes: &CodeSets,
+    noise: &NoiseParams,
+    sbr: Option<f64>,
+    what: &str,
+    bound: impl Fn(&MeasurementMatrix, &Light) -> f64,
+) -> Vec<Series> {
+    codes
+        .iter()
+        .filter_map(|(name, a)| {
+            let label = if codes.len() > 1 {
+                format!("Cramér–Rao bound, {name} codes ({what})")
+            } else {
+                format!("Cramér–Rao bound ({what})")
+            };
+            bound_series(rows, a, noise, sbr, &label, |light| bound(a, light))
+        })
+        .collect()
+}
+
 /// The photon-efficiency figure of FLIm ladder rows: each decoder's lifetime MAE (ns) and the
 /// share of the fluorophore pixels with a lifetime against the brightest tap's signal
-/// electrons, beside the codes' Cramér–Rao bound of a 2 ns lifetime seen by a whole block with
-/// its onset known ([`tcsense_sensor::identify::lifetime_bound`], mean over 8 onsets), under the
-/// noise model's read noise and the ambient light.
-pub fn lifetime_curve(png: &Path, rows: &[EvalRow], a: &MeasurementMatrix, k: usize, noise: &NoiseParams, sbr: Option<f64>) -> Result<()> {
-    let cols = Columns::new(a, k);
-    let weights = vec![1.0; a.a().dim().0];
-    let bound = bound_series(rows, a, noise, sbr, "Cramér–Rao bound (a block, τ = 2 ns, onset known)", |light| {
-        lifetime_bound(&cols, light, &[2e-9], 8, &weights)[0].known_mean_s * 1e9
+/// electrons, beside each code set's Cramér–Rao bound of a 2 ns lifetime seen by a whole block
+/// with its onset known ([`tcsense_sensor::identify::lifetime_bound`], mean over 8 onsets),
+/// under the noise model's read noise and the ambient light; `k` is the heterodyne factor.
+pub fn lifetime_curve(png: &Path, rows: &[EvalRow], codes: &CodeSets, k: usize, noise: &NoiseParams, sbr: Option<f64>) -> Result<()> {
+    let bounds = bounds_of(rows, codes, noise, sbr, "a block, τ = 2 ns, onset known", |a, light| {
+        let weights = vec![1.0; a.a().dim().0];
+        lifetime_bound(&Columns::new(a, k), light, &[2e-9], 8, &weights)[0].known_mean_s * 1e9
     });
     let series = |f: &dyn Fn(&EvalRow) -> Option<f64>| decoder_series(rows, f);
     let errors = series(&|r| r.lifetime_mae_s.map(|v| v * 1e9));
@@ -97,19 +123,23 @@ pub fn lifetime_curve(png: &Path, rows: &[EvalRow], a: &MeasurementMatrix, k: us
         "fluorophore pixels with a lifetime (%)",
         &errors,
         &shares,
-        bound.as_ref(),
+        &bounds,
     )?;
     Ok(())
 }
 
 /// The photon-efficiency figure of ladder rows: each decoder's median first-return error (bins)
 /// and share within half a bin against the brightest tap's signal electrons.
-/// Beside them, the codes' Cramér–Rao bound of one return seen by a whole block
+/// Beside them, each code set's Cramér–Rao bound of one return seen by a whole block
 /// ([`tcsense_sensor::identify::range_bound`], mean over the cycle) whose brightest tap holds
-/// the level's signal electrons, with the noise model's read noise and the ambient light.
-pub fn range_curve(png: &Path, rows: &[EvalRow], a: &MeasurementMatrix, noise: &NoiseParams, sbr: Option<f64>) -> Result<()> {
-    let bin_m = 299_792_458.0 * a.bin_width_s() / 2.0;
-    let bound = bound_series(rows, a, noise, sbr, "Cramér–Rao bound (a block, one return)", |light| range_bound(a, light, 2).mean_bins);
+/// the level's signal electrons, with the noise model's read noise and the ambient light. The
+/// sets share a time grid: the bins are the first set's.
+pub fn range_curve(png: &Path, rows: &[EvalRow], codes: &CodeSets, noise: &NoiseParams, sbr: Option<f64>) -> Result<()> {
+    let Some((_, first)) = codes.first() else {
+        return Err(InferError::InvalidParam { field: "photon curve", got: "no codes".into(), expected: "the codes of the rows".into() });
+    };
+    let bin_m = 299_792_458.0 * first.bin_width_s() / 2.0;
+    let bounds = bounds_of(rows, codes, noise, sbr, "a block, one return", |a, light| range_bound(a, light, 2).mean_bins);
     let series = |f: &dyn Fn(&EvalRow) -> Option<f64>| decoder_series(rows, f);
     let errors = series(&|r| r.depth_median_m.first().map(|m| m / bin_m));
     let shares = series(&|r| r.depth_within_half_bin.first().map(|s| 100.0 * s));
@@ -129,7 +159,7 @@ pub fn range_curve(png: &Path, rows: &[EvalRow], a: &MeasurementMatrix, noise: &
         "first returns within half a bin (%)",
         &errors,
         &shares,
-        bound.as_ref(),
+        &bounds,
     )?;
     Ok(())
 }

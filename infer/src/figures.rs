@@ -203,7 +203,7 @@ pub fn log_chart(path: &Path, title: &str, x_label: &str, y_label: &str, series:
 }
 
 /// The photon-efficiency curve of decoders: on the left the median error against the light
-/// (both axes logarithmic), with `bound` (e.g. the codes' Cramér–Rao bound) drawn dashed; on
+/// (both axes logarithmic), with `bounds` (e.g. each code set's Cramér–Rao bound) dashed; on
 /// the right the share within a tolerance (0–100 %) against the light. Series share their
 /// labels and colours across the panels; points with a non-positive or non-finite value are
 /// left out.
@@ -215,14 +215,24 @@ pub fn photon_curve(
     share_label: &str,
     errors: &[Series],
     shares: &[Series],
-    bound: Option<&Series>,
+    bounds: &[Series],
 ) -> Result<()> {
-    let all: Vec<Series> = errors.iter().chain(bound).cloned().collect();
+    let all: Vec<Series> = errors.iter().chain(bounds).cloned().collect();
     let (x0, x1, y0, y1) = extent(&all, |x, y| x > 0.0 && y > 0.0, (1.0, 10.0, 0.1, 10.0));
     let ((x0, x1), (y0, y1)) = (decades(x0, x1), decades(y0, y1));
-    render(path, (1400, 560), |root| {
+    // the legend is a strip below both panels, three entries a line: the bounds (dashed, as
+    // drawn on the left), then the decoders (their colours are the same in both panels)
+    let bound_style = |k: usize| {
+        let shade = (k.min(2) * 80) as u8;
+        (RGBColor(shade, shade, shade).stroke_width(2), if k == 0 { (8, 6) } else { (3, 4) })
+    };
+    let entries = bounds.len() + errors.len().max(shares.len());
+    let legend_rows = entries.div_ceil(3) as u32;
+    let legend_h = 16 + 26 * legend_rows;
+    render(path, (1400, 560 + legend_h), |root| {
         let (title_area, body) = root.split_vertically(40);
         title_area.titled(title, (FONT, 22)).map_err(err)?;
+        let (body, legend_area) = body.split_vertically(520);
         let (left, right) = body.split_horizontally(700);
         let mut chart = ChartBuilder::on(&left)
             .margin(12)
@@ -240,18 +250,13 @@ pub fn photon_curve(
             .axis_desc_style((FONT, 17))
             .draw()
             .map_err(err)?;
-        if let Some(b) = bound {
+        for (k, b) in bounds.iter().enumerate() {
             let pts: Vec<(f64, f64)> =
                 b.points.iter().copied().filter(|(x, y)| *x > 0.0 && *y > 0.0 && x.is_finite() && y.is_finite()).collect();
-            chart
-                .draw_series(DashedLineSeries::new(pts, 8, 6, BLACK.stroke_width(2)))
-                .map_err(err)?
-                .label(b.label.clone())
-                .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 20, y)], BLACK.stroke_width(2)));
+            let (style, (dash, gap)) = bound_style(k);
+            chart.draw_series(DashedLineSeries::new(pts, dash, gap, style)).map_err(err)?;
         }
         marked_lines(&mut chart, errors, |x, y| x > 0.0 && y > 0.0)?;
-        // the lower left is empty: low light, low error
-        legend(&mut chart, 14, SeriesLabelPosition::LowerLeft)?;
         let mut chart = ChartBuilder::on(&right)
             .margin(12)
             .x_label_area_size(48)
@@ -269,7 +274,28 @@ pub fn photon_curve(
             .draw()
             .map_err(err)?;
         marked_lines(&mut chart, shares, |x, _| x > 0.0)?;
-        legend(&mut chart, 14, SeriesLabelPosition::LowerRight)?;
+        // the strip: a sample of each line and its label
+        let decoders = if errors.len() >= shares.len() { errors } else { shares };
+        let font = (FONT, 15).into_font();
+        for e in 0..entries {
+            let (col, row) = ((e % 3) as i32, (e / 3) as i32);
+            let (x, y) = (40 + col * 450, 14 + row * 26);
+            if let Some(b) = bounds.get(e) {
+                let (style, (dash, gap)) = bound_style(e);
+                let mut at = x;
+                while at < x + 30 {
+                    legend_area.draw(&PathElement::new(vec![(at, y), ((at + dash).min(x + 30), y)], style)).map_err(err)?;
+                    at += dash + gap;
+                }
+                legend_area.draw(&Text::new(b.label.clone(), (x + 40, y - 8), font.clone())).map_err(err)?;
+            } else {
+                let i = e - bounds.len();
+                let c = PALETTE[(i + 1) % PALETTE.len()];
+                legend_area.draw(&PathElement::new(vec![(x, y), (x + 30, y)], c.stroke_width(2))).map_err(err)?;
+                legend_area.draw(&Circle::new((x + 15, y), 4, c.filled())).map_err(err)?;
+                legend_area.draw(&Text::new(decoders[i].label.clone(), (x + 40, y - 8), font.clone())).map_err(err)?;
+            }
+        }
         Ok(())
     })
 }

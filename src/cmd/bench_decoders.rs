@@ -194,12 +194,12 @@ pub fn run(a: BenchDecodersArgs) -> Result<()> {
         &a.light.iter().map(|l| l.to_string()).collect::<Vec<_>>(),
     )?;
     if lidar {
-        tcsense_infer::curves::range_curve(&outputs.stage(&photon)?, &rows, sensor.nominal(), &first, a.sbr)?;
+        tcsense_infer::curves::range_curve(&outputs.stage(&photon)?, &rows, &[("", sensor.nominal())], &first, a.sbr)?;
     } else {
         tcsense_infer::curves::lifetime_curve(
             &outputs.stage(&photon)?,
             &rows,
-            sensor.nominal(),
+            &[("", sensor.nominal())],
             sensor.spec().sampling().k(),
             &first,
             a.sbr,

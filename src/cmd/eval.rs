@@ -127,13 +127,13 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
             tcsense_infer::curves::lifetime_curve(
                 &outputs.stage(png)?,
                 &rows,
-                sensor.nominal(),
+                &[("", sensor.nominal())],
                 sensor.spec().sampling().k(),
                 &noise,
                 a.sbr,
             )?;
         } else {
-            tcsense_infer::curves::range_curve(&outputs.stage(png)?, &rows, sensor.nominal(), &noise, a.sbr)?;
+            tcsense_infer::curves::range_curve(&outputs.stage(png)?, &rows, &[("", sensor.nominal())], &noise, a.sbr)?;
         }
         lines.push(format!("wrote {}", png.display()));
     }

@@ -288,6 +288,7 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
                 &lidar,
                 &flim,
                 &selected,
+                &learned,
                 &runs_dir,
                 plan.lidar_eval_items,
                 plan.flim_eval_items,

@@ -226,13 +226,19 @@ pub(super) fn decode_frames(
 /// One dataset's test frame through decoders: (file tag, dataset, codes, [(name, decoder spec)]).
 pub(super) type FrameJob<'a> = (&'a str, &'a Dataset, &'a Codes, Vec<(&'a str, String)>);
 
+/// The photon ladder's rows on the learned LiDAR codes (deep sensing's ADMM-Net and the fit).
+pub(super) const LEARNED_ADMM: &str = "ADMM-Net + peaks, learned codes";
+pub(super) const LEARNED_FIT: &str = "range fit to the taps, 2 returns, learned codes";
+
 /// The rungs of the demo's photon ladder: the brightest tap's share of the full well.
 pub(super) const LADDER: [f64; 4] = [0.8, 0.1, 0.02, 0.005];
 
 /// The photon-efficiency curves of the demo's decoders on their test splits (noise on, no
 /// ambient light): LiDAR — the range fit to the taps with one and two returns, the ADMM-Net by
-/// peaks, the Aᵀ + U-Net (with its range fit), on the selected codes, and the zoo's U-Net on
-/// the fit's evidence as shipped on its own codes; FLIm — the lifetime fit to the taps and the
+/// peaks, the Aᵀ + U-Net (with its range fit), on the selected codes; the same ADMM-Net
+/// architecture trained with its codes by deep sensing, and the two-return fit, on the learned
+/// codes (both code sets' curves with one decoder architecture); the zoo's U-Net on the fit's
+/// evidence as shipped on its own codes; FLIm — the lifetime fit to the taps and the
 /// ADMM-Net's cube by the reconvolution fit on the selected codes, and the zoo's lifetime
 /// network on the fit's evidence as shipped. Writes `results/photon-lidar.json`,
 /// `results/photon-flim.json` (every [`EvalRow`] with its light) and their figures
@@ -243,6 +249,7 @@ pub(super) fn photon_curves(
     lidar: &Dataset,
     flim: &Dataset,
     selected: &Codes,
+    learned: &Codes,
     runs_dir: &Path,
     lidar_items: usize,
     flim_items: usize,
@@ -280,13 +287,17 @@ pub(super) fn photon_curves(
             ("Aᵀ + U-Net + range fit", run_of(names::UNET, "unet-lidar")),
         ];
         let mut rows = ladder(lidar, &a, &decoders, lidar_items)?;
+        let on_learned = sensor(learned, lidar)?;
+        let learned_decoders = [(LEARNED_FIT, names::DEPTH_FIT.to_string()), (LEARNED_ADMM, run_of(names::ADMM_NET, "learned-lidar"))];
+        rows.extend(ladder(lidar, &on_learned, &learned_decoders, lidar_items)?);
         if let Some((zoo_dir, _)) = zoo_entry_named(ZOO_EVIDENCE_UNET, lidar) {
             let own = sensor(&Codes::load(&zoo_dir.join(CODES_FILE))?, lidar)?;
             let shipped =
                 [("U-Net on the fit's evidence (zoo, as shipped, its own codes)", format!("{}:{}", names::UNET, zoo_dir.display()))];
             rows.extend(ladder(lidar, &own, &shipped, lidar_items)?);
         }
-        tcsense_infer::curves::range_curve(&figures.join("photon-lidar.png"), &rows, a.nominal(), noise, None)?;
+        let codes = [("selected", a.nominal()), ("learned", on_learned.nominal())];
+        tcsense_infer::curves::range_curve(&figures.join("photon-lidar.png"), &rows, &codes, noise, None)?;
         let bin_m = C * a.nominal().bin_width_s() / 2.0;
         write_json(
             &lidar_json,
@@ -309,7 +320,14 @@ pub(super) fn photon_curves(
             )];
             rows.extend(ladder(flim, &own, &shipped, flim_items)?);
         }
-        tcsense_infer::curves::lifetime_curve(&figures.join("photon-flim.png"), &rows, a.nominal(), a.spec().sampling().k(), noise, None)?;
+        tcsense_infer::curves::lifetime_curve(
+            &figures.join("photon-flim.png"),
+            &rows,
+            &[("selected", a.nominal())],
+            a.spec().sampling().k(),
+            noise,
+            None,
+        )?;
         write_json(&flim_json, &json!({ "split": "test", "items": flim_items, "noise_seed": seed, "ladder": LADDER, "rows": rows }))?;
     }
     Ok(())
