@@ -215,7 +215,7 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
     steps.run("ONNX export of every trained decoder (opset 17)", || {
         for t in &plan.trainings {
             let out = dir.join("onnx").join(format!("{}.onnx", t.name));
-            if !out.exists() {
+            if older_than(&out, &runs_dir.join(&t.name).join(runs::WEIGHTS_FILE)) {
                 let run = runs::load(&runs_dir.join(&t.name), &Device::flex())?;
                 let bytes = export_to(&run, ExportOptions::default(), &out)?;
                 obs.line(&format!("  wrote {} ({:.1} kB)", out.display(), bytes as f64 / 1e3));
@@ -565,8 +565,38 @@ fn generate_once(
     Ok(())
 }
 
+/// Whether the product `out` must be made again from `source`: it is missing, or `source` was
+/// written after it (a run trained again since its export). A missing `source` keeps `out`.
+fn older_than(out: &Path, source: &Path) -> bool {
+    let modified = |p: &Path| std::fs::metadata(p).and_then(|m| m.modified()).ok();
+    match (modified(out), modified(source)) {
+        (Some(made), Some(source)) => source > made,
+        (None, _) => true,
+        (Some(_), None) => false,
+    }
+}
+
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn an_export_older_than_its_run_is_made_again() {
+        let d = std::env::temp_dir().join(format!("tcsense-stale-{}", std::process::id()));
+        std::fs::create_dir_all(&d).unwrap();
+        let (out, weights) = (d.join("x.onnx"), d.join("model.bpk"));
+        assert!(super::older_than(&out, &weights), "a missing export is made");
+        std::fs::write(&out, b"onnx").unwrap();
+        assert!(!super::older_than(&out, &weights), "an export without weights beside it is kept");
+        std::fs::write(&weights, b"bpk").unwrap();
+        let t = std::time::SystemTime::now();
+        let at = |p: &Path, s: std::time::SystemTime| std::fs::File::options().write(true).open(p).unwrap().set_modified(s).unwrap();
+        at(&out, t);
+        at(&weights, t - std::time::Duration::from_secs(60));
+        assert!(!super::older_than(&out, &weights), "an export newer than its weights is kept");
+        at(&weights, t + std::time::Duration::from_secs(60));
+        assert!(super::older_than(&out, &weights), "weights trained again after the export: exported again");
+        std::fs::remove_dir_all(&d).unwrap();
+    }
+
     use super::*;
 
     #[test]
