@@ -182,8 +182,7 @@ fn every_entry_reproduces_its_first_logged_epoch_from_its_recipe() {
 /// Replays zoo entry `name`'s recipe in `dir` up to its first epoch and checks it against the
 /// entry's log.
 fn replay_first_epoch(name: &str, dir: &Path, datasets: &SharedDatasets) {
-    let name = name.to_string();
-    let steps = recipe(&name);
+    let steps = recipe(name);
     let (train, setup) = steps.split_last().expect("a recipe ends with its train command");
     assert_eq!(train[0], "train", "zoo:{name}: the recipe's last step trains");
     for s in setup {
@@ -211,7 +210,7 @@ fn replay_first_epoch(name: &str, dir: &Path, datasets: &SharedDatasets) {
     };
     // an entry with learned codes starts with its relaxed phase, a run of its own in RUN/relaxed
     let phase = if train.iter().any(|a| a == "--learn-codes") { "relaxed" } else { "" };
-    let zoo_metrics = zoo_dir().join(&name).join(phase).join("metrics.csv");
+    let zoo_metrics = zoo_dir().join(name).join(phase).join("metrics.csv");
     let header = std::fs::read_to_string(&zoo_metrics).unwrap().lines().next().unwrap_or_default().to_string();
     let want = strip(first(&zoo_metrics), &header);
     let got = first(&dir.join(&out).join(phase).join("metrics.csv"));
@@ -240,7 +239,7 @@ fn replay_first_epoch(name: &str, dir: &Path, datasets: &SharedDatasets) {
     }
     // the first epoch's checkpoint is a resumable run of the recorded config
     let cfg = |p: &Path| serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(p.join("config.json")).unwrap()).unwrap();
-    let (zc, rc) = (cfg(&zoo_dir().join(&name)), cfg(&dir.join(&out)));
+    let (zc, rc) = (cfg(&zoo_dir().join(name)), cfg(&dir.join(&out)));
     for key in ["decoder", "model", "sampling", "irf", "epochs", "batch_size", "learning_rate", "seed", "augment"] {
         assert_eq!(zc[key], rc[key], "zoo:{name}: config.{key} of the re-run");
     }

@@ -79,24 +79,25 @@ fn bound_series(
 pub type CodeSets<'a> = [(&'a str, &'a MeasurementMatrix)];
 
 /// One bound per code set of `codes` (see [`bound_series`]), labelled `what` and, where there
-/// are several sets, the set's name.
-fn bounds_of(
+/// are several sets, the set's name; `bound` prepares a set's bound once, then it is read at
+/// every level.
+fn bounds_of<'c, B: Fn(&Light) -> f64>(
     rows: &[EvalRow],
-    codes: &CodeSets,
+    codes: &CodeSets<'c>,
     noise: &NoiseParams,
     sbr: Option<f64>,
     what: &str,
-    bound: impl Fn(&MeasurementMatrix, &Light) -> f64,
+    bound: impl Fn(&'c MeasurementMatrix) -> B,
 ) -> Vec<Series> {
     codes
         .iter()
-        .filter_map(|(name, a)| {
+        .filter_map(|&(name, a)| {
             let label = if codes.len() > 1 {
                 format!("Cramér–Rao bound, {name} codes ({what})")
             } else {
                 format!("Cramér–Rao bound ({what})")
             };
-            bound_series(rows, a, noise, sbr, &label, |light| bound(a, light))
+            bound_series(rows, a, noise, sbr, &label, bound(a))
         })
         .collect()
 }
@@ -107,9 +108,9 @@ fn bounds_of(
 /// with its onset known ([`tcsense_sensor::identify::lifetime_bound`], mean over 8 onsets),
 /// under the noise model's read noise and the ambient light; `k` is the heterodyne factor.
 pub fn lifetime_curve(png: &Path, rows: &[EvalRow], codes: &CodeSets, k: usize, noise: &NoiseParams, sbr: Option<f64>) -> Result<()> {
-    let bounds = bounds_of(rows, codes, noise, sbr, "a block, τ = 2 ns, onset known", |a, light| {
-        let weights = vec![1.0; a.a().dim().0];
-        lifetime_bound(&Columns::new(a, k), light, &[2e-9], 8, &weights)[0].known_mean_s * 1e9
+    let bounds = bounds_of(rows, codes, noise, sbr, "a block, τ = 2 ns, onset known", |a| {
+        let (cols, weights) = (Columns::new(a, k), vec![1.0; a.a().dim().0]);
+        move |light: &Light| lifetime_bound(&cols, light, &[2e-9], 8, &weights)[0].known_mean_s * 1e9
     });
     let series = |f: &dyn Fn(&EvalRow) -> Option<f64>| decoder_series(rows, f);
     let errors = series(&|r| r.lifetime_mae_s.map(|v| v * 1e9));
@@ -139,7 +140,7 @@ pub fn range_curve(png: &Path, rows: &[EvalRow], codes: &CodeSets, noise: &Noise
         return Err(InferError::InvalidParam { field: "photon curve", got: "no codes".into(), expected: "the codes of the rows".into() });
     };
     let bin_m = 299_792_458.0 * first.bin_width_s() / 2.0;
-    let bounds = bounds_of(rows, codes, noise, sbr, "a block, one return", |a, light| range_bound(a, light, 2).mean_bins);
+    let bounds = bounds_of(rows, codes, noise, sbr, "a block, one return", |a| move |light: &Light| range_bound(a, light, 2).mean_bins);
     let series = |f: &dyn Fn(&EvalRow) -> Option<f64>| decoder_series(rows, f);
     let errors = series(&|r| r.depth_median_m.first().map(|m| m / bin_m));
     let shares = series(&|r| r.depth_within_half_bin.first().map(|s| 100.0 * s));

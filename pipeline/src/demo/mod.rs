@@ -578,26 +578,26 @@ fn older_than(out: &Path, source: &Path) -> bool {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
     #[test]
     fn an_export_older_than_its_run_is_made_again() {
         let d = std::env::temp_dir().join(format!("tcsense-stale-{}", std::process::id()));
         std::fs::create_dir_all(&d).unwrap();
         let (out, weights) = (d.join("x.onnx"), d.join("model.bpk"));
-        assert!(super::older_than(&out, &weights), "a missing export is made");
+        assert!(older_than(&out, &weights), "a missing export is made");
         std::fs::write(&out, b"onnx").unwrap();
-        assert!(!super::older_than(&out, &weights), "an export without weights beside it is kept");
+        assert!(!older_than(&out, &weights), "an export without weights beside it is kept");
         std::fs::write(&weights, b"bpk").unwrap();
         let t = std::time::SystemTime::now();
         let at = |p: &Path, s: std::time::SystemTime| std::fs::File::options().write(true).open(p).unwrap().set_modified(s).unwrap();
         at(&out, t);
         at(&weights, t - std::time::Duration::from_secs(60));
-        assert!(!super::older_than(&out, &weights), "an export newer than its weights is kept");
+        assert!(!older_than(&out, &weights), "an export newer than its weights is kept");
         at(&weights, t + std::time::Duration::from_secs(60));
-        assert!(super::older_than(&out, &weights), "weights trained again after the export: exported again");
+        assert!(older_than(&out, &weights), "weights trained again after the export: exported again");
         std::fs::remove_dir_all(&d).unwrap();
     }
-
-    use super::*;
 
     #[test]
     fn pixels_are_distinct_and_in_the_frame() {

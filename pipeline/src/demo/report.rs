@@ -371,7 +371,7 @@ fn codes_on_the_ladder(dir: &Path) -> Result<String> {
     let mut at_least = Vec::new();
     let mut compared = 0;
     for level in LADDER {
-        match (median("ADMM-Net + peaks", level), median(LEARNED_ADMM, level)) {
+        match (median(SELECTED_ADMM, level), median(LEARNED_ADMM, level)) {
             (Some(s), Some(l)) => {
                 compared += 1;
                 cells.push(format!("{:.2} → {:.2} at signal {level} ({:.2}×)", s, l, l / s));
