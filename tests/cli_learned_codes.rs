@@ -130,6 +130,76 @@ fn learned_codes_are_exact_exportable_and_decode() {
     assert!(!d.join("bad").join("model.bpk").exists() && !d.join("bad2").exists());
 }
 
+/// `--objective range` trains a cube decoder (and with --learn-codes its codes) on the
+/// waveforms' distance besides the cube's loss: the same run with the cube's loss alone learns
+/// other codes, the run's config records it, and an objective that is not the network's or the
+/// dataset's product is refused before anything is written.
+#[test]
+fn the_range_objective_reaches_the_codes() {
+    let d = tempdir();
+    let d = d.path();
+    ok(d, &["dataset", "lidar", "--count", "8", "--size", "8x8", "--length", "8", "--seed", "3", "-o", "ds"]);
+    ok(
+        d,
+        &["codes", "generate", "--tap-constraint", "--hamming", "2", "--window", "2", "--length", "8", "--seed", "1", "-o", "start.json"],
+    );
+    let learn = |objective: &str, out: &str| {
+        let mut args = vec![
+            "train",
+            "admm-net",
+            "--dataset",
+            "ds",
+            "--codes",
+            "start.json",
+            "--stages",
+            "1",
+            "--channels",
+            "2",
+            "--epochs",
+            "3",
+            "--relaxed-epochs",
+            "2",
+            "--codes-lr",
+            "0.5",
+            "--learn-codes",
+            "-o",
+            out,
+        ];
+        if !objective.is_empty() {
+            args.extend(["--objective", objective]);
+        }
+        ok(d, &args)
+    };
+    let out = learn("range", "range");
+    assert!(out.contains("earth mover's distance (objective range)"), "{out}");
+    learn("", "mse");
+    let config = |run: &str| -> serde_json::Value {
+        serde_json::from_str(&std::fs::read_to_string(d.join(run).join("config.json")).unwrap()).unwrap()
+    };
+    assert_eq!(config("range")["objective"], "range");
+    assert!(config("mse").get("objective").is_none(), "written only when given");
+    let codes = |run: &str| Codes::load(&d.join(run).join("relaxed/projected_codes.json")).unwrap();
+    assert_ne!(codes("range").digest(), codes("mse").digest(), "the range objective did not change what the codes learned");
+    let loss = |run: &str| -> f64 {
+        let text = std::fs::read_to_string(d.join(run).join("relaxed/metrics.csv")).unwrap();
+        text.lines().nth(1).unwrap().split(',').nth(2).unwrap().parse().unwrap()
+    };
+    assert!(loss("range") > loss("mse"), "the distance adds to the loss: {} vs {}", loss("range"), loss("mse"));
+    ok(d, &["codes", "check", "range/codes.json"]);
+    // a LiDAR dataset has no lifetimes; a depth network's loss is its range
+    fails(
+        d,
+        &["train", "admm-net", "--dataset", "ds", "--codes", "start.json", "--epochs", "1", "--objective", "lifetime", "-o", "bad"],
+        &["manifest.json", "objective lifetime", "--objective range"],
+    );
+    fails(
+        d,
+        &["train", "unet", "--dataset", "ds", "--codes", "start.json", "--epochs", "1", "--objective", "mse", "-o", "bad2"],
+        &["objective", "mse", "depth network: range"],
+    );
+    assert!(!d.join("bad").exists() && !d.join("bad2").exists());
+}
+
 #[test]
 fn init_from_starts_from_a_trained_decoder() {
     let d = tempdir();

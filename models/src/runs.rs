@@ -72,6 +72,15 @@ impl ModelConfig {
         }
     }
 
+    /// What the network predicts (its [`crate::net::Network::PREDICTION`]).
+    pub fn prediction(&self) -> crate::net::Prediction {
+        match self {
+            ModelConfig::AdmmNet(_) => crate::net::Prediction::Cube,
+            ModelConfig::Unet(_) => crate::net::Prediction::Depth,
+            ModelConfig::Lifetime(_) => crate::net::Prediction::Lifetime,
+        }
+    }
+
     /// Floating-point operations of the forward pass on one `h × w` frame.
     pub fn flops(&self, h: usize, w: usize) -> f64 {
         match self {
@@ -331,6 +340,7 @@ pub const TRAINING_KEYS: &[&str] = &[
     "learning_rate",
     "lr_schedule",
     "loss",
+    "objective",
     "seed",
     "noise",
     "dataset",

@@ -172,6 +172,13 @@ pub struct TrainArgs {
     /// Loss (default: rmse-mae for LiDAR, rmse for FLIm).
     #[arg(long, value_enum)]
     loss: Option<LossArg>,
+    /// What the run is trained for, the product its users read: `mse` (the cube's loss
+    /// alone), `range` or `lifetime` (a cube decoder adds the earth mover's distance between
+    /// every pixel's predicted and true waveform: the range or lifetime error in bins). With
+    /// --learn-codes it is what the codes are learned for. Default: the network's own (cube
+    /// decoders mse; depth networks range; lifetime networks lifetime).
+    #[arg(long, value_enum)]
+    objective: Option<ObjectiveArg>,
     /// Train on noise-free measurements.
     #[arg(long)]
     no_noise: bool,
@@ -271,6 +278,13 @@ pub enum LossArg {
 }
 
 #[derive(Clone, Copy, ValueEnum)]
+pub enum ObjectiveArg {
+    Mse,
+    Range,
+    Lifetime,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
 pub enum ScheduleArg {
     Constant,
     Cosine,
@@ -362,6 +376,7 @@ impl TrainArgs {
             lr_schedule: self.lr_schedule.and_then(name_of),
             batch_size: self.batch_size,
             loss: self.loss.and_then(name_of),
+            objective: self.objective.and_then(name_of),
             no_noise: self.no_noise,
             irf: self.irf.clone(),
             calibration: self.calibration.clone(),

@@ -115,7 +115,7 @@ fn time_steps<M: Network>(
         (k, s) => (k + s) as f32,
     });
     let target = match M::PREDICTION {
-        Prediction::Cube => Target::Cube { x: &x, scales: None },
+        Prediction::Cube => Target::Cube { x: &x, scales: None, emd: false },
         Prediction::Depth => Target::Depth { depth: &depth, range_m: 10.0, grid: None },
         Prediction::Lifetime => Target::Lifetime { labels: &lifetimes, grid: None },
     };

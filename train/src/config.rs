@@ -3,6 +3,7 @@
 
 use serde::{Deserialize, Serialize};
 use std::path::Path;
+use tcsense_models::net::Prediction;
 use tcsense_models::runs::{ModelConfig, RunSpec};
 use tcsense_sensor::{Irf, NoiseParams, Sampling};
 
@@ -21,6 +22,40 @@ pub enum Loss {
     /// peak ([`crate::loss::pixel_weights`]): dim pixels count for the shape of their return as
     /// much as bright ones (LiDAR decoders whose range maps matter in dark parts of a scene).
     RmseMaePixel,
+}
+
+/// What a run is trained for (`tcsense train --objective`): the product its users read.
+///
+/// A cube decoder (the ADMM-Net, the Aᵀ + U-Net on cubes) is trained on the cube's loss
+/// ([`Loss`]) alone under `mse`; under `range` or `lifetime` it adds
+/// [`crate::loss::waveform_emd`]: the earth mover's distance between every pixel's predicted
+/// and true waveform, each normalised to unit sum. For one return it is the range error in
+/// bins; for a decay of the same onset it is the lifetime error in bins (the distance between
+/// two exponentials' distributions is the difference of their means). A depth network's loss
+/// is its range already and a lifetime network's its lifetime: they take `range` and
+/// `lifetime` respectively and nothing else. With `--learn-codes` the product's loss reaches
+/// the codes through the decoder and `A(θ)`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Objective {
+    /// The cube's loss ([`Loss`]) alone.
+    Mse,
+    /// Ranges: the cube's loss plus the waveforms' earth mover's distance over the pixels with
+    /// a return (LiDAR).
+    Range,
+    /// Lifetimes: the cube's loss plus the waveforms' earth mover's distance over the pixels
+    /// with a fluorophore (FLIm).
+    Lifetime,
+}
+
+impl Objective {
+    pub fn name(self) -> &'static str {
+        match self {
+            Objective::Mse => "mse",
+            Objective::Range => "range",
+            Objective::Lifetime => "lifetime",
+        }
+    }
 }
 
 /// How the learning rate moves over a run's optimiser steps.
@@ -91,6 +126,9 @@ pub struct TrainConfig {
     #[serde(default)]
     pub lr_schedule: LrSchedule,
     pub loss: Loss,
+    /// What the run is trained for (absent: the network's own loss, `mse` for cube decoders).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub objective: Option<Objective>,
     pub seed: u64,
     /// Noise added to the simulated measurements (`None`: noise-free).
     pub noise: Option<NoiseParams>,
@@ -148,7 +186,7 @@ impl TrainConfig {
             ),
         };
         format!(
-            "{network}; {} epochs, batch {}, lr {} ({}), loss {:?}, noise {}, augmentation {}",
+            "{network}; {} epochs, batch {}, lr {} ({}), loss {:?}{}, noise {}, augmentation {}",
             self.epochs,
             self.batch_size,
             self.learning_rate,
@@ -157,6 +195,11 @@ impl TrainConfig {
                 LrSchedule::Cosine { final_fraction, warmup_steps } => format!("cosine to {final_fraction}×, {warmup_steps} warm-up steps"),
             },
             self.loss,
+            match self.objective {
+                Some(o @ (Objective::Range | Objective::Lifetime)) if self.run.model.prediction() == Prediction::Cube =>
+                    format!(" + the waveforms' earth mover's distance (objective {})", o.name()),
+                _ => String::new(),
+            },
             if self.noise.is_some() { "shot + read" } else { "off" },
             match &self.augment {
                 None => "off".to_string(),
@@ -187,6 +230,7 @@ impl TrainConfig {
             learning_rate: 1e-3,
             lr_schedule: LrSchedule::Constant,
             loss,
+            objective: None,
             seed: 0,
             noise: Some(TRAINING_NOISE),
             dataset: dataset.display().to_string(),
@@ -267,6 +311,20 @@ impl TrainConfig {
         if let Some(g) = &self.augment {
             g.validate_ranges()?;
         }
+        if let Some(o) = self.objective {
+            let fits = match self.run.model.prediction() {
+                Prediction::Cube => true,
+                Prediction::Depth => o == Objective::Range,
+                Prediction::Lifetime => o == Objective::Lifetime,
+            };
+            if !fits {
+                return bad(
+                    "objective",
+                    o.name().into(),
+                    &format!("the {} network's own product (a depth network: range; a lifetime network: lifetime; a cube decoder: mse, range or lifetime)", self.run.model.name()),
+                );
+            }
+        }
         if let Some(lc) = &self.learn_codes {
             lc.validate(self.epochs)?;
             if self.run.measured {
@@ -283,11 +341,36 @@ mod tests {
     use tcsense_models::runs::TRAINING_KEYS;
     use tcsense_models::AdmmNetConfig;
 
+    /// A cube decoder takes any objective; a depth network only its range, and a config
+    /// without one is written as before it existed.
+    #[test]
+    fn the_objective_matches_the_network() {
+        let admm = TrainConfig::new(ModelConfig::AdmmNet(AdmmNetConfig::new(4, 8)), Path::new("ds"), Loss::Rmse, Sampling::Oversample(1));
+        assert!(!serde_json::to_string(&admm).expect("json").contains("objective"));
+        for o in [Objective::Mse, Objective::Range, Objective::Lifetime] {
+            assert!(TrainConfig { objective: Some(o), ..admm.clone() }.validate().is_ok(), "{o:?}");
+        }
+        let unet = TrainConfig::new(
+            ModelConfig::Unet(tcsense_models::UnetConfig::new(4, 8, 10.0)),
+            Path::new("ds"),
+            Loss::RmseMae,
+            Sampling::Oversample(1),
+        );
+        assert!(TrainConfig { objective: Some(Objective::Range), ..unet.clone() }.validate().is_ok());
+        for o in [Objective::Mse, Objective::Lifetime] {
+            let e = TrainConfig { objective: Some(o), ..unet.clone() }.validate().expect_err("refused").to_string();
+            assert!(e.contains("objective") && e.contains(o.name()), "{e}");
+        }
+    }
+
     /// Inference checks a run's config against `RunSpec`'s fields and `TRAINING_KEYS`: the
     /// list must stay equal to what `TrainConfig` adds.
     #[test]
     fn training_keys_are_the_fields_training_adds() {
-        let cfg = TrainConfig::new(ModelConfig::AdmmNet(AdmmNetConfig::new(4, 8)), Path::new("ds"), Loss::Rmse, Sampling::Oversample(1));
+        let mut cfg =
+            TrainConfig::new(ModelConfig::AdmmNet(AdmmNetConfig::new(4, 8)), Path::new("ds"), Loss::Rmse, Sampling::Oversample(1));
+        // (written only when given)
+        cfg.objective = Some(Objective::Range);
         let all = tcsense_sensor::json::keys_of(&cfg);
         let spec = tcsense_sensor::json::keys_of(&cfg.run);
         let mut extra: Vec<&str> = all.iter().filter(|k| !spec.contains(k)).map(String::as_str).collect();

@@ -381,6 +381,22 @@ fn fit<M: Network>(
             expected: format!("the dataset's T = {} and the codes' M", ds.manifest.bins),
         });
     }
+    let flim = ds.manifest.kind == tcsense_datasets::store::Kind::Flim;
+    match cfg.objective {
+        Some(crate::Objective::Range) if flim => {
+            return Err(file_err(
+                &manifest,
+                "objective range: a FLIm dataset has no ranges (its product is the lifetime: --objective lifetime)",
+            ))
+        }
+        Some(crate::Objective::Lifetime) if !flim => {
+            return Err(file_err(
+                &manifest,
+                "objective lifetime: a LiDAR dataset has no lifetimes (its product is the range: --objective range)",
+            ))
+        }
+        _ => {}
+    }
     let data = Splits::load::<M>(cfg, &ds)?;
     let (bin_m, range_m) = (C * sensor.bin_width_s() / 2.0, C * sensor.bin_width_s() * sensor.bins() as f64 / 2.0);
     let (_, _, h, w) = data.train_x.dim();
@@ -447,7 +463,11 @@ fn fit<M: Network>(
             let target = match (&batch.labels, M::PREDICTION) {
                 (Some(l), Prediction::Lifetime) => Target::Lifetime { labels: l, grid: cfg.run.model.lifetime_grid() },
                 (Some(d), _) => Target::Depth { depth: d, range_m, grid: cfg.run.model.range_grid() },
-                (None, _) => Target::Cube { x: &batch.x, scales: batch.scales.as_deref() },
+                (None, _) => Target::Cube {
+                    x: &batch.x,
+                    scales: batch.scales.as_deref(),
+                    emd: matches!(cfg.objective, Some(crate::Objective::Range | crate::Objective::Lifetime)),
+                },
             };
             let l;
             (model, l) = match learner.as_mut() {
@@ -597,8 +617,9 @@ fn measure_items(plan: &FramePlan, x: &Array4<f32>, noise: Option<&[NoiseParams]
 #[derive(Debug, Clone, Copy)]
 pub(crate) enum Target<'a> {
     /// The cubes `[B, T, H, W]`, and a scale per item when augmented (the loss is taken on
-    /// `x/s` and `x̂/s`, so dim items weigh as much as bright ones).
-    Cube { x: &'a Array4<f32>, scales: Option<&'a [f32]> },
+    /// `x/s` and `x̂/s`, so dim items weigh as much as bright ones); `emd`: the waveforms'
+    /// earth mover's distance is added ([`crate::Objective::Range`], `Lifetime`).
+    Cube { x: &'a Array4<f32>, scales: Option<&'a [f32]>, emd: bool },
     /// Range labels `[B, K, H, W]` (m, NaN where none), the unambiguous range and the
     /// network's grid of candidate ranges where it has one (`u = r·scale − offset`, cyclic).
     Depth { depth: &'a Array4<f32>, range_m: f64, grid: Option<(f64, f64)> },
@@ -613,10 +634,23 @@ pub(crate) enum Target<'a> {
 /// - `pred`: `[B, T, H, W]` or `[B, 2K, H, W]` → `[1]`
 pub(crate) fn objective(loss: Loss, pred: Tensor<4>, target: Target<'_>, device: &Device) -> Tensor<1> {
     match target {
-        Target::Cube { x, scales: None } => loss_fn(loss, pred, to_tensor(&x.view(), device)),
-        Target::Cube { x, scales: Some(s) } => {
-            let inv = Tensor::<4>::from_data(TensorData::new(s.iter().map(|s| 1.0 / s).collect::<Vec<f32>>(), [s.len(), 1, 1, 1]), device);
-            loss_fn(loss, pred * inv.clone(), to_tensor(&x.view(), device) * inv)
+        Target::Cube { x, scales, emd } => {
+            let truth = to_tensor(&x.view(), device);
+            let cube = match scales {
+                None => loss_fn(loss, pred.clone(), truth.clone()),
+                Some(s) => {
+                    let inv = Tensor::<4>::from_data(
+                        TensorData::new(s.iter().map(|s| 1.0 / s).collect::<Vec<f32>>(), [s.len(), 1, 1, 1]),
+                        device,
+                    );
+                    loss_fn(loss, pred.clone() * inv.clone(), truth.clone() * inv)
+                }
+            };
+            if emd {
+                cube + crate::loss::waveform_emd(pred, truth).mul_scalar(crate::loss::EMD_WEIGHT)
+            } else {
+                cube
+            }
         }
         Target::Depth { depth, range_m, grid } => {
             let mask = depth.mapv(|d| if d.is_finite() { 1.0 } else { 0.0 });

@@ -22,7 +22,7 @@ use tcsense_sensor::{Codes, Constraints};
 
 use crate::deep_sensing::LearnCodes;
 use crate::setup::{self, Architecture, MeasuredSensor};
-use crate::{file_err, Augmentation, EpochMetrics, Loss, LrSchedule, Progress, Result, TrainConfig, TrainError};
+use crate::{file_err, Augmentation, EpochMetrics, Loss, LrSchedule, Objective, Progress, Result, TrainConfig, TrainError};
 
 /// What a front end asks of a training (`None`/`false`: not given). Names and values are the
 /// command line's (`tcsense train DECODER --flag`), with `-` as `_`.
@@ -64,6 +64,8 @@ pub struct TrainRequest {
     pub batch_size: Option<usize>,
     /// `rmse`, `rmse-mae` or `rmse-mae-pixel`.
     pub loss: Option<String>,
+    /// `mse`, `range` or `lifetime`: what the run is trained for ([`crate::Objective`]).
+    pub objective: Option<String>,
     pub no_noise: bool,
     /// `ideal`, `physical` or a measured matrix `A.npy`.
     pub irf: Option<String>,
@@ -288,6 +290,14 @@ pub fn prepare(req: &TrainRequest) -> Result<Prepared> {
             "rmse-mae-pixel" => Loss::RmseMaePixel,
             other => return Err(bad("loss", other, "rmse, rmse-mae or rmse-mae-pixel")),
         };
+    }
+    if let Some(o) = req.objective.as_deref() {
+        cfg.objective = Some(match o {
+            "mse" => Objective::Mse,
+            "range" => Objective::Range,
+            "lifetime" => Objective::Lifetime,
+            other => return Err(bad("objective", other, "mse, range or lifetime")),
+        });
     }
     if req.no_noise {
         cfg.noise = None;
