@@ -208,7 +208,25 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
         "codes on the ladder"
     );
     let photon_flim = json(&demo.join("results/photon-flim.json"));
-    assert_eq!(photon_flim["rows"].as_array().unwrap().len(), 3 * 4);
+    let frows = photon_flim["rows"].as_array().unwrap();
+    assert_eq!(
+        frows.len(),
+        5 * 4,
+        "the fit and the ADMM-Net on the selected codes, the zoo's evidence network, and one lifetime network on designed and on learned codes"
+    );
+    // the FLIm pair: one architecture through each code set (its own codes: not the same numbers)
+    let mae = |d: &str, level: f64| {
+        frows
+            .iter()
+            .find(|r| r["decoder"].as_str() == Some(d) && r["light"]["signal_fraction"].as_f64() == Some(level))
+            .and_then(|r| r["lifetime_mae_s"].as_f64())
+            .unwrap_or_else(|| panic!("{d} at {level}: {frows:?}"))
+    };
+    let (designed, learned) = ("lifetime network (zoo), designed codes", "lifetime network (zoo), codes learned with it");
+    assert!(mae(designed, 0.8) > 0.0 && mae(designed, 0.8) < 2e-9 && mae(designed, 0.8) != mae(learned, 0.8), "{frows:?}");
+    assert!(
+        html.contains("The two FLIm code sets with one decoder architecture") && html.contains("designed codes → codes learned with it")
+    );
     assert!(html.contains("The light axis (results/photon-lidar.json)") && html.contains("signal 0.005 ("), "photon tables missing");
 
     // the codes: learned ones exported and feasible; the plan sized the trainings

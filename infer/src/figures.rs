@@ -224,10 +224,13 @@ pub fn photon_curve(
     // drawn on the left), then the decoders (their colours are the same in both panels)
     let bound_style = |k: usize| {
         let shade = (k.min(2) * 80) as u8;
-        (RGBColor(shade, shade, shade).stroke_width(2), if k == 0 { (8, 6) } else { (3, 4) })
+        (RGBColor(shade, shade, shade).stroke_width(2), [(8, 6), (3, 4), (14, 4)][k.min(2)])
     };
     let entries = bounds.len() + errors.len().max(shares.len());
-    let legend_rows = entries.div_ceil(3) as u32;
+    // three entries a line where the labels fit (about 8 px a character), else two
+    let longest = bounds.iter().chain(errors).chain(shares).map(|s| s.label.chars().count()).max().unwrap_or(0);
+    let columns = if 40 + 8 * longest <= 450 { 3 } else { 2 };
+    let legend_rows = entries.div_ceil(columns) as u32;
     let legend_h = 16 + 26 * legend_rows;
     render(path, (1400, 560 + legend_h), |root| {
         let (title_area, body) = root.split_vertically(40);
@@ -278,8 +281,8 @@ pub fn photon_curve(
         let decoders = if errors.len() >= shares.len() { errors } else { shares };
         let font = (FONT, 15).into_font();
         for e in 0..entries {
-            let (col, row) = ((e % 3) as i32, (e / 3) as i32);
-            let (x, y) = (40 + col * 450, 14 + row * 26);
+            let (col, row) = ((e % columns) as i32, (e / columns) as i32);
+            let (x, y) = (40 + col * (1350 / columns as i32), 14 + row * 26);
             if let Some(b) = bounds.get(e) {
                 let (style, (dash, gap)) = bound_style(e);
                 let mut at = x;

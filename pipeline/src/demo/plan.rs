@@ -73,6 +73,11 @@ pub(super) const ZOO_LIFETIME: &str = "lifetime-flim";
 /// The zoo's FLIm ADMM-Net, evaluated as shipped (on its own codes) in the FLIm table.
 pub(super) const ZOO_FLIM_CUBE: &str = "admm-flim-delay";
 
+/// The zoo's lifetime network on designed codes and the same network on codes learned with
+/// it: the FLIm photon ladder's two code sets with one decoder architecture.
+pub(super) const ZOO_FLIM_DESIGNED: &str = "lifetime-flim-designed";
+pub(super) const ZOO_FLIM_LEARNED: &str = "lifetime-flim-learned";
+
 /// The zoo's decoders on the fits' evidence, evaluated as shipped on the photon ladder.
 pub(super) const ZOO_EVIDENCE_UNET: &str = "unet-lidar-evidence-wide2";
 pub(super) const ZOO_EVIDENCE_LIFETIME: &str = "lifetime-flim-evidence-fast";

@@ -232,6 +232,11 @@ pub(super) const SELECTED_ADMM: &str = "ADMM-Net + peaks";
 pub(super) const LEARNED_ADMM: &str = "ADMM-Net + peaks, learned codes";
 pub(super) const LEARNED_FIT: &str = "range fit to the taps, 2 returns, learned codes";
 
+/// The FLIm photon ladder's two code sets with one architecture: the zoo's lifetime network on
+/// designed codes and on codes learned with it, each through its own codes.
+pub(super) const FLIM_DESIGNED_NET: &str = "lifetime network (zoo), designed codes";
+pub(super) const FLIM_LEARNED_NET: &str = "lifetime network (zoo), codes learned with it";
+
 /// The rungs of the demo's photon ladder: the brightest tap's share of the full well.
 pub(super) const LADDER: [f64; 4] = [0.8, 0.1, 0.02, 0.005];
 
@@ -322,14 +327,21 @@ pub(super) fn photon_curves(
             )];
             rows.extend(ladder(flim, &own, &shipped, flim_items)?);
         }
-        tcsense_infer::curves::lifetime_curve(
-            &figures.join("photon-flim.png"),
-            &rows,
-            &[("selected", a.nominal())],
-            a.spec().sampling().k(),
-            noise,
-            None,
-        )?;
+        // one architecture on both code sets: the zoo's lifetime network on designed codes and
+        // on codes learned with it, each through its own codes
+        let mut pair = Vec::new();
+        if let (Some((designed, _)), Some((learned, _))) =
+            (zoo_entry_named(ZOO_FLIM_DESIGNED, flim), zoo_entry_named(ZOO_FLIM_LEARNED, flim))
+        {
+            for (label, dir, set) in [(FLIM_DESIGNED_NET, designed, "designed"), (FLIM_LEARNED_NET, learned, "learned")] {
+                let own = sensor(&Codes::load(&dir.join(CODES_FILE))?, flim)?;
+                rows.extend(ladder(flim, &own, &[(label, format!("{}:{}", names::LIFETIME, dir.display()))], flim_items)?);
+                pair.push((set, own));
+            }
+        }
+        let mut codes = vec![("selected", a.nominal())];
+        codes.extend(pair.iter().map(|(set, s)| (*set, s.nominal())));
+        tcsense_infer::curves::lifetime_curve(&figures.join("photon-flim.png"), &rows, &codes, a.spec().sampling().k(), noise, None)?;
         write_json(&flim_json, &json!({ "split": "test", "items": flim_items, "noise_seed": seed, "ladder": LADDER, "rows": rows }))?;
     }
     Ok(())
