@@ -66,6 +66,29 @@ fn zoo_list_and_show_name_every_entry() {
         assert!(list.contains(n.as_str()), "zoo list names {n}: {list}");
         let show = ok(d.path(), &["zoo", "show", &format!("zoo:{n}")]);
         assert!(show.contains("# ") && show.contains("directory"), "zoo show {n} prints its provenance: {show}");
+        // every entry on learned codes says how they fared against the designed codes, with
+        // the same network, per test set; a baseline is marked in the listing
+        let config = std::fs::read_to_string(zoo_dir().join(n).join("config.json")).unwrap();
+        let learned = serde_json::from_str::<serde_json::Value>(&config).unwrap().get("learn_codes").is_some_and(|v| !v.is_null());
+        let compared = zoo_dir().join(n).join("codes_comparison.json").exists();
+        assert_eq!(learned, compared, "{n}: learned codes {learned}, comparison {compared}");
+        if compared {
+            let c: serde_json::Value =
+                serde_json::from_str(&std::fs::read_to_string(zoo_dir().join(n).join("codes_comparison.json")).unwrap()).unwrap();
+            let against = c["against"].as_str().unwrap();
+            assert!(names.iter().any(|m| m == against), "{n} is compared with {against}, not in the zoo");
+            assert!(
+                show.contains(&format!("against     zoo:{against}")) && (show.contains("motorcycle") || show.contains("onset-0ns")),
+                "{show}"
+            );
+            let mark = match c["verdict"].as_str().unwrap() {
+                "baseline" => "learned†",
+                "on-par" => "learned=",
+                _ => "learned+",
+            };
+            let row = list.lines().find(|l| l.starts_with(&format!("{n} "))).unwrap();
+            assert!(row.contains(mark), "{row}");
+        }
     }
     fails(d.path(), &["zoo", "show", "no-such-entry"], &["zoo entry", "no-such-entry", "one of"]);
     fails(d.path(), &["export", "onnx", "--run", "zoo:no-such-entry", "-o", "x.onnx"], &["zoo:no-such-entry", "one of"]);

@@ -4,6 +4,7 @@
 //! ```text
 //! zoo/NAME/config.json, codes.json, model.bpk, metrics.csv, checkpoint/   the run (as `train` wrote it)
 //! zoo/NAME/PROVENANCE.md   commands, commit, seeds, data, wall time, benchmark tables
+//! zoo/NAME/codes_comparison.json   learned codes only: against the same network on designed codes
 //! ```
 //!
 //! The zoo is the directory named by `TCSENSE_ZOO`, else the `zoo/` of the source tree this
@@ -18,6 +19,9 @@ use crate::{ModelError, Result};
 pub const PREFIX: &str = "zoo:";
 /// The provenance of an entry, `zoo/NAME/PROVENANCE.md`.
 pub const PROVENANCE_FILE: &str = "PROVENANCE.md";
+/// How an entry's learned codes compare with the same network on designed codes,
+/// `zoo/NAME/codes_comparison.json` (learned-codes entries; `scripts/zoo_codes_compare.sh`).
+pub const COMPARISON_FILE: &str = "codes_comparison.json";
 /// The environment variable that points at another zoo directory.
 pub const ZOO_ENV: &str = "TCSENSE_ZOO";
 
@@ -100,6 +104,86 @@ pub struct Entry {
     /// the photon ladder was drawn per item), and the ambient light (`1/SBR`) where there was
     /// some; `noise-free` for runs without noise.
     pub light: String,
+    /// Learned codes: how they fared against the same network on designed (or given) codes
+    /// ([`COMPARISON_FILE`]); `None` where it was not measured.
+    pub comparison: Option<CodesComparison>,
+}
+
+/// Learned codes against designed codes on the photon ladder of test sets unlike the training
+/// data, each entry through its own codes, the same items and noise seeds
+/// (`scripts/zoo_codes_compare.sh`).
+#[derive(Debug, Clone, PartialEq, serde::Deserialize)]
+pub struct CodesComparison {
+    /// The entry of the same network on designed (or given) codes.
+    pub against: String,
+    /// What was compared, with its unit: the first return's median error (m) or the lifetime
+    /// MAE (s).
+    pub product: String,
+    /// The light levels: the brightest tap's share of the full well.
+    pub levels: Vec<f64>,
+    /// Learned / against per level, the geometric mean over the sets (`None`: not measured).
+    pub ratio: Vec<Option<f64>>,
+    /// `wins`, `on-par` or `baseline`.
+    pub verdict: Verdict,
+    /// Per test set, both entries' product at every level.
+    pub sets: std::collections::BTreeMap<String, ComparisonRow>,
+}
+
+/// One test set of a [`CodesComparison`]: the product per light level.
+#[derive(Debug, Clone, PartialEq, serde::Deserialize)]
+pub struct ComparisonRow {
+    pub learned: Vec<Option<f64>>,
+    pub against: Vec<Option<f64>>,
+}
+
+/// Whether learned codes beat the designed ones: the ratio learned / designed of the product,
+/// the geometric mean over the test sets, at signal 0.02 and 0.8 of the full well.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Verdict {
+    /// At most 0.8× at 0.02 and 1.05× at 0.8 (issue 53's goal): the entry to use on its
+    /// domain.
+    Wins,
+    /// At most 1.05× at both: no worse than the designed codes, short of the goal.
+    OnPar,
+    /// Worse at either: the learned codes lose, and the entry is kept as a baseline for
+    /// comparisons, not to deploy.
+    Baseline,
+}
+
+impl CodesComparison {
+    /// `1.31× at 0.02, 1.08× at 0.8` style summary of the ratios at every level.
+    pub fn ratios(&self) -> String {
+        self.levels
+            .iter()
+            .zip(&self.ratio)
+            .map(|(l, r)| match r {
+                Some(r) => format!("{r:.2}× at {l}"),
+                None => format!("– at {l}"),
+            })
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
+    /// Read a comparison file (`None` where there is none).
+    pub fn read(path: &Path) -> Result<Option<CodesComparison>> {
+        let text = match std::fs::read_to_string(path) {
+            Ok(t) => t,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(ModelError::File { path: path.to_path_buf(), msg: e.to_string() }),
+        };
+        let c: CodesComparison = serde_json::from_str(&text)
+            .map_err(|e| ModelError::File { path: path.to_path_buf(), msg: format!("not a codes comparison: {e}") })?;
+        if c.ratio.len() != c.levels.len()
+            || c.sets.values().any(|r| r.learned.len() != c.levels.len() || r.against.len() != c.levels.len())
+        {
+            return Err(ModelError::File {
+                path: path.to_path_buf(),
+                msg: format!("ratio and every set's rows must have one value per level ({} levels)", c.levels.len()),
+            });
+        }
+        Ok(Some(c))
+    }
 }
 
 /// The light of a run config: `0.05–0.9`, `0.002–0.9, ambient 0–2`, `0.8` or `noise-free`.
@@ -156,6 +240,7 @@ fn read_entry(name: &str, dir: &Path) -> Result<Entry> {
     let weights_bytes =
         std::fs::metadata(file(WEIGHTS_FILE)).map_err(|e| ModelError::File { path: file(WEIGHTS_FILE), msg: e.to_string() })?.len();
     let light = light_of(&json);
+    let comparison = CodesComparison::read(&file(COMPARISON_FILE))?;
     Ok(Entry {
         name: name.to_string(),
         dir: dir.to_path_buf(),
@@ -170,6 +255,7 @@ fn read_entry(name: &str, dir: &Path) -> Result<Entry> {
         weights_bytes,
         range_alias,
         light,
+        comparison,
     })
 }
 
@@ -215,6 +301,26 @@ mod tests {
         };
         assert!(e.contains("missing") && e.contains("cannot list the zoo"), "{e}");
         std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    /// A comparison file is read with its verdict and ratios; one whose rows do not match its
+    /// levels is refused with the file's name.
+    #[test]
+    fn a_codes_comparison_reads_and_checks_its_rows() {
+        let p = std::env::temp_dir().join(format!("tcsense-zoo-cmp-{}.json", std::process::id()));
+        let good = r#"{"entry": "x-learned", "against": "x-designed", "product": "lifetime MAE (s)", "levels": [0.8, 0.02],
+            "sets": {"standard": {"learned": [1e-10, 2e-9], "against": [1e-10, 1e-9]}}, "ratio": [1.0, 2.0], "verdict": "baseline"}"#;
+        std::fs::write(&p, good).unwrap();
+        let c = CodesComparison::read(&p).unwrap().unwrap();
+        assert_eq!((c.verdict, c.against.as_str()), (Verdict::Baseline, "x-designed"));
+        assert_eq!(c.ratios(), "1.00× at 0.8, 2.00× at 0.02");
+        std::fs::write(&p, good.replace("[1.0, 2.0]", "[1.0]")).unwrap();
+        let e = CodesComparison::read(&p).unwrap_err().to_string();
+        assert!(e.contains("tcsense-zoo-cmp") && e.contains("one value per level"), "{e}");
+        std::fs::write(&p, good.replace("baseline", "maybe")).unwrap();
+        assert!(CodesComparison::read(&p).unwrap_err().to_string().contains("not a codes comparison"));
+        std::fs::remove_file(&p).unwrap();
+        assert!(CodesComparison::read(&p).unwrap().is_none());
     }
 
     #[test]

@@ -45,6 +45,22 @@ pub fn run(cmd: ZooCmd) -> Result<ExitCode> {
             if entries.iter().any(|e| e.range_alias.is_some_and(|a| a < tcsense_sensor::identify::DEFAULT_ALIAS_THRESHOLD)) {
                 println!("ALIAS: the range alias of the entry's codes on its sensor; below 0.5 (*) two ranges two masks or more apart give nearly the same taps (`tcsense codes analyze`)");
             }
+            let compared: Vec<&Entry> = entries.iter().filter(|e| e.comparison.is_some()).collect();
+            if !compared.is_empty() {
+                println!("CODES: learned codes against the same network on designed codes, on the photon ladder of test sets unlike the training data (`zoo show NAME`): learned† a baseline (they lose), learned= on a par (within 5 % at 0.02 and 0.8), learned+ wins (0.8× at 0.02)");
+                for e in compared {
+                    if let Some(c) = &e.comparison {
+                        println!(
+                            "  {}: {} against zoo:{} ({}, learned / against: {})",
+                            e.name,
+                            verdict(c.verdict),
+                            c.against,
+                            c.product,
+                            c.ratios()
+                        );
+                    }
+                }
+            }
         }
         ZooCmd::Show { name } => {
             let e = zoo::entry(&name)?;
@@ -61,6 +77,30 @@ pub fn run(cmd: ZooCmd) -> Result<ExitCode> {
             println!("  codes       {} ({}), range alias {}", e.codes, codes_kind(&e), alias(&e));
             println!("  trained     {} epochs at light {}; last validation {}", e.epochs, e.light, validation(&e));
             println!("  weights     {:.2} MB", e.weights_bytes as f64 / 1e6);
+            if let Some(c) = &e.comparison {
+                println!(
+                    "  against     zoo:{}, the same network on its codes: {} ({}, learned / against, geometric mean over {} test sets: {})",
+                    c.against,
+                    verdict(c.verdict),
+                    c.product,
+                    c.sets.len(),
+                    c.ratios()
+                );
+                // seconds as ns, metres as they are
+                let (scale, unit) = if c.product.ends_with("(s)") { (1e9, "ns") } else { (1.0, "m") };
+                let cell = |v: &Option<f64>| v.map_or("–".to_string(), |v| format!("{:.3}", v * scale));
+                let head: String = c.levels.iter().map(|l| format!("  {:>20}", format!("{l}: learned / vs"))).collect();
+                println!("              {:<22}{head}   ({unit})", "set");
+                for (set, row) in &c.sets {
+                    let cells: String = row
+                        .learned
+                        .iter()
+                        .zip(&row.against)
+                        .map(|(a, b)| format!("  {:>20}", format!("{} / {}", cell(a), cell(b))))
+                        .collect();
+                    println!("              {set:<22}{cells}");
+                }
+            }
             println!();
             match std::fs::read_to_string(e.dir.join(zoo::PROVENANCE_FILE)) {
                 Ok(text) => print!("{text}"),
@@ -80,9 +120,22 @@ fn alias(e: &Entry) -> String {
     }
 }
 
+fn verdict(v: zoo::Verdict) -> &'static str {
+    match v {
+        zoo::Verdict::Wins => "wins",
+        zoo::Verdict::OnPar => "on a par (short of 0.8× at 0.02)",
+        zoo::Verdict::Baseline => "baseline (the learned codes lose)",
+    }
+}
+
 fn codes_kind(e: &Entry) -> &'static str {
     if e.learned_codes {
-        "learned"
+        match e.comparison.as_ref().map(|c| c.verdict) {
+            Some(zoo::Verdict::Baseline) => "learned†",
+            Some(zoo::Verdict::Wins) => "learned+",
+            Some(zoo::Verdict::OnPar) => "learned=",
+            None => "learned",
+        }
     } else if e.designed_codes {
         "designed"
     } else {
