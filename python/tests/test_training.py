@@ -33,6 +33,19 @@ def test_train_writes_the_command_lines_run(lab, cli):
     assert [r["epoch"] for r in more] == [3]
 
 
+def test_the_objective_is_the_command_lines(lab, cli):
+    """`objective="range"` gives the run `--objective range` gives, to the byte; a product the
+    dataset does not have is refused before anything is written."""
+    tcsense.train("admm-net", lab / "obj-py", dataset=lab / "ds", codes=lab / "codes.json", stages=1, channels=2, epochs=1, seed=3, objective="range")
+    cli("train", "admm-net", "--dataset", lab / "ds", "--codes", lab / "codes.json", "--stages", "1", "--channels", "2", "--epochs", "1", "--seed", "3",
+        "--objective", "range", "-o", lab / "obj-cli")
+    assert (lab / "obj-py" / "model.bpk").read_bytes() == (lab / "obj-cli" / "model.bpk").read_bytes()
+    assert json.loads((lab / "obj-py" / "config.json").read_text())["objective"] == "range"
+    with pytest.raises(tcsense.TcsenseError, match=r"objective lifetime"):
+        tcsense.train("admm-net", lab / "obj-bad", dataset=lab / "ds", codes=lab / "codes.json", epochs=1, objective="lifetime")
+    assert not (lab / "obj-bad").exists()
+
+
 def test_fine_tune_takes_the_architecture_from_its_run(lab):
     tcsense.train("admm-net", lab / "src", dataset=lab / "ds", codes=lab / "codes.json", stages=1, channels=2, prior="delay", epochs=1, seed=4)
     rows = tcsense.fine_tune(lab / "src", lab / "tuned", dataset=lab / "ds", codes=lab / "codes.json", epochs=1)
