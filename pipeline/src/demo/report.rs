@@ -362,11 +362,7 @@ fn codes_on_the_ladder(dir: &Path) -> Result<String> {
     let rows = pj["rows"].as_array().cloned().unwrap_or_default();
     let bin_m = pj["bin_m"].as_f64().unwrap_or(f64::NAN);
     let median = |decoder: &str, level: f64| {
-        rows.iter()
-            .find(|r| r["decoder"].as_str() == Some(decoder) && r["light"]["signal_fraction"].as_f64() == Some(level))
-            .and_then(|r| r["depth_median_m"][0].as_f64())
-            .map(|m| m / bin_m)
-            .filter(|v| v.is_finite())
+        ladder_row(&rows, decoder, level).and_then(|r| r["depth_median_m"][0].as_f64()).map(|m| m / bin_m).filter(|v| v.is_finite())
     };
     let mut cells = Vec::new();
     let mut at_least = Vec::new();
@@ -386,15 +382,26 @@ fn codes_on_the_ladder(dir: &Path) -> Result<String> {
     if compared == 0 && !rows.iter().any(|r| r["decoder"].as_str() == Some(LEARNED_ADMM)) {
         return Ok("results/photon-lidar.json has no rows on the learned codes (it was written by an earlier version of the demo: delete it and rerun the demo into this directory to add them).".into());
     }
-    let verdict = if at_least.is_empty() {
-        "The learned codes do not reach the selected codes' first-return error at any level.".to_string()
-    } else {
-        format!("The learned codes are at least as good at signal {} of the full well.", at_least.join(", "))
-    };
+    let verdict = verdict_on_the_ladder(&at_least, "the selected codes' first-return error");
     Ok(format!(
         "The two code sets with one decoder architecture (ADMM-Net + peaks, median first-return error in bins, selected codes → learned codes, same scenes and noise seeds): {}. {verdict} The learned codes were trained for the cube's error at the training's light levels; the fit's rows show what each code set gives without a learned prior.",
         cells.join("; ")
     ))
+}
+
+/// The row of `decoder` at light `level` (the brightest tap's share of the full well) among a
+/// photon ladder's rows.
+fn ladder_row<'a>(rows: &'a [Value], decoder: &str, level: f64) -> Option<&'a Value> {
+    rows.iter().find(|r| r["decoder"].as_str() == Some(decoder) && r["light"]["signal_fraction"].as_f64() == Some(level))
+}
+
+/// Where learned codes are at least as good as `reference` on the ladder, for people.
+fn verdict_on_the_ladder(at_least: &[String], reference: &str) -> String {
+    if at_least.is_empty() {
+        format!("The learned codes do not reach {reference} at any level.")
+    } else {
+        format!("The learned codes are at least as good at signal {} of the full well.", at_least.join(", "))
+    }
 }
 
 /// The two FLIm code sets on the photon ladder (`results/photon-flim.json`) with one decoder
@@ -403,12 +410,8 @@ fn codes_on_the_ladder(dir: &Path) -> Result<String> {
 fn flim_codes_on_the_ladder(dir: &Path) -> Result<String> {
     let pj = read_json(&dir.join("results/photon-flim.json"))?;
     let rows = pj["rows"].as_array().cloned().unwrap_or_default();
-    let value = |decoder: &str, level: f64, key: &str| {
-        rows.iter()
-            .find(|r| r["decoder"].as_str() == Some(decoder) && r["light"]["signal_fraction"].as_f64() == Some(level))
-            .and_then(|r| r[key].as_f64())
-            .filter(|v| v.is_finite())
-    };
+    let value =
+        |decoder: &str, level: f64, key: &str| ladder_row(&rows, decoder, level).and_then(|r| r[key].as_f64()).filter(|v| v.is_finite());
     if !rows.iter().any(|r| r["decoder"].as_str() == Some(FLIM_LEARNED_NET)) {
         return Ok("The FLIm ladder has no rows on learned codes: the zoo's lifetime networks on designed and learned codes were not found for these bins (see TCSENSE_ZOO), or results/photon-flim.json was written by an earlier version of the demo (delete it and rerun the demo into this directory).".into());
     }
@@ -431,11 +434,7 @@ fn flim_codes_on_the_ladder(dir: &Path) -> Result<String> {
             _ => cells.push(format!("no lifetimes to compare at signal {level}")),
         }
     }
-    let verdict = if at_least.is_empty() {
-        "The learned codes do not reach the designed codes' lifetime error at any level.".to_string()
-    } else {
-        format!("The learned codes are at least as good at signal {} of the full well.", at_least.join(", "))
-    };
+    let verdict = verdict_on_the_ladder(&at_least, "the designed codes' lifetime error");
     Ok(format!(
         "The two FLIm code sets with one decoder architecture (the zoo's lifetime network, lifetime MAE, designed codes → codes learned with it, each through its own codes, the same scenes and noise seeds): {}. {verdict} `tcsense zoo show lifetime-flim-learned` has the same comparison on test sets unlike the training data.",
         cells.join("; ")
