@@ -44,6 +44,14 @@ fn shows(text: &str, v: Option<f64>) -> bool {
     }
 }
 
+/// The value at JSON `pointer` of `decoder`'s row at light `level` among a photon ladder's rows.
+fn ladder_value(rows: &[Value], decoder: &str, level: f64, pointer: &str) -> f64 {
+    rows.iter()
+        .find(|r| r["decoder"].as_str() == Some(decoder) && r["light"]["signal_fraction"].as_f64() == Some(level))
+        .and_then(|r| r.pointer(pointer)?.as_f64())
+        .unwrap_or_else(|| panic!("{decoder} at {level}, {pointer}: {rows:?}"))
+}
+
 fn json(path: &Path) -> Value {
     serde_json::from_slice(&std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))).unwrap()
 }
@@ -191,12 +199,7 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
         7 * 4,
         "four decoders on the selected codes, the ADMM-Net and the fit on the learned codes and the zoo's evidence U-Net, at four levels"
     );
-    let share = |d: &str, level: f64| {
-        prow.iter()
-            .find(|r| r["decoder"].as_str() == Some(d) && r["light"]["signal_fraction"].as_f64() == Some(level))
-            .and_then(|r| r["depth_within_half_bin"][0].as_f64())
-            .unwrap_or_else(|| panic!("{d} at {level}: {prow:?}"))
-    };
+    let share = |d: &str, level: f64| ladder_value(prow, d, level, "/depth_within_half_bin/0");
     let fit = "range fit to the taps, 2 returns";
     assert!(share(fit, 0.8) > 0.5 && share(fit, 0.8) > share(fit, 0.005), "{} at 0.8, {} at 0.005", share(fit, 0.8), share(fit, 0.005));
     // both code sets with one architecture: the learned codes' rows are measured through them
@@ -217,13 +220,7 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
         "the fit and the ADMM-Net on the selected codes, the zoo's evidence network, and one lifetime network on designed and on learned codes"
     );
     // the FLIm pair: one architecture through each code set (its own codes: not the same numbers)
-    let mae = |d: &str, level: f64| {
-        frows
-            .iter()
-            .find(|r| r["decoder"].as_str() == Some(d) && r["light"]["signal_fraction"].as_f64() == Some(level))
-            .and_then(|r| r["lifetime_mae_s"].as_f64())
-            .unwrap_or_else(|| panic!("{d} at {level}: {frows:?}"))
-    };
+    let mae = |d: &str, level: f64| ladder_value(frows, d, level, "/lifetime_mae_s");
     let (designed, learned) = ("lifetime network (zoo), designed codes", "lifetime network (zoo), codes learned with it");
     assert!(mae(designed, 0.8) > 0.0 && mae(designed, 0.8) < 2e-9 && mae(designed, 0.8) != mae(learned, 0.8), "{frows:?}");
     assert!(

@@ -95,6 +95,35 @@ fn zoo_list_and_show_name_every_entry() {
     assert!(!d.path().join("x.onnx").exists());
 }
 
+/// A zoo whose comparison file is malformed or whose rows do not match its levels: `zoo list`
+/// and `zoo show` refuse it with exit 2, naming the file, and no panic.
+#[test]
+fn a_malformed_codes_comparison_is_refused_naming_the_file() {
+    let d = tempdir();
+    let entry = d.path().join("zoo").join("x-learned");
+    std::fs::create_dir_all(&entry).unwrap();
+    for f in ["config.json", "codes.json", "model.bpk"] {
+        std::fs::copy(zoo_dir().join("admm-lidar-learned").join(f), entry.join(f)).unwrap();
+    }
+    let good = std::fs::read_to_string(zoo_dir().join("admm-lidar-learned").join("codes_comparison.json")).unwrap();
+    let zoo_cmd = |args: &[&str]| bin().current_dir(d.path()).env("TCSENSE_ZOO", d.path().join("zoo")).args(args).output().unwrap();
+    for (text, needle) in [
+        (r#"{"against": 3}"#.to_string(), "not a codes comparison"),
+        (good.replacen("\"ratio\": [", "\"ratio\": [1.0, ", 1), "one value per level"),
+    ] {
+        std::fs::write(entry.join("codes_comparison.json"), text).unwrap();
+        for args in [&["zoo", "list"][..], &["zoo", "show", "x-learned"]] {
+            let o = zoo_cmd(args);
+            let err = String::from_utf8_lossy(&o.stderr);
+            assert_eq!(o.status.code(), Some(2), "{args:?}: {err}");
+            assert!(err.contains("codes_comparison.json") && err.contains(needle) && !err.contains("panicked"), "{args:?}: {err}");
+        }
+    }
+    std::fs::write(entry.join("codes_comparison.json"), good).unwrap();
+    let list = zoo_cmd(&["zoo", "list"]);
+    assert!(list.status.success() && String::from_utf8_lossy(&list.stdout).contains("learned†"));
+}
+
 /// A realistic frame for an entry: a scene of its kind (a generated LiDAR or FLIm test item,
 /// 32×32) measured by the entry's sensor, with shot noise.
 fn realistic_frame(run: &runs::LoadedRun, dir: &Path) -> Array4<f32> {

@@ -26,7 +26,7 @@ pub enum Loss {
 
 /// What a run is trained for (`tcsense train --objective`): the product its users read.
 ///
-/// A cube decoder (the ADMM-Net, the Aᵀ + U-Net on cubes) is trained on the cube's loss
+/// A cube decoder (the ADMM-Net) is trained on the cube's loss
 /// ([`Loss`]) alone under `mse`; under `range` or `lifetime` it adds
 /// [`crate::loss::waveform_emd`]: the earth mover's distance between every pixel's predicted
 /// and true waveform, each normalised to unit sum. For one return it is the range error in
@@ -49,6 +49,10 @@ pub enum Objective {
 }
 
 impl Objective {
+    /// Every objective, in the order the command line lists them.
+    pub const ALL: [Objective; 3] = [Objective::Mse, Objective::Range, Objective::Lifetime];
+
+    /// The name `--objective` and `config.json` spell.
     pub fn name(self) -> &'static str {
         match self {
             Objective::Mse => "mse",
@@ -347,8 +351,10 @@ mod tests {
     fn the_objective_matches_the_network() {
         let admm = TrainConfig::new(ModelConfig::AdmmNet(AdmmNetConfig::new(4, 8)), Path::new("ds"), Loss::Rmse, Sampling::Oversample(1));
         assert!(!serde_json::to_string(&admm).expect("json").contains("objective"));
-        for o in [Objective::Mse, Objective::Range, Objective::Lifetime] {
+        for o in Objective::ALL {
             assert!(TrainConfig { objective: Some(o), ..admm.clone() }.validate().is_ok(), "{o:?}");
+            // the name is serde's
+            assert_eq!(serde_json::to_value(o).expect("json"), o.name());
         }
         let unet = TrainConfig::new(
             ModelConfig::Unet(tcsense_models::UnetConfig::new(4, 8, 10.0)),

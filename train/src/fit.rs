@@ -381,21 +381,19 @@ fn fit<M: Network>(
             expected: format!("the dataset's T = {} and the codes' M", ds.manifest.bins),
         });
     }
-    let flim = ds.manifest.kind == tcsense_datasets::store::Kind::Flim;
-    match cfg.objective {
-        Some(crate::Objective::Range) if flim => {
-            return Err(file_err(
-                &manifest,
-                "objective range: a FLIm dataset has no ranges (its product is the lifetime: --objective lifetime)",
-            ))
-        }
-        Some(crate::Objective::Lifetime) if !flim => {
-            return Err(file_err(
-                &manifest,
-                "objective lifetime: a LiDAR dataset has no lifetimes (its product is the range: --objective range)",
-            ))
-        }
-        _ => {}
+    // a product objective must be the dataset's: ranges of LiDAR, lifetimes of FLIm
+    let (own, kind, lacks) = match ds.manifest.kind {
+        tcsense_datasets::store::Kind::Flim => (crate::Objective::Lifetime, "FLIm", "ranges"),
+        _ => (crate::Objective::Range, "LiDAR", "lifetimes"),
+    };
+    if let Some(o) = cfg.objective.filter(|&o| o != crate::Objective::Mse && o != own) {
+        let msg = format!(
+            "objective {}: a {kind} dataset has no {lacks} (its product is the {}: --objective {})",
+            o.name(),
+            own.name(),
+            own.name()
+        );
+        return Err(file_err(&manifest, msg));
     }
     let data = Splits::load::<M>(cfg, &ds)?;
     let (bin_m, range_m) = (C * sensor.bin_width_s() / 2.0, C * sensor.bin_width_s() * sensor.bins() as f64 / 2.0);
@@ -636,20 +634,21 @@ pub(crate) fn objective(loss: Loss, pred: Tensor<4>, target: Target<'_>, device:
     match target {
         Target::Cube { x, scales, emd } => {
             let truth = to_tensor(&x.view(), device);
+            // the product's term on the cube as predicted (its scale does not enter)
+            let emd = emd.then(|| crate::loss::waveform_emd(pred.clone(), truth.clone()).mul_scalar(crate::loss::EMD_WEIGHT));
             let cube = match scales {
-                None => loss_fn(loss, pred.clone(), truth.clone()),
+                None => loss_fn(loss, pred, truth),
                 Some(s) => {
                     let inv = Tensor::<4>::from_data(
                         TensorData::new(s.iter().map(|s| 1.0 / s).collect::<Vec<f32>>(), [s.len(), 1, 1, 1]),
                         device,
                     );
-                    loss_fn(loss, pred.clone() * inv.clone(), truth.clone() * inv)
+                    loss_fn(loss, pred * inv.clone(), truth * inv)
                 }
             };
-            if emd {
-                cube + crate::loss::waveform_emd(pred, truth).mul_scalar(crate::loss::EMD_WEIGHT)
-            } else {
-                cube
+            match emd {
+                Some(e) => cube + e,
+                None => cube,
             }
         }
         Target::Depth { depth, range_m, grid } => {

@@ -292,12 +292,8 @@ pub fn prepare(req: &TrainRequest) -> Result<Prepared> {
         };
     }
     if let Some(o) = req.objective.as_deref() {
-        cfg.objective = Some(match o {
-            "mse" => Objective::Mse,
-            "range" => Objective::Range,
-            "lifetime" => Objective::Lifetime,
-            other => return Err(bad("objective", other, "mse, range or lifetime")),
-        });
+        let found = Objective::ALL.into_iter().find(|k| k.name() == o);
+        cfg.objective = Some(found.ok_or_else(|| bad("objective", o, "mse, range or lifetime"))?);
     }
     if req.no_noise {
         cfg.noise = None;
