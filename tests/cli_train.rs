@@ -410,6 +410,33 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
     for (a, b) in streamed.iter().zip(tau.index_axis(ndarray::Axis(0), 0).iter()) {
         assert!((a.is_nan() && b.is_nan()) || (a - b).abs() <= 1e-4 * b.abs(), "infer {a:e} against reconstruct {b:e}");
     }
+    // a stream is a pipeline (the next frame's evidence and the last one's refinement beside
+    // the graph): each frame of a stack comes out as alone, in its place
+    ok(d, &["simulate", "--codes", "codes.json", "--heterodyne", "2", "--cube", "x.npy", "--noise", "--seed", "9", "-o", "y2.npy"]);
+    let (y1, y2) = (read_npy(&d.join("y.npy")).unwrap(), read_npy(&d.join("y2.npy")).unwrap());
+    let stack = ndarray::stack(ndarray::Axis(0), &[y1.view(), y2.view(), y1.view(), y2.view()]).unwrap();
+    tcsense_sensor::npy::write_npy(&d.join("stack.npy"), &stack.view()).unwrap();
+    ok(d, &["infer", "--model", "ev.onnx", "--measurements", "stack.npy", "-o", "inf4"]);
+    let four = read_npy(&d.join("inf4/lifetime.npy")).unwrap();
+    assert_eq!(four.shape(), &[4, 8, 8]);
+    let same = |a: ndarray::ArrayViewD<'_, f32>, b: ndarray::ArrayViewD<'_, f32>| {
+        a.iter().zip(b.iter()).all(|(a, b)| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan()))
+    };
+    let streamed = streamed.view().into_dyn();
+    assert!(same(four.index_axis(ndarray::Axis(0), 0), streamed.view()), "frame 0 of the stack is the frame alone");
+    assert!(same(four.index_axis(ndarray::Axis(0), 2), streamed.view()), "frame 2 of the stack is the frame alone");
+    assert!(same(four.index_axis(ndarray::Axis(0), 1), four.index_axis(ndarray::Axis(0), 3)), "frames 1 and 3 agree");
+    assert!(!same(four.index_axis(ndarray::Axis(0), 1), streamed.view()), "another noise draw, other lifetimes");
+    // a frame the evidence stage refuses mid-stream: exit 2 naming it, nothing written
+    let frames = d.join("frames");
+    std::fs::create_dir_all(&frames).unwrap();
+    let mut bad = y2.clone();
+    bad[[1, 3, 3]] = f32::NAN;
+    for (k, f) in [&y1, &y2, &bad, &y1].into_iter().enumerate() {
+        tcsense_sensor::npy::write_npy(&frames.join(format!("f{k}.npy")), &f.view()).unwrap();
+    }
+    fails(d, &["infer", "--model", "ev.onnx", "--measurements", "frames", "-o", "inf-bad"], &["f2.npy", "finite"]);
+    assert!(!d.join("inf-bad").exists(), "nothing written");
     // the photon ladder of lifetime decoders and its figure (lifetime MAE and coverage against the light)
     let out = ok(
         d,

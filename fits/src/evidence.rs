@@ -160,8 +160,9 @@ pub fn evidence_with(costs: &CostVolume<'_>, intensity: &Array2<f32>, pool: usiz
                     total += *q;
                 }
                 let scale = pooled as f32 / total;
-                for (k, &q) in post.iter().enumerate() {
-                    fp[b * pooled + k / pool] += q * scale;
+                // each pooled channel sums its candidates in order (as one `+=` per candidate)
+                for (o, chunk) in fp[b * pooled..(b + 1) * pooled].iter_mut().zip(post.chunks(pool)) {
+                    *o = chunk.iter().fold(*o, |a, &q| a + q * scale);
                 }
             }
         }

@@ -155,39 +155,6 @@ impl OnnxModel {
         }
     }
 
-    /// The fit's evidence of every frame of `y` `[B, M, H, W]`, pixel-major: features
-    /// `[B, H, W, F]`, log-likelihood `[B, H, W, G]`, and per frame its templates (when not the fixed ones) and
-    /// costs, for the refinement (models on the evidence only).
-    fn evidence(
-        &self,
-        y: &ArrayView4<'_, f32>,
-        e: &EvidenceNote,
-    ) -> (Array4<f32>, Array4<f32>, Vec<(Option<LifetimeTemplates>, LifetimeCosts)>) {
-        let (b, _, h, w) = y.dim();
-        let f = tcsense_fits::lifetime_taps::evidence::feature_channels(e.points, e.pool);
-        let mut features = Vec::with_capacity(b * h * w * f);
-        let mut skip = Vec::with_capacity(b * h * w * e.points);
-        let mut frames = Vec::with_capacity(b);
-        let opts = e.fit_options();
-        for i in 0..b {
-            let yi = y.index_axis(ndarray::Axis(0), i);
-            let own = self.templates.is_none().then(|| frame_templates(&yi, &self.sensor, &opts));
-            let Some(templates) = own.as_ref().or(self.templates.as_ref()) else { unreachable!("templates fixed or fitted") };
-            let (ev, costs) = evidence_at(&yi, templates, e.pool);
-            // a stream's single frame is moved, not copied (tens of MB a frame)
-            if b == 1 {
-                features = ev.features.into_raw_vec_and_offset().0;
-                skip = ev.skip.into_raw_vec_and_offset().0;
-            } else {
-                features.extend(ev.features.iter());
-                skip.extend(ev.skip.iter());
-            }
-            frames.push((own, costs));
-        }
-        let shaped = |c: usize, v: Vec<f32>| Array4::from_shape_vec((b, h, w, c), v).expect("[B, H, W, C] of the frames' evidence");
-        (shaped(f, features), shaped(e.points, skip), frames)
-    }
-
     /// The model file.
     pub fn path(&self) -> &Path {
         &self.path
@@ -225,27 +192,29 @@ impl OnnxModel {
     /// posterior's mode), the mode refined in the tap domain where it is the fit's own argmin
     /// ([`LifetimeTemplates::refine_modes`], as burn's decoder does), and the intensity.
     fn run_on_evidence(&mut self, y: &ArrayView4<'_, f32>, e: &EvidenceNote) -> Result<Vec<Array4<f32>>> {
-        let (features, skip, frames) = self.evidence(y, e);
+        let evidence = lifetime_evidence(y, e, &self.sensor, self.templates.as_ref());
+        let mut out = self.run_graph_on_evidence(&evidence)?;
+        refine_lifetimes(y, &evidence.frames, self.templates.as_ref(), &mut out);
+        Ok(out)
+    }
+
+    /// A lifetime decoder on the fit's evidence at a fixed instrument
+    /// ([`Self::set_instrument`]): its work on the CPU, to run beside the graph. `None` for
+    /// other models or before the instrument is fixed.
+    pub fn evidence_stage(&self) -> Option<EvidenceStage> {
+        let (note, templates) = (self.meta.evidence?, self.templates.clone()?);
+        Some(EvidenceStage { templates, note, sensor: self.sensor.clone(), meta: self.meta.clone(), path: self.path.clone() })
+    }
+
+    /// The graph of a lifetime decoder on the fit's evidence alone: its outputs (the
+    /// posterior's modes, the confidence) for [`EvidenceStage::finish`].
+    pub fn run_graph_on_evidence(&mut self, evidence: &LifetimeEvidence) -> Result<Vec<Array4<f32>>> {
         let path = self.path.clone();
         let fail = |e: ort::Error| InferError::File { path: path.clone(), msg: format!("ONNX Runtime: {e}") };
-        let f = TensorRef::from_array_view(features.view()).map_err(fail)?;
-        let s = TensorRef::from_array_view(skip.view()).map_err(fail)?;
+        let f = TensorRef::from_array_view(evidence.features.view()).map_err(fail)?;
+        let s = TensorRef::from_array_view(evidence.skip.view()).map_err(fail)?;
         let outputs = self.session.run(ort::inputs![EVIDENCE_INPUT => f, LOG_LIKELIHOOD_INPUT => s]).map_err(fail)?;
-        let mut out = named_outputs(&path, &outputs, self.meta.graph_outputs())?;
-        drop(outputs);
-        for (i, (own, costs)) in frames.iter().enumerate() {
-            let Some(templates) = own.as_ref().or(self.templates.as_ref()) else { unreachable!("templates fixed or fitted") };
-            let (l0, step) = templates.log_grid();
-            let lifetime = &mut out[0];
-            let u: Vec<f32> =
-                lifetime.slice(ndarray::s![i, 0, .., ..]).iter().map(|&t| ((t as f64).ln() - l0) as f32 / step as f32).collect();
-            let tau = templates.refine_modes(&y.index_axis(ndarray::Axis(0), i), costs, &u);
-            for c in 0..3 {
-                lifetime.slice_mut(ndarray::s![i, c, .., ..]).assign(&tau);
-            }
-        }
-        out.push(y.sum_axis(ndarray::Axis(1)).insert_axis(ndarray::Axis(1)));
-        Ok(out)
+        named_outputs(&path, &outputs, self.meta.graph_outputs())
     }
 
     /// [`Self::run`] of a U-Net on the range fit's evidence, frame by frame (a frame's cost
@@ -294,42 +263,7 @@ impl OnnxModel {
 
     /// Check measurements `[B, M, H, W]` against the metadata: taps, the frame rule, finite.
     pub fn check(&self, y: &ArrayView4<'_, f32>, what: &str) -> Result<()> {
-        let (b, m, h, w) = y.dim();
-        let (fh, fw) = self.meta.frame_multiple;
-        if b == 0 || m != self.meta.taps || h == 0 || w == 0 || h % fh != 0 || w % fw != 0 {
-            return Err(InferError::InvalidParam {
-                field: "measurements",
-                got: format!("{what}: [{b}, {m}, {h}, {w}]"),
-                expected: format!(
-                    "[B, M, H, W] with M = {} taps and H, W non-zero multiples of {fh}x{fw} (the frame rule of {})",
-                    self.meta.taps,
-                    self.path.display()
-                ),
-            });
-        }
-        if let Some(c) = &self.meta.calibration {
-            if [h, w] != c.size {
-                return Err(InferError::InvalidParam {
-                    field: "measurements",
-                    got: format!("{what}: [{b}, {m}, {h}, {w}]"),
-                    expected: format!(
-                        "raw {} tap images of {}x{}, the frame size of the calibration built into {}",
-                        c.units,
-                        c.size[0],
-                        c.size[1],
-                        self.path.display()
-                    ),
-                });
-            }
-        }
-        if let Some(v) = y.iter().find(|v| !v.is_finite()) {
-            return Err(InferError::InvalidParam {
-                field: "measurements",
-                got: format!("{what}: a value {v}"),
-                expected: "finite tap values".into(),
-            });
-        }
-        Ok(())
+        check_frames(&self.meta, &self.path, y, what)
     }
 
     /// Run the model on `y [B, M, H, W]` (checked first): its outputs in the order of
@@ -372,6 +306,142 @@ fn named_outputs(path: &Path, outputs: &ort::session::SessionOutputs<'_>, names:
                 .map_err(|e| InferError::File { path: path.to_path_buf(), msg: format!("output {n}: {e}") })
         })
         .collect()
+}
+
+/// The fit's evidence of every frame of a batch, as a lifetime decoder on it reads it: the
+/// graph's two inputs, pixel-major, and per frame its templates (where the instrument is not
+/// fixed) and costs, which the refinement reads after the graph.
+pub struct LifetimeEvidence {
+    /// `[B, H, W, F]`
+    features: Array4<f32>,
+    /// The log-likelihood `[B, H, W, G]`.
+    skip: Array4<f32>,
+    frames: Vec<(Option<LifetimeTemplates>, LifetimeCosts)>,
+}
+
+/// [`LifetimeEvidence`] of every frame of `y` `[B, M, H, W]`: through `fixed` templates (a
+/// stream's instrument), else through each frame's own instrument.
+fn lifetime_evidence(
+    y: &ArrayView4<'_, f32>,
+    e: &EvidenceNote,
+    sensor: &MeasurementMatrix,
+    fixed: Option<&LifetimeTemplates>,
+) -> LifetimeEvidence {
+    let (b, _, h, w) = y.dim();
+    let f = tcsense_fits::lifetime_taps::evidence::feature_channels(e.points, e.pool);
+    let mut features = Vec::with_capacity(b * h * w * f);
+    let mut skip = Vec::with_capacity(b * h * w * e.points);
+    let mut frames = Vec::with_capacity(b);
+    let opts = e.fit_options();
+    for i in 0..b {
+        let yi = y.index_axis(ndarray::Axis(0), i);
+        let own = fixed.is_none().then(|| frame_templates(&yi, sensor, &opts));
+        let Some(templates) = own.as_ref().or(fixed) else { unreachable!("templates fixed or fitted") };
+        let (ev, costs) = evidence_at(&yi, templates, e.pool);
+        // a stream's single frame is moved, not copied (tens of MB a frame)
+        if b == 1 {
+            features = ev.features.into_raw_vec_and_offset().0;
+            skip = ev.skip.into_raw_vec_and_offset().0;
+        } else {
+            features.extend(ev.features.iter());
+            skip.extend(ev.skip.iter());
+        }
+        frames.push((own, costs));
+    }
+    let shaped = |c: usize, v: Vec<f32>| Array4::from_shape_vec((b, h, w, c), v).expect("[B, H, W, C] of the frames' evidence");
+    LifetimeEvidence { features: shaped(f, features), skip: shaped(e.points, skip), frames }
+}
+
+/// The graph's posterior modes `out[0]` (`[B, 4, H, W]`, s) refined in the tap domain where
+/// each is the fit's own argmin ([`LifetimeTemplates::refine_modes`], as burn's decoder does),
+/// and the intensity `[B, 1, H, W]` pushed after the graph's outputs.
+fn refine_lifetimes(
+    y: &ArrayView4<'_, f32>,
+    frames: &[(Option<LifetimeTemplates>, LifetimeCosts)],
+    fixed: Option<&LifetimeTemplates>,
+    out: &mut Vec<Array4<f32>>,
+) {
+    for (i, (own, costs)) in frames.iter().enumerate() {
+        let Some(templates) = own.as_ref().or(fixed) else { unreachable!("templates fixed or fitted") };
+        let (l0, step) = templates.log_grid();
+        let lifetime = &mut out[0];
+        let u: Vec<f32> = lifetime.slice(ndarray::s![i, 0, .., ..]).iter().map(|&t| ((t as f64).ln() - l0) as f32 / step as f32).collect();
+        let tau = templates.refine_modes(&y.index_axis(ndarray::Axis(0), i), costs, &u);
+        for c in 0..3 {
+            lifetime.slice_mut(ndarray::s![i, c, .., ..]).assign(&tau);
+        }
+    }
+    out.push(y.sum_axis(ndarray::Axis(1)).insert_axis(ndarray::Axis(1)));
+}
+
+/// The work on the CPU around the graph of a lifetime decoder on the fit's evidence at a
+/// fixed instrument (a stream's): the evidence before the graph and the refinement after it,
+/// which a stream runs on threads of their own while the graph decodes the frame between
+/// ([`OnnxModel::evidence_stage`], [`OnnxModel::run_graph_on_evidence`]).
+pub struct EvidenceStage {
+    templates: LifetimeTemplates,
+    note: EvidenceNote,
+    sensor: MeasurementMatrix,
+    meta: OnnxMeta,
+    path: PathBuf,
+}
+
+impl EvidenceStage {
+    /// [`OnnxModel::check`] of `y` `[B, M, H, W]`.
+    pub fn check(&self, y: &ArrayView4<'_, f32>, what: &str) -> Result<()> {
+        check_frames(&self.meta, &self.path, y, what)
+    }
+
+    /// The evidence of every frame of `y` `[B, M, H, W]` (checked first).
+    pub fn evidence(&self, y: &ArrayView4<'_, f32>) -> LifetimeEvidence {
+        lifetime_evidence(y, &self.note, &self.sensor, Some(&self.templates))
+    }
+
+    /// The graph's outputs of `y` completed as [`OnnxModel::run`] gives them: the lifetimes
+    /// refined in the tap domain, the intensity after them.
+    pub fn finish(&self, y: &ArrayView4<'_, f32>, evidence: LifetimeEvidence, out: &mut Vec<Array4<f32>>) {
+        refine_lifetimes(y, &evidence.frames, Some(&self.templates), out);
+    }
+}
+
+/// [`OnnxModel::check`] against `meta`, naming `path`.
+fn check_frames(meta: &OnnxMeta, path: &Path, y: &ArrayView4<'_, f32>, what: &str) -> Result<()> {
+    let (b, m, h, w) = y.dim();
+    let (fh, fw) = meta.frame_multiple;
+    if b == 0 || m != meta.taps || h == 0 || w == 0 || h % fh != 0 || w % fw != 0 {
+        return Err(InferError::InvalidParam {
+            field: "measurements",
+            got: format!("{what}: [{b}, {m}, {h}, {w}]"),
+            expected: format!(
+                "[B, M, H, W] with M = {} taps and H, W non-zero multiples of {fh}x{fw} (the frame rule of {})",
+                meta.taps,
+                path.display()
+            ),
+        });
+    }
+    if let Some(c) = &meta.calibration {
+        if [h, w] != c.size {
+            return Err(InferError::InvalidParam {
+                field: "measurements",
+                got: format!("{what}: [{b}, {m}, {h}, {w}]"),
+                expected: format!(
+                    "raw {} tap images of {}x{}, the frame size of the calibration built into {}",
+                    c.units,
+                    c.size[0],
+                    c.size[1],
+                    path.display()
+                ),
+            });
+        }
+    }
+    if let Some(v) = y.iter().find(|v| !v.is_finite()) {
+        return Err(InferError::InvalidParam {
+            field: "measurements",
+            got: format!("{what}: a value {v}"),
+            expected: "finite tap values".into(),
+        });
+    }
+    Ok(())
 }
 
 /// An exported model behind the decoder contract (`eval --decoder onnx:model.onnx`).

@@ -209,6 +209,7 @@ pub fn grid_decays(a: &MeasurementMatrix, instrument: Instrument, opts: &TapFitO
 ///
 /// A best lifetime on either end of the grid is not an estimate (the optimum lies on or beyond
 /// the bound searched): the pixel gets NaN.
+#[derive(Clone)]
 pub struct LifetimeTemplates {
     coarse: Vec<TypeTable>,
     fine: Vec<TypeTable>,

@@ -110,6 +110,7 @@ pub(super) fn decays(c: Cycle, taus: &[f64], t0: f64, fwhm: f64) -> Vec<Vec<f64>
 
 /// The normalised templates of one subpixel type on a lifetime grid, struct of arrays:
 /// `g[k·G + i]` (tap `k`, lifetime `i`), `d = g(bg) − g` likewise and `1/‖d_i‖²`.
+#[derive(Clone)]
 pub(super) struct TypeTable {
     pub(super) g: Vec<f32>,
     pub(super) d: Vec<f32>,

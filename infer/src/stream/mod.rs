@@ -50,7 +50,7 @@ use std::time::Instant;
 use tcsense_sensor::npy::{f32_header, parse_header, read_npy, NpyHeader};
 
 use crate::products::{depth_map, write_ply, PeakOptions};
-use crate::runtime::OnnxModel;
+use crate::runtime::{LifetimeEvidence, OnnxModel};
 use crate::{InferError, Result};
 use tcsense_fits::depth::{DepthFitOptions, RangeTemplates};
 use tcsense_fits::lifetime_taps::{estimate_instrument, LifetimeTemplates, TapFit, TapFitOptions};
@@ -59,6 +59,14 @@ use tcsense_models::net::mask_depth;
 
 fn file_err(path: &Path, msg: impl ToString) -> InferError {
     InferError::File { path: path.to_path_buf(), msg: msg.to_string() }
+}
+
+/// A refusal of a frame's values as an error naming the frame's file.
+fn in_file(path: &Path, e: InferError) -> InferError {
+    match e {
+        InferError::InvalidParam { field, got, expected } => file_err(path, format!("{field}: got {got}, expected {expected}")),
+        e => e,
+    }
 }
 
 /// What a streamed run did.
@@ -215,30 +223,63 @@ fn stream_into(
     };
     let depth_fit = range_templates.is_some();
     let sensor = &model.sensor.clone();
+    // a lifetime decoder on the fit's evidence runs as a pipeline: the next frame's evidence
+    // and the last frame's refinement on the CPU while ONNX Runtime decodes the frame between
+    let stage = if need_model { model.evidence_stage() } else { None };
+    let stage = stage.as_ref();
     let mut infer_seconds = 0.0;
+    type Frame = (usize, Array3<f32>, PathBuf, Option<LifetimeEvidence>);
     let result: Result<()> = std::thread::scope(|scope| {
-        let (ftx, frx) = sync_channel::<Result<(usize, Array3<f32>, PathBuf)>>(2);
-        let (otx, orx) = sync_channel::<(usize, Vec<Array4<f32>>, Option<Array3<f32>>)>(2);
-        // reader
+        let (ftx, frx) = sync_channel::<Result<Frame>>(2);
+        let (otx, orx) = sync_channel::<(usize, Vec<Array4<f32>>, Option<Array3<f32>>, Option<LifetimeEvidence>)>(2);
+        // reader (into the evidence stage when there is one)
+        let (rtx, rrx) = sync_channel::<Result<Frame>>(2);
+        let to_next = if stage.is_some() { rtx } else { ftx.clone() };
         let reader = scope.spawn(move || {
-            if ftx.send(Ok((0, first, first_path))).is_err() {
+            if to_next.send(Ok((0, first, first_path, None))).is_err() {
                 return;
             }
             for i in 1..frames {
                 if cancel.load(Ordering::Relaxed) {
                     return;
                 }
-                let r = source.read(i, taps).map(|(a, p)| (i, a, p));
+                let r = source.read(i, taps).map(|(a, p)| (i, a, p, None));
                 let stop = r.is_err();
-                if ftx.send(r).is_err() || stop {
+                if to_next.send(r).is_err() || stop {
                     return;
                 }
             }
         });
+        // the evidence stage: each frame checked, then its evidence
+        let evidence = stage.map(|stage| {
+            scope.spawn(move || {
+                for msg in rrx {
+                    if cancel.load(Ordering::Relaxed) {
+                        return;
+                    }
+                    let r = msg.and_then(|(i, y, path, _)| {
+                        if y.dim() != (m, h, w) {
+                            return Err(file_err(&path, format!("frame of shape {:?}; the first frame was [{m}, {h}, {w}]", y.shape())));
+                        }
+                        let y4 = y.view().insert_axis(Axis(0));
+                        stage.check(&y4, &path.display().to_string()).map_err(|e| in_file(&path, e))?;
+                        let ev = stage.evidence(&y4);
+                        Ok((i, y, path, Some(ev)))
+                    });
+                    let stop = r.is_err();
+                    if ftx.send(r).is_err() || stop {
+                        return;
+                    }
+                }
+            })
+        });
         // products + writer
         let writer = scope.spawn(move || -> Result<()> {
             let mut done = 0;
-            for (i, mut outs, y) in orx {
+            for (i, mut outs, y, ev) in orx {
+                if let (Some(stage), Some(ev), Some(y)) = (stage, ev, y.as_ref()) {
+                    stage.finish(&y.view().insert_axis(Axis(0)), ev, &mut outs);
+                }
                 let fitted = templates.zip(y.as_ref()).map(|(tpl, y)| tpl.fit(&y.view()));
                 let ranges = range_templates.as_mut().zip(y.as_ref()).map(|(tpl, y)| tpl.fit(&y.view()));
                 if let (Some(opts), Some(y)) = (range_fit, y.as_ref()) {
@@ -269,7 +310,7 @@ fn stream_into(
                 status = Err(InferError::Cancelled);
                 break;
             }
-            let (i, y, path) = match msg {
+            let (i, y, path, ev) = match msg {
                 Ok(v) => v,
                 Err(e) => {
                     status = Err(e);
@@ -281,30 +322,29 @@ fn stream_into(
                 break;
             }
             let ti = Instant::now();
-            let run = if need_model {
-                model.run(y.view().insert_axis(Axis(0)))
-            } else {
-                model.check(&y.view().insert_axis(Axis(0)), &path.display().to_string()).map(|_| Vec::new())
+            let run = match &ev {
+                Some(ev) => model.run_graph_on_evidence(ev),
+                None if need_model => model.run(y.view().insert_axis(Axis(0))),
+                None => model.check(&y.view().insert_axis(Axis(0)), &path.display().to_string()).map(|_| Vec::new()),
             };
             let outs = match run {
                 Ok(o) => o,
                 Err(e) => {
-                    status = Err(match e {
-                        InferError::InvalidParam { field, got, expected } => {
-                            file_err(&path, format!("{field}: got {got}, expected {expected}"))
-                        }
-                        e => e,
-                    });
+                    status = Err(in_file(&path, e));
                     break;
                 }
             };
             infer_seconds += ti.elapsed().as_secs_f64();
-            if otx.send((i, outs, (templates.is_some() || range_fit.is_some() || depth_fit).then_some(y))).is_err() {
+            let keep = templates.is_some() || range_fit.is_some() || depth_fit || ev.is_some();
+            if otx.send((i, outs, keep.then_some(y), ev)).is_err() {
                 break;
             }
         }
         drop(otx);
         let _ = reader.join();
+        if let Some(e) = evidence {
+            let _ = e.join();
+        }
         let written = writer.join().unwrap_or_else(|_| Err(file_err(out, "the writer thread panicked")));
         // an early stop drops the writers unfinished (their temporary files removed)
         status.and(written)
