@@ -452,6 +452,8 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
             "lifetime:ev",
             "--decoder",
             "lifetime-fit",
+            "--decoder",
+            "lifetime-fit:7",
             "--light",
             "0.8,0.02",
             "--plot",
@@ -464,7 +466,19 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
     let png = std::fs::read(d.join("curve.png")).unwrap();
     assert!(png.len() > 10_000 && png.starts_with(b"\x89PNG"), "a drawn figure");
     let rows: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("ladder.json")).unwrap()).unwrap();
-    assert_eq!(rows.as_array().unwrap().len(), 4, "two decoders at two light levels");
+    let rows = rows.as_array().unwrap();
+    assert_eq!(rows.len(), 6, "three decoders at two light levels");
+    // the fit over 7x7 windows is another fit than over the default 3x3
+    let mae = |dec: &str, light: f64| {
+        rows.iter()
+            .find(|r| r["decoder"] == dec && r["light"]["signal_fraction"].as_f64() == Some(light))
+            .and_then(|r| r["lifetime_mae_s"].as_f64())
+            .unwrap_or_else(|| panic!("{dec} at {light}"))
+    };
+    assert_ne!(mae("lifetime-fit", 0.02), mae("lifetime-fit:7", 0.02));
+    for bad in ["lifetime-fit:4", "lifetime-fit:65", "lifetime-fit:x"] {
+        fails(d, &["eval", "--dataset", "f", "--codes", "codes.json", "--heterodyne", "2", "--decoder", bad], &[bad, "odd window side"]);
+    }
     // deep sensing on the fit's evidence: the lifetime loss reaches the codes through the
     // evidence's differentiable copy (models/src/lifetime_evidence.rs); the codes come out exact
     let args = train(&["--input", "costs", "--points", "40", "--epochs", "2", "--relaxed-epochs", "1", "--learn-codes"], "evl");

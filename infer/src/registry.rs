@@ -152,9 +152,9 @@ impl Registry {
                 },
                 Entry {
                     name: LIFETIME_FIT,
-                    usage: "lifetime-fit",
-                    summary: "lifetimes fitted to the tap images (a reconvolution fit in the measurement domain)",
-                    arg: ArgUse::None,
+                    usage: "lifetime-fit[:N]",
+                    summary: "lifetimes fitted to the tap images (a reconvolution fit in the measurement domain) over windows of NxN pixels (odd, default 3); no network",
+                    arg: ArgUse::Optional,
                     cubes: false,
                     open: open_lifetime_fit,
                 },
@@ -318,7 +318,16 @@ fn open_depth_fit(o: &Opening<'_>) -> Result<NamedDecoder> {
 }
 
 fn open_lifetime_fit(o: &Opening<'_>) -> Result<NamedDecoder> {
-    any_sensor(o, Box::new(crate::fitted::TapFitDecoder::new(o.settings.tap_fit.clone())?))
+    let mut opts = o.settings.tap_fit.clone();
+    if let Some(n) = o.arg {
+        let max = tcsense_fits::range::MAX_WINDOW;
+        opts.window = n.parse().ok().filter(|n: &usize| n % 2 == 1 && *n <= max).ok_or_else(|| InferError::InvalidParam {
+            field: "decoder",
+            got: o.label.into(),
+            expected: format!("lifetime-fit:N with N an odd window side from 1 to {max} pixels"),
+        })?;
+    }
+    any_sensor(o, Box::new(crate::fitted::TapFitDecoder::new(opts)?))
 }
 
 /// A training run of the network `kind` (its ranges fitted in the tap domain or not).
@@ -373,7 +382,18 @@ mod tests {
         let d = Device::flex();
         assert_eq!(r.open("tval3", &s, &d).unwrap().decoder.name(), names::TVAL3);
         assert_eq!(r.open("lifetime-fit", &s, &d).unwrap().label, "lifetime-fit");
-        for bad in ["tval3:x", "unet", "depth-fit:3", "depth-fit:", "unet+fit", "depth-fit+fit", "tval3+fit+fit"] {
+        assert_eq!(r.open("lifetime-fit:9", &s, &d).unwrap().label, "lifetime-fit:9");
+        for bad in [
+            "tval3:x",
+            "unet",
+            "depth-fit:3",
+            "depth-fit:",
+            "unet+fit",
+            "depth-fit+fit",
+            "tval3+fit+fit",
+            "lifetime-fit:2",
+            "lifetime-fit:0",
+        ] {
             assert!(r.open(bad, &s, &d).is_err(), "{bad}");
         }
         let e = r.open("nope", &s, &d).err().unwrap().to_string();
