@@ -552,6 +552,22 @@ fn the_unet_on_the_range_fit_evidence_trains_decodes_and_streams_as_reconstruct(
     for (a, b) in streamed.iter().zip(depth.index_axis(ndarray::Axis(1), 0).iter()) {
         assert!((a.is_nan() && b.is_nan()) || (a - b).abs() <= 1e-4 * b.abs().max(1.0), "infer {a} against reconstruct {b}");
     }
+    // streamed as a pipeline, each frame as alone and in its place; a dark frame (no evidence,
+    // the graph not run) has no return and no confidence
+    let y = read_npy(&d.join("y.npy")).unwrap();
+    let y = if y.ndim() == 4 { y.index_axis(ndarray::Axis(0), 0).to_owned() } else { y };
+    let dark = ndarray::ArrayD::<f32>::zeros(y.shape());
+    let stack = ndarray::stack(ndarray::Axis(0), &[y.view(), dark.view(), y.view()]).unwrap();
+    tcsense_sensor::npy::write_npy(&d.join("stack.npy"), &stack.view()).unwrap();
+    ok(d, &["infer", "--model", "ev.onnx", "--measurements", "stack.npy", "-o", "inf3"]);
+    let (three, conf3) = (read_npy(&d.join("inf3/depth.npy")).unwrap(), read_npy(&d.join("inf3/confidence.npy")).unwrap());
+    assert_eq!(three.shape(), &[3, 2, 8, 8]);
+    let bits = |a: ndarray::ArrayViewD<'_, f32>| a.iter().map(|v| if v.is_nan() { u32::MAX } else { v.to_bits() }).collect::<Vec<u32>>();
+    let single = bits(streamed.view().into_dyn());
+    assert_eq!(bits(three.index_axis(ndarray::Axis(0), 0)), single[single.len() - 2 * 64..], "frame 0 as alone");
+    assert_eq!(bits(three.index_axis(ndarray::Axis(0), 2)), bits(three.index_axis(ndarray::Axis(0), 0)), "frame 2 as frame 0");
+    assert!(three.index_axis(ndarray::Axis(0), 1).iter().all(|v| v.is_nan()), "no return in the dark");
+    assert!(conf3.index_axis(ndarray::Axis(0), 1).iter().all(|&c| c == 0.0), "no confidence in the dark");
     // the photon ladder beside the fit
     ok(
         d,

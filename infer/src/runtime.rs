@@ -5,14 +5,14 @@
 //! the working directory and from the executable's directory upwards. Without it, opening a
 //! model fails with [`InferError::OrtMissing`], which says how to install it.
 
-use ndarray::{Array4, ArrayView4, ArrayViewD, Ix4};
+use ndarray::{Array3, Array4, ArrayView3, ArrayView4, ArrayViewD, Ix4};
 use ort::session::builder::GraphOptimizationLevel;
 use ort::session::Session;
 use ort::value::TensorRef;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-use tcsense_fits::depth::{RangeTemplates, Seeds};
+use tcsense_fits::depth::{CandidateGrid, RangeCosts, RangeTemplates, Seeds};
 use tcsense_fits::range::{refine_ranges, RangeFitOptions};
 use tcsense_models::decoder::{check_measurements, Control, Decoded, Decoder, Step};
 use tcsense_models::net::{mask_depth, mask_lifetime};
@@ -194,21 +194,42 @@ impl OnnxModel {
     fn run_on_evidence(&mut self, y: &ArrayView4<'_, f32>, e: &EvidenceNote) -> Result<Vec<Array4<f32>>> {
         let evidence = lifetime_evidence(y, e, &self.sensor, self.templates.as_ref());
         let mut out = self.run_graph_on_evidence(&evidence)?;
-        refine_lifetimes(y, &evidence.frames, self.templates.as_ref(), &mut out);
+        if let FitCosts::Lifetime(frames) = &evidence.costs {
+            refine_lifetimes(y, frames, self.templates.as_ref(), &mut out);
+        }
         Ok(out)
     }
 
-    /// A lifetime decoder on the fit's evidence at a fixed instrument
-    /// ([`Self::set_instrument`]): its work on the CPU, to run beside the graph. `None` for
-    /// other models or before the instrument is fixed.
-    pub fn evidence_stage(&self) -> Option<EvidenceStage> {
-        let (note, templates) = (self.meta.evidence?, self.templates.clone()?);
-        Some(EvidenceStage { templates, note, sensor: self.sensor.clone(), meta: self.meta.clone(), path: self.path.clone() })
+    /// A decoder on a fit's evidence — a lifetime decoder at a fixed instrument
+    /// ([`Self::set_instrument`]), a U-Net on the range fit's evidence — as its work on the CPU
+    /// before and after the graph, to run beside it on threads of their own. `None` for other
+    /// models, or a lifetime decoder before its instrument is fixed.
+    pub fn evidence_stages(&self) -> Option<(EvidenceStage, RefineStage)> {
+        let (work, refine) = match (self.meta.evidence, self.meta.range_evidence) {
+            (Some(note), _) => {
+                let templates = self.templates.clone()?;
+                (StageWork::Lifetime { templates: templates.clone(), note, sensor: self.sensor.clone() }, RefineWork::Lifetime(templates))
+            }
+            (None, Some(e)) => {
+                let opts = e.fit_options(self.meta.returns);
+                let grid =
+                    CandidateGrid { candidates: self.meta.bins * e.oversample, oversample: e.oversample, range_m: self.meta.range_m };
+                (
+                    StageWork::Range { templates: RangeTemplates::new(&self.sensor, &opts), pool: e.pool },
+                    RefineWork::Range { templates: RangeTemplates::new(&self.sensor, &opts), grid, returns: self.meta.returns.max(1) },
+                )
+            }
+            (None, None) => return None,
+        };
+        Some((EvidenceStage { work, meta: self.meta.clone(), path: self.path.clone() }, RefineStage { work: refine }))
     }
 
-    /// The graph of a lifetime decoder on the fit's evidence alone: its outputs (the
-    /// posterior's modes, the confidence) for [`EvidenceStage::finish`].
-    pub fn run_graph_on_evidence(&mut self, evidence: &LifetimeEvidence) -> Result<Vec<Array4<f32>>> {
+    /// The graph of a decoder on a fit's evidence alone: its outputs for
+    /// [`RefineStage::finish`] (none for a frame without a lit pixel, which has no evidence).
+    pub fn run_graph_on_evidence(&mut self, evidence: &FrameEvidence) -> Result<Vec<Array4<f32>>> {
+        if matches!(evidence.costs, FitCosts::Range(None)) {
+            return Ok(Vec::new());
+        }
         let path = self.path.clone();
         let fail = |e: ort::Error| InferError::File { path: path.clone(), msg: format!("ONNX Runtime: {e}") };
         let f = TensorRef::from_array_view(evidence.features.view()).map_err(fail)?;
@@ -225,38 +246,18 @@ impl OnnxModel {
     fn run_on_range_evidence(&mut self, y: &ArrayView4<'_, f32>, e: &RangeEvidenceNote) -> Result<Vec<Array4<f32>>> {
         let (b, _, h, w) = y.dim();
         let k = self.meta.returns.max(1);
-        let c = self.meta.bins * e.oversample;
-        let grid = tcsense_fits::depth::CandidateGrid { candidates: c, oversample: e.oversample, range_m: self.meta.range_m };
+        let grid = CandidateGrid { candidates: self.meta.bins * e.oversample, oversample: e.oversample, range_m: self.meta.range_m };
         let mut depth = Array4::from_elem((b, k, h, w), f32::NAN);
         let mut confidence = Array4::zeros((b, k, h, w));
-        let path = self.path.clone();
-        let fail = |e: ort::Error| InferError::File { path: path.clone(), msg: format!("ONNX Runtime: {e}") };
-        let Some(templates) = self.ranges.as_mut() else { unreachable!("templates built with the model") };
         for i in 0..b {
             let yi = y.index_axis(ndarray::Axis(0), i);
-            let Some(costs) = templates.costs(&yi) else { continue };
-            let ev = templates.evidence(&costs, &yi.sum_axis(ndarray::Axis(0)), e.pool);
-            let features = ev.features.insert_axis(ndarray::Axis(0));
-            let skip = ev.skip.insert_axis(ndarray::Axis(0));
-            let f = TensorRef::from_array_view(features.view()).map_err(fail)?;
-            let s = TensorRef::from_array_view(skip.view()).map_err(fail)?;
-            let outputs = self.session.run(ort::inputs![EVIDENCE_INPUT => f, LOG_LIKELIHOOD_INPUT => s]).map_err(fail)?;
-            let out = named_outputs(&path, &outputs, self.meta.graph_outputs())?;
-            drop(outputs);
-            let u: Vec<f32> = out[0].iter().map(|&r| grid.candidate(r as f64) as f32).collect();
-            let ranges = templates.ranges(&costs, Seeds::Modes(&u));
-            for p in 0..h * w {
-                let (r, q) = (p / w, p % w);
-                let p1 = out[1][(0, 0, r, q)];
-                for j in 0..k.min(ranges.dim().0) {
-                    let v = ranges[(j, r, q)];
-                    let cj = if v.is_finite() { p1 } else { 0.0 };
-                    confidence[(i, j, r, q)] = cj;
-                    if cj >= tcsense_models::net::DETECTION_THRESHOLD {
-                        depth[(i, j, r, q)] = v;
-                    }
-                }
-            }
+            let Some(templates) = self.ranges.as_ref() else { unreachable!("templates built with the model") };
+            let evidence = range_evidence(templates, &yi, e.pool);
+            let out = self.run_graph_on_evidence(&evidence)?;
+            let Some(templates) = self.ranges.as_mut() else { unreachable!("templates built with the model") };
+            let [d, c] = refine_range_frame(templates, grid, (k, h, w), &evidence, &out);
+            depth.index_axis_mut(ndarray::Axis(0), i).assign(&d);
+            confidence.index_axis_mut(ndarray::Axis(0), i).assign(&c);
         }
         Ok(vec![depth, confidence])
     }
@@ -308,25 +309,32 @@ fn named_outputs(path: &Path, outputs: &ort::session::SessionOutputs<'_>, names:
         .collect()
 }
 
-/// The fit's evidence of every frame of a batch, as a lifetime decoder on it reads it: the
-/// graph's two inputs, pixel-major, and per frame its templates (where the instrument is not
-/// fixed) and costs, which the refinement reads after the graph.
-pub struct LifetimeEvidence {
+/// What the graph of a decoder on a fit's evidence reads for a batch (pixel-major) and what
+/// its refinement reads after it.
+pub struct FrameEvidence {
     /// `[B, H, W, F]`
     features: Array4<f32>,
-    /// The log-likelihood `[B, H, W, G]`.
+    /// The log-likelihoods `[B, H, W, G]` (`[B, H, W, S·C]` of a range fit's windows).
     skip: Array4<f32>,
-    frames: Vec<(Option<LifetimeTemplates>, LifetimeCosts)>,
+    costs: FitCosts,
 }
 
-/// [`LifetimeEvidence`] of every frame of `y` `[B, M, H, W]`: through `fixed` templates (a
-/// stream's instrument), else through each frame's own instrument.
+/// The costs the evidence came from, for the refinement in the tap domain.
+enum FitCosts {
+    /// Per frame its templates (where the instrument is not fixed) and costs.
+    Lifetime(Vec<(Option<LifetimeTemplates>, LifetimeCosts)>),
+    /// One frame's; `None`: no lit pixel, no evidence (the graph is not run).
+    Range(Option<RangeCosts>),
+}
+
+/// [`FrameEvidence`] of every frame of `y` `[B, M, H, W]` for a lifetime decoder: through
+/// `fixed` templates (a stream's instrument), else through each frame's own instrument.
 fn lifetime_evidence(
     y: &ArrayView4<'_, f32>,
     e: &EvidenceNote,
     sensor: &MeasurementMatrix,
     fixed: Option<&LifetimeTemplates>,
-) -> LifetimeEvidence {
+) -> FrameEvidence {
     let (b, _, h, w) = y.dim();
     let f = tcsense_fits::lifetime_taps::evidence::feature_channels(e.points, e.pool);
     let mut features = Vec::with_capacity(b * h * w * f);
@@ -349,7 +357,22 @@ fn lifetime_evidence(
         frames.push((own, costs));
     }
     let shaped = |c: usize, v: Vec<f32>| Array4::from_shape_vec((b, h, w, c), v).expect("[B, H, W, C] of the frames' evidence");
-    LifetimeEvidence { features: shaped(f, features), skip: shaped(e.points, skip), frames }
+    FrameEvidence { features: shaped(f, features), skip: shaped(e.points, skip), costs: FitCosts::Lifetime(frames) }
+}
+
+/// [`FrameEvidence`] of one frame `y` `[M, H, W]` for a U-Net on the range fit's evidence.
+fn range_evidence(templates: &RangeTemplates, y: &ArrayView3<'_, f32>, pool: usize) -> FrameEvidence {
+    match templates.costs(y) {
+        Some(costs) => {
+            let ev = templates.evidence(&costs, &y.sum_axis(ndarray::Axis(0)), pool);
+            FrameEvidence {
+                features: ev.features.insert_axis(ndarray::Axis(0)),
+                skip: ev.skip.insert_axis(ndarray::Axis(0)),
+                costs: FitCosts::Range(Some(costs)),
+            }
+        }
+        None => FrameEvidence { features: Array4::zeros((1, 0, 0, 0)), skip: Array4::zeros((1, 0, 0, 0)), costs: FitCosts::Range(None) },
+    }
 }
 
 /// The graph's posterior modes `out[0]` (`[B, 4, H, W]`, s) refined in the tap domain where
@@ -374,16 +397,50 @@ fn refine_lifetimes(
     out.push(y.sum_axis(ndarray::Axis(1)).insert_axis(ndarray::Axis(1)));
 }
 
-/// The work on the CPU around the graph of a lifetime decoder on the fit's evidence at a
-/// fixed instrument (a stream's): the evidence before the graph and the refinement after it,
-/// which a stream runs on threads of their own while the graph decodes the frame between
-/// ([`OnnxModel::evidence_stage`], [`OnnxModel::run_graph_on_evidence`]).
+/// One frame's depth and confidence `[K, H, W]` from the graph's outputs `out` (the
+/// posterior's mode `[1, 1, H, W]` in metres, the first return's confidence): the mode refined
+/// in the tap domain with the fit's second return beside it; depth NaN where the confidence is
+/// below the detection threshold. NaN and 0 everywhere for a frame without evidence.
+fn refine_range_frame(
+    templates: &mut RangeTemplates,
+    grid: CandidateGrid,
+    (k, h, w): (usize, usize, usize),
+    evidence: &FrameEvidence,
+    out: &[Array4<f32>],
+) -> [Array3<f32>; 2] {
+    let FitCosts::Range(Some(costs)) = &evidence.costs else {
+        return [Array3::from_elem((k, h, w), f32::NAN), Array3::zeros((k, h, w))];
+    };
+    let mut depth = Array3::from_elem((k, h, w), f32::NAN);
+    let mut confidence = Array3::zeros((k, h, w));
+    let u: Vec<f32> = out[0].iter().map(|&r| grid.candidate(r as f64) as f32).collect();
+    let ranges = templates.ranges(costs, Seeds::Modes(&u));
+    for p in 0..h * w {
+        let (r, q) = (p / w, p % w);
+        let p1 = out[1][(0, 0, r, q)];
+        for j in 0..k.min(ranges.dim().0) {
+            let v = ranges[(j, r, q)];
+            let cj = if v.is_finite() { p1 } else { 0.0 };
+            confidence[(j, r, q)] = cj;
+            if cj >= tcsense_models::net::DETECTION_THRESHOLD {
+                depth[(j, r, q)] = v;
+            }
+        }
+    }
+    [depth, confidence]
+}
+
+/// The work before the graph of a decoder on a fit's evidence, for a stream's frames
+/// ([`OnnxModel::evidence_stages`]).
 pub struct EvidenceStage {
-    templates: LifetimeTemplates,
-    note: EvidenceNote,
-    sensor: MeasurementMatrix,
+    work: StageWork,
     meta: OnnxMeta,
     path: PathBuf,
+}
+
+enum StageWork {
+    Lifetime { templates: LifetimeTemplates, note: EvidenceNote, sensor: MeasurementMatrix },
+    Range { templates: RangeTemplates, pool: usize },
 }
 
 impl EvidenceStage {
@@ -392,15 +449,44 @@ impl EvidenceStage {
         check_frames(&self.meta, &self.path, y, what)
     }
 
-    /// The evidence of every frame of `y` `[B, M, H, W]` (checked first).
-    pub fn evidence(&self, y: &ArrayView4<'_, f32>) -> LifetimeEvidence {
-        lifetime_evidence(y, &self.note, &self.sensor, Some(&self.templates))
+    /// The evidence of one frame `y` `[M, H, W]` (checked first).
+    pub fn evidence(&self, y: &ArrayView3<'_, f32>) -> FrameEvidence {
+        match &self.work {
+            StageWork::Lifetime { templates, note, sensor } => {
+                lifetime_evidence(&y.view().insert_axis(ndarray::Axis(0)), note, sensor, Some(templates))
+            }
+            StageWork::Range { templates, pool } => range_evidence(templates, y, *pool),
+        }
     }
+}
 
-    /// The graph's outputs of `y` completed as [`OnnxModel::run`] gives them: the lifetimes
-    /// refined in the tap domain, the intensity after them.
-    pub fn finish(&self, y: &ArrayView4<'_, f32>, evidence: LifetimeEvidence, out: &mut Vec<Array4<f32>>) {
-        refine_lifetimes(y, &evidence.frames, Some(&self.templates), out);
+/// The work after the graph of a decoder on a fit's evidence, for a stream's frames
+/// ([`OnnxModel::evidence_stages`]).
+pub struct RefineStage {
+    work: RefineWork,
+}
+
+enum RefineWork {
+    Lifetime(LifetimeTemplates),
+    Range { templates: RangeTemplates, grid: CandidateGrid, returns: usize },
+}
+
+impl RefineStage {
+    /// The graph's outputs `out` of one frame `y` `[M, H, W]`, completed as [`OnnxModel::run`]
+    /// gives them: the lifetimes refined in the tap domain and the intensity after them; the
+    /// depth and confidence `[1, K, H, W]` of the ranges refined in the tap domain.
+    pub fn finish(&mut self, y: &ArrayView3<'_, f32>, evidence: FrameEvidence, out: &mut Vec<Array4<f32>>) {
+        match (&mut self.work, &evidence.costs) {
+            (RefineWork::Lifetime(templates), FitCosts::Lifetime(frames)) => {
+                refine_lifetimes(&y.view().insert_axis(ndarray::Axis(0)), frames, Some(templates), out)
+            }
+            (RefineWork::Range { templates, grid, returns }, FitCosts::Range(_)) => {
+                let (_, h, w) = y.dim();
+                let [d, c] = refine_range_frame(templates, *grid, (*returns, h, w), &evidence, out);
+                *out = vec![d.insert_axis(ndarray::Axis(0)), c.insert_axis(ndarray::Axis(0))];
+            }
+            _ => unreachable!("the stages of one model"),
+        }
     }
 }
 

@@ -50,7 +50,7 @@ use std::time::Instant;
 use tcsense_sensor::npy::{f32_header, parse_header, read_npy, NpyHeader};
 
 use crate::products::{depth_map, write_ply, PeakOptions};
-use crate::runtime::{LifetimeEvidence, OnnxModel};
+use crate::runtime::{FrameEvidence, OnnxModel};
 use crate::{InferError, Result};
 use tcsense_fits::depth::{DepthFitOptions, RangeTemplates};
 use tcsense_fits::lifetime_taps::{estimate_instrument, LifetimeTemplates, TapFit, TapFitOptions};
@@ -225,13 +225,16 @@ fn stream_into(
     let sensor = &model.sensor.clone();
     // a lifetime decoder on the fit's evidence runs as a pipeline: the next frame's evidence
     // and the last frame's refinement on the CPU while ONNX Runtime decodes the frame between
-    let stage = if need_model { model.evidence_stage() } else { None };
+    let (stage, refine) = match need_model.then(|| model.evidence_stages()).flatten() {
+        Some((s, r)) => (Some(s), Some(r)),
+        None => (None, None),
+    };
     let stage = stage.as_ref();
     let mut infer_seconds = 0.0;
-    type Frame = (usize, Array3<f32>, PathBuf, Option<LifetimeEvidence>);
+    type Frame = (usize, Array3<f32>, PathBuf, Option<FrameEvidence>);
     let result: Result<()> = std::thread::scope(|scope| {
         let (ftx, frx) = sync_channel::<Result<Frame>>(2);
-        let (otx, orx) = sync_channel::<(usize, Vec<Array4<f32>>, Option<Array3<f32>>, Option<LifetimeEvidence>)>(2);
+        let (otx, orx) = sync_channel::<(usize, Vec<Array4<f32>>, Option<Array3<f32>>, Option<FrameEvidence>)>(2);
         // reader (into the evidence stage when there is one)
         let (rtx, rrx) = sync_channel::<Result<Frame>>(2);
         let to_next = if stage.is_some() { rtx } else { ftx.clone() };
@@ -263,7 +266,7 @@ fn stream_into(
                         }
                         let y4 = y.view().insert_axis(Axis(0));
                         stage.check(&y4, &path.display().to_string()).map_err(|e| in_file(&path, e))?;
-                        let ev = stage.evidence(&y4);
+                        let ev = stage.evidence(&y.view());
                         Ok((i, y, path, Some(ev)))
                     });
                     let stop = r.is_err();
@@ -274,11 +277,12 @@ fn stream_into(
             })
         });
         // products + writer
+        let mut refine = refine;
         let writer = scope.spawn(move || -> Result<()> {
             let mut done = 0;
             for (i, mut outs, y, ev) in orx {
-                if let (Some(stage), Some(ev), Some(y)) = (stage, ev, y.as_ref()) {
-                    stage.finish(&y.view().insert_axis(Axis(0)), ev, &mut outs);
+                if let (Some(refine), Some(ev), Some(y)) = (refine.as_mut(), ev, y.as_ref()) {
+                    refine.finish(&y.view(), ev, &mut outs);
                 }
                 let fitted = templates.zip(y.as_ref()).map(|(tpl, y)| tpl.fit(&y.view()));
                 let ranges = range_templates.as_mut().zip(y.as_ref()).map(|(tpl, y)| tpl.fit(&y.view()));
