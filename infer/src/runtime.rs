@@ -438,6 +438,8 @@ pub struct EvidenceStage {
     path: PathBuf,
 }
 
+// (one of each per stream: the variants' sizes do not matter)
+#[allow(clippy::large_enum_variant)]
 enum StageWork {
     Lifetime { templates: LifetimeTemplates, note: EvidenceNote, sensor: MeasurementMatrix },
     Range { templates: RangeTemplates, pool: usize },
@@ -466,6 +468,7 @@ pub struct RefineStage {
     work: RefineWork,
 }
 
+#[allow(clippy::large_enum_variant)]
 enum RefineWork {
     Lifetime(LifetimeTemplates),
     Range { templates: RangeTemplates, grid: CandidateGrid, returns: usize },
