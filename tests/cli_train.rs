@@ -479,6 +479,32 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
     for bad in ["lifetime-fit:4", "lifetime-fit:65", "lifetime-fit:x"] {
         fails(d, &["eval", "--dataset", "f", "--codes", "codes.json", "--heterodyne", "2", "--decoder", bad], &[bad, "odd window side"]);
     }
+    // wider windows: their log-likelihoods beside the fit's window's, weighted pixel by pixel;
+    // recorded, decoded, exported and streamed as the network without them
+    let args = train(&["--input", "costs", "--points", "40", "--windows", "5,9", "--epochs", "1"], "evw");
+    let out = ok(d, &args.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(out.contains("with wider windows [5, 9]"), "{out}");
+    let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("evw/config.json")).unwrap()).unwrap();
+    assert_eq!(cfg["model"]["windows"], serde_json::json!([5, 9]));
+    ok(d, &["reconstruct", "lifetime", "--run", "evw", "--measurements", "y.npy", "-o", "tau-w.npy"]);
+    let tau_w = read_npy(&d.join("tau-w.npy")).unwrap();
+    ok(d, &["export", "onnx", "--run", "evw", "-o", "evw.onnx"]);
+    ok(d, &["infer", "--model", "evw.onnx", "--measurements", "y.npy", "-o", "inf-w"]);
+    let streamed_w = read_npy(&d.join("inf-w/lifetime.npy")).unwrap();
+    assert!(streamed_w.iter().any(|t| t.is_finite()), "lifetimes through the windows");
+    for (a, b) in streamed_w.iter().zip(tau_w.index_axis(ndarray::Axis(0), 0).iter()) {
+        assert!((a.is_nan() && b.is_nan()) || (a - b).abs() <= 1e-4 * b.abs(), "infer {a:e} against reconstruct {b:e} (windows)");
+    }
+    // refused: an even or too narrow side, windows of the harmonics, windows with learned codes
+    for (windows, needle) in [("4", "windows"), ("3,9", "windows"), ("9,5", "windows")] {
+        let args = train(&["--input", "costs", "--windows", windows, "--epochs", "1"], "bad");
+        fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &[needle]);
+    }
+    let args = train(&["--windows", "5", "--epochs", "1"], "bad");
+    fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["windows", "--input costs"]);
+    let args = train(&["--input", "costs", "--windows", "5", "--epochs", "2", "--relaxed-epochs", "1", "--learn-codes"], "bad");
+    fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["learn_codes", "wider windows"]);
+    assert!(!d.join("bad").exists());
     // deep sensing on the fit's evidence: the lifetime loss reaches the codes through the
     // evidence's differentiable copy (models/src/lifetime_evidence.rs); the codes come out exact
     let args = train(&["--input", "costs", "--points", "40", "--epochs", "2", "--relaxed-epochs", "1", "--learn-codes"], "evl");

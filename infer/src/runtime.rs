@@ -205,7 +205,7 @@ impl OnnxModel {
     /// before and after the graph, to run beside it on threads of their own. `None` for other
     /// models, or a lifetime decoder before its instrument is fixed.
     pub fn evidence_stages(&self) -> Option<(EvidenceStage, RefineStage)> {
-        let (work, refine) = match (self.meta.evidence, self.meta.range_evidence) {
+        let (work, refine) = match (self.meta.evidence.clone(), self.meta.range_evidence) {
             (Some(note), _) => {
                 let templates = self.templates.clone()?;
                 (StageWork::Lifetime { templates: templates.clone(), note, sensor: self.sensor.clone() }, RefineWork::Lifetime(templates))
@@ -273,7 +273,7 @@ impl OnnxModel {
         self.check(&y, "input")?;
         let fail = |e: ort::Error| InferError::File { path: self.path.clone(), msg: format!("ONNX Runtime: {e}") };
         let y = y.as_standard_layout();
-        if let Some(e) = self.meta.evidence {
+        if let Some(e) = self.meta.evidence.clone() {
             return self.run_on_evidence(&y.view(), &e);
         }
         if let Some(e) = self.meta.range_evidence {
@@ -336,16 +336,16 @@ fn lifetime_evidence(
     fixed: Option<&LifetimeTemplates>,
 ) -> FrameEvidence {
     let (b, _, h, w) = y.dim();
-    let f = tcsense_fits::lifetime_taps::evidence::feature_channels(e.points, e.pool);
+    let (f, l) = e.channels();
     let mut features = Vec::with_capacity(b * h * w * f);
-    let mut skip = Vec::with_capacity(b * h * w * e.points);
+    let mut skip = Vec::with_capacity(b * h * w * l);
     let mut frames = Vec::with_capacity(b);
     let opts = e.fit_options();
     for i in 0..b {
         let yi = y.index_axis(ndarray::Axis(0), i);
         let own = fixed.is_none().then(|| frame_templates(&yi, sensor, &opts));
         let Some(templates) = own.as_ref().or(fixed) else { unreachable!("templates fixed or fitted") };
-        let (ev, costs) = evidence_at(&yi, templates, e.pool);
+        let (ev, costs) = evidence_at(&yi, templates, e.pool, &e.windows);
         // a stream's single frame is moved, not copied (tens of MB a frame)
         if b == 1 {
             features = ev.features.into_raw_vec_and_offset().0;
@@ -357,7 +357,7 @@ fn lifetime_evidence(
         frames.push((own, costs));
     }
     let shaped = |c: usize, v: Vec<f32>| Array4::from_shape_vec((b, h, w, c), v).expect("[B, H, W, C] of the frames' evidence");
-    FrameEvidence { features: shaped(f, features), skip: shaped(e.points, skip), costs: FitCosts::Lifetime(frames) }
+    FrameEvidence { features: shaped(f, features), skip: shaped(l, skip), costs: FitCosts::Lifetime(frames) }
 }
 
 /// [`FrameEvidence`] of one frame `y` `[M, H, W]` for a U-Net on the range fit's evidence.

@@ -34,12 +34,13 @@ use burn::tensor::activation::sigmoid;
 use burn::tensor::Int;
 use burn::tensor::{Device, Tensor, TensorData};
 
+use crate::depth_evidence::{TEMPERATURE_RANGE, WIDER_GAIN, WIDER_OFFSET};
 use crate::evidence_tensors::with_gradient_of;
 use crate::lifetime_evidence::{decays_tensor, lifetime_evidence};
 use crate::net::{Network, Prediction};
 use crate::sensor_tensors::SensorTensors;
 use crate::unet::{conv1x1, trunk, trunk_flops, Block, Unet, NORM_FLOOR};
-use tcsense_fits::lifetime_taps::evidence::{evidence, feature_channels, Evidence};
+use tcsense_fits::lifetime_taps::evidence::{evidence_with_windows, feature_channels_with, Evidence};
 use tcsense_fits::lifetime_taps::{estimate_instrument, Instrument, LifetimeCosts, LifetimeTemplates, TapFitOptions};
 
 /// Channels of the prediction: `τ_m`, `τ₁`, `τ₂` (ns), `α₁`, confidence logit.
@@ -75,6 +76,11 @@ pub struct LifetimeNetConfig {
     /// Grid points pooled into one feature channel ([`LifetimeInput::Costs`]).
     #[config(default = 2)]
     pub pool: usize,
+    /// Sides of the wider windows whose log-likelihoods the network adds to the fit's 3×3
+    /// window's, each with a weight it sets pixel by pixel ([`LifetimeInput::Costs`]; none in
+    /// runs written before them).
+    #[config(default = "Vec::new()")]
+    pub windows: Vec<usize>,
 }
 
 /// What the lifetime decoder reads from the taps (see the module documentation).
@@ -102,6 +108,8 @@ pub struct LifetimeNet {
     points: usize,
     /// Grid points pooled into one feature channel.
     pool: usize,
+    /// Sides of the wider windows of the fit's evidence.
+    windows: Vec<usize>,
 }
 
 impl LifetimeNetConfig {
@@ -115,15 +123,16 @@ impl LifetimeNetConfig {
     pub fn features(&self) -> usize {
         match self.input {
             LifetimeInput::Harmonics => 2 * self.harmonics + 2,
-            LifetimeInput::Costs => feature_channels(self.points, self.pool),
+            LifetimeInput::Costs => feature_channels_with(self.points, self.pool, self.windows.len()),
         }
     }
 
-    /// Channels of the head: the five outputs, or a log-prior per grid point and the confidence.
+    /// Channels of the head: the five outputs, or a log-prior per grid point, the confidence
+    /// and a log-weight per wider window.
     pub fn head_channels(&self) -> usize {
         match self.input {
             LifetimeInput::Harmonics => OUTPUTS,
-            LifetimeInput::Costs => self.points + 1,
+            LifetimeInput::Costs => self.points + 1 + self.windows.len(),
         }
     }
 
@@ -153,6 +162,7 @@ impl LifetimeNetConfig {
             tau_range_ns: self.tau_range_ns,
             points: if costs { self.points } else { 0 },
             pool: self.pool,
+            windows: if costs { self.windows.clone() } else { Vec::new() },
         }
     }
 
@@ -187,6 +197,24 @@ impl LifetimeNetConfig {
         }
         if self.pool == 0 || self.pool > self.points {
             return Err(format!("pool: {}, expected 1 to points ({})", self.pool, self.points));
+        }
+        if self.windows.len() > 8 {
+            return Err(format!("windows: {:?}, expected at most 8 wider windows", self.windows));
+        }
+        let fit = TapFitOptions::default().window;
+        let mut last = fit;
+        for &side in &self.windows {
+            if side % 2 == 0 || side <= last || side > tcsense_fits::range::MAX_WINDOW {
+                return Err(format!(
+                    "windows: {:?}, expected odd sides above the fit's {fit}, increasing, up to {}",
+                    self.windows,
+                    tcsense_fits::range::MAX_WINDOW
+                ));
+            }
+            last = side;
+        }
+        if !self.windows.is_empty() && self.input != LifetimeInput::Costs {
+            return Err(format!("windows: {:?} with the harmonics input, expected the fit's evidence (input costs)", self.windows));
         }
         Ok(())
     }
@@ -295,6 +323,11 @@ impl LifetimeNet {
         }
     }
 
+    /// Sides of the wider windows of the fit's evidence (none: the fit's own window only).
+    pub fn windows(&self) -> &[usize] {
+        &self.windows
+    }
+
     /// Points `G` of the lifetime grid and the points pooled per feature channel.
     pub fn grid_points(&self) -> (usize, usize) {
         (self.points, self.pool)
@@ -328,14 +361,14 @@ impl LifetimeNet {
         let device = y.device();
         let v: Vec<f32> = y.into_data().convert::<f32>().try_into_vec::<f32>().unwrap_or_default();
         let opts = self.fit_options();
-        let (g, f) = (self.points, feature_channels(self.points, self.pool));
+        let (g, f) = ((1 + self.windows.len()) * self.points, feature_channels_with(self.points, self.pool, self.windows.len()));
         let mut features: Vec<f32> = Vec::with_capacity(b * f * h * w);
         let mut skip: Vec<f32> = Vec::with_capacity(b * g * h * w);
         let mut frames = Vec::with_capacity(b);
         for i in 0..b {
             let yi = ndarray::ArrayView3::from_shape((m, h, w), &v[i * m * h * w..(i + 1) * m * h * w]).expect("[M, H, W] frame");
             let templates = frame_templates(&yi, &sensor.matrix, &opts);
-            let (e, _) = evidence_at(&yi, &templates, self.pool);
+            let (e, _) = evidence_at(&yi, &templates, self.pool, &self.windows);
             features.extend(e.features.iter());
             skip.extend(e.skip.iter());
             frames.push((templates.instrument(), e.noise));
@@ -355,6 +388,8 @@ impl LifetimeNet {
     /// # Shapes
     /// - `y`: `[B, M, H, W]` → features `[B, F, H, W]`, skip `[B, G, H, W]`
     pub fn evidence_with_gradient(&self, y: Tensor<4>, sensor: &SensorTensors) -> (Tensor<4>, Tensor<4>) {
+        // (training refuses to learn codes for a network with wider windows: TrainConfig::validate)
+        debug_assert!(self.windows.is_empty(), "the evidence's differentiable copy has the fit's window only");
         let b = y.dims()[0];
         let device = y.device();
         let (features, skip, frames) = self.evidence_frames(y.clone().detach(), sensor);
@@ -373,8 +408,25 @@ impl LifetimeNet {
     /// # Shapes
     /// - `features`: `[B, F, H, W]`, `skip`: `[B, G, H, W]` → `([B, G, H, W], [B, 1, H, W])`
     pub fn posterior(&self, features: Tensor<4>, skip: Tensor<4>) -> (Tensor<4>, Tensor<4>) {
-        let o = conv1x1(&self.head, trunk(&self.down, &self.up, features)); // [B, G + 1, H, W]
-        (skip + o.clone().narrow(1, 0, self.points), o.narrow(1, self.points, 1))
+        let o = conv1x1(&self.head, trunk(&self.down, &self.up, features)); // [B, G + 1 + S, H, W]
+        let g = self.points;
+        let prior = o.clone().narrow(1, 0, g);
+        let logit = o.clone().narrow(1, g, 1);
+        if self.windows.is_empty() {
+            return (skip + prior, logit);
+        }
+        // the fit's window's log-likelihood plus the wider windows' at the learned weights,
+        // L_0 + Σ_s e^{clip(6·o_s − 6)}·L_s (~0 at initialisation: the untrained network is the fit)
+        let [b, _, h, w] = o.dims();
+        let wide = self.windows.len();
+        let weights = o
+            .narrow(1, g + 1, wide)
+            .mul_scalar(WIDER_GAIN)
+            .add_scalar(WIDER_OFFSET)
+            .clamp(TEMPERATURE_RANGE[0], TEMPERATURE_RANGE[1])
+            .exp(); // [B, S, H, W]
+        let wider = skip.clone().narrow(1, g, wide * g).reshape([b, wide, g, h, w]) * weights.reshape([b, wide, 1, h, w]);
+        (skip.narrow(1, 0, g) + wider.sum_dim(1).reshape([b, g, h, w]) + prior, logit)
     }
 
     /// The lifetime (ns) at a continuous grid coordinate `u`.
@@ -470,7 +522,7 @@ impl Network for LifetimeNet {
             for i in 0..b {
                 let yi = y.index_axis(ndarray::Axis(0), i);
                 let templates = frame_templates(&yi, &sensor.matrix, &opts);
-                let (e, costs) = evidence_at(&yi, &templates, self.pool);
+                let (e, costs) = evidence_at(&yi, &templates, self.pool, &self.windows);
                 let tensor = |a: ndarray::Array3<f32>| {
                     let (h, w, c) = a.dim();
                     Tensor::<4>::from_data(TensorData::new(a.into_raw_vec_and_offset().0, [1, h, w, c]), &device).permute([0, 3, 1, 2])
@@ -523,14 +575,20 @@ pub fn frame_templates(y: &ndarray::ArrayView3<'_, f32>, a: &tcsense_sensor::Mea
     LifetimeTemplates::new(a, estimate_instrument(y, a, opts), opts)
 }
 
-/// The fit's evidence of one frame through templates built once (a stream's instrument), and
-/// the costs it came from (for [`LifetimeTemplates::refine_modes`]).
+/// The fit's evidence of one frame through templates built once (a stream's instrument), with
+/// the `wider` windows' (sides) besides the fit's own, and the costs it came from (for
+/// [`LifetimeTemplates::refine_modes`]).
 ///
 /// # Shapes
 /// - `y`: `[M, H, W]` → [`Evidence`] of `[·, H, W]`
-pub fn evidence_at(y: &ndarray::ArrayView3<'_, f32>, templates: &LifetimeTemplates, pool: usize) -> (Evidence, LifetimeCosts) {
+pub fn evidence_at(
+    y: &ndarray::ArrayView3<'_, f32>,
+    templates: &LifetimeTemplates,
+    pool: usize,
+    wider: &[usize],
+) -> (Evidence, LifetimeCosts) {
     let costs = templates.costs(y);
-    (evidence(&costs, &y.sum_axis(ndarray::Axis(0)), y.dim().0, pool), costs)
+    (evidence_with_windows(&costs, &y.sum_axis(ndarray::Axis(0)), y.dim().0, pool, wider), costs)
 }
 
 #[cfg(test)]
@@ -591,6 +649,36 @@ mod tests {
         // y and 10·y give the same lifetimes
         let d10 = (net.predict(y.clone() * 10.0, &st) - net.predict(y, &st)).abs().max().into_scalar::<f32>();
         assert!(d10 < 1e-4, "scale changes the output by {d10}");
+    }
+
+    /// With wider windows the posterior is the fit's window's log-likelihood plus each wider
+    /// window's at its learned weight `e^{clip(6·o_s − 6)}` (`e^{−6}` untrained) plus the
+    /// log-prior; the head has a log-weight per window and the input the windows' posteriors.
+    #[test]
+    fn wider_windows_add_their_weighted_log_likelihoods() {
+        let device = Device::flex();
+        let cfg = LifetimeNetConfig::new(4, 16)
+            .with_input(LifetimeInput::Costs)
+            .with_points(12)
+            .with_pool(2)
+            .with_windows(vec![5, 9])
+            .with_base_width(4)
+            .with_levels(2);
+        cfg.validate().unwrap();
+        assert_eq!((cfg.features(), cfg.head_channels()), (3 * 6 + 2, 12 + 1 + 2));
+        let net = cfg.init(&device);
+        let (h, w) = (8, 8);
+        let features = Tensor::<4>::random([1, cfg.features(), h, w], Distribution::Uniform(0.0, 1.0), &device);
+        let skip = Tensor::<4>::random([1, 36, h, w], Distribution::Uniform(-50.0, 0.0), &device);
+        let (logits, _) = net.posterior(features, skip.clone());
+        let weight = (WIDER_OFFSET as f32).exp();
+        let want = skip.clone().narrow(1, 0, 12) + (skip.clone().narrow(1, 12, 12) + skip.narrow(1, 24, 12)).mul_scalar(weight);
+        let diff = (logits - want).abs().max().into_scalar::<f32>();
+        assert!(diff < 1e-4, "untrained: L_0 + e^-6 (L_5 + L_9), off by {diff}");
+        for bad in [vec![4], vec![3, 9], vec![9, 5], vec![65]] {
+            assert!(cfg.clone().with_windows(bad.clone()).validate().is_err(), "{bad:?}");
+        }
+        assert!(LifetimeNetConfig::new(4, 16).with_windows(vec![5]).validate().is_err(), "windows of the harmonics");
     }
 
     /// The network on the fit's evidence, untrained (its log-prior is zero), is the fit: on

@@ -133,7 +133,7 @@ mod tests {
     fn fit_of(a: &MeasurementMatrix, y: &[f32], (h, w): (usize, usize), opts: &TapFitOptions, device: &Device) -> (Tensor<3>, Tensor<1>) {
         let ya = ndarray::ArrayView3::from_shape((4, h, w), y).unwrap();
         let templates = frame_templates(&ya, a, opts);
-        let (e, _) = evidence_at(&ya, &templates, 2);
+        let (e, _) = evidence_at(&ya, &templates, 2, &[]);
         (
             decays_tensor(a, &[templates.instrument()], opts, device),
             Tensor::<1>::from_data(TensorData::new(vec![1.0 / (2.0 * e.noise)], [1]), device),

@@ -190,7 +190,11 @@ impl ModelConfig {
                     return bad("model.tau_range_ns", format!("{:?}", c.tau_range_ns), "0 < lo < hi (ns)");
                 }
                 if let Err(e) = c.validate() {
-                    return bad("model", e, "a lifetime grid of 3–1024 points, a pool of 1 to points");
+                    return bad(
+                        "model",
+                        e,
+                        "a lifetime grid of 3–1024 points, a pool of 1 to points, wider windows of increasing odd sides",
+                    );
                 }
             }
         }
@@ -254,7 +258,8 @@ fn file_err(path: &Path, msg: impl ToString) -> ModelError {
 /// ADMM-Net models written before the input normalisation existed, `"prior": "Bins"` to
 /// those written before the delay prior and `"input": "Backprojection"` to U-Nets written
 /// before the matched filters, `"input": "Harmonics"` (96 points pooled by 2) to lifetime
-/// decoders written before the fit's evidence; other configs are returned unchanged.
+/// decoders written before the fit's evidence, no wider windows to those written before them;
+/// other configs are returned unchanged.
 pub fn upgrade_config(mut v: serde_json::Value) -> serde_json::Value {
     if let Some(obj) = v.as_object_mut() {
         if obj.contains_key("model") && !obj.contains_key("decoder") {
@@ -280,6 +285,8 @@ pub fn upgrade_config(mut v: serde_json::Value) -> serde_json::Value {
                 model.entry("input").or_insert(serde_json::Value::String("Harmonics".into()));
                 model.entry("points").or_insert(serde_json::Value::from(96));
                 model.entry("pool").or_insert(serde_json::Value::from(2));
+                // and before the wider windows of the evidence
+                model.entry("windows").or_insert(serde_json::Value::Array(Vec::new()));
             }
         }
     }

@@ -82,8 +82,8 @@ pub fn export(cmd: ExportCmd) -> Result<ExitCode> {
                     e.points,
                     e.tau_range_ns[0],
                     e.tau_range_ns[1],
-                    tcsense_fits::lifetime_taps::evidence::feature_channels(e.points, e.pool),
-                    e.points
+                    e.channels().0,
+                    e.channels().1
                 );
             }
             Ok(ExitCode::SUCCESS)

@@ -64,6 +64,12 @@ pub struct LifetimeArgs {
     /// fit's evidence holds (fewer is faster, more is finer before the refinement) [default: 96].
     #[arg(long, value_parser = super::count_in(3, 1024))]
     points: Option<usize>,
+    /// With `--input costs`: sides of wider windows (odd, increasing, above the fit's 3, e.g.
+    /// `5,9,15`) whose log-likelihoods the network adds to the fit's 3×3 window's, each with a
+    /// weight it sets pixel by pixel (in dim light a cell's pixels agree over a wider window)
+    /// [default: none].
+    #[arg(long, value_delimiter = ',', num_args = 1.., value_parser = super::count_in(1, 63))]
+    windows: Option<Vec<usize>>,
     /// What the network reads: `harmonics` of Aᵀy turned by the frame's own phase, or `costs`,
     /// the fit to the taps' log-likelihood of every lifetime of a log grid (the instrument
     /// fitted to the frame), to which it adds a learned log-prior [default: harmonics].
@@ -411,8 +417,8 @@ impl TrainArgs {
             }
             NetArgs::Lifetime(n) => {
                 req.decoder = "lifetime".into();
-                (req.harmonics, req.base_width, req.levels, req.input, req.points) =
-                    (n.harmonics, n.base_width, n.levels, n.input.and_then(name_of), n.points);
+                (req.harmonics, req.base_width, req.levels, req.input, req.points, req.windows) =
+                    (n.harmonics, n.base_width, n.levels, n.input.and_then(name_of), n.points, n.windows.clone());
             }
         }
         Ok(req)

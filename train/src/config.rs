@@ -162,8 +162,12 @@ impl TrainConfig {
                 match m.input {
                     tcsense_models::LifetimeInput::Harmonics => format!("{} harmonics", m.harmonics),
                     tcsense_models::LifetimeInput::Costs => format!(
-                        "the fit's evidence on {} lifetimes {}–{} ns (pooled by {})",
-                        m.points, m.tau_range_ns[0], m.tau_range_ns[1], m.pool
+                        "the fit's evidence on {} lifetimes {}–{} ns (pooled by {}){}",
+                        m.points,
+                        m.tau_range_ns[0],
+                        m.tau_range_ns[1],
+                        m.pool,
+                        if m.windows.is_empty() { String::new() } else { format!(" with wider windows {:?}", m.windows) }
                     ),
                 },
                 m.base_width,
@@ -331,6 +335,15 @@ impl TrainConfig {
         }
         if let Some(lc) = &self.learn_codes {
             lc.validate(self.epochs)?;
+            if let ModelConfig::Lifetime(c) = &self.run.model {
+                if !c.windows.is_empty() {
+                    return bad(
+                        "learn_codes",
+                        format!("a lifetime network with wider windows {:?}", c.windows),
+                        "the fit's own window only: the evidence's differentiable copy has no wider windows yet",
+                    );
+                }
+            }
             if self.run.measured {
                 return bad("learn_codes", "a measured sensor matrix".into(), "a synthetic sensor (codes are learned through the IRF model; fine-tune on a measured matrix afterwards with --init-from)");
             }

@@ -57,6 +57,8 @@ pub struct TrainRequest {
     pub harmonics: Option<usize>,
     /// Lifetime decoder on the fit's evidence: points of the lifetime grid.
     pub points: Option<usize>,
+    /// Lifetime decoder on the fit's evidence: sides of the wider windows (`[5, 9, 15]`).
+    pub windows: Option<Vec<usize>>,
     pub epochs: Option<usize>,
     pub lr: Option<f64>,
     /// `cosine` or `constant`.
@@ -154,6 +156,7 @@ impl TrainRequest {
             input,
             harmonics: self.harmonics,
             points: self.points,
+            windows: self.windows.clone(),
             lifetime_input,
         })
     }

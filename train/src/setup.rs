@@ -43,6 +43,8 @@ pub struct Architecture {
     pub harmonics: Option<usize>,
     /// Lifetime decoder on the fit's evidence: points `G` of the lifetime grid.
     pub points: Option<usize>,
+    /// Lifetime decoder on the fit's evidence: sides of the wider windows.
+    pub windows: Option<Vec<usize>>,
     /// Lifetime decoder: what the network reads.
     pub lifetime_input: Option<LifetimeInput>,
 }
@@ -73,6 +75,7 @@ impl Architecture {
         put("levels", self.levels.map(|v| s(&v)), u.map(|c| s(&c.levels)).or(l.map(|c| s(&c.levels))));
         put("harmonics", self.harmonics.map(|v| s(&v)), l.map(|c| s(&c.harmonics)));
         put("points", self.points.map(|v| s(&v)), l.map(|c| s(&c.points)));
+        put("windows", self.windows.as_ref().map(|v| s(v)), l.map(|c| s(&c.windows)));
         put("input", self.lifetime_input.map(|v| s(&v)), l.map(|c| s(&c.input)));
         out
     }
@@ -103,6 +106,7 @@ impl Architecture {
             ModelConfig::Lifetime(c) => {
                 c.harmonics = self.harmonics.unwrap_or(c.harmonics);
                 c.points = self.points.unwrap_or(c.points);
+                c.windows = self.windows.clone().unwrap_or_else(|| c.windows.clone());
                 c.input = self.lifetime_input.unwrap_or(c.input);
                 c.base_width = self.base_width.unwrap_or(c.base_width);
                 c.levels = self.levels.unwrap_or(c.levels);
@@ -111,6 +115,13 @@ impl Architecture {
                         field: "points",
                         got: format!("{} with the harmonics input", c.points),
                         expected: "--input costs: the grid is the fit's evidence's".into(),
+                    });
+                }
+                if self.windows.is_some() && c.input != LifetimeInput::Costs {
+                    return Err(TrainError::InvalidParam {
+                        field: "windows",
+                        got: format!("{:?} with the harmonics input", c.windows),
+                        expected: "--input costs: the windows are the fit's evidence's".into(),
                     });
                 }
             }

@@ -6,7 +6,7 @@
 
 use ndarray::Array2;
 
-pub use crate::evidence::{feature_channels, Evidence};
+pub use crate::evidence::{feature_channels, feature_channels_with, Evidence};
 
 use super::LifetimeCosts;
 use crate::evidence::CostVolume;
@@ -16,17 +16,40 @@ use crate::evidence::CostVolume;
 /// # Shapes
 /// - `costs`: of `[H·W·G]`, `intensity`: `[H, W]` → [`Evidence`]
 pub fn evidence(costs: &LifetimeCosts, intensity: &Array2<f32>, taps: usize, pool: usize) -> Evidence {
+    evidence_with_windows(costs, intensity, taps, pool, &[])
+}
+
+/// [`evidence`] with the costs summed over the `wider` windows' sides besides the fit's own
+/// window (multi-scale context: in dim light a cell's pixels of one lifetime agree over a wider
+/// window than the fit's): their log-likelihoods after the fit's window's in `skip`, their
+/// posteriors after the pixel's in the features ([`crate::evidence::evidence_with`]).
+///
+/// # Shapes
+/// - `costs`: of `[H·W·G]`, `intensity`: `[H, W]` → [`Evidence`] with skip
+///   `[H, W, (1 + S)·G]`, features [`feature_channels_with`]`(G, pool, S)`
+pub fn evidence_with_windows(costs: &LifetimeCosts, intensity: &Array2<f32>, taps: usize, pool: usize, wider: &[usize]) -> Evidence {
+    let (h, w, g) = (costs.height, costs.width, costs.points);
     let window = costs.window_sums();
+    let mut rows = Vec::new();
+    let sums: Vec<Vec<f32>> = wider
+        .iter()
+        .map(|&side| {
+            let mut out = Vec::new();
+            crate::engine::window_sums(&costs.pixel, &costs.lit, (h, w), g, side, &mut rows, &mut out);
+            out
+        })
+        .collect();
+    let sums: Vec<&[f32]> = sums.iter().map(|v| v.as_slice()).collect();
     let volume = CostVolume {
         pixel: &costs.pixel,
         window: &window,
         lit: &costs.lit,
-        points: costs.points,
-        height: costs.height,
-        width: costs.width,
+        points: g,
+        height: h,
+        width: w,
         side: costs.window,
         free_per_pixel: taps.saturating_sub(1),
         shared: 2,
     };
-    crate::evidence::evidence(&volume, intensity, pool)
+    crate::evidence::evidence_with(&volume, intensity, pool, &sums)
 }

@@ -76,7 +76,7 @@ impl RangeEvidenceNote {
 
 /// The lifetime grid of a lifetime decoder on the fit's evidence
 /// ([`tcsense_models::LifetimeInput::Costs`]).
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct EvidenceNote {
     /// Points `G` of the log grid.
     pub points: usize,
@@ -84,9 +84,22 @@ pub struct EvidenceNote {
     pub pool: usize,
     /// Lifetimes the grid spans (ns).
     pub tau_range_ns: [f64; 2],
+    /// Sides of the wider windows whose evidence the graph reads after the fit's own window's
+    /// (none in models exported before them).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub windows: Vec<usize>,
 }
 
 impl EvidenceNote {
+    /// Channels of the graph's evidence input (the pooled posteriors of the pixel and of the
+    /// wider windows, the log intensity, the lit mask) and of its log-likelihood input.
+    pub fn channels(&self) -> (usize, usize) {
+        (
+            tcsense_fits::lifetime_taps::evidence::feature_channels_with(self.points, self.pool, self.windows.len()),
+            (1 + self.windows.len()) * self.points,
+        )
+    }
+
     /// The settings of the fit whose evidence the model reads (as the network computes them).
     pub fn fit_options(&self) -> tcsense_fits::lifetime_taps::TapFitOptions {
         let [lo, hi] = self.tau_range_ns;
@@ -153,7 +166,7 @@ impl OnnxMeta {
             }),
             evidence: match &run.spec.model {
                 ModelConfig::Lifetime(c) if c.input == tcsense_models::LifetimeInput::Costs => {
-                    Some(EvidenceNote { points: c.points, pool: c.pool, tau_range_ns: c.tau_range_ns })
+                    Some(EvidenceNote { points: c.points, pool: c.pool, tau_range_ns: c.tau_range_ns, windows: c.windows.clone() })
                 }
                 _ => None,
             },
@@ -292,11 +305,17 @@ impl OnnxMeta {
             get("evidence").map(|v| serde_json::from_str(&v).map_err(|e| err("evidence", e.to_string()))).transpose()?;
         if let Some(e) = &evidence {
             let opts = e.fit_options();
-            let fine = opts.validate().is_ok() && (3..=1024).contains(&e.points) && (1..=e.points).contains(&e.pool);
+            let sides = e.windows.windows(2).all(|p| p[0] < p[1])
+                && e.windows.iter().all(|&s| s % 2 == 1 && s > opts.window && s <= tcsense_fits::range::MAX_WINDOW)
+                && e.windows.len() <= 8;
+            let fine = opts.validate().is_ok() && (3..=1024).contains(&e.points) && (1..=e.points).contains(&e.pool) && sides;
             if decoder != "lifetime" || !fine {
                 return Err(err(
                     "evidence",
-                    format!("{e:?}: expected a lifetime decoder's grid of 3–1024 points over 0 < lo < hi ns, a pool of 1 to points"),
+                    format!(
+                        "{e:?}: expected a lifetime decoder's grid of 3–1024 points over 0 < lo < hi ns, a pool of 1 to points, wider windows of increasing odd sides up to {}",
+                        tcsense_fits::range::MAX_WINDOW
+                    ),
                 ));
             }
         }

@@ -574,20 +574,51 @@ fn lifetime_on_evidence(net: &LifetimeNet, meta: &OnnxMeta, opts: ExportOptions<
         });
     }
     let (points, pool) = net.grid_points();
-    let f = tcsense_fits::lifetime_taps::evidence::feature_channels(points, pool);
+    let wide = net.windows().len();
+    let f = tcsense_fits::lifetime_taps::evidence::feature_channels_with(points, pool, wide);
     let mut g = Graph::new(tcsense_models::runs::network_names::LIFETIME);
     let frame = |c: usize| [Dim::Named("batch"), Dim::Fixed(c), Dim::Named("height"), Dim::Named("width")];
     let pixels = |c: usize| [Dim::Named("batch"), Dim::Named("height"), Dim::Named("width"), Dim::Fixed(c)];
     // the evidence comes pixel-major, as the runtime computes it
     let features = g.input(EVIDENCE_INPUT, &pixels(f));
-    let skip = g.input(LOG_LIKELIHOOD_INPUT, &pixels(points));
+    let skip = g.input(LOG_LIKELIHOOD_INPUT, &pixels((1 + wide) * points));
     let features = g.node("Transpose", &[&features], &[Attr::Ints("perm", &[0, 3, 1, 2])]);
     let skip = g.node("Transpose", &[&skip], &[Attr::Ints("perm", &[0, 3, 1, 2])]);
     let trunk = unet_trunk(&mut g, net.down(), net.up(), &features)?;
-    let o = conv(&mut g, net.head(), &trunk)?; // [B, G + 1, H, W]
+    let o = conv(&mut g, net.head(), &trunk)?; // [B, G + 1 + S, H, W]
     let prior = channels(&mut g, &o, 0, points);
     let logit = channels(&mut g, &o, points, 1);
-    let logits = g.op("Add", &[&skip, &prior]);
+    let logits = if wide == 0 {
+        g.op("Add", &[&skip, &prior])
+    } else {
+        // the fit's window's log-likelihood plus the wider windows' at the learned weights:
+        // L_0 + Σ_s e^{clip(6·o_s − 6)}·L_s, as burn's LifetimeNet::posterior
+        let o_s = channels(&mut g, &o, points + 1, wide); // [B, S, H, W]
+        let (gain, offset) = (
+            g.scalar("window_gain", tcsense_models::depth_evidence::WIDER_GAIN as f32),
+            g.scalar("window_offset", tcsense_models::depth_evidence::WIDER_OFFSET as f32),
+        );
+        let o_s = g.op("Mul", &[&o_s, &gain]);
+        let o_s = g.op("Add", &[&o_s, &offset]);
+        let [lo, hi] = tcsense_models::depth_evidence::TEMPERATURE_RANGE;
+        let (lo, hi) = (g.scalar("log_weight_lo", lo as f32), g.scalar("log_weight_hi", hi as f32));
+        let o_s = g.op("Clip", &[&o_s, &lo, &hi]);
+        let weights = g.op("Exp", &[&o_s]);
+        // (flattened pixels: [B, S, 1, H·W] times [B, S, G, H·W], summed over the windows)
+        let (wshape, vshape) =
+            (g.ints("weights_shape", &[0, wide as i64, 1, -1]), g.ints("volume_shape", &[0, wide as i64, points as i64, -1]));
+        let own = channels(&mut g, &skip, 0, points);
+        let wider = channels(&mut g, &skip, points, wide * points);
+        let weights = g.op("Reshape", &[&weights, &wshape]);
+        let volume = g.op("Reshape", &[&wider, &vshape]);
+        let weighted = g.op("Mul", &[&volume, &weights]);
+        let axis1 = g.ints("axis_windows", &[1]);
+        let wider = g.node("ReduceSum", &[&weighted, &axis1], &[Attr::Int("keepdims", 0)]); // [B, G, H·W]
+        let shape = g.op("Shape", &[&own]);
+        let wider = g.op("Reshape", &[&wider, &shape]); // [B, G, H, W]
+        let likelihood = g.op("Add", &[&own, &wider]);
+        g.op("Add", &[&likelihood, &prior])
+    };
     let u = posterior_mode(&mut g, &logits, points, false);
     let nil = g.scalar("nil", 0.0);
     let (l0_ns, step) = net.log_grid_ns();
@@ -603,10 +634,13 @@ fn lifetime_on_evidence(net: &LifetimeNet, meta: &OnnxMeta, opts: ExportOptions<
     g.output(&lifetime, "lifetime", &frame(4));
     g.output(&conf, "confidence", &frame(1));
     let doc = format!(
-        "tcsense lifetime decoder on the fit's evidence ({points} lifetimes {}-{} ns, {} levels): evidence [B, H, W, {f}], log_likelihood [B, H, W, {points}] -> lifetime (s) [B, 4, H, W], confidence [B, 1, H, W]; the runtime computes the evidence from the taps",
+        "tcsense lifetime decoder on the fit's evidence ({points} lifetimes {}-{} ns, {} levels{}): evidence [B, H, W, {f}], log_likelihood [B, H, W, {}]{} -> lifetime (s) [B, 4, H, W], confidence [B, 1, H, W]; the runtime computes the evidence from the taps",
         net.tau_range_ns()[0],
         net.tau_range_ns()[1],
-        net.down().len()
+        net.down().len(),
+        if wide == 0 { String::new() } else { format!(", wider windows {:?}", net.windows()) },
+        (1 + wide) * points,
+        if wide == 0 { "" } else { " (the windows' log-likelihoods, window-major)" }
     );
     let model = g.into_model(&doc, &meta.to_props());
     model.write_to_bytes().map_err(|e| InferError::InvalidParam {

@@ -166,7 +166,7 @@ fn stream_into(
     let peak_opts = PeakOptions { max_peaks: k, ..Default::default() };
     let t0 = Instant::now();
     // a lifetime network on the fit's evidence: its instrument from the first frame, once
-    if let Some(e) = model.meta.evidence.filter(|_| products.need_model()) {
+    if let Some(e) = model.meta.evidence.clone().filter(|_| products.need_model()) {
         let instrument = estimate_instrument(&first.view(), &model.sensor, &e.fit_options());
         model.set_instrument(instrument);
     }
