@@ -223,8 +223,8 @@ fn stream_into(
     };
     let depth_fit = range_templates.is_some();
     let sensor = &model.sensor.clone();
-    // a lifetime decoder on the fit's evidence runs as a pipeline: the next frame's evidence
-    // and the last frame's refinement on the CPU while ONNX Runtime decodes the frame between
+    // a decoder on a fit's evidence runs as a pipeline: the next frame's evidence and the last
+    // frame's refinement on the CPU while ONNX Runtime decodes the frame between
     let (stage, refine) = match need_model.then(|| model.evidence_stages()).flatten() {
         Some((s, r)) => (Some(s), Some(r)),
         None => (None, None),
@@ -350,6 +350,11 @@ fn stream_into(
             let _ = e.join();
         }
         let written = writer.join().unwrap_or_else(|_| Err(file_err(out, "the writer thread panicked")));
+        // an interruption the reader or the evidence stage saw first ends the frames early
+        // without an error of their own: it is still an interruption (nothing is written)
+        if status.is_ok() && cancel.load(Ordering::Relaxed) {
+            status = Err(InferError::Cancelled);
+        }
         // an early stop drops the writers unfinished (their temporary files removed)
         status.and(written)
     });
