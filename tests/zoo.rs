@@ -291,7 +291,8 @@ fn replay_first_epoch(name: &str, dir: &Path, datasets: &SharedDatasets) {
     }
     // the first epoch's checkpoint is a resumable run of the recorded config
     let cfg = |p: &Path| serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(p.join("config.json")).unwrap()).unwrap();
-    let (zc, rc) = (cfg(&zoo_dir().join(name)), cfg(&dir.join(&out)));
+    // (the entry's as this build reads it: fields added since, at their defaults)
+    let (zc, rc) = (tcsense_models::runs::upgrade_config(cfg(&zoo_dir().join(name))), cfg(&dir.join(&out)));
     for key in ["decoder", "model", "sampling", "irf", "epochs", "batch_size", "learning_rate", "seed", "augment"] {
         assert_eq!(zc[key], rc[key], "zoo:{name}: config.{key} of the re-run");
     }
