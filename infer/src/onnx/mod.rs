@@ -502,32 +502,8 @@ fn unet_on_evidence(net: &Unet, meta: &OnnxMeta, opts: ExportOptions<'_>) -> Res
     let prior = g.op("Tanh", &[&prior]);
     let prior = g.op("Mul", &[&prior, &bound]);
     let logit = channels(&mut g, &o, c, 1);
-    // the fit's window's log-likelihood plus the wider windows' at the learned weights:
-    // L_0 + Σ_s e^{clip(6·o_s − 6)}·L_s
-    let wide = tcsense_fits::depth::SCALES - 1;
-    let o_s = channels(&mut g, &o, c + 1, wide); // [B, S − 1, H, W]
-    let (gain, offset) = (
-        g.scalar("window_gain", tcsense_models::depth_evidence::WIDER_GAIN as f32),
-        g.scalar("window_offset", tcsense_models::depth_evidence::WIDER_OFFSET as f32),
-    );
-    let o_s = g.op("Mul", &[&o_s, &gain]);
-    let o_s = g.op("Add", &[&o_s, &offset]);
-    let [lo, hi] = tcsense_models::depth_evidence::TEMPERATURE_RANGE;
-    let (lo, hi) = (g.scalar("log_weight_lo", lo as f32), g.scalar("log_weight_hi", hi as f32));
-    let o_s = g.op("Clip", &[&o_s, &lo, &hi]);
-    let weights = g.op("Exp", &[&o_s]);
-    // (flattened pixels: [B, S − 1, 1, H·W] times [B, S − 1, C, H·W], summed over the windows)
-    let (wshape, vshape) = (g.ints("weights_shape", &[0, wide as i64, 1, -1]), g.ints("volume_shape", &[0, wide as i64, c as i64, -1]));
-    let own = channels(&mut g, &skip, 0, c);
-    let wider = channels(&mut g, &skip, c, wide * c);
-    let weights = g.op("Reshape", &[&weights, &wshape]);
-    let volume = g.op("Reshape", &[&wider, &vshape]);
-    let weighted = g.op("Mul", &[&volume, &weights]);
-    let axis1 = g.ints("axis_windows", &[1]);
-    let wider = g.node("ReduceSum", &[&weighted, &axis1], &[Attr::Int("keepdims", 0)]); // [B, C, H·W]
-    let shape = g.op("Shape", &[&own]);
-    let wider = g.op("Reshape", &[&wider, &shape]); // [B, C, H, W]
-    let likelihood = g.op("Add", &[&own, &wider]);
+    // the fit's window's log-likelihood plus the wider windows' at the learned weights
+    let likelihood = windowed_likelihood(&mut g, &o, &skip, c, tcsense_fits::depth::SCALES - 1);
     let logits = g.op("Add", &[&likelihood, &prior]);
     let u = posterior_mode(&mut g, &logits, c, true);
     // the range of candidate u: (u + ½·os)/C · r_max, within the cycle
@@ -554,6 +530,40 @@ fn unet_on_evidence(net: &Unet, meta: &OnnxMeta, opts: ExportOptions<'_>) -> Res
         got: e.to_string(),
         expected: "a serialisable model".into(),
     })
+}
+
+/// The fit's window's log-likelihood plus the `wide` wider windows' at the weights the head
+/// sets pixel by pixel, `L_0 + Σ_s e^{clip(6·o_s − 6)}·L_s` (as burn's posteriors of the networks
+/// on a fit's evidence): the log-weights `o_s` are the head's channels after its `points`
+/// log-prior channels and its confidence logit.
+///
+/// # Shapes
+/// - `o`: `[B, G + 1 + S, H, W]`, `skip`: `[B, (1 + S)·G, H, W]` (window-major) → `[B, G, H, W]`
+fn windowed_likelihood(g: &mut Graph, o: &str, skip: &str, points: usize, wide: usize) -> String {
+    let o_s = channels(g, o, points + 1, wide); // [B, S, H, W]
+    let (gain, offset) = (
+        g.scalar("window_gain", tcsense_models::depth_evidence::WIDER_GAIN as f32),
+        g.scalar("window_offset", tcsense_models::depth_evidence::WIDER_OFFSET as f32),
+    );
+    let o_s = g.op("Mul", &[&o_s, &gain]);
+    let o_s = g.op("Add", &[&o_s, &offset]);
+    let [lo, hi] = tcsense_models::depth_evidence::TEMPERATURE_RANGE;
+    let (lo, hi) = (g.scalar("log_weight_lo", lo as f32), g.scalar("log_weight_hi", hi as f32));
+    let o_s = g.op("Clip", &[&o_s, &lo, &hi]);
+    let weights = g.op("Exp", &[&o_s]);
+    // (flattened pixels: [B, S, 1, H·W] times [B, S, G, H·W], summed over the windows)
+    let (wshape, vshape) =
+        (g.ints("weights_shape", &[0, wide as i64, 1, -1]), g.ints("volume_shape", &[0, wide as i64, points as i64, -1]));
+    let own = channels(g, skip, 0, points);
+    let wider = channels(g, skip, points, wide * points);
+    let weights = g.op("Reshape", &[&weights, &wshape]);
+    let volume = g.op("Reshape", &[&wider, &vshape]);
+    let weighted = g.op("Mul", &[&volume, &weights]);
+    let axis1 = g.ints("axis_windows", &[1]);
+    let wider = g.node("ReduceSum", &[&weighted, &axis1], &[Attr::Int("keepdims", 0)]); // [B, G, H·W]
+    let shape = g.op("Shape", &[&own]);
+    let wider = g.op("Reshape", &[&wider, &shape]); // [B, G, H, W]
+    g.op("Add", &[&own, &wider])
 }
 
 /// The lifetime decoder on the fit's evidence ([`tcsense_models::LifetimeInput::Costs`]) as a
@@ -591,32 +601,8 @@ fn lifetime_on_evidence(net: &LifetimeNet, meta: &OnnxMeta, opts: ExportOptions<
     let logits = if wide == 0 {
         g.op("Add", &[&skip, &prior])
     } else {
-        // the fit's window's log-likelihood plus the wider windows' at the learned weights:
-        // L_0 + Σ_s e^{clip(6·o_s − 6)}·L_s, as burn's LifetimeNet::posterior
-        let o_s = channels(&mut g, &o, points + 1, wide); // [B, S, H, W]
-        let (gain, offset) = (
-            g.scalar("window_gain", tcsense_models::depth_evidence::WIDER_GAIN as f32),
-            g.scalar("window_offset", tcsense_models::depth_evidence::WIDER_OFFSET as f32),
-        );
-        let o_s = g.op("Mul", &[&o_s, &gain]);
-        let o_s = g.op("Add", &[&o_s, &offset]);
-        let [lo, hi] = tcsense_models::depth_evidence::TEMPERATURE_RANGE;
-        let (lo, hi) = (g.scalar("log_weight_lo", lo as f32), g.scalar("log_weight_hi", hi as f32));
-        let o_s = g.op("Clip", &[&o_s, &lo, &hi]);
-        let weights = g.op("Exp", &[&o_s]);
-        // (flattened pixels: [B, S, 1, H·W] times [B, S, G, H·W], summed over the windows)
-        let (wshape, vshape) =
-            (g.ints("weights_shape", &[0, wide as i64, 1, -1]), g.ints("volume_shape", &[0, wide as i64, points as i64, -1]));
-        let own = channels(&mut g, &skip, 0, points);
-        let wider = channels(&mut g, &skip, points, wide * points);
-        let weights = g.op("Reshape", &[&weights, &wshape]);
-        let volume = g.op("Reshape", &[&wider, &vshape]);
-        let weighted = g.op("Mul", &[&volume, &weights]);
-        let axis1 = g.ints("axis_windows", &[1]);
-        let wider = g.node("ReduceSum", &[&weighted, &axis1], &[Attr::Int("keepdims", 0)]); // [B, G, H·W]
-        let shape = g.op("Shape", &[&own]);
-        let wider = g.op("Reshape", &[&wider, &shape]); // [B, G, H, W]
-        let likelihood = g.op("Add", &[&own, &wider]);
+        // as burn's LifetimeNet::posterior
+        let likelihood = windowed_likelihood(&mut g, &o, &skip, points, wide);
         g.op("Add", &[&likelihood, &prior])
     };
     let u = posterior_mode(&mut g, &logits, points, false);
