@@ -36,7 +36,7 @@ use burn::tensor::{Tensor, TensorData};
 use ndarray::{Array4, ArrayView3, ArrayView4, Axis};
 use tcsense_fits::depth::{CandidateGrid, DepthFitOptions, RangeTemplates, Seeds, SCALES};
 
-use crate::evidence_tensors::with_gradient_of;
+use crate::evidence_tensors::{windowed_likelihood, with_gradient_of};
 use crate::range_evidence::range_evidence;
 use crate::sensor_tensors::SensorTensors;
 use crate::unet::{conv1x1, trunk, Unet};
@@ -150,17 +150,8 @@ impl Unet {
     /// - `features`: `[B, F, H, W]`, `skip`: `[B, S·C, H, W]` → `([B, C, H, W], [B, 1, H, W])`
     pub fn posterior(&self, features: Tensor<4>, skip: Tensor<4>) -> (Tensor<4>, Tensor<4>) {
         let o = conv1x1(self.head(), trunk(self.down(), self.up(), features)); // [B, C + S, H, W]
-        let [b, _, h, w] = o.dims();
-        let (c, wide) = (self.candidates, SCALES - 1);
-        let weights = o
-            .clone()
-            .narrow(1, c + 1, wide)
-            .mul_scalar(WIDER_GAIN)
-            .add_scalar(WIDER_OFFSET)
-            .clamp(TEMPERATURE_RANGE[0], TEMPERATURE_RANGE[1])
-            .exp(); // [B, S − 1, H, W]
-        let wider = skip.clone().narrow(1, c, wide * c).reshape([b, wide, c, h, w]) * weights.reshape([b, wide, 1, h, w]);
-        let likelihood = skip.narrow(1, 0, c) + wider.sum_dim(1).reshape([b, c, h, w]);
+        let c = self.candidates;
+        let likelihood = windowed_likelihood(&o, skip, c, SCALES - 1);
         let prior = (o.clone().narrow(1, 0, c).div_scalar(PRIOR_BOUND)).tanh().mul_scalar(PRIOR_BOUND);
         (likelihood + prior, o.narrow(1, c, 1))
     }

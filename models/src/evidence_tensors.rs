@@ -66,6 +66,27 @@ pub(crate) fn with_gradient_of(features: Tensor<4>, skip: Tensor<4>, post: Tenso
     (features + (post.clone() - post.detach()), skip + (copy.clone() - copy.detach()))
 }
 
+/// The fit's window's log-likelihood plus the `wide` wider windows' at the weights the head sets
+/// pixel by pixel, `L_0 + Σ_s e^{clip(6·o_s − 6)}·L_s` (the networks on a fit's evidence): the
+/// log-weights `o_s` are the head's channels after its `points` log-prior channels and its
+/// confidence logit.
+///
+/// # Shapes
+/// - `o`: `[B, G + 1 + S, H, W]`, `skip`: `[B, (1 + S)·G, H, W]` (window-major) → `[B, G, H, W]`
+pub(crate) fn windowed_likelihood(o: &Tensor<4>, skip: Tensor<4>, points: usize, wide: usize) -> Tensor<4> {
+    use crate::depth_evidence::{TEMPERATURE_RANGE, WIDER_GAIN, WIDER_OFFSET};
+    let [b, _, h, w] = o.dims();
+    let weights = o
+        .clone()
+        .narrow(1, points + 1, wide)
+        .mul_scalar(WIDER_GAIN)
+        .add_scalar(WIDER_OFFSET)
+        .clamp(TEMPERATURE_RANGE[0], TEMPERATURE_RANGE[1])
+        .exp(); // [B, S, H, W]
+    let wider = skip.clone().narrow(1, points, wide * points).reshape([b, wide, points, h, w]) * weights.reshape([b, wide, 1, h, w]);
+    skip.narrow(1, 0, points) + wider.sum_dim(1).reshape([b, points, h, w])
+}
+
 #[cfg(test)]
 pub(crate) mod testing {
     use super::*;

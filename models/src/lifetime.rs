@@ -34,7 +34,7 @@ use burn::tensor::activation::sigmoid;
 use burn::tensor::Int;
 use burn::tensor::{Device, Tensor, TensorData};
 
-use crate::depth_evidence::{TEMPERATURE_RANGE, WIDER_GAIN, WIDER_OFFSET};
+use crate::evidence_tensors::windowed_likelihood;
 use crate::evidence_tensors::with_gradient_of;
 use crate::lifetime_evidence::{decays_tensor, lifetime_evidence};
 use crate::net::{Network, Prediction};
@@ -415,18 +415,8 @@ impl LifetimeNet {
         if self.windows.is_empty() {
             return (skip + prior, logit);
         }
-        // the fit's window's log-likelihood plus the wider windows' at the learned weights,
-        // L_0 + Σ_s e^{clip(6·o_s − 6)}·L_s (~0 at initialisation: the untrained network is the fit)
-        let [b, _, h, w] = o.dims();
-        let wide = self.windows.len();
-        let weights = o
-            .narrow(1, g + 1, wide)
-            .mul_scalar(WIDER_GAIN)
-            .add_scalar(WIDER_OFFSET)
-            .clamp(TEMPERATURE_RANGE[0], TEMPERATURE_RANGE[1])
-            .exp(); // [B, S, H, W]
-        let wider = skip.clone().narrow(1, g, wide * g).reshape([b, wide, g, h, w]) * weights.reshape([b, wide, 1, h, w]);
-        (skip.narrow(1, 0, g) + wider.sum_dim(1).reshape([b, g, h, w]) + prior, logit)
+        // (~0 of the wider windows at initialisation: the untrained network is the fit)
+        (windowed_likelihood(&o, skip, g, self.windows.len()) + prior, logit)
     }
 
     /// The lifetime (ns) at a continuous grid coordinate `u`.
