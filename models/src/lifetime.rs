@@ -661,7 +661,7 @@ mod tests {
         let features = Tensor::<4>::random([1, cfg.features(), h, w], Distribution::Uniform(0.0, 1.0), &device);
         let skip = Tensor::<4>::random([1, 36, h, w], Distribution::Uniform(-50.0, 0.0), &device);
         let (logits, _) = net.posterior(features, skip.clone());
-        let weight = (WIDER_OFFSET as f32).exp();
+        let weight = (crate::depth_evidence::WIDER_OFFSET as f32).exp();
         let want = skip.clone().narrow(1, 0, 12) + (skip.clone().narrow(1, 12, 12) + skip.narrow(1, 24, 12)).mul_scalar(weight);
         let diff = (logits - want).abs().max().into_scalar::<f32>();
         assert!(diff < 1e-4, "untrained: L_0 + e^-6 (L_5 + L_9), off by {diff}");
