@@ -26,7 +26,7 @@
 //! learned: it is the photo-charge the taps collected, `Σ_m y_m` ([`intensity`]).
 
 use burn::config::Config;
-use burn::module::Module;
+use burn::module::{Module, Param};
 use burn::nn::conv::{Conv2d, Conv2dConfig};
 use burn::nn::Initializer;
 use burn::tensor::activation::log_softmax;
@@ -47,6 +47,10 @@ use tcsense_fits::lifetime_taps::{estimate_instrument, Instrument, LifetimeCosts
 pub const OUTPUTS: usize = 5;
 /// Floor of the delay reference's magnitude (a dark frame has no phase).
 const REF_FLOOR: f32 = 1e-20;
+
+/// The head's raw output `o_s` each wider window starts at: its weight `e^{clip(6·o_s − 6)}`
+/// starts at `e^{−3}`.
+pub const WIDER_START: f64 = 0.5;
 
 /// Lifetime-decoder hyper-parameters.
 #[derive(Config, Debug, PartialEq)]
@@ -152,7 +156,14 @@ impl LifetimeNetConfig {
         if costs {
             head = head.with_initializer(Initializer::Zeros);
         }
-        let head = head.init(device);
+        let mut head = head.init(device);
+        if costs && !self.windows.is_empty() {
+            // the wider windows start half open (`e^{6·½ − 6} = e^{−3}`): at `e^{−6}` their
+            // weights' gradients (6·e^{−6}) are too small for training to open them
+            let mut bias = vec![0.0f32; self.head_channels()];
+            bias[self.points + 1..].fill(WIDER_START as f32);
+            head.bias = Some(Param::from_tensor(Tensor::<1>::from_data(TensorData::new(bias, [self.head_channels()]), device)));
+        }
         LifetimeNet {
             down,
             up,
@@ -415,7 +426,6 @@ impl LifetimeNet {
         if self.windows.is_empty() {
             return (skip + prior, logit);
         }
-        // (~0 of the wider windows at initialisation: the untrained network is the fit)
         (windowed_likelihood(&o, skip, g, self.windows.len()) + prior, logit)
     }
 
@@ -642,7 +652,7 @@ mod tests {
     }
 
     /// With wider windows the posterior is the fit's window's log-likelihood plus each wider
-    /// window's at its learned weight `e^{clip(6·o_s − 6)}` (`e^{−6}` untrained) plus the
+    /// window's at its learned weight `e^{clip(6·o_s − 6)}` (`e^{−3}` untrained) plus the
     /// log-prior; the head has a log-weight per window and the input the windows' posteriors.
     #[test]
     fn wider_windows_add_their_weighted_log_likelihoods() {
@@ -661,10 +671,11 @@ mod tests {
         let features = Tensor::<4>::random([1, cfg.features(), h, w], Distribution::Uniform(0.0, 1.0), &device);
         let skip = Tensor::<4>::random([1, 36, h, w], Distribution::Uniform(-50.0, 0.0), &device);
         let (logits, _) = net.posterior(features, skip.clone());
-        let weight = (crate::depth_evidence::WIDER_OFFSET as f32).exp();
+        let weight = (crate::depth_evidence::WIDER_OFFSET + crate::depth_evidence::WIDER_GAIN * WIDER_START).exp() as f32;
+        assert!((weight - (-3.0f32).exp()).abs() < 1e-6);
         let want = skip.clone().narrow(1, 0, 12) + (skip.clone().narrow(1, 12, 12) + skip.narrow(1, 24, 12)).mul_scalar(weight);
         let diff = (logits - want).abs().max().into_scalar::<f32>();
-        assert!(diff < 1e-4, "untrained: L_0 + e^-6 (L_5 + L_9), off by {diff}");
+        assert!(diff < 1e-4, "untrained: L_0 + e^-3 (L_5 + L_9), off by {diff}");
         for bad in [vec![4], vec![3, 9], vec![9, 5], vec![65]] {
             assert!(cfg.clone().with_windows(bad.clone()).validate().is_err(), "{bad:?}");
         }

@@ -74,8 +74,20 @@ pub fn erf(x: f64) -> f64 {
 pub fn decay_integrals(c: Cycle, tau_s: f64, onset_s: f64) -> Vec<f64> {
     let (dt, p) = (c.dt_s, c.period_s);
     let t0 = onset_s.rem_euclid(p);
+    // e^x, the last one kept: a bin's upper edge is the next bin's lower edge, the same argument
+    // (the same bits), so each edge's exponential is computed once
+    let mut last = (f64::NAN, f64::NAN);
+    let mut exp = |x: f64| -> f64 {
+        if x.to_bits() != last.0.to_bits() {
+            last = (x, x.exp());
+        }
+        last.1
+    };
     // ∫_a^b e^{−(u−s)/τ} du for a ≥ s
-    let seg = |a: f64, b: f64, s: f64| tau_s * ((-(a - s) / tau_s).exp() - (-(b - s) / tau_s).exp());
+    let mut seg = |a: f64, b: f64, s: f64| {
+        let lower = exp(-(a - s) / tau_s);
+        tau_s * (lower - exp(-(b - s) / tau_s))
+    };
     (0..c.bins)
         .map(|j| {
             let (a, b) = (j as f64 * dt, (j + 1) as f64 * dt);
@@ -166,8 +178,23 @@ impl IrfKernel {
         if self.reach == 0 || n == 0 {
             return v.to_vec();
         }
-        // d = i − reach
-        (0..n).map(|j| self.taps.iter().enumerate().map(|(i, k)| k * v[(j + self.reach + n - i) % n]).sum::<f64>() / self.total).collect()
+        // `v` cyclically extended by the reach on both sides, `ext[q] = v[(q − r) mod n]`, so that
+        // tap `i` (offset `d = i − r`) reads `v[(j − d) mod n] = ext[j + 2r − i]`: no modulo per
+        // multiply-add, and each output's products added in the taps' order as before (the same
+        // bits), the outputs a vector at a time
+        let r = self.reach;
+        let ext: Vec<f64> = (0..n + 2 * r).map(|q| v[(q + n - r % n) % n]).collect();
+        let mut out = vec![0f64; n];
+        for (i, &k) in self.taps.iter().enumerate() {
+            let src = &ext[2 * r - i..2 * r - i + n];
+            if i == 0 {
+                out.iter_mut().zip(src).for_each(|(o, &x)| *o = k * x);
+            } else {
+                out.iter_mut().zip(src).for_each(|(o, &x)| *o += k * x);
+            }
+        }
+        out.iter_mut().for_each(|o| *o /= self.total);
+        out
     }
 }
 
@@ -242,6 +269,60 @@ mod tests {
         let mut m = vec![0.0; 64];
         m[7] = 2.0;
         assert_eq!(IrfKernel::measured(&m).apply(&d), d);
+    }
+
+    #[test]
+    fn kernels_apply_as_the_cyclic_sum_written_out() {
+        // the sum as the docs write it, one modulo per multiply-add: the same bits
+        let naive = |k: &IrfKernel, v: &[f64]| -> Vec<f64> {
+            let n = v.len();
+            (0..n).map(|j| k.taps.iter().enumerate().map(|(i, t)| t * v[(j + k.reach + n - i) % n]).sum::<f64>() / k.total).collect()
+        };
+        let mut state = 12345u64;
+        let mut next = || {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        for n in [1usize, 2, 5, 16, 33, 256] {
+            let v: Vec<f64> = (0..n).map(|_| next()).collect();
+            let measured: Vec<f64> = (0..n).map(|_| next()).collect();
+            let c = Cycle::new(n, 0.2e-9);
+            for k in [
+                IrfKernel::gaussian(c, 0.3e-9),
+                IrfKernel::gaussian(c, 2e-9),
+                IrfKernel::gaussian(c, 50e-9),
+                IrfKernel::measured(&measured),
+            ] {
+                let (got, want) = (k.apply(&v), naive(&k, &v));
+                assert!(got.iter().zip(&want).all(|(a, b)| a.to_bits() == b.to_bits()), "n {n}, reach {}: {got:?} != {want:?}", k.reach);
+            }
+        }
+    }
+
+    /// Each bin's two edges written out (two exponentials a bin): the same bits as the
+    /// integrals that compute each edge once.
+    #[test]
+    fn decay_integrals_are_each_bins_edges_written_out() {
+        let c = Cycle::new(64, 0.4e-9);
+        for (tau, onset) in [(0.3e-9, 0.0), (2.5e-9, 7.3e-9), (9e-9, 25.6e-9), (1e-9, -3.1e-9), (4e-9, 0.4e-9 * 17.0)] {
+            let t0 = f64::rem_euclid(onset, c.period_s);
+            let seg = |a: f64, b: f64, s: f64| tau * ((-(a - s) / tau).exp() - (-(b - s) / tau).exp());
+            let want: Vec<f64> = (0..c.bins)
+                .map(|j| {
+                    let (a, b) = (j as f64 * c.dt_s, (j + 1) as f64 * c.dt_s);
+                    let mut v = 0.0;
+                    if b > t0 {
+                        v += seg(a.max(t0), b, t0);
+                    }
+                    if a < t0 {
+                        v += seg(a, b.min(t0), t0 - c.period_s);
+                    }
+                    v
+                })
+                .collect();
+            let got = decay_integrals(c, tau, onset);
+            assert!(got.iter().zip(&want).all(|(x, y)| x.to_bits() == y.to_bits()), "τ {tau}, onset {onset}");
+        }
     }
 
     #[test]
