@@ -423,47 +423,90 @@ fn lifetime(g: &mut Graph, net: &LifetimeNet, sensor: &SensorGraph, y: &str) -> 
     Ok((lifetime, conf, intensity))
 }
 
-/// The mode of a posterior over `points` grid points (axis 1 of `logits` `[B, G, H, W]`),
-/// refined by the parabola through its log at the neighbouring points (within half a step;
-/// none where a neighbour is not below it), as a float grid coordinate `[B, 1, H, W]`. On a
+/// The mode of a posterior over `points` grid points (axis 1 of the pixels' `logits`
+/// `[N, G]`), refined by the parabola through its log at the neighbouring points (within half
+/// a step; none where a neighbour is not below it), as a float grid coordinate `[N, 1]`. On a
 /// `cyclic` grid the neighbours wrap around; otherwise they are clamped to the grid, so at
 /// either end a neighbour is the point itself.
 fn posterior_mode(g: &mut Graph, logits: &str, points: usize, cyclic: bool) -> String {
-    let best = g.node("ArgMax", &[logits], &[Attr::Int("axis", 1), Attr::Int("keepdims", 1)]); // int64 [B, 1, H, W]
-    let one = g.ints("one", &[1]);
-    let (lo, hi) = if cyclic {
-        let (n, before) = (g.ints("points", &[points as i64]), g.ints("points_less_one", &[points as i64 - 1]));
-        let lo = g.op("Add", &[&best, &before]);
-        let hi = g.op("Add", &[&best, &one]);
-        (g.node("Mod", &[&lo, &n], &[]), g.node("Mod", &[&hi, &n], &[]))
+    // (few operators on the per-pixel columns: each is a wake-up of ONNX Runtime's threads)
+    let best = g.node("ArgMax", &[logits], &[Attr::Int("axis", 1), Attr::Int("keepdims", 1)]); // int64 [N, 1]
+    let sides = if cyclic {
+        let (steps, n) = (g.ints("side_steps", &[points as i64 - 1, 1]), g.ints("points", &[points as i64]));
+        let sides = g.op("Add", &[&best, &steps]);
+        g.node("Mod", &[&sides, &n], &[])
     } else {
-        let (zero, last) = (g.ints("zero", &[0]), g.ints("last", &[points as i64 - 1]));
-        let lo = g.op("Sub", &[&best, &one]);
-        let hi = g.op("Add", &[&best, &one]);
-        (g.op("Max", &[&lo, &zero]), g.op("Min", &[&hi, &last]))
-    };
-    let gather = |g: &mut Graph, idx: &str| g.node("GatherElements", &[logits, idx], &[Attr::Int("axis", 1)]);
-    let (l0, lm, lp) = (gather(g, &best), gather(g, &lo), gather(g, &hi));
-    let two = g.scalar("two", 2.0);
-    let twice = g.op("Mul", &[&l0, &two]);
-    let sides = g.op("Add", &[&lm, &lp]);
-    let curv = g.op("Sub", &[&sides, &twice]);
+        let (steps, zero, last) = (g.ints("side_steps", &[-1, 1]), g.ints("zero", &[0]), g.ints("last", &[points as i64 - 1]));
+        let sides = g.op("Add", &[&best, &steps]);
+        g.op("Clip", &[&sides, &zero, &last])
+    }; // [N, 2]: the neighbours below and above
+    let sides = g.node("GatherElements", &[logits, &sides], &[Attr::Int("axis", 1)]);
+    // the mode's log is the maximum: the neighbours' logs below it, d = (l₋ − l₀, l₊ − l₀)
+    let l0 = g.node("ReduceMax", &[logits], &[Attr::Ints("axes", &[1]), Attr::Int("keepdims", 1)]);
+    let d = g.op("Sub", &[&sides, &l0]); // [N, 2]
+                                         // (½(d₋ − d₊), d₋ + d₊): the parabola's numerator and curvature
+    let mix = g.weight("parabola", &[2, 2], &[0.5, 1.0, -0.5, 1.0]);
+    let nc = g.op("MatMul", &[&d, &mix]);
+    let halves = g.ints("split_sides", &[1, 1]);
+    let parts = g.node_multi("Split", &[&nc, &halves], &[Attr::Int("axis", 1)], 2);
     let eps = g.scalar("neg_eps", -1e-12);
-    // an interior maximum: both neighbours below it
-    let below_lo = g.op("Less", &[&lm, &l0]);
-    let below_hi = g.op("Less", &[&lp, &l0]);
-    let interior = g.op("And", &[&below_lo, &below_hi]);
-    let den = g.op("Min", &[&curv, &eps]);
-    let num = g.op("Sub", &[&lm, &lp]);
-    let delta = g.op("Div", &[&num, &den]);
-    let half = g.scalar("half", 0.5);
-    let delta = g.op("Mul", &[&delta, &half]);
-    let neg_half = g.scalar("neg_half", -0.5);
+    let den = g.op("Min", &[&parts[1], &eps]);
+    let delta = g.op("Div", &[&parts[0], &den]);
+    let (neg_half, half) = (g.scalar("neg_half", -0.5), g.scalar("half", 0.5));
     let delta = g.op("Clip", &[&delta, &neg_half, &half]);
+    // an interior maximum: both neighbours below it
+    let top = g.node("ReduceMax", &[&d], &[Attr::Ints("axes", &[1]), Attr::Int("keepdims", 1)]);
     let nil = g.scalar("nil", 0.0);
+    let interior = g.op("Less", &[&top, &nil]);
     let delta = g.op("Where", &[&interior, &delta, &nil]);
     let u = g.node("Cast", &[&best], &[Attr::Int("to", 1)]); // FLOAT
     g.op("Add", &[&u, &delta])
+}
+
+/// The pixels of the pixel-major evidence as rows: `[B, H, W, C]` → `[B·H·W, C]` (a view in
+/// ONNX Runtime: no copy), and the shape `[B, 1, H, W]` of a frame's map of them.
+fn pixel_rows(g: &mut Graph, x: &str, c: usize) -> (String, String) {
+    let rows = g.ints("rows_shape", &[-1, c as i64]);
+    let r = g.op("Reshape", &[x, &rows]);
+    let shape = g.op("Shape", &[x]);
+    let (s0, s1, s3) = (g.ints("s0", &[0]), g.ints("s1", &[1]), g.ints("s3", &[3]));
+    let b = g.node("Slice", &[&shape, &s0, &s1], &[]);
+    let hw = g.node("Slice", &[&shape, &s1, &s3], &[]);
+    let frame = g.node("Concat", &[&b, &s1, &hw], &[Attr::Int("axis", 0)]);
+    (r, frame)
+}
+
+/// Output channels `start..start + len` of a 1×1 convolution (a head) applied to the pixels:
+/// `x [B, C_in, H, W]` as rows `[B·H·W, C_in]` times the weight's rows `[C_in, len]` plus their
+/// bias, one `Gemm` → `[B·H·W, len]`. A head of a log-prior per grid point then meets the
+/// pixel-major evidence without either being transposed (the widest tensors of the graph: the
+/// U-Net's trunk has a few channels, the evidence tens to hundreds), and each part of the head
+/// comes out on its own (no split of a wide tensor).
+fn head_rows(g: &mut Graph, layer: &Conv2d, x_rows: &str, start: usize, len: usize) -> Result<String> {
+    let [co, ci, kh, kw] = layer.weight.dims();
+    if (kh, kw) != (1, 1) || start + len > co {
+        return Err(InferError::InvalidParam {
+            field: "head",
+            got: format!("a {kh}×{kw} convolution to {co} channels"),
+            expected: format!("a 1×1 convolution to at least {} channels", start + len),
+        });
+    }
+    let w = values(layer.weight.val().into_data())?; // [C_out, C_in]
+    let wt: Vec<f32> = (0..ci * len).map(|q| w[(start + q % len) * ci + q / len]).collect(); // [C_in, len]
+    let wt = g.weight("head_w_rows", &[ci, len], &wt);
+    let bias = match &layer.bias {
+        Some(b) => values(b.val().into_data())?[start..start + len].to_vec(),
+        None => vec![0.0; len],
+    };
+    let bias = g.weight("head_b_rows", &[len], &bias);
+    Ok(g.op("Gemm", &[x_rows, &wt, &bias]))
+}
+
+/// The U-Net trunk's output `[B, C, H, W]` as pixel rows `[B·H·W, C]`.
+fn trunk_rows(g: &mut Graph, trunk: &str, c: usize) -> String {
+    let t = g.node("Transpose", &[trunk], &[Attr::Ints("perm", &[0, 2, 3, 1])]);
+    let rows = g.ints("rows_shape", &[-1, c as i64]);
+    g.op("Reshape", &[&t, &rows])
 }
 
 /// The U-Net on the range fit's evidence ([`tcsense_models::UnetInput::Costs`]) as a whole
@@ -492,20 +535,25 @@ fn unet_on_evidence(net: &Unet, meta: &OnnxMeta, opts: ExportOptions<'_>) -> Res
     let pixels = |c: usize| [Dim::Named("batch"), Dim::Named("height"), Dim::Named("width"), Dim::Fixed(c)];
     let features = g.input(EVIDENCE_INPUT, &pixels(f));
     let skip = g.input(LOG_LIKELIHOOD_INPUT, &pixels(tcsense_fits::depth::SCALES * c));
+    // the trunk channel-major, the posterior on the pixels as rows (as the evidence comes)
+    let (skip, frame_shape) = pixel_rows(&mut g, &skip, tcsense_fits::depth::SCALES * c); // [N, S·C]
     let features = g.node("Transpose", &[&features], &[Attr::Ints("perm", &[0, 3, 1, 2])]);
-    let skip = g.node("Transpose", &[&skip], &[Attr::Ints("perm", &[0, 3, 1, 2])]);
     let trunk = unet_trunk(&mut g, net.down(), net.up(), &features)?;
-    let o = conv(&mut g, net.head(), &trunk)?; // [B, C + S, H, W]
+    let trunk = trunk_rows(&mut g, &trunk, net.head().weight.dims()[1]); // [N, C_0]
     let bound = g.scalar("prior_bound", tcsense_models::depth_evidence::PRIOR_BOUND as f32);
-    let prior = channels(&mut g, &o, 0, c);
+    let prior = head_rows(&mut g, net.head(), &trunk, 0, c)?; // [N, C]
     let prior = g.op("Div", &[&prior, &bound]);
     let prior = g.op("Tanh", &[&prior]);
     let prior = g.op("Mul", &[&prior, &bound]);
-    let logit = channels(&mut g, &o, c, 1);
+    let logit = head_rows(&mut g, net.head(), &trunk, c, 1)?;
+    let logit = g.op("Reshape", &[&logit, &frame_shape]);
     // the fit's window's log-likelihood plus the wider windows' at the learned weights
-    let likelihood = windowed_likelihood(&mut g, &o, &skip, c, tcsense_fits::depth::SCALES - 1);
+    let wide = tcsense_fits::depth::SCALES - 1;
+    let o_s = head_rows(&mut g, net.head(), &trunk, c + 1, wide)?;
+    let likelihood = windowed_likelihood(&mut g, &o_s, &skip, c, wide);
     let logits = g.op("Add", &[&likelihood, &prior]);
     let u = posterior_mode(&mut g, &logits, c, true);
+    let u = g.op("Reshape", &[&u, &frame_shape]);
     // the range of candidate u: (u + ½·os)/C · r_max, within the cycle
     let (half_os, per) = (
         g.scalar("half_oversample", 0.5 * net.grid_oversample() as f32),
@@ -534,35 +582,37 @@ fn unet_on_evidence(net: &Unet, meta: &OnnxMeta, opts: ExportOptions<'_>) -> Res
 
 /// The fit's window's log-likelihood plus the `wide` wider windows' at the weights the head
 /// sets pixel by pixel, `L_0 + Σ_s e^{clip(6·o_s − 6)}·L_s` (as burn's posteriors of the networks
-/// on a fit's evidence): the log-weights `o_s` are the head's channels after its `points`
-/// log-prior channels and its confidence logit.
+/// on a fit's evidence): `o_s` are the head's channels after its `points` log-prior channels
+/// and its confidence logit. On the pixels as rows.
 ///
 /// # Shapes
-/// - `o`: `[B, G + 1 + S, H, W]`, `skip`: `[B, (1 + S)·G, H, W]` (window-major) → `[B, G, H, W]`
-fn windowed_likelihood(g: &mut Graph, o: &str, skip: &str, points: usize, wide: usize) -> String {
-    let o_s = channels(g, o, points + 1, wide); // [B, S, H, W]
+/// - `o_s`: `[N, S]`, `skip`: `[N, (1 + S)·G]` (window-major) → `[N, G]`
+fn windowed_likelihood(g: &mut Graph, o_s: &str, skip: &str, points: usize, wide: usize) -> String {
     let (gain, offset) = (
         g.scalar("window_gain", tcsense_models::depth_evidence::WIDER_GAIN as f32),
         g.scalar("window_offset", tcsense_models::depth_evidence::WIDER_OFFSET as f32),
     );
-    let o_s = g.op("Mul", &[&o_s, &gain]);
+    let o_s = g.op("Mul", &[o_s, &gain]);
     let o_s = g.op("Add", &[&o_s, &offset]);
     let [lo, hi] = tcsense_models::depth_evidence::TEMPERATURE_RANGE;
     let (lo, hi) = (g.scalar("log_weight_lo", lo as f32), g.scalar("log_weight_hi", hi as f32));
     let o_s = g.op("Clip", &[&o_s, &lo, &hi]);
     let weights = g.op("Exp", &[&o_s]);
-    // (flattened pixels: [B, S, 1, H·W] times [B, S, G, H·W], summed over the windows)
-    let (wshape, vshape) =
-        (g.ints("weights_shape", &[0, wide as i64, 1, -1]), g.ints("volume_shape", &[0, wide as i64, points as i64, -1]));
-    let own = channels(g, skip, 0, points);
-    let wider = channels(g, skip, points, wide * points);
+    // ([N, S, 1] times [N, S, G], summed over the windows)
+    let (wshape, vshape) = (g.ints("weights_shape", &[-1, wide as i64, 1]), g.ints("volume_shape", &[-1, wide as i64, points as i64]));
+    let (s0, s1, sg, se, axis1) = (
+        g.ints("own_start", &[0]),
+        g.ints("own_end", &[points as i64]),
+        g.ints("wider_start", &[points as i64]),
+        g.ints("wider_end", &[((1 + wide) * points) as i64]),
+        g.ints("axis_channels", &[1]),
+    );
+    let own = g.op("Slice", &[skip, &s0, &s1, &axis1]);
+    let wider = g.op("Slice", &[skip, &sg, &se, &axis1]);
     let weights = g.op("Reshape", &[&weights, &wshape]);
     let volume = g.op("Reshape", &[&wider, &vshape]);
     let weighted = g.op("Mul", &[&volume, &weights]);
-    let axis1 = g.ints("axis_windows", &[1]);
-    let wider = g.node("ReduceSum", &[&weighted, &axis1], &[Attr::Int("keepdims", 0)]); // [B, G, H·W]
-    let shape = g.op("Shape", &[&own]);
-    let wider = g.op("Reshape", &[&wider, &shape]); // [B, G, H, W]
+    let wider = g.node("ReduceSum", &[&weighted, &axis1], &[Attr::Int("keepdims", 0)]); // [N, G]
     g.op("Add", &[&own, &wider])
 }
 
@@ -592,20 +642,24 @@ fn lifetime_on_evidence(net: &LifetimeNet, meta: &OnnxMeta, opts: ExportOptions<
     // the evidence comes pixel-major, as the runtime computes it
     let features = g.input(EVIDENCE_INPUT, &pixels(f));
     let skip = g.input(LOG_LIKELIHOOD_INPUT, &pixels((1 + wide) * points));
+    // the trunk channel-major, the posterior on the pixels as rows (as the evidence comes)
+    let (skip, frame_shape) = pixel_rows(&mut g, &skip, (1 + wide) * points); // [N, (1 + S)·G]
     let features = g.node("Transpose", &[&features], &[Attr::Ints("perm", &[0, 3, 1, 2])]);
-    let skip = g.node("Transpose", &[&skip], &[Attr::Ints("perm", &[0, 3, 1, 2])]);
     let trunk = unet_trunk(&mut g, net.down(), net.up(), &features)?;
-    let o = conv(&mut g, net.head(), &trunk)?; // [B, G + 1 + S, H, W]
-    let prior = channels(&mut g, &o, 0, points);
-    let logit = channels(&mut g, &o, points, 1);
+    let trunk = trunk_rows(&mut g, &trunk, net.head().weight.dims()[1]); // [N, C_0]
+    let prior = head_rows(&mut g, net.head(), &trunk, 0, points)?; // [N, G]
+    let logit = head_rows(&mut g, net.head(), &trunk, points, 1)?;
+    let logit = g.op("Reshape", &[&logit, &frame_shape]);
     let logits = if wide == 0 {
         g.op("Add", &[&skip, &prior])
     } else {
         // as burn's LifetimeNet::posterior
-        let likelihood = windowed_likelihood(&mut g, &o, &skip, points, wide);
+        let o_s = head_rows(&mut g, net.head(), &trunk, points + 1, wide)?;
+        let likelihood = windowed_likelihood(&mut g, &o_s, &skip, points, wide);
         g.op("Add", &[&likelihood, &prior])
     };
     let u = posterior_mode(&mut g, &logits, points, false);
+    let u = g.op("Reshape", &[&u, &frame_shape]);
     let nil = g.scalar("nil", 0.0);
     let (l0_ns, step) = net.log_grid_ns();
     let (lt0, st) = (g.scalar("log_tau_0_s", (l0_ns + 1e-9f64.ln()) as f32), g.scalar("log_tau_step", step as f32));
