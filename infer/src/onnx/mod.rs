@@ -502,6 +502,37 @@ fn head_rows(g: &mut Graph, layer: &Conv2d, x_rows: &str, start: usize, len: usi
     Ok(g.op("Gemm", &[x_rows, &wt, &bias]))
 }
 
+/// [`head_rows`] added onto `base` `[N, len]` in the same `Gemm`: the trunk's rows with a
+/// column of ones times the weight's rows with the bias under them, plus `base` — the
+/// log-prior onto the log-likelihood without a pass of its own over the widest tensor.
+fn head_rows_onto(g: &mut Graph, layer: &Conv2d, x_rows: &str, start: usize, len: usize, base: &str) -> Result<String> {
+    let [co, ci, kh, kw] = layer.weight.dims();
+    if (kh, kw) != (1, 1) || start + len > co {
+        return Err(InferError::InvalidParam {
+            field: "head",
+            got: format!("a {kh}×{kw} convolution to {co} channels"),
+            expected: format!("a 1×1 convolution to at least {} channels", start + len),
+        });
+    }
+    let w = values(layer.weight.val().into_data())?; // [C_out, C_in]
+    let bias = match &layer.bias {
+        Some(b) => values(b.val().into_data())?[start..start + len].to_vec(),
+        None => vec![0.0; len],
+    };
+    // [C_in + 1, len]: the weight's rows, then the bias
+    let wb: Vec<f32> =
+        (0..(ci + 1) * len).map(|q| if q / len < ci { w[(start + q % len) * ci + q / len] } else { bias[q % len] }).collect();
+    let wb = g.weight("head_wb_rows", &[ci + 1, len], &wb);
+    let shape = g.op("Shape", &[x_rows]);
+    let (s0, s1) = (g.ints("s0", &[0]), g.ints("s1", &[1]));
+    let n = g.node("Slice", &[&shape, &s0, &s1], &[]);
+    let column = g.node("Concat", &[&n, &s1], &[Attr::Int("axis", 0)]); // [N, 1]
+    let one = g.weight("one_f", &[1, 1], &[1.0]);
+    let ones = g.op("Expand", &[&one, &column]);
+    let x1 = g.node("Concat", &[x_rows, &ones], &[Attr::Int("axis", 1)]); // [N, C_in + 1]
+    Ok(g.op("Gemm", &[&x1, &wb, base]))
+}
+
 /// The U-Net trunk's output `[B, C, H, W]` as pixel rows `[B·H·W, C]`.
 fn trunk_rows(g: &mut Graph, trunk: &str, c: usize) -> String {
     let t = g.node("Transpose", &[trunk], &[Attr::Ints("perm", &[0, 2, 3, 1])]);
@@ -647,17 +678,16 @@ fn lifetime_on_evidence(net: &LifetimeNet, meta: &OnnxMeta, opts: ExportOptions<
     let features = g.node("Transpose", &[&features], &[Attr::Ints("perm", &[0, 3, 1, 2])]);
     let trunk = unet_trunk(&mut g, net.down(), net.up(), &features)?;
     let trunk = trunk_rows(&mut g, &trunk, net.head().weight.dims()[1]); // [N, C_0]
-    let prior = head_rows(&mut g, net.head(), &trunk, 0, points)?; // [N, G]
     let logit = head_rows(&mut g, net.head(), &trunk, points, 1)?;
     let logit = g.op("Reshape", &[&logit, &frame_shape]);
-    let logits = if wide == 0 {
-        g.op("Add", &[&skip, &prior])
+    let likelihood = if wide == 0 {
+        skip
     } else {
         // as burn's LifetimeNet::posterior
         let o_s = head_rows(&mut g, net.head(), &trunk, points + 1, wide)?;
-        let likelihood = windowed_likelihood(&mut g, &o_s, &skip, points, wide);
-        g.op("Add", &[&likelihood, &prior])
+        windowed_likelihood(&mut g, &o_s, &skip, points, wide)
     };
+    let logits = head_rows_onto(&mut g, net.head(), &trunk, 0, points, &likelihood)?; // [N, G]
     let u = posterior_mode(&mut g, &logits, points, false);
     let u = g.op("Reshape", &[&u, &frame_shape]);
     let nil = g.scalar("nil", 0.0);
