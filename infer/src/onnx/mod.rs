@@ -523,14 +523,19 @@ fn head_rows_onto(g: &mut Graph, layer: &Conv2d, x_rows: &str, start: usize, len
     let wb: Vec<f32> =
         (0..(ci + 1) * len).map(|q| if q / len < ci { w[(start + q % len) * ci + q / len] } else { bias[q % len] }).collect();
     let wb = g.weight("head_wb_rows", &[ci + 1, len], &wb);
-    let shape = g.op("Shape", &[x_rows]);
+    let ones = ones_column(g, x_rows);
+    let x1 = g.node("Concat", &[x_rows, &ones], &[Attr::Int("axis", 1)]); // [N, C_in + 1]
+    Ok(g.op("Gemm", &[&x1, &wb, base]))
+}
+
+/// A column of ones `[N, 1]` beside the rows `[N, C]`.
+fn ones_column(g: &mut Graph, rows: &str) -> String {
+    let shape = g.op("Shape", &[rows]);
     let (s0, s1) = (g.ints("s0", &[0]), g.ints("s1", &[1]));
     let n = g.node("Slice", &[&shape, &s0, &s1], &[]);
     let column = g.node("Concat", &[&n, &s1], &[Attr::Int("axis", 0)]); // [N, 1]
     let one = g.weight("one_f", &[1, 1], &[1.0]);
-    let ones = g.op("Expand", &[&one, &column]);
-    let x1 = g.node("Concat", &[x_rows, &ones], &[Attr::Int("axis", 1)]); // [N, C_in + 1]
-    Ok(g.op("Gemm", &[&x1, &wb, base]))
+    g.op("Expand", &[&one, &column])
 }
 
 /// The U-Net trunk's output `[B, C, H, W]` as pixel rows `[B·H·W, C]`.
@@ -629,22 +634,19 @@ fn windowed_likelihood(g: &mut Graph, o_s: &str, skip: &str, points: usize, wide
     let (lo, hi) = (g.scalar("log_weight_lo", lo as f32), g.scalar("log_weight_hi", hi as f32));
     let o_s = g.op("Clip", &[&o_s, &lo, &hi]);
     let weights = g.op("Exp", &[&o_s]);
-    // ([N, S, 1] times [N, S, G], summed over the windows)
-    let (wshape, vshape) = (g.ints("weights_shape", &[-1, wide as i64, 1]), g.ints("volume_shape", &[-1, wide as i64, points as i64]));
-    let (s0, s1, sg, se, axis1) = (
-        g.ints("own_start", &[0]),
-        g.ints("own_end", &[points as i64]),
-        g.ints("wider_start", &[points as i64]),
-        g.ints("wider_end", &[((1 + wide) * points) as i64]),
-        g.ints("axis_channels", &[1]),
+    // every window at its weight, the fit's at 1, one small product a pixel: [N, 1, 1 + S]
+    // times [N, 1 + S, G] (the log-likelihoods read in place, never sliced)
+    let ones = ones_column(g, &weights);
+    let weights = g.node("Concat", &[&ones, &weights], &[Attr::Int("axis", 1)]); // [N, 1 + S]
+    let (wshape, vshape, out) = (
+        g.ints("weights_shape", &[-1, 1, 1 + wide as i64]),
+        g.ints("volume_shape", &[-1, 1 + wide as i64, points as i64]),
+        g.ints("likelihood_shape", &[-1, points as i64]),
     );
-    let own = g.op("Slice", &[skip, &s0, &s1, &axis1]);
-    let wider = g.op("Slice", &[skip, &sg, &se, &axis1]);
     let weights = g.op("Reshape", &[&weights, &wshape]);
-    let volume = g.op("Reshape", &[&wider, &vshape]);
-    let weighted = g.op("Mul", &[&volume, &weights]);
-    let wider = g.node("ReduceSum", &[&weighted, &axis1], &[Attr::Int("keepdims", 0)]); // [N, G]
-    g.op("Add", &[&own, &wider])
+    let volume = g.op("Reshape", &[skip, &vshape]);
+    let summed = g.op("MatMul", &[&weights, &volume]); // [N, 1, G]
+    g.op("Reshape", &[&summed, &out]) // [N, G]
 }
 
 /// The lifetime decoder on the fit's evidence ([`tcsense_models::LifetimeInput::Costs`]) as a
