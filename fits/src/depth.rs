@@ -499,6 +499,18 @@ impl RangeTemplates {
     /// - `costs`: of `[H·W·C]`, `intensity`: `[H, W]` → [`Evidence`] of skip `[H, W, SCALES·C]`,
     ///   [`range_feature_channels`] features
     pub fn evidence(&self, costs: &RangeCosts, intensity: &Array2<f32>, pool: usize) -> Evidence {
+        self.evidence_into(costs, intensity, pool, crate::evidence::EvidenceBuffers::default())
+    }
+
+    /// [`Self::evidence`] written into an earlier frame's `buffers` (a stream's): the same
+    /// numbers.
+    pub fn evidence_into(
+        &self,
+        costs: &RangeCosts,
+        intensity: &Array2<f32>,
+        pool: usize,
+        buffers: crate::evidence::EvidenceBuffers,
+    ) -> Evidence {
         let (h, w, cands) = (costs.height, costs.width, self.tpl.candidates());
         let mut rows = Vec::new();
         let wider: Vec<Vec<f32>> = CONTEXT_WINDOWS
@@ -521,7 +533,7 @@ impl RangeTemplates {
             free_per_pixel: costs.m.saturating_sub(2),
             shared: 1,
         };
-        crate::evidence::evidence_with(&volume, intensity, pool, &wider)
+        crate::evidence::evidence_into(&volume, intensity, pool, &wider, buffers)
     }
 
     /// Steps 2 to 4 of the fit from a frame's costs: the first estimate of every pixel (the

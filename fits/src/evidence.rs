@@ -38,6 +38,23 @@ pub struct Evidence {
     pub noise: f32,
 }
 
+impl Evidence {
+    /// Its storage, for the next frame's evidence ([`evidence_into`]).
+    pub fn into_buffers(self) -> EvidenceBuffers {
+        EvidenceBuffers { skip: self.skip.into_raw_vec_and_offset().0, features: self.features.into_raw_vec_and_offset().0 }
+    }
+}
+
+/// The storage of an earlier frame's [`Evidence`], written over by the next
+/// ([`evidence_into`]): a stream's frames of one size need no fresh memory (a range fit's
+/// log-likelihoods of four windows are 80 MB at 188×212, fresh pages and zeroing for every
+/// frame otherwise). Empty: allocated.
+#[derive(Debug, Default)]
+pub struct EvidenceBuffers {
+    pub skip: Vec<f32>,
+    pub features: Vec<f32>,
+}
+
 /// A fit's costs of one frame, pixel-major, as [`evidence`] reads them.
 #[derive(Debug, Clone, Copy)]
 pub struct CostVolume<'a> {
@@ -96,6 +113,15 @@ pub fn evidence(costs: &CostVolume<'_>, intensity: &Array2<f32>, pool: usize) ->
 /// - `costs`: of `[H·W·G]`, `intensity`: `[H, W]`, each of `wider`: `[H·W·G]` → [`Evidence`]
 ///   with skip `[H, W, (1 + wider)·G]`, features `[H, W, (1 + wider)·G/pool + 2]`
 pub fn evidence_with(costs: &CostVolume<'_>, intensity: &Array2<f32>, pool: usize, wider: &[&[f32]]) -> Evidence {
+    evidence_into(costs, intensity, pool, wider, EvidenceBuffers::default())
+}
+
+/// [`evidence_with`] written into `buffers` (every value of them: what they held does not
+/// matter; resized where their sizes differ): the same numbers.
+///
+/// # Shapes
+/// - as [`evidence_with`]
+pub fn evidence_into(costs: &CostVolume<'_>, intensity: &Array2<f32>, pool: usize, wider: &[&[f32]], buffers: EvidenceBuffers) -> Evidence {
     let (g, h, w) = (costs.points, costs.height, costs.width);
     let pool = pool.max(1);
     let window = costs.window;
@@ -130,8 +156,14 @@ pub fn evidence_with(costs: &CostVolume<'_>, intensity: &Array2<f32>, pool: usiz
     let reference = median(&mut lit_intensity).filter(|v| *v > 0.0).unwrap_or(1.0);
     // the log-likelihoods: the fit's window's, then the wider windows'
     let sg = (1 + wider.len()) * g;
-    let mut skip = vec![0f32; h * w * sg];
-    let mut features = vec![0f32; h * w * channels];
+    let sized = |mut v: Vec<f32>, n: usize| {
+        if v.len() != n {
+            v.clear();
+            v.resize(n, 0.0);
+        }
+        v
+    };
+    let (mut skip, mut features) = (sized(buffers.skip, h * w * sg), sized(buffers.features, h * w * channels));
     skip.par_chunks_mut(w * sg).zip(features.par_chunks_mut(w * channels)).enumerate().for_each(|(i, (srow, frow))| {
         let mut post = vec![0f32; g];
         for j in 0..w {
@@ -141,6 +173,10 @@ pub fn evidence_with(costs: &CostVolume<'_>, intensity: &Array2<f32>, pool: usiz
             fp[channels - 2] =
                 if s > 0.0 { (s / reference).ln().clamp(-LOG_INTENSITY_CLAMP, LOG_INTENSITY_CLAMP) } else { -LOG_INTENSITY_CLAMP };
             if !lit[p] {
+                // (no evidence: zeros, whatever the buffer held)
+                sp.fill(0.0);
+                fp[..channels - 2].fill(0.0);
+                fp[channels - 1] = 0.0;
                 continue;
             }
             fp[channels - 1] = 1.0;
@@ -162,7 +198,7 @@ pub fn evidence_with(costs: &CostVolume<'_>, intensity: &Array2<f32>, pool: usiz
                 let scale = pooled as f32 / total;
                 // each pooled channel sums its candidates in order (as one `+=` per candidate)
                 for (o, chunk) in fp[b * pooled..(b + 1) * pooled].iter_mut().zip(post.chunks(pool)) {
-                    *o = chunk.iter().fold(*o, |a, &q| a + q * scale);
+                    *o = chunk.iter().fold(0.0, |a, &q| a + q * scale);
                 }
             }
         }
@@ -206,5 +242,32 @@ mod tests {
             assert_eq!(underflowing_exp(x).to_bits(), x.exp().to_bits(), "at {x}");
         }
         assert_eq!(underflowing_exp(f32::NEG_INFINITY), 0.0);
+    }
+
+    /// Evidence written into an earlier frame's buffers (here full of NaN, and of another
+    /// size) is the evidence written into fresh ones, bit for bit, unlit pixels included.
+    #[test]
+    fn evidence_into_used_buffers_is_the_fresh_evidence() {
+        let (h, w, g) = (5, 6, 8);
+        let value = |p: usize, k: usize, salt: usize| ((p * 31 + k * 7 + salt * 13) % 17) as f32 * 0.75;
+        let pixel: Vec<f32> = (0..h * w * g).map(|i| value(i / g, i % g, 1)).collect();
+        let window: Vec<f32> = (0..h * w * g).map(|i| 3.0 * value(i / g, i % g, 2)).collect();
+        let wide: Vec<f32> = (0..h * w * g).map(|i| 9.0 * value(i / g, i % g, 3)).collect();
+        let lit: Vec<bool> = (0..h * w).map(|p| p % 5 != 2).collect();
+        let intensity = Array2::from_shape_fn((h, w), |(i, j)| (i * w + j) as f32 + 0.5);
+        let volume =
+            CostVolume { pixel: &pixel, window: &window, lit: &lit, points: g, height: h, width: w, side: 3, free_per_pixel: 3, shared: 2 };
+        let fresh = evidence_with(&volume, &intensity, 2, &[&wide]);
+        let bits = |a: &Array3<f32>| a.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        for (skip, features) in [(fresh.skip.len(), fresh.features.len()), (7, 3)] {
+            let used = EvidenceBuffers { skip: vec![f32::NAN; skip], features: vec![f32::NAN; features] };
+            let again = evidence_into(&volume, &intensity, 2, &[&wide], used);
+            assert_eq!((bits(&again.skip), bits(&again.features)), (bits(&fresh.skip), bits(&fresh.features)));
+            assert_eq!(again.noise.to_bits(), fresh.noise.to_bits());
+        }
+        // an unlit pixel has no evidence: zeros but its intensity
+        let p = 2;
+        assert!(fresh.skip.slice(ndarray::s![0, p, ..]).iter().all(|&v| v == 0.0));
+        assert!(fresh.features.slice(ndarray::s![0, p, ..]).iter().enumerate().all(|(c, &v)| (v == 0.0) != (c == 4 * 2)));
     }
 }

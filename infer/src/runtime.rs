@@ -21,8 +21,9 @@ use tcsense_sensor::MeasurementMatrix;
 use crate::onnx::meta::{EvidenceNote, RangeEvidenceNote};
 use crate::onnx::{OnnxMeta, EVIDENCE_INPUT, INPUT, LOG_LIKELIHOOD_INPUT, MATRIX_INPUT};
 use crate::{InferError, Result};
+use tcsense_fits::evidence::EvidenceBuffers;
 use tcsense_fits::lifetime_taps::{Instrument, LifetimeCosts, LifetimeTemplates};
-use tcsense_models::lifetime::{evidence_at, frame_templates};
+use tcsense_models::lifetime::{evidence_at_into, frame_templates};
 
 /// The ONNX Runtime release the toolkit is built and tested against.
 pub const ORT_VERSION: &str = "1.31.1";
@@ -192,7 +193,7 @@ impl OnnxModel {
     /// posterior's mode), the mode refined in the tap domain where it is the fit's own argmin
     /// ([`LifetimeTemplates::refine_modes`], as burn's decoder does), and the intensity.
     fn run_on_evidence(&mut self, y: &ArrayView4<'_, f32>, e: &EvidenceNote) -> Result<Vec<Array4<f32>>> {
-        let evidence = lifetime_evidence(y, e, &self.sensor, self.templates.as_ref());
+        let evidence = lifetime_evidence(y, e, &self.sensor, self.templates.as_ref(), EvidenceBuffers::default());
         let mut out = self.run_graph_on_evidence(&evidence)?;
         if let FitCosts::Lifetime(frames) = &evidence.costs {
             refine_lifetimes(y, frames, self.templates.as_ref(), &mut out);
@@ -252,7 +253,7 @@ impl OnnxModel {
         for i in 0..b {
             let yi = y.index_axis(ndarray::Axis(0), i);
             let Some(templates) = self.ranges.as_ref() else { unreachable!("templates built with the model") };
-            let evidence = range_evidence(templates, &yi, e.pool);
+            let evidence = range_evidence(templates, &yi, e.pool, EvidenceBuffers::default());
             let out = self.run_graph_on_evidence(&evidence)?;
             let Some(templates) = self.ranges.as_mut() else { unreachable!("templates built with the model") };
             let [d, c] = refine_range_frame(templates, grid, (k, h, w), &evidence, &out);
@@ -319,6 +320,18 @@ pub struct FrameEvidence {
     costs: FitCosts,
 }
 
+impl FrameEvidence {
+    /// The storage of the graph's inputs, for a later frame's evidence (the graph has run: the
+    /// refinement reads the costs only).
+    pub fn take_buffers(&mut self) -> EvidenceBuffers {
+        let empty = || Array4::zeros((1, 0, 0, 0));
+        EvidenceBuffers {
+            skip: std::mem::replace(&mut self.skip, empty()).into_raw_vec_and_offset().0,
+            features: std::mem::replace(&mut self.features, empty()).into_raw_vec_and_offset().0,
+        }
+    }
+}
+
 /// The costs the evidence came from, for the refinement in the tap domain.
 enum FitCosts {
     /// Per frame its templates (where the instrument is not fixed) and costs.
@@ -334,6 +347,7 @@ fn lifetime_evidence(
     e: &EvidenceNote,
     sensor: &MeasurementMatrix,
     fixed: Option<&LifetimeTemplates>,
+    buffers: EvidenceBuffers,
 ) -> FrameEvidence {
     let (b, _, h, w) = y.dim();
     let (f, l) = e.channels();
@@ -341,11 +355,13 @@ fn lifetime_evidence(
     let mut skip = Vec::with_capacity(b * h * w * l);
     let mut frames = Vec::with_capacity(b);
     let opts = e.fit_options();
+    // (a single frame's evidence is written into the buffers: a stream's earlier frame's)
+    let mut buffers = (b == 1).then_some(buffers);
     for i in 0..b {
         let yi = y.index_axis(ndarray::Axis(0), i);
         let own = fixed.is_none().then(|| frame_templates(&yi, sensor, &opts));
         let Some(templates) = own.as_ref().or(fixed) else { unreachable!("templates fixed or fitted") };
-        let (ev, costs) = evidence_at(&yi, templates, e.pool, &e.windows);
+        let (ev, costs) = evidence_at_into(&yi, templates, e.pool, &e.windows, buffers.take().unwrap_or_default());
         // a stream's single frame is moved, not copied (tens of MB a frame)
         if b == 1 {
             features = ev.features.into_raw_vec_and_offset().0;
@@ -361,10 +377,10 @@ fn lifetime_evidence(
 }
 
 /// [`FrameEvidence`] of one frame `y` `[M, H, W]` for a U-Net on the range fit's evidence.
-fn range_evidence(templates: &RangeTemplates, y: &ArrayView3<'_, f32>, pool: usize) -> FrameEvidence {
+fn range_evidence(templates: &RangeTemplates, y: &ArrayView3<'_, f32>, pool: usize, buffers: EvidenceBuffers) -> FrameEvidence {
     match templates.costs(y) {
         Some(costs) => {
-            let ev = templates.evidence(&costs, &y.sum_axis(ndarray::Axis(0)), pool);
+            let ev = templates.evidence_into(&costs, &y.sum_axis(ndarray::Axis(0)), pool, buffers);
             FrameEvidence {
                 features: ev.features.insert_axis(ndarray::Axis(0)),
                 skip: ev.skip.insert_axis(ndarray::Axis(0)),
@@ -451,13 +467,14 @@ impl EvidenceStage {
         check_frames(&self.meta, &self.path, y, what)
     }
 
-    /// The evidence of one frame `y` `[M, H, W]` (checked first).
-    pub fn evidence(&self, y: &ArrayView3<'_, f32>) -> FrameEvidence {
+    /// The evidence of one frame `y` `[M, H, W]` (checked first), written into an earlier
+    /// frame's `buffers` ([`FrameEvidence::take_buffers`]; empty: allocated).
+    pub fn evidence(&self, y: &ArrayView3<'_, f32>, buffers: EvidenceBuffers) -> FrameEvidence {
         match &self.work {
             StageWork::Lifetime { templates, note, sensor } => {
-                lifetime_evidence(&y.view().insert_axis(ndarray::Axis(0)), note, sensor, Some(templates))
+                lifetime_evidence(&y.view().insert_axis(ndarray::Axis(0)), note, sensor, Some(templates), buffers)
             }
-            StageWork::Range { templates, pool } => range_evidence(templates, y, *pool),
+            StageWork::Range { templates, pool } => range_evidence(templates, y, *pool, buffers),
         }
     }
 }

@@ -40,7 +40,7 @@ use crate::lifetime_evidence::{decays_tensor, lifetime_evidence};
 use crate::net::{Network, Prediction};
 use crate::sensor_tensors::SensorTensors;
 use crate::unet::{conv1x1, trunk, trunk_flops, Block, Unet, NORM_FLOOR};
-use tcsense_fits::lifetime_taps::evidence::{evidence_with_windows, feature_channels_with, Evidence};
+use tcsense_fits::lifetime_taps::evidence::{evidence_into, feature_channels_with, Evidence, EvidenceBuffers};
 use tcsense_fits::lifetime_taps::{estimate_instrument, Instrument, LifetimeCosts, LifetimeTemplates, TapFitOptions};
 
 /// Channels of the prediction: `τ_m`, `τ₁`, `τ₂` (ns), `α₁`, confidence logit.
@@ -587,8 +587,22 @@ pub fn evidence_at(
     pool: usize,
     wider: &[usize],
 ) -> (Evidence, LifetimeCosts) {
+    evidence_at_into(y, templates, pool, wider, EvidenceBuffers::default())
+}
+
+/// [`evidence_at`] written into an earlier frame's `buffers` (a stream's): the same numbers.
+///
+/// # Shapes
+/// - as [`evidence_at`]
+pub fn evidence_at_into(
+    y: &ndarray::ArrayView3<'_, f32>,
+    templates: &LifetimeTemplates,
+    pool: usize,
+    wider: &[usize],
+    buffers: EvidenceBuffers,
+) -> (Evidence, LifetimeCosts) {
     let costs = templates.costs(y);
-    (evidence_with_windows(&costs, &y.sum_axis(ndarray::Axis(0)), y.dim().0, pool, wider), costs)
+    (evidence_into(&costs, &y.sum_axis(ndarray::Axis(0)), y.dim().0, pool, wider, buffers), costs)
 }
 
 #[cfg(test)]

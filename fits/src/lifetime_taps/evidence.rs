@@ -6,7 +6,7 @@
 
 use ndarray::Array2;
 
-pub use crate::evidence::{feature_channels, feature_channels_with, Evidence};
+pub use crate::evidence::{feature_channels, feature_channels_with, Evidence, EvidenceBuffers};
 
 use super::LifetimeCosts;
 use crate::evidence::CostVolume;
@@ -28,6 +28,22 @@ pub fn evidence(costs: &LifetimeCosts, intensity: &Array2<f32>, taps: usize, poo
 /// - `costs`: of `[H·W·G]`, `intensity`: `[H, W]` → [`Evidence`] with skip
 ///   `[H, W, (1 + S)·G]`, features [`feature_channels_with`]`(G, pool, S)`
 pub fn evidence_with_windows(costs: &LifetimeCosts, intensity: &Array2<f32>, taps: usize, pool: usize, wider: &[usize]) -> Evidence {
+    evidence_into(costs, intensity, taps, pool, wider, EvidenceBuffers::default())
+}
+
+/// [`evidence_with_windows`] written into an earlier frame's `buffers`
+/// ([`crate::evidence::evidence_into`]): the same numbers.
+///
+/// # Shapes
+/// - as [`evidence_with_windows`]
+pub fn evidence_into(
+    costs: &LifetimeCosts,
+    intensity: &Array2<f32>,
+    taps: usize,
+    pool: usize,
+    wider: &[usize],
+    buffers: EvidenceBuffers,
+) -> Evidence {
     let (h, w, g) = (costs.height, costs.width, costs.points);
     let window = costs.window_sums();
     let mut rows = Vec::new();
@@ -51,5 +67,5 @@ pub fn evidence_with_windows(costs: &LifetimeCosts, intensity: &Array2<f32>, tap
         free_per_pixel: taps.saturating_sub(1),
         shared: 2,
     };
-    crate::evidence::evidence_with(&volume, intensity, pool, &sums)
+    crate::evidence::evidence_into(&volume, intensity, pool, &sums, buffers)
 }

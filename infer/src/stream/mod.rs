@@ -53,6 +53,7 @@ use crate::products::{depth_map, write_ply, PeakOptions};
 use crate::runtime::{FrameEvidence, OnnxModel};
 use crate::{InferError, Result};
 use tcsense_fits::depth::{DepthFitOptions, RangeTemplates};
+use tcsense_fits::evidence::EvidenceBuffers;
 use tcsense_fits::lifetime_taps::{estimate_instrument, LifetimeTemplates, TapFit, TapFitOptions};
 use tcsense_fits::range::{refine_ranges, RangeFitOptions};
 use tcsense_models::net::mask_depth;
@@ -237,6 +238,9 @@ fn stream_into(
         let (otx, orx) = sync_channel::<(usize, Vec<Array4<f32>>, Option<Array3<f32>>, Option<FrameEvidence>)>(2);
         // reader (into the evidence stage when there is one)
         let (rtx, rrx) = sync_channel::<Result<Frame>>(2);
+        // the graph's inputs back to the evidence stage once the graph has run: the next
+        // frames' evidence is written into them (no fresh memory a frame)
+        let (btx, brx) = sync_channel::<EvidenceBuffers>(4);
         let to_next = if stage.is_some() { rtx } else { ftx.clone() };
         let reader = scope.spawn(move || {
             if to_next.send(Ok((0, first, first_path, None))).is_err() {
@@ -266,7 +270,7 @@ fn stream_into(
                         }
                         let y4 = y.view().insert_axis(Axis(0));
                         stage.check(&y4, &path.display().to_string()).map_err(|e| in_file(&path, e))?;
-                        let ev = stage.evidence(&y.view());
+                        let ev = stage.evidence(&y.view(), brx.try_recv().unwrap_or_default());
                         Ok((i, y, path, Some(ev)))
                     });
                     let stop = r.is_err();
@@ -314,7 +318,7 @@ fn stream_into(
                 status = Err(InferError::Cancelled);
                 break;
             }
-            let (i, y, path, ev) = match msg {
+            let (i, y, path, mut ev) = match msg {
                 Ok(v) => v,
                 Err(e) => {
                     status = Err(e);
@@ -339,6 +343,9 @@ fn stream_into(
                 }
             };
             infer_seconds += ti.elapsed().as_secs_f64();
+            if let Some(ev) = ev.as_mut() {
+                let _ = btx.try_send(ev.take_buffers());
+            }
             let keep = templates.is_some() || range_fit.is_some() || depth_fit || ev.is_some();
             if otx.send((i, outs, keep.then_some(y), ev)).is_err() {
                 break;
