@@ -472,7 +472,7 @@ fn pixel_rows(g: &mut Graph, x: &str, c: usize) -> (String, String) {
     let (s0, s1, s3) = (g.ints("s0", &[0]), g.ints("s1", &[1]), g.ints("s3", &[3]));
     let b = g.node("Slice", &[&shape, &s0, &s1], &[]);
     let hw = g.node("Slice", &[&shape, &s1, &s3], &[]);
-    let frame = g.node("Concat", &[&b, &s1, &hw], &[Attr::Int("axis", 0)]);
+    let frame = g.node("Concat", &[&b, &s1, &hw], &[Attr::Int("axis", 0)]); // [B, 1, H, W]
     (r, frame)
 }
 
@@ -483,29 +483,27 @@ fn pixel_rows(g: &mut Graph, x: &str, c: usize) -> (String, String) {
 /// U-Net's trunk has a few channels, the evidence tens to hundreds), and each part of the head
 /// comes out on its own (no split of a wide tensor).
 fn head_rows(g: &mut Graph, layer: &Conv2d, x_rows: &str, start: usize, len: usize) -> Result<String> {
-    let [co, ci, kh, kw] = layer.weight.dims();
-    if (kh, kw) != (1, 1) || start + len > co {
-        return Err(InferError::InvalidParam {
-            field: "head",
-            got: format!("a {kh}×{kw} convolution to {co} channels"),
-            expected: format!("a 1×1 convolution to at least {} channels", start + len),
-        });
-    }
-    let w = values(layer.weight.val().into_data())?; // [C_out, C_in]
-    let wt: Vec<f32> = (0..ci * len).map(|q| w[(start + q % len) * ci + q / len]).collect(); // [C_in, len]
-    let wt = g.weight("head_w_rows", &[ci, len], &wt);
-    let bias = match &layer.bias {
-        Some(b) => values(b.val().into_data())?[start..start + len].to_vec(),
-        None => vec![0.0; len],
-    };
+    let (ci, w, bias) = head_part(layer, start, len)?;
+    let w = g.weight("head_w_rows", &[ci, len], &w);
     let bias = g.weight("head_b_rows", &[len], &bias);
-    Ok(g.op("Gemm", &[x_rows, &wt, &bias]))
+    Ok(g.op("Gemm", &[x_rows, &w, &bias]))
 }
 
 /// [`head_rows`] added onto `base` `[N, len]` in the same `Gemm`: the trunk's rows with a
 /// column of ones times the weight's rows with the bias under them, plus `base` — the
 /// log-prior onto the log-likelihood without a pass of its own over the widest tensor.
 fn head_rows_onto(g: &mut Graph, layer: &Conv2d, x_rows: &str, start: usize, len: usize, base: &str) -> Result<String> {
+    let (ci, mut wb, bias) = head_part(layer, start, len)?;
+    wb.extend(bias); // [C_in + 1, len]: the weight's rows, then the bias
+    let wb = g.weight("head_wb_rows", &[ci + 1, len], &wb);
+    let ones = ones_column(g, x_rows);
+    let x1 = g.node("Concat", &[x_rows, &ones], &[Attr::Int("axis", 1)]); // [N, C_in + 1]
+    Ok(g.op("Gemm", &[&x1, &wb, base]))
+}
+
+/// Output channels `start..start + len` of a 1×1 convolution as `(C_in, weight [C_in, len],
+/// bias [len])` (zeros without a bias).
+fn head_part(layer: &Conv2d, start: usize, len: usize) -> Result<(usize, Vec<f32>, Vec<f32>)> {
     let [co, ci, kh, kw] = layer.weight.dims();
     if (kh, kw) != (1, 1) || start + len > co {
         return Err(InferError::InvalidParam {
@@ -515,17 +513,12 @@ fn head_rows_onto(g: &mut Graph, layer: &Conv2d, x_rows: &str, start: usize, len
         });
     }
     let w = values(layer.weight.val().into_data())?; // [C_out, C_in]
+    let rows: Vec<f32> = (0..ci * len).map(|q| w[(start + q % len) * ci + q / len]).collect();
     let bias = match &layer.bias {
         Some(b) => values(b.val().into_data())?[start..start + len].to_vec(),
         None => vec![0.0; len],
     };
-    // [C_in + 1, len]: the weight's rows, then the bias
-    let wb: Vec<f32> =
-        (0..(ci + 1) * len).map(|q| if q / len < ci { w[(start + q % len) * ci + q / len] } else { bias[q % len] }).collect();
-    let wb = g.weight("head_wb_rows", &[ci + 1, len], &wb);
-    let ones = ones_column(g, x_rows);
-    let x1 = g.node("Concat", &[x_rows, &ones], &[Attr::Int("axis", 1)]); // [N, C_in + 1]
-    Ok(g.op("Gemm", &[&x1, &wb, base]))
+    Ok((ci, rows, bias))
 }
 
 /// A column of ones `[N, 1]` beside the rows `[N, C]`.
