@@ -193,7 +193,11 @@ impl OnnxModel {
     /// posterior's mode), the mode refined in the tap domain where it is the fit's own argmin
     /// ([`LifetimeTemplates::refine_modes`], as burn's decoder does), and the intensity.
     fn run_on_evidence(&mut self, y: &ArrayView4<'_, f32>, e: &EvidenceNote) -> Result<Vec<Array4<f32>>> {
-        let evidence = lifetime_evidence(y, e, &self.sensor, self.templates.as_ref(), EvidenceBuffers::default());
+        let of = match &self.templates {
+            Some(t) => TemplatesOf::Fixed(t),
+            None => TemplatesOf::Frame(&self.sensor),
+        };
+        let evidence = lifetime_evidence(y, e, of, EvidenceBuffers::default());
         let mut out = self.run_graph_on_evidence(&evidence)?;
         if let FitCosts::Lifetime(frames) = &evidence.costs {
             refine_lifetimes(y, frames, self.templates.as_ref(), &mut out);
@@ -209,7 +213,7 @@ impl OnnxModel {
         let (work, refine) = match (self.meta.evidence.clone(), self.meta.range_evidence) {
             (Some(note), _) => {
                 let templates = self.templates.clone()?;
-                (StageWork::Lifetime { templates: templates.clone(), note, sensor: self.sensor.clone() }, RefineWork::Lifetime(templates))
+                (StageWork::Lifetime { templates: templates.clone(), note }, RefineWork::Lifetime(templates))
             }
             (None, Some(e)) => {
                 let opts = e.fit_options(self.meta.returns);
@@ -340,15 +344,17 @@ enum FitCosts {
     Range(Option<RangeCosts>),
 }
 
-/// [`FrameEvidence`] of every frame of `y` `[B, M, H, W]` for a lifetime decoder: through
-/// `fixed` templates (a stream's instrument), else through each frame's own instrument.
-fn lifetime_evidence(
-    y: &ArrayView4<'_, f32>,
-    e: &EvidenceNote,
-    sensor: &MeasurementMatrix,
-    fixed: Option<&LifetimeTemplates>,
-    buffers: EvidenceBuffers,
-) -> FrameEvidence {
+/// Where a lifetime decoder's frames get their templates.
+#[derive(Clone, Copy)]
+enum TemplatesOf<'a> {
+    /// Fixed ones (a stream's instrument, or one set with [`OnnxModel::set_instrument`]).
+    Fixed(&'a LifetimeTemplates),
+    /// Each frame's own, its instrument estimated through this sensor.
+    Frame(&'a MeasurementMatrix),
+}
+
+/// [`FrameEvidence`] of every frame of `y` `[B, M, H, W]` for a lifetime decoder.
+fn lifetime_evidence(y: &ArrayView4<'_, f32>, e: &EvidenceNote, of: TemplatesOf<'_>, buffers: EvidenceBuffers) -> FrameEvidence {
     let (b, _, h, w) = y.dim();
     let (f, l) = e.channels();
     let mut features = Vec::with_capacity(b * h * w * f);
@@ -359,7 +365,10 @@ fn lifetime_evidence(
     let mut buffers = (b == 1).then_some(buffers);
     for i in 0..b {
         let yi = y.index_axis(ndarray::Axis(0), i);
-        let own = fixed.is_none().then(|| frame_templates(&yi, sensor, &opts));
+        let (own, fixed) = match of {
+            TemplatesOf::Fixed(t) => (None, Some(t)),
+            TemplatesOf::Frame(sensor) => (Some(frame_templates(&yi, sensor, &opts)), None),
+        };
         let Some(templates) = own.as_ref().or(fixed) else { unreachable!("templates fixed or fitted") };
         let (ev, costs) = evidence_at_into(&yi, templates, e.pool, &e.windows, buffers.take().unwrap_or_default());
         // a stream's single frame is moved, not copied (tens of MB a frame)
@@ -457,7 +466,7 @@ pub struct EvidenceStage {
 // (one of each per stream: the variants' sizes do not matter)
 #[allow(clippy::large_enum_variant)]
 enum StageWork {
-    Lifetime { templates: LifetimeTemplates, note: EvidenceNote, sensor: MeasurementMatrix },
+    Lifetime { templates: LifetimeTemplates, note: EvidenceNote },
     Range { templates: RangeTemplates, pool: usize },
 }
 
@@ -471,8 +480,8 @@ impl EvidenceStage {
     /// frame's `buffers` ([`FrameEvidence::take_buffers`]; empty: allocated).
     pub fn evidence(&self, y: &ArrayView3<'_, f32>, buffers: EvidenceBuffers) -> FrameEvidence {
         match &self.work {
-            StageWork::Lifetime { templates, note, sensor } => {
-                lifetime_evidence(&y.view().insert_axis(ndarray::Axis(0)), note, sensor, Some(templates), buffers)
+            StageWork::Lifetime { templates, note } => {
+                lifetime_evidence(&y.view().insert_axis(ndarray::Axis(0)), note, TemplatesOf::Fixed(templates), buffers)
             }
             StageWork::Range { templates, pool } => range_evidence(templates, y, *pool, buffers),
         }
