@@ -38,13 +38,6 @@ pub struct Evidence {
     pub noise: f32,
 }
 
-impl Evidence {
-    /// Its storage, for the next frame's evidence ([`evidence_into`]).
-    pub fn into_buffers(self) -> EvidenceBuffers {
-        EvidenceBuffers { skip: self.skip.into_raw_vec_and_offset().0, features: self.features.into_raw_vec_and_offset().0 }
-    }
-}
-
 /// The storage of an earlier frame's [`Evidence`], written over by the next
 /// ([`evidence_into`]): a stream's frames of one size need no fresh memory (a range fit's
 /// log-likelihoods of four windows are 80 MB at 188×212, fresh pages and zeroing for every
