@@ -6,6 +6,7 @@ mod common;
 
 use common::*;
 use std::path::Path;
+use tcsense_sensor::npy::{read_npy, write_npy};
 
 fn bench(dir: &Path) {
     let zoo_codes = Path::new(env!("CARGO_MANIFEST_DIR")).join("zoo/admm-lidar-designed/codes.json");
@@ -164,6 +165,102 @@ fn bad_bringups_exit_2_and_write_nothing() {
     fails(dir, &with(&[("--decoder", "no-such-entry")]), &["no-such-entry"]);
     fails(dir, &with(&[("--heterodyne", "8")]), &["zoo:admm-lidar-designed", "T = 256"]);
     fails(dir, &with(&[("--size", "15x16")]), &["--size 15x16"]);
-    fails(dir, &with(&[("--decoder", "unet-lidar-evidence")]), &["zoo:unet-lidar-evidence", "fit's evidence", "calibration"]);
     assert!(!dir.join("out").exists(), "a refused bring-up writes nothing");
+}
+
+/// A decoder on a fit's evidence brought up: its graph reads the evidence, so the calibration's
+/// dark and gain maps travel in the model's metadata and its runtime corrects the raw frames
+/// before the evidence; deployed as the better of the calibration alone and fine-tuned.
+#[test]
+fn a_decoder_on_the_fits_evidence_is_brought_up_and_corrects_raw_frames() {
+    let d = tempdir();
+    let dir = d.path();
+    bench(dir);
+    let mut args = BRINGUP.to_vec();
+    let i = args.iter().position(|a| *a == "admm-lidar-designed").unwrap();
+    args[i] = "unet-lidar-evidence";
+    let out = ok(dir, &args);
+    assert!(out.contains("wrote out/report.html"), "{out}");
+    let check: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("out/results/check.json")).unwrap()).unwrap();
+    let error = |condition: &str| {
+        check["rows"].as_array().unwrap().iter().find(|r| r["decoder"] == "unet-lidar-evidence" && r["condition"] == condition).unwrap()
+            ["first_return_median_m"]
+            .as_f64()
+            .unwrap()
+    };
+    let (alone, tuned) = (error("calibration"), error("calibration + fine-tuning"));
+    assert!(alone.is_finite() && tuned.is_finite() && alone < 3.0, "{check}");
+    // deployed as the better of the two
+    let deployed: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("out/results/deployed.json")).unwrap()).unwrap();
+    let want = if alone < tuned { "calibration" } else { "calibration + fine-tuning" };
+    assert_eq!(deployed["deployed"][0]["condition"], want, "{deployed} against {alone} / {tuned}");
+    let html = std::fs::read_to_string(dir.join("out/report.html")).unwrap();
+    assert!(html.contains("deployed as") && html.contains(want));
+    // raw frames of a held-back scene through the bench sensor, in the sweep's units
+    ok(
+        dir,
+        &[
+            "simulate",
+            "--codes",
+            "codes.json",
+            "--irf",
+            "physical",
+            "--cube",
+            "out/check-scenes/test/x_000.npy",
+            "--units",
+            "electrons",
+            "--noise",
+            "--tap-gain",
+            "0.05",
+            "--prnu",
+            "0.02",
+            "--dark",
+            "0.01",
+            "--gate-skew-ns",
+            "0.1",
+            "--modulation-contrast",
+            "0.925",
+            "--sensor-seed",
+            "7",
+            "-o",
+            "raw.npy",
+        ],
+    );
+    ok(dir, &["infer", "--model", "out/onnx/unet-lidar-evidence.onnx", "--measurements", "raw.npy", "-o", "inf"]);
+    // the same network without the calibration built in, on frames corrected by hand with the
+    // calibration's maps, gives the same depth: the model corrects the raw frames itself
+    let from = if want == "calibration" { "zoo:unet-lidar-evidence" } else { "out/runs/unet-lidar-evidence" };
+    ok(dir, &["export", "onnx", "--run", from, "--calibration", "out/cal", "-o", "again.onnx"]);
+    ok(dir, &["infer", "--model", "again.onnx", "--measurements", "raw.npy", "-o", "inf-again"]);
+    assert_eq!(std::fs::read(dir.join("inf/depth.npy")).unwrap(), std::fs::read(dir.join("inf-again/depth.npy")).unwrap());
+    let cal = dir.join("out/cal");
+    let (dark, gain) = (read_npy(&cal.join("dark.npy")).unwrap(), read_npy(&cal.join("gain.npy")).unwrap());
+    let raw = read_npy(&dir.join("raw.npy")).unwrap();
+    assert_eq!(raw.shape()[raw.ndim() - 3..], *dark.shape(), "raw frames [.., M, H, W]");
+    let corrected = (&raw - &dark) / &gain;
+    write_npy(&dir.join("corrected.npy"), &corrected.view()).unwrap();
+    // (the raw frames again without their sidecar, which names the nominal sensor)
+    write_npy(&dir.join("bare.npy"), &raw.view()).unwrap();
+    // the raw model refuses frames of another size than the calibration's; a model without the
+    // calibration on the corrected frames, through the calibrated matrix (the fine-tuned run's)
+    ok(dir, &["export", "onnx", "--run", "out/runs/unet-lidar-evidence", "-o", "plain.onnx"]);
+    ok(dir, &["export", "onnx", "--run", "out/runs/unet-lidar-evidence", "--calibration", "out/cal", "-o", "tuned.onnx"]);
+    ok(dir, &["infer", "--model", "tuned.onnx", "--measurements", "raw.npy", "-o", "inf-tuned"]);
+    ok(dir, &["infer", "--model", "plain.onnx", "--measurements", "corrected.npy", "-o", "inf-plain"]);
+    let a = read_npy(&dir.join("inf-tuned/depth.npy")).unwrap();
+    let b = read_npy(&dir.join("inf-plain/depth.npy")).unwrap();
+    assert_eq!(a.shape(), b.shape());
+    let mut compared = 0;
+    for (x, y) in a.iter().zip(b.iter()) {
+        assert_eq!(x.is_nan(), y.is_nan(), "{a:?} against {b:?}");
+        if x.is_finite() {
+            assert!((x - y).abs() < 1e-4, "{x} against {y}");
+            compared += 1;
+        }
+    }
+    assert!(compared > 0, "no depth to compare: {a:?}");
+    // and differ from the same model on the uncorrected frames
+    ok(dir, &["infer", "--model", "plain.onnx", "--measurements", "bare.npy", "-o", "inf-raw"]);
+    assert_ne!(std::fs::read(dir.join("inf-raw/depth.npy")).unwrap(), std::fs::read(dir.join("inf-plain/depth.npy")).unwrap());
 }

@@ -93,6 +93,40 @@ pub struct OnnxModel {
     templates: Option<LifetimeTemplates>,
     /// A U-Net on the range fit's evidence: the fit's templates of the model's sensor.
     ranges: Option<RangeTemplates>,
+    /// A decoder on a fit's evidence exported with a calibration: the correction of its raw
+    /// tap images, applied before the evidence.
+    correction: Option<FrameCorrection>,
+}
+
+/// A calibration's correction of raw tap images, `(y − d) / G`, for a decoder on a fit's
+/// evidence (whose graph reads the evidence, not the taps).
+#[derive(Debug, Clone)]
+pub struct FrameCorrection {
+    /// `d`, `[M, H, W]`.
+    dark: ndarray::Array3<f32>,
+    /// `G`, `[M, H, W]`.
+    gain: ndarray::Array3<f32>,
+}
+
+impl FrameCorrection {
+    /// The maps of `meta` (`None`: no correction), shaped `[M, H, W]` by its calibration's size.
+    fn of(meta: &OnnxMeta, path: &Path) -> Result<Option<Self>> {
+        let (Some(maps), Some(cal)) = (&meta.correction, &meta.calibration) else { return Ok(None) };
+        let shape = (meta.taps, cal.size[0], cal.size[1]);
+        let array = |v: &[f32]| {
+            ndarray::Array3::from_shape_vec(shape, v.to_vec()).map_err(|e| InferError::File {
+                path: path.to_path_buf(),
+                msg: format!("metadata_props[\"calibration_maps\"]: {e}; expected M·H·W values of {shape:?}"),
+            })
+        };
+        Ok(Some(FrameCorrection { dark: array(&maps.dark)?, gain: array(&maps.gain)? }))
+    }
+
+    /// Correct one frame `y` `[M, H, W]` (checked against the calibration's frame size) in place.
+    pub fn apply(&self, mut y: ndarray::ArrayViewMut3<'_, f32>) {
+        y -= &self.dark;
+        y /= &self.gain;
+    }
 }
 
 impl std::fmt::Debug for OnnxModel {
@@ -145,7 +179,8 @@ impl OnnxModel {
         }
         let matrix = meta.matrix_input.then(|| sensor.a().to_owned());
         let ranges = meta.range_evidence.map(|e| RangeTemplates::new(&sensor, &e.fit_options(meta.returns)));
-        Ok(OnnxModel { path: path.to_path_buf(), session, meta, sensor, matrix, templates: None, ranges })
+        let correction = FrameCorrection::of(&meta, path)?;
+        Ok(OnnxModel { path: path.to_path_buf(), session, meta, sensor, matrix, templates: None, ranges, correction })
     }
 
     /// A lifetime decoder on the fit's evidence: fix the instrument (a recording's onset and
@@ -153,6 +188,19 @@ impl OnnxModel {
     pub fn set_instrument(&mut self, instrument: Instrument) {
         if let Some(e) = &self.meta.evidence {
             self.templates = Some(LifetimeTemplates::new(&self.sensor, instrument, &e.fit_options()));
+        }
+    }
+
+    /// Frames `y` `[M, H, W]` as the model's evidence reads them: corrected for the calibration
+    /// of a decoder on a fit's evidence exported with one, else as they are.
+    pub fn corrected<'a>(&self, y: ndarray::ArrayView3<'a, f32>) -> ndarray::CowArray<'a, f32, ndarray::Ix3> {
+        match &self.correction {
+            Some(c) => {
+                let mut o = y.to_owned();
+                c.apply(o.view_mut());
+                o.into()
+            }
+            None => y.into(),
         }
     }
 
@@ -226,7 +274,8 @@ impl OnnxModel {
             }
             (None, None) => return None,
         };
-        Some((EvidenceStage { work, meta: self.meta.clone(), path: self.path.clone() }, RefineStage { work: refine }))
+        let stage = EvidenceStage { work, meta: self.meta.clone(), path: self.path.clone(), correction: self.correction.clone() };
+        Some((stage, RefineStage { work: refine }))
     }
 
     /// The graph of a decoder on a fit's evidence alone: its outputs for
@@ -277,7 +326,12 @@ impl OnnxModel {
     pub fn run(&mut self, y: ArrayView4<'_, f32>) -> Result<Vec<Array4<f32>>> {
         self.check(&y, "input")?;
         let fail = |e: ort::Error| InferError::File { path: self.path.clone(), msg: format!("ONNX Runtime: {e}") };
-        let y = y.as_standard_layout();
+        let mut y = y.as_standard_layout();
+        if let Some(c) = &self.correction {
+            let mut o = y.into_owned();
+            o.outer_iter_mut().for_each(|f| c.apply(f));
+            y = o.into();
+        }
         if let Some(e) = self.meta.evidence.clone() {
             return self.run_on_evidence(&y.view(), &e);
         }
@@ -461,6 +515,7 @@ pub struct EvidenceStage {
     work: StageWork,
     meta: OnnxMeta,
     path: PathBuf,
+    correction: Option<FrameCorrection>,
 }
 
 // (one of each per stream: the variants' sizes do not matter)
@@ -476,7 +531,15 @@ impl EvidenceStage {
         check_frames(&self.meta, &self.path, y, what)
     }
 
-    /// The evidence of one frame `y` `[M, H, W]` (checked first), written into an earlier
+    /// Correct a raw frame `y` `[M, H, W]` (checked first) for the model's calibration, in
+    /// place; nothing without one. The evidence and the refinement read the corrected frame.
+    pub fn correct(&self, y: &mut ndarray::Array3<f32>) {
+        if let Some(c) = &self.correction {
+            c.apply(y.view_mut());
+        }
+    }
+
+    /// The evidence of one frame `y` `[M, H, W]` (checked, corrected first), written into an earlier
     /// frame's `buffers` ([`FrameEvidence::take_buffers`]; empty: allocated).
     pub fn evidence(&self, y: &ArrayView3<'_, f32>, buffers: EvidenceBuffers) -> FrameEvidence {
         match &self.work {

@@ -117,6 +117,12 @@ impl ModelConfig {
         }
     }
 
+    /// Whether the network reads a fit's evidence (its runtime computes the evidence from the
+    /// taps) rather than the taps themselves.
+    pub fn reads_evidence(&self) -> bool {
+        self.lifetime_grid().is_some() || self.range_grid().is_some()
+    }
+
     /// Returns `K` per pixel a depth network estimates (1 for networks of cubes).
     pub fn returns(&self) -> usize {
         match self {

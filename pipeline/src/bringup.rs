@@ -7,11 +7,12 @@
 //! 3. **fine-tune** each chosen zoo decoder to the calibrated sensor within the time budget
 //!    (`DIR/runs/NAME`: its architecture from the zoo, epochs sized from a measured step time,
 //!    residual gains and offsets drawn per item), resumable from its checkpoints;
-//! 4. **export** each to ONNX with the correction built in (`DIR/onnx/NAME.onnx`: it takes the
-//!    sensor's raw tap images);
-//! 5. **check** every decoder on held-back scenes through the sensor the sweep recorded (a
+//! 4. **check** every decoder on held-back scenes through the sensor the sweep recorded (a
 //!    simulated bench records its non-idealities): on the ideal sensor, through the nominal model,
 //!    with the calibration alone and calibrated + fine-tuned, beside TVAL3;
+//! 5. **export** each to ONNX with the correction built in (`DIR/onnx/NAME.onnx`: it takes the
+//!    sensor's raw tap images), as the better of the check's calibration alone and fine-tuned
+//!    (`DIR/results/deployed.json`);
 //! 6. **report** it all in `DIR/report.html`, with the time of every step.
 //!
 //! A step whose outputs exist is skipped, so rerunning into `DIR` resumes; `cancel` stops it
@@ -53,6 +54,12 @@ const CHECK_SEED: u64 = 0xc4ec;
 /// Time per step beyond the timed forward/backward/Adam step (ms): measurements, augmentation,
 /// validation, checkpoints.
 const STEP_OVERHEAD_MS: f64 = 2.0;
+
+/// The check's condition of a decoder as given, its frames corrected and decoded with the
+/// measured matrix.
+const CALIBRATION_ALONE: &str = "calibration";
+/// The check's condition of a decoder fine-tuned to the calibrated sensor.
+const FINE_TUNED: &str = "calibration + fine-tuning";
 
 /// Limits of a bring-up's settings.
 const MAX_SIDE: usize = 4096;
@@ -285,32 +292,7 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
         step(&format!("fine-tuning {} to the calibrated sensor", e.name), &mut || tuning.fine_tune(e, &out))?;
     }
 
-    // 4. export with the correction in the graph
-    let onnx_dir = dir.join("onnx");
-    let mut models = Vec::new();
-    step("ONNX export with the calibration built in", &mut || {
-        let mut worked = false;
-        for e in &entries {
-            let out = onnx_dir.join(format!("{}.onnx", e.name));
-            if !out.exists() {
-                let run = runs::load(&runs_dir.join(&e.name), &Device::flex())?;
-                let bytes = export_to(&run, ExportOptions { matrix_input: false, calibration: Some(&cal) }, &out)?;
-                obs.line(&format!(
-                    "  wrote {} ({:.1} kB), raw {} tap images of {}x{}",
-                    out.display(),
-                    bytes as f64 / 1e3,
-                    cal.meta.units,
-                    cal.meta.size[0],
-                    cal.meta.size[1]
-                ));
-                worked = true;
-            }
-            models.push(out);
-        }
-        Ok(worked)
-    })?;
-
-    // 5. the check on held-back scenes through the sensor the sweep recorded
+    // 4. the check on held-back scenes through the sensor the sweep recorded
     let check_path = dir.join("results/check.json");
     let truth = sweep.manifest.sensor;
     step("check on held-back scenes", &mut || {
@@ -353,24 +335,69 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
         let tval3 = "tval3";
         eval(tval3, "tval3".into(), "ideal sensor", &nominal, false)?;
         eval(tval3, "tval3".into(), "nominal model", &nominal, true)?;
-        eval(tval3, "tval3".into(), "calibration", &calibrated, true)?;
+        eval(tval3, "tval3".into(), CALIBRATION_ALONE, &calibrated, true)?;
         for e in &entries {
             let own = Codes::load(&e.dir.join(runs::CODES_FILE))?.digest() == codes.digest();
             if own {
                 let original = format!("{}:{}", e.model.name(), e.dir.display());
                 eval(&e.name, original.clone(), "ideal sensor", &nominal, false)?;
                 eval(&e.name, original.clone(), "nominal model", &nominal, true)?;
-                eval(&e.name, original, "calibration", &calibrated, true)?;
+                eval(&e.name, original, CALIBRATION_ALONE, &calibrated, true)?;
             }
             // the same frames as the rows above (the truth realised on the nominal sensor, corrected
             // by the calibration); the fine-tuned run's own matrix is the calibration's
             let tuned = format!("{}:{}", e.model.name(), runs_dir.join(&e.name).display());
-            eval(&e.name, tuned, "calibration + fine-tuning", &calibrated, true)?;
+            eval(&e.name, tuned, FINE_TUNED, &calibrated, true)?;
         }
         let items = ds.manifest.splits.iter().find(|s| s.name == split).map_or(0, |s| s.count).min(options.check_items);
         write_json(&check_path, &json!({ "truth": truth, "split": split, "items": items, "rows": rows }))?;
         Ok(true)
     })?;
+
+    // 5. export, each decoder as the better of the check's "calibration alone" and
+    // "calibration + fine-tuning" (fine-tuned where the check cannot tell), the correction built in
+    let onnx_dir = dir.join("onnx");
+    let deployed_path = dir.join("results/deployed.json");
+    let mut models = Vec::new();
+    let mut deployed = Vec::new();
+    let check_rows: Value = std::fs::read_to_string(&check_path).ok().and_then(|t| serde_json::from_str(&t).ok()).unwrap_or(Value::Null);
+    for e in &entries {
+        let alone = better_alone(&check_rows, &e.name, flim);
+        deployed.push(json!({
+            "decoder": e.name,
+            "condition": if alone { CALIBRATION_ALONE } else { FINE_TUNED },
+            "model": format!("onnx/{}.onnx", e.name),
+        }));
+    }
+    step("ONNX export with the calibration built in", &mut || {
+        let mut worked = false;
+        for (e, d) in entries.iter().zip(&deployed) {
+            let out = onnx_dir.join(format!("{}.onnx", e.name));
+            if !out.exists() {
+                let from = if d["condition"] == CALIBRATION_ALONE { e.dir.clone() } else { runs_dir.join(&e.name) };
+                let run = runs::load(&from, &Device::flex())?;
+                let bytes = export_to(&run, ExportOptions { matrix_input: false, calibration: Some(&cal) }, &out)?;
+                obs.line(&format!(
+                    "  wrote {} ({:.1} kB, {}), raw {} tap images of {}x{}",
+                    out.display(),
+                    bytes as f64 / 1e3,
+                    d["condition"].as_str().unwrap_or_default(),
+                    cal.meta.units,
+                    cal.meta.size[0],
+                    cal.meta.size[1]
+                ));
+                worked = true;
+            }
+            models.push(out);
+        }
+        if worked || !deployed_path.exists() {
+            write_json(&deployed_path, &json!({ "deployed": deployed }))?;
+        }
+        Ok(worked)
+    })?;
+    let deployed: Value = serde_json::from_str(
+        &std::fs::read_to_string(&deployed_path).map_err(|e| crate::PipelineError::Io { path: deployed_path.clone(), cause: e })?,
+    )?;
 
     // 6. the report
     let total: f64 = steps.iter().map(|(_, s)| s).sum();
@@ -382,7 +409,7 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
         &dir.join("results/steps.json"),
         &json!({ "steps": steps.iter().map(|(n, s)| json!({ "step": n, "seconds": s })).collect::<Vec<_>>(), "total_s": total }),
     )?;
-    build_report(options, &names, &cal, &check, &steps, total, flim).write(&report)?;
+    build_report(options, &names, &cal, &check, &deployed, &steps, total, flim).write(&report)?;
     obs.line(&format!("wrote {} ({total:.0} s in all)", report.display()));
     Ok(BringupSummary { report, models, steps })
 }
@@ -414,14 +441,6 @@ fn checked_inputs(options: &BringupOptions) -> Result<Checked> {
                 e.model.bins(),
                 nominal.taps(),
                 nominal.bins()
-            );
-        }
-        if e.model.lifetime_grid().is_some() || e.model.range_grid().is_some() {
-            // checked here, not after the calibration and the fine-tunings: its export is refused
-            bail!(
-                "{}: a decoder on the fit's evidence (`--input costs`) cannot be brought up yet: its runtime computes the evidence from the taps through the nominal sensor, and its export takes no calibration; bring up a decoder that reads the taps (e.g. {})",
-                e.label,
-                default_decoders(options.sampling).join(", ")
             );
         }
         if entries.iter().any(|o: &Source| o.name == e.name) {
@@ -568,6 +587,16 @@ impl Tuning<'_> {
     }
 }
 
+/// Whether the check found decoder `name` as given (the calibration alone) more accurate than
+/// fine-tuned: a lower lifetime MAE (`flim`) or first-return median error. False where the check
+/// has no row of either (a real bench, a decoder on other codes than the sensor's): fine-tuned.
+fn better_alone(check: &Value, name: &str, flim: bool) -> bool {
+    let key = if flim { "lifetime_mae_ns" } else { "first_return_median_m" };
+    let error =
+        |condition: &str| check["rows"].as_array()?.iter().find(|r| r["decoder"] == name && r["condition"] == condition)?[key].as_f64();
+    matches!((error(CALIBRATION_ALONE), error(FINE_TUNED)), (Some(a), Some(t)) if a < t)
+}
+
 /// Epochs a run has logged.
 fn done_epochs(run: &Path) -> usize {
     std::fs::read_to_string(run.join("metrics.csv")).map_or(0, |t| t.lines().count().saturating_sub(1))
@@ -592,6 +621,7 @@ fn build_report(
     names: &[String],
     cal: &Calibration,
     check: &Value,
+    deployed: &Value,
     steps: &[(String, f64)],
     total: f64,
     flim: bool,
@@ -677,11 +707,32 @@ fn build_report(
     });
     let models: Vec<String> =
         names.iter().map(|n| format!("tcsense infer --model onnx/{n}.onnx --measurements RAW.npy -o out/{n}")).collect();
+    let chosen: Vec<Vec<Cell>> = deployed["deployed"]
+        .as_array()
+        .map(|ds| {
+            ds.iter()
+                .map(|d| {
+                    vec![
+                        Cell::text(d["decoder"].as_str().unwrap_or_default()),
+                        Cell::text(d["condition"].as_str().unwrap_or_default()),
+                        Cell::text(d["model"].as_str().unwrap_or_default()),
+                    ]
+                })
+                .collect()
+        })
+        .unwrap_or_default();
     sections.push(Section {
         id: "deploy".into(),
         title: "Deployed models".into(),
         blocks: vec![
-            Block::Text("Each takes the sensor's raw tap images (the calibration's dark and gain correction is in the graph):".into()),
+            Block::Text(format!(
+                "Each decoder is deployed as the better of its check's rows \"{CALIBRATION_ALONE}\" (the decoder as given) and \"{FINE_TUNED}\" (fine-tuned where the check has no row of either). Each takes the sensor's raw tap images: the calibration's dark and gain correction is in the graph, or, for a decoder on a fit's evidence, in the model's metadata, applied by its runtime before the evidence."
+            )),
+            Block::Table(Table {
+                caption: "The deployed models (results/deployed.json)".into(),
+                headers: vec!["decoder".into(), "deployed as".into(), "model".into()],
+                rows: chosen,
+            }),
             Block::Code(models.join("\n")),
         ],
     });

@@ -48,6 +48,10 @@ pub struct OnnxMeta {
     pub matrix_values: Option<Vec<f32>>,
     /// The calibration built into the graph; key `calibration`.
     pub calibration: Option<CalibrationNote>,
+    /// A decoder on a fit's evidence with a calibration: its dark and gain maps, which the
+    /// runtime applies to the raw tap images before the evidence (the graph reads the evidence,
+    /// not the taps); key `calibration_maps`.
+    pub correction: Option<CorrectionMaps>,
     /// A lifetime decoder on the fit's evidence: the lifetime grid the runtime computes the
     /// evidence on; key `evidence`.
     pub evidence: Option<EvidenceNote>,
@@ -125,6 +129,15 @@ pub struct CalibrationNote {
     pub sweep: String,
 }
 
+/// The dark and gain maps of a calibration, `d` and `G` `[M, H, W]` in C order, for a runtime
+/// that corrects raw tap images itself, `(y − d) / G`.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CorrectionMaps {
+    pub dark: Vec<f32>,
+    pub gain: Vec<f32>,
+}
+
 impl OnnxMeta {
     /// The metadata of `run` exported with `opts`.
     pub fn of_run(run: &LoadedRun, opts: ExportOptions<'_>) -> Self {
@@ -164,6 +177,10 @@ impl OnnxMeta {
                 matrix_digest: c.meta.matrix_digest.clone(),
                 sweep: c.meta.sweep.clone(),
             }),
+            correction: opts
+                .calibration
+                .filter(|_| run.spec.model.reads_evidence())
+                .map(|c| CorrectionMaps { dark: c.dark.iter().copied().collect(), gain: c.gain.iter().copied().collect() }),
             evidence: match &run.spec.model {
                 ModelConfig::Lifetime(c) if c.input == tcsense_models::LifetimeInput::Costs => {
                     Some(EvidenceNote { points: c.points, pool: c.pool, tau_range_ns: c.tau_range_ns, windows: c.windows.clone() })
@@ -235,6 +252,9 @@ impl OnnxMeta {
         if let Some(c) = &self.calibration {
             p.push(("calibration", json(serde_json::to_string(c))));
         }
+        if let Some(c) = &self.correction {
+            p.push(("calibration_maps", json(serde_json::to_string(c))));
+        }
         if let Some(e) = &self.evidence {
             p.push(("evidence", json(serde_json::to_string(e))));
         }
@@ -301,6 +321,11 @@ impl OnnxMeta {
             .transpose()?;
         let calibration: Option<CalibrationNote> =
             get("calibration").map(|v| serde_json::from_str(&v).map_err(|e| err("calibration", e.to_string()))).transpose()?;
+        let correction: Option<CorrectionMaps> = get("calibration_maps")
+            .map(|v| {
+                serde_json::from_str(&v).map_err(|e| err("calibration_maps", format!("{e}; expected {{\"dark\": [...], \"gain\": [...]}}")))
+            })
+            .transpose()?;
         let evidence: Option<EvidenceNote> =
             get("evidence").map(|v| serde_json::from_str(&v).map_err(|e| err("evidence", e.to_string()))).transpose()?;
         if let Some(e) = &evidence {
@@ -330,7 +355,28 @@ impl OnnxMeta {
                 ));
             }
         }
+        if let Some(c) = &correction {
+            let Some(cal) = &calibration else {
+                return Err(err("calibration_maps", "without a calibration note (key \"calibration\")".into()));
+            };
+            let n = num("taps")? * cal.size[0] * cal.size[1];
+            let dark_fine = c.dark.len() == n && c.dark.iter().all(|v| v.is_finite());
+            let gain_fine = c.gain.len() == n && c.gain.iter().all(|v| v.is_finite() && *v > 0.0);
+            if !(dark_fine && gain_fine) || (evidence.is_none() && range_evidence.is_none()) {
+                return Err(err(
+                    "calibration_maps",
+                    format!(
+                        "{} dark and {} gain values: expected M·H·W = {n} of each for the calibrated frame size {}x{}, finite, gains above 0, for a decoder on a fit's evidence",
+                        c.dark.len(),
+                        c.gain.len(),
+                        cal.size[0],
+                        cal.size[1]
+                    ),
+                ));
+            }
+        }
         let meta = OnnxMeta {
+            correction,
             evidence,
             range_evidence,
             decoder,

@@ -538,6 +538,33 @@ fn trunk_rows(g: &mut Graph, trunk: &str, c: usize) -> String {
     g.op("Reshape", &[&t, &rows])
 }
 
+/// The export options of a decoder on a fit's evidence (`what`): its runtime computes the
+/// evidence from the taps, so the sensor matrix is never a graph input, and a calibration is
+/// the runtime's too (its matrix the metadata's, its dark and gain maps in
+/// [`OnnxMeta::correction`]).
+fn evidence_options(meta: &OnnxMeta, opts: ExportOptions<'_>, what: &str) -> Result<()> {
+    if opts.matrix_input {
+        return Err(InferError::InvalidParam {
+            field: "export",
+            got: "--matrix-input".into(),
+            expected: format!(
+                "no matrix input for {what} (its runtime computes the evidence from the taps with the model's sensor; build a calibration in with --calibration)"
+            ),
+        });
+    }
+    if let Some(cal) = opts.calibration {
+        let want = (meta.block.0 * meta.block.1, meta.taps, meta.bins);
+        if cal.meta.taps != meta.taps || cal.matrix.a().dim() != want {
+            return Err(InferError::InvalidParam {
+                field: "calibration",
+                got: format!("A {:?}", cal.matrix.a().dim()),
+                expected: format!("the run's sensor [N, M, T] = {want:?}"),
+            });
+        }
+    }
+    Ok(())
+}
+
 /// The U-Net on the range fit's evidence ([`tcsense_models::UnetInput::Costs`]) as a whole
 /// model: the evidence in, the fit's log-likelihood at the learned temperature plus the
 /// learned log-prior, the posterior's cyclic mode refined by a parabola, its range in metres,
@@ -548,15 +575,7 @@ fn trunk_rows(g: &mut Graph, trunk: &str, c: usize) -> String {
 /// # Shapes
 /// - `evidence [B, H, W, F]`, `log_likelihood [B, H, W, C]` (pixel-major) → `mode_range [B, 1, H, W]` (m), `first_confidence [B, 1, H, W]`
 fn unet_on_evidence(net: &Unet, meta: &OnnxMeta, opts: ExportOptions<'_>) -> Result<Vec<u8>> {
-    if opts.calibration.is_some() || opts.matrix_input {
-        return Err(InferError::InvalidParam {
-            field: "export",
-            got: if opts.matrix_input { "--matrix-input".into() } else { "--calibration".into() },
-            expected: "neither for a U-Net on the range fit's evidence (its runtime computes the evidence from the taps with the \
-                       run's sensor)"
-                .into(),
-        });
-    }
+    evidence_options(meta, opts, "a U-Net on the range fit's evidence")?;
     let (c, pool) = net.grid();
     let f = tcsense_fits::depth::range_feature_channels(c, pool);
     let mut g = Graph::new(tcsense_models::runs::network_names::UNET);
@@ -650,15 +669,7 @@ fn windowed_likelihood(g: &mut Graph, o_s: &str, skip: &str, points: usize, wide
 /// # Shapes
 /// - `evidence [B, H, W, F]`, `log_likelihood [B, H, W, G]` (pixel-major) → `lifetime [B, 4, H, W]`, `confidence [B, 1, H, W]`
 fn lifetime_on_evidence(net: &LifetimeNet, meta: &OnnxMeta, opts: ExportOptions<'_>) -> Result<Vec<u8>> {
-    if opts.calibration.is_some() || opts.matrix_input {
-        return Err(InferError::InvalidParam {
-            field: "export",
-            got: if opts.matrix_input { "--matrix-input".into() } else { "--calibration".into() },
-            expected: "neither for a lifetime decoder on the fit's evidence (its runtime computes the evidence from the taps \
-                       with the run's sensor; decode a calibrated sensor with --calibration at inference)"
-                .into(),
-        });
-    }
+    evidence_options(meta, opts, "a lifetime decoder on the fit's evidence")?;
     let (points, pool) = net.grid_points();
     let wide = net.windows().len();
     let f = tcsense_fits::lifetime_taps::evidence::feature_channels_with(points, pool, wide);

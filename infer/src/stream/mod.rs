@@ -168,7 +168,7 @@ fn stream_into(
     let t0 = Instant::now();
     // a lifetime network on the fit's evidence: its instrument from the first frame, once
     if let Some(e) = model.meta.evidence.clone().filter(|_| products.need_model()) {
-        let instrument = estimate_instrument(&first.view(), &model.sensor, &e.fit_options());
+        let instrument = estimate_instrument(&model.corrected(first.view()).view(), &model.sensor, &e.fit_options());
         model.set_instrument(instrument);
     }
     // the fits to the taps need corrected tap images, and a built-in correction is in the graph
@@ -177,7 +177,7 @@ fn stream_into(
             Some(_) => Err(InferError::InvalidParam {
                 field,
                 got: format!("{} (a calibration built into the graph)", model.path().display()),
-                expected: "a model exported without --calibration: the fit to the taps needs corrected tap images, and the correction is inside the graph".into(),
+                expected: "a model exported without --calibration: the fit to the taps needs corrected tap images, and a calibrated model corrects them inside itself".into(),
             }),
             None => Ok(()),
         }
@@ -264,12 +264,13 @@ fn stream_into(
                     if cancel.load(Ordering::Relaxed) {
                         return;
                     }
-                    let r = msg.and_then(|(i, y, path, _)| {
+                    let r = msg.and_then(|(i, mut y, path, _)| {
                         if y.dim() != (m, h, w) {
                             return Err(file_err(&path, format!("frame of shape {:?}; the first frame was [{m}, {h}, {w}]", y.shape())));
                         }
                         let y4 = y.view().insert_axis(Axis(0));
                         stage.check(&y4, &path.display().to_string()).map_err(|e| in_file(&path, e))?;
+                        stage.correct(&mut y);
                         let ev = stage.evidence(&y.view(), brx.try_recv().unwrap_or_default());
                         Ok((i, y, path, Some(ev)))
                     });
