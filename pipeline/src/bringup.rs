@@ -738,3 +738,26 @@ fn build_report(
     });
     Report { title: "Sensor bring-up".into(), subtitle: format!("{} → {}", o.sweep.display(), names.join(", ")), sections }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The deployed condition is the check's lower error of the decoder's calibration alone and
+    /// fine-tuned, by the domain's metric; fine-tuned where either row or value is missing.
+    #[test]
+    fn the_better_of_the_calibration_alone_and_fine_tuned_is_deployed() {
+        let check = json!({ "rows": [
+            { "decoder": "a", "condition": CALIBRATION_ALONE, "lifetime_mae_ns": 0.20, "first_return_median_m": 0.5 },
+            { "decoder": "a", "condition": FINE_TUNED, "lifetime_mae_ns": 0.25, "first_return_median_m": 0.4 },
+            { "decoder": "b", "condition": FINE_TUNED, "lifetime_mae_ns": 0.25 },
+            { "decoder": "c", "condition": CALIBRATION_ALONE, "lifetime_mae_ns": null },
+            { "decoder": "c", "condition": FINE_TUNED, "lifetime_mae_ns": 0.3 },
+        ]});
+        assert!(better_alone(&check, "a", true), "FLIm: the lower lifetime MAE");
+        assert!(!better_alone(&check, "a", false), "LiDAR: the lower range error");
+        assert!(!better_alone(&check, "b", true), "no row of the calibration alone (other codes)");
+        assert!(!better_alone(&check, "c", true), "no value");
+        assert!(!better_alone(&json!({ "truth": null, "rows": [] }), "a", true), "a real bench's empty check");
+    }
+}
