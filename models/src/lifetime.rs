@@ -119,6 +119,10 @@ pub struct LifetimeNet {
     down: Vec<Block>,
     up: Vec<Block>,
     head: Conv2d,
+    /// On the fit's evidence: the confidence's own readout of the input features (the pooled
+    /// posteriors, the log intensity and the lit mask), added to the head's confidence row on
+    /// the trunk held fixed ([`LifetimeNet::posterior`]); `None` for the harmonics.
+    confidence: Option<Conv2d>,
     harmonics: usize,
     bins: usize,
     tau_range_ns: [f64; 2],
@@ -178,10 +182,13 @@ impl LifetimeNetConfig {
             bias[self.points + 1..].fill(WIDER_START as f32);
             head.bias = Some(Param::from_tensor(Tensor::<1>::from_data(TensorData::new(bias, [self.head_channels()]), device)));
         }
+        // (zero: the confidence starts at ½, its loss's slope there is the softplus's ½)
+        let confidence = costs.then(|| Conv2dConfig::new([self.features(), 1], [1, 1]).with_initializer(Initializer::Zeros).init(device));
         LifetimeNet {
             down,
             up,
             head,
+            confidence,
             harmonics: self.harmonics,
             bins: self.bins,
             tau_range_ns: self.tau_range_ns,
@@ -430,19 +437,25 @@ impl LifetimeNet {
     /// The posterior's logits over the grid (the fit's log-likelihood plus the learned
     /// log-prior) and the confidence logit.
     ///
-    /// The confidence is a readout of the trunk's features held fixed: its loss trains the
-    /// head's confidence row only, never the trunk, whose features serve the log-prior (trained
-    /// through the trunk, a confidence weighted towards coverage took the trunk from the
-    /// lifetimes: 14–24 % worse in dim light). The same numbers either way.
+    /// The confidence is a readout: the head's confidence row on the trunk's features held
+    /// fixed, plus its own 1×1 readout of the input features (the pixel's posteriors, log
+    /// intensity and lit mask, which tell a dark pixel from a fluorophore). Its loss trains
+    /// those two and never the trunk, whose features serve the log-prior: trained through the
+    /// trunk, a confidence weighted towards coverage took the small U-Net from the lifetimes
+    /// (14–24 % worse in dim light); read from the trunk alone, it could not tell the dark
+    /// background, which the log-prior never needs to, from a fluorophore.
     ///
     /// # Shapes
     /// - `features`: `[B, F, H, W]`, `skip`: `[B, G, H, W]` → `([B, G, H, W], [B, 1, H, W])`
     pub fn posterior(&self, features: Tensor<4>, skip: Tensor<4>) -> (Tensor<4>, Tensor<4>) {
-        let z = trunk(&self.down, &self.up, features); // [B, C, H, W]
+        let z = trunk(&self.down, &self.up, features.clone()); // [B, C, H, W]
         let o = conv1x1(&self.head, z.clone()); // [B, G + 1 + S, H, W]
         let g = self.points;
         let prior = o.clone().narrow(1, 0, g);
-        let logit = head_row(&self.head, z.detach(), g);
+        let mut logit = head_row(&self.head, z.detach(), g);
+        if let Some(c) = &self.confidence {
+            logit = logit + conv1x1(c, features);
+        }
         if self.windows.is_empty() {
             return (skip + prior, logit);
         }
@@ -492,6 +505,12 @@ impl LifetimeNet {
     /// Decoder blocks: `up()[l]` runs at level `l` on `[up-sampled level l+1, skip l]`.
     pub fn up(&self) -> &[Block] {
         &self.up
+    }
+
+    /// On the fit's evidence: the confidence's readout of the input features `[1, F]` (added to
+    /// the head's confidence row on the trunk).
+    pub fn confidence_readout(&self) -> Option<&Conv2d> {
+        self.confidence.as_ref()
     }
 
     /// The 1×1 head to the five raw outputs.
@@ -685,8 +704,9 @@ mod tests {
         assert!(d10 < 1e-4, "scale changes the output by {d10}");
     }
 
-    /// The confidence is the head's row on the trunk's features, and its gradient reaches the
-    /// head only: the trunk learns from the log-prior alone.
+    /// The confidence is the head's row on the trunk's features plus a readout of the input
+    /// features, and its gradient reaches those two only: the trunk learns from the log-prior
+    /// alone.
     #[test]
     fn the_confidence_reads_the_trunk_without_training_it() {
         let device = Device::flex().autodiff();
@@ -709,7 +729,7 @@ mod tests {
             r.1
         };
         let (logits, logit) = net.posterior(features(), skip());
-        assert_eq!(reached(logit), 2, "the head's weight and bias, nothing of the trunk");
+        assert_eq!(reached(logit), 4, "the head's and the readout's weight and bias, nothing of the trunk");
         let all = reached(logits);
         assert!(all > 2, "the log-prior reaches the trunk ({all} parameters)");
         // and the readout is the head's channel G, as the exported graph computes it
@@ -725,7 +745,8 @@ mod tests {
         let net = burn::module::Module::map(net, &mut Jitter(device.clone()));
         let f = features();
         let (_, logit) = net.posterior(f.clone(), skip());
-        let full = conv1x1(net.head(), trunk(&net.down, &net.up, f)).narrow(1, 12, 1);
+        let full = conv1x1(net.head(), trunk(&net.down, &net.up, f.clone())).narrow(1, 12, 1)
+            + conv1x1(net.confidence_readout().expect("a readout on the evidence"), f);
         let diff = (logit - full).abs().max().into_scalar::<f32>();
         assert!(diff < 1e-6, "{diff}");
     }
