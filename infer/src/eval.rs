@@ -41,6 +41,9 @@ pub struct EvalRow {
     pub lifetime_within_02ns: Option<f64>,
     /// Share of the fluorophore pixels that got a lifetime.
     pub lifetime_coverage: Option<f64>,
+    /// Share of the pixels without any fluorophore that got a lifetime (a confidence that says
+    /// "fluorophore" everywhere covers every fluorophore).
+    pub lifetime_false_share: Option<f64>,
     pub seconds_per_frame: f64,
     /// Per bounce: the median absolute range error (m) over the detected returns of every item.
     pub depth_median_m: Vec<f64>,
@@ -196,6 +199,7 @@ impl EvalRow {
                     self.lifetime_mae_weighted_s = self.lt_sum.weighted_mae();
                     self.lifetime_within_02ns = self.lt_sum.within_share();
                     self.lifetime_coverage = self.lt_sum.coverage();
+                    self.lifetime_false_share = self.lt_sum.false_share();
                 }
             }
         }
@@ -225,10 +229,11 @@ impl EvalRow {
         }
         if let (Some(w), Some(f), Some(c)) = (self.lifetime_mae_weighted_s, self.lifetime_within_02ns, self.lifetime_coverage) {
             s.push_str(&format!(
-                " (intensity-weighted {:.3} ns, {:.1} % within 0.2 ns, {:.1} % with a lifetime)",
+                " (intensity-weighted {:.3} ns, {:.1} % within 0.2 ns, {:.1} % with a lifetime{})",
                 w * 1e9,
                 f * 100.0,
-                c * 100.0
+                c * 100.0,
+                self.lifetime_false_share.map(|v| format!(", {:.1} % of the background with one", v * 100.0)).unwrap_or_default()
             ));
         }
         s.push_str(&format!("  {:.1} ms/frame", self.seconds_per_frame * 1e3));
@@ -237,7 +242,7 @@ impl EvalRow {
 
     /// The rows as CSV, one line per decoder after a header.
     pub fn csv(rows: &[EvalRow]) -> String {
-        let mut csv = String::from("decoder,items,mse,psnr_db,bounce1_rmse_m,bounce1_mae_m,bounce1_detection,bounce2_rmse_m,bounce2_mae_m,bounce2_detection,lifetime_mae_s,seconds_per_frame,lifetime_mae_weighted_s,lifetime_within_02ns,lifetime_coverage,bounce1_false_alarm,bounce2_false_alarm,bounce1_median_m,bounce2_median_m,bounce1_within_half_bin,bounce2_within_half_bin,signal_fraction,signal_electrons,sbr\n");
+        let mut csv = String::from("decoder,items,mse,psnr_db,bounce1_rmse_m,bounce1_mae_m,bounce1_detection,bounce2_rmse_m,bounce2_mae_m,bounce2_detection,lifetime_mae_s,seconds_per_frame,lifetime_mae_weighted_s,lifetime_within_02ns,lifetime_coverage,bounce1_false_alarm,bounce2_false_alarm,bounce1_median_m,bounce2_median_m,bounce1_within_half_bin,bounce2_within_half_bin,signal_fraction,signal_electrons,sbr,lifetime_false_share\n");
         for r in rows {
             let b = |k: usize| r.depth.get(k).map_or(",,".to_string(), |d| format!("{},{},{}", d.rmse_m, d.mae_m, d.detection_rate()));
             let o = |v: Option<f64>| v.map_or(String::new(), |v| v.to_string());
@@ -246,7 +251,7 @@ impl EvalRow {
             let half = |k: usize| o(r.depth_within_half_bin.get(k).copied());
             let light = r.light.map_or(",,".to_string(), |l| format!("{},{},{}", l.signal_fraction, l.signal_electrons, o(l.sbr)));
             csv.push_str(&format!(
-                "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
+                "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
                 r.decoder,
                 r.items,
                 r.mse,
@@ -264,7 +269,8 @@ impl EvalRow {
                 med(1),
                 half(0),
                 half(1),
-                light
+                light,
+                o(r.lifetime_false_share)
             ));
         }
         csv

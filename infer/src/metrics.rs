@@ -20,6 +20,9 @@ pub struct LifetimeErrors {
     pub estimated: usize,
     pub within: usize,
     pub truth: usize,
+    /// Pixels without any fluorophore, and those of them that got a lifetime anyway.
+    pub background: usize,
+    pub false_estimates: usize,
 }
 
 impl LifetimeErrors {
@@ -32,6 +35,10 @@ impl LifetimeErrors {
                 Some(_) => holds_fluorophore(t, inten, peak),
                 None => t.is_finite(),
             };
+            if !t.is_finite() {
+                self.background += 1;
+                self.false_estimates += e.is_finite() as usize;
+            }
             if !counts {
                 continue;
             }
@@ -68,6 +75,11 @@ impl LifetimeErrors {
     pub fn coverage(&self) -> Option<f64> {
         (self.truth > 0).then(|| self.estimated as f64 / self.truth as f64)
     }
+
+    /// Share of the pixels without a fluorophore that got a lifetime anyway.
+    pub fn false_share(&self) -> Option<f64> {
+        (self.background > 0).then(|| self.false_estimates as f64 / self.background as f64)
+    }
 }
 
 #[cfg(test)]
@@ -99,5 +111,12 @@ mod tests {
         l.add(&est.view(), &truth.view(), Some(&inten.view()));
         assert_eq!((l.truth, l.estimated, l.within), (2, 2, 1));
         assert!((l.mae().unwrap() - 3.55e-9).abs() < 1e-12 && (l.weighted_mae().unwrap() - (0.1e-9 + 21e-9) / 4.0).abs() < 1e-12);
+        assert_eq!(l.false_share(), None, "no pixel without a fluorophore");
+        // pixels without a fluorophore: one of three got a lifetime anyway
+        let (est, truth) = (ndarray::arr2(&[[1e-9f32, f32::NAN, f32::NAN, 2e-9]]), ndarray::arr2(&[[f32::NAN, f32::NAN, f32::NAN, 2e-9]]));
+        let mut l = LifetimeErrors::default();
+        l.add(&est.view(), &truth.view(), None);
+        assert_eq!((l.background, l.false_estimates, l.truth, l.coverage()), (3, 1, 1, Some(1.0)));
+        assert!((l.false_share().unwrap() - 1.0 / 3.0).abs() < 1e-12);
     }
 }
