@@ -48,20 +48,6 @@ pub const OUTPUTS: usize = 5;
 /// Floor of the delay reference's magnitude (a dark frame has no phase).
 const REF_FLOOR: f32 = 1e-20;
 
-/// Row `k` of a 1×1 `head` on features `z`: one output channel.
-///
-/// # Shapes
-/// - `z`: `[B, C, H, W]` → `[B, 1, H, W]`
-fn head_row(head: &Conv2d, z: Tensor<4>, k: usize) -> Tensor<4> {
-    let [b, c, h, w] = z.dims();
-    let row = head.weight.val().narrow(0, k, 1).reshape([1, 1, c]).expand([b, 1, c]); // [B, 1, C]
-    let mut out = row.matmul(z.reshape([b, c, h * w])); // [B, 1, H·W]
-    if let Some(bias) = &head.bias {
-        out = out + bias.val().narrow(0, k, 1).reshape([1, 1, 1]);
-    }
-    out.reshape([b, 1, h, w])
-}
-
 /// The head's raw output `o_s` each wider window starts at: its weight `e^{clip(6·o_s − 6)}`
 /// starts at `e^{−3}`.
 pub const WIDER_START: f64 = 0.5;
@@ -119,10 +105,6 @@ pub struct LifetimeNet {
     down: Vec<Block>,
     up: Vec<Block>,
     head: Conv2d,
-    /// On the fit's evidence: the confidence's own readout of the input features (the pooled
-    /// posteriors, the log intensity and the lit mask), added to the head's confidence row on
-    /// the trunk held fixed ([`LifetimeNet::posterior`]); `None` for the harmonics.
-    confidence: Option<Conv2d>,
     harmonics: usize,
     bins: usize,
     tau_range_ns: [f64; 2],
@@ -182,13 +164,10 @@ impl LifetimeNetConfig {
             bias[self.points + 1..].fill(WIDER_START as f32);
             head.bias = Some(Param::from_tensor(Tensor::<1>::from_data(TensorData::new(bias, [self.head_channels()]), device)));
         }
-        // (zero: the confidence starts at ½, its loss's slope there is the softplus's ½)
-        let confidence = costs.then(|| Conv2dConfig::new([self.features(), 1], [1, 1]).with_initializer(Initializer::Zeros).init(device));
         LifetimeNet {
             down,
             up,
             head,
-            confidence,
             harmonics: self.harmonics,
             bins: self.bins,
             tau_range_ns: self.tau_range_ns,
@@ -437,25 +416,13 @@ impl LifetimeNet {
     /// The posterior's logits over the grid (the fit's log-likelihood plus the learned
     /// log-prior) and the confidence logit.
     ///
-    /// The confidence is a readout: the head's confidence row on the trunk's features held
-    /// fixed, plus its own 1×1 readout of the input features (the pixel's posteriors, log
-    /// intensity and lit mask, which tell a dark pixel from a fluorophore). Its loss trains
-    /// those two and never the trunk, whose features serve the log-prior: trained through the
-    /// trunk, a confidence weighted towards coverage took the small U-Net from the lifetimes
-    /// (14–24 % worse in dim light); read from the trunk alone, it could not tell the dark
-    /// background, which the log-prior never needs to, from a fluorophore.
-    ///
     /// # Shapes
     /// - `features`: `[B, F, H, W]`, `skip`: `[B, G, H, W]` → `([B, G, H, W], [B, 1, H, W])`
     pub fn posterior(&self, features: Tensor<4>, skip: Tensor<4>) -> (Tensor<4>, Tensor<4>) {
-        let z = trunk(&self.down, &self.up, features.clone()); // [B, C, H, W]
-        let o = conv1x1(&self.head, z.clone()); // [B, G + 1 + S, H, W]
+        let o = conv1x1(&self.head, trunk(&self.down, &self.up, features)); // [B, G + 1 + S, H, W]
         let g = self.points;
         let prior = o.clone().narrow(1, 0, g);
-        let mut logit = head_row(&self.head, z.detach(), g);
-        if let Some(c) = &self.confidence {
-            logit = logit + conv1x1(c, features);
-        }
+        let logit = o.clone().narrow(1, g, 1);
         if self.windows.is_empty() {
             return (skip + prior, logit);
         }
@@ -505,12 +472,6 @@ impl LifetimeNet {
     /// Decoder blocks: `up()[l]` runs at level `l` on `[up-sampled level l+1, skip l]`.
     pub fn up(&self) -> &[Block] {
         &self.up
-    }
-
-    /// On the fit's evidence: the confidence's readout of the input features `[1, F]` (added to
-    /// the head's confidence row on the trunk).
-    pub fn confidence_readout(&self) -> Option<&Conv2d> {
-        self.confidence.as_ref()
     }
 
     /// The 1×1 head to the five raw outputs.
@@ -702,53 +663,6 @@ mod tests {
         // y and 10·y give the same lifetimes
         let d10 = (net.predict(y.clone() * 10.0, &st) - net.predict(y, &st)).abs().max().into_scalar::<f32>();
         assert!(d10 < 1e-4, "scale changes the output by {d10}");
-    }
-
-    /// The confidence is the head's row on the trunk's features plus a readout of the input
-    /// features, and its gradient reaches those two only: the trunk learns from the log-prior
-    /// alone.
-    #[test]
-    fn the_confidence_reads_the_trunk_without_training_it() {
-        let device = Device::flex().autodiff();
-        let cfg =
-            LifetimeNetConfig::new(4, 16).with_input(LifetimeInput::Costs).with_points(12).with_pool(2).with_base_width(4).with_levels(2);
-        let net = cfg.init(&device);
-        let features = || Tensor::<4>::random([1, cfg.features(), 8, 8], Distribution::Uniform(0.0, 1.0), &device);
-        let skip = || Tensor::<4>::random([1, 12, 8, 8], Distribution::Uniform(-50.0, 0.0), &device);
-        // the parameters a gradient reaches
-        struct Reached<'a>(&'a burn::tensor::Gradients, usize);
-        impl burn::module::ModuleVisitor for Reached<'_> {
-            fn visit_float<const D: usize>(&mut self, p: &burn::module::Param<Tensor<D>>) {
-                self.1 += p.grad(self.0).is_some() as usize;
-            }
-        }
-        let reached = |t: Tensor<4>| {
-            let grads = t.sum().backward();
-            let mut r = Reached(&grads, 0);
-            burn::module::Module::visit(&net, &mut r);
-            r.1
-        };
-        let (logits, logit) = net.posterior(features(), skip());
-        assert_eq!(reached(logit), 4, "the head's and the readout's weight and bias, nothing of the trunk");
-        let all = reached(logits);
-        assert!(all > 2, "the log-prior reaches the trunk ({all} parameters)");
-        // and the readout is the head's channel G, as the exported graph computes it
-        // (the head made random: every parameter plus seeded noise)
-        struct Jitter(Device);
-        impl burn::module::ModuleMapper for Jitter {
-            fn map_float<const D: usize>(&mut self, p: burn::module::Param<Tensor<D>>) -> burn::module::Param<Tensor<D>> {
-                let device = self.0.clone();
-                p.map(|t| t.clone() + Tensor::<D>::random(t.dims(), Distribution::Normal(0.0, 0.3), &device))
-            }
-        }
-        device.seed(3);
-        let net = burn::module::Module::map(net, &mut Jitter(device.clone()));
-        let f = features();
-        let (_, logit) = net.posterior(f.clone(), skip());
-        let full = conv1x1(net.head(), trunk(&net.down, &net.up, f.clone())).narrow(1, 12, 1)
-            + conv1x1(net.confidence_readout().expect("a readout on the evidence"), f);
-        let diff = (logit - full).abs().max().into_scalar::<f32>();
-        assert!(diff < 1e-6, "{diff}");
     }
 
     /// With wider windows the posterior is the fit's window's log-likelihood plus each wider

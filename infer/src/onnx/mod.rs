@@ -681,19 +681,10 @@ fn lifetime_on_evidence(net: &LifetimeNet, meta: &OnnxMeta, opts: ExportOptions<
     let skip = g.input(LOG_LIKELIHOOD_INPUT, &pixels((1 + wide) * points));
     // the trunk channel-major, the posterior on the pixels as rows (as the evidence comes)
     let (skip, frame_shape) = pixel_rows(&mut g, &skip, (1 + wide) * points); // [N, (1 + S)·G]
-    let feature_rows = {
-        let shape = g.ints("feature_rows_shape", &[-1, f as i64]);
-        g.op("Reshape", &[&features, &shape]) // [N, F]
-    };
     let features = g.node("Transpose", &[&features], &[Attr::Ints("perm", &[0, 3, 1, 2])]);
     let trunk = unet_trunk(&mut g, net.down(), net.up(), &features)?;
     let trunk = trunk_rows(&mut g, &trunk, net.head().weight.dims()[1]); // [N, C_0]
-                                                                         // the confidence: the head's row on the trunk plus its readout of the evidence's features
-    let mut logit = head_rows(&mut g, net.head(), &trunk, points, 1)?;
-    if let Some(readout) = net.confidence_readout() {
-        let r = head_rows(&mut g, readout, &feature_rows, 0, 1)?;
-        logit = g.op("Add", &[&logit, &r]);
-    }
+    let logit = head_rows(&mut g, net.head(), &trunk, points, 1)?;
     let logit = g.op("Reshape", &[&logit, &frame_shape]);
     let likelihood = if wide == 0 {
         skip
