@@ -410,6 +410,24 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
     for (a, b) in streamed.iter().zip(tau.index_axis(ndarray::Axis(0), 0).iter()) {
         assert!((a.is_nan() && b.is_nan()) || (a - b).abs() <= 1e-4 * b.abs(), "infer {a:e} against reconstruct {b:e}");
     }
+    // the onset given (a calibration): only the IRF width is fitted; the item's own onset reads
+    // its lifetimes, one 10 ns later does not
+    let onset_ns = read_npy(&d.join("f/test/onset_000.npy")).unwrap().iter().next().copied().unwrap() as f64 * 1e9;
+    let truth = read_npy(&d.join("f/test/lifetime_000.npy")).unwrap().index_axis_move(ndarray::Axis(0), 0);
+    let (right_ns, wrong_ns) = (format!("{onset_ns}"), format!("{}", onset_ns + 10.0));
+    ok(d, &["infer", "--model", "ev.onnx", "--measurements", "y.npy", "--onset-ns", &right_ns, "-o", "inf-right"]);
+    ok(d, &["infer", "--model", "ev.onnx", "--measurements", "y.npy", "--onset-ns", &wrong_ns, "-o", "inf-wrong"]);
+    let error = |dir: &str| {
+        let t = read_npy(&d.join(dir).join("lifetime.npy")).unwrap();
+        let v: Vec<f64> =
+            t.iter().zip(truth.iter()).filter(|(a, b)| a.is_finite() && b.is_finite()).map(|(a, b)| ((a - b) / b).abs() as f64).collect();
+        assert!(!v.is_empty(), "{dir}: lifetimes");
+        v.iter().sum::<f64>() / v.len() as f64
+    };
+    let (right, wrong) = (error("inf-right"), error("inf-wrong"));
+    assert!(right < 0.5 * wrong, "relative lifetime error: onset {right_ns} ns {right}, {wrong_ns} ns {wrong}");
+    fails(d, &["infer", "--model", "ev.onnx", "--measurements", "y.npy", "--onset-ns", "5000", "-o", "bad"], &["--onset-ns", "onset"]);
+    assert!(!d.join("bad").exists());
     // a stream is a pipeline (the next frame's evidence and the last one's refinement beside
     // the graph): each frame of a stack comes out as alone, in its place
     ok(d, &["simulate", "--codes", "codes.json", "--heterodyne", "2", "--cube", "x.npy", "--noise", "--seed", "9", "-o", "y2.npy"]);

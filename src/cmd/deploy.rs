@@ -134,8 +134,9 @@ pub struct InferArgs {
     /// by the network; the network is not run when no other product is asked for.
     #[arg(long)]
     lifetime_fit: bool,
-    /// The onset (ns) of the decays, when known (a calibration): only the IRF width is fitted.
-    #[arg(long, requires = "lifetime_fit")]
+    /// The onset (ns) of the decays, when known (a calibration, a bright reference): only the
+    /// IRF width is fitted, by --lifetime-fit or a lifetime decoder on the fit's evidence.
+    #[arg(long)]
     onset_ns: Option<f64>,
     /// Side of the square window of pixels whose costs the fit to the taps sums (odd).
     #[arg(long, requires = "lifetime_fit", default_value_t = 3, value_parser = super::count_in(1, tcsense_fits::range::MAX_WINDOW))]
@@ -200,6 +201,16 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
         if let Some(w) = tcsense_infer::fitted::alias_warning(&model.sensor, model.meta.codes.length()) {
             eprintln!("{w}");
         }
+    }
+    if a.onset_ns.is_some() && !a.lifetime_fit {
+        if model.meta.evidence.is_none() {
+            bail!(
+                "--onset-ns: for --lifetime-fit or a lifetime decoder on the fit's evidence; {} ({}) does not fit an instrument",
+                a.model.display(),
+                model.meta.decoder
+            );
+        }
+        products.onset_s = a.onset_ns.map(|t| t * 1e-9);
     }
     if a.lifetime_fit {
         if !(products.lifetime || products.intensity || products.phasor) {

@@ -168,7 +168,9 @@ fn stream_into(
     let t0 = Instant::now();
     // a lifetime network on the fit's evidence: its instrument from the first frame, once
     if let Some(e) = model.meta.evidence.clone().filter(|_| products.need_model()) {
-        let instrument = estimate_instrument(&model.corrected(first.view()).view(), &model.sensor, &e.fit_options());
+        let opts = TapFitOptions { onset_s: products.onset_s, ..e.fit_options() };
+        opts.validate().map_err(|msg| InferError::Settings { what: "--onset-ns", msg })?;
+        let instrument = estimate_instrument(&model.corrected(first.view()).view(), &model.sensor, &opts);
         model.set_instrument(instrument);
     }
     // the fits to the taps need corrected tap images, and a built-in correction is in the graph

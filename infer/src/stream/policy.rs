@@ -55,6 +55,10 @@ pub struct Products {
     /// ([`tcsense_fits::lifetime_taps::LifetimeTemplates`], the instrument estimated once on the first frame
     /// unless its `onset_s` is given) instead of the model's own; `None`: the model's.
     pub lifetime_fit: Option<TapFitOptions>,
+    /// The decays' onset `t₀` (s) when known (a calibration, a bright reference): a lifetime
+    /// network on the fit's evidence then fits only the IRF width on the first frame instead
+    /// of the onset too (which a dim first frame places a few tenths of a nanosecond off).
+    pub onset_s: Option<f64>,
     /// A depth model's ranges refined by the fit in the tap domain, as `reconstruct unet`
     /// applies it ([`tcsense_fits::range`]); `None`: as the network gives them.
     pub range_fit: Option<RangeFitOptions>,
@@ -79,6 +83,7 @@ impl Products {
             returns: 2,
             fov_deg: 40.0,
             lifetime_fit: None,
+            onset_s: None,
             range_fit: Some(RangeFitOptions::default()),
             depth_fit: None,
         };
