@@ -378,7 +378,10 @@ fn eval_photon_ladder() {
     assert!(at("depth-fit", 0.8)["depth_within_half_bin"][0].as_f64().unwrap() > 0.6);
     let csv = std::fs::read_to_string(d.join("t.csv")).unwrap();
     assert!(
-        csv.lines().next().unwrap().ends_with("bounce1_within_half_bin,bounce2_within_half_bin,signal_fraction,signal_electrons,sbr,lifetime_false_share")
+        csv.lines()
+            .next()
+            .unwrap()
+            .ends_with("bounce1_within_half_bin,bounce2_within_half_bin,signal_fraction,signal_electrons,sbr,lifetime_false_share")
             && csv.lines().count() == 5,
         "{csv}"
     );
