@@ -498,6 +498,6 @@ mod tests {
         // within half a bin (1 ns: 3.75 cm): 0 of 6 first returns, 0 of 3 second (truth counts
         // the missed one)
         assert_eq!(row.depth_within_half_bin, vec![0.0, 0.0]);
-        assert!(EvalRow::csv(&[row]).lines().nth(1).unwrap().ends_with(",1,1.5,0,0,,,"));
+        assert!(EvalRow::csv(&[row]).lines().nth(1).unwrap().ends_with(",1,1.5,0,0,,,,"));
     }
 }
