@@ -8,38 +8,35 @@ use common::*;
 use std::path::Path;
 use tcsense_sensor::npy::{read_npy, write_npy};
 
+/// The simulated bench sensor's non-idealities, as `simulate` takes them.
+const BENCH_SENSOR: &[&str] = &[
+    "--tap-gain",
+    "0.05",
+    "--prnu",
+    "0.02",
+    "--dark",
+    "0.01",
+    "--gate-skew-ns",
+    "0.1",
+    "--modulation-contrast",
+    "0.925",
+    "--sensor-seed",
+    "7",
+];
+
 fn bench(dir: &Path) {
     let zoo_codes = Path::new(env!("CARGO_MANIFEST_DIR")).join("zoo/admm-lidar-designed/codes.json");
     std::fs::copy(zoo_codes, dir.join("codes.json")).unwrap();
-    ok(
-        dir,
-        &[
-            "simulate",
-            "--codes",
-            "codes.json",
-            "--irf",
-            "physical",
-            "--sweep",
-            "sweep",
-            "--size",
-            "8x8",
-            "--noise",
-            "--average",
-            "16",
-            "--tap-gain",
-            "0.05",
-            "--prnu",
-            "0.02",
-            "--dark",
-            "0.01",
-            "--gate-skew-ns",
-            "0.1",
-            "--modulation-contrast",
-            "0.925",
-            "--sensor-seed",
-            "7",
-        ],
-    );
+    let sweep =
+        ["simulate", "--codes", "codes.json", "--irf", "physical", "--sweep", "sweep", "--size", "8x8", "--noise", "--average", "16"];
+    ok(dir, &[&sweep[..], BENCH_SENSOR].concat());
+}
+
+/// `raw.npy`: the first held-back scene of a bring-up into `out/` through the bench sensor, with
+/// noise, in electrons (the sweep's units).
+fn raw_frames(dir: &Path) {
+    let scene = ["simulate", "--codes", "codes.json", "--irf", "physical", "--cube", "out/check-scenes/test/x_000.npy"];
+    ok(dir, &[&scene[..], &["--units", "electrons", "--noise"], BENCH_SENSOR, &["-o", "raw.npy"]].concat());
 }
 
 const BRINGUP: &[&str] = &[
@@ -113,35 +110,7 @@ fn a_sweep_becomes_a_deployed_decoder_with_a_report() {
     let steps2: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("out/results/steps.json")).unwrap()).unwrap();
     assert_eq!(steps2["steps"], steps["steps"]);
     // the exported model takes the sensor's raw tap images (electrons, the sweep's units)
-    ok(
-        dir,
-        &[
-            "simulate",
-            "--codes",
-            "codes.json",
-            "--irf",
-            "physical",
-            "--cube",
-            "out/check-scenes/test/x_000.npy",
-            "--units",
-            "electrons",
-            "--noise",
-            "--tap-gain",
-            "0.05",
-            "--prnu",
-            "0.02",
-            "--dark",
-            "0.01",
-            "--gate-skew-ns",
-            "0.1",
-            "--modulation-contrast",
-            "0.925",
-            "--sensor-seed",
-            "7",
-            "-o",
-            "raw.npy",
-        ],
-    );
+    raw_frames(dir);
     ok(dir, &["infer", "--model", "out/onnx/admm-lidar-designed.onnx", "--measurements", "raw.npy", "-o", "inf"]);
     assert!(dir.join("inf").exists());
 }
@@ -198,35 +167,7 @@ fn a_decoder_on_the_fits_evidence_is_brought_up_and_corrects_raw_frames() {
     let html = std::fs::read_to_string(dir.join("out/report.html")).unwrap();
     assert!(html.contains("deployed as") && html.contains(want));
     // raw frames of a held-back scene through the bench sensor, in the sweep's units
-    ok(
-        dir,
-        &[
-            "simulate",
-            "--codes",
-            "codes.json",
-            "--irf",
-            "physical",
-            "--cube",
-            "out/check-scenes/test/x_000.npy",
-            "--units",
-            "electrons",
-            "--noise",
-            "--tap-gain",
-            "0.05",
-            "--prnu",
-            "0.02",
-            "--dark",
-            "0.01",
-            "--gate-skew-ns",
-            "0.1",
-            "--modulation-contrast",
-            "0.925",
-            "--sensor-seed",
-            "7",
-            "-o",
-            "raw.npy",
-        ],
-    );
+    raw_frames(dir);
     ok(dir, &["infer", "--model", "out/onnx/unet-lidar-evidence.onnx", "--measurements", "raw.npy", "-o", "inf"]);
     // the same network without the calibration built in, on frames corrected by hand with the
     // calibration's maps, gives the same depth: the model corrects the raw frames itself
