@@ -118,30 +118,8 @@ pub fn evidence_into(costs: &CostVolume<'_>, intensity: &Array2<f32>, pool: usiz
     let (g, h, w) = (costs.points, costs.height, costs.width);
     let pool = pool.max(1);
     let window = costs.window;
-    let half = costs.side / 2;
     let lit = costs.lit;
-    // the noise level: median least window cost per degree of freedom
-    let mut per_dof: Vec<f32> = (0..h)
-        .into_par_iter()
-        .flat_map_iter(|i| {
-            (0..w).filter_map(move |j| {
-                let p = i * w + j;
-                if !lit[p] {
-                    return None;
-                }
-                let mut n = 0usize;
-                for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
-                    for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
-                        n += lit[ii * w + jj] as usize;
-                    }
-                }
-                let dof = costs.dof(n) as f32;
-                let least = window[p * g..(p + 1) * g].iter().fold(f32::INFINITY, |a, &b| a.min(b));
-                least.is_finite().then(|| least.max(0.0) / dof)
-            })
-        })
-        .collect();
-    let noise = median(&mut per_dof).filter(|v| *v > 0.0 && v.is_finite()).unwrap_or(1.0);
+    let noise = noise_level(costs);
     let nats = 1.0 / (2.0 * noise);
     let channels = feature_channels_with(g, pool, wider.len());
     let pooled = g.div_ceil(pool);
@@ -198,6 +176,102 @@ pub fn evidence_into(costs: &CostVolume<'_>, intensity: &Array2<f32>, pool: usiz
     });
     let shape = |c: usize, v: Vec<f32>| Array3::from_shape_vec((h, w, c), v).expect("[H, W, C] buffer");
     Evidence { skip: shape(sg, skip), features: shape(channels, features), noise }
+}
+
+/// The frame's noise level of a fit's costs (see the module's notes): the median over the lit
+/// pixels of the window's least cost per degree of freedom; 1 where there is none.
+///
+/// # Shapes
+/// - `costs`: of `[H·W·G]`
+pub fn noise_level(costs: &CostVolume<'_>) -> f32 {
+    let (g, h, w) = (costs.points, costs.height, costs.width);
+    let window = costs.window;
+    let half = costs.side / 2;
+    let lit = costs.lit;
+    let mut per_dof: Vec<f32> = (0..h)
+        .into_par_iter()
+        .flat_map_iter(|i| {
+            (0..w).filter_map(move |j| {
+                let p = i * w + j;
+                if !lit[p] {
+                    return None;
+                }
+                let mut n = 0usize;
+                for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
+                    for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
+                        n += lit[ii * w + jj] as usize;
+                    }
+                }
+                let dof = costs.dof(n) as f32;
+                let least = window[p * g..(p + 1) * g].iter().fold(f32::INFINITY, |a, &b| a.min(b));
+                least.is_finite().then(|| least.max(0.0) / dof)
+            })
+        })
+        .collect();
+    median(&mut per_dof).filter(|v| *v > 0.0 && v.is_finite()).unwrap_or(1.0)
+}
+
+/// The costs pooled over pixels of like evidence: every pixel's window's cost, plus the own
+/// cost of each lit pixel `q` of the `side × side` neighbourhood beyond the window, weighted by
+/// how much the two windows' posteriors overlap (their Bhattacharyya coefficient to the power
+/// `κ`):
+///
+/// ```text
+/// P_p = C_win,p + Σ_{q ∈ N_side(p) ∖ N_win(p)} BC(π_p, π_q)^κ · c_q,   π_p = softmax(−Ĉ_win,p · nats)
+/// ```
+///
+/// In bright light the posteriors are sharp and a neighbour of another lifetime weighs
+/// nothing (the fit's window alone); in dim light, or across a cell of one lifetime, they
+/// overlap and the neighbourhood pools as a wider window would.
+///
+/// # Shapes
+/// - `costs`: of `[H·W·G]` → `[H·W·G]` (0 where unlit)
+pub fn similarity_pool(costs: &CostVolume<'_>, nats: f32, side: usize, kappa: f32) -> Vec<f32> {
+    let (g, h, w) = (costs.points, costs.height, costs.width);
+    let (window, lit, pixel) = (costs.window, costs.lit, costs.pixel);
+    // √π of every lit pixel's window posterior
+    let mut roots = vec![0f32; h * w * g];
+    roots.par_chunks_mut(g).enumerate().for_each(|(p, root)| {
+        if !lit[p] {
+            return;
+        }
+        let win = &window[p * g..(p + 1) * g];
+        let least = win.iter().fold(f32::INFINITY, |a, &b| a.min(b));
+        let mut total = 0f32;
+        for (o, &c) in root.iter_mut().zip(win) {
+            *o = underflowing_exp(-(c - least) * nats);
+            total += *o;
+        }
+        let scale = 1.0 / total;
+        root.iter_mut().for_each(|o| *o = (*o * scale).sqrt());
+    });
+    let (outer, inner) = (side / 2, costs.side / 2);
+    let mut out = vec![0f32; h * w * g];
+    out.par_chunks_mut(w * g).enumerate().for_each(|(i, row)| {
+        for j in 0..w {
+            let p = i * w + j;
+            let o = &mut row[j * g..(j + 1) * g];
+            if !lit[p] {
+                continue;
+            }
+            o.copy_from_slice(&window[p * g..(p + 1) * g]);
+            let rp = &roots[p * g..(p + 1) * g];
+            for ii in i.saturating_sub(outer)..(i + outer + 1).min(h) {
+                for jj in j.saturating_sub(outer)..(j + outer + 1).min(w) {
+                    let q = ii * w + jj;
+                    if !lit[q] || (ii.abs_diff(i) <= inner && jj.abs_diff(j) <= inner) {
+                        continue;
+                    }
+                    let bc: f32 = rp.iter().zip(&roots[q * g..(q + 1) * g]).map(|(a, b)| a * b).sum();
+                    let weight = bc.min(1.0).powf(kappa);
+                    if weight > 1e-3 {
+                        o.iter_mut().zip(&pixel[q * g..(q + 1) * g]).for_each(|(a, b)| *a += weight * b);
+                    }
+                }
+            }
+        }
+    });
+    out
 }
 
 /// `x.exp()` with the arguments whose exponential rounds to 0 in f32 (below −104: under half

@@ -39,6 +39,9 @@ pub mod names {
     pub const DEPTH_FIT: &str = "depth-fit";
     /// Lifetimes fitted to the tap images.
     pub const LIFETIME_FIT: &str = "lifetime-fit";
+    /// Lifetimes fitted to the tap images, the window's costs pooled with those of its
+    /// neighbours of like lifetime (`lifetime-fit-pooled:N`, N×N neighbourhood).
+    pub const LIFETIME_FIT_POOLED: &str = "lifetime-fit-pooled";
     /// An ADMM-Net run (`admm-net:RUN`).
     pub const ADMM_NET: &str = tcsense_models::runs::network_names::ADMM_NET;
     /// An Aᵀ + U-Net run, its ranges refined in the tap domain (`unet:RUN`).
@@ -157,6 +160,14 @@ impl Registry {
                     arg: ArgUse::Optional,
                     cubes: false,
                     open: open_lifetime_fit,
+                },
+                Entry {
+                    name: LIFETIME_FIT_POOLED,
+                    usage: "lifetime-fit-pooled[:N]",
+                    summary: "the fit to the taps over 3x3 windows, each pooled with the neighbours of like lifetime within NxN pixels (odd, default 11), weighted by how much their posteriors overlap: the 3x3 fit in bright light, a wider window in dim light; no network",
+                    arg: ArgUse::Optional,
+                    cubes: false,
+                    open: open_lifetime_fit_pooled,
                 },
                 Entry {
                     name: ADMM_NET,
@@ -330,6 +341,28 @@ fn open_lifetime_fit(o: &Opening<'_>) -> Result<NamedDecoder> {
     any_sensor(o, Box::new(crate::fitted::TapFitDecoder::new(opts)?))
 }
 
+/// The default neighbourhood of `lifetime-fit-pooled`.
+pub const POOL_LIKE_SIDE: usize = 11;
+
+fn open_lifetime_fit_pooled(o: &Opening<'_>) -> Result<NamedDecoder> {
+    let mut opts = o.settings.tap_fit.clone();
+    let max = tcsense_fits::range::MAX_WINDOW;
+    opts.pool_like = match o.arg {
+        None => POOL_LIKE_SIDE,
+        Some(n) => {
+            n.parse().ok().filter(|n: &usize| n % 2 == 1 && *n > opts.window && *n <= max).ok_or_else(|| InferError::InvalidParam {
+                field: "decoder",
+                got: o.label.into(),
+                expected: format!(
+                    "lifetime-fit-pooled:N with N an odd neighbourhood side above the window's {} up to {max} pixels",
+                    opts.window
+                ),
+            })?
+        }
+    };
+    any_sensor(o, Box::new(crate::fitted::TapFitDecoder::new(opts)?))
+}
+
 /// A training run of the network `kind` (its ranges fitted in the tap domain or not).
 fn open_run(o: &Opening<'_>, kind: &str, range_fit: bool) -> Result<NamedDecoder> {
     let dir = o.arg.unwrap_or_default();
@@ -383,6 +416,8 @@ mod tests {
         assert_eq!(r.open("tval3", &s, &d).unwrap().decoder.name(), names::TVAL3);
         assert_eq!(r.open("lifetime-fit", &s, &d).unwrap().label, "lifetime-fit");
         assert_eq!(r.open("lifetime-fit:9", &s, &d).unwrap().label, "lifetime-fit:9");
+        assert_eq!(r.open("lifetime-fit-pooled", &s, &d).unwrap().label, "lifetime-fit-pooled");
+        assert_eq!(r.open("lifetime-fit-pooled:15", &s, &d).unwrap().label, "lifetime-fit-pooled:15");
         for bad in [
             "tval3:x",
             "unet",
@@ -393,6 +428,9 @@ mod tests {
             "tval3+fit+fit",
             "lifetime-fit:2",
             "lifetime-fit:0",
+            "lifetime-fit-pooled:3",
+            "lifetime-fit-pooled:12",
+            "lifetime-fit-pooled:999",
         ] {
             assert!(r.open(bad, &s, &d).is_err(), "{bad}");
         }

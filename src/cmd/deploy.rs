@@ -141,6 +141,11 @@ pub struct InferArgs {
     /// Side of the square window of pixels whose costs the fit to the taps sums (odd).
     #[arg(long, requires = "lifetime_fit", default_value_t = 3, value_parser = super::count_in(1, tcsense_fits::range::MAX_WINDOW))]
     window: usize,
+    /// Pool each window with the neighbours of like lifetime within this side (odd, above
+    /// --window; the `lifetime-fit-pooled` decoder): the 3×3 fit in bright light, a wider
+    /// window in dim light.
+    #[arg(long, requires = "lifetime_fit", value_parser = super::count_in(1, tcsense_fits::range::MAX_WINDOW))]
+    pool_like: Option<usize>,
     /// Output directory.
     #[arg(short, long)]
     output: PathBuf,
@@ -216,9 +221,13 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
         if !(products.lifetime || products.intensity || products.phasor) {
             bail!("--lifetime-fit with --products {list}: the fit gives lifetime, intensity and phasor; ask for one of them");
         }
-        let opts =
-            tcsense_fits::lifetime_taps::TapFitOptions { onset_s: a.onset_ns.map(|t| t * 1e-9), window: a.window, ..Default::default() };
-        opts.validate().map_err(|e| anyhow::anyhow!("--lifetime-fit settings (--onset-ns, --window): {e}"))?;
+        let opts = tcsense_fits::lifetime_taps::TapFitOptions {
+            onset_s: a.onset_ns.map(|t| t * 1e-9),
+            window: a.window,
+            pool_like: a.pool_like.unwrap_or(0),
+            ..Default::default()
+        };
+        opts.validate().map_err(|e| anyhow::anyhow!("--lifetime-fit settings (--onset-ns, --window, --pool-like): {e}"))?;
         products.lifetime_fit = Some(opts);
     }
     // a recalibrated sensor matrix, read once: given to the model and checked against the sidecar

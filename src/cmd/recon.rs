@@ -205,7 +205,7 @@ impl ReconstructArgs {
         if entry == names::TVAL3 {
             s.tval3 = self.tval3.options()?;
         }
-        if entry == names::LIFETIME_FIT {
+        if entry == names::LIFETIME_FIT || entry == names::LIFETIME_FIT_POOLED {
             s.tap_fit = self.fit.options()?;
         }
         if entry == names::DEPTH_FIT {

@@ -9,7 +9,6 @@ use ndarray::Array2;
 pub use crate::evidence::{feature_channels, feature_channels_with, Evidence, EvidenceBuffers};
 
 use super::LifetimeCosts;
-use crate::evidence::CostVolume;
 
 /// The evidence of one frame from its costs, its intensity map and the taps per pixel `M`.
 ///
@@ -56,16 +55,6 @@ pub fn evidence_into(
         })
         .collect();
     let sums: Vec<&[f32]> = sums.iter().map(|v| v.as_slice()).collect();
-    let volume = CostVolume {
-        pixel: &costs.pixel,
-        window: &window,
-        lit: &costs.lit,
-        points: g,
-        height: h,
-        width: w,
-        side: costs.window,
-        free_per_pixel: taps.saturating_sub(1),
-        shared: 2,
-    };
+    let volume = costs.volume(&window, taps);
     crate::evidence::evidence_into(&volume, intensity, pool, &sums, buffers)
 }

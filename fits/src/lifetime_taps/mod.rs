@@ -56,6 +56,10 @@ pub struct TapFitOptions {
     pub brightest: usize,
     /// Fit a background (`β`) per pixel.
     pub background: bool,
+    /// Side of the neighbourhood pooled by likeness (0: the window alone): the window's cost
+    /// plus the costs of the neighbours within it, each weighted by how much its window's
+    /// posterior overlaps the pixel's ([`crate::evidence::similarity_pool`]).
+    pub pool_like: usize,
 }
 
 impl Default for TapFitOptions {
@@ -71,6 +75,7 @@ impl Default for TapFitOptions {
             irf_fwhm_s: vec![0.0, 0.5e-9, 1e-9, 1.5e-9, 2e-9],
             brightest: 256,
             background: true,
+            pool_like: 0,
         }
     }
 }
@@ -100,6 +105,12 @@ impl TapFitOptions {
         }
         if self.brightest == 0 {
             return Err("brightest: expected at least 1 pixel".into());
+        }
+        if self.pool_like != 0 && (self.pool_like.is_multiple_of(2) || self.pool_like <= self.window || self.pool_like > MAX_WINDOW) {
+            return Err(format!(
+                "pool_like: {}, expected 0 (the window alone) or an odd side above the window's {} up to {MAX_WINDOW} pixels",
+                self.pool_like, self.window
+            ));
         }
         Ok(())
     }
@@ -219,6 +230,7 @@ pub struct LifetimeTemplates {
     log_tau: (f64, f64),
     instrument: Instrument,
     window: usize,
+    pool_like: usize,
     min_intensity: f32,
     background: bool,
 }
@@ -241,6 +253,7 @@ impl LifetimeTemplates {
             log_tau,
             instrument,
             window: opts.window,
+            pool_like: opts.pool_like,
             min_intensity: opts.min_intensity,
             background: opts.background,
         }
@@ -259,10 +272,45 @@ impl LifetimeTemplates {
     fn fit_normalised(&self, f: Normalised, dims: (usize, usize, usize)) -> TapFit {
         let costs = self.costs_normalised(&f, dims);
         let g = self.points();
+        if self.pool_like > self.window {
+            return self.fit_pooled(f, dims, &costs);
+        }
         self.refine_normalised(f, dims, &costs, |_, total| {
             let best = argmin(total);
             (best > 0 && best + 1 < g).then_some(best)
         })
+    }
+
+    /// [`Self::fit_normalised`] pooled by likeness (`opts.pool_like`): each pixel's best point
+    /// of the grid is the argmin of its pooled cost ([`crate::evidence::similarity_pool`], in
+    /// the frame's nats). Where it is the window's own argmin, the fit's refinement (golden
+    /// sections on the window's cost: its precision in bright light, where a parabola through
+    /// the pooled costs on the grid is biased by a tenth of a nanosecond at long lifetimes);
+    /// elsewhere the parabola through the pooled costs, as the networks on the evidence refine
+    /// a mode that overrules the fit ([`Self::refine_modes`]).
+    fn fit_pooled(&self, f: Normalised, (m, h, w): (usize, usize, usize), costs: &LifetimeCosts) -> TapFit {
+        let g = self.points();
+        let window = costs.window_sums();
+        let volume = costs.volume(&window, m);
+        let nats = 1.0 / (2.0 * crate::evidence::noise_level(&volume));
+        let pooled = crate::evidence::similarity_pool(&volume, nats, self.pool_like, 1.0);
+        let best = |p: usize| Some(argmin(&pooled[p * g..(p + 1) * g])).filter(|&b| b > 0 && b + 1 < g);
+        let (r, weight) = (f.r.clone(), f.weight.clone());
+        let mut fit = self.refine_normalised(f, (m, h, w), costs, |p, total| best(p).filter(|&b| b == argmin(total)));
+        let (bh, bw) = self.block;
+        let (l0, step) = self.log_tau;
+        for ((i, j), t) in fit.lifetime.indexed_iter_mut() {
+            let p = i * w + j;
+            let Some(b) = best(p).filter(|_| t.is_nan() && weight[p] > 0.0) else { continue };
+            let c = &pooled[p * g..(p + 1) * g];
+            let u = b as f64 + crate::engine::parabola_min(c[b - 1] as f64, c[b] as f64, c[b + 1] as f64);
+            *t = (l0 + u * step).exp() as f32;
+            if self.background {
+                let n = subpixel_flat(p, w, (bh, bw));
+                fit.background[(i, j)] = self.fine[n].cost_at(2 * b, &r[p * m..(p + 1) * m], weight[p], true).1;
+            }
+        }
+        fit
     }
 
     /// Points `G` of the lifetime grid.
@@ -448,6 +496,24 @@ pub struct LifetimeCosts {
 }
 
 impl LifetimeCosts {
+    /// These costs as the fit's [`crate::evidence::CostVolume`], with their window sums
+    /// ([`Self::window_sums`]) and the taps per pixel `M`: a window of `n` lit pixels holds
+    /// `n·(M − 1)` numbers about its decay (each pixel's amplitude is its own), two of which the
+    /// lifetime and the background take.
+    pub fn volume<'a>(&'a self, window: &'a [f32], taps: usize) -> crate::evidence::CostVolume<'a> {
+        crate::evidence::CostVolume {
+            pixel: &self.pixel,
+            window,
+            lit: &self.lit,
+            points: self.points,
+            height: self.height,
+            width: self.width,
+            side: self.window,
+            free_per_pixel: taps.saturating_sub(1),
+            shared: 2,
+        }
+    }
+
     /// The cost summed over the window around every pixel, what the fit minimises `[H·W·G]`.
     pub fn window_sums(&self) -> Vec<f32> {
         let (h, w, g) = (self.height, self.width, self.points);
@@ -700,6 +766,46 @@ mod tests {
         assert!((e7.noise / e.noise - 7.0).abs() < 1e-3, "noise level {} against {}", e7.noise, e.noise);
         for (a, b) in e.skip.iter().zip(e7.skip.iter()) {
             assert!((a - b).abs() <= 1e-3 * a.abs().max(1.0), "{a} against {b}");
+        }
+    }
+
+    /// Pooling by likeness: in dim light the pooled fit is below the 3×3 fit's error within a
+    /// region of one lifetime (it pools the region), in bright light it keeps the 3×3 fit's
+    /// precision over the whole frame, the edge between two lifetimes included (where a
+    /// wider window fails); and it validates its side.
+    #[test]
+    fn pooling_by_likeness_pools_dim_regions_and_keeps_bright_edges() {
+        let a = sensor();
+        let (h, w) = (24, 24);
+        let tau = |_: usize, j: usize| if j < 12 { 1.0e-9 } else { 3.0e-9 };
+        let inst = Instrument { onset_s: 7.0e-9, irf_fwhm_s: 0.0 };
+        let clean = taps(&a, h, w, &tau, inst.onset_s, inst.irf_fwhm_s, 0.0);
+        // the MAE over columns `cols`
+        let mae = |fit: &TapFit, cols: std::ops::Range<usize>| {
+            let (mut sum, mut n) = (0.0, 0usize);
+            for ((i, j), &v) in fit.lifetime.indexed_iter() {
+                if v.is_finite() && cols.contains(&j) {
+                    sum += (v as f64 - tau(i, j)).abs();
+                    n += 1;
+                }
+            }
+            assert!(n >= h * cols.len() * 9 / 10, "{n} of {} pixels with a lifetime", h * cols.len());
+            sum / n as f64
+        };
+        let fit = |side: usize, pool_like: usize, y: &ndarray::Array3<f32>| {
+            LifetimeTemplates::new(&a, inst, &TapFitOptions { window: side, pool_like, ..Default::default() }).fit(&y.view())
+        };
+        for (photons, seed) in [(20.0, 3), (60.0, 4)] {
+            let dim = noisy(&clean, photons, seed);
+            let (p, q) = (mae(&fit(3, 0, &dim), 0..6), mae(&fit(3, 11, &dim), 0..6));
+            assert!(q < 0.9 * p, "{photons} photons: pooled {q:e} against the 3×3 fit's {p:e}");
+        }
+        let bright = noisy(&clean, 1e4, 5);
+        let (p, q, wide) = (mae(&fit(3, 0, &bright), 0..w), mae(&fit(3, 11, &bright), 0..w), mae(&fit(9, 0, &bright), 0..w));
+        assert!(q < 1.1 * p + 0.005e-9, "bright: pooled {q:e} against the 3×3 fit's {p:e}");
+        assert!(wide > 1.5 * p, "bright: the 9×9 window {wide:e} against the 3×3 fit's {p:e}");
+        for bad in [3, 4, 1001] {
+            assert!(TapFitOptions { pool_like: bad, ..Default::default() }.validate().is_err(), "{bad}");
         }
     }
 
