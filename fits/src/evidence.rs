@@ -115,11 +115,26 @@ pub fn evidence_with(costs: &CostVolume<'_>, intensity: &Array2<f32>, pool: usiz
 /// # Shapes
 /// - as [`evidence_with`]
 pub fn evidence_into(costs: &CostVolume<'_>, intensity: &Array2<f32>, pool: usize, wider: &[&[f32]], buffers: EvidenceBuffers) -> Evidence {
+    evidence_at_noise(costs, noise_level(costs), intensity, pool, wider, buffers)
+}
+
+/// [`evidence_into`] at a noise level found elsewhere (the fit's window's, for costs pooled by
+/// likeness, [`similarity_pool`], whose degrees of freedom are not a window's).
+///
+/// # Shapes
+/// - as [`evidence_with`]
+pub fn evidence_at_noise(
+    costs: &CostVolume<'_>,
+    noise: f32,
+    intensity: &Array2<f32>,
+    pool: usize,
+    wider: &[&[f32]],
+    buffers: EvidenceBuffers,
+) -> Evidence {
     let (g, h, w) = (costs.points, costs.height, costs.width);
     let pool = pool.max(1);
     let window = costs.window;
     let lit = costs.lit;
-    let noise = noise_level(costs);
     let nats = 1.0 / (2.0 * noise);
     let channels = feature_channels_with(g, pool, wider.len());
     let pooled = g.div_ceil(pool);

@@ -85,6 +85,12 @@ pub struct LifetimeNetConfig {
     /// runs written before them).
     #[config(default = "Vec::new()")]
     pub windows: Vec<usize>,
+    /// Side of the neighbourhood over which the fit's window's log-likelihood is pooled with
+    /// the neighbours of like lifetime before the prior is added (0: the window alone;
+    /// [`tcsense_fits::evidence::similarity_pool`], [`LifetimeInput::Costs`]; 0 in runs
+    /// written before it).
+    #[config(default = 0)]
+    pub pool_like: usize,
 }
 
 /// What the lifetime decoder reads from the taps (see the module documentation).
@@ -114,6 +120,8 @@ pub struct LifetimeNet {
     pool: usize,
     /// Sides of the wider windows of the fit's evidence.
     windows: Vec<usize>,
+    /// Side of the neighbourhood the evidence is pooled over by likeness (0: none).
+    pool_like: usize,
 }
 
 impl LifetimeNetConfig {
@@ -174,6 +182,7 @@ impl LifetimeNetConfig {
             points: if costs { self.points } else { 0 },
             pool: self.pool,
             windows: if costs { self.windows.clone() } else { Vec::new() },
+            pool_like: if costs { self.pool_like } else { 0 },
         }
     }
 
@@ -223,6 +232,16 @@ impl LifetimeNetConfig {
                 ));
             }
             last = side;
+        }
+        let max = tcsense_fits::range::MAX_WINDOW;
+        if self.pool_like != 0 && (self.pool_like % 2 == 0 || self.pool_like <= fit || self.pool_like > max) {
+            return Err(format!(
+                "pool_like: {}, expected 0 (the window alone) or an odd side above the fit's {fit} up to {max}",
+                self.pool_like
+            ));
+        }
+        if self.pool_like != 0 && self.input != LifetimeInput::Costs {
+            return Err(format!("pool_like: {} with the harmonics input, expected the fit's evidence (input costs)", self.pool_like));
         }
         if !self.windows.is_empty() && self.input != LifetimeInput::Costs {
             return Err(format!("windows: {:?} with the harmonics input, expected the fit's evidence (input costs)", self.windows));
@@ -339,6 +358,11 @@ impl LifetimeNet {
         &self.windows
     }
 
+    /// Side of the neighbourhood the fit's evidence is pooled over by likeness (0: none).
+    pub fn pool_like(&self) -> usize {
+        self.pool_like
+    }
+
     /// Points `G` of the lifetime grid and the points pooled per feature channel.
     pub fn grid_points(&self) -> (usize, usize) {
         (self.points, self.pool)
@@ -354,7 +378,13 @@ impl LifetimeNet {
     /// (no intensity floor: the network decides), the instrument fitted to the frame.
     pub fn fit_options(&self) -> TapFitOptions {
         let [lo, hi] = self.tau_range_ns;
-        TapFitOptions { tau_range_s: [lo * 1e-9, hi * 1e-9], points: self.points, min_intensity: 0.0, ..Default::default() }
+        TapFitOptions {
+            tau_range_s: [lo * 1e-9, hi * 1e-9],
+            points: self.points,
+            min_intensity: 0.0,
+            pool_like: self.pool_like,
+            ..Default::default()
+        }
     }
 
     /// The fit's evidence of every frame of a batch, on the CPU (no gradient reaches `y`).
@@ -400,7 +430,7 @@ impl LifetimeNet {
     /// - `y`: `[B, M, H, W]` → features `[B, F, H, W]`, skip `[B, G, H, W]`
     pub fn evidence_with_gradient(&self, y: Tensor<4>, sensor: &SensorTensors) -> (Tensor<4>, Tensor<4>) {
         // (training refuses to learn codes for a network with wider windows: TrainConfig::validate)
-        debug_assert!(self.windows.is_empty(), "the evidence's differentiable copy has the fit's window only");
+        debug_assert!(self.windows.is_empty() && self.pool_like == 0, "the evidence's differentiable copy has the fit's window only");
         let b = y.dims()[0];
         let device = y.device();
         let (features, skip, frames) = self.evidence_frames(y.clone().detach(), sensor);
@@ -757,6 +787,57 @@ mod tests {
         );
         let u: f32 = LifetimeNet::mode(logits).into_scalar();
         assert!((u - 2.3).abs() < 1e-5, "{u}");
+    }
+
+    /// Pooled by likeness (`pool_like`), the network's log-likelihood is the fit's window's
+    /// pooled with its neighbours ([`tcsense_fits::evidence::similarity_pool`] at the window's
+    /// noise level), 0 at its argmin; its features are the fit's own; the setting is checked.
+    #[test]
+    fn pooled_by_likeness_the_evidence_is_the_pooled_fit() {
+        use tcsense_sensor::waveform::{decay_bin_averages, Cycle};
+        let device = Device::flex();
+        let a = crate::evidence_tensors::testing::prototype_flim_matrix();
+        let (h, w, t) = (8, 8, a.bins());
+        let c = Cycle::new(t, a.bin_width_s());
+        let curves = [decay_bin_averages(c, 1.0e-9, 5e-9), decay_bin_averages(c, 3.0e-9, 5e-9)];
+        let x: Vec<f32> = (0..t * h * w).map(|i| (50.0 * curves[((i % w) >= 4) as usize][i / (h * w)]) as f32).collect();
+        let st = SensorTensors::new(&a, h, w, &device).unwrap();
+        let y = st.forward(Tensor::<4>::from_data(TensorData::new(x, [1, t, h, w]), &device));
+        let cfg = LifetimeNetConfig::new(4, t).with_base_width(4).with_levels(2).with_input(LifetimeInput::Costs).with_points(32);
+        for bad in [2, 3, 6, 999] {
+            assert!(cfg.clone().with_pool_like(bad).validate().is_err(), "{bad}");
+        }
+        assert!(LifetimeNetConfig::new(4, t).with_pool_like(7).validate().is_err(), "pooled harmonics");
+        let (plain, pooled) = (cfg.init(&device), cfg.clone().with_pool_like(7).init(&device));
+        assert_eq!(pooled.pool_like(), 7);
+        let (f0, s0) = plain.evidence(y.clone(), &st);
+        let (f1, s1) = pooled.evidence(y.clone(), &st);
+        let v = |x: Tensor<4>| -> Vec<f32> { x.into_data().try_into_vec().unwrap() };
+        assert_eq!(v(f0), v(f1), "the same features");
+        // the pooled log-likelihood by hand
+        let yv: Vec<f32> = y.into_data().try_into_vec().unwrap();
+        let ya = ndarray::ArrayView3::from_shape((4, h, w), &yv).unwrap();
+        let opts = plain.fit_options();
+        let templates = frame_templates(&ya, &st.matrix, &opts);
+        let costs = templates.costs(&ya);
+        let window = costs.window_sums();
+        let volume = costs.volume(&window, 4);
+        let noise = tcsense_fits::evidence::noise_level(&volume);
+        let want = tcsense_fits::evidence::similarity_pool(&volume, 1.0 / (2.0 * noise), 7, 1.0);
+        let (s0, s1) = (v(s0), v(s1));
+        let g = 32;
+        let mut differ = 0;
+        for p in (0..h * w).filter(|&p| costs.lit[p]) {
+            let col = &want[p * g..(p + 1) * g];
+            let least = col.iter().fold(f32::INFINITY, |a, &b| a.min(b));
+            for k in 0..g {
+                let expect = -(col[k] - least) / (2.0 * noise);
+                let got = s1[k * h * w + p];
+                assert!((got - expect).abs() <= 1e-4 * expect.abs().max(1.0), "pixel {p}, point {k}: {got} against {expect}");
+                differ += (s0[k * h * w + p] - got).abs().gt(&1e-3) as usize;
+            }
+        }
+        assert!(differ > 0, "pooling changed nothing");
     }
 
     #[test]

@@ -293,6 +293,8 @@ pub fn upgrade_config(mut v: serde_json::Value) -> serde_json::Value {
                 model.entry("pool").or_insert(serde_json::Value::from(2));
                 // and before the wider windows of the evidence
                 model.entry("windows").or_insert(serde_json::Value::Array(Vec::new()));
+                // and before the evidence pooled by likeness
+                model.entry("pool_like").or_insert(serde_json::Value::from(0));
             }
         }
     }

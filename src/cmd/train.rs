@@ -70,6 +70,11 @@ pub struct LifetimeArgs {
     /// [default: none].
     #[arg(long, value_delimiter = ',', num_args = 1.., value_parser = super::count_in(1, 63))]
     windows: Option<Vec<usize>>,
+    /// With `--input costs`: pool the fit's 3×3 window's log-likelihood with the neighbours of
+    /// like lifetime within this side (odd, above 3, e.g. 11) before the learned prior is
+    /// added, as `lifetime-fit-pooled` does: the untrained network is that fit [default: none].
+    #[arg(long, value_parser = super::count_in(1, 63))]
+    pool_like: Option<usize>,
     /// What the network reads: `harmonics` of Aᵀy turned by the frame's own phase, or `costs`,
     /// the fit to the taps' log-likelihood of every lifetime of a log grid (the instrument
     /// fitted to the frame), to which it adds a learned log-prior [default: harmonics].
@@ -417,8 +422,8 @@ impl TrainArgs {
             }
             NetArgs::Lifetime(n) => {
                 req.decoder = "lifetime".into();
-                (req.harmonics, req.base_width, req.levels, req.input, req.points, req.windows) =
-                    (n.harmonics, n.base_width, n.levels, n.input.and_then(name_of), n.points, n.windows.clone());
+                (req.harmonics, req.base_width, req.levels, req.input, req.points, req.windows, req.pool_like) =
+                    (n.harmonics, n.base_width, n.levels, n.input.and_then(name_of), n.points, n.windows.clone(), n.pool_like);
             }
         }
         Ok(req)

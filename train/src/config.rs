@@ -161,14 +161,19 @@ impl TrainConfig {
                 "lifetime decoder: {}, U-Net base width {}, {} levels, M = {}, T = {}, {:.2} GFLOP per 188x212 frame",
                 match m.input {
                     tcsense_models::LifetimeInput::Harmonics => format!("{} harmonics", m.harmonics),
-                    tcsense_models::LifetimeInput::Costs => format!(
-                        "the fit's evidence on {} lifetimes {}–{} ns (pooled by {}){}",
-                        m.points,
-                        m.tau_range_ns[0],
-                        m.tau_range_ns[1],
-                        m.pool,
-                        if m.windows.is_empty() { String::new() } else { format!(" with wider windows {:?}", m.windows) }
-                    ),
+                    tcsense_models::LifetimeInput::Costs =>
+                        format!(
+                            "the fit's evidence on {} lifetimes {}–{} ns (pooled by {}){}",
+                            m.points,
+                            m.tau_range_ns[0],
+                            m.tau_range_ns[1],
+                            m.pool,
+                            if m.windows.is_empty() { String::new() } else { format!(" with wider windows {:?}", m.windows) }
+                        ) + &if m.pool_like == 0 {
+                            String::new()
+                        } else {
+                            format!(", its window pooled by likeness over {0}×{0}", m.pool_like)
+                        },
                 },
                 m.base_width,
                 m.levels,
@@ -336,6 +341,13 @@ impl TrainConfig {
         if let Some(lc) = &self.learn_codes {
             lc.validate(self.epochs)?;
             if let ModelConfig::Lifetime(c) = &self.run.model {
+                if c.pool_like != 0 {
+                    return bad(
+                        "learn_codes",
+                        format!("a lifetime network pooled by likeness over {0}×{0}", c.pool_like),
+                        "the fit's own window only: the evidence's differentiable copy does not pool by likeness yet",
+                    );
+                }
                 if !c.windows.is_empty() {
                     return bad(
                         "learn_codes",

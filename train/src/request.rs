@@ -59,6 +59,9 @@ pub struct TrainRequest {
     pub points: Option<usize>,
     /// Lifetime decoder on the fit's evidence: sides of the wider windows (`[5, 9, 15]`).
     pub windows: Option<Vec<usize>>,
+    /// Lifetime decoder on the fit's evidence: the side of the neighbourhood its window's
+    /// log-likelihood is pooled over by likeness.
+    pub pool_like: Option<usize>,
     pub epochs: Option<usize>,
     pub lr: Option<f64>,
     /// `cosine` or `constant`.
@@ -157,6 +160,7 @@ impl TrainRequest {
             harmonics: self.harmonics,
             points: self.points,
             windows: self.windows.clone(),
+            pool_like: self.pool_like,
             lifetime_input,
         })
     }

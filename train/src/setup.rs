@@ -45,6 +45,9 @@ pub struct Architecture {
     pub points: Option<usize>,
     /// Lifetime decoder on the fit's evidence: sides of the wider windows.
     pub windows: Option<Vec<usize>>,
+    /// Lifetime decoder on the fit's evidence: the side of the neighbourhood pooled by
+    /// likeness.
+    pub pool_like: Option<usize>,
     /// Lifetime decoder: what the network reads.
     pub lifetime_input: Option<LifetimeInput>,
 }
@@ -76,6 +79,7 @@ impl Architecture {
         put("harmonics", self.harmonics.map(|v| s(&v)), l.map(|c| s(&c.harmonics)));
         put("points", self.points.map(|v| s(&v)), l.map(|c| s(&c.points)));
         put("windows", self.windows.as_ref().map(|v| s(v)), l.map(|c| s(&c.windows)));
+        put("pool_like", self.pool_like.map(|v| s(&v)), l.map(|c| s(&c.pool_like)));
         put("input", self.lifetime_input.map(|v| s(&v)), l.map(|c| s(&c.input)));
         out
     }
@@ -107,6 +111,7 @@ impl Architecture {
                 c.harmonics = self.harmonics.unwrap_or(c.harmonics);
                 c.points = self.points.unwrap_or(c.points);
                 c.windows = self.windows.clone().unwrap_or_else(|| c.windows.clone());
+                c.pool_like = self.pool_like.unwrap_or(c.pool_like);
                 c.input = self.lifetime_input.unwrap_or(c.input);
                 c.base_width = self.base_width.unwrap_or(c.base_width);
                 c.levels = self.levels.unwrap_or(c.levels);

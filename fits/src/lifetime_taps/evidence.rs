@@ -2,7 +2,9 @@
 //! `LifetimeInput::Costs`): [`crate::evidence`] on the costs of [`LifetimeTemplates::costs`],
 //! which are squared residuals times the charge. A window of `n` lit pixels of `M` taps holds
 //! `n·(M − 1)` numbers about its decay (each pixel's amplitude is its own), two of which the
-//! lifetime and the background take.
+//! lifetime and the background take. Templates pooled by likeness (`TapFitOptions::pool_like`)
+//! give the window's log-likelihood pooled with the neighbours of like lifetime
+//! ([`crate::evidence::similarity_pool`]) in its place, in the window's nats.
 
 use ndarray::Array2;
 
@@ -56,5 +58,11 @@ pub fn evidence_into(
         .collect();
     let sums: Vec<&[f32]> = sums.iter().map(|v| v.as_slice()).collect();
     let volume = costs.volume(&window, taps);
-    crate::evidence::evidence_into(&volume, intensity, pool, &sums, buffers)
+    let noise = crate::evidence::noise_level(&volume);
+    if costs.pool_like > costs.window {
+        // the window's log-likelihood pooled by likeness, in the window's nats
+        let pooled = crate::evidence::similarity_pool(&volume, 1.0 / (2.0 * noise), costs.pool_like, 1.0);
+        return crate::evidence::evidence_at_noise(&costs.volume(&pooled, taps), noise, intensity, pool, &sums, buffers);
+    }
+    crate::evidence::evidence_at_noise(&volume, noise, intensity, pool, &sums, buffers)
 }

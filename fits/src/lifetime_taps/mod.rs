@@ -402,7 +402,7 @@ impl LifetimeTemplates {
         let lit: Vec<bool> = weight.iter().map(|&v| v > 0.0).collect();
         let mut rows = Vec::new();
         window_rows(&pixel, &lit, (h, w), g, self.window, &mut rows);
-        LifetimeCosts { pixel, rows, lit, points: g, height: h, width: w, window: self.window }
+        LifetimeCosts { pixel, rows, lit, points: g, height: h, width: w, window: self.window, pool_like: self.pool_like }
     }
 
     /// The refinement of every pixel around the point of the grid `choose(p, window's cost)`
@@ -493,6 +493,9 @@ pub struct LifetimeCosts {
     pub height: usize,
     pub width: usize,
     pub window: usize,
+    /// The side of the neighbourhood the templates pool by likeness (0: none), which
+    /// [`evidence::evidence`] pools the window's costs over.
+    pub pool_like: usize,
 }
 
 impl LifetimeCosts {

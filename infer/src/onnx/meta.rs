@@ -92,6 +92,14 @@ pub struct EvidenceNote {
     /// (none in models exported before them).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub windows: Vec<usize>,
+    /// Side of the neighbourhood the fit's window's log-likelihood is pooled over by likeness
+    /// before the graph (0: none, as in models exported before it).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub pool_like: usize,
+}
+
+fn is_zero(v: &usize) -> bool {
+    *v == 0
 }
 
 impl EvidenceNote {
@@ -111,6 +119,7 @@ impl EvidenceNote {
             tau_range_s: [lo * 1e-9, hi * 1e-9],
             points: self.points,
             min_intensity: 0.0,
+            pool_like: self.pool_like,
             ..Default::default()
         }
     }
@@ -182,9 +191,13 @@ impl OnnxMeta {
                 .filter(|_| run.spec.model.reads_evidence())
                 .map(|c| CorrectionMaps { dark: c.dark.iter().copied().collect(), gain: c.gain.iter().copied().collect() }),
             evidence: match &run.spec.model {
-                ModelConfig::Lifetime(c) if c.input == tcsense_models::LifetimeInput::Costs => {
-                    Some(EvidenceNote { points: c.points, pool: c.pool, tau_range_ns: c.tau_range_ns, windows: c.windows.clone() })
-                }
+                ModelConfig::Lifetime(c) if c.input == tcsense_models::LifetimeInput::Costs => Some(EvidenceNote {
+                    points: c.points,
+                    pool: c.pool,
+                    tau_range_ns: c.tau_range_ns,
+                    windows: c.windows.clone(),
+                    pool_like: c.pool_like,
+                }),
                 _ => None,
             },
             range_evidence: match &run.spec.model {
@@ -338,7 +351,7 @@ impl OnnxMeta {
                 return Err(err(
                     "evidence",
                     format!(
-                        "{e:?}: expected a lifetime decoder's grid of 3–1024 points over 0 < lo < hi ns, a pool of 1 to points, wider windows of increasing odd sides up to {}",
+                        "{e:?}: expected a lifetime decoder's grid of 3–1024 points over 0 < lo < hi ns, a pool of 1 to points, wider windows of increasing odd sides up to {}, a neighbourhood pooled by likeness of 0 or an odd side above 3",
                         tcsense_fits::range::MAX_WINDOW
                     ),
                 ));
