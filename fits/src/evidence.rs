@@ -226,24 +226,26 @@ pub fn noise_level(costs: &CostVolume<'_>) -> f32 {
     median(&mut per_dof).filter(|v| *v > 0.0 && v.is_finite()).unwrap_or(1.0)
 }
 
-/// The costs pooled over pixels of like evidence: every pixel's window's cost, plus the own
-/// cost of each lit pixel `q` of the `side × side` neighbourhood beyond the window, weighted by
-/// how much the two windows' posteriors overlap (their Bhattacharyya coefficient to the power
-/// `κ`):
+/// The costs pooled over windows of like evidence: every pixel's window's cost, plus the
+/// window costs of the neighbouring windows that tile its `side × side` neighbourhood (their
+/// centres a window's side apart, so that no pixel is counted twice), each weighted by how
+/// much its posterior overlaps the pixel's window's (their Bhattacharyya coefficient):
 ///
 /// ```text
-/// P_p = C_win,p + Σ_{q ∈ N_side(p) ∖ N_win(p)} BC(π_p, π_q)^κ · c_q,   π_p = softmax(−Ĉ_win,p · nats)
+/// P_p = C_win,p + Σ_{q = p + s·(a, b), 0 < max(|a|, |b|) ≤ k} BC(π_p, π_q) · C_win,q,
+/// π_p = softmax(−Ĉ_win,p · nats),   s the window's side,  side = (2k + 1)·s
 /// ```
 ///
-/// In bright light the posteriors are sharp and a neighbour of another lifetime weighs
-/// nothing (the fit's window alone); in dim light, or across a cell of one lifetime, they
-/// overlap and the neighbourhood pools as a wider window would.
+/// In bright light the posteriors are sharp and a neighbouring window of another lifetime
+/// weighs nothing (the fit's window alone); in dim light, or across a cell of one lifetime,
+/// they overlap and the neighbourhood pools as a window of `side` would. `side` is an odd
+/// multiple of the window's (9 or 15 for a 3×3 window: 8 or 24 neighbouring windows).
 ///
 /// # Shapes
 /// - `costs`: of `[H·W·G]` → `[H·W·G]` (0 where unlit)
-pub fn similarity_pool(costs: &CostVolume<'_>, nats: f32, side: usize, kappa: f32) -> Vec<f32> {
+pub fn similarity_pool(costs: &CostVolume<'_>, nats: f32, side: usize) -> Vec<f32> {
     let (g, h, w) = (costs.points, costs.height, costs.width);
-    let (window, lit, pixel) = (costs.window, costs.lit, costs.pixel);
+    let (window, lit) = (costs.window, costs.lit);
     // √π of every lit pixel's window posterior
     let mut roots = vec![0f32; h * w * g];
     roots.par_chunks_mut(g).enumerate().for_each(|(p, root)| {
@@ -260,7 +262,8 @@ pub fn similarity_pool(costs: &CostVolume<'_>, nats: f32, side: usize, kappa: f3
         let scale = 1.0 / total;
         root.iter_mut().for_each(|o| *o = (*o * scale).sqrt());
     });
-    let (outer, inner) = (side / 2, costs.side / 2);
+    let step = costs.side.max(1) as isize;
+    let k = (side / costs.side.max(1) / 2) as isize;
     let mut out = vec![0f32; h * w * g];
     out.par_chunks_mut(w * g).enumerate().for_each(|(i, row)| {
         for j in 0..w {
@@ -271,22 +274,39 @@ pub fn similarity_pool(costs: &CostVolume<'_>, nats: f32, side: usize, kappa: f3
             }
             o.copy_from_slice(&window[p * g..(p + 1) * g]);
             let rp = &roots[p * g..(p + 1) * g];
-            for ii in i.saturating_sub(outer)..(i + outer + 1).min(h) {
-                for jj in j.saturating_sub(outer)..(j + outer + 1).min(w) {
-                    let q = ii * w + jj;
-                    if !lit[q] || (ii.abs_diff(i) <= inner && jj.abs_diff(j) <= inner) {
+            for a in -k..=k {
+                for b in -k..=k {
+                    let (ii, jj) = (i as isize + a * step, j as isize + b * step);
+                    if (a == 0 && b == 0) || ii < 0 || jj < 0 || ii >= h as isize || jj >= w as isize {
                         continue;
                     }
-                    let bc: f32 = rp.iter().zip(&roots[q * g..(q + 1) * g]).map(|(a, b)| a * b).sum();
-                    let weight = bc.min(1.0).powf(kappa);
+                    let q = ii as usize * w + jj as usize;
+                    if !lit[q] {
+                        continue;
+                    }
+                    let weight = overlap(rp, &roots[q * g..(q + 1) * g]).min(1.0);
                     if weight > 1e-3 {
-                        o.iter_mut().zip(&pixel[q * g..(q + 1) * g]).for_each(|(a, b)| *a += weight * b);
+                        o.iter_mut().zip(&window[q * g..(q + 1) * g]).for_each(|(x, y)| *x += weight * y);
                     }
                 }
             }
         }
     });
     out
+}
+
+/// `Σ a·b` over eight lanes (vectorised), then the lanes' sum.
+#[inline]
+fn overlap(a: &[f32], b: &[f32]) -> f32 {
+    let mut lanes = [0f32; 8];
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let tail: f32 = ca.remainder().iter().zip(cb.remainder()).map(|(x, y)| x * y).sum();
+    for (x, y) in ca.zip(cb) {
+        for k in 0..8 {
+            lanes[k] += x[k] * y[k];
+        }
+    }
+    lanes.iter().sum::<f32>() + tail
 }
 
 /// `x.exp()` with the arguments whose exponential rounds to 0 in f32 (below −104: under half
@@ -324,6 +344,67 @@ mod tests {
             assert_eq!(underflowing_exp(x).to_bits(), x.exp().to_bits(), "at {x}");
         }
         assert_eq!(underflowing_exp(f32::NEG_INFINITY), 0.0);
+    }
+
+    /// The pool is its definition, computed plainly: the window's cost plus each lit
+    /// neighbouring window a window's side apart times the overlap of the posteriors; a window
+    /// whose posterior shares nothing with the pixel's adds nothing.
+    #[test]
+    fn the_similarity_pool_is_its_definition() {
+        let (h, w, g) = (11, 13, 10);
+        let value = |p: usize, k: usize, salt: usize| ((p * 31 + k * 7 + salt * 13) % 17) as f32 * 0.25;
+        let pixel: Vec<f32> = (0..h * w * g).map(|i| value(i / g, i % g, 1)).collect();
+        // (window 70 puts its posterior on the last points, where no one else's is)
+        let lone = 70;
+        let window: Vec<f32> = (0..h * w * g)
+            .map(|i| match (i / g == lone, i % g >= 8) {
+                (true, true) => 0.0,
+                (false, true) | (true, false) => 500.0,
+                (false, false) => 3.0 * value(i / g, i % g, 2),
+            })
+            .collect();
+        let lit: Vec<bool> = (0..h * w).map(|p| p % 6 != 2).collect();
+        let volume =
+            CostVolume { pixel: &pixel, window: &window, lit: &lit, points: g, height: h, width: w, side: 3, free_per_pixel: 3, shared: 2 };
+        let nats = 0.4;
+        let got = similarity_pool(&volume, nats, 9);
+        let root = |p: usize| -> Vec<f64> {
+            let win = &window[p * g..(p + 1) * g];
+            let least = win.iter().fold(f32::INFINITY, |a, &b| a.min(b)) as f64;
+            let e: Vec<f64> = win.iter().map(|&c| (-(c as f64 - least) * nats as f64).exp()).collect();
+            let total: f64 = e.iter().sum();
+            e.iter().map(|v| (v / total).sqrt()).collect()
+        };
+        let mut pooled = 0;
+        for i in 0..h {
+            for j in 0..w {
+                let p = i * w + j;
+                let mut want: Vec<f64> = if lit[p] { window[p * g..(p + 1) * g].iter().map(|&v| v as f64).collect() } else { vec![0.0; g] };
+                if lit[p] {
+                    let rp = root(p);
+                    for (a, b) in (-1i64..=1).flat_map(|a| (-1i64..=1).map(move |b| (a, b))).filter(|&d| d != (0, 0)) {
+                        let (ii, jj) = (i as i64 + 3 * a, j as i64 + 3 * b);
+                        if ii < 0 || jj < 0 || ii >= h as i64 || jj >= w as i64 || !lit[ii as usize * w + jj as usize] {
+                            continue;
+                        }
+                        let q = ii as usize * w + jj as usize;
+                        let bc: f64 = rp.iter().zip(root(q)).map(|(a, b)| a * b).sum::<f64>().min(1.0);
+                        if p == lone || q == lone {
+                            assert!(bc < 1e-3, "({i}, {j}) and its neighbour ({ii}, {jj}) share nothing: {bc}");
+                        }
+                        if bc > 1e-3 {
+                            pooled += 1;
+                            want.iter_mut().zip(&window[q * g..(q + 1) * g]).for_each(|(a, &b)| *a += bc * b as f64);
+                        }
+                    }
+                }
+                for k in 0..g {
+                    let x = got[p * g + k] as f64;
+                    assert!((x - want[k]).abs() <= 1e-4 * want[k].abs().max(1.0), "({i}, {j}, {k}): {x} against {}", want[k]);
+                }
+            }
+        }
+        assert!(pooled > 100, "{pooled} neighbouring windows pooled");
     }
 
     /// Evidence written into an earlier frame's buffers (here full of NaN, and of another

@@ -164,7 +164,7 @@ impl Registry {
                 Entry {
                     name: LIFETIME_FIT_POOLED,
                     usage: "lifetime-fit-pooled[:N]",
-                    summary: "the fit to the taps over 3x3 windows, each pooled with the neighbours of like lifetime within NxN pixels (odd, default 11), weighted by how much their posteriors overlap: the 3x3 fit in bright light, a wider window in dim light; no network",
+                    summary: "the fit to the taps over 3x3 windows, each pooled with the neighbouring 3x3 windows that tile NxN pixels (N = 9, 15, 21…, default 15), weighted by how much their posteriors overlap: the 3x3 fit in bright light, a wider window in dim light; no network",
                     arg: ArgUse::Optional,
                     cubes: false,
                     open: open_lifetime_fit_pooled,
@@ -342,23 +342,23 @@ fn open_lifetime_fit(o: &Opening<'_>) -> Result<NamedDecoder> {
 }
 
 /// The default neighbourhood of `lifetime-fit-pooled`.
-pub const POOL_LIKE_SIDE: usize = 11;
+pub const POOL_LIKE_SIDE: usize = 15;
 
 fn open_lifetime_fit_pooled(o: &Opening<'_>) -> Result<NamedDecoder> {
     let mut opts = o.settings.tap_fit.clone();
     let max = tcsense_fits::range::MAX_WINDOW;
     opts.pool_like = match o.arg {
         None => POOL_LIKE_SIDE,
-        Some(n) => {
-            n.parse().ok().filter(|n: &usize| n % 2 == 1 && *n > opts.window && *n <= max).ok_or_else(|| InferError::InvalidParam {
+        Some(n) => n.parse().ok().filter(|&n: &usize| tcsense_fits::lifetime_taps::pooled_side(n, opts.window)).ok_or_else(|| {
+            InferError::InvalidParam {
                 field: "decoder",
                 got: o.label.into(),
                 expected: format!(
-                    "lifetime-fit-pooled:N with N an odd neighbourhood side above the window's {} up to {max} pixels",
+                    "lifetime-fit-pooled:N with N an odd multiple of the window's side {} above it, up to {max} pixels (e.g. 9, 15, 21)",
                     opts.window
                 ),
-            })?
-        }
+            }
+        })?,
     };
     any_sensor(o, Box::new(crate::fitted::TapFitDecoder::new(opts)?))
 }
@@ -417,7 +417,7 @@ mod tests {
         assert_eq!(r.open("lifetime-fit", &s, &d).unwrap().label, "lifetime-fit");
         assert_eq!(r.open("lifetime-fit:9", &s, &d).unwrap().label, "lifetime-fit:9");
         assert_eq!(r.open("lifetime-fit-pooled", &s, &d).unwrap().label, "lifetime-fit-pooled");
-        assert_eq!(r.open("lifetime-fit-pooled:15", &s, &d).unwrap().label, "lifetime-fit-pooled:15");
+        assert_eq!(r.open("lifetime-fit-pooled:9", &s, &d).unwrap().label, "lifetime-fit-pooled:9");
         for bad in [
             "tval3:x",
             "unet",
@@ -430,6 +430,7 @@ mod tests {
             "lifetime-fit:0",
             "lifetime-fit-pooled:3",
             "lifetime-fit-pooled:12",
+            "lifetime-fit-pooled:11",
             "lifetime-fit-pooled:999",
         ] {
             assert!(r.open(bad, &s, &d).is_err(), "{bad}");

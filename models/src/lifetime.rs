@@ -234,9 +234,9 @@ impl LifetimeNetConfig {
             last = side;
         }
         let max = tcsense_fits::range::MAX_WINDOW;
-        if self.pool_like != 0 && (self.pool_like % 2 == 0 || self.pool_like <= fit || self.pool_like > max) {
+        if self.pool_like != 0 && !tcsense_fits::lifetime_taps::pooled_side(self.pool_like, fit) {
             return Err(format!(
-                "pool_like: {}, expected 0 (the window alone) or an odd side above the fit's {fit} up to {max}",
+                "pool_like: {}, expected 0 (the window alone) or an odd multiple of the fit's window {fit} above it, up to {max} (e.g. 9, 15)",
                 self.pool_like
             ));
         }
@@ -804,12 +804,12 @@ mod tests {
         let st = SensorTensors::new(&a, h, w, &device).unwrap();
         let y = st.forward(Tensor::<4>::from_data(TensorData::new(x, [1, t, h, w]), &device));
         let cfg = LifetimeNetConfig::new(4, t).with_base_width(4).with_levels(2).with_input(LifetimeInput::Costs).with_points(32);
-        for bad in [2, 3, 6, 999] {
+        for bad in [2, 3, 6, 7, 12, 999] {
             assert!(cfg.clone().with_pool_like(bad).validate().is_err(), "{bad}");
         }
-        assert!(LifetimeNetConfig::new(4, t).with_pool_like(7).validate().is_err(), "pooled harmonics");
-        let (plain, pooled) = (cfg.init(&device), cfg.clone().with_pool_like(7).init(&device));
-        assert_eq!(pooled.pool_like(), 7);
+        assert!(LifetimeNetConfig::new(4, t).with_pool_like(9).validate().is_err(), "pooled harmonics");
+        let (plain, pooled) = (cfg.init(&device), cfg.clone().with_pool_like(9).init(&device));
+        assert_eq!(pooled.pool_like(), 9);
         let (f0, s0) = plain.evidence(y.clone(), &st);
         let (f1, s1) = pooled.evidence(y.clone(), &st);
         let v = |x: Tensor<4>| -> Vec<f32> { x.into_data().try_into_vec().unwrap() };
@@ -823,7 +823,7 @@ mod tests {
         let window = costs.window_sums();
         let volume = costs.volume(&window, 4);
         let noise = tcsense_fits::evidence::noise_level(&volume);
-        let want = tcsense_fits::evidence::similarity_pool(&volume, 1.0 / (2.0 * noise), 7, 1.0);
+        let want = tcsense_fits::evidence::similarity_pool(&volume, 1.0 / (2.0 * noise), 9);
         let (s0, s1) = (v(s0), v(s1));
         let g = 32;
         let mut differ = 0;

@@ -141,9 +141,9 @@ pub struct InferArgs {
     /// Side of the square window of pixels whose costs the fit to the taps sums (odd).
     #[arg(long, requires = "lifetime_fit", default_value_t = 3, value_parser = super::count_in(1, tcsense_fits::range::MAX_WINDOW))]
     window: usize,
-    /// Pool each window with the neighbours of like lifetime within this side (odd, above
-    /// --window; the `lifetime-fit-pooled` decoder): the 3×3 fit in bright light, a wider
-    /// window in dim light.
+    /// Pool each window with the neighbouring windows of like lifetime that tile this side (an
+    /// odd multiple of --window: 9, 15, 21 for 3×3; the `lifetime-fit-pooled` decoder): the
+    /// 3×3 fit in bright light, a wider window in dim light.
     #[arg(long, requires = "lifetime_fit", value_parser = super::count_in(1, tcsense_fits::range::MAX_WINDOW))]
     pool_like: Option<usize>,
     /// Output directory.

@@ -70,8 +70,8 @@ pub struct LifetimeArgs {
     /// [default: none].
     #[arg(long, value_delimiter = ',', num_args = 1.., value_parser = super::count_in(1, 63))]
     windows: Option<Vec<usize>>,
-    /// With `--input costs`: pool the fit's 3×3 window's log-likelihood with the neighbours of
-    /// like lifetime within this side (odd, above 3, e.g. 11) before the learned prior is
+    /// With `--input costs`: pool the fit's 3×3 window's log-likelihood with the neighbouring
+    /// windows of like lifetime that tile this side (9, 15, 21…) before the learned prior is
     /// added, as `lifetime-fit-pooled` does: the untrained network is that fit [default: none].
     #[arg(long, value_parser = super::count_in(1, 63))]
     pool_like: Option<usize>,

@@ -61,7 +61,7 @@ pub fn evidence_into(
     let noise = crate::evidence::noise_level(&volume);
     if costs.pool_like > costs.window {
         // the window's log-likelihood pooled by likeness, in the window's nats
-        let pooled = crate::evidence::similarity_pool(&volume, 1.0 / (2.0 * noise), costs.pool_like, 1.0);
+        let pooled = crate::evidence::similarity_pool(&volume, 1.0 / (2.0 * noise), costs.pool_like);
         return crate::evidence::evidence_at_noise(&costs.volume(&pooled, taps), noise, intensity, pool, &sums, buffers);
     }
     crate::evidence::evidence_at_noise(&volume, noise, intensity, pool, &sums, buffers)

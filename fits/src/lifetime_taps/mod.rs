@@ -56,9 +56,10 @@ pub struct TapFitOptions {
     pub brightest: usize,
     /// Fit a background (`β`) per pixel.
     pub background: bool,
-    /// Side of the neighbourhood pooled by likeness (0: the window alone): the window's cost
-    /// plus the costs of the neighbours within it, each weighted by how much its window's
-    /// posterior overlaps the pixel's ([`crate::evidence::similarity_pool`]).
+    /// Side of the neighbourhood pooled by likeness (0: the window alone; an odd multiple of
+    /// the window's side): the window's cost plus the costs of the neighbouring windows that
+    /// tile it, each weighted by how much its posterior overlaps the pixel's window's
+    /// ([`crate::evidence::similarity_pool`]).
     pub pool_like: usize,
 }
 
@@ -106,14 +107,23 @@ impl TapFitOptions {
         if self.brightest == 0 {
             return Err("brightest: expected at least 1 pixel".into());
         }
-        if self.pool_like != 0 && (self.pool_like.is_multiple_of(2) || self.pool_like <= self.window || self.pool_like > MAX_WINDOW) {
+        if self.pool_like != 0 && !pooled_side(self.pool_like, self.window) {
             return Err(format!(
-                "pool_like: {}, expected 0 (the window alone) or an odd side above the window's {} up to {MAX_WINDOW} pixels",
-                self.pool_like, self.window
+                "pool_like: {}, expected 0 (the window alone) or an odd multiple of the window's side {} above it, up to {MAX_WINDOW} pixels (e.g. {})",
+                self.pool_like,
+                self.window,
+                3 * self.window
             ));
         }
         Ok(())
     }
+}
+
+/// Whether `side` is a neighbourhood the windows of side `window` tile around a pixel's own
+/// ([`crate::evidence::similarity_pool`]): an odd multiple of it, above it, up to
+/// [`crate::range::MAX_WINDOW`].
+pub fn pooled_side(side: usize, window: usize) -> bool {
+    window > 0 && side > window && side.is_multiple_of(window) && !(side / window).is_multiple_of(2) && side <= crate::range::MAX_WINDOW
 }
 
 /// What [`fit_taps`] gives for one frame.
@@ -293,7 +303,7 @@ impl LifetimeTemplates {
         let window = costs.window_sums();
         let volume = costs.volume(&window, m);
         let nats = 1.0 / (2.0 * crate::evidence::noise_level(&volume));
-        let pooled = crate::evidence::similarity_pool(&volume, nats, self.pool_like, 1.0);
+        let pooled = crate::evidence::similarity_pool(&volume, nats, self.pool_like);
         let best = |p: usize| Some(argmin(&pooled[p * g..(p + 1) * g])).filter(|&b| b > 0 && b + 1 < g);
         let (r, weight) = (f.r.clone(), f.weight.clone());
         let mut fit = self.refine_normalised(f, (m, h, w), costs, |p, total| best(p).filter(|&b| b == argmin(total)));
@@ -779,8 +789,8 @@ mod tests {
     #[test]
     fn pooling_by_likeness_pools_dim_regions_and_keeps_bright_edges() {
         let a = sensor();
-        let (h, w) = (24, 24);
-        let tau = |_: usize, j: usize| if j < 12 { 1.0e-9 } else { 3.0e-9 };
+        let (h, w) = (24, 36);
+        let tau = |_: usize, j: usize| if j < 18 { 1.0e-9 } else { 3.0e-9 };
         let inst = Instrument { onset_s: 7.0e-9, irf_fwhm_s: 0.0 };
         let clean = taps(&a, h, w, &tau, inst.onset_s, inst.irf_fwhm_s, 0.0);
         // the MAE over columns `cols`
@@ -800,14 +810,14 @@ mod tests {
         };
         for (photons, seed) in [(20.0, 3), (60.0, 4)] {
             let dim = noisy(&clean, photons, seed);
-            let (p, q) = (mae(&fit(3, 0, &dim), 0..6), mae(&fit(3, 11, &dim), 0..6));
+            let (p, q) = (mae(&fit(3, 0, &dim), 0..10), mae(&fit(3, 15, &dim), 0..10));
             assert!(q < 0.9 * p, "{photons} photons: pooled {q:e} against the 3×3 fit's {p:e}");
         }
         let bright = noisy(&clean, 1e4, 5);
-        let (p, q, wide) = (mae(&fit(3, 0, &bright), 0..w), mae(&fit(3, 11, &bright), 0..w), mae(&fit(9, 0, &bright), 0..w));
+        let (p, q, wide) = (mae(&fit(3, 0, &bright), 0..w), mae(&fit(3, 15, &bright), 0..w), mae(&fit(9, 0, &bright), 0..w));
         assert!(q < 1.1 * p + 0.005e-9, "bright: pooled {q:e} against the 3×3 fit's {p:e}");
         assert!(wide > 1.5 * p, "bright: the 9×9 window {wide:e} against the 3×3 fit's {p:e}");
-        for bad in [3, 4, 1001] {
+        for bad in [3, 4, 11, 18, 1001] {
             assert!(TapFitOptions { pool_like: bad, ..Default::default() }.validate().is_err(), "{bad}");
         }
     }
