@@ -198,6 +198,20 @@ fn absurd_numbers_are_refused_before_anything_is_allocated() {
         &["infer", "--model", "m.onnx", "--measurements", "y.npy", "--lifetime-fit", "--onset-ns", "1e30", "-o", "out"],
         &["onset", "1 µs"],
     );
+    // the neighbourhood pooled by likeness: an odd multiple of the window, bounded
+    for side in ["11", "12", "100000"] {
+        p.refuse(
+            &["infer", "--model", "m.onnx", "--measurements", "y.npy", "--lifetime-fit", "--pool-like", side, "-o", "out"],
+            &["--pool-like"],
+        );
+    }
+    p.refuse(&["infer", "--model", "m.onnx", "--measurements", "y.npy", "--pool-like", "15", "-o", "out"], &["--lifetime-fit"]);
+    for name in ["lifetime-fit-pooled:4", "lifetime-fit-pooled:x", "lifetime-fit-pooled:99999999999999999999"] {
+        p.refuse(
+            &["reconstruct", name, "--codes", "codes.json", "--heterodyne", "8", "--measurements", "y.npy", "-o", "t.npy"],
+            &["lifetime-fit-pooled:N", "odd multiple"],
+        );
+    }
     // threads, budgets, scenes, epochs
     p.refuse(&["--threads", "100000", "zoo", "list"], &["--threads", "256"]);
     p.refuse(&["--threads", "0", "zoo", "list"], &["--threads"]);
