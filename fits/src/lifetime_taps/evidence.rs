@@ -57,12 +57,10 @@ pub fn evidence_into(
         })
         .collect();
     let sums: Vec<&[f32]> = sums.iter().map(|v| v.as_slice()).collect();
-    let volume = costs.volume(&window, taps);
-    let noise = crate::evidence::noise_level(&volume);
     if costs.pool_like > costs.window {
         // the window's log-likelihood pooled by likeness, in the window's nats
-        let pooled = crate::evidence::similarity_pool(&volume, 1.0 / (2.0 * noise), costs.pool_like);
+        let (pooled, noise) = costs.pooled_by_likeness(&window, taps);
         return crate::evidence::evidence_at_noise(&costs.volume(&pooled, taps), noise, intensity, pool, &sums, buffers);
     }
-    crate::evidence::evidence_at_noise(&volume, noise, intensity, pool, &sums, buffers)
+    crate::evidence::evidence_into(&costs.volume(&window, taps), intensity, pool, &sums, buffers)
 }

@@ -300,24 +300,32 @@ impl LifetimeTemplates {
     /// a mode that overrules the fit ([`Self::refine_modes`]).
     fn fit_pooled(&self, f: Normalised, (m, h, w): (usize, usize, usize), costs: &LifetimeCosts) -> TapFit {
         let g = self.points();
-        let window = costs.window_sums();
-        let volume = costs.volume(&window, m);
-        let nats = 1.0 / (2.0 * crate::evidence::noise_level(&volume));
-        let pooled = crate::evidence::similarity_pool(&volume, nats, self.pool_like);
-        let best = |p: usize| Some(argmin(&pooled[p * g..(p + 1) * g])).filter(|&b| b > 0 && b + 1 < g);
-        let (r, weight) = (f.r.clone(), f.weight.clone());
-        let mut fit = self.refine_normalised(f, (m, h, w), costs, |p, total| best(p).filter(|&b| b == argmin(total)));
+        let (pooled, _) = costs.pooled_by_likeness(&costs.window_sums(), m);
         let (bh, bw) = self.block;
         let (l0, step) = self.log_tau;
-        for ((i, j), t) in fit.lifetime.indexed_iter_mut() {
-            let p = i * w + j;
-            let Some(b) = best(p).filter(|_| t.is_nan() && weight[p] > 0.0) else { continue };
-            let c = &pooled[p * g..(p + 1) * g];
-            let u = b as f64 + crate::engine::parabola_min(c[b - 1] as f64, c[b] as f64, c[b + 1] as f64);
-            *t = (l0 + u * step).exp() as f32;
-            if self.background {
-                let n = subpixel_flat(p, w, (bh, bw));
-                fit.background[(i, j)] = self.fine[n].cost_at(2 * b, &r[p * m..(p + 1) * m], weight[p], true).1;
+        // every lit pixel's pooled best point (none on an end of the grid) with the parabola's
+        // lifetime there and the pixel's own background share (NaN without a background)
+        let by_pool: Vec<Option<(usize, f32, f32)>> = (0..h * w)
+            .into_par_iter()
+            .map(|p| {
+                let c = &pooled[p * g..(p + 1) * g];
+                let b = argmin(c);
+                (f.weight[p] > 0.0 && b > 0 && b + 1 < g).then(|| {
+                    let u = b as f64 + crate::engine::parabola_min(c[b - 1] as f64, c[b] as f64, c[b + 1] as f64);
+                    let beta = if self.background {
+                        let n = subpixel_flat(p, w, (bh, bw));
+                        self.fine[n].cost_at(2 * b, &f.r[p * m..(p + 1) * m], f.weight[p], true).1
+                    } else {
+                        f32::NAN
+                    };
+                    (b, (l0 + u * step).exp() as f32, beta)
+                })
+            })
+            .collect();
+        let mut fit = self.refine_normalised(f, (m, h, w), costs, |p, total| by_pool[p].map(|(b, _, _)| b).filter(|&b| b == argmin(total)));
+        for ((t, beta), pooled) in fit.lifetime.iter_mut().zip(fit.background.iter_mut()).zip(&by_pool) {
+            if let (true, Some((_, tau, share))) = (t.is_nan(), pooled) {
+                (*t, *beta) = (*tau, *share);
             }
         }
         fit
@@ -525,6 +533,19 @@ impl LifetimeCosts {
             free_per_pixel: taps.saturating_sub(1),
             shared: 2,
         }
+    }
+
+    /// The window's costs (`window`, [`Self::window_sums`]) pooled by likeness over the
+    /// neighbourhood of [`Self::pool_like`] ([`crate::evidence::similarity_pool`]) in the
+    /// window's nats, and that noise level ([`crate::evidence::noise_level`]), for taps per
+    /// pixel `M`.
+    ///
+    /// # Shapes
+    /// - `window`: `[H·W·G]` → `([H·W·G], noise)`
+    pub fn pooled_by_likeness(&self, window: &[f32], taps: usize) -> (Vec<f32>, f32) {
+        let volume = self.volume(window, taps);
+        let noise = crate::evidence::noise_level(&volume);
+        (crate::evidence::similarity_pool(&volume, 1.0 / (2.0 * noise), self.pool_like), noise)
     }
 
     /// The cost summed over the window around every pixel, what the fit minimises `[H·W·G]`.
