@@ -216,8 +216,8 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
     let frows = photon_flim["rows"].as_array().unwrap();
     assert_eq!(
         frows.len(),
-        5 * 4,
-        "the fit and the ADMM-Net on the selected codes, the zoo's evidence network, and one lifetime network on designed and on learned codes"
+        6 * 4,
+        "the fit (3×3 and pooled by likeness) and the ADMM-Net on the selected codes, the zoo's evidence network, and one lifetime network on designed and on learned codes"
     );
     // the FLIm pair: one architecture through each code set (its own codes: not the same numbers)
     let mae = |d: &str, level: f64| ladder_value(frows, d, level, "/lifetime_mae_s");

@@ -92,7 +92,7 @@ pub(super) fn engine(spec: &str) -> &'static str {
         "ONNX Runtime"
     } else if spec == names::TVAL3 {
         "Rust (TVAL3)"
-    } else if spec == names::LIFETIME_FIT || spec == names::DEPTH_FIT {
+    } else if spec == names::LIFETIME_FIT || spec == names::LIFETIME_FIT_POOLED || spec == names::DEPTH_FIT {
         "Rust (fit to the taps)"
     } else {
         "burn (flex)"
@@ -316,6 +316,7 @@ pub(super) fn photon_curves(
         let a = sensor(selected, flim)?;
         let decoders = [
             ("lifetime fit to the taps", names::LIFETIME_FIT.to_string()),
+            ("lifetime fit pooled by likeness", names::LIFETIME_FIT_POOLED.to_string()),
             ("ADMM-Net + reconvolution fit", run_of(names::ADMM_NET, "admm-flim")),
         ];
         let mut rows = ladder(flim, &a, &decoders, flim_items)?;
