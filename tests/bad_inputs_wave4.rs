@@ -212,6 +212,11 @@ fn absurd_numbers_are_refused_before_anything_is_allocated() {
             &["lifetime-fit-pooled:N", "odd multiple"],
         );
     }
+    // the instrument's superpixels: bounded
+    p.refuse(
+        &["train", "lifetime", "--input", "costs", "--dataset", "nods", "--codes", "dcodes.json", "--instrument-blocks", "65", "-o", "r"],
+        &["--instrument-blocks"],
+    );
     // threads, budgets, scenes, epochs
     p.refuse(&["--threads", "100000", "zoo", "list"], &["--threads", "256"]);
     p.refuse(&["--threads", "0", "zoo", "list"], &["--threads"]);

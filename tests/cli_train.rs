@@ -504,6 +504,9 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
     assert!(out.contains("with wider windows [5, 9]"), "{out}");
     let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("evw/config.json")).unwrap()).unwrap();
     assert_eq!(cfg["model"]["windows"], serde_json::json!([5, 9]));
+    // each frame's instrument on superpixels as its photons ask (the runs before it: every pixel)
+    assert_eq!(cfg["model"]["instrument_blocks"], serde_json::json!(0));
+    assert!(out.contains("the instrument on superpixels as the photons ask"), "{out}");
     ok(d, &["reconstruct", "lifetime", "--run", "evw", "--measurements", "y.npy", "-o", "tau-w.npy"]);
     let tau_w = read_npy(&d.join("tau-w.npy")).unwrap();
     ok(d, &["export", "onnx", "--run", "evw", "-o", "evw.onnx"]);
@@ -520,6 +523,8 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
     }
     let args = train(&["--windows", "5", "--epochs", "1"], "bad");
     fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["windows", "--input costs"]);
+    let args = train(&["--instrument-blocks", "2", "--epochs", "1"], "bad");
+    fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["instrument_blocks", "--input costs"]);
     let args = train(&["--input", "costs", "--windows", "5", "--epochs", "2", "--relaxed-epochs", "1", "--learn-codes"], "bad");
     fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["learn_codes", "wider windows"]);
     assert!(!d.join("bad").exists());

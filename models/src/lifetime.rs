@@ -91,6 +91,11 @@ pub struct LifetimeNetConfig {
     /// written before it).
     #[config(default = 0)]
     pub pool_like: usize,
+    /// Side, in blocks of the mosaic, of the superpixels each frame's instrument is fitted on
+    /// (0: chosen from the frame's photons, [`tcsense_fits::lifetime_taps::instrument_side`];
+    /// 1: every pixel, as in runs written before it; [`LifetimeInput::Costs`]).
+    #[config(default = 0)]
+    pub instrument_blocks: usize,
 }
 
 /// What the lifetime decoder reads from the taps (see the module documentation).
@@ -122,6 +127,8 @@ pub struct LifetimeNet {
     windows: Vec<usize>,
     /// Side of the neighbourhood the evidence is pooled over by likeness (0: none).
     pool_like: usize,
+    /// Side of the superpixels of the instrument's fit (0: from the frame's photons).
+    instrument_blocks: usize,
 }
 
 impl LifetimeNetConfig {
@@ -183,6 +190,7 @@ impl LifetimeNetConfig {
             pool: self.pool,
             windows: if costs { self.windows.clone() } else { Vec::new() },
             pool_like: if costs { self.pool_like } else { 0 },
+            instrument_blocks: self.instrument_blocks,
         }
     }
 
@@ -234,6 +242,13 @@ impl LifetimeNetConfig {
             last = side;
         }
         let max = tcsense_fits::range::MAX_WINDOW;
+        let most = tcsense_fits::lifetime_taps::MAX_INSTRUMENT_BLOCKS;
+        if self.instrument_blocks > most {
+            return Err(format!(
+                "instrument_blocks: {}, expected 0 (chosen from each frame's photons) or a superpixel side of 1 to {most} blocks",
+                self.instrument_blocks
+            ));
+        }
         if self.pool_like != 0 && !tcsense_fits::lifetime_taps::pooled_side(self.pool_like, fit) {
             return Err(format!(
                 "pool_like: {}, expected 0 (the window alone) or an odd multiple of the fit's window {fit} above it, up to {max} (e.g. 9, 15)",
@@ -363,6 +378,11 @@ impl LifetimeNet {
         self.pool_like
     }
 
+    /// Side of the superpixels each frame's instrument is fitted on (0: from its photons).
+    pub fn instrument_blocks(&self) -> usize {
+        self.instrument_blocks
+    }
+
     /// Points `G` of the lifetime grid and the points pooled per feature channel.
     pub fn grid_points(&self) -> (usize, usize) {
         (self.points, self.pool)
@@ -383,6 +403,7 @@ impl LifetimeNet {
             points: self.points,
             min_intensity: 0.0,
             pool_like: self.pool_like,
+            instrument_blocks: self.instrument_blocks,
             ..Default::default()
         }
     }

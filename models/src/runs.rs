@@ -295,6 +295,9 @@ pub fn upgrade_config(mut v: serde_json::Value) -> serde_json::Value {
                 model.entry("windows").or_insert(serde_json::Value::Array(Vec::new()));
                 // and before the evidence pooled by likeness
                 model.entry("pool_like").or_insert(serde_json::Value::from(0));
+                // and before the instrument's superpixels: every pixel (the harmonics fit none)
+                let costs = model.get("input").and_then(|i| i.as_str()) == Some("Costs");
+                model.entry("instrument_blocks").or_insert(serde_json::Value::from(if costs { 1 } else { 0 }));
             }
         }
     }

@@ -75,6 +75,11 @@ pub struct LifetimeArgs {
     /// added, as `lifetime-fit-pooled` does: the untrained network is that fit [default: none].
     #[arg(long, value_parser = super::count_in(1, 63))]
     pool_like: Option<usize>,
+    /// With `--input costs`: fit each frame's onset and IRF width on superpixels of this side
+    /// (in blocks of the mosaic; each subpixel type's taps summed over one), 1 for every pixel
+    /// alone [default: 0, chosen from the frame's photons].
+    #[arg(long, value_parser = super::count_in(0, 64))]
+    instrument_blocks: Option<usize>,
     /// What the network reads: `harmonics` of Aᵀy turned by the frame's own phase, or `costs`,
     /// the fit to the taps' log-likelihood of every lifetime of a log grid (the instrument
     /// fitted to the frame), to which it adds a learned log-prior [default: harmonics].
@@ -424,6 +429,7 @@ impl TrainArgs {
                 req.decoder = "lifetime".into();
                 (req.harmonics, req.base_width, req.levels, req.input, req.points, req.windows, req.pool_like) =
                     (n.harmonics, n.base_width, n.levels, n.input.and_then(name_of), n.points, n.windows.clone(), n.pool_like);
+                req.instrument_blocks = n.instrument_blocks;
             }
         }
         Ok(req)

@@ -173,6 +173,10 @@ impl TrainConfig {
                             String::new()
                         } else {
                             format!(", its window pooled by likeness over {0}×{0}", m.pool_like)
+                        } + &match m.instrument_blocks {
+                            0 => ", the instrument on superpixels as the photons ask".to_string(),
+                            1 => ", the instrument on every pixel".to_string(),
+                            s => format!(", the instrument on superpixels of {s}×{s} blocks"),
                         },
                 },
                 m.base_width,

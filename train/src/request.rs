@@ -62,6 +62,9 @@ pub struct TrainRequest {
     /// Lifetime decoder on the fit's evidence: the side of the neighbourhood its window's
     /// log-likelihood is pooled over by likeness.
     pub pool_like: Option<usize>,
+    /// Lifetime decoder on the fit's evidence: the side (in blocks) of the superpixels of each
+    /// frame's instrument (0: from its photons).
+    pub instrument_blocks: Option<usize>,
     pub epochs: Option<usize>,
     pub lr: Option<f64>,
     /// `cosine` or `constant`.
@@ -161,6 +164,7 @@ impl TrainRequest {
             points: self.points,
             windows: self.windows.clone(),
             pool_like: self.pool_like,
+            instrument_blocks: self.instrument_blocks,
             lifetime_input,
         })
     }

@@ -48,6 +48,8 @@ pub struct Architecture {
     /// Lifetime decoder on the fit's evidence: the side of the neighbourhood pooled by
     /// likeness.
     pub pool_like: Option<usize>,
+    /// Lifetime decoder on the fit's evidence: the side of the instrument's superpixels.
+    pub instrument_blocks: Option<usize>,
     /// Lifetime decoder: what the network reads.
     pub lifetime_input: Option<LifetimeInput>,
 }
@@ -80,6 +82,7 @@ impl Architecture {
         put("points", self.points.map(|v| s(&v)), l.map(|c| s(&c.points)));
         put("windows", self.windows.as_ref().map(|v| s(v)), l.map(|c| s(&c.windows)));
         put("pool_like", self.pool_like.map(|v| s(&v)), l.map(|c| s(&c.pool_like)));
+        put("instrument_blocks", self.instrument_blocks.map(|v| s(&v)), l.map(|c| s(&c.instrument_blocks)));
         put("input", self.lifetime_input.map(|v| s(&v)), l.map(|c| s(&c.input)));
         out
     }
@@ -112,6 +115,7 @@ impl Architecture {
                 c.points = self.points.unwrap_or(c.points);
                 c.windows = self.windows.clone().unwrap_or_else(|| c.windows.clone());
                 c.pool_like = self.pool_like.unwrap_or(c.pool_like);
+                c.instrument_blocks = self.instrument_blocks.unwrap_or(c.instrument_blocks);
                 c.input = self.lifetime_input.unwrap_or(c.input);
                 c.base_width = self.base_width.unwrap_or(c.base_width);
                 c.levels = self.levels.unwrap_or(c.levels);
@@ -120,6 +124,13 @@ impl Architecture {
                         field: "points",
                         got: format!("{} with the harmonics input", c.points),
                         expected: "--input costs: the grid is the fit's evidence's".into(),
+                    });
+                }
+                if self.instrument_blocks.is_some() && c.input != LifetimeInput::Costs {
+                    return Err(TrainError::InvalidParam {
+                        field: "instrument_blocks",
+                        got: format!("{} with the harmonics input", c.instrument_blocks),
+                        expected: "--input costs: the instrument is the fit's".into(),
                     });
                 }
                 if self.windows.is_some() && c.input != LifetimeInput::Costs {

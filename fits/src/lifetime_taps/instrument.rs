@@ -2,6 +2,132 @@
 
 use super::*;
 
+/// The largest superpixel side (in blocks of the mosaic) that [`TapFitOptions::instrument_blocks`]
+/// takes.
+pub const MAX_INSTRUMENT_BLOCKS: usize = 64;
+
+/// The photons (as the noise counts them: shot and read noise, and what texture there is) a
+/// superpixel of the instrument's fit is to hold. With fewer, the lifetime fitted to each
+/// (super)pixel along with the frame's onset fits its noise and biases the onset late (by
+/// 0.5–1 ns at 400 e⁻ in the brightest tap, 40 e⁻ of read noise, through
+/// `zoo:lifetime-flim-designed`'s codes: about 10 photons by this count). Chosen on the FLIm
+/// sets of `scripts/ood.sh`: their frames at 0.8 of the full well count about 300–6 700
+/// (every pixel alone), at 0.1 50–500 (1–3 blocks), at 0.02 6–50 (3–4 blocks), at 0.005 3–7
+/// (4 blocks).
+const INSTRUMENT_PHOTONS: f64 = 250.0;
+
+/// The largest side [`instrument_side`] chooses: wider superpixels mix lifetimes, which biases
+/// the IRF's width.
+const AUTO_MAX_BLOCKS: usize = 4;
+
+/// The side (in blocks of the mosaic) of the superpixels the instrument is fitted on, from the
+/// frame's photons: 1 where its brightest pixels hold [`INSTRUMENT_PHOTONS`], else the side
+/// whose superpixels do, up to 4 blocks and half the frame.
+///
+/// The photons come from the frame alone, whatever its units: two neighbouring pixels of one
+/// subpixel type (a block apart) see nearly the same decay, so their normalised taps differ
+/// by shot and read noise, `E Σ_k (r_k − r'_k)² ≈ g·(1/s + 1/s')·Σ_k r̄_k (1 − r̄_k)` for
+/// charges `s = g·N` of `N` photons. Each of the brightest pixels takes the least of that ratio
+/// over its neighbours of its type (an edge between lifetimes, or a texture, counts little);
+/// the gain `g` is the median of those over the brightest pixels, corrected for taking the
+/// least of four, and `N` their median charge over it.
+///
+/// # Shapes
+/// - `r`: `[H·W][M]`, `weight`: `[H·W]` (0 where unlit), as the fit normalises a frame
+pub fn instrument_side(r: &[f32], weight: &[f32], (m, h, w): (usize, usize, usize), (bh, bw): (usize, usize), brightest: usize) -> usize {
+    let most = AUTO_MAX_BLOCKS.min((h / bh.max(1)).min(w / bw.max(1)) / 2).max(1);
+    if most == 1 {
+        return 1;
+    }
+    let mut bright: Vec<usize> = (0..weight.len()).filter(|&p| weight[p] > 0.0).collect();
+    bright.sort_by(|&p, &q| weight[q].total_cmp(&weight[p]).then(p.cmp(&q)));
+    bright.truncate(brightest);
+    let pair = |p: usize, q: usize| -> Option<f64> {
+        let (sp, sq) = (weight[p] as f64, weight[q] as f64);
+        if sq <= 0.0 {
+            return None;
+        }
+        let (rp, rq) = (&r[p * m..(p + 1) * m], &r[q * m..(q + 1) * m]);
+        let (mut d, mut v) = (0f64, 0f64);
+        for (&a, &b) in rp.iter().zip(rq) {
+            let (a, b) = (a as f64, b as f64);
+            let mean = 0.5 * (a + b);
+            d += (a - b) * (a - b);
+            v += mean * (1.0 - mean);
+        }
+        (v > 0.0).then(|| d / ((1.0 / sp + 1.0 / sq) * v))
+    };
+    // each pixel's closest neighbour of its type (a block away: left, right, above, below),
+    // so that an edge between lifetimes or a texture counts little
+    let mut gains: Vec<f64> = bright
+        .iter()
+        .filter_map(|&p| {
+            let (i, j) = (p / w, p % w);
+            [(j + bw < w).then(|| p + bw), (j >= bw).then(|| p - bw), (i + bh < h).then(|| p + bh * w), (i >= bh).then(|| p - bh * w)]
+                .into_iter()
+                .flatten()
+                .filter_map(|q| pair(p, q))
+                .min_by(f64::total_cmp)
+        })
+        .collect();
+    let mut charges: Vec<f64> = bright.iter().map(|&p| weight[p] as f64).collect();
+    let (Some(least), Some(charge)) = (median_f64(&mut gains), median_f64(&mut charges)) else {
+        return 1;
+    };
+    // the median of the least of 4 ratios that are each χ² of M − 1 degrees of freedom over
+    // M − 1 (times the gain): its quantile 1 − 0.5^¼ = 0.159 (z = −0.998), by Wilson–Hilferty
+    let k = m.saturating_sub(1).max(1) as f64;
+    let c = (1.0 - 2.0 / (9.0 * k) - 0.998 * (2.0 / (9.0 * k)).sqrt()).max(0.05).powi(3);
+    let gain = least / c;
+    if !(gain > 0.0 && gain.is_finite()) {
+        return 1;
+    }
+    let photons = charge / gain;
+    ((INSTRUMENT_PHOTONS / photons).sqrt().ceil() as usize).clamp(1, most)
+}
+
+fn median_f64(v: &mut [f64]) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    let k = v.len() / 2;
+    v.select_nth_unstable_by(k, f64::total_cmp);
+    Some(v[k])
+}
+
+/// A normalised frame's superpixels of `side × side` blocks of the mosaic: each subpixel type's
+/// taps summed over a superpixel, normalised by their sum (the last row and column of
+/// superpixels hold what is left of the frame). Superpixel `q` is of type `q mod (bh·bw)`.
+///
+/// # Shapes
+/// - `f`: of `[M, H, W]` → taps `[Q·bh·bw][M]`, sums `[Q·bh·bw]`
+pub(super) fn superpixels(f: &Normalised, (m, h, w): (usize, usize, usize), (bh, bw): (usize, usize), side: usize) -> (Vec<f32>, Vec<f32>) {
+    let (sh, sw) = (side * bh, side * bw);
+    let (nh, nw) = (h.div_ceil(sh), w.div_ceil(sw));
+    let types = bh * bw;
+    let n = nh * nw * types;
+    let mut sums = vec![0f64; n * m];
+    for p in (0..h * w).filter(|&p| f.weight[p] > 0.0) {
+        let (i, j) = (p / w, p % w);
+        let q = ((i / sh) * nw + j / sw) * types + subpixel_flat(p, w, (bh, bw));
+        for k in 0..m {
+            sums[q * m + k] += (f.r[p * m + k] * f.weight[p]) as f64;
+        }
+    }
+    let mut r = vec![0f32; n * m];
+    let mut weight = vec![0f32; n];
+    for q in 0..n {
+        let s: f64 = sums[q * m..(q + 1) * m].iter().sum();
+        if s > 0.0 {
+            weight[q] = s as f32;
+            for k in 0..m {
+                r[q * m + k] = (sums[q * m + k] / s) as f32;
+            }
+        }
+    }
+    (r, weight)
+}
+
 /// The frame's onset and IRF width: the cost of the brightest pixels, each at its best
 /// lifetime of a coarse grid, over every bin of the cycle and every candidate width (the
 /// templates of every shift at once, as a cyclic correlation of the sensor's rows with the

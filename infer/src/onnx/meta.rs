@@ -96,6 +96,14 @@ pub struct EvidenceNote {
     /// before the graph (0: none, as in models exported before it).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub pool_like: usize,
+    /// Side, in blocks of the mosaic, of the superpixels each frame's instrument is fitted on
+    /// (0: chosen from the frame's photons; 1, every pixel, in models exported before it).
+    #[serde(default = "one")]
+    pub instrument_blocks: usize,
+}
+
+fn one() -> usize {
+    1
 }
 
 fn is_zero(v: &usize) -> bool {
@@ -120,6 +128,7 @@ impl EvidenceNote {
             points: self.points,
             min_intensity: 0.0,
             pool_like: self.pool_like,
+            instrument_blocks: self.instrument_blocks,
             ..Default::default()
         }
     }
@@ -197,6 +206,7 @@ impl OnnxMeta {
                     tau_range_ns: c.tau_range_ns,
                     windows: c.windows.clone(),
                     pool_like: c.pool_like,
+                    instrument_blocks: c.instrument_blocks,
                 }),
                 _ => None,
             },
