@@ -139,7 +139,7 @@ pub fn evidence_at_noise(
     let channels = feature_channels_with(g, pool, wider.len());
     let pooled = g.div_ceil(pool);
     let mut lit_intensity: Vec<f32> = (0..h * w).filter(|&p| lit[p]).map(|p| intensity[(p / w, p % w)]).collect();
-    let reference = median(&mut lit_intensity).filter(|v| *v > 0.0).unwrap_or(1.0);
+    let reference = median(&mut lit_intensity, f32::total_cmp).filter(|v| *v > 0.0).unwrap_or(1.0);
     // the log-likelihoods: the fit's window's, then the wider windows'
     let sg = (1 + wider.len()) * g;
     let sized = |mut v: Vec<f32>, n: usize| {
@@ -223,7 +223,7 @@ pub fn noise_level(costs: &CostVolume<'_>) -> f32 {
             })
         })
         .collect();
-    median(&mut per_dof).filter(|v| *v > 0.0 && v.is_finite()).unwrap_or(1.0)
+    median(&mut per_dof, f32::total_cmp).filter(|v| *v > 0.0 && v.is_finite()).unwrap_or(1.0)
 }
 
 /// The costs pooled over windows of like evidence: every pixel's window's cost, plus the
@@ -322,13 +322,13 @@ fn underflowing_exp(x: f32) -> f32 {
     }
 }
 
-/// The median of `v` (reordered), `None` when empty.
-fn median(v: &mut [f32]) -> Option<f32> {
+/// The median of `v` (reordered) in the order `by`, `None` when empty.
+pub(crate) fn median<T: Copy>(v: &mut [T], by: impl FnMut(&T, &T) -> std::cmp::Ordering) -> Option<T> {
     if v.is_empty() {
         return None;
     }
     let mid = v.len() / 2;
-    let (_, m, _) = v.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
+    let (_, m, _) = v.select_nth_unstable_by(mid, by);
     Some(*m)
 }
 

@@ -1,6 +1,7 @@
 //! The frame's onset and IRF width, fitted to its brightest pixels.
 
 use super::*;
+use crate::evidence::median;
 
 /// The largest superpixel side (in blocks of the mosaic) that [`TapFitOptions::instrument_blocks`]
 /// takes.
@@ -35,13 +36,15 @@ const AUTO_MAX_BLOCKS: usize = 4;
 /// # Shapes
 /// - `r`: `[H·W][M]`, `weight`: `[H·W]` (0 where unlit), as the fit normalises a frame
 pub fn instrument_side(r: &[f32], weight: &[f32], (m, h, w): (usize, usize, usize), (bh, bw): (usize, usize), brightest: usize) -> usize {
+    side_of(r, weight, (m, h, w), (bh, bw), &brightest_of(weight, brightest))
+}
+
+/// [`instrument_side`] of the brightest pixels `bright` (as [`brightest_of`] gives them).
+pub(super) fn side_of(r: &[f32], weight: &[f32], (m, h, w): (usize, usize, usize), (bh, bw): (usize, usize), bright: &[usize]) -> usize {
     let most = AUTO_MAX_BLOCKS.min((h / bh.max(1)).min(w / bw.max(1)) / 2).max(1);
     if most == 1 {
         return 1;
     }
-    let mut bright: Vec<usize> = (0..weight.len()).filter(|&p| weight[p] > 0.0).collect();
-    bright.sort_by(|&p, &q| weight[q].total_cmp(&weight[p]).then(p.cmp(&q)));
-    bright.truncate(brightest);
     let pair = |p: usize, q: usize| -> Option<f64> {
         let (sp, sq) = (weight[p] as f64, weight[q] as f64);
         if sq <= 0.0 {
@@ -71,7 +74,8 @@ pub fn instrument_side(r: &[f32], weight: &[f32], (m, h, w): (usize, usize, usiz
         })
         .collect();
     let mut charges: Vec<f64> = bright.iter().map(|&p| weight[p] as f64).collect();
-    let (Some(least), Some(charge)) = (median_f64(&mut gains), median_f64(&mut charges)) else {
+    let by = |a: &f64, b: &f64| a.total_cmp(b);
+    let (Some(least), Some(charge)) = (median(&mut gains, by), median(&mut charges, by)) else {
         return 1;
     };
     // the median of the least of 4 ratios that are each χ² of M − 1 degrees of freedom over
@@ -86,13 +90,12 @@ pub fn instrument_side(r: &[f32], weight: &[f32], (m, h, w): (usize, usize, usiz
     ((INSTRUMENT_PHOTONS / photons).sqrt().ceil() as usize).clamp(1, most)
 }
 
-fn median_f64(v: &mut [f64]) -> Option<f64> {
-    if v.is_empty() {
-        return None;
-    }
-    let k = v.len() / 2;
-    v.select_nth_unstable_by(k, f64::total_cmp);
-    Some(v[k])
+/// The `n` lit (weight above 0) pixels of largest weight, brightest first (ties by index).
+pub(super) fn brightest_of(weight: &[f32], n: usize) -> Vec<usize> {
+    let mut bright: Vec<usize> = (0..weight.len()).filter(|&p| weight[p] > 0.0).collect();
+    bright.sort_by(|&p, &q| weight[q].total_cmp(&weight[p]).then(p.cmp(&q)));
+    bright.truncate(n);
+    bright
 }
 
 /// A normalised frame's superpixels of `side × side` blocks of the mosaic: each subpixel type's
@@ -139,13 +142,10 @@ pub(super) fn instrument(
     opts: &TapFitOptions,
     r: &[f32],
     weight: &[f32],
-    signal: &[usize],
+    bright: &[usize],
     m: usize,
     kind: &(dyn Fn(usize) -> usize + Sync),
 ) -> (f64, f64) {
-    let mut bright = signal.to_vec();
-    bright.sort_by(|&p, &q| weight[q].total_cmp(&weight[p]).then(p.cmp(&q)));
-    bright.truncate(opts.brightest);
     let widths = &opts.irf_fwhm_s;
     if bright.is_empty() {
         return (opts.onset_s.unwrap_or(0.0).rem_euclid(c.period_s), widths[0]);

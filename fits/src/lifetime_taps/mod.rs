@@ -209,18 +209,17 @@ pub fn estimate_instrument(y: &ArrayView3<'_, f32>, a: &MeasurementMatrix, opts:
 fn instrument_of(f: &Normalised, (m, h, w): (usize, usize, usize), a: &MeasurementMatrix, opts: &TapFitOptions) -> Instrument {
     let block = a.block();
     let c = Cycle::new(a.bins(), a.bin_width_s());
+    let bright = brightest_of(&f.weight, opts.brightest);
     let side = match opts.instrument_blocks {
-        0 => instrument_side(&f.r, &f.weight, (m, h, w), block, opts.brightest),
+        0 => side_of(&f.r, &f.weight, (m, h, w), block, &bright),
         s => s,
     };
     let (onset_s, irf_fwhm_s) = if side > 1 {
         let (r, weight) = superpixels(f, (m, h, w), block, side);
         let types = block.0 * block.1;
-        let signal: Vec<usize> = (0..weight.len()).filter(|&q| weight[q] > 0.0).collect();
-        instrument(&a.a(), c, opts, &r, &weight, &signal, m, &|q: usize| q % types)
+        instrument(&a.a(), c, opts, &r, &weight, &brightest_of(&weight, opts.brightest), m, &|q: usize| q % types)
     } else {
-        let signal: Vec<usize> = (0..f.weight.len()).filter(|&p| f.weight[p] > 0.0).collect();
-        instrument(&a.a(), c, opts, &f.r, &f.weight, &signal, m, &|p: usize| subpixel_flat(p, w, block))
+        instrument(&a.a(), c, opts, &f.r, &f.weight, &bright, m, &|p: usize| subpixel_flat(p, w, block))
     };
     Instrument { onset_s, irf_fwhm_s }
 }
