@@ -361,8 +361,9 @@ impl OnnxMeta {
                 return Err(err(
                     "evidence",
                     format!(
-                        "{e:?}: expected a lifetime decoder's grid of 3–1024 points over 0 < lo < hi ns, a pool of 1 to points, wider windows of increasing odd sides up to {}, a neighbourhood pooled by likeness of 0 or an odd side above 3",
-                        tcsense_fits::range::MAX_WINDOW
+                        "{e:?}: expected a lifetime decoder's grid of 3–1024 points over 0 < lo < hi ns, a pool of 1 to points, wider windows of increasing odd sides up to {}, a neighbourhood pooled by likeness of 0 or an odd side above 3, the instrument's superpixels of 0 to {} blocks",
+                        tcsense_fits::range::MAX_WINDOW,
+                        tcsense_fits::lifetime_taps::MAX_INSTRUMENT_BLOCKS
                     ),
                 ));
             }
