@@ -267,8 +267,17 @@ impl burn::module::ModuleMapper for Jitter {
     }
 }
 
+/// The lifetime network on the fit's evidence (a randomised head), plain and with its
+/// log-likelihood at a learned temperature (`--temper`): ONNX Runtime with the runtime's
+/// evidence gives burn's lifetimes and confidences to 1e-4 of their scale.
 #[test]
 fn lifetime_decoder_on_the_fit_evidence_in_onnx_runtime_equals_burn() {
+    for temper in [false, true] {
+        lifetime_decoder_on_the_fit_evidence_equals_burn(temper);
+    }
+}
+
+fn lifetime_decoder_on_the_fit_evidence_equals_burn(temper: bool) {
     use burn::module::Module;
     let net = |m: usize, t: usize| {
         ModelConfig::Lifetime(
@@ -278,12 +287,14 @@ fn lifetime_decoder_on_the_fit_evidence_in_onnx_runtime_equals_burn() {
                 .with_points(24)
                 .with_pool(3)
                 .with_tau_range_ns([0.2, 12.0])
-                .with_input(tcsense_models::LifetimeInput::Costs),
+                .with_input(tcsense_models::LifetimeInput::Costs)
+                .with_temper(temper),
         )
     };
     let physical = Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 };
     let mut run = random_run(net, (2, 2), Sampling::Heterodyne(4), physical, 6);
     if let TrainedNet::Lifetime(n) = run.net {
+        assert_eq!(n.tempered(), temper);
         run.net = TrainedNet::Lifetime(n.map(&mut Jitter(40)));
     }
     let dir = tempfile::tempdir().unwrap();
@@ -294,7 +305,7 @@ fn lifetime_decoder_on_the_fit_evidence_in_onnx_runtime_equals_burn() {
         assert_eq!(got.len(), 3, "lifetime, confidence and the intensity the runtime adds");
         for (k, name) in ["lifetime", "confidence", "intensity"].iter().enumerate() {
             let d = rel_diff(&got[k], &want[k]);
-            assert!(d <= 1e-4, "{h}x{w}, {name}: ort differs from burn by {d:e} of the output scale");
+            assert!(d <= 1e-4, "{h}x{w}, {name}, tempered {temper}: ort differs from burn by {d:e} of the output scale");
         }
         // lifetimes on the grid's span, one component, a probability
         let span = (0.2e-9 * (1.0 - 1e-5))..=(12.0e-9 * (1.0 + 1e-5));

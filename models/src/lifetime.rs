@@ -52,6 +52,14 @@ const REF_FLOOR: f32 = 1e-20;
 /// starts at `e^{−3}`.
 pub const WIDER_START: f64 = 0.5;
 
+/// Gain of the head's temperature channel `o_t`: the log-likelihood is weighed by
+/// `e^{clip(TEMPER_GAIN·o_t)}` pixel by pixel ([`LifetimeNetConfig::temper`]); `o_t = 0` (the
+/// untrained head) is a weight of 1, the fit's own likelihood.
+pub const TEMPER_GAIN: f64 = 2.0;
+/// Bounds of the log-weight of a tempered log-likelihood: from `e^{−4}` (the evidence all but
+/// ignored where the network has learnt it misleads) to `e^{1}` (sharpened).
+pub const TEMPER_RANGE: [f64; 2] = [-4.0, 1.0];
+
 /// Lifetime-decoder hyper-parameters.
 #[derive(Config, Debug, PartialEq)]
 pub struct LifetimeNetConfig {
@@ -96,6 +104,13 @@ pub struct LifetimeNetConfig {
     /// 1: every pixel, as in runs written before it; [`LifetimeInput::Costs`]).
     #[config(default = 0)]
     pub instrument_blocks: usize,
+    /// Weigh the log-likelihood (the window's, pooled or widened) by a temperature the head
+    /// sets pixel by pixel, `e^{clip(2·o_t, −4, 1)}`, before the prior is added: the network
+    /// may soften evidence that is sharp and wrong (a pooled likelihood across a cell's edge, a
+    /// biased instrument) instead of fighting it with its prior ([`LifetimeInput::Costs`];
+    /// false in runs written before it).
+    #[config(default = false)]
+    pub temper: bool,
 }
 
 /// What the lifetime decoder reads from the taps (see the module documentation).
@@ -129,6 +144,8 @@ pub struct LifetimeNet {
     pool_like: usize,
     /// Side of the superpixels of the instrument's fit (0: from the frame's photons).
     instrument_blocks: usize,
+    /// The log-likelihood weighed by a learned temperature (the head's last channel).
+    temper: bool,
 }
 
 impl LifetimeNetConfig {
@@ -146,12 +163,12 @@ impl LifetimeNetConfig {
         }
     }
 
-    /// Channels of the head: the five outputs, or a log-prior per grid point, the confidence
-    /// and a log-weight per wider window.
+    /// Channels of the head: the five outputs, or a log-prior per grid point, the confidence,
+    /// a log-weight per wider window and the temperature (when tempered).
     pub fn head_channels(&self) -> usize {
         match self.input {
             LifetimeInput::Harmonics => OUTPUTS,
-            LifetimeInput::Costs => self.points + 1 + self.windows.len(),
+            LifetimeInput::Costs => self.points + 1 + self.windows.len() + usize::from(self.temper),
         }
     }
 
@@ -176,7 +193,7 @@ impl LifetimeNetConfig {
             // the wider windows start half open (`e^{6·½ − 6} = e^{−3}`): at `e^{−6}` their
             // weights' gradients (6·e^{−6}) are too small for training to open them
             let mut bias = vec![0.0f32; self.head_channels()];
-            bias[self.points + 1..].fill(WIDER_START as f32);
+            bias[self.points + 1..self.points + 1 + self.windows.len()].fill(WIDER_START as f32);
             head.bias = Some(Param::from_tensor(Tensor::<1>::from_data(TensorData::new(bias, [self.head_channels()]), device)));
         }
         LifetimeNet {
@@ -191,6 +208,7 @@ impl LifetimeNetConfig {
             windows: if costs { self.windows.clone() } else { Vec::new() },
             pool_like: if costs { self.pool_like } else { 0 },
             instrument_blocks: self.instrument_blocks,
+            temper: costs && self.temper,
         }
     }
 
@@ -260,6 +278,9 @@ impl LifetimeNetConfig {
         }
         if !self.windows.is_empty() && self.input != LifetimeInput::Costs {
             return Err(format!("windows: {:?} with the harmonics input, expected the fit's evidence (input costs)", self.windows));
+        }
+        if self.temper && self.input != LifetimeInput::Costs {
+            return Err("temper: true with the harmonics input, expected the fit's evidence (input costs)".into());
         }
         Ok(())
     }
@@ -383,6 +404,12 @@ impl LifetimeNet {
         self.instrument_blocks
     }
 
+    /// Whether the log-likelihood is weighed by a learned temperature (the head's last channel,
+    /// after the log-prior, the confidence and the wider windows' log-weights).
+    pub fn tempered(&self) -> bool {
+        self.temper
+    }
+
     /// Points `G` of the lifetime grid and the points pooled per feature channel.
     pub fn grid_points(&self) -> (usize, usize) {
         (self.points, self.pool)
@@ -464,20 +491,23 @@ impl LifetimeNet {
         with_gradient_of(features, skip, post, copy)
     }
 
-    /// The posterior's logits over the grid (the fit's log-likelihood plus the learned
-    /// log-prior) and the confidence logit.
+    /// The posterior's logits over the grid (the fit's log-likelihood, at the learned
+    /// temperature when tempered, plus the learned log-prior) and the confidence logit.
     ///
     /// # Shapes
     /// - `features`: `[B, F, H, W]`, `skip`: `[B, G, H, W]` → `([B, G, H, W], [B, 1, H, W])`
     pub fn posterior(&self, features: Tensor<4>, skip: Tensor<4>) -> (Tensor<4>, Tensor<4>) {
-        let o = conv1x1(&self.head, trunk(&self.down, &self.up, features)); // [B, G + 1 + S, H, W]
-        let g = self.points;
+        let o = conv1x1(&self.head, trunk(&self.down, &self.up, features)); // [B, G + 1 + S (+ 1), H, W]
+        let (g, wide) = (self.points, self.windows.len());
         let prior = o.clone().narrow(1, 0, g);
         let logit = o.clone().narrow(1, g, 1);
-        if self.windows.is_empty() {
-            return (skip + prior, logit);
+        let likelihood = if wide == 0 { skip } else { windowed_likelihood(&o, skip, g, wide) };
+        if !self.temper {
+            return (likelihood + prior, logit);
         }
-        (windowed_likelihood(&o, skip, g, self.windows.len()) + prior, logit)
+        let [lo, hi] = TEMPER_RANGE;
+        let weight = o.narrow(1, g + 1 + wide, 1).mul_scalar(TEMPER_GAIN).clamp(lo, hi).exp(); // [B, 1, H, W]
+        (likelihood * weight + prior, logit)
     }
 
     /// The lifetime (ns) at a continuous grid coordinate `u`.
@@ -745,6 +775,42 @@ mod tests {
             assert!(cfg.clone().with_windows(bad.clone()).validate().is_err(), "{bad:?}");
         }
         assert!(LifetimeNetConfig::new(4, 16).with_windows(vec![5]).validate().is_err(), "windows of the harmonics");
+    }
+
+    /// Tempered (`temper`), the head's last channel `o_t` weighs the log-likelihood by
+    /// `e^{clip(2·o_t, −4, 1)}` before the prior is added: untrained (`o_t = 0`) the logits are
+    /// the plain network's; with the channel's bias at `b` they are `e^{2b}·L` (clipped at the
+    /// bounds), the wider windows' weights untouched.
+    #[test]
+    fn a_tempered_likelihood_is_weighed_by_the_heads_temperature() {
+        let device = Device::flex();
+        let base =
+            LifetimeNetConfig::new(4, 16).with_input(LifetimeInput::Costs).with_points(12).with_pool(2).with_base_width(4).with_levels(2);
+        for windows in [vec![], vec![5]] {
+            let cfg = base.clone().with_windows(windows.clone()).with_temper(true);
+            cfg.validate().unwrap();
+            assert_eq!(cfg.head_channels(), 12 + 1 + windows.len() + 1);
+            let (h, w) = (8, 8);
+            let features = Tensor::<4>::random([1, cfg.features(), h, w], Distribution::Uniform(0.0, 1.0), &device);
+            let skip = Tensor::<4>::random([1, 12 * (1 + windows.len()), h, w], Distribution::Uniform(-50.0, 0.0), &device);
+            let plain = base.clone().with_windows(windows.clone()).init(&device);
+            let (want, _) = plain.posterior(features.clone(), skip.clone());
+            let mut net = cfg.init(&device);
+            assert!(net.tempered() && !plain.tempered());
+            let (untrained, _) = net.posterior(features.clone(), skip.clone());
+            let diff = (untrained - want.clone()).abs().max().into_scalar::<f32>();
+            assert!(diff < 1e-4, "untrained, windows {windows:?}: the plain network's logits, off by {diff}");
+            for (b, weight) in [(-0.5f32, (-1.0f32).exp()), (0.3, 0.6f32.exp()), (-3.0, (-4.0f32).exp()), (2.0, 1f32.exp())] {
+                let mut bias: Vec<f32> = net.head.bias.as_ref().unwrap().val().into_data().try_into_vec().unwrap();
+                *bias.last_mut().unwrap() = b;
+                net.head.bias = Some(Param::from_tensor(Tensor::<1>::from_data(TensorData::new(bias, [cfg.head_channels()]), &device)));
+                let (logits, _) = net.posterior(features.clone(), skip.clone());
+                // the plain logits are L (the prior is zero): tempered, weight · L
+                let diff = (logits - want.clone().mul_scalar(weight)).abs().max().into_scalar::<f32>();
+                assert!(diff < 1e-3, "bias {b}, windows {windows:?}: {weight}·L, off by {diff}");
+            }
+        }
+        assert!(LifetimeNetConfig::new(4, 16).with_temper(true).validate().is_err(), "a tempered harmonics network");
     }
 
     /// The network on the fit's evidence, untrained (its log-prior is zero), is the fit: on

@@ -298,6 +298,8 @@ pub fn upgrade_config(mut v: serde_json::Value) -> serde_json::Value {
                 // and before the instrument's superpixels: every pixel (the harmonics fit none)
                 let costs = model.get("input").and_then(|i| i.as_str()) == Some("Costs");
                 model.entry("instrument_blocks").or_insert(serde_json::Value::from(if costs { 1 } else { 0 }));
+                // and before the learned temperature
+                model.entry("temper").or_insert(serde_json::Value::from(false));
             }
         }
     }

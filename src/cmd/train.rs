@@ -80,6 +80,11 @@ pub struct LifetimeArgs {
     /// alone [default: 0, chosen from the frame's photons].
     #[arg(long, value_parser = super::count_in(0, 64))]
     instrument_blocks: Option<usize>,
+    /// With `--input costs`: weigh the fit's log-likelihood by a temperature the network sets
+    /// pixel by pixel (`e^{clip(2·o_t, −4, 1)}`, 1 untrained), so that it may soften evidence
+    /// that is sharp and wrong (pooled across an edge, a biased instrument) [default: off].
+    #[arg(long)]
+    temper: bool,
     /// What the network reads: `harmonics` of Aᵀy turned by the frame's own phase, or `costs`,
     /// the fit to the taps' log-likelihood of every lifetime of a log grid (the instrument
     /// fitted to the frame), to which it adds a learned log-prior [default: harmonics].
@@ -430,6 +435,7 @@ impl TrainArgs {
                 (req.harmonics, req.base_width, req.levels, req.input, req.points, req.windows, req.pool_like) =
                     (n.harmonics, n.base_width, n.levels, n.input.and_then(name_of), n.points, n.windows.clone(), n.pool_like);
                 req.instrument_blocks = n.instrument_blocks;
+                req.temper = n.temper.then_some(true);
             }
         }
         Ok(req)

@@ -65,6 +65,9 @@ pub struct TrainRequest {
     /// Lifetime decoder on the fit's evidence: the side (in blocks) of the superpixels of each
     /// frame's instrument (0: from its photons).
     pub instrument_blocks: Option<usize>,
+    /// Lifetime decoder on the fit's evidence: weigh the log-likelihood by a temperature the
+    /// network sets pixel by pixel.
+    pub temper: Option<bool>,
     pub epochs: Option<usize>,
     pub lr: Option<f64>,
     /// `cosine` or `constant`.
@@ -165,6 +168,7 @@ impl TrainRequest {
             windows: self.windows.clone(),
             pool_like: self.pool_like,
             instrument_blocks: self.instrument_blocks,
+            temper: self.temper,
             lifetime_input,
         })
     }

@@ -50,6 +50,8 @@ pub struct Architecture {
     pub pool_like: Option<usize>,
     /// Lifetime decoder on the fit's evidence: the side of the instrument's superpixels.
     pub instrument_blocks: Option<usize>,
+    /// Lifetime decoder on the fit's evidence: its log-likelihood at a learned temperature.
+    pub temper: Option<bool>,
     /// Lifetime decoder: what the network reads.
     pub lifetime_input: Option<LifetimeInput>,
 }
@@ -83,6 +85,7 @@ impl Architecture {
         put("windows", self.windows.as_ref().map(|v| s(v)), l.map(|c| s(&c.windows)));
         put("pool_like", self.pool_like.map(|v| s(&v)), l.map(|c| s(&c.pool_like)));
         put("instrument_blocks", self.instrument_blocks.map(|v| s(&v)), l.map(|c| s(&c.instrument_blocks)));
+        put("temper", self.temper.map(|v| s(&v)), l.map(|c| s(&c.temper)));
         put("input", self.lifetime_input.map(|v| s(&v)), l.map(|c| s(&c.input)));
         out
     }
@@ -116,6 +119,7 @@ impl Architecture {
                 c.windows = self.windows.clone().unwrap_or_else(|| c.windows.clone());
                 c.pool_like = self.pool_like.unwrap_or(c.pool_like);
                 c.instrument_blocks = self.instrument_blocks.unwrap_or(c.instrument_blocks);
+                c.temper = self.temper.unwrap_or(c.temper);
                 c.input = self.lifetime_input.unwrap_or(c.input);
                 c.base_width = self.base_width.unwrap_or(c.base_width);
                 c.levels = self.levels.unwrap_or(c.levels);
@@ -131,6 +135,13 @@ impl Architecture {
                         field: "instrument_blocks",
                         got: format!("{} with the harmonics input", c.instrument_blocks),
                         expected: "--input costs: the instrument is the fit's".into(),
+                    });
+                }
+                if self.temper == Some(true) && c.input != LifetimeInput::Costs {
+                    return Err(TrainError::InvalidParam {
+                        field: "temper",
+                        got: "--temper with the harmonics input".into(),
+                        expected: "--input costs: the temperature weighs the fit's log-likelihood".into(),
                     });
                 }
                 if self.windows.is_some() && c.input != LifetimeInput::Costs {

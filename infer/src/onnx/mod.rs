@@ -693,6 +693,19 @@ fn lifetime_on_evidence(net: &LifetimeNet, meta: &OnnxMeta, opts: ExportOptions<
         let o_s = head_rows(&mut g, net.head(), &trunk, points + 1, wide)?;
         windowed_likelihood(&mut g, &o_s, &skip, points, wide)
     };
+    let likelihood = if net.tempered() {
+        // as burn's LifetimeNet::posterior: e^{clip(gain·o_t)} · L, one weight a pixel row
+        let o_t = head_rows(&mut g, net.head(), &trunk, points + 1 + wide, 1)?; // [N, 1]
+        let gain = g.scalar("temper_gain", tcsense_models::lifetime::TEMPER_GAIN as f32);
+        let [lo, hi] = tcsense_models::lifetime::TEMPER_RANGE;
+        let (lo, hi) = (g.scalar("temper_lo", lo as f32), g.scalar("temper_hi", hi as f32));
+        let o_t = g.op("Mul", &[&o_t, &gain]);
+        let o_t = g.op("Clip", &[&o_t, &lo, &hi]);
+        let weight = g.op("Exp", &[&o_t]);
+        g.op("Mul", &[&likelihood, &weight])
+    } else {
+        likelihood
+    };
     let logits = head_rows_onto(&mut g, net.head(), &trunk, 0, points, &likelihood)?; // [N, G]
     let u = posterior_mode(&mut g, &logits, points, false);
     let u = g.op("Reshape", &[&u, &frame_shape]);
@@ -710,11 +723,12 @@ fn lifetime_on_evidence(net: &LifetimeNet, meta: &OnnxMeta, opts: ExportOptions<
     g.output(&lifetime, "lifetime", &frame(4));
     g.output(&conf, "confidence", &frame(1));
     let doc = format!(
-        "tcsense lifetime decoder on the fit's evidence ({points} lifetimes {}-{} ns, {} levels{}): evidence [B, H, W, {f}], log_likelihood [B, H, W, {}]{} -> lifetime (s) [B, 4, H, W], confidence [B, 1, H, W]; the runtime computes the evidence from the taps",
+        "tcsense lifetime decoder on the fit's evidence ({points} lifetimes {}-{} ns, {} levels{}{}): evidence [B, H, W, {f}], log_likelihood [B, H, W, {}]{} -> lifetime (s) [B, 4, H, W], confidence [B, 1, H, W]; the runtime computes the evidence from the taps",
         net.tau_range_ns()[0],
         net.tau_range_ns()[1],
         net.down().len(),
         if wide == 0 { String::new() } else { format!(", wider windows {:?}", net.windows()) },
+        if net.tempered() { ", its log-likelihood at a learned temperature" } else { "" },
         (1 + wide) * points,
         if wide == 0 { "" } else { " (the windows' log-likelihoods, window-major)" }
     );
