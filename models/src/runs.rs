@@ -369,6 +369,7 @@ pub const TRAINING_KEYS: &[&str] = &[
     "augment",
     "learn_codes",
     "init_from",
+    "grid_ce_weight",
 ];
 
 /// Load a run directory on `device`: its config, codes, sensor model and latest weights.

@@ -85,6 +85,11 @@ pub struct LifetimeArgs {
     /// that is sharp and wrong (pooled across an edge, a biased instrument) [default: off].
     #[arg(long)]
     temper: bool,
+    /// With `--input costs`: the weight of the log-posterior's cross-entropy over the lifetime
+    /// grid in the loss, beside the lifetime's absolute error (0 trains the posterior's mean
+    /// alone) [default: 0.2].
+    #[arg(long, value_parser = super::number_in(0.0, 10.0))]
+    grid_ce: Option<f64>,
     /// What the network reads: `harmonics` of Aᵀy turned by the frame's own phase, or `costs`,
     /// the fit to the taps' log-likelihood of every lifetime of a log grid (the instrument
     /// fitted to the frame), to which it adds a learned log-prior [default: harmonics].
@@ -436,6 +441,7 @@ impl TrainArgs {
                     (n.harmonics, n.base_width, n.levels, n.input.and_then(name_of), n.points, n.windows.clone(), n.pool_like);
                 req.instrument_blocks = n.instrument_blocks;
                 req.temper = n.temper.then_some(true);
+                req.grid_ce = n.grid_ce;
             }
         }
         Ok(req)

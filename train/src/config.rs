@@ -150,6 +150,12 @@ pub struct TrainConfig {
     /// Start from the weights of this run (fine-tuning on new codes or a recalibrated sensor).
     #[serde(default)]
     pub init_from: Option<String>,
+    /// A lifetime network on a grid: the weight of its log-posterior's cross-entropy in the
+    /// loss (`None`, and in configs written before it: [`crate::loss::GRID_CE_WEIGHT`]); 0
+    /// trains the posterior's mean alone, which a sharp but wrong likelihood does not punish
+    /// more than its error.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub grid_ce_weight: Option<f64>,
 }
 
 impl TrainConfig {
@@ -216,7 +222,7 @@ impl TrainConfig {
                 Some(o @ (Objective::Range | Objective::Lifetime)) if self.run.model.prediction() == Prediction::Cube =>
                     format!(" + the waveforms' earth mover's distance (objective {})", o.name()),
                 _ => String::new(),
-            },
+            } + &self.grid_ce_weight.map_or(String::new(), |w| format!(", the grid's cross-entropy at {w}")),
             if self.noise.is_some() { "shot + read" } else { "off" },
             match &self.augment {
                 None => "off".to_string(),
@@ -256,6 +262,7 @@ impl TrainConfig {
             augment: None,
             learn_codes: None,
             init_from: None,
+            grid_ce_weight: None,
         }
     }
 
@@ -286,6 +293,18 @@ impl TrainConfig {
     pub fn validate(&self) -> Result<()> {
         let bad =
             |field: &'static str, got: String, expected: &str| Err(TrainError::InvalidParam { field, got, expected: expected.into() });
+        if let Some(w) = self.grid_ce_weight {
+            if !(w.is_finite() && (0.0..=10.0).contains(&w)) {
+                return bad("grid_ce_weight", w.to_string(), "a weight from 0 to 10");
+            }
+            if self.run.model.lifetime_grid().is_none() {
+                return bad(
+                    "grid_ce_weight",
+                    format!("{w} for {}", self.run.model.name()),
+                    "a lifetime network on the fit's evidence (train lifetime --input costs): the weight is of its grid's cross-entropy",
+                );
+            }
+        }
         self.run.model.validate()?;
         if self.epochs == 0 {
             return bad("epochs", "0".into(), "at least 1");
@@ -398,6 +417,34 @@ mod tests {
         }
     }
 
+    /// The weight of a lifetime grid's cross-entropy: only for a lifetime network on a grid,
+    /// from 0 to 10, and a config without one is written as before it existed.
+    #[test]
+    fn the_grid_cross_entropy_weight_is_a_lifetime_grid_networks() {
+        use tcsense_models::{LifetimeInput, LifetimeNetConfig};
+        let grid = TrainConfig::new(
+            ModelConfig::Lifetime(LifetimeNetConfig::new(4, 64).with_input(LifetimeInput::Costs)),
+            Path::new("ds"),
+            Loss::Rmse,
+            Sampling::Heterodyne(4),
+        );
+        assert!(!serde_json::to_string(&grid).expect("json").contains("grid_ce_weight"));
+        for w in [0.0, 0.2, 10.0] {
+            assert!(TrainConfig { grid_ce_weight: Some(w), ..grid.clone() }.validate().is_ok(), "{w}");
+        }
+        for w in [-0.1, 10.5, f64::NAN] {
+            let e = TrainConfig { grid_ce_weight: Some(w), ..grid.clone() }.validate().expect_err("refused").to_string();
+            assert!(e.contains("grid_ce_weight") && e.contains("0 to 10"), "{e}");
+        }
+        let harmonics = TrainConfig {
+            run: RunSpec { model: ModelConfig::Lifetime(LifetimeNetConfig::new(4, 64)), ..grid.run.clone() },
+            grid_ce_weight: Some(0.0),
+            ..grid.clone()
+        };
+        let e = harmonics.validate().expect_err("refused").to_string();
+        assert!(e.contains("grid_ce_weight") && e.contains("--input costs"), "{e}");
+    }
+
     /// Inference checks a run's config against `RunSpec`'s fields and `TRAINING_KEYS`: the
     /// list must stay equal to what `TrainConfig` adds.
     #[test]
@@ -406,6 +453,7 @@ mod tests {
             TrainConfig::new(ModelConfig::AdmmNet(AdmmNetConfig::new(4, 8)), Path::new("ds"), Loss::Rmse, Sampling::Oversample(1));
         // (written only when given)
         cfg.objective = Some(Objective::Range);
+        cfg.grid_ce_weight = Some(0.0);
         let all = tcsense_sensor::json::keys_of(&cfg);
         let spec = tcsense_sensor::json::keys_of(&cfg.run);
         let mut extra: Vec<&str> = all.iter().filter(|k| !spec.contains(k)).map(String::as_str).collect();

@@ -459,7 +459,11 @@ fn fit<M: Network>(
             let lb = data.train_labels.as_ref().map(|d| d.select(Axis(0), idx)); // [B, K, H, W] or [B, 5, H, W]
             let batch = measure_step::<M>(cfg, &sensing, xb, lb, state.step, (bin_m, range_m))?;
             let target = match (&batch.labels, M::PREDICTION) {
-                (Some(l), Prediction::Lifetime) => Target::Lifetime { labels: l, grid: cfg.run.model.lifetime_grid() },
+                (Some(l), Prediction::Lifetime) => Target::Lifetime {
+                    labels: l,
+                    grid: cfg.run.model.lifetime_grid(),
+                    ce_weight: cfg.grid_ce_weight.unwrap_or(crate::loss::GRID_CE_WEIGHT),
+                },
                 (Some(d), _) => Target::Depth { depth: d, range_m, grid: cfg.run.model.range_grid() },
                 (None, _) => Target::Cube {
                     x: &batch.x,
@@ -623,7 +627,8 @@ pub(crate) enum Target<'a> {
     Depth { depth: &'a Array4<f32>, range_m: f64, grid: Option<(f64, f64)> },
     /// Lifetime labels `[B, 5, H, W]` ([`crate::data::load_lifetime_labels`]) and the
     /// network's lifetime grid where it has one (`ln τ₀` in ns, step).
-    Lifetime { labels: &'a Array4<f32>, grid: Option<(f64, f64)> },
+    /// `ce_weight`: the weight of the grid's cross-entropy.
+    Lifetime { labels: &'a Array4<f32>, grid: Option<(f64, f64)>, ce_weight: f64 },
 }
 
 /// The loss of a prediction against its target.
@@ -661,13 +666,13 @@ pub(crate) fn objective(loss: Loss, pred: Tensor<4>, target: Target<'_>, device:
                 None => depth_loss(pred, depth, mask, range_m),
             }
         }
-        Target::Lifetime { labels, grid } => {
+        Target::Lifetime { labels, grid, ce_weight } => {
             let filled = labels.mapv(|v| if v.is_finite() { v } else { 0.0 });
             let distinct = ndarray::Zip::from(labels.index_axis(Axis(1), 1))
                 .and(labels.index_axis(Axis(1), 2))
                 .map_collect(|a, b| if (a - b).abs() > 1e-3 { 1f32 } else { 0.0 })
                 .insert_axis(Axis(1));
-            lifetime_loss(pred, to_tensor(&filled.view(), device), to_tensor(&distinct.view(), device), grid)
+            lifetime_loss(pred, to_tensor(&filled.view(), device), to_tensor(&distinct.view(), device), grid, ce_weight)
         }
     }
 }

@@ -152,14 +152,14 @@ pub const CE_WEIGHT: f64 = 0.1;
 /// and the binary cross-entropy of the confidence against "holds a fluorophore". A network on
 /// a lifetime grid (`grid`: `ln τ₀` in ns and the step) appends its log-posterior over the grid,
 /// whose cross-entropy against the true `τ_m` split between its two neighbouring points adds
-/// [`GRID_CE_WEIGHT`] times its mean over the fluorophore, and whose confidence weighs a
+/// `ce_weight` ([`GRID_CE_WEIGHT`] by default) times its mean over the fluorophore, and whose confidence weighs a
 /// missed fluorophore [`COVERAGE_WEIGHT`] times.
 ///
 /// # Shapes
 /// - `pred`: `[B, 5, H, W]` (`τ_m`, `τ₁`, `τ₂` in ns, `α₁`, confidence logit) or
 ///   `[B, 5 + G, H, W]` (then the log-posterior), `labels`: `[B, 5, H, W]` (the same, 0 where
 ///   unknown, then the signal mask), `distinct`: `[B, 1, H, W]` (1 where `τ₁ ≠ τ₂`) → `[1]`
-pub fn lifetime_loss(pred: Tensor<4>, labels: Tensor<4>, distinct: Tensor<4>, grid: Option<(f64, f64)>) -> Tensor<1> {
+pub fn lifetime_loss(pred: Tensor<4>, labels: Tensor<4>, distinct: Tensor<4>, grid: Option<(f64, f64)>, ce_weight: f64) -> Tensor<1> {
     let mask = labels.clone().narrow(1, 4, 1); // [B, 1, H, W]
     let count = mask.clone().sum().add_scalar(1.0);
     let err = |c: usize| (pred.clone().narrow(1, c, 1) - labels.clone().narrow(1, c, 1)).abs() * mask.clone();
@@ -181,7 +181,7 @@ pub fn lifetime_loss(pred: Tensor<4>, labels: Tensor<4>, distinct: Tensor<4>, gr
             // pixel gets a lifetime where the posterior of a fluorophore is above 1/(1 + w)
             let softplus = |x: Tensor<4>| relu(x.clone()) + x.abs().neg().exp().add_scalar(1.0).log();
             let weighted = softplus(logits.clone().neg()) * mask.clone() * COVERAGE_WEIGHT + softplus(logits) * mask.neg().add_scalar(1.0);
-            l1 + weighted.mean() + ce.sum() / count * GRID_CE_WEIGHT
+            l1 + weighted.mean() + ce.sum() / count * ce_weight
         }
         _ => {
             let bce = relu(logits.clone()) - logits.clone() * mask + logits.abs().neg().exp().add_scalar(1.0).log();
@@ -325,8 +325,29 @@ mod tests {
         let pred = Tensor::<4>::from_floats([[[[2.5, 9.0]], [[1.5, 9.0]], [[3.0, 9.0]], [[0.4, 0.9]], [[0.0, 0.0]]]], &device);
         let labels = Tensor::<4>::from_floats([[[[2.0, 0.0]], [[1.0, 0.0]], [[3.0, 0.0]], [[0.5, 0.0]], [[1.0, 0.0]]]], &device);
         let distinct = Tensor::<4>::from_floats([[[[1.0, 0.0]]]], &device);
-        let l: f32 = lifetime_loss(pred, labels, distinct, None).into_scalar();
+        let l: f32 = lifetime_loss(pred, labels, distinct, None, GRID_CE_WEIGHT).into_scalar();
         // (0.5 + 0.5·(0.5 + 0) + 0.1) / (1 + 1) + ln 2
         assert!((l - (0.85 / 2.0 + 2f32.ln())).abs() < 1e-6, "{l}");
+    }
+
+    /// On a grid, the log-posterior's cross-entropy adds `ce_weight` times its mean over the
+    /// fluorophore pixels: none at weight 0.
+    #[test]
+    fn the_grid_cross_entropy_is_weighed_as_asked() {
+        let device = Device::flex();
+        // one fluorophore pixel, τ_m = 2 ns predicted exactly, logit 0; a grid of 4 points at
+        // ln τ = 0, 1, 2, 3 ns (ln τ₀ = 0, step 1): the truth at u = ln 2, split between points
+        // 0 and 1; log-posterior ln ¼ at every point
+        let mut v = vec![2.0f32, 2.0, 2.0, 1.0, 0.0];
+        v.extend([0.25f32.ln(); 4]);
+        let pred = || Tensor::<4>::from_data(burn::tensor::TensorData::new(v.clone(), [1, 9, 1, 1]), &device);
+        let labels = || Tensor::<4>::from_floats([[[[2.0]], [[2.0]], [[2.0]], [[1.0]], [[1.0]]]], &device);
+        let distinct = || Tensor::<4>::from_floats([[[[0.0]]]], &device);
+        let at = |w: f64| -> f64 { lifetime_loss(pred(), labels(), distinct(), Some((0.0, 1.0)), w).into_scalar::<f32>() as f64 };
+        // the confidence: softplus(0)·COVERAGE_WEIGHT = 8 ln 2; the cross-entropy ln 4 over 1 + 1
+        let base = COVERAGE_WEIGHT * 2f64.ln();
+        assert!((at(0.0) - base).abs() < 1e-5, "{}", at(0.0));
+        assert!((at(0.2) - (base + 0.2 * 4f64.ln() / 2.0)).abs() < 1e-5, "{}", at(0.2));
+        assert!((at(1.0) - (base + 4f64.ln() / 2.0)).abs() < 1e-5, "{}", at(1.0));
     }
 }

@@ -68,6 +68,9 @@ pub struct TrainRequest {
     /// Lifetime decoder on the fit's evidence: weigh the log-likelihood by a temperature the
     /// network sets pixel by pixel.
     pub temper: Option<bool>,
+    /// Lifetime decoder on the fit's evidence: the weight of the grid's cross-entropy in the
+    /// loss.
+    pub grid_ce: Option<f64>,
     pub epochs: Option<usize>,
     pub lr: Option<f64>,
     /// `cosine` or `constant`.
@@ -309,6 +312,9 @@ pub fn prepare(req: &TrainRequest) -> Result<Prepared> {
     if let Some(o) = req.objective.as_deref() {
         let found = Objective::ALL.into_iter().find(|k| k.name() == o);
         cfg.objective = Some(found.ok_or_else(|| bad("objective", o, "mse, range or lifetime"))?);
+    }
+    if req.grid_ce.is_some() {
+        cfg.grid_ce_weight = req.grid_ce;
     }
     if req.no_noise {
         cfg.noise = None;
