@@ -500,13 +500,18 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
     // wider windows: their log-likelihoods beside the fit's window's, weighted pixel by pixel,
     // the sum at a learned temperature; recorded, decoded, exported and streamed as the network
     // without them
-    let args = train(&["--input", "costs", "--points", "40", "--windows", "5,9", "--temper", "--grid-ce", "0.5", "--epochs", "1"], "evw");
+    let args = train(
+        &["--input", "costs", "--points", "40", "--windows", "5,9", "--temper", "--grid-ce", "0.5", "--refine-near-mode", "--epochs", "1"],
+        "evw",
+    );
     let out = ok(d, &args.iter().map(String::as_str).collect::<Vec<_>>());
     assert!(out.contains("with wider windows [5, 9]") && out.contains("its log-likelihood at a learned temperature"), "{out}");
     let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("evw/config.json")).unwrap()).unwrap();
     assert_eq!(cfg["model"]["windows"], serde_json::json!([5, 9]));
     assert_eq!(cfg["model"]["temper"], serde_json::json!(true));
     assert_eq!(cfg["grid_ce_weight"], serde_json::json!(0.5));
+    assert_eq!(cfg["model"]["refine_near_mode"], serde_json::json!(true));
+    assert!(out.contains("its mode refined in the taps within a point of the fit's"), "{out}");
     assert!(out.contains("the grid's cross-entropy at 0.5"), "{out}");
     // each frame's instrument on superpixels as its photons ask (the runs before it: every pixel)
     assert_eq!(cfg["model"]["instrument_blocks"], serde_json::json!(0));
@@ -531,6 +536,8 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
     fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["instrument_blocks", "--input costs"]);
     let args = train(&["--temper", "--epochs", "1"], "bad");
     fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["temper", "--input costs"]);
+    let args = train(&["--refine-near-mode", "--epochs", "1"], "bad");
+    fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["refine_near_mode", "--input costs"]);
     let args = train(&["--grid-ce", "0", "--epochs", "1"], "bad");
     fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["grid_ce_weight", "--input costs"]);
     let args = train(&["--input", "costs", "--grid-ce", "11", "--epochs", "1"], "bad");

@@ -111,6 +111,11 @@ pub struct LifetimeNetConfig {
     /// false in runs written before it).
     #[config(default = false)]
     pub temper: bool,
+    /// Refine the posterior's mode in the tap domain wherever it is within one point of the
+    /// grid of the fit's own argmin, not only at it ([`TapFitOptions::refine_near_mode`]; false
+    /// in runs written before it).
+    #[config(default = false)]
+    pub refine_near_mode: bool,
 }
 
 /// What the lifetime decoder reads from the taps (see the module documentation).
@@ -146,6 +151,8 @@ pub struct LifetimeNet {
     instrument_blocks: usize,
     /// The log-likelihood weighed by a learned temperature (the head's last channel).
     temper: bool,
+    /// The mode refined in the tap domain within a point of the fit's argmin.
+    refine_near_mode: bool,
 }
 
 impl LifetimeNetConfig {
@@ -209,6 +216,7 @@ impl LifetimeNetConfig {
             pool_like: if costs { self.pool_like } else { 0 },
             instrument_blocks: self.instrument_blocks,
             temper: costs && self.temper,
+            refine_near_mode: costs && self.refine_near_mode,
         }
     }
 
@@ -278,6 +286,9 @@ impl LifetimeNetConfig {
         }
         if !self.windows.is_empty() && self.input != LifetimeInput::Costs {
             return Err(format!("windows: {:?} with the harmonics input, expected the fit's evidence (input costs)", self.windows));
+        }
+        if self.refine_near_mode && self.input != LifetimeInput::Costs {
+            return Err("refine_near_mode: true with the harmonics input, expected the fit's evidence (input costs)".into());
         }
         if self.temper && self.input != LifetimeInput::Costs {
             return Err("temper: true with the harmonics input, expected the fit's evidence (input costs)".into());
@@ -431,6 +442,7 @@ impl LifetimeNet {
             min_intensity: 0.0,
             pool_like: self.pool_like,
             instrument_blocks: self.instrument_blocks,
+            refine_near_mode: self.refine_near_mode,
             ..Default::default()
         }
     }

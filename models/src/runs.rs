@@ -300,6 +300,8 @@ pub fn upgrade_config(mut v: serde_json::Value) -> serde_json::Value {
                 model.entry("instrument_blocks").or_insert(serde_json::Value::from(if costs { 1 } else { 0 }));
                 // and before the learned temperature
                 model.entry("temper").or_insert(serde_json::Value::from(false));
+                // and before the refinement near the mode
+                model.entry("refine_near_mode").or_insert(serde_json::Value::from(false));
             }
         }
     }

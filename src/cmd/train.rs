@@ -90,6 +90,12 @@ pub struct LifetimeArgs {
     /// alone) [default: 0.2].
     #[arg(long, value_parser = super::number_in(0.0, 10.0))]
     grid_ce: Option<f64>,
+    /// With `--input costs`: refine the posterior's mode in the tap domain wherever it is
+    /// within one point of the grid of the fit's own argmin (not only at it): the fit's
+    /// precision in bright light where the network's mode and the fit's differ by a point
+    /// [default: off].
+    #[arg(long)]
+    refine_near_mode: bool,
     /// What the network reads: `harmonics` of Aᵀy turned by the frame's own phase, or `costs`,
     /// the fit to the taps' log-likelihood of every lifetime of a log grid (the instrument
     /// fitted to the frame), to which it adds a learned log-prior [default: harmonics].
@@ -442,6 +448,7 @@ impl TrainArgs {
                 req.instrument_blocks = n.instrument_blocks;
                 req.temper = n.temper.then_some(true);
                 req.grid_ce = n.grid_ce;
+                req.refine_near_mode = n.refine_near_mode.then_some(true);
             }
         }
         Ok(req)

@@ -183,7 +183,8 @@ impl TrainConfig {
                             0 => ", the instrument on superpixels as the photons ask".to_string(),
                             1 => ", the instrument on every pixel".to_string(),
                             s => format!(", the instrument on superpixels of {s}×{s} blocks"),
-                        } + if m.temper { ", its log-likelihood at a learned temperature" } else { "" },
+                        } + if m.temper { ", its log-likelihood at a learned temperature" } else { "" }
+                            + if m.refine_near_mode { ", its mode refined in the taps within a point of the fit's" } else { "" },
                 },
                 m.base_width,
                 m.levels,

@@ -71,6 +71,9 @@ pub struct TrainRequest {
     /// Lifetime decoder on the fit's evidence: the weight of the grid's cross-entropy in the
     /// loss.
     pub grid_ce: Option<f64>,
+    /// Lifetime decoder on the fit's evidence: refine the mode in the tap domain within a point
+    /// of the fit's argmin.
+    pub refine_near_mode: Option<bool>,
     pub epochs: Option<usize>,
     pub lr: Option<f64>,
     /// `cosine` or `constant`.
@@ -172,6 +175,7 @@ impl TrainRequest {
             pool_like: self.pool_like,
             instrument_blocks: self.instrument_blocks,
             temper: self.temper,
+            refine_near_mode: self.refine_near_mode,
             lifetime_input,
         })
     }

@@ -52,6 +52,8 @@ pub struct Architecture {
     pub instrument_blocks: Option<usize>,
     /// Lifetime decoder on the fit's evidence: its log-likelihood at a learned temperature.
     pub temper: Option<bool>,
+    /// Lifetime decoder on the fit's evidence: its mode refined within a point of the fit's.
+    pub refine_near_mode: Option<bool>,
     /// Lifetime decoder: what the network reads.
     pub lifetime_input: Option<LifetimeInput>,
 }
@@ -86,6 +88,7 @@ impl Architecture {
         put("pool_like", self.pool_like.map(|v| s(&v)), l.map(|c| s(&c.pool_like)));
         put("instrument_blocks", self.instrument_blocks.map(|v| s(&v)), l.map(|c| s(&c.instrument_blocks)));
         put("temper", self.temper.map(|v| s(&v)), l.map(|c| s(&c.temper)));
+        put("refine_near_mode", self.refine_near_mode.map(|v| s(&v)), l.map(|c| s(&c.refine_near_mode)));
         put("input", self.lifetime_input.map(|v| s(&v)), l.map(|c| s(&c.input)));
         out
     }
@@ -120,6 +123,7 @@ impl Architecture {
                 c.pool_like = self.pool_like.unwrap_or(c.pool_like);
                 c.instrument_blocks = self.instrument_blocks.unwrap_or(c.instrument_blocks);
                 c.temper = self.temper.unwrap_or(c.temper);
+                c.refine_near_mode = self.refine_near_mode.unwrap_or(c.refine_near_mode);
                 c.input = self.lifetime_input.unwrap_or(c.input);
                 c.base_width = self.base_width.unwrap_or(c.base_width);
                 c.levels = self.levels.unwrap_or(c.levels);
@@ -135,6 +139,13 @@ impl Architecture {
                         field: "instrument_blocks",
                         got: format!("{} with the harmonics input", c.instrument_blocks),
                         expected: "--input costs: the instrument is the fit's".into(),
+                    });
+                }
+                if self.refine_near_mode == Some(true) && c.input != LifetimeInput::Costs {
+                    return Err(TrainError::InvalidParam {
+                        field: "refine_near_mode",
+                        got: "--refine-near-mode with the harmonics input".into(),
+                        expected: "--input costs: the refinement is the fit's".into(),
                     });
                 }
                 if self.temper == Some(true) && c.input != LifetimeInput::Costs {

@@ -66,6 +66,11 @@ pub struct TapFitOptions {
     /// fitted on (each subpixel type's taps summed over the superpixel): 1, every pixel alone;
     /// 0, chosen from the frame's photons ([`instrument_side`]).
     pub instrument_blocks: usize,
+    /// Where a decoder's mode overrules the fit ([`LifetimeTemplates::refine_modes`]): refine
+    /// it in the tap domain wherever it is within one point of the grid of the fit's own
+    /// argmin (the window's cost minimised within about a point of the mode), not only where
+    /// it is that argmin. False: the fit's refinement only at its own argmin.
+    pub refine_near_mode: bool,
 }
 
 impl Default for TapFitOptions {
@@ -84,6 +89,7 @@ impl Default for TapFitOptions {
             background: true,
             pool_like: 0,
             instrument_blocks: 0,
+            refine_near_mode: false,
         }
     }
 }
@@ -266,6 +272,7 @@ pub struct LifetimeTemplates {
     pool_like: usize,
     min_intensity: f32,
     background: bool,
+    refine_near_mode: bool,
 }
 
 impl LifetimeTemplates {
@@ -289,6 +296,7 @@ impl LifetimeTemplates {
             pool_like: opts.pool_like,
             min_intensity: opts.min_intensity,
             background: opts.background,
+            refine_near_mode: opts.refine_near_mode,
         }
     }
 
@@ -397,7 +405,10 @@ impl LifetimeTemplates {
     /// The modes of a posterior over the grid (continuous grid coordinates `u`, NaN: none) as
     /// lifetimes (s): where a mode's nearest point is the fit's own argmin of the window's cost
     /// the fit's refinement in the tap domain (its precision in bright light), elsewhere the
-    /// mode itself (the posterior overruled the fit).
+    /// mode itself (the posterior overruled the fit). With
+    /// [`TapFitOptions::refine_near_mode`], a mode within one point of the argmin is refined
+    /// too, around its own nearest point: the window's cost minimised within about a point of
+    /// the mode.
     ///
     /// # Shapes
     /// - `y`: `[M, H, W]`, `costs`: [`Self::costs`] of `y`, `u`: `[H·W]` → `[H, W]`
@@ -409,7 +420,12 @@ impl LifetimeTemplates {
         let fit = self.refine_normalised(f, y.dim(), costs, |p, total| {
             let best = argmin(total);
             let mode = u[p].round();
-            (mode.is_finite() && mode as usize == best && best > 0 && best + 1 < g).then_some(best)
+            if !(mode.is_finite() && mode >= 0.0) {
+                return None;
+            }
+            let mode = mode as usize;
+            let near = if self.refine_near_mode { mode.abs_diff(best) <= 1 } else { mode == best };
+            (near && mode > 0 && mode + 1 < g).then_some(mode)
         });
         let (l0, step) = self.log_tau;
         Array2::from_shape_fn((h, w), |(i, j)| {
@@ -818,6 +834,27 @@ mod tests {
         }
         let no = templates.refine(&y.view(), &vec![-1; 64]);
         assert!(no.lifetime.iter().all(|v| v.is_nan()));
+        // modes a point off the argmin: the mode itself, or refined near it
+        // (refine_near_mode): within a point of it, and the fit's lifetime where the fit's own
+        // optimum lies within that reach
+        let u: Vec<f32> = off.iter().map(|&b| b as f32).collect();
+        let plain = templates.refine_modes(&y.view(), &costs, &u);
+        let near =
+            LifetimeTemplates::new(&a, inst, &TapFitOptions { refine_near_mode: true, ..opts.clone() }).refine_modes(&y.view(), &costs, &u);
+        let (mut refined, mut at_fit) = (0, 0);
+        for p in (0..64).filter(|&p| costs.lit[p] && best[p] > 0 && (best[p] as usize) + 2 < g) {
+            let (t0, t1, fit) = (plain[(p / 8, p % 8)] as f64, near[(p / 8, p % 8)] as f64, own.lifetime[(p / 8, p % 8)] as f64);
+            let (l0, step0) = templates.log_grid();
+            assert!((t0.ln() - (l0 + u[p] as f64 * step0)).abs() < 1e-5, "the mode itself without refine_near_mode: {t0:e}");
+            assert!((t1.ln() - t0.ln()).abs() <= 1.01 * step, "refined within a point of the mode: {t1:e} against {t0:e}");
+            refined += usize::from(t1 != t0);
+            at_fit += usize::from((t1.ln() - fit.ln()).abs() < 1e-3);
+        }
+        let n = (0..64).filter(|&p| costs.lit[p] && best[p] > 0 && (best[p] as usize) + 2 < g).count();
+        assert!(
+            n >= 50 && refined == n && at_fit >= 20,
+            "refined near the mode: {refined} of {n} pixels, {at_fit} at the fit's own lifetime"
+        );
         // the evidence: 0 nats at the argmin of the window's cost, negative elsewhere; the same
         // for the frame times 7 (the noise level takes the scale)
         let e = evidence::evidence(&costs, &y.sum_axis(Axis(0)), 4, 2);

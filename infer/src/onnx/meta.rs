@@ -100,6 +100,10 @@ pub struct EvidenceNote {
     /// (0: chosen from the frame's photons; 1, every pixel, in models exported before it).
     #[serde(default = "one")]
     pub instrument_blocks: usize,
+    /// The graph's mode refined in the tap domain within a point of the fit's argmin (false,
+    /// only at it, in models exported before it).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub refine_near_mode: bool,
 }
 
 fn one() -> usize {
@@ -129,6 +133,7 @@ impl EvidenceNote {
             min_intensity: 0.0,
             pool_like: self.pool_like,
             instrument_blocks: self.instrument_blocks,
+            refine_near_mode: self.refine_near_mode,
             ..Default::default()
         }
     }
@@ -207,6 +212,7 @@ impl OnnxMeta {
                     windows: c.windows.clone(),
                     pool_like: c.pool_like,
                     instrument_blocks: c.instrument_blocks,
+                    refine_near_mode: c.refine_near_mode,
                 }),
                 _ => None,
             },
