@@ -323,7 +323,7 @@ pub(super) fn photon_curves(
         if let Some((zoo_dir, _)) = zoo_entry_named(ZOO_EVIDENCE_LIFETIME, flim) {
             let own = sensor(&Codes::load(&zoo_dir.join(CODES_FILE))?, flim)?;
             let shipped = [(
-                "lifetime network on the fit's evidence (zoo, as shipped, its own codes)",
+                "lifetime network on the fit's evidence pooled by likeness (zoo, as shipped, its own codes)",
                 format!("{}:{}", names::LIFETIME, zoo_dir.display()),
             )];
             rows.extend(ladder(flim, &own, &shipped, flim_items)?);
