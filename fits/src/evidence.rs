@@ -264,38 +264,6 @@ pub fn similarity_pool(costs: &CostVolume<'_>, nats: f32, side: usize) -> Vec<f3
     });
     let step = costs.side.max(1) as isize;
     let k = (side / costs.side.max(1) / 2) as isize;
-    // the overlap is symmetric: each pair's once, for the half of the offsets that come after
-    // (0, 0) in raster order, [H·W, n] (0 where either is unlit or off the frame)
-    let forward: Vec<(isize, isize)> =
-        (-k..=k).flat_map(|a| (-k..=k).map(move |b| (a, b))).filter(|&(a, b)| a > 0 || (a == 0 && b > 0)).collect();
-    let n = forward.len().max(1);
-    let neighbour = |(i, j): (usize, usize), (a, b): (isize, isize)| -> Option<usize> {
-        let (ii, jj) = (i as isize + a * step, j as isize + b * step);
-        (ii >= 0 && jj >= 0 && ii < h as isize && jj < w as isize).then(|| ii as usize * w + jj as usize)
-    };
-    // every offset's place among them: (its index, forward) or (its opposite's, backward)
-    let slot: Vec<(usize, bool)> = (-k..=k)
-        .flat_map(|a| (-k..=k).map(move |b| (a, b)))
-        .map(|d| match forward.iter().position(|&f| f == d) {
-            Some(t) => (t, true),
-            None => (forward.iter().position(|&f| f == (-d.0, -d.1)).unwrap_or(0), false),
-        })
-        .collect();
-    let mut overlaps = vec![0f32; h * w * n];
-    overlaps.par_chunks_mut(w * n).enumerate().for_each(|(i, row)| {
-        for j in 0..w {
-            let p = i * w + j;
-            if !lit[p] {
-                continue;
-            }
-            let rp = &roots[p * g..(p + 1) * g];
-            for (t, &d) in forward.iter().enumerate() {
-                if let Some(q) = neighbour((i, j), d).filter(|&q| lit[q]) {
-                    row[j * n + t] = overlap(rp, &roots[q * g..(q + 1) * g]).min(1.0);
-                }
-            }
-        }
-    });
     let mut out = vec![0f32; h * w * g];
     out.par_chunks_mut(w * g).enumerate().for_each(|(i, row)| {
         for j in 0..w {
@@ -305,19 +273,18 @@ pub fn similarity_pool(costs: &CostVolume<'_>, nats: f32, side: usize) -> Vec<f3
                 continue;
             }
             o.copy_from_slice(&window[p * g..(p + 1) * g]);
+            let rp = &roots[p * g..(p + 1) * g];
             for a in -k..=k {
                 for b in -k..=k {
-                    if a == 0 && b == 0 {
+                    let (ii, jj) = (i as isize + a * step, j as isize + b * step);
+                    if (a == 0 && b == 0) || ii < 0 || jj < 0 || ii >= h as isize || jj >= w as isize {
                         continue;
                     }
-                    let Some(q) = neighbour((i, j), (a, b)).filter(|&q| lit[q]) else {
+                    let q = ii as usize * w + jj as usize;
+                    if !lit[q] {
                         continue;
-                    };
-                    // the pair's overlap, stored with whichever of the two comes first
-                    let weight = match slot[((a + k) * (2 * k + 1) + b + k) as usize] {
-                        (t, true) => overlaps[p * n + t],
-                        (t, false) => overlaps[q * n + t],
-                    };
+                    }
+                    let weight = overlap(rp, &roots[q * g..(q + 1) * g]).min(1.0);
                     if weight > 1e-3 {
                         o.iter_mut().zip(&window[q * g..(q + 1) * g]).for_each(|(x, y)| *x += weight * y);
                     }
@@ -377,78 +344,6 @@ mod tests {
             assert_eq!(underflowing_exp(x).to_bits(), x.exp().to_bits(), "at {x}");
         }
         assert_eq!(underflowing_exp(f32::NEG_INFINITY), 0.0);
-    }
-
-    /// Each pair's overlap computed once gives the pool of every pixel computing its own, bit
-    /// for bit (the overlap is symmetric to the bit: `x·y = y·x`, the same lanes), at the sides
-    /// the decoders use, lit and unlit pixels mixed, edges included.
-    #[test]
-    fn the_symmetric_overlaps_give_the_pairwise_pool_bit_for_bit() {
-        let (h, w, g) = (23, 19, 12);
-        let mut state = 0x2545F4914F6CDD1Du64;
-        let mut next = || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 40) as f32 / (1u64 << 24) as f32
-        };
-        let pixel: Vec<f32> = (0..h * w * g).map(|_| next()).collect();
-        let window: Vec<f32> = (0..h * w * g).map(|_| 40.0 * next()).collect();
-        let lit: Vec<bool> = (0..h * w).map(|_| next() > 0.15).collect();
-        let volume =
-            CostVolume { pixel: &pixel, window: &window, lit: &lit, points: g, height: h, width: w, side: 3, free_per_pixel: 3, shared: 2 };
-        for (side, nats) in [(9, 0.05f32), (15, 0.05), (15, 0.5), (21, 0.02)] {
-            let got = similarity_pool(&volume, nats, side);
-            let want = pairwise_pool(&volume, nats, side);
-            let pooled = got.iter().zip(&window).filter(|(a, b)| a != b).count();
-            assert!(pooled > h * w, "side {side}: pooled {pooled} entries");
-            for (e, (a, b)) in got.iter().zip(&want).enumerate() {
-                assert_eq!(a.to_bits(), b.to_bits(), "side {side}, entry {e}: {a} against {b}");
-            }
-        }
-    }
-
-    /// The pool as it was first written: every pixel computes the overlap with each neighbour.
-    fn pairwise_pool(costs: &CostVolume<'_>, nats: f32, side: usize) -> Vec<f32> {
-        let (g, h, w) = (costs.points, costs.height, costs.width);
-        let (window, lit) = (costs.window, costs.lit);
-        let mut roots = vec![0f32; h * w * g];
-        for (p, root) in roots.chunks_mut(g).enumerate().filter(|(p, _)| lit[*p]) {
-            let win = &window[p * g..(p + 1) * g];
-            let least = win.iter().fold(f32::INFINITY, |a, &b| a.min(b));
-            let mut total = 0f32;
-            for (o, &c) in root.iter_mut().zip(win) {
-                *o = underflowing_exp(-(c - least) * nats);
-                total += *o;
-            }
-            let scale = 1.0 / total;
-            root.iter_mut().for_each(|o| *o = (*o * scale).sqrt());
-        }
-        let (step, k) = (costs.side as isize, (side / costs.side / 2) as isize);
-        let mut out = vec![0f32; h * w * g];
-        for p in (0..h * w).filter(|&p| lit[p]) {
-            let (i, j) = (p / w, p % w);
-            out[p * g..(p + 1) * g].copy_from_slice(&window[p * g..(p + 1) * g]);
-            for a in -k..=k {
-                for b in -k..=k {
-                    let (ii, jj) = (i as isize + a * step, j as isize + b * step);
-                    if (a == 0 && b == 0) || ii < 0 || jj < 0 || ii >= h as isize || jj >= w as isize {
-                        continue;
-                    }
-                    let q = ii as usize * w + jj as usize;
-                    if !lit[q] {
-                        continue;
-                    }
-                    let weight = overlap(&roots[p * g..(p + 1) * g], &roots[q * g..(q + 1) * g]).min(1.0);
-                    if weight > 1e-3 {
-                        for (x, y) in out[p * g..(p + 1) * g].iter_mut().zip(&window[q * g..(q + 1) * g]) {
-                            *x += weight * y;
-                        }
-                    }
-                }
-            }
-        }
-        out
     }
 
     /// The pool is its definition, computed plainly: the window's cost plus each lit
