@@ -127,40 +127,32 @@ impl Architecture {
                 c.input = self.lifetime_input.unwrap_or(c.input);
                 c.base_width = self.base_width.unwrap_or(c.base_width);
                 c.levels = self.levels.unwrap_or(c.levels);
-                if self.points.is_some() && c.input != LifetimeInput::Costs {
-                    return Err(TrainError::InvalidParam {
-                        field: "points",
-                        got: format!("{} with the harmonics input", c.points),
-                        expected: "--input costs: the grid is the fit's evidence's".into(),
-                    });
-                }
-                if self.instrument_blocks.is_some() && c.input != LifetimeInput::Costs {
-                    return Err(TrainError::InvalidParam {
-                        field: "instrument_blocks",
-                        got: format!("{} with the harmonics input", c.instrument_blocks),
-                        expected: "--input costs: the instrument is the fit's".into(),
-                    });
-                }
-                if self.refine_near_mode == Some(true) && c.input != LifetimeInput::Costs {
-                    return Err(TrainError::InvalidParam {
-                        field: "refine_near_mode",
-                        got: "--refine-near-mode with the harmonics input".into(),
-                        expected: "--input costs: the refinement is the fit's".into(),
-                    });
-                }
-                if self.temper == Some(true) && c.input != LifetimeInput::Costs {
-                    return Err(TrainError::InvalidParam {
-                        field: "temper",
-                        got: "--temper with the harmonics input".into(),
-                        expected: "--input costs: the temperature weighs the fit's log-likelihood".into(),
-                    });
-                }
-                if self.windows.is_some() && c.input != LifetimeInput::Costs {
-                    return Err(TrainError::InvalidParam {
-                        field: "windows",
-                        got: format!("{:?} with the harmonics input", c.windows),
-                        expected: "--input costs: the windows are the fit's evidence's".into(),
-                    });
+                // settings of the fit's evidence, given for a network on the harmonics
+                if c.input != LifetimeInput::Costs {
+                    let given = [
+                        (self.points.is_some(), "points", c.points.to_string(), "the grid is the fit's evidence's"),
+                        (
+                            self.instrument_blocks.is_some(),
+                            "instrument_blocks",
+                            c.instrument_blocks.to_string(),
+                            "the instrument is the fit's",
+                        ),
+                        (
+                            self.refine_near_mode == Some(true),
+                            "refine_near_mode",
+                            "--refine-near-mode".into(),
+                            "the refinement is the fit's",
+                        ),
+                        (self.temper == Some(true), "temper", "--temper".into(), "the temperature weighs the fit's log-likelihood"),
+                        (self.windows.is_some(), "windows", format!("{:?}", c.windows), "the windows are the fit's evidence's"),
+                    ];
+                    if let Some((_, field, got, why)) = given.into_iter().find(|g| g.0) {
+                        return Err(TrainError::InvalidParam {
+                            field,
+                            got: format!("{got} with the harmonics input"),
+                            expected: format!("--input costs: {why}"),
+                        });
+                    }
                 }
             }
         }

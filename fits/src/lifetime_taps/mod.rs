@@ -841,16 +841,16 @@ mod tests {
         let plain = templates.refine_modes(&y.view(), &costs, &u);
         let near =
             LifetimeTemplates::new(&a, inst, &TapFitOptions { refine_near_mode: true, ..opts.clone() }).refine_modes(&y.view(), &costs, &u);
-        let (mut refined, mut at_fit) = (0, 0);
+        let (l0, _) = templates.log_grid();
+        let (mut n, mut refined, mut at_fit) = (0, 0, 0);
         for p in (0..64).filter(|&p| costs.lit[p] && best[p] > 0 && (best[p] as usize) + 2 < g) {
             let (t0, t1, fit) = (plain[(p / 8, p % 8)] as f64, near[(p / 8, p % 8)] as f64, own.lifetime[(p / 8, p % 8)] as f64);
-            let (l0, step0) = templates.log_grid();
-            assert!((t0.ln() - (l0 + u[p] as f64 * step0)).abs() < 1e-5, "the mode itself without refine_near_mode: {t0:e}");
+            assert!((t0.ln() - (l0 + u[p] as f64 * step)).abs() < 1e-5, "the mode itself without refine_near_mode: {t0:e}");
+            n += 1;
             assert!((t1.ln() - t0.ln()).abs() <= 1.01 * step, "refined within a point of the mode: {t1:e} against {t0:e}");
             refined += usize::from(t1 != t0);
             at_fit += usize::from((t1.ln() - fit.ln()).abs() < 1e-3);
         }
-        let n = (0..64).filter(|&p| costs.lit[p] && best[p] > 0 && (best[p] as usize) + 2 < g).count();
         assert!(
             n >= 50 && refined == n && at_fit >= 20,
             "refined near the mode: {refined} of {n} pixels, {at_fit} at the fit's own lifetime"
