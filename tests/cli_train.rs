@@ -501,7 +501,22 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
     // the sum at a learned temperature; recorded, decoded, exported and streamed as the network
     // without them
     let args = train(
-        &["--input", "costs", "--points", "40", "--windows", "5,9", "--temper", "--grid-ce", "0.5", "--refine-near-mode", "--epochs", "1"],
+        &[
+            "--input",
+            "costs",
+            "--points",
+            "40",
+            "--windows",
+            "5,9",
+            "--temper",
+            "--grid-ce",
+            "0.5",
+            "--refine-near-mode",
+            "--lifetime-error",
+            "log",
+            "--epochs",
+            "1",
+        ],
         "evw",
     );
     let out = ok(d, &args.iter().map(String::as_str).collect::<Vec<_>>());
@@ -513,6 +528,10 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
     assert_eq!(cfg["model"]["refine_near_mode"], serde_json::json!(true));
     assert!(out.contains("its mode refined in the taps within a point of the fit's"), "{out}");
     assert!(out.contains("the grid's cross-entropy at 0.5"), "{out}");
+    // the lifetimes' error on ln τ as asked, and a new run's confidence trained (weighted)
+    assert_eq!(cfg["lifetime_error"], serde_json::json!("log"));
+    assert_eq!(cfg["confidence_loss"], serde_json::json!("weighted"));
+    assert!(out.contains("the lifetimes' error on ln τ") && out.contains("the confidence's cross-entropy weighted"), "{out}");
     // each frame's instrument on superpixels as its photons ask (the runs before it: every pixel)
     assert_eq!(cfg["model"]["instrument_blocks"], serde_json::json!(0));
     assert!(out.contains("the instrument on superpixels as the photons ask"), "{out}");
@@ -540,6 +559,10 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
     fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["refine_near_mode", "--input costs"]);
     let args = train(&["--grid-ce", "0", "--epochs", "1"], "bad");
     fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["grid_ce_weight", "--input costs"]);
+    let args = train(&["--confidence-loss", "stalled", "--epochs", "1"], "bad");
+    fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["confidence_loss", "--input costs"]);
+    let args = train(&["--input", "costs", "--confidence-loss", "none", "--epochs", "1"], "bad");
+    fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["--confidence-loss", "none"]);
     let args = train(&["--input", "costs", "--grid-ce", "11", "--epochs", "1"], "bad");
     fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["--grid-ce", "11"]);
     let args = train(&["--input", "costs", "--windows", "5", "--epochs", "2", "--relaxed-epochs", "1", "--learn-codes"], "bad");

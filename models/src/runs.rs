@@ -372,6 +372,8 @@ pub const TRAINING_KEYS: &[&str] = &[
     "learn_codes",
     "init_from",
     "grid_ce_weight",
+    "lifetime_error",
+    "confidence_loss",
 ];
 
 /// Load a run directory on `device`: its config, codes, sensor model and latest weights.

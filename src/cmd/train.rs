@@ -96,11 +96,35 @@ pub struct LifetimeArgs {
     /// [default: off].
     #[arg(long)]
     refine_near_mode: bool,
+    /// The lifetimes' error in the loss: in `ns`, or of `ln τ` (`log`, counted as 2 ns per
+    /// unit: a relative error, so that dim items and long lifetimes do not make up the loss)
+    /// [default: ns].
+    #[arg(long, value_enum)]
+    lifetime_error: Option<LifetimeErrorArg>,
+    /// With `--input costs`: how the confidence of a fluorophore is trained. `weighted`: the
+    /// cross-entropy that weighs a missed fluorophore 8 times a false one; `stalled`: the same
+    /// written as runs before this choice had it, whose gradient vanishes at the untrained head,
+    /// so the confidence stays at ½ and every pixel gets a lifetime (kept to replay the zoo
+    /// entries trained with it) [default: weighted].
+    #[arg(long, value_enum)]
+    confidence_loss: Option<ConfidenceLossArg>,
     /// What the network reads: `harmonics` of Aᵀy turned by the frame's own phase, or `costs`,
     /// the fit to the taps' log-likelihood of every lifetime of a log grid (the instrument
     /// fitted to the frame), to which it adds a learned log-prior [default: harmonics].
     #[arg(long, value_enum)]
     input: Option<LifetimeInputArg>,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum LifetimeErrorArg {
+    Ns,
+    Log,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum ConfidenceLossArg {
+    Weighted,
+    Stalled,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -449,6 +473,8 @@ impl TrainArgs {
                 req.temper = n.temper.then_some(true);
                 req.grid_ce = n.grid_ce;
                 req.refine_near_mode = n.refine_near_mode.then_some(true);
+                req.lifetime_error = n.lifetime_error.and_then(name_of);
+                req.confidence_loss = n.confidence_loss.and_then(name_of);
             }
         }
         Ok(req)

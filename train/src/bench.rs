@@ -117,7 +117,7 @@ fn time_steps<M: Network>(
     let target = match M::PREDICTION {
         Prediction::Cube => Target::Cube { x: &x, scales: None, emd: false },
         Prediction::Depth => Target::Depth { depth: &depth, range_m: 10.0, grid: None },
-        Prediction::Lifetime => Target::Lifetime { labels: &lifetimes, grid: None, ce_weight: crate::loss::GRID_CE_WEIGHT },
+        Prediction::Lifetime => Target::Lifetime { labels: &lifetimes, grid: None, terms: crate::loss::LifetimeTerms::default() },
     };
     let mut times: Vec<[f64; 4]> = Vec::new();
     for _ in 0..steps.max(1) + 1 {

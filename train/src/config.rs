@@ -62,6 +62,35 @@ impl Objective {
     }
 }
 
+/// How a lifetime network's error in its lifetimes (`τ_m`, `τ₁`, `τ₂`) is measured in its loss.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "kebab-case")]
+pub enum LifetimeError {
+    /// The absolute error in ns (configs written before the choice).
+    #[default]
+    Ns,
+    /// The absolute error of `ln τ`, times [`crate::loss::LOG_ERROR_NS`] (an error of 1 %
+    /// costs what 0.02 ns does in `ns`): a relative error, so that the dimmest items and the
+    /// longest lifetimes, whose errors in ns are largest, do not make up the loss.
+    Log,
+}
+
+/// How a lifetime network on a grid learns its confidence of a fluorophore: the binary
+/// cross-entropy that weighs a missed fluorophore [`crate::loss::COVERAGE_WEIGHT`] times a
+/// false one, written one of two ways.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum ConfidenceLoss {
+    /// `w·m·softplus(−l) + (1 − m)·softplus(l)` with `softplus(x) = relu(x) + ln(1 + e^−|x|)`:
+    /// at `l = 0` both parts' gradients are 0 in burn, so a head that starts at 0 never learns
+    /// its confidence (½ everywhere: every pixel gets a lifetime). How the networks of configs
+    /// written before the choice were trained; kept so that they replay.
+    Stalled,
+    /// The same value as `(w·m + 1 − m)·softplus(l) − w·m·l` with burn's `ln(1 + eˡ)`, whose
+    /// gradient at 0 is `(1 − m)/2 − w·m/2`: the confidence trains (new runs).
+    Weighted,
+}
+
 /// How the learning rate moves over a run's optimiser steps.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "kebab-case", tag = "kind")]
@@ -156,6 +185,14 @@ pub struct TrainConfig {
     /// more than its error.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub grid_ce_weight: Option<f64>,
+    /// A lifetime network: how its lifetimes' error is measured (`None`, and in configs
+    /// written before it: in ns).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lifetime_error: Option<LifetimeError>,
+    /// A lifetime network on a grid: how its confidence is trained (`None`, and in configs
+    /// written before it: [`ConfidenceLoss::Stalled`]; new runs: `Weighted`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub confidence_loss: Option<ConfidenceLoss>,
 }
 
 impl TrainConfig {
@@ -223,7 +260,9 @@ impl TrainConfig {
                 Some(o @ (Objective::Range | Objective::Lifetime)) if self.run.model.prediction() == Prediction::Cube =>
                     format!(" + the waveforms' earth mover's distance (objective {})", o.name()),
                 _ => String::new(),
-            } + &self.grid_ce_weight.map_or(String::new(), |w| format!(", the grid's cross-entropy at {w}")),
+            } + &self.grid_ce_weight.map_or(String::new(), |w| format!(", the grid's cross-entropy at {w}"))
+                + if self.lifetime_error == Some(LifetimeError::Log) { ", the lifetimes' error on ln τ" } else { "" }
+                + if self.confidence_loss == Some(ConfidenceLoss::Weighted) { ", the confidence's cross-entropy weighted" } else { "" },
             if self.noise.is_some() { "shot + read" } else { "off" },
             match &self.augment {
                 None => "off".to_string(),
@@ -264,6 +303,8 @@ impl TrainConfig {
             learn_codes: None,
             init_from: None,
             grid_ce_weight: None,
+            lifetime_error: None,
+            confidence_loss: None,
         }
     }
 
@@ -303,6 +344,20 @@ impl TrainConfig {
                     "grid_ce_weight",
                     format!("{w} for {}", self.run.model.name()),
                     "a lifetime network on the fit's evidence (train lifetime --input costs): the weight is of its grid's cross-entropy",
+                );
+            }
+        }
+        if let Some(e) = self.lifetime_error {
+            if !matches!(self.run.model, ModelConfig::Lifetime(_)) {
+                return bad("lifetime_error", format!("{e:?} for {}", self.run.model.name()), "a lifetime network (train lifetime)");
+            }
+        }
+        if let Some(c) = self.confidence_loss {
+            if self.run.model.lifetime_grid().is_none() {
+                return bad(
+                    "confidence_loss",
+                    format!("{c:?} for {}", self.run.model.name()),
+                    "a lifetime network on the fit's evidence (train lifetime --input costs): the choice is of its grid's confidence",
                 );
             }
         }
@@ -446,6 +501,36 @@ mod tests {
         assert!(e.contains("grid_ce_weight") && e.contains("--input costs"), "{e}");
     }
 
+    /// The lifetimes' error is a lifetime network's choice and the confidence's loss a grid
+    /// network's; configs without them are written (and so replay) as before they existed.
+    #[test]
+    fn the_lifetime_loss_choices_are_lifetime_networks_and_absent_when_not_given() {
+        use tcsense_models::{LifetimeInput, LifetimeNetConfig};
+        let grid = TrainConfig::new(
+            ModelConfig::Lifetime(LifetimeNetConfig::new(4, 64).with_input(LifetimeInput::Costs)),
+            Path::new("ds"),
+            Loss::Rmse,
+            Sampling::Heterodyne(4),
+        );
+        let json = serde_json::to_string(&grid).expect("json");
+        assert!(!json.contains("lifetime_error") && !json.contains("confidence_loss"), "{json}");
+        let chosen =
+            TrainConfig { lifetime_error: Some(LifetimeError::Log), confidence_loss: Some(ConfidenceLoss::Weighted), ..grid.clone() };
+        assert!(chosen.validate().is_ok());
+        let json = serde_json::to_value(&chosen).expect("json");
+        assert_eq!((json["lifetime_error"].as_str(), json["confidence_loss"].as_str()), (Some("log"), Some("weighted")));
+        let harmonics = TrainConfig {
+            run: RunSpec { model: ModelConfig::Lifetime(LifetimeNetConfig::new(4, 64)), ..grid.run.clone() },
+            ..grid.clone()
+        };
+        assert!(TrainConfig { lifetime_error: Some(LifetimeError::Log), ..harmonics.clone() }.validate().is_ok());
+        let e = TrainConfig { confidence_loss: Some(ConfidenceLoss::Stalled), ..harmonics }.validate().expect_err("refused").to_string();
+        assert!(e.contains("confidence_loss") && e.contains("--input costs"), "{e}");
+        let admm = TrainConfig::new(ModelConfig::AdmmNet(AdmmNetConfig::new(4, 8)), Path::new("ds"), Loss::Rmse, Sampling::Oversample(1));
+        let e = TrainConfig { lifetime_error: Some(LifetimeError::Ns), ..admm }.validate().expect_err("refused").to_string();
+        assert!(e.contains("lifetime_error") && e.contains("lifetime network"), "{e}");
+    }
+
     /// Inference checks a run's config against `RunSpec`'s fields and `TRAINING_KEYS`: the
     /// list must stay equal to what `TrainConfig` adds.
     #[test]
@@ -455,6 +540,8 @@ mod tests {
         // (written only when given)
         cfg.objective = Some(Objective::Range);
         cfg.grid_ce_weight = Some(0.0);
+        cfg.lifetime_error = Some(LifetimeError::Log);
+        cfg.confidence_loss = Some(ConfidenceLoss::Weighted);
         let all = tcsense_sensor::json::keys_of(&cfg);
         let spec = tcsense_sensor::json::keys_of(&cfg.run);
         let mut extra: Vec<&str> = all.iter().filter(|k| !spec.contains(k)).map(String::as_str).collect();

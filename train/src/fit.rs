@@ -462,7 +462,11 @@ fn fit<M: Network>(
                 (Some(l), Prediction::Lifetime) => Target::Lifetime {
                     labels: l,
                     grid: cfg.run.model.lifetime_grid(),
-                    ce_weight: cfg.grid_ce_weight.unwrap_or(crate::loss::GRID_CE_WEIGHT),
+                    terms: crate::loss::LifetimeTerms {
+                        ce_weight: cfg.grid_ce_weight.unwrap_or(crate::loss::GRID_CE_WEIGHT),
+                        error: cfg.lifetime_error.unwrap_or_default(),
+                        confidence: cfg.confidence_loss.unwrap_or(crate::ConfidenceLoss::Stalled),
+                    },
                 },
                 (Some(d), _) => Target::Depth { depth: d, range_m, grid: cfg.run.model.range_grid() },
                 (None, _) => Target::Cube {
@@ -627,8 +631,8 @@ pub(crate) enum Target<'a> {
     Depth { depth: &'a Array4<f32>, range_m: f64, grid: Option<(f64, f64)> },
     /// Lifetime labels `[B, 5, H, W]` ([`crate::data::load_lifetime_labels`]) and the
     /// network's lifetime grid where it has one (`ln τ₀` in ns, step).
-    /// `ce_weight`: the weight of the grid's cross-entropy.
-    Lifetime { labels: &'a Array4<f32>, grid: Option<(f64, f64)>, ce_weight: f64 },
+    /// `terms`: how the loss is taken (the run's config).
+    Lifetime { labels: &'a Array4<f32>, grid: Option<(f64, f64)>, terms: crate::loss::LifetimeTerms },
 }
 
 /// The loss of a prediction against its target.
@@ -666,13 +670,13 @@ pub(crate) fn objective(loss: Loss, pred: Tensor<4>, target: Target<'_>, device:
                 None => depth_loss(pred, depth, mask, range_m),
             }
         }
-        Target::Lifetime { labels, grid, ce_weight } => {
+        Target::Lifetime { labels, grid, terms } => {
             let filled = labels.mapv(|v| if v.is_finite() { v } else { 0.0 });
             let distinct = ndarray::Zip::from(labels.index_axis(Axis(1), 1))
                 .and(labels.index_axis(Axis(1), 2))
                 .map_collect(|a, b| if (a - b).abs() > 1e-3 { 1f32 } else { 0.0 })
                 .insert_axis(Axis(1));
-            lifetime_loss(pred, to_tensor(&filled.view(), device), to_tensor(&distinct.view(), device), grid, ce_weight)
+            lifetime_loss(pred, to_tensor(&filled.view(), device), to_tensor(&distinct.view(), device), grid, terms)
         }
     }
 }

@@ -38,7 +38,7 @@ pub mod run_dir;
 pub mod setup;
 
 pub use augment::Augmentation;
-pub use config::{Loss, LrSchedule, Objective, TrainConfig};
+pub use config::{ConfidenceLoss, LifetimeError, Loss, LrSchedule, Objective, TrainConfig};
 pub use fit::{train, train_on, Progress, Quiet};
 pub use run_dir::{EpochMetrics, RunState};
 

@@ -5,7 +5,7 @@
 use burn::tensor::activation::relu;
 use burn::tensor::Tensor;
 
-use crate::config::Loss;
+use crate::config::{ConfidenceLoss, LifetimeError, Loss};
 
 /// The loss of a batch.
 ///
@@ -147,23 +147,51 @@ pub fn depth_grid_loss(pred: Tensor<4>, depth: Tensor<4>, mask: Tensor<4>, (scal
 /// the L1 term `1/T`; the cross-entropy of a two-bin split is at least ln 2).
 pub const CE_WEIGHT: f64 = 0.1;
 
-/// The lifetime loss of a batch: mean absolute error (ns) of `τ_m` where the pixel holds a
-/// fluorophore, half that of `τ₁` and `τ₂`, the error of `α₁` where the two components differ,
-/// and the binary cross-entropy of the confidence against "holds a fluorophore". A network on
-/// a lifetime grid (`grid`: `ln τ₀` in ns and the step) appends its log-posterior over the grid,
-/// whose cross-entropy against the true `τ_m` split between its two neighbouring points adds
-/// `ce_weight` ([`GRID_CE_WEIGHT`] by default) times its mean over the fluorophore, and whose confidence weighs a
-/// missed fluorophore [`COVERAGE_WEIGHT`] times.
+/// How a lifetime network's loss is taken: the terms its run's config sets.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LifetimeTerms {
+    /// The weight of the grid's cross-entropy ([`GRID_CE_WEIGHT`] by default).
+    pub ce_weight: f64,
+    /// How the lifetimes' error is measured.
+    pub error: LifetimeError,
+    /// How a grid network's confidence is trained.
+    pub confidence: ConfidenceLoss,
+}
+
+impl Default for LifetimeTerms {
+    /// The terms of configs written before the choices.
+    fn default() -> Self {
+        LifetimeTerms { ce_weight: GRID_CE_WEIGHT, error: LifetimeError::Ns, confidence: ConfidenceLoss::Stalled }
+    }
+}
+
+/// The lifetime loss of a batch: mean absolute error of `τ_m` where the pixel holds a
+/// fluorophore (in ns, or of `ln τ` times [`LOG_ERROR_NS`]: `terms.error`), half that of `τ₁`
+/// and `τ₂`, the error of `α₁` where the two components differ, and the binary cross-entropy
+/// of the confidence against "holds a fluorophore". A network on a lifetime grid (`grid`:
+/// `ln τ₀` in ns and the step) appends its log-posterior over the grid, whose cross-entropy
+/// against the true `τ_m` split between its two neighbouring points adds `terms.ce_weight`
+/// times its mean over the fluorophore, and whose confidence weighs a missed fluorophore
+/// [`COVERAGE_WEIGHT`] times (written as `terms.confidence` says).
 ///
 /// # Shapes
 /// - `pred`: `[B, 5, H, W]` (`τ_m`, `τ₁`, `τ₂` in ns, `α₁`, confidence logit) or
 ///   `[B, 5 + G, H, W]` (then the log-posterior), `labels`: `[B, 5, H, W]` (the same, 0 where
 ///   unknown, then the signal mask), `distinct`: `[B, 1, H, W]` (1 where `τ₁ ≠ τ₂`) → `[1]`
-pub fn lifetime_loss(pred: Tensor<4>, labels: Tensor<4>, distinct: Tensor<4>, grid: Option<(f64, f64)>, ce_weight: f64) -> Tensor<1> {
+pub fn lifetime_loss(pred: Tensor<4>, labels: Tensor<4>, distinct: Tensor<4>, grid: Option<(f64, f64)>, terms: LifetimeTerms) -> Tensor<1> {
     let mask = labels.clone().narrow(1, 4, 1); // [B, 1, H, W]
     let count = mask.clone().sum().add_scalar(1.0);
     let err = |c: usize| (pred.clone().narrow(1, c, 1) - labels.clone().narrow(1, c, 1)).abs() * mask.clone();
-    let l1 = (err(0) + (err(1) + err(2)) * 0.5 + err(3) * distinct).sum() / count.clone();
+    // (the labels are 0 where unknown: clamped before the logarithm, and masked)
+    let log_err = |c: usize| {
+        let ln = |x: Tensor<4>| x.clamp_min(LOG_FLOOR_NS).log();
+        (ln(pred.clone().narrow(1, c, 1)) - ln(labels.clone().narrow(1, c, 1))).abs().mul_scalar(LOG_ERROR_NS) * mask.clone()
+    };
+    let tau_err = |c: usize| match terms.error {
+        LifetimeError::Ns => err(c),
+        LifetimeError::Log => log_err(c),
+    };
+    let l1 = (tau_err(0) + (tau_err(1) + tau_err(2)) * 0.5 + err(3) * distinct).sum() / count.clone();
     let logits = pred.clone().narrow(1, 4, 1);
     let c = pred.dims()[1];
     match grid {
@@ -180,8 +208,19 @@ pub fn lifetime_loss(pred: Tensor<4>, labels: Tensor<4>, distinct: Tensor<4>, gr
             // the confidence weighs a missed fluorophore COVERAGE_WEIGHT times a false one: a
             // pixel gets a lifetime where the posterior of a fluorophore is above 1/(1 + w)
             let softplus = |x: Tensor<4>| relu(x.clone()) + x.abs().neg().exp().add_scalar(1.0).log();
-            let weighted = softplus(logits.clone().neg()) * mask.clone() * COVERAGE_WEIGHT + softplus(logits) * mask.neg().add_scalar(1.0);
-            l1 + weighted.mean() + ce.sum() / count * ce_weight
+            let weighted = match terms.confidence {
+                ConfidenceLoss::Stalled => {
+                    softplus(logits.clone().neg()) * mask.clone() * COVERAGE_WEIGHT + softplus(logits) * mask.neg().add_scalar(1.0)
+                }
+                // softplus(−l) = softplus(l) − l
+                ConfidenceLoss::Weighted => {
+                    let factor = mask.clone().mul_scalar(COVERAGE_WEIGHT - 1.0).add_scalar(1.0); // w·m + 1 − m
+                                                                                                 // (burn's softplus, ln(1 + eˡ): its gradient at 0 is ½, where the form
+                                                                                                 // above has relu's and |l|'s, 0)
+                    burn::tensor::activation::softplus(logits.clone(), 1.0) * factor - logits * mask.mul_scalar(COVERAGE_WEIGHT)
+                }
+            };
+            l1 + weighted.mean() + ce.sum() / count * terms.ce_weight
         }
         _ => {
             let bce = relu(logits.clone()) - logits.clone() * mask + logits.abs().neg().exp().add_scalar(1.0).log();
@@ -192,6 +231,14 @@ pub fn lifetime_loss(pred: Tensor<4>, labels: Tensor<4>, distinct: Tensor<4>, gr
 
 /// Channels of a lifetime prediction before any log-posterior.
 const OUTPUTS: usize = 5;
+
+/// [`LifetimeError::Log`]: the error of `ln τ` is counted as this many ns (an error of 1 %
+/// as 0.02 ns: about what the ns error gives it at the training data's typical 2 ns).
+pub const LOG_ERROR_NS: f64 = 2.0;
+
+/// [`LifetimeError::Log`]: lifetimes (predicted or true) are taken as at least this many ns
+/// before their logarithm.
+const LOG_FLOOR_NS: f64 = 1e-3;
 
 /// Weight of the lifetime grid's cross-entropy in [`lifetime_loss`].
 pub const GRID_CE_WEIGHT: f64 = 0.2;
@@ -325,7 +372,7 @@ mod tests {
         let pred = Tensor::<4>::from_floats([[[[2.5, 9.0]], [[1.5, 9.0]], [[3.0, 9.0]], [[0.4, 0.9]], [[0.0, 0.0]]]], &device);
         let labels = Tensor::<4>::from_floats([[[[2.0, 0.0]], [[1.0, 0.0]], [[3.0, 0.0]], [[0.5, 0.0]], [[1.0, 0.0]]]], &device);
         let distinct = Tensor::<4>::from_floats([[[[1.0, 0.0]]]], &device);
-        let l: f32 = lifetime_loss(pred, labels, distinct, None, GRID_CE_WEIGHT).into_scalar();
+        let l: f32 = lifetime_loss(pred, labels, distinct, None, LifetimeTerms::default()).into_scalar();
         // (0.5 + 0.5·(0.5 + 0) + 0.1) / (1 + 1) + ln 2
         assert!((l - (0.85 / 2.0 + 2f32.ln())).abs() < 1e-6, "{l}");
     }
@@ -343,11 +390,78 @@ mod tests {
         let pred = || Tensor::<4>::from_data(burn::tensor::TensorData::new(v.clone(), [1, 9, 1, 1]), &device);
         let labels = || Tensor::<4>::from_floats([[[[2.0]], [[2.0]], [[2.0]], [[1.0]], [[1.0]]]], &device);
         let distinct = || Tensor::<4>::from_floats([[[[0.0]]]], &device);
-        let at = |w: f64| -> f64 { lifetime_loss(pred(), labels(), distinct(), Some((0.0, 1.0)), w).into_scalar::<f32>() as f64 };
+        let at = |w: f64| -> f64 {
+            lifetime_loss(pred(), labels(), distinct(), Some((0.0, 1.0)), LifetimeTerms { ce_weight: w, ..LifetimeTerms::default() })
+                .into_scalar::<f32>() as f64
+        };
         // the confidence: softplus(0)·COVERAGE_WEIGHT = 8 ln 2; the cross-entropy ln 4 over 1 + 1
         let base = COVERAGE_WEIGHT * 2f64.ln();
         assert!((at(0.0) - base).abs() < 1e-5, "{}", at(0.0));
         assert!((at(0.2) - (base + 0.2 * 4f64.ln() / 2.0)).abs() < 1e-5, "{}", at(0.2));
         assert!((at(1.0) - (base + 4f64.ln() / 2.0)).abs() < 1e-5, "{}", at(1.0));
+    }
+
+    /// The two ways of writing the confidence's cross-entropy have the same value at every
+    /// logit; at the untrained head (logit 0) the first's gradient vanishes (why the networks
+    /// trained with it never learned a confidence) and the weighted one's is
+    /// `((1 − m) − w·m) / 2` per pixel over the pixels.
+    #[test]
+    fn the_weighted_confidence_loss_is_the_stalled_one_with_a_gradient_at_zero() {
+        let device = Device::flex();
+        // three pixels on a grid of 2 points (the log-posterior ln ½ each): two fluorophores of
+        // 2 ns predicted exactly, one background; the logits as given
+        let pred = |logits: [f32; 3]| {
+            let mut v = vec![2.0f32, 2.0, 0.0, 2.0, 2.0, 0.0, 2.0, 2.0, 0.0, 1.0, 1.0, 0.0];
+            v.extend(logits);
+            v.extend([0.5f32.ln(); 6]);
+            Tensor::<4>::from_data(burn::tensor::TensorData::new(v, [1, 7, 1, 3]), &device)
+        };
+        let labels = || {
+            let v = vec![2.0f32, 2.0, 0.0, 2.0, 2.0, 0.0, 2.0, 2.0, 0.0, 1.0, 1.0, 0.0, 1.0, 1.0, 0.0];
+            Tensor::<4>::from_data(burn::tensor::TensorData::new(v, [1, 5, 1, 3]), &device)
+        };
+        let distinct = || Tensor::<4>::zeros([1, 1, 1, 3], &device);
+        let terms = |confidence| LifetimeTerms { ce_weight: 0.0, error: LifetimeError::Ns, confidence };
+        for logits in [[0.0f32, 0.0, 0.0], [-3.0, 1.5, 2.0], [20.0, -20.0, 0.5]] {
+            let at = |c| lifetime_loss(pred(logits), labels(), distinct(), Some((0.0, 1.0)), terms(c)).into_scalar::<f32>();
+            let (stalled, weighted) = (at(ConfidenceLoss::Stalled), at(ConfidenceLoss::Weighted));
+            assert!((stalled - weighted).abs() <= 1e-5 * stalled.abs().max(1.0), "{logits:?}: {stalled} against {weighted}");
+        }
+        let ad = device.clone().autodiff();
+        let gradient = |c| -> Vec<f32> {
+            let p = Tensor::<4>::from_data(pred([0.0; 3]).into_data(), &ad).require_grad();
+            let l = Tensor::<4>::from_data(labels().into_data(), &ad);
+            let loss = lifetime_loss(p.clone(), l, Tensor::<4>::zeros([1, 1, 1, 3], &ad), Some((0.0, 1.0)), terms(c));
+            let g = p.grad(&loss.backward()).expect("a gradient");
+            g.narrow(1, 4, 1).into_data().try_into_vec().expect("f32")
+        };
+        assert!(gradient(ConfidenceLoss::Stalled).iter().all(|g| *g == 0.0), "{:?}", gradient(ConfidenceLoss::Stalled));
+        let w = COVERAGE_WEIGHT as f32;
+        let want = [-w / 2.0 / 3.0, -w / 2.0 / 3.0, 0.5 / 3.0];
+        for (g, want) in gradient(ConfidenceLoss::Weighted).iter().zip(want) {
+            assert!((g - want).abs() < 1e-5, "{g} against {want}");
+        }
+    }
+
+    /// On `ln τ`, the error is relative: 2.5 for 2 ns and 5 for 4 ns cost the same,
+    /// `LOG_ERROR_NS · ln 1.25` (half that of `τ₁`, `τ₂`), where in ns the second costs twice.
+    #[test]
+    fn the_log_lifetime_error_is_relative() {
+        let device = Device::flex();
+        let loss = |truth: f32, error| {
+            let t = truth;
+            let pred = Tensor::<4>::from_floats([[[[t * 1.25]], [[t * 1.25]], [[t]], [[0.5]], [[0.0]]]], &device);
+            let labels = Tensor::<4>::from_floats([[[[t]], [[t]], [[t]], [[0.5]], [[1.0]]]], &device);
+            let distinct = Tensor::<4>::zeros([1, 1, 1, 1], &device);
+            let terms = LifetimeTerms { error, ..LifetimeTerms::default() };
+            lifetime_loss(pred, labels, distinct, None, terms).into_scalar::<f32>() as f64
+        };
+        let bce = 2f64.ln(); // logit 0, a fluorophore
+        let want = LOG_ERROR_NS * 1.25f64.ln() * 1.5 / 2.0 + bce;
+        for t in [2.0, 4.0] {
+            assert!((loss(t, LifetimeError::Log) - want).abs() < 1e-5, "{t}: {}", loss(t, LifetimeError::Log));
+        }
+        let ns = |t: f64| 0.25 * t * 1.5 / 2.0 + bce;
+        assert!((loss(4.0, LifetimeError::Ns) - ns(4.0)).abs() < 1e-5 && (loss(2.0, LifetimeError::Ns) - ns(2.0)).abs() < 1e-5);
     }
 }

@@ -22,7 +22,10 @@ use tcsense_sensor::{Codes, Constraints};
 
 use crate::deep_sensing::LearnCodes;
 use crate::setup::{self, Architecture, MeasuredSensor};
-use crate::{file_err, Augmentation, EpochMetrics, Loss, LrSchedule, Objective, Progress, Result, TrainConfig, TrainError};
+use crate::{
+    file_err, Augmentation, ConfidenceLoss, EpochMetrics, LifetimeError, Loss, LrSchedule, Objective, Progress, Result, TrainConfig,
+    TrainError,
+};
 
 /// What a front end asks of a training (`None`/`false`: not given). Names and values are the
 /// command line's (`tcsense train DECODER --flag`), with `-` as `_`.
@@ -71,6 +74,11 @@ pub struct TrainRequest {
     /// Lifetime decoder on the fit's evidence: the weight of the grid's cross-entropy in the
     /// loss.
     pub grid_ce: Option<f64>,
+    /// Lifetime decoder: the lifetimes' error in the loss, `ns` or `log` (of `ln τ`).
+    pub lifetime_error: Option<String>,
+    /// Lifetime decoder on the fit's evidence: how its confidence is trained, `weighted` (new
+    /// runs) or `stalled` (as runs before the choice were: it does not train).
+    pub confidence_loss: Option<String>,
     /// Lifetime decoder on the fit's evidence: refine the mode in the tap domain within a point
     /// of the fit's argmin.
     pub refine_near_mode: Option<bool>,
@@ -319,6 +327,23 @@ pub fn prepare(req: &TrainRequest) -> Result<Prepared> {
     }
     if req.grid_ce.is_some() {
         cfg.grid_ce_weight = req.grid_ce;
+    }
+    if let Some(e) = req.lifetime_error.as_deref() {
+        cfg.lifetime_error = Some(match e {
+            "ns" => LifetimeError::Ns,
+            "log" => LifetimeError::Log,
+            other => return Err(bad("lifetime_error", other, "ns or log")),
+        });
+    }
+    if let Some(c) = req.confidence_loss.as_deref() {
+        cfg.confidence_loss = Some(match c {
+            "weighted" => ConfidenceLoss::Weighted,
+            "stalled" => ConfidenceLoss::Stalled,
+            other => return Err(bad("confidence_loss", other, "weighted or stalled")),
+        });
+    } else if !req.resume && cfg.confidence_loss.is_none() && cfg.run.model.lifetime_grid().is_some() {
+        // a new lifetime network on a grid trains its confidence (a resumed run keeps its own)
+        cfg.confidence_loss = Some(ConfidenceLoss::Weighted);
     }
     if req.no_noise {
         cfg.noise = None;
