@@ -246,10 +246,9 @@ pub fn noise_level(costs: &CostVolume<'_>) -> f32 {
 pub fn similarity_pool(costs: &CostVolume<'_>, nats: f32, side: usize) -> Vec<f32> {
     let (g, h, w) = (costs.points, costs.height, costs.width);
     let (window, lit) = (costs.window, costs.lit);
-    // √π of every lit pixel's window posterior, and the lanes' blocks that hold its mass
+    // √π of every lit pixel's window posterior
     let mut roots = vec![0f32; h * w * g];
-    let mut support = vec![(0u16, 0u16); h * w];
-    roots.par_chunks_mut(g).zip(support.par_iter_mut()).enumerate().for_each(|(p, (root, held))| {
+    roots.par_chunks_mut(g).enumerate().for_each(|(p, root)| {
         if !lit[p] {
             return;
         }
@@ -262,7 +261,6 @@ pub fn similarity_pool(costs: &CostVolume<'_>, nats: f32, side: usize) -> Vec<f3
         }
         let scale = 1.0 / total;
         root.iter_mut().for_each(|o| *o = (*o * scale).sqrt());
-        *held = blocks_held(root);
     });
     let step = costs.side.max(1) as isize;
     let k = (side / costs.side.max(1) / 2) as isize;
@@ -286,7 +284,7 @@ pub fn similarity_pool(costs: &CostVolume<'_>, nats: f32, side: usize) -> Vec<f3
                     if !lit[q] {
                         continue;
                     }
-                    let weight = overlap_within(rp, &roots[q * g..(q + 1) * g], support[p], support[q]).min(1.0);
+                    let weight = overlap(rp, &roots[q * g..(q + 1) * g]).min(1.0);
                     if weight > 1e-3 {
                         o.iter_mut().zip(&window[q * g..(q + 1) * g]).for_each(|(x, y)| *x += weight * y);
                     }
@@ -297,49 +295,7 @@ pub fn similarity_pool(costs: &CostVolume<'_>, nats: f32, side: usize) -> Vec<f3
     out
 }
 
-/// The blocks of [`LANES`] entries of `root` from the first that holds a value above 0 to the
-/// last, as `(first, last + 1)` (`(0, 0)`: none). In bright light a posterior's mass sits on
-/// a few points of the grid and the rest underflows to 0.
-fn blocks_held(root: &[f32]) -> (u16, u16) {
-    let first = root.iter().position(|&v| v > 0.0);
-    let last = root.iter().rposition(|&v| v > 0.0);
-    match (first, last) {
-        (Some(f), Some(l)) => ((f / LANES) as u16, (l / LANES + 1) as u16),
-        _ => (0, 0),
-    }
-}
-
-/// [`overlap`] over the blocks both `a` and `b` hold mass in (`held_a`, `held_b` from
-/// [`blocks_held`]): bit for bit the same, as every lane adds the same products in the same
-/// order, less the zeros. A tail shorter than a block is always summed.
-#[inline]
-fn overlap_within(a: &[f32], b: &[f32], held_a: (u16, u16), held_b: (u16, u16)) -> f32 {
-    let whole = a.len() / LANES * LANES;
-    let (lo, hi) = (held_a.0.max(held_b.0) as usize * LANES, (held_a.1.min(held_b.1) as usize * LANES).min(whole));
-    let tail: f32 = a[whole..].iter().zip(&b[whole..]).map(|(x, y)| x * y).sum();
-    if lo >= hi {
-        return 0f32 + tail;
-    }
-    lanes_sum(&a[lo..hi], &b[lo..hi]) + tail
-}
-
-/// Lanes of [`overlap`]'s sums.
-const LANES: usize = 8;
-
-/// `Σ a·b` over [`LANES`] lanes (vectorised), then the lanes' sum; `a` and `b` whole blocks.
-#[inline]
-fn lanes_sum(a: &[f32], b: &[f32]) -> f32 {
-    let mut lanes = [0f32; LANES];
-    for (x, y) in a.chunks_exact(LANES).zip(b.chunks_exact(LANES)) {
-        for k in 0..LANES {
-            lanes[k] += x[k] * y[k];
-        }
-    }
-    lanes.iter().sum::<f32>()
-}
-
 /// `Σ a·b` over eight lanes (vectorised), then the lanes' sum.
-#[cfg(test)]
 #[inline]
 fn overlap(a: &[f32], b: &[f32]) -> f32 {
     let mut lanes = [0f32; 8];
@@ -379,36 +335,6 @@ pub(crate) fn median<T: Copy>(v: &mut [T], by: impl FnMut(&T, &T) -> std::cmp::O
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// The overlap within the blocks both posteriors hold is the overlap of the whole grid bit
-    /// for bit: posteriors of a few points, of many, apart, touching, with a tail.
-    #[test]
-    fn the_overlap_within_the_held_blocks_is_the_whole_overlap_bit_for_bit() {
-        for g in [64, 67, 5] {
-            let root = |centre: f32, width: f32| -> Vec<f32> {
-                // (as the pool's: the least cost's exponential 1)
-                let d: Vec<f32> = (0..g).map(|t| ((t as f32 - centre) / width).powi(2) * 50.0).collect();
-                let least = d.iter().fold(f32::INFINITY, |a, &b| a.min(b));
-                let v: Vec<f32> = d.iter().map(|x| underflowing_exp(-(x - least))).collect();
-                let total: f32 = v.iter().sum();
-                v.iter().map(|x| (x / total).sqrt()).collect()
-            };
-            let mut shapes = vec![vec![0f32; g]];
-            for centre in [0.0, 3.5, 9.0, 20.0, 31.2, 60.0, 65.5] {
-                for width in [0.3, 2.0, 9.0, 100.0] {
-                    shapes.push(root(centre, width));
-                }
-            }
-            for a in &shapes {
-                for b in &shapes {
-                    let (got, want) = (overlap_within(a, b, blocks_held(a), blocks_held(b)), overlap(a, b));
-                    assert_eq!(got.to_bits(), want.to_bits(), "g {g}: {got:e} against {want:e}");
-                }
-            }
-        }
-        assert_eq!(blocks_held(&[0.0; 16]), (0, 0));
-        assert_eq!(blocks_held(&[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1e-30, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]), (1, 2));
-    }
 
     #[test]
     fn the_shortcut_exponential_is_exp_bit_for_bit() {
