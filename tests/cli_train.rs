@@ -532,6 +532,19 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
     assert_eq!(cfg["lifetime_error"], serde_json::json!("log"));
     assert_eq!(cfg["confidence_loss"], serde_json::json!("weighted"));
     assert!(out.contains("the lifetimes' error on ln τ") && out.contains("the confidence's cross-entropy weighted"), "{out}");
+    // a fine-tune continues its source's loss unless told otherwise
+    let loss_of = |run: &str| -> [serde_json::Value; 3] {
+        let c: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join(run).join("config.json")).unwrap()).unwrap();
+        [c["grid_ce_weight"].clone(), c["lifetime_error"].clone(), c["confidence_loss"].clone()]
+    };
+    ok(d, &["train", "lifetime", "--dataset", "f", "--codes", "codes.json", "--init-from", "evw", "--epochs", "1", "-o", "evw-ft"]);
+    assert_eq!(loss_of("evw-ft"), [serde_json::json!(0.5), serde_json::json!("log"), serde_json::json!("weighted")]);
+    let told = ["--grid-ce", "0", "--lifetime-error", "ns", "--confidence-loss", "stalled"];
+    let mut args = vec!["train", "lifetime", "--dataset", "f", "--codes", "codes.json", "--init-from", "evw", "--epochs", "1"];
+    args.extend(told);
+    args.extend(["-o", "evw-ft2"]);
+    ok(d, &args);
+    assert_eq!(loss_of("evw-ft2"), [serde_json::json!(0.0), serde_json::json!("ns"), serde_json::json!("stalled")]);
     // each frame's instrument on superpixels as its photons ask (the runs before it: every pixel)
     assert_eq!(cfg["model"]["instrument_blocks"], serde_json::json!(0));
     assert!(out.contains("the instrument on superpixels as the photons ask"), "{out}");

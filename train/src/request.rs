@@ -325,6 +325,14 @@ pub fn prepare(req: &TrainRequest) -> Result<Prepared> {
         let found = Objective::ALL.into_iter().find(|k| k.name() == o);
         cfg.objective = Some(found.ok_or_else(|| bad("objective", o, "mse, range or lifetime"))?);
     }
+    // a fine-tune continues its source run's loss, where the request does not set it
+    if let (Some(src), false, None) = (&req.init_from, req.resume, &req.config) {
+        (cfg.grid_ce_weight, cfg.lifetime_error, cfg.confidence_loss) = setup::loss_of_run(src)?;
+        if cfg.run.model.lifetime_grid().is_none() {
+            // (a fine-tune onto the harmonics input: its grid's settings do not apply)
+            (cfg.grid_ce_weight, cfg.confidence_loss) = (None, None);
+        }
+    }
     if req.grid_ce.is_some() {
         cfg.grid_ce_weight = req.grid_ce;
     }

@@ -18,7 +18,7 @@ use tcsense_sensor::npy::write_npy;
 use tcsense_sensor::{Codes, Sensor, SensorModel};
 
 use crate::deep_sensing::START_CODES_FILE;
-use crate::{file_err, Result, TrainConfig, TrainError};
+use crate::{file_err, ConfidenceLoss, LifetimeError, Result, TrainConfig, TrainError};
 
 /// Architecture settings as a front end was given them (`None`: not given).
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -233,6 +233,23 @@ pub fn model_for_init(source: &Path, proposed: &ModelConfig, from_config: bool) 
     Ok(model)
 }
 
+/// The loss settings of the run at `source` that a fine-tune of it continues with unless told
+/// otherwise: the grid's cross-entropy weight, the lifetimes' error and the confidence's loss
+/// (a lifetime network on a grid written before the choice: [`ConfidenceLoss::Stalled`], as
+/// it was trained).
+pub fn loss_of_run(source: &Path) -> Result<(Option<f64>, Option<LifetimeError>, Option<ConfidenceLoss>)> {
+    let path = source.join(CONFIG_FILE);
+    let v = read_config_json(&path)?;
+    let field = |key: &str| v.get(key).filter(|x| !x.is_null()).cloned();
+    let parse = |key: &str, x: serde_json::Value| file_err(&path, format!("{key} {x}: not a setting this build knows"));
+    let ce = field("grid_ce_weight").map(|x| x.as_f64().ok_or_else(|| parse("grid_ce_weight", x.clone()))).transpose()?;
+    let error = field("lifetime_error").map(|x| serde_json::from_value(x.clone()).map_err(|_| parse("lifetime_error", x))).transpose()?;
+    let confidence =
+        field("confidence_loss").map(|x| serde_json::from_value(x.clone()).map_err(|_| parse("confidence_loss", x))).transpose()?;
+    let grid = model_of_run(source)?.lifetime_grid().is_some();
+    Ok((ce, error, confidence.or(grid.then_some(ConfidenceLoss::Stalled))))
+}
+
 /// The codes a run trains with: `codes` when given; on resume the run's `codes.json`, or the
 /// start codes of a learned-codes run stopped before its projection.
 pub fn run_codes(run: &Path, codes: Option<&Path>, resume: bool) -> Result<Codes> {
@@ -292,4 +309,24 @@ pub fn write_measured_sensor(cfg: &TrainConfig, codes: &Codes, source: &Measured
     }
     write_npy(&run.join(SENSOR_MATRIX_FILE), &sensor.matrix().a().view())?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A fine-tune of a zoo entry continues its loss: `-fast` was trained with the grid's
+    /// cross-entropy at its default and the stalled confidence (its config names neither),
+    /// `lifetime-flim-pooled` with the posterior's mean alone on `ln τ`; a harmonics network
+    /// has no grid to set.
+    #[test]
+    fn a_fine_tune_reads_its_sources_loss() {
+        let zoo = Path::new(env!("CARGO_MANIFEST_DIR")).join("../zoo");
+        assert_eq!(loss_of_run(&zoo.join("lifetime-flim-evidence-fast")).unwrap(), (None, None, Some(ConfidenceLoss::Stalled)));
+        assert_eq!(
+            loss_of_run(&zoo.join("lifetime-flim-pooled")).unwrap(),
+            (Some(0.0), Some(LifetimeError::Log), Some(ConfidenceLoss::Stalled))
+        );
+        assert_eq!(loss_of_run(&zoo.join("lifetime-flim-designed")).unwrap(), (None, None, None));
+    }
 }
