@@ -284,6 +284,17 @@ impl TrainConfig {
         )
     }
 
+    /// How a lifetime network's loss is taken: the config's choices, and where it names none,
+    /// those of configs written before them ([`crate::loss::LifetimeTerms::default`]).
+    pub fn lifetime_terms(&self) -> crate::loss::LifetimeTerms {
+        let before = crate::loss::LifetimeTerms::default();
+        crate::loss::LifetimeTerms {
+            ce_weight: self.grid_ce_weight.unwrap_or(before.ce_weight),
+            error: self.lifetime_error.unwrap_or(before.error),
+            confidence: self.confidence_loss.unwrap_or(before.confidence),
+        }
+    }
+
     /// Defaults of the paper's Table 3 for a model config.
     pub fn new(model: ModelConfig, dataset: &Path, loss: Loss, sampling: Sampling) -> Self {
         TrainConfig {

@@ -459,15 +459,9 @@ fn fit<M: Network>(
             let lb = data.train_labels.as_ref().map(|d| d.select(Axis(0), idx)); // [B, K, H, W] or [B, 5, H, W]
             let batch = measure_step::<M>(cfg, &sensing, xb, lb, state.step, (bin_m, range_m))?;
             let target = match (&batch.labels, M::PREDICTION) {
-                (Some(l), Prediction::Lifetime) => Target::Lifetime {
-                    labels: l,
-                    grid: cfg.run.model.lifetime_grid(),
-                    terms: crate::loss::LifetimeTerms {
-                        ce_weight: cfg.grid_ce_weight.unwrap_or(crate::loss::GRID_CE_WEIGHT),
-                        error: cfg.lifetime_error.unwrap_or_default(),
-                        confidence: cfg.confidence_loss.unwrap_or(crate::ConfidenceLoss::Stalled),
-                    },
-                },
+                (Some(l), Prediction::Lifetime) => {
+                    Target::Lifetime { labels: l, grid: cfg.run.model.lifetime_grid(), terms: cfg.lifetime_terms() }
+                }
                 (Some(d), _) => Target::Depth { depth: d, range_m, grid: cfg.run.model.range_grid() },
                 (None, _) => Target::Cube {
                     x: &batch.x,

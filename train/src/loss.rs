@@ -214,9 +214,9 @@ pub fn lifetime_loss(pred: Tensor<4>, labels: Tensor<4>, distinct: Tensor<4>, gr
                 }
                 // softplus(−l) = softplus(l) − l
                 ConfidenceLoss::Weighted => {
+                    // (burn's softplus, ln(1 + eˡ): its gradient at 0 is ½, where the form above
+                    // has relu's and |l|'s, 0)
                     let factor = mask.clone().mul_scalar(COVERAGE_WEIGHT - 1.0).add_scalar(1.0); // w·m + 1 − m
-                                                                                                 // (burn's softplus, ln(1 + eˡ): its gradient at 0 is ½, where the form
-                                                                                                 // above has relu's and |l|'s, 0)
                     burn::tensor::activation::softplus(logits.clone(), 1.0) * factor - logits * mask.mul_scalar(COVERAGE_WEIGHT)
                 }
             };
@@ -448,8 +448,7 @@ mod tests {
     #[test]
     fn the_log_lifetime_error_is_relative() {
         let device = Device::flex();
-        let loss = |truth: f32, error| {
-            let t = truth;
+        let loss = |t: f32, error| {
             let pred = Tensor::<4>::from_floats([[[[t * 1.25]], [[t * 1.25]], [[t]], [[0.5]], [[0.0]]]], &device);
             let labels = Tensor::<4>::from_floats([[[[t]], [[t]], [[t]], [[0.5]], [[1.0]]]], &device);
             let distinct = Tensor::<4>::zeros([1, 1, 1, 1], &device);
