@@ -5,13 +5,16 @@ each panic, abort, hang (over 30 s) and refusal that left a file behind or said 
 twice. Every case runs in a fresh copy of a small working directory (codes, taps, a cube, a
 sweep, a dataset, a model, a run) made first with the binary. Needs numpy (scripts/setup.sh).
 
-    .venv/bin/python scripts/probe_numbers.py [--all] [--binary target/debug/tcsense]
+    .venv/bin/python scripts/probe_numbers.py [--all | --flim] [--binary target/debug/tcsense]
 
 Without --all: the commands of wave 4 (codes analyze|select|check|export, reconstruct
 depth-fit|lifetime-fit, infer and its fits, calibrate, simulate and its sweep, eval and its
 photon ladder, lifetime, depth, bringup); with --all: the others too (dataset, train, export,
-plot, codes generate|show|project, bench, sweep, demo). Valid values that start long work (a
-demo) show up as timeouts. Exit status 1 when a case went wrong.
+plot, codes generate|show|project, bench, sweep, demo); with --flim: the lifetime commands
+(dataset flim, codes select for lifetimes, train lifetime on the harmonics and on the fit's
+evidence, reconstruct lifetime, infer with a lifetime network, eval of lifetime decoders on the
+photon ladder). Valid values that start long work (a demo) show up as timeouts. Exit status 1
+when a case went wrong.
 """
 import argparse, os, shutil, subprocess, sys, tempfile, concurrent.futures as cf
 
@@ -20,6 +23,8 @@ import numpy as np
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 ap = argparse.ArgumentParser()
 ap.add_argument("--all", action="store_true")
+ap.add_argument("--flim", action="store_true")
+ap.add_argument("--show-accepted", action="store_true", help="also list the cases that exited 0, to read for values that should have been refused")
 ap.add_argument("--binary", default=os.path.join(ROOT, "target", "debug", "tcsense"))
 ARGS = ap.parse_args()
 T = os.path.abspath(ARGS.binary)
@@ -30,7 +35,7 @@ LIST = ["0,0", "NaN,1", "1e308,1e309", "-1,5", "5,1", "1"]
 SKIP = {"--codes", "--measurements", "--model", "--sweep", "--cube", "--dataset", "--calibration", "--plot", "--ply", "--png",
         "--irf", "--decoder", "--products", "--units", "--criterion", "--split", "--device", "--components", "--components-out", "--phasor", "--sensor-matrix", "--output"}
 HWF = {"--size", "--block"}
-LISTF = {"--tau-ns", "--tv-weights", "--light"}
+LISTF = {"--tau-ns", "--tv-weights", "--light", "--signal", "--ambient", "--irf-fwhm-ns", "--background", "--lifetimes", "--onset-ns-range"}
 CMDS2 = [
     ["dataset", "lidar", "--count", "4", "--size", "8x8", "--length", "8", "-o", "dl"],
     ["dataset", "flim", "--count", "4", "--size", "8x8", "--length", "8", "-o", "df"],
@@ -52,7 +57,21 @@ CMDS2 = [
     ["sweep", "constraints", "--dataset", "ds", "--items", "1", "--maxit", "5", "-o", "swc"],
     ["demo", "--quick", "-o", "demo"],
 ]
-CMDS = CMDS2 if ARGS.all else [
+FLIM = ["--codes", "fcodes.json", "--heterodyne", "8"]
+CMDS3 = [
+    ["dataset", "flim", "--count", "4", "--size", "8x8", "--heterodyne", "8", "-o", "df"],
+    ["codes", "select", "--criterion", "lifetime", "--heterodyne", "8", "--taps", "4", "--block", "2x2", "--length", "32",
+     "--tap-constraint", "--candidates", "10", "--search", "10", "-o", "s.json"],
+    ["train", "lifetime", "--dataset", "fds", *FLIM[:2], "--epochs", "1", "--base-width", "4", "-o", "newrun"],
+    ["train", "lifetime", "--input", "costs", "--dataset", "fds", *FLIM[:2], "--epochs", "1", "--base-width", "4", "--points", "16",
+     "-o", "newrun"],
+    ["reconstruct", "lifetime", "--run", "frun", "--measurements", "fy.npy", "-o", "t.npy"],
+    ["reconstruct", "lifetime-fit", *FLIM, "--measurements", "fy.npy", "-o", "t.npy"],
+    ["infer", "--model", "frun.onnx", "--measurements", "fy.npy", "-o", "out"],
+    ["eval", "--dataset", "fds", *FLIM, "--irf", "physical", "--decoder", "lifetime-fit", "--decoder", "lifetime:frun",
+     "--items", "1", "--light", "0.5"],
+]
+CMDS = CMDS3 if ARGS.flim else CMDS2 if ARGS.all else [
     ["codes", "analyze", "dcodes.json"],
     ["codes", "select", "--criterion", "range", "--tap-constraint", "--candidates", "10", "--search", "10", "-o", "s.json"],
     ["codes", "check", "dcodes.json"],
@@ -139,6 +158,14 @@ def make_base():
     tc("simulate", "--codes", "dcodes.json", "--irf", "physical", "--sweep", "sweep32", "--size", "8x8", "--average", "2", "--tap-gain", "0.05")
     tc("dataset", "lidar", "--count", "6", "--size", "16x16", "--seed", "1", "-o", "ds")
     tc("train", "admm-net", "--dataset", "ds", "--codes", "dcodes.json", "--epochs", "1", "--stages", "2", "--channels", "4", "-o", "run")
+    if ARGS.flim:
+        shutil.copy(os.path.join(ROOT, "zoo", "lifetime-flim-designed", "codes.json"), os.path.join(BASE, "fcodes.json"))
+        tc("dataset", "flim", "--count", "6", "--size", "16x16", "--heterodyne", "8", "--seed", "1", "-o", "fds")
+        cube = sorted(f for f in os.listdir(os.path.join(BASE, "fds", "test")) if f.startswith("x_"))[0]
+        tc("simulate", *FLIM, "--irf", "physical", "--cube", os.path.join("fds", "test", cube), "--noise", "-o", "fy.npy")
+        tc("train", "lifetime", "--input", "costs", "--dataset", "fds", *FLIM[:2], "--epochs", "1", "--base-width", "4", "--points",
+           "16", "-o", "frun")
+        tc("export", "onnx", "--run", "frun", "-o", "frun.onnx")
 
 
 make_base()
@@ -159,6 +186,8 @@ with cf.ThreadPoolExecutor(max_workers=2) as ex:
             print(kind, " ".join(full[1:]), "|", info, flush=True)
         else:
             codes[info] = codes.get(info, 0) + 1
+            if ARGS.show_accepted and info == 0:
+                print("accepted", " ".join(full[1:]), flush=True)
 print("exit codes of the rest:", codes)
 print(len(bad), "problems of", len(jobs))
 shutil.rmtree(BASE, ignore_errors=True)

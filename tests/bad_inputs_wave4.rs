@@ -240,6 +240,28 @@ fn absurd_numbers_are_refused_before_anything_is_allocated() {
         &["train", "unet", "--dataset", "nods", "--codes", "dcodes.json", "--returns", "18446744073709551615", "-o", "r"],
         &["--returns"],
     );
+    // found by scripts/probe_numbers.py --flim: a clock of 1e-300 MHz, settings of TVAL3 that
+    // the closed-form criteria do not use, a tail's time constant without a tail
+    p.refuse(&["dataset", "flim", "--count", "2", "--size", "8x8", "--clock-mhz", "1e-300", "-o", "df"], &["clock_hz", "1 MHz"]);
+    p.refuse(
+        &[
+            "codes",
+            "select",
+            "--criterion",
+            "range",
+            "--tap-constraint",
+            "--candidates",
+            "4",
+            "--search",
+            "4",
+            "--mu",
+            "NaN",
+            "-o",
+            "s.json",
+        ],
+        &["mu", "NaN"],
+    );
+    p.refuse(&["simulate", "--codes", "dcodes.json", "--cube", "x32.npy", "--tail-tau-ns", "NaN", "-o", "yy.npy"], &["tail_tau"]);
     // values that mean nothing
     p.refuse(
         &["infer", "--model", "unet.onnx", "--measurements", "stack2.npy", "--products", "ply", "--fov", "NaN", "-o", "out"],

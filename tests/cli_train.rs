@@ -128,9 +128,10 @@ fn bad_inputs_exit_2() {
             "-o",
             "diverged",
         ],
-        &["training diverged", "lower --lr"],
+        &["training diverged", "nothing was written", "lower --lr"],
     );
-    assert!(!d.join("diverged").join("model.bpk").exists());
+    // (it diverged before its first checkpoint: the new run is gone)
+    assert!(!d.join("diverged").exists());
     fails(
         d,
         &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--pause-after", "0", "-o", "runp"],
@@ -578,6 +579,22 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
     fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["--confidence-loss", "none"]);
     let args = train(&["--input", "costs", "--grid-ce", "11", "--epochs", "1"], "bad");
     fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["--grid-ce", "11"]);
+    // absurd numbers, refused before anything is said of them or written (found by
+    // scripts/probe_numbers.py --flim: 10¹¹ levels hung counting their FLOPs; a rate of 1e308
+    // diverged and left a run without a checkpoint, which is now removed)
+    for (flag, v, needle) in [
+        ("--levels", "99999999999", "model.levels"),
+        ("--base-width", "99999999999", "model.base_width"),
+        ("--batch-size", "99999999999", "batch_size"),
+        ("--lr", "1e308", "nothing was written"),
+    ] {
+        let args = ["train", "lifetime", "--input", "costs", "--dataset", "f", "--codes", "codes.json", "--epochs", "1", flag, v];
+        fails(d, &[&args[..], &["-o", "absurd"]].concat(), &[needle]);
+        assert!(!d.join("absurd").exists(), "{flag} {v}: a run left behind");
+    }
+    // the harmonics' count for a network that reads none
+    let args = train(&["--input", "costs", "--harmonics", "5", "--epochs", "1"], "absurd");
+    fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["harmonics", "input costs"]);
     let args = train(&["--input", "costs", "--windows", "5", "--epochs", "2", "--relaxed-epochs", "1", "--learn-codes"], "bad");
     fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["learn_codes", "wider windows"]);
     assert!(!d.join("bad").exists());

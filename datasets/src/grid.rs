@@ -19,7 +19,7 @@ pub struct TimeGrid {
 }
 
 impl TimeGrid {
-    /// Check ranges (`L` multiple of 8 in 8..=256, `K` in 1..=64, positive clock).
+    /// Check ranges (`L` multiple of 8 in 8..=256, `K` in 1..=64, a clock of 1 MHz to 10 GHz).
     pub fn validate(self) -> Result<Self> {
         if self.length % 8 != 0 || !(8..=256).contains(&self.length) {
             return Err(invalid("length", self.length, "a multiple of 8 in 8..=256"));
@@ -27,8 +27,9 @@ impl TimeGrid {
         if !(1..=64).contains(&self.sampling.k()) {
             return Err(invalid("K", self.sampling.k(), "1..=64"));
         }
-        if !(self.clock_hz.is_finite() && self.clock_hz > 0.0) {
-            return Err(invalid("clock_hz", self.clock_hz, "a positive frequency"));
+        let [lo, hi] = tcsense_sensor::codes::CLOCK_RANGE_HZ;
+        if !(self.clock_hz.is_finite() && (lo..=hi).contains(&self.clock_hz)) {
+            return Err(invalid("clock_hz", self.clock_hz, "a frequency from 1 MHz to 10 GHz (e.g. 607e6)"));
         }
         Ok(self)
     }

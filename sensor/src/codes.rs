@@ -399,9 +399,15 @@ impl Codes {
     }
 }
 
-fn check_clock(clock_hz: f64) -> Result<()> {
-    if !(clock_hz.is_finite() && clock_hz > 0.0 && clock_hz <= 10e9) {
-        return Err(invalid("clock_hz", clock_hz, "a positive frequency up to 10 GHz (e.g. 607e6)"));
+/// The code clocks taken (Hz): a coded exposure controller's, from 1 MHz (a cycle of 256 masks
+/// in 256 µs) to 10 GHz.
+pub const CLOCK_RANGE_HZ: [f64; 2] = [1e6, 10e9];
+
+/// Refuse a code clock outside [`CLOCK_RANGE_HZ`].
+pub(crate) fn check_clock(clock_hz: f64) -> Result<()> {
+    let [lo, hi] = CLOCK_RANGE_HZ;
+    if !(clock_hz.is_finite() && (lo..=hi).contains(&clock_hz)) {
+        return Err(invalid("clock_hz", clock_hz, "a frequency from 1 MHz to 10 GHz (e.g. 607e6)"));
     }
     Ok(())
 }

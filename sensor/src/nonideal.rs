@@ -120,6 +120,10 @@ impl NonIdeal {
         if self.tail > 0.0 && !(self.tail_tau_s.is_finite() && self.tail_tau_s > 0.0 && self.tail_tau_s <= max) {
             return Err(invalid("tail_tau", self.tail_tau_s, "a positive time constant up to 1 µs (1e-6 s) when tail > 0"));
         }
+        // without a tail its time constant goes unused, but a value that means nothing is refused
+        if !(self.tail_tau_s.is_finite() && (0.0..=max).contains(&self.tail_tau_s)) {
+            return Err(invalid("tail_tau", self.tail_tau_s, "a time constant from 0 to 1 µs (1e-6 s)"));
+        }
         if !(self.shift_s.is_finite() && self.shift_s.abs() <= max) {
             return Err(invalid("shift", self.shift_s, "a delay from −1 µs to 1 µs (s)"));
         }
@@ -391,6 +395,11 @@ mod tests {
             .to_string()
             .contains("not both"));
         assert!(NonIdeal { modulation_contrast: 1.2, ..NonIdeal::default() }.validate().is_err());
+        // a tail's time constant that means nothing, with or without the tail
+        for tail_tau_s in [f64::NAN, -1e-9, f64::INFINITY, 2e-6] {
+            let e = NonIdeal { tail_tau_s, ..NonIdeal::default() }.validate().unwrap_err().to_string();
+            assert!(e.contains("tail_tau"), "{e}");
+        }
         assert!(NonIdeal { modulation_contrast: 1.0, ..NonIdeal::default() }.is_ideal());
         // κ = 0.2: half a full well reads 10 % low, a tenth 2 % low, monotone up to full well
         let real = NonIdeal { nonlinearity: 0.2, ..NonIdeal::default() }.realise(&a, 2, 2).unwrap();

@@ -156,9 +156,7 @@ impl SensorParams {
     /// Check every parameter against the hardware's limits.
     pub fn validate(self) -> Result<SensorSpec> {
         CodeShape { bh: self.block.0, bw: self.block.1, taps: self.taps, length: self.length, drain: self.drain }.validate()?;
-        if !(self.clock_hz.is_finite() && self.clock_hz > 0.0 && self.clock_hz <= 10e9) {
-            return Err(invalid("clock_hz", self.clock_hz, "a positive frequency up to 10 GHz (e.g. 607e6)"));
-        }
+        crate::codes::check_clock(self.clock_hz)?;
         let k = self.sampling.k();
         if !(1..=64).contains(&k) {
             let field = match self.sampling {
@@ -269,6 +267,10 @@ mod tests {
         assert!(e.to_string().contains("length: got 30, expected a multiple of 8"), "{e}");
         let e = SensorParams { taps: 9, ..Default::default() }.validate().unwrap_err();
         assert!(e.to_string().contains("taps"));
+        for clock_hz in [1e-294, 0.5e6, 11e9, f64::NAN] {
+            let e = SensorParams { clock_hz, ..Default::default() }.validate().unwrap_err().to_string();
+            assert!(e.contains("clock_hz") && e.contains("1 MHz to 10 GHz"), "{e}");
+        }
         let e = SensorParams { sampling: Sampling::Heterodyne(0), ..Default::default() }.validate().unwrap_err();
         assert!(e.to_string().contains("heterodyne"));
         let p = SensorParams { sampling: Sampling::Heterodyne(8), ..Default::default() }.validate().unwrap();

@@ -112,6 +112,9 @@ pub fn select_cmd(a: SelectArgs) -> Result<ExitCode> {
 /// `codes select --criterion range|lifetime`: best of random candidates, then the local search.
 fn select_identifiable(a: SelectArgs, criterion: Criterion) -> Result<ExitCode> {
     let d = &a.design;
+    // TVAL3's settings are the MSE criterion's; given here they go unused, but a NaN or a
+    // negative one is refused all the same, as `eval` refuses them without a TVAL3 decoder
+    a.eval.tval3.options()?;
     // the sensor crate's defaults: 20 000 candidates, 8 searches of 50 000 moves
     let defaults = DesignOptions::default();
     let candidates = a.candidates.unwrap_or(defaults.candidates);

@@ -34,7 +34,7 @@ pub struct EvalArgs {
     #[arg(long)]
     pub(super) irf: Option<String>,
     #[command(flatten)]
-    tval3: Tval3Args,
+    pub(super) tval3: Tval3Args,
 }
 
 pub(super) struct Loaded {

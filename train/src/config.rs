@@ -91,6 +91,9 @@ pub enum ConfidenceLoss {
     Weighted,
 }
 
+/// The largest batch taken (items a step; a batch larger than the training split is the split).
+pub const MAX_BATCH: usize = 65_536;
+
 /// How the learning rate moves over a run's optimiser steps.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "kebab-case", tag = "kind")]
@@ -376,8 +379,8 @@ impl TrainConfig {
         if self.epochs == 0 {
             return bad("epochs", "0".into(), "at least 1");
         }
-        if self.batch_size == 0 {
-            return bad("batch_size", "0".into(), "at least 1");
+        if !(1..=MAX_BATCH).contains(&self.batch_size) {
+            return bad("batch_size", self.batch_size.to_string(), "1 to 65 536 items a step");
         }
         if !(self.learning_rate.is_finite() && self.learning_rate > 0.0) {
             return bad("learning_rate", self.learning_rate.to_string(), "a positive number");

@@ -479,7 +479,7 @@ fn fit<M: Network>(
             };
             if !l.is_finite() {
                 // the step already moved the weights: stop before a NaN checkpoint is written
-                return Err(TrainError::Diverged { loss: l, epoch: epoch + 1, step: state.step });
+                return Err(TrainError::Diverged { loss: l, epoch: epoch + 1, step: state.step, kept: true });
             }
             loss_sum += l;
             progress.step(epoch, bi + 1, steps_per_epoch, l);

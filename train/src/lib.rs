@@ -59,8 +59,8 @@ pub enum TrainError {
     InvalidParam { field: &'static str, got: String, expected: String },
     #[error("interrupted; the last checkpoint is kept, continue with --resume")]
     Cancelled,
-    #[error("training diverged: the loss was {loss} at epoch {epoch}, step {step}; the last checkpoint is kept (a lower --lr, or --resume from it)")]
-    Diverged { loss: f64, epoch: usize, step: u64 },
+    #[error("training diverged: the loss was {loss} at epoch {epoch}, step {step}; {}", if *kept { "the last checkpoint is kept (a lower --lr, or --resume from it)" } else { "nothing was written (try a lower --lr)" })]
+    Diverged { loss: f64, epoch: usize, step: u64, kept: bool },
 }
 
 /// Result alias of the training crate.

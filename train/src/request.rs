@@ -402,15 +402,56 @@ pub fn prepare(req: &TrainRequest) -> Result<Prepared> {
     if codes.taps() != cfg.run.model.taps() {
         return Err(bad("codes", &format!("{} taps", codes.taps()), &format!("the model's M = {}", cfg.run.model.taps())));
     }
+    // every setting checked before anything is said of it (a summary of 10¹¹ levels would
+    // count their FLOPs) or written
+    cfg.validate()?;
     Ok(Prepared { cfg, codes, measured, output: run_dir.clone(), resume: req.resume })
 }
 
 /// Run a prepared training on `device`: the measured sensor written into the run first (checked
 /// against the codes), then [`crate::train_on`] (resumable, `cancel` stops it with the last
 /// checkpoint kept).
+///
+/// A new run that diverges before its first checkpoint leaves nothing behind: its directory,
+/// made by this call, is removed (there is nothing to resume from).
 pub fn run(p: &Prepared, device: &Device, progress: &dyn Progress, cancel: &AtomicBool) -> Result<Vec<EpochMetrics>> {
-    if let Some(m) = &p.measured {
-        setup::write_measured_sensor(&p.cfg, &p.codes, m, &p.output)?;
+    let fresh = !p.resume && !p.output.exists();
+    let res = (|| {
+        if let Some(m) = &p.measured {
+            setup::write_measured_sensor(&p.cfg, &p.codes, m, &p.output)?;
+        }
+        crate::train_on(&p.cfg, &p.codes, &p.output, p.resume, device, progress, cancel)
+    })();
+    match res {
+        Err(TrainError::Diverged { loss, epoch, step, .. }) if fresh && discard_unstarted(&p.output) => {
+            Err(TrainError::Diverged { loss, epoch, step, kept: false })
+        }
+        res => res,
     }
-    crate::train_on(&p.cfg, &p.codes, &p.output, p.resume, device, progress, cancel)
+}
+
+/// Remove run directory `run` if no checkpoint was ever written into it; whether it was.
+fn discard_unstarted(run: &Path) -> bool {
+    matches!(crate::run_dir::latest_checkpoint(run), Ok(None)) && std::fs::remove_dir_all(run).is_ok()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A run without a checkpoint is removed (what a fresh run that diverged wrote); one with
+    /// a checkpoint, or a half-written one, is kept.
+    #[test]
+    fn only_a_run_without_a_checkpoint_is_discarded() {
+        let t = tempfile::tempdir().unwrap();
+        let run = t.path().join("r");
+        std::fs::create_dir_all(&run).unwrap();
+        std::fs::write(run.join(CONFIG_FILE), "{}").unwrap();
+        assert!(discard_unstarted(&run) && !run.exists());
+        let ckpt = run.join(crate::run_dir::CHECKPOINT_DIR);
+        std::fs::create_dir_all(&ckpt).unwrap();
+        assert!(!discard_unstarted(&run) && run.exists(), "an incomplete checkpoint is kept for the user to see");
+        std::fs::write(ckpt.join(crate::run_dir::STATE_FILE), "{}").unwrap();
+        assert!(!discard_unstarted(&run) && ckpt.exists());
+    }
 }

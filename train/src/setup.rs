@@ -153,6 +153,13 @@ impl Architecture {
                             expected: format!("--input costs: {why}"),
                         });
                     }
+                } else if let Some(h) = self.harmonics {
+                    // and the harmonics', given for a network on the fit's evidence
+                    return Err(TrainError::InvalidParam {
+                        field: "harmonics",
+                        got: format!("{h} with the fit's evidence (input costs)"),
+                        expected: "the harmonics input: a network on the evidence reads no harmonics".into(),
+                    });
                 }
             }
         }
