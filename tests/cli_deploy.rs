@@ -270,6 +270,72 @@ fn a_lifetime_model_streams_the_fit_to_the_taps() {
     assert!(!d.join("bad").exists());
 }
 
+/// The onset and IRF width `infer` reports (ns), and the frames they were searched on.
+fn instrument_of(out: &str) -> (f64, f64, usize) {
+    let line = out.lines().find(|l| l.starts_with("instrument: ")).unwrap_or_else(|| panic!("no instrument line: {out}"));
+    let num = |after: &str| -> f64 {
+        let rest = &line[line.find(after).unwrap_or_else(|| panic!("{after:?} in {line}")) + after.len()..];
+        rest.split_whitespace().next().unwrap().parse().unwrap()
+    };
+    let frames = if line.contains("from the first frame") { 1 } else { num("from ") as usize };
+    (num("onset "), num("IRF "), frames)
+}
+
+/// A dim recording's instrument is searched on its frames of the first's scene, summed: the
+/// same onset as the sum given as one frame, where a stack of other scenes (and a bright
+/// frame) keeps the first frame's.
+#[test]
+fn a_dim_recording_sums_its_frames_for_the_instrument() {
+    let d = tempdir();
+    let d = d.path();
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    std::fs::copy(root.join("zoo/lifetime-flim-designed/codes.json"), d.join("codes.json")).unwrap();
+    ok(d, &["dataset", "flim", "--count", "12", "--size", "32x32", "--heterodyne", "8", "--seed", "4", "-o", "f"]);
+    ok(d, &["export", "onnx", "--run", "zoo:lifetime-flim-evidence-fast", "-o", "fast.onnx"]);
+    let sim_of = |cube: &str, signal: &str, seed: u64, out: &str| {
+        let seed = seed.to_string();
+        let args = ["simulate", "--codes", "codes.json", "--heterodyne", "8", "--irf", "physical", "--noise", "--cube", cube];
+        ok(d, &[&args[..], &["--signal-fraction", signal, "--seed", &seed, "-o", out]].concat());
+        read_npy(&d.join(out)).unwrap().into_dimensionality::<ndarray::Ix4>().unwrap()
+    };
+    let sim = |signal: &str, seed: u64, out: &str| sim_of("f/test/x_000.npy", signal, seed, out);
+    // eight noisy frames of one scene, dim
+    let frames: Vec<_> = (0..8).map(|s| sim("0.02", 10 + s, "y.npy").index_axis_move(ndarray::Axis(0), 0)).collect();
+    let views: Vec<_> = frames.iter().map(|f| f.view()).collect();
+    write_npy(&d.join("rec.npy"), &ndarray::stack(ndarray::Axis(0), &views).unwrap().view()).unwrap();
+    let sum = frames.iter().skip(1).fold(frames[0].clone(), |a, b| a + b);
+    write_npy(&d.join("sum.npy"), &sum.view()).unwrap();
+    write_npy(&d.join("first.npy"), &frames[0].view()).unwrap();
+    let infer =
+        |m: &str, extra: &[&str]| ok(d, &[&["infer", "--model", "fast.onnx", "--measurements", m][..], extra, &["-o", "out"]].concat());
+    for extra in [&[][..], &["--lifetime-fit"][..]] {
+        let (onset, width, n) = instrument_of(&infer("rec.npy", extra));
+        assert_eq!(n, 8, "{extra:?}: every frame of the scene summed");
+        let (onset_sum, width_sum, one) = instrument_of(&infer("sum.npy", extra));
+        assert_eq!(one, 1);
+        assert!(
+            (onset - onset_sum).abs() < 1e-3 && (width - width_sum).abs() < 1e-3,
+            "{extra:?}: {onset} {width} against {onset_sum} {width_sum}"
+        );
+    }
+    // the truth (the item's onset); the summed frames' onset is the nearer
+    let truth = read_npy(&d.join("f/test/onset_000.npy")).unwrap()[[0, 0]] as f64 * 1e9;
+    let (onset, _, _) = instrument_of(&infer("rec.npy", &["--lifetime-fit"]));
+    let (onset_first, _, _) = instrument_of(&infer("first.npy", &["--lifetime-fit"]));
+    println!("onset {onset:.3} ns from the recording, {onset_first:.3} from its first frame; the truth {truth:.3}");
+    assert!((onset - truth).abs() < (onset_first - truth).abs(), "{onset} against {onset_first}, the truth {truth}");
+    // frames of other scenes are not summed; nor is a bright frame's instrument
+    let scenes = sim_of("f/train/x_000.npy", "0.02", 3, "scenes.npy");
+    assert!(scenes.dim().0 > 1);
+    assert_eq!(instrument_of(&infer("scenes.npy", &["--lifetime-fit"])).2, 1);
+    sim("0.8", 3, "bright.npy");
+    let bright = read_npy(&d.join("bright.npy")).unwrap();
+    let b0 = bright.index_axis(ndarray::Axis(0), 0);
+    let bright = ndarray::stack(ndarray::Axis(0), &[b0.view(), b0.view(), b0.view()]).unwrap();
+    write_npy(&d.join("bright3.npy"), &bright.view()).unwrap();
+    assert_eq!(instrument_of(&infer("bright3.npy", &["--lifetime-fit"])).2, 1);
+}
+
 #[test]
 fn admm_net_export_with_the_matrix_as_input_and_eval_through_ort() {
     let d = tempdir();

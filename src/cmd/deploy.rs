@@ -289,6 +289,19 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
         1e3 * report.infer_seconds / report.frames.max(1) as f64,
         names.join(", ")
     );
+    if let Some((i, summed)) = report.instrument {
+        println!(
+            "instrument: onset {:.3} ns, IRF {:.3} ns FWHM ({}), from {}",
+            i.onset_s * 1e9,
+            i.irf_fwhm_s * 1e9,
+            if a.onset_ns.is_some() { "the onset given" } else { "fitted" },
+            if summed == 1 {
+                "the first frame".to_string()
+            } else {
+                format!("{summed} frames of the first's scene, summed (the first was dim)")
+            }
+        );
+    }
     if let Some(kb) = peak_rss_kb() {
         println!("peak memory (VmHWM): {:.1} MiB", kb as f64 / 1024.0);
     }
@@ -403,7 +416,9 @@ pub fn bench_infer(a: BenchInferArgs) -> Result<()> {
         }
         e => e.into(),
     });
-    if a.save_model.is_none() {
+    // the exported model is kept (--save-model) only when the benchmark ran: a failed command
+    // leaves nothing behind
+    if a.save_model.is_none() || (timing.is_err() && a.model.is_none()) {
         let _ = std::fs::remove_file(&tmp);
     }
     let t = timing?;

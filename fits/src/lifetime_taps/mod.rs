@@ -210,6 +210,22 @@ pub fn estimate_instrument(y: &ArrayView3<'_, f32>, a: &MeasurementMatrix, opts:
     instrument_of(&normalise(y, opts.min_intensity), y.dim(), a, opts)
 }
 
+/// How many frames of a recording to sum before its instrument is searched, from the first
+/// frame `y`: 1 when its pixels hold enough photons on their own, else `s²` where `s` is the
+/// superpixels' side [`instrument_side`] would take (up to 16). The onset and the IRF are the
+/// sensor's and the laser's, the same in every frame, so the sum has the photons of a superpixel
+/// without mixing neighbouring cells' lifetimes, as superpixels do (a static scene keeps each
+/// pixel's lifetime; frames of other scenes mix theirs as a superpixel would).
+///
+/// # Shapes
+/// - `y`: `[M, H, W]`, `a`: `A [N, M, T]`
+pub fn instrument_frames(y: &ArrayView3<'_, f32>, a: &MeasurementMatrix, opts: &TapFitOptions) -> usize {
+    let (m, h, w) = y.dim();
+    let f = normalise(y, opts.min_intensity);
+    let side = side_of(&f.r, &f.weight, (m, h, w), a.block(), &brightest_of(&f.weight, opts.brightest));
+    side * side
+}
+
 /// [`estimate_instrument`] of a normalised frame of `[M, H, W]`: on its pixels, or on
 /// superpixels of `opts.instrument_blocks` (or [`instrument_side`]'s) blocks of the mosaic.
 fn instrument_of(f: &Normalised, (m, h, w): (usize, usize, usize), a: &MeasurementMatrix, opts: &TapFitOptions) -> Instrument {

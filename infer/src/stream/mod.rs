@@ -54,7 +54,7 @@ use crate::runtime::{FrameEvidence, OnnxModel};
 use crate::{InferError, Result};
 use tcsense_fits::depth::{DepthFitOptions, RangeTemplates};
 use tcsense_fits::evidence::EvidenceBuffers;
-use tcsense_fits::lifetime_taps::{estimate_instrument, LifetimeTemplates, TapFit, TapFitOptions};
+use tcsense_fits::lifetime_taps::{estimate_instrument, instrument_frames, Instrument, LifetimeTemplates, TapFit, TapFitOptions};
 use tcsense_fits::range::{refine_ranges, RangeFitOptions};
 use tcsense_models::net::mask_depth;
 
@@ -78,6 +78,9 @@ pub struct StreamReport {
     /// Seconds inside ONNX Runtime.
     pub infer_seconds: f64,
     pub written: Vec<PathBuf>,
+    /// A lifetime stream's instrument (fitted or with its given onset) and the frames it was
+    /// searched on (summed).
+    pub instrument: Option<(Instrument, usize)>,
 }
 
 /// Stream every frame of `source` through `model` into `out`, calling `on_frame(done, total)`
@@ -108,6 +111,73 @@ pub fn run_stream(
 }
 
 /// Whether `name` is a file or folder [`run_stream`] writes into its output directory.
+/// The frame a stream's instrument is searched on, and how many frames it sums: the first
+/// (`first`, `[M, H, W]`), or, when
+/// its pixels are too dim on their own, its sum with those of the next frames up to the
+/// [`instrument_frames`]-th that show the same scene ([`same_scene`]: a recording, not a stack
+/// of other scenes, whose lifetimes would mix), each as `correct` gives it. A frame of another
+/// shape is refused with its file named.
+fn instrument_reference(
+    source: &mut FrameSource,
+    first: &Array3<f32>,
+    taps: usize,
+    sensor: &tcsense_sensor::MeasurementMatrix,
+    opts: &TapFitOptions,
+    correct: impl Fn(ndarray::ArrayView3<'_, f32>) -> Array3<f32>,
+) -> Result<(Array3<f32>, usize)> {
+    let mut sum = correct(first.view());
+    let mut summed = 1;
+    let frames = instrument_frames(&sum.view(), sensor, opts).min(source.len());
+    for i in 1..frames {
+        let (y, path) = source.read(i, taps)?;
+        if y.dim() != first.dim() {
+            return Err(file_err(&path, format!("frame of shape {:?}; the first frame was {:?}", y.shape(), first.shape())));
+        }
+        let y = correct(y.view());
+        if same_scene(&first.view(), &y.view()) {
+            sum += &y;
+            summed += 1;
+        }
+    }
+    Ok((sum, summed))
+}
+
+/// Side of the blocks whose intensities [`same_scene`] compares (their shot noise averaged).
+const SCENE_BLOCK: usize = 8;
+
+/// Least correlation of two frames' block intensities for [`same_scene`]: two frames of one
+/// scene correlate by `S/(S + N)` (the blocks' scene variance `S`, their noise's `N`), so ½
+/// takes the frames whose scene stands above their noise; frames of unrelated scenes correlate
+/// by about `±1/√blocks` (±0.13 for 64×64 pixels).
+const SAME_SCENE: f64 = 0.5;
+
+/// Whether frame `y` shows the scene of frame `a` (both `[M, H, W]`): the correlation of their
+/// intensities (the taps' sum) over blocks of [`SCENE_BLOCK`] pixels is at least [`SAME_SCENE`].
+/// A frame without contrast (or of one block) is not taken for the same scene.
+fn same_scene(a: &ArrayView3<'_, f32>, y: &ArrayView3<'_, f32>) -> bool {
+    let (_, h, w) = a.dim();
+    let (bh, bw) = (h.div_ceil(SCENE_BLOCK), w.div_ceil(SCENE_BLOCK));
+    let blocks = |f: &ArrayView3<'_, f32>| -> Vec<f64> {
+        let mut b = vec![0f64; bh * bw];
+        for tap in f.outer_iter() {
+            for ((i, j), &v) in tap.indexed_iter() {
+                b[(i / SCENE_BLOCK) * bw + j / SCENE_BLOCK] += v as f64;
+            }
+        }
+        b
+    };
+    let (p, q) = (blocks(a), blocks(y));
+    let n = p.len() as f64;
+    let (mp, mq) = (p.iter().sum::<f64>() / n, q.iter().sum::<f64>() / n);
+    let (mut c, mut vp, mut vq) = (0.0, 0.0, 0.0);
+    for (x, z) in p.iter().zip(&q) {
+        c += (x - mp) * (z - mq);
+        vp += (x - mp) * (x - mp);
+        vq += (z - mq) * (z - mq);
+    }
+    vp > 0.0 && vq > 0.0 && c / (vp * vq).sqrt() >= SAME_SCENE
+}
+
 pub fn is_stream_output(name: &str) -> bool {
     matches!(name, "cube.npy" | "depth.npy" | "peaks.npy" | "confidence.npy" | "lifetime.npy" | "intensity.npy" | "phasor.npy" | "ply")
 }
@@ -166,12 +236,17 @@ fn stream_into(
     let bin_s = model.meta.bin_s;
     let peak_opts = PeakOptions { max_peaks: k, ..Default::default() };
     let t0 = Instant::now();
-    // a lifetime network on the fit's evidence: its instrument from the first frame, once
+    let mut found = None;
+    // a lifetime network on the fit's evidence: its instrument from the first frame (or the
+    // first few, summed, when it is dim), once
     if let Some(e) = model.meta.evidence.clone().filter(|_| products.need_model()) {
         let opts = TapFitOptions { onset_s: products.onset_s, ..e.fit_options() };
         opts.validate().map_err(|msg| InferError::Settings { what: "--onset-ns", msg })?;
-        let instrument = estimate_instrument(&model.corrected(first.view()).view(), &model.sensor, &opts);
+        let (reference, summed) =
+            instrument_reference(&mut source, &first, taps, &model.sensor, &opts, |y| model.corrected(y).into_owned())?;
+        let instrument = estimate_instrument(&reference.view(), &model.sensor, &opts);
         model.set_instrument(instrument);
+        found = Some((instrument, summed));
     }
     // the fits to the taps need corrected tap images, and a built-in correction is in the graph
     let uncalibrated = |field: &'static str| -> Result<()> {
@@ -184,12 +259,15 @@ fn stream_into(
             None => Ok(()),
         }
     };
-    // the fit to the taps: the instrument from the first frame (or its given onset), once
+    // the fit to the taps: the instrument from the first frame (or the first few, summed, when
+    // it is dim; or its given onset), once
     let templates = match &products.lifetime_fit {
         Some(opts) => {
             uncalibrated("--lifetime-fit")?;
             opts.validate().map_err(|msg| InferError::Settings { what: "--lifetime-fit", msg })?;
-            let instrument = estimate_instrument(&first.view(), &model.sensor, opts);
+            let (reference, summed) = instrument_reference(&mut source, &first, taps, &model.sensor, opts, |y| y.to_owned())?;
+            let instrument = estimate_instrument(&reference.view(), &model.sensor, opts);
+            found = Some((instrument, summed));
             Some(LifetimeTemplates::new(&model.sensor, instrument, opts))
         }
         None => None,
@@ -369,12 +447,48 @@ fn stream_into(
         status.and(written)
     });
     result?;
-    Ok(StreamReport { frames, seconds: t0.elapsed().as_secs_f64(), infer_seconds, written })
+    Ok(StreamReport { frames, seconds: t0.elapsed().as_secs_f64(), infer_seconds, written, instrument: found })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Two noisy frames of one scene are the same scene; frames of two scenes, or a frame
+    /// without contrast, are not.
+    #[test]
+    fn same_scene_tells_a_recording_from_a_stack_of_scenes() {
+        // (a xorshift: uniform draws in [0, 1))
+        struct Draws(u64);
+        impl Draws {
+            fn next(&mut self) -> f32 {
+                self.0 ^= self.0 << 13;
+                self.0 ^= self.0 >> 7;
+                self.0 ^= self.0 << 17;
+                (self.0 >> 40) as f32 / (1u64 << 24) as f32
+            }
+        }
+        let (h, w) = (64, 64);
+        // scenes of bright and dark 8×8 cells, and the Poisson-like noise of ~20 photons a pixel
+        let scene = |seed: u64| -> Vec<f32> {
+            let mut r = Draws(0x9E37_79B9_7F4A_7C15 ^ seed);
+            let cells: Vec<f32> = (0..64).map(|_| if r.next() < 0.5 { 40.0 } else { 4.0 }).collect();
+            (0..h * w).map(|p| cells[(p / w / 8) * 8 + (p % w) / 8]).collect()
+        };
+        let frame = |mean: &[f32], seed: u64| -> Array3<f32> {
+            let mut r = Draws(0x2545_F491_4F6C_DD1D ^ seed);
+            Array3::from_shape_fn((4, h, w), |(_, i, j)| {
+                let m = mean[i * w + j] / 4.0;
+                (m + m.sqrt() * (r.next() * 2.0 - 1.0) * 3f32.sqrt()).max(0.0)
+            })
+        };
+        let (a, b) = (scene(1), scene(2));
+        let (a1, a2, b1) = (frame(&a, 10), frame(&a, 11), frame(&b, 12));
+        assert!(same_scene(&a1.view(), &a2.view()), "one scene, two noise draws");
+        assert!(!same_scene(&a1.view(), &b1.view()), "two scenes");
+        let flat = Array3::from_elem((4, h, w), 5.0f32);
+        assert!(!same_scene(&flat.view(), &flat.view()), "no contrast");
+    }
 
     /// One exponential lies on the universal semicircle at `g = 1/(1+ω²τ²)`; a mixture
     /// weighted by intensity fractions `α_iτ_i` sits on the chord between its components.
