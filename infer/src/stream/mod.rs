@@ -125,16 +125,18 @@ fn instrument_reference(
     opts: &TapFitOptions,
     correct: impl Fn(ndarray::ArrayView3<'_, f32>) -> Array3<f32>,
 ) -> Result<(Array3<f32>, usize)> {
-    let mut sum = correct(first.view());
+    // (each frame compared as corrected: a calibration's gain map is no part of the scene)
+    let reference = correct(first.view());
+    let mut sum = reference.clone();
     let mut summed = 1;
-    let frames = instrument_frames(&sum.view(), sensor, opts).min(source.len());
+    let frames = instrument_frames(&reference.view(), sensor, opts).min(source.len());
     for i in 1..frames {
         let (y, path) = source.read(i, taps)?;
         if y.dim() != first.dim() {
             return Err(file_err(&path, format!("frame of shape {:?}; the first frame was {:?}", y.shape(), first.shape())));
         }
         let y = correct(y.view());
-        if same_scene(&first.view(), &y.view()) {
+        if same_scene(&reference.view(), &y.view()) {
             sum += &y;
             summed += 1;
         }
