@@ -27,10 +27,7 @@ impl TimeGrid {
         if !(1..=64).contains(&self.sampling.k()) {
             return Err(invalid("K", self.sampling.k(), "1..=64"));
         }
-        let [lo, hi] = tcsense_sensor::codes::CLOCK_RANGE_HZ;
-        if !(self.clock_hz.is_finite() && (lo..=hi).contains(&self.clock_hz)) {
-            return Err(invalid("clock_hz", self.clock_hz, "a frequency from 1 MHz to 10 GHz (e.g. 607e6)"));
-        }
+        tcsense_sensor::codes::check_clock(self.clock_hz)?;
         Ok(self)
     }
     /// The grid of a sensor spec.

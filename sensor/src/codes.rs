@@ -404,7 +404,7 @@ impl Codes {
 pub const CLOCK_RANGE_HZ: [f64; 2] = [1e6, 10e9];
 
 /// Refuse a code clock outside [`CLOCK_RANGE_HZ`].
-pub(crate) fn check_clock(clock_hz: f64) -> Result<()> {
+pub fn check_clock(clock_hz: f64) -> Result<()> {
     let [lo, hi] = CLOCK_RANGE_HZ;
     if !(clock_hz.is_finite() && (lo..=hi).contains(&clock_hz)) {
         return Err(invalid("clock_hz", clock_hz, "a frequency from 1 MHz to 10 GHz (e.g. 607e6)"));

@@ -110,10 +110,9 @@ pub fn run_stream(
     })
 }
 
-/// Whether `name` is a file or folder [`run_stream`] writes into its output directory.
 /// The frame a stream's instrument is searched on, and how many frames it sums: the first
-/// (`first`, `[M, H, W]`), or, when
-/// its pixels are too dim on their own, its sum with those of the next frames up to the
+/// (`first`, `[M, H, W]`), or, when its pixels are too dim on their own, its sum with those
+/// of the next frames up to the
 /// [`instrument_frames`]-th that show the same scene ([`same_scene`]: a recording, not a stack
 /// of other scenes, whose lifetimes would mix), each as `correct` gives it. A frame of another
 /// shape is refused with its file named.
@@ -127,9 +126,12 @@ fn instrument_reference(
 ) -> Result<(Array3<f32>, usize)> {
     // (each frame compared as corrected: a calibration's gain map is no part of the scene)
     let reference = correct(first.view());
+    let frames = instrument_frames(&reference.view(), sensor, opts).min(source.len());
+    if frames <= 1 {
+        return Ok((reference, 1));
+    }
     let mut sum = reference.clone();
     let mut summed = 1;
-    let frames = instrument_frames(&reference.view(), sensor, opts).min(source.len());
     for i in 1..frames {
         let (y, path) = source.read(i, taps)?;
         if y.dim() != first.dim() {
@@ -180,6 +182,7 @@ fn same_scene(a: &ArrayView3<'_, f32>, y: &ArrayView3<'_, f32>) -> bool {
     vp > 0.0 && vq > 0.0 && c / (vp * vq).sqrt() >= SAME_SCENE
 }
 
+/// Whether `name` is a file or folder [`run_stream`] writes into its output directory.
 pub fn is_stream_output(name: &str) -> bool {
     matches!(name, "cube.npy" | "depth.npy" | "peaks.npy" | "confidence.npy" | "lifetime.npy" | "intensity.npy" | "phasor.npy" | "ply")
 }
