@@ -2,6 +2,7 @@
 
 use super::*;
 use crate::evidence::median;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 /// The largest superpixel side (in blocks of the mosaic) that [`TapFitOptions::instrument_blocks`]
 /// takes.
@@ -173,10 +174,25 @@ pub(super) fn instrument(
     // frame through this sensor (built once, see `coarse_tables`)
     let bins = c.bins;
     let coarse = coarse_tables(a, c, opts);
-    let coarse_cands: Vec<(usize, usize)> = (0..widths.len()).flat_map(|wi| (0..bins).map(move |j| (wi, j))).collect();
+    let mut coarse_cands: Vec<(usize, usize)> = (0..widths.len()).flat_map(|wi| (0..bins).map(move |j| (wi, j))).collect();
+    // (the candidates in the order of a cheap look, the brightest 16 pixels on the grid alone,
+    // so that the first searched set a low bound: a candidate is left as soon as its running
+    // cost passes the least total found, which it could then only exceed: the same answer)
+    let glance: Vec<f64> =
+        coarse_cands.par_iter().map(|&(wi, j)| brightest_cost(&coarse.tables[wi * bins + j], &pixels, 16, 0, opts.background)).collect();
+    let mut order: Vec<usize> = (0..coarse_cands.len()).collect();
+    order.sort_by(|&x, &y| glance[x].total_cmp(&glance[y]).then(x.cmp(&y)));
+    coarse_cands = order.iter().map(|&k| coarse_cands[k]).collect();
+    let least = AtomicU64::new(f64::INFINITY.to_bits());
     let (_, _, j) = coarse_cands
         .par_iter()
-        .map(|&(wi, j)| (brightest_cost(&coarse.tables[wi * bins + j], &pixels, 128, 10, opts.background), wi, j))
+        .filter_map(|&(wi, j)| {
+            let bound = f64::from_bits(least.load(Ordering::Relaxed));
+            let cost = brightest_cost_within(&coarse.tables[wi * bins + j], &pixels, 128, 10, opts.background, bound)?;
+            // (non-negative: the bits order as the numbers)
+            least.fetch_min(cost.to_bits(), Ordering::Relaxed);
+            Some((cost, wi, j))
+        })
         .min_by(|x, y| x.0.total_cmp(&y.0).then(x.2.cmp(&y.2)).then(x.1.cmp(&y.1)))
         .unwrap_or((0.0, 0, 0));
     // then every width within a bin of the best, a quarter bin apart
@@ -311,6 +327,20 @@ pub(super) fn brightest_cost(
     refine: usize,
     background: bool,
 ) -> f64 {
+    brightest_cost_within(tables, pixels, count, refine, background, f64::INFINITY).unwrap_or(f64::INFINITY)
+}
+
+/// [`brightest_cost`], left (`None`) as soon as the running total passes `bound`: every
+/// pixel's cost is non-negative, so the total would have exceeded `bound`. Otherwise the same
+/// number, bit for bit.
+pub(super) fn brightest_cost_within(
+    tables: &[TypeTable],
+    pixels: &[(Vec<f32>, f32, usize)],
+    count: usize,
+    refine: usize,
+    background: bool,
+    bound: f64,
+) -> Option<f64> {
     let g = tables[0].points;
     let mut cost = vec![0f32; g];
     let mut beta = vec![0f32; g];
@@ -331,13 +361,48 @@ pub(super) fn brightest_cost(
         } else {
             c0
         };
+        if total > bound {
+            return None;
+        }
     }
-    total
+    Some(total)
 }
 
 #[cfg(test)]
 mod tests {
-    use super::correlate;
+    use super::{brightest_cost, brightest_cost_within, correlate, TypeTable};
+
+    /// A candidate is left only when its total would pass the bound: at or above its total it
+    /// gives the total bit for bit, below it nothing (the costs are non-negative, so the
+    /// running total only grows); with and without the refinement and the background.
+    #[test]
+    fn a_search_left_past_its_bound_is_the_total_or_more() {
+        let (types, m, points) = (4, 4, 24);
+        let value = |i: usize| ((i * 7919 + 13) % 101) as f64 / 101.0 + 0.05;
+        let tables = TypeTable::build(types, m, points, |n, k, i| value(n * 1000 + k * 100 + i), |n, k| value(n * 37 + k + 5000));
+        let pixels: Vec<(Vec<f32>, f32, usize)> = (0..40)
+            .map(|p| {
+                let r: Vec<f32> = (0..m).map(|k| value(p * 17 + k * 3 + 900) as f32).collect();
+                let total: f32 = r.iter().sum();
+                (r.iter().map(|v| v / total).collect(), 50.0 + p as f32, p % types)
+            })
+            .collect();
+        for (refine, background) in [(0, false), (10, true), (16, false)] {
+            let full = brightest_cost(&tables, &pixels, usize::MAX, refine, background);
+            assert!(full > 0.0 && full.is_finite());
+            for bound in [full, full * 1.5, f64::INFINITY] {
+                let got = brightest_cost_within(&tables, &pixels, usize::MAX, refine, background, bound);
+                assert_eq!(got.map(f64::to_bits), Some(full.to_bits()), "bound {bound} at total {full}");
+            }
+            for bound in [full * (1.0 - 1e-9), full * 0.5, 0.0] {
+                assert_eq!(
+                    brightest_cost_within(&tables, &pixels, usize::MAX, refine, background, bound),
+                    None,
+                    "bound {bound} below {full}"
+                );
+            }
+        }
+    }
 
     /// The register-blocked correlation gives the plain loop's numbers bit for bit (same sum
     /// order per output), on lengths with and without a remainder and rows with zeros.
