@@ -112,6 +112,58 @@ pub fn golden(best: usize, last: usize, iterations: usize, cost: &mut dyn FnMut(
     }
 }
 
+/// [`golden`] for `N` minima at once, lane `l` within one of `best[l]`: `cost` evaluates every
+/// lane at its own point (`[N]` → `[N]`). Each lane takes the steps [`golden`] takes, so the
+/// answers are its, bit for bit, where the costs are: `[N]` of `(u, cost)`.
+pub fn golden_lanes<const N: usize>(
+    best: &[usize; N],
+    last: usize,
+    iterations: usize,
+    cost: &mut dyn FnMut(&[f64; N], &mut [f64; N]),
+) -> [(f64, f64); N] {
+    let phi = 0.5 * (5f64.sqrt() - 1.0);
+    let (mut lo, mut hi) = ([0f64; N], [0f64; N]);
+    for l in 0..N {
+        (lo[l], hi[l]) = ((best[l] as f64 - 1.0).max(0.0), (best[l] as f64 + 1.0).min(last as f64));
+    }
+    let (mut x1, mut x2) = ([0f64; N], [0f64; N]);
+    for l in 0..N {
+        (x1[l], x2[l]) = (hi[l] - phi * (hi[l] - lo[l]), lo[l] + phi * (hi[l] - lo[l]));
+    }
+    let (mut f1, mut f2) = ([0f64; N], [0f64; N]);
+    cost(&x1, &mut f1);
+    cost(&x2, &mut f2);
+    let (mut x, mut f, mut left) = ([0f64; N], [0f64; N], [false; N]);
+    for _ in 0..iterations {
+        // every lane's next point, on the side golden's comparison sends it
+        for l in 0..N {
+            left[l] = f1[l] <= f2[l];
+            if left[l] {
+                hi[l] = x2[l];
+                x2[l] = x1[l];
+                f2[l] = f1[l];
+                x1[l] = hi[l] - phi * (hi[l] - lo[l]);
+                x[l] = x1[l];
+            } else {
+                lo[l] = x1[l];
+                x1[l] = x2[l];
+                f1[l] = f2[l];
+                x2[l] = lo[l] + phi * (hi[l] - lo[l]);
+                x[l] = x2[l];
+            }
+        }
+        cost(&x, &mut f);
+        for l in 0..N {
+            if left[l] {
+                f1[l] = f[l];
+            } else {
+                f2[l] = f[l];
+            }
+        }
+    }
+    std::array::from_fn(|l| if f1[l] <= f2[l] { (x1[l], f1[l]) } else { (x2[l], f2[l]) })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -155,5 +207,30 @@ mod tests {
         assert_eq!(parabola_min(f64::INFINITY, 0.0, 1.0), 0.0);
         let (u, v) = golden(3, 10, 40, &mut |u| (u - 3.4) * (u - 3.4));
         assert!((u - 3.4).abs() < 1e-6 && v < 1e-12);
+    }
+
+    /// Golden sections in lanes are each lane's own golden sections, bit for bit: minima
+    /// inside and at the ends of the range, a kink, a flat stretch (ties) and a NaN.
+    #[test]
+    fn golden_in_lanes_is_golden_per_lane() {
+        let costs: [&dyn Fn(f64) -> f64; 4] = [
+            &|u| (u - 3.4) * (u - 3.4),
+            &|u| if u < 7.3 { 4.0 * (7.3 - u) } else { (u - 7.3) * 0.5 },
+            &|u| (u - 1.0).abs().min(0.25),
+            &|u| if (u - 5.0).abs() < 0.1 { f64::NAN } else { (u - 5.2).powi(2) },
+        ];
+        let best = [3, 7, 0, 10, 1, 5, 6, 10];
+        let pick = |l: usize| costs[l % costs.len()];
+        for iterations in [0, 1, 8] {
+            let lanes = golden_lanes(&best, 10, iterations, &mut |x: &[f64; 8], out: &mut [f64; 8]| {
+                for l in 0..8 {
+                    out[l] = pick(l)(x[l]);
+                }
+            });
+            for l in 0..8 {
+                let (u, v) = golden(best[l], 10, iterations, &mut |u| pick(l)(u));
+                assert_eq!((lanes[l].0.to_bits(), lanes[l].1.to_bits()), (u.to_bits(), v.to_bits()), "lane {l}, {iterations} steps");
+            }
+        }
     }
 }

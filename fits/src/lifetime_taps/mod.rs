@@ -30,7 +30,7 @@ use instrument::*;
 pub use instrument::{instrument_side, MAX_INSTRUMENT_BLOCKS};
 use tables::*;
 
-use crate::engine::{argmin, golden, window_rows, window_total};
+use crate::engine::{argmin, golden, golden_lanes, window_rows, window_total};
 use ndarray::{Array2, ArrayView3, Axis};
 use rayon::prelude::*;
 use tcsense_sensor::waveform::subpixel_flat;
@@ -491,6 +491,8 @@ impl LifetimeTemplates {
         let g = self.points();
         let Normalised { r, weight, intensity } = f;
         let kind = |p: usize| subpixel_flat(p, w, (bh, bw));
+        // (the type of a window's slot, beyond the frame too: the same in every lane)
+        let kind_at = |i: isize, j: isize| (i.rem_euclid(bh as isize) as usize) * bw + j.rem_euclid(bw as isize) as usize;
         let half = self.window / 2;
         let fits: Vec<(f32, f32)> = (0..h)
             .into_par_iter()
@@ -500,16 +502,15 @@ impl LifetimeTemplates {
                 let mut between = Between::new(self.fine.len(), m);
                 let mut total = vec![0f32; g];
                 let (rows, r, weight, choose) = (&costs.rows, &r, &weight, &choose);
-                (0..w)
-                    .map(move |j| {
+                // each pixel's best point on the grid of half steps (None: no lifetime)
+                let centres: Vec<Option<usize>> = (0..w)
+                    .map(|j| {
                         let p = i * w + j;
                         if weight[p] <= 0.0 {
-                            return (f32::NAN, f32::NAN);
+                            return None;
                         }
                         window_total(rows, (i, j), (h, w), self.window, &mut total);
-                        let Some(best) = choose(p, &total) else {
-                            return (f32::NAN, f32::NAN);
-                        };
+                        let best = choose(p, &total)?;
                         win.clear();
                         for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
                             for jj in j.saturating_sub(half)..(j + half + 1).min(w) {
@@ -519,30 +520,64 @@ impl LifetimeTemplates {
                                 }
                             }
                         }
-                        // the window's cost at the half steps either side of the best, then golden
-                        // sections within a half step of the best of them, the templates linear
-                        // between the half steps (the cost has a kink where the background share
-                        // reaches 0, which a parabola would straddle)
+                        // the window's cost at the half steps either side of the best; golden
+                        // sections follow within a half step of the best of them, the templates
+                        // linear between the half steps (the cost has a kink where the background
+                        // share reaches 0, which a parabola would straddle)
                         let at = |f: usize| -> f32 {
                             win.iter().map(|&(q, n)| self.fine[n].cost_at(f, &r[q * m..(q + 1) * m], weight[q], self.background).0).sum()
                         };
                         let c = [total[best - 1], at(2 * best - 1), total[best], at(2 * best + 1), total[best + 1]];
                         let k = 1 + argmin(&c[1..4]);
-                        let centre = 2 * best + k - 2; // on the grid of half steps
-                        let (u, _) = golden(centre, 2 * g - 2, REFINE_STEPS, &mut |u| {
-                            between.set(&self.fine, u);
-                            win.iter().map(|&(q, n)| between.cost(n, &r[q * m..(q + 1) * m], weight[q], self.background).0 as f64).sum()
-                        });
-                        let tau = (self.log_tau.0 + 0.5 * u * self.log_tau.1).exp();
-                        let beta = if self.background {
-                            between.set(&self.fine, u);
-                            between.cost(kind(p), &r[p * m..(p + 1) * m], weight[p], true).1
-                        } else {
-                            0.0
-                        };
-                        (tau as f32, beta)
+                        Some(2 * best + k - 2)
                     })
-                    .collect::<Vec<_>>()
+                    .collect();
+                // the golden sections of the pixels of one column class (the same subpixel type
+                // in every slot of their windows), LANES at a time
+                let mut us = vec![f64::NAN; w];
+                let mut lanes = LaneWindow::new(&self.fine, m, self.window * self.window);
+                for class in 0..bw.min(w) {
+                    let js: Vec<usize> = (class..w).step_by(bw).filter(|&j| centres[j].is_some()).collect();
+                    for chunk in js.chunks(LANES) {
+                        let mut best = [0usize; LANES];
+                        for l in 0..LANES {
+                            // (a lane past the chunk's end repeats its first pixel)
+                            let j = chunk[l.min(chunk.len() - 1)];
+                            best[l] = centres[j].unwrap_or(0);
+                            let mut s = 0;
+                            for di in 0..self.window {
+                                for dj in 0..self.window {
+                                    let (ii, jj) = ((i + di) as isize - half as isize, (j + dj) as isize - half as isize);
+                                    let inside = ii >= 0 && jj >= 0 && (ii as usize) < h && (jj as usize) < w;
+                                    let q = if inside { ii as usize * w + jj as usize } else { 0 };
+                                    let pixel = (inside && weight[q] > 0.0).then(|| (&r[q * m..(q + 1) * m], weight[q]));
+                                    lanes.set_slot(s, l, kind_at(ii, jj), pixel);
+                                    s += 1;
+                                }
+                            }
+                        }
+                        let found =
+                            golden_lanes(&best, 2 * g - 2, REFINE_STEPS, &mut |u, out| lanes.costs(&self.fine, u, self.background, out));
+                        for (l, &j) in chunk.iter().enumerate() {
+                            us[j] = found[l].0;
+                        }
+                    }
+                }
+                (0..w).map(move |j| {
+                    let p = i * w + j;
+                    if centres[j].is_none() {
+                        return (f32::NAN, f32::NAN);
+                    }
+                    let u = us[j];
+                    let tau = (self.log_tau.0 + 0.5 * u * self.log_tau.1).exp();
+                    let beta = if self.background {
+                        between.set(&self.fine, u);
+                        between.cost(kind(p), &r[p * m..(p + 1) * m], weight[p], true).1
+                    } else {
+                        0.0
+                    };
+                    (tau as f32, beta)
+                })
             })
             .collect();
         let lifetime = Array2::from_shape_fn((h, w), |(i, j)| fits[i * w + j].0);

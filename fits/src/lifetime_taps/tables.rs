@@ -320,6 +320,149 @@ impl Between {
     }
 }
 
+/// Pixels whose refinements run together, one in each lane ([`LaneWindow`]).
+pub(super) const LANES: usize = 8;
+
+/// The window's cost of [`LANES`] pixels at once, each at its own point of the grid: the
+/// refinement's inner loop with the pixels across the lanes (vectorised), bit for bit
+/// [`Between::set`] then the sum of [`Between::cost`] over the window's lit pixels in their
+/// order. The lanes' pixels share the subpixel type of every slot of the window (pixels of one
+/// row whose columns differ by a multiple of the mosaic's width), so a slot reads one type's
+/// templates at every lane's point.
+pub(super) struct LaneWindow {
+    /// The tables' point-major rows of every type side by side `[G][N][2M]`, and their points
+    /// `G`.
+    joint: Vec<f32>,
+    points: usize,
+    m: usize,
+    /// Each slot's subpixel type `[S]`.
+    slot_type: Vec<usize>,
+    /// Normalised taps `[S·M]` of lanes, weights `[S]` of lanes (0 where the slot is empty) and
+    /// whether a slot holds a lit pixel `[S]` of lanes.
+    r: Vec<[f32; LANES]>,
+    w: Vec<[f32; LANES]>,
+    lit: Vec<[bool; LANES]>,
+    /// Templates at each lane's point `[N·M]` of lanes and `1/‖d‖²` `[N]` of lanes.
+    g: Vec<[f32; LANES]>,
+    d: Vec<[f32; LANES]>,
+    inv: Vec<[f32; LANES]>,
+}
+
+impl LaneWindow {
+    pub(super) fn new(tables: &[TypeTable], m: usize, slots: usize) -> Self {
+        let types = tables.len();
+        let points = tables.first().map_or(0, |t| t.points);
+        // every type's point-major rows side by side: `[G][N][g[M], d[M]]`
+        let mut joint = vec![0f32; points * types * 2 * m];
+        for i in 0..points {
+            for (t, table) in tables.iter().enumerate() {
+                joint[(i * types + t) * 2 * m..(i * types + t + 1) * 2 * m].copy_from_slice(&table.pm[2 * m * i..2 * m * (i + 1)]);
+            }
+        }
+        LaneWindow {
+            joint,
+            points,
+            m,
+            slot_type: vec![0; slots],
+            r: vec![[0.0; LANES]; slots * m],
+            w: vec![[0.0; LANES]; slots],
+            lit: vec![[false; LANES]; slots],
+            g: vec![[0.0; LANES]; types * m],
+            d: vec![[0.0; LANES]; types * m],
+            inv: vec![[0.0; LANES]; types],
+        }
+    }
+
+    /// Slot `s` of lane `l`: a lit pixel's normalised taps `r` `[M]` and weight, or `None` (an
+    /// unlit pixel, or beyond the frame); `kind` its subpixel type (the same in every lane).
+    pub(super) fn set_slot(&mut self, s: usize, l: usize, kind: usize, pixel: Option<(&[f32], f32)>) {
+        let m = self.m;
+        self.slot_type[s] = kind;
+        match pixel {
+            Some((r, w)) => {
+                for k in 0..m {
+                    self.r[s * m + k][l] = r[k];
+                }
+                self.w[s][l] = w;
+                self.lit[s][l] = true;
+            }
+            None => {
+                for k in 0..m {
+                    self.r[s * m + k][l] = 0.0;
+                }
+                self.w[s][l] = 0.0;
+                self.lit[s][l] = false;
+            }
+        }
+    }
+
+    /// The window's cost of every lane at its grid position `u[l]` of `tables` (one per type),
+    /// into `out` `[LANES]`.
+    pub(super) fn costs(&mut self, tables: &[TypeTable], u: &[f64; LANES], background: bool, out: &mut [f64; LANES]) {
+        let (m, n, types) = (self.m, self.points, tables.len());
+        let row = types * 2 * m;
+        // the templates at every lane's point, as `Between::set_one` takes them (every type's
+        // from one read of the two neighbouring rows)
+        for l in 0..LANES {
+            let u = u[l].clamp(0.0, (n - 1) as f64);
+            let i = (u as usize).min(n - 2);
+            let f = (u - i as f64) as f32;
+            let (a, b) = self.joint[i * row..(i + 2) * row].split_at(row);
+            for t in 0..types {
+                let (a, b) = (&a[t * 2 * m..(t + 1) * 2 * m], &b[t * 2 * m..(t + 1) * 2 * m]);
+                let mut dd = 0f32;
+                for k in 0..m {
+                    let dk = a[m + k] + f * (b[m + k] - a[m + k]);
+                    self.g[t * m + k][l] = a[k] + f * (b[k] - a[k]);
+                    self.d[t * m + k][l] = dk;
+                    dd += dk * dk;
+                }
+                self.inv[t][l] = if dd > 0.0 { 1.0 / dd } else { 0.0 };
+            }
+        }
+        crate::simd(
+            #[inline(always)]
+            || self.slot_costs(background, out),
+        )
+    }
+
+    /// The slots' costs summed per lane (the lanes innermost), as `Between::cost` sums them.
+    #[inline(always)]
+    fn slot_costs(&self, background: bool, out: &mut [f64; LANES]) {
+        let m = self.m;
+        *out = [-0.0; LANES];
+        for (s, &t) in self.slot_type.iter().enumerate() {
+            let mut beta = [0f32; LANES];
+            if background {
+                let mut num = [-0f32; LANES];
+                for k in 0..m {
+                    let (r, g, d) = (&self.r[s * m + k], &self.g[t * m + k], &self.d[t * m + k]);
+                    for l in 0..LANES {
+                        num[l] += (r[l] - g[l]) * d[l];
+                    }
+                }
+                let inv = &self.inv[t];
+                for l in 0..LANES {
+                    beta[l] = (num[l] * inv[l]).clamp(0.0, 1.0);
+                }
+            }
+            let mut c = [-0f32; LANES];
+            for k in 0..m {
+                let (r, g, d) = (&self.r[s * m + k], &self.g[t * m + k], &self.d[t * m + k]);
+                for l in 0..LANES {
+                    c[l] += (r[l] - g[l] - beta[l] * d[l]) * (r[l] - g[l] - beta[l] * d[l]);
+                }
+            }
+            let (w, lit) = (&self.w[s], &self.lit[s]);
+            for l in 0..LANES {
+                if lit[l] {
+                    out[l] += (w[l] * c[l]) as f64;
+                }
+            }
+        }
+    }
+}
+
 /// The templates `g`, `d` `[M]` a fraction `f` of the way from point `i` to `i + 1` of the
 /// point-major rows `pm` `[2][2M]`, and `‖d‖²`: the refinement's inner loop with the taps known
 /// at compile time (unrolled, no bounds checks), the same operations in the same order as
@@ -387,6 +530,58 @@ fn cost_any(g: &[f32], d: &[f32], inv: f32, r: &[f32], w: f32, background: bool)
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The window's cost in lanes is `Between::set` and the sum of `Between::cost` over the
+    /// lit slots in their order, bit for bit, for every lane at its own point: 1 to 8 taps,
+    /// with and without the background, empty slots, points beyond both ends of the grid.
+    #[test]
+    fn the_window_cost_in_lanes_is_the_scalar_sum_bit_for_bit() {
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut next = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 40) as f64 / (1u64 << 24) as f64
+        };
+        for m in [1, 2, 3, 4, 8] {
+            let (types, points, slots) = (4, 19, 9);
+            let g: Vec<f64> = (0..types * m * points).map(|_| next()).collect();
+            let bg: Vec<f64> = (0..types * m).map(|_| next()).collect();
+            let tables = TypeTable::build(types, m, points, |n, k, i| g[(n * m + k) * points + i], |n, k| bg[n * m + k]);
+            for background in [false, true] {
+                let mut lanes = LaneWindow::new(&tables, m, slots);
+                let kinds: Vec<usize> = (0..slots).map(|s| (s * 5 + 1) % types).collect();
+                // per lane and slot: taps and weight, or an empty slot
+                let pixels: Vec<Vec<Option<(Vec<f32>, f32)>>> = (0..LANES)
+                    .map(|_| {
+                        (0..slots)
+                            .map(|_| (next() > 0.25).then(|| ((0..m).map(|_| next() as f32).collect(), 1.0 + 99.0 * next() as f32)))
+                            .collect()
+                    })
+                    .collect();
+                for (l, lane) in pixels.iter().enumerate() {
+                    for (s, p) in lane.iter().enumerate() {
+                        lanes.set_slot(s, l, kinds[s], p.as_ref().map(|(r, w)| (r.as_slice(), *w)));
+                    }
+                }
+                for _ in 0..20 {
+                    let u: [f64; LANES] = std::array::from_fn(|_| next() * (points + 2) as f64 - 1.0);
+                    let mut got = [f64::NAN; LANES];
+                    lanes.costs(&tables, &u, background, &mut got);
+                    let mut between = Between::new(types, m);
+                    for l in 0..LANES {
+                        between.set(&tables, u[l]);
+                        let want: f64 = pixels[l]
+                            .iter()
+                            .enumerate()
+                            .filter_map(|(s, p)| p.as_ref().map(|(r, w)| between.cost(kinds[s], r, *w, background).0 as f64))
+                            .sum();
+                        assert_eq!(got[l].to_bits(), want.to_bits(), "m {m}, background {background}, lane {l}: {} against {want}", got[l]);
+                    }
+                }
+            }
+        }
+    }
 
     /// The refinement's fixed-size paths (2, 4 and 8 taps) and the general one give the
     /// reference's templates, shares and costs bit for bit, at any point between the grid's.
