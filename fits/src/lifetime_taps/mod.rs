@@ -535,18 +535,19 @@ impl LifetimeTemplates {
                 // the golden sections of the pixels of one column class (the same subpixel type
                 // in every slot of their windows), LANES at a time
                 let mut us = vec![f64::NAN; w];
-                let mut lanes = LaneWindow::new(&self.fine, m, self.window * self.window);
+                let side = 2 * half + 1;
+                let mut lanes = LaneWindow::new(&self.fine, m, side * side);
                 for class in 0..bw.min(w) {
                     let js: Vec<usize> = (class..w).step_by(bw).filter(|&j| centres[j].is_some()).collect();
                     for chunk in js.chunks(LANES) {
                         let mut best = [0usize; LANES];
                         for l in 0..LANES {
-                            // (a lane past the chunk's end repeats its first pixel)
+                            // (a lane past the chunk's end repeats its last pixel)
                             let j = chunk[l.min(chunk.len() - 1)];
                             best[l] = centres[j].unwrap_or(0);
                             let mut s = 0;
-                            for di in 0..self.window {
-                                for dj in 0..self.window {
+                            for di in 0..side {
+                                for dj in 0..side {
                                     let (ii, jj) = ((i + di) as isize - half as isize, (j + dj) as isize - half as isize);
                                     let inside = ii >= 0 && jj >= 0 && (ii as usize) < h && (jj as usize) < w;
                                     let q = if inside { ii as usize * w + jj as usize } else { 0 };
@@ -556,8 +557,7 @@ impl LifetimeTemplates {
                                 }
                             }
                         }
-                        let found =
-                            golden_lanes(&best, 2 * g - 2, REFINE_STEPS, &mut |u, out| lanes.costs(&self.fine, u, self.background, out));
+                        let found = golden_lanes(&best, 2 * g - 2, REFINE_STEPS, &mut |u, out| lanes.costs(u, self.background, out));
                         for (l, &j) in chunk.iter().enumerate() {
                             us[j] = found[l].0;
                         }

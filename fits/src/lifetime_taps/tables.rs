@@ -334,6 +334,7 @@ pub(super) struct LaneWindow {
     /// `G`.
     joint: Vec<f32>,
     points: usize,
+    types: usize,
     m: usize,
     /// Each slot's subpixel type `[S]`.
     slot_type: Vec<usize>,
@@ -349,6 +350,8 @@ pub(super) struct LaneWindow {
 }
 
 impl LaneWindow {
+    /// The lanes of a window of `slots` pixels of `m` taps, over `tables` (one per subpixel
+    /// type, on one grid).
     pub(super) fn new(tables: &[TypeTable], m: usize, slots: usize) -> Self {
         let types = tables.len();
         let points = tables.first().map_or(0, |t| t.points);
@@ -362,6 +365,7 @@ impl LaneWindow {
         LaneWindow {
             joint,
             points,
+            types,
             m,
             slot_type: vec![0; slots],
             r: vec![[0.0; LANES]; slots * m],
@@ -396,10 +400,10 @@ impl LaneWindow {
         }
     }
 
-    /// The window's cost of every lane at its grid position `u[l]` of `tables` (one per type),
-    /// into `out` `[LANES]`.
-    pub(super) fn costs(&mut self, tables: &[TypeTable], u: &[f64; LANES], background: bool, out: &mut [f64; LANES]) {
-        let (m, n, types) = (self.m, self.points, tables.len());
+    /// The window's cost of every lane at its grid position `u[l]` of the tables it was built
+    /// from, into `out` `[LANES]`.
+    pub(super) fn costs(&mut self, u: &[f64; LANES], background: bool, out: &mut [f64; LANES]) {
+        let (m, n, types) = (self.m, self.points, self.types);
         let row = types * 2 * m;
         // the templates at every lane's point, as `Between::set_one` takes them (every type's
         // from one read of the two neighbouring rows)
@@ -567,7 +571,7 @@ mod tests {
                 for _ in 0..20 {
                     let u: [f64; LANES] = std::array::from_fn(|_| next() * (points + 2) as f64 - 1.0);
                     let mut got = [f64::NAN; LANES];
-                    lanes.costs(&tables, &u, background, &mut got);
+                    lanes.costs(&u, background, &mut got);
                     let mut between = Between::new(types, m);
                     for l in 0..LANES {
                         between.set(&tables, u[l]);
