@@ -256,9 +256,7 @@ impl Between {
     pub(super) fn set_one(&mut self, tables: &[TypeTable], t: usize, u: f64) {
         let (m, table) = (self.m, &tables[t]);
         let n = table.points;
-        let u = u.clamp(0.0, (n - 1) as f64);
-        let i = (u as usize).min(n - 2);
-        let f = (u - i as f64) as f32;
+        let (i, f) = between_points(u, n);
         let (g, d) = (&mut self.g[t * m..(t + 1) * m], &mut self.d[t * m..(t + 1) * m]);
         let pm = &table.pm[2 * m * i..2 * m * (i + 2)];
         let dd = match m {
@@ -276,9 +274,7 @@ impl Between {
     pub(super) fn set_one_reference(&mut self, tables: &[TypeTable], t: usize, u: f64) {
         let (m, table) = (self.m, &tables[t]);
         let n = table.points;
-        let u = u.clamp(0.0, (n - 1) as f64);
-        let i = (u as usize).min(n - 2);
-        let f = (u - i as f64) as f32;
+        let (i, f) = between_points(u, n);
         let mut dd = 0.0;
         for k in 0..m {
             let (g0, g1) = (table.g[k * n + i], table.g[k * n + i + 1]);
@@ -318,6 +314,15 @@ impl Between {
         let c: f32 = r.iter().zip(g).zip(d).map(|((r, g), d)| (r - g - beta * d) * (r - g - beta * d)).sum();
         (w * c, beta)
     }
+}
+
+/// Grid position `u` of a grid of `n` points (clamped to it) as the point `i` it follows and
+/// the fraction `f` of the way to `i + 1` (the last step's end is `f = 1`).
+#[inline]
+fn between_points(u: f64, n: usize) -> (usize, f32) {
+    let u = u.clamp(0.0, (n - 1) as f64);
+    let i = (u as usize).min(n - 2);
+    (i, (u - i as f64) as f32)
 }
 
 /// Pixels whose refinements run together, one in each lane ([`LaneWindow`]).
@@ -408,9 +413,7 @@ impl LaneWindow {
         // the templates at every lane's point, as `Between::set_one` takes them (every type's
         // from one read of the two neighbouring rows)
         for l in 0..LANES {
-            let u = u[l].clamp(0.0, (n - 1) as f64);
-            let i = (u as usize).min(n - 2);
-            let f = (u - i as f64) as f32;
+            let (i, f) = between_points(u[l], n);
             let (a, b) = self.joint[i * row..(i + 2) * row].split_at(row);
             for t in 0..types {
                 let (a, b) = (&a[t * 2 * m..(t + 1) * 2 * m], &b[t * 2 * m..(t + 1) * 2 * m]);
@@ -535,18 +538,22 @@ fn cost_any(g: &[f32], d: &[f32], inv: f32, r: &[f32], w: f32, background: bool)
 mod tests {
     use super::*;
 
+    /// Uniform draws in [0, 1) from a xorshift seeded with `state`.
+    fn draws(mut state: u64) -> impl FnMut() -> f64 {
+        move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 40) as f64 / (1u64 << 24) as f64
+        }
+    }
+
     /// The window's cost in lanes is `Between::set` and the sum of `Between::cost` over the
     /// lit slots in their order, bit for bit, for every lane at its own point: 1 to 8 taps,
     /// with and without the background, empty slots, points beyond both ends of the grid.
     #[test]
     fn the_window_cost_in_lanes_is_the_scalar_sum_bit_for_bit() {
-        let mut state = 0x9e37_79b9_7f4a_7c15u64;
-        let mut next = move || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 40) as f64 / (1u64 << 24) as f64
-        };
+        let mut next = draws(0x9e37_79b9_7f4a_7c15);
         for m in [1, 2, 3, 4, 8] {
             let (types, points, slots) = (4, 19, 9);
             let g: Vec<f64> = (0..types * m * points).map(|_| next()).collect();
@@ -591,13 +598,7 @@ mod tests {
     /// reference's templates, shares and costs bit for bit, at any point between the grid's.
     #[test]
     fn fixed_size_refinement_paths_equal_the_reference_bit_for_bit() {
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut next = move || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 40) as f64 / (1u64 << 24) as f64
-        };
+        let mut next = draws(0x2545_f491_4f6c_dd1d);
         for m in [1, 2, 3, 4, 5, 8] {
             let (types, points) = (4, 17);
             let g: Vec<f64> = (0..types * m * points).map(|_| next()).collect();
