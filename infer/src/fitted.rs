@@ -44,16 +44,30 @@ pub fn alias_warning(sensor: &MeasurementMatrix, code_length: usize) -> Option<S
 /// Ranges with no decoder before them: the template fit of [`tcsense_fits::depth`]
 /// behind the decoder contract (`depth-fit`): depth `[B, K, H, W]` with a confidence of 1 where
 /// a return was placed, 0 elsewhere.
-#[derive(Debug, Clone, Default)]
+#[derive(Default)]
 pub struct DepthFitDecoder {
     pub options: DepthFitOptions,
+    /// The templates of the last sensor and options decoded with, and their buffers: a
+    /// stream's frames, decoded one call each, build them once.
+    fitted: Option<(MeasurementMatrix, DepthFitOptions, RangeTemplates)>,
 }
 
 impl DepthFitDecoder {
     /// A decoder with checked options.
     pub fn new(options: DepthFitOptions) -> crate::Result<Self> {
         options.validate().map_err(|msg| crate::InferError::Settings { what: "depth-fit", msg })?;
-        Ok(DepthFitDecoder { options })
+        Ok(DepthFitDecoder { options, fitted: None })
+    }
+
+    /// The templates of `sensor` with the current options: the last call's where both are the
+    /// same.
+    fn templates(&mut self, sensor: &MeasurementMatrix) -> &mut RangeTemplates {
+        let stale = !matches!(&self.fitted, Some((a, o, _)) if a == sensor && *o == self.options);
+        if stale {
+            self.fitted = Some((sensor.clone(), self.options.clone(), RangeTemplates::new(sensor, &self.options)));
+        }
+        let Some((_, _, templates)) = self.fitted.as_mut() else { unreachable!("built above") };
+        templates
     }
 }
 
@@ -68,7 +82,7 @@ impl Decoder for DepthFitDecoder {
         let (b, _, h, w) = y.dim();
         let k = self.options.returns;
         let mut depth = Array4::<f32>::from_elem((b, k, h, w), f32::NAN);
-        let mut templates = RangeTemplates::new(sensor, &self.options);
+        let templates = self.templates(sensor);
         for (f, frame) in y.outer_iter().enumerate() {
             ctl.check()?;
             (ctl.progress)(tcsense_models::decoder::Step { frame: f, frames: b, done: 0, total: 1 });
@@ -278,6 +292,41 @@ mod tests {
             }
             assert!(conf.index_axis(Axis(1), 0).iter().all(|&c| c == 1.0) && conf.index_axis(Axis(1), 1).iter().all(|&c| c == 0.0));
         }
+    }
+
+    #[test]
+    fn the_depth_fit_decoder_follows_its_sensor_and_options_from_call_to_call() {
+        let cancel = AtomicBool::new(false);
+        let ctl = Control::quiet(&cancel);
+        let other = |seed: u64| {
+            let shape = CodeShape { bh: 2, bw: 2, taps: 4, length: 32, drain: false };
+            let codes = random_codes(shape, 607e6, Constraints { tap: true, ..Default::default() }, seed).unwrap();
+            Sensor::ideal(
+                codes,
+                Sampling::Oversample(1),
+                Irf::Physical { laser_fwhm_s: DEFAULT_LASER_FWHM_S, tap_tau_s: DEFAULT_TAP_TAU_S },
+            )
+            .unwrap()
+        };
+        let (a, b) = (sensor(), other(7));
+        let taps = |s: &Sensor, tau: f64| s.plan(8, 8).unwrap().forward_batch(&cube(s.bins(), tau).view()).unwrap();
+        let (ya, yb) = (taps(&a, 9.3), taps(&b, 21.6));
+        let fresh = |s: &Sensor, y: &Array4<f32>, opts: &DepthFitOptions| {
+            DepthFitDecoder::new(opts.clone()).unwrap().decode(y.view(), s, &ctl).unwrap().depth.unwrap()
+        };
+        // one decoder through sensor a, then b, then a again, then with other options: each
+        // call gives what a new decoder gives (the templates built once are the right ones)
+        let mut d = DepthFitDecoder::new(DepthFitOptions::default()).unwrap();
+        for (s, y) in [(&a, &ya), (&b, &yb), (&a, &ya)] {
+            let got = d.decode(y.view(), s, &ctl).unwrap().depth.unwrap();
+            let want = fresh(s, y, &d.options);
+            assert!(got.iter().zip(&want).all(|(g, w)| g.to_bits() == w.to_bits()), "{got:?} against {want:?}");
+        }
+        d.options.returns = 1;
+        let got = d.decode(ya.view(), &a, &ctl).unwrap().depth.unwrap();
+        assert_eq!(got.dim(), (1, 1, 8, 8), "the new options' returns");
+        let dz = C * a.bin_width_s() / 2.0;
+        assert!(got.iter().all(|&v| (v as f64 / dz - 9.3).abs() < 0.05), "{got:?}");
     }
 
     #[test]

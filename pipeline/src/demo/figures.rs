@@ -38,6 +38,9 @@ pub(super) fn draw_figures(dir: &Path, lidar: &Dataset, flim: &Dataset, selected
             bail!("{}: missing (the photon-efficiency step draws it)", f.join(name).display());
         }
     }
+    if !out("speed-accuracy-lidar.png").exists() {
+        bail!("{}: missing (the deployed speed step draws it)", f.join("speed-accuracy-lidar.png").display());
+    }
     // codes
     plot::codes(&out("codes-random.png"), "random codes", &Codes::load(&dir.join("codes/random.json"))?)?;
     plot::codes(&out("codes-selected.png"), "selected codes (designed for range identifiability)", selected)?;

@@ -176,7 +176,7 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
             p
         }
     };
-    steps.of = steps.n + 1 + plan.trainings.len() + 7;
+    steps.of = steps.n + 1 + plan.trainings.len() + 8;
     for t in &plan.trainings {
         obs.line(&format!(
             "  {:<14} {:>4} epochs × {:>4} steps × {:>6.1} ms ≈ {:>5.0} s  ({})",
@@ -309,6 +309,19 @@ pub fn run(options: &DemoOptions, dir: &Path, obs: &dyn Observer, cancel: &Atomi
     steps.run(
         &format!("timing at {}x{}: ONNX Runtime (2 and 1 threads) and burn, per frame", request.timing_size[0], request.timing_size[1]),
         || time_decoders(dir, &runs_dir, &request, &plan, obs, cancel),
+    )?;
+
+    // 7b. the LiDAR decoders as deployed, timed at the sensor's frame size beside their errors
+    // on the photon ladder (`results/speed-lidar.json`, `figures/speed-accuracy-lidar.png`)
+    steps.run(
+        &format!(
+            "deployed speed against accuracy: the LiDAR decoders (the fits, ONNX Runtime with the fits around it) on {SPEED_FRAMES} frames of {}x{}",
+            request.timing_size[0], request.timing_size[1]
+        ),
+        || {
+            let size = (request.timing_size[0], request.timing_size[1]);
+            speed_against_accuracy(dir, &lidar, &selected, size, plan.timing_rounds, &eval_noise, seed, cancel)
+        },
     )?;
 
     // 8. a non-ideal sensor brought up: its delay sweep, the calibration, the demo's LiDAR

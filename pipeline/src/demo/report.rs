@@ -186,7 +186,7 @@ pub(super) fn build_report(dir: &Path, plan: &Plan, figs: &Figures, times: &[Val
     sections.push(flim_section(dir, plan, &fig)?);
     sections.push(training_section(&fig));
     sections.push(bringup_section(dir)?);
-    sections.push(deployment_section(dir, plan)?);
+    sections.push(deployment_section(dir, plan, &fig)?);
     sections.push(run_log);
     // results first: what was done, the two applications, then how (codes, tap images,
     // training), deployment and the run's log
@@ -554,7 +554,7 @@ fn bringup_section(dir: &Path) -> Result<Section> {
 }
 
 /// Deployment: the timing table and the commands that run the exported models.
-fn deployment_section(dir: &Path, plan: &Plan) -> Result<Section> {
+fn deployment_section(dir: &Path, plan: &Plan, fig: &dyn Fn(&str, &str) -> Block) -> Result<Section> {
     let r = &plan.request;
     // deployment timing
     let tj = read_json(&dir.join("results/timing.json"))?;
@@ -574,6 +574,25 @@ fn deployment_section(dir: &Path, plan: &Plan) -> Result<Section> {
         }
     }
     let (th, tw) = (r.timing_size[0], r.timing_size[1]);
+    // the decoders as deployed, beside their errors on the photon ladder
+    let sj = read_json(&dir.join("results/speed-lidar.json"))?;
+    let ssrc = "results/speed-lidar.json";
+    let ladder: Vec<f64> = sj["ladder"].as_array().map(|a| a.iter().filter_map(Value::as_f64).collect()).unwrap_or_default();
+    let speed_rows: Vec<Vec<Cell>> = (0..sj["speeds"].as_array().map_or(0, Vec::len))
+        .map(|i| {
+            let mut row = vec![
+                Cell::text(sj["speeds"][i]["decoder"].as_str().unwrap_or("")),
+                Cell::from_json(ssrc, &sj, &format!("/speeds/{i}/frames_per_s"), Format::Fixed(1)),
+                Cell::from_json(ssrc, &sj, &format!("/speeds/{i}/ms_per_frame"), Format::Fixed(1)),
+                Cell::text(if sj["speeds"][i]["frames_per_s"].as_f64().unwrap_or(0.0) >= SENSOR_FPS { "yes" } else { "no" }),
+            ];
+            row.extend((0..ladder.len()).map(|k| Cell::from_json(ssrc, &sj, &format!("/error_bins/{i}/{k}"), Format::Fixed(2))));
+            row
+        })
+        .collect();
+    let mut speed_headers: Vec<String> =
+        ["decoder (as deployed)", "frames/s", "ms per frame", "keeps up with the sensor"].map(String::from).to_vec();
+    speed_headers.extend(ladder.iter().map(|l| format!("error (bins) at {l}")));
     Ok(Section {
         id: "deployment".into(),
         title: "Deployment: ONNX and timing".into(),
@@ -583,6 +602,15 @@ fn deployment_section(dir: &Path, plan: &Plan) -> Result<Section> {
                 headers: ["decoder", "engine", "ms per frame", "frames/s", "keeps up with the sensor"].map(String::from).to_vec(),
                 rows,
             }),
+            Block::Table(Table {
+                caption: format!(
+                    "The LiDAR decoders as deployed: each timed whole (ONNX Runtime and the fits `tcsense infer` runs around it, one frame per call) on {} noisy {th}×{tw} frames of the test scenes at signal {} of the full well, the median of {} interleaved rounds; beside each, its median first-return error on the photon ladder (the same network in burn gives the same product). The zoo's U-Net on the fit's evidence runs on its own codes.",
+                    sj["frames"], sj["signal_fraction"], sj["rounds"]
+                ),
+                headers: speed_headers,
+                rows: speed_rows,
+            }),
+            fig("speed-accuracy-lidar.png", "Deployed speed against accuracy: each LiDAR decoder as a run of dots at its frames/s (whole decoder at the frame size above), one dot per signal level of the photon ladder (labelled with the brightest tap's share of the full well), its median first-return error in bins. Up and to the left is slower and worse."),
             Block::Text("Each trained decoder is exported to onnx/NAME.onnx (opset 17; input measurements [B, 4, H, W], the raw tap images; output cube [B, T, H, W] or depth and confidence [B, 2, H, W]; codes, clock and sensor model in the metadata). Run them on recorded tap images with:".into()),
             Block::Code(format!(
                 "tcsense infer --model {0}/onnx/unet-lidar.onnx --measurements {0}/frames/lidar-y.npy --products depth,ply -o out/\ntcsense infer --model {0}/onnx/admm-flim.onnx --measurements {0}/frames/flim-y.npy --products cube,lifetime -o out/\ntcsense eval --dataset {0}/lidar --codes {0}/codes/selected.json --irf physical --decoder tval3 --decoder onnx:{0}/onnx/admm-lidar.onnx --noise",

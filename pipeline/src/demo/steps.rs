@@ -231,6 +231,8 @@ pub(super) type FrameJob<'a> = (&'a str, &'a Dataset, &'a Codes, Vec<(&'a str, S
 pub(super) const SELECTED_ADMM: &str = "ADMM-Net + peaks";
 pub(super) const LEARNED_ADMM: &str = "ADMM-Net + peaks, learned codes";
 pub(super) const LEARNED_FIT: &str = "range fit to the taps, 2 returns, learned codes";
+/// The photon ladder's row of the zoo's U-Net on the fit's evidence.
+pub(super) const EVIDENCE_UNET: &str = "U-Net on the fit's evidence (zoo, as shipped, its own codes)";
 
 /// The FLIm photon ladder's two code sets with one architecture: the zoo's lifetime network on
 /// designed codes and on codes learned with it, each through its own codes.
@@ -299,8 +301,7 @@ pub(super) fn photon_curves(
         rows.extend(ladder(lidar, &on_learned, &learned_decoders, lidar_items)?);
         if let Some((zoo_dir, _)) = zoo_entry_named(ZOO_EVIDENCE_UNET, lidar) {
             let own = sensor(&Codes::load(&zoo_dir.join(CODES_FILE))?, lidar)?;
-            let shipped =
-                [("U-Net on the fit's evidence (zoo, as shipped, its own codes)", format!("{}:{}", names::UNET, zoo_dir.display()))];
+            let shipped = [(EVIDENCE_UNET, format!("{}:{}", names::UNET, zoo_dir.display()))];
             rows.extend(ladder(lidar, &own, &shipped, lidar_items)?);
         }
         let codes = [("selected", a.nominal()), ("learned", on_learned.nominal())];
@@ -346,4 +347,94 @@ pub(super) fn photon_curves(
         write_json(&flim_json, &json!({ "split": "test", "items": flim_items, "noise_seed": seed, "ladder": LADDER, "rows": rows }))?;
     }
     Ok(())
+}
+
+/// Frames of the stream each deployed decoder is timed on (`speed_against_accuracy`).
+pub(super) const SPEED_FRAMES: usize = 10;
+
+/// The photon ladder's LiDAR decoders as deployed — the fits, and the exported networks through
+/// ONNX Runtime with the fits `tcsense infer` runs around them (`onnx:` decoders) — timed on a
+/// stream of [`SPEED_FRAMES`] noisy frames at `size` (the test scenes mirrored to it, signal at
+/// the ladder's first rung), `rounds` interleaved rounds, beside their errors on the ladder
+/// (`results/photon-lidar.json`, the same networks in burn: the same products). The zoo's U-Net
+/// on the fit's evidence is exported (`onnx/zoo-evidence-lidar.onnx`) and timed through its own
+/// codes. Writes `results/speed-lidar.json` and `figures/speed-accuracy-lidar.png`; a resumed
+/// demo keeps them.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn speed_against_accuracy(
+    dir: &Path,
+    lidar: &Dataset,
+    selected: &Codes,
+    size: (usize, usize),
+    rounds: usize,
+    noise: &NoiseParams,
+    seed: u64,
+    cancel: &AtomicBool,
+) -> Result<()> {
+    let out = dir.join("results/speed-lidar.json");
+    if out.exists() {
+        return Ok(());
+    }
+    let photon = read_json(&dir.join("results/photon-lidar.json"))?;
+    let bin_m = photon["bin_m"].as_f64().unwrap_or(f64::NAN);
+    let rows = photon["rows"].as_array().cloned().unwrap_or_default();
+    let onnx = |name: &str| format!("onnx:{}", dir.join("onnx").join(format!("{name}.onnx")).display());
+    let first = NoiseParams { signal_fraction: LADDER[0], ..*noise };
+    // (label of the photon ladder's row, decoder as deployed) on one sensor, timed together
+    let timed = |a: &Sensor, decoders: &[(&str, String)]| -> Result<Vec<tcsense_infer::speed::DecoderSpeed>> {
+        let mut dec = decoders
+            .iter()
+            .map(|(label, spec)| {
+                let mut d = open_decoder(spec, &Tval3Options::default(), &Device::flex())?;
+                d.label = label.to_string();
+                Ok(d)
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let y = tcsense_infer::speed::tiled_frames(lidar, "test", a, size, SPEED_FRAMES, &first, seed)?;
+        Ok(tcsense_infer::speed::stream_speed(&mut dec, a, &y.view(), rounds, &|_, _| {}, cancel)?)
+    };
+    let mut speeds = timed(
+        &sensor(selected, lidar)?,
+        &[
+            ("range fit to the taps, 1 return", format!("{}:1", names::DEPTH_FIT)),
+            ("range fit to the taps, 2 returns", names::DEPTH_FIT.to_string()),
+            (SELECTED_ADMM, onnx("admm-lidar")),
+            ("Aᵀ + U-Net + range fit", onnx("unet-lidar")),
+        ],
+    )?;
+    if let Some((zoo_dir, _)) = zoo_entry_named(ZOO_EVIDENCE_UNET, lidar) {
+        let model = dir.join("onnx/zoo-evidence-lidar.onnx");
+        if !model.exists() {
+            export_to(&runs::load(&zoo_dir, &Device::flex())?, ExportOptions::default(), &model)?;
+        }
+        let own = sensor(&Codes::load(&zoo_dir.join(CODES_FILE))?, lidar)?;
+        speeds.extend(timed(&own, &[(EVIDENCE_UNET, onnx("zoo-evidence-lidar"))])?);
+    }
+    // each decoder's median first-return error (bins) at every rung, from the ladder's rows
+    let error_at = |label: &str, level: f64| -> f64 {
+        rows.iter()
+            .find(|r| r["decoder"] == label && r["light"]["signal_fraction"].as_f64() == Some(level))
+            .and_then(|r| r["depth_median_m"][0].as_f64())
+            .map_or(f64::NAN, |m| m / bin_m)
+    };
+    let series: Vec<Series> = speeds
+        .iter()
+        .map(|s| Series { label: s.decoder.clone(), points: LADDER.iter().map(|&l| (s.frames_per_s, error_at(&s.decoder, l))).collect() })
+        .collect();
+    let (h, w) = size;
+    let figures = dir.join("figures");
+    std::fs::create_dir_all(&figures).with_context(|| figures.display().to_string())?;
+    plot::speed_accuracy(
+        &figures.join("speed-accuracy-lidar.png"),
+        &format!("Deployed speed against accuracy ({h}x{w} frames, no ambient light; dots at each signal level)"),
+        &format!("frames per second ({h}x{w}, whole decoder, one frame per call)"),
+        "median first-return error (bins)",
+        &series,
+        &LADDER.iter().map(|l| l.to_string()).collect::<Vec<_>>(),
+    )?;
+    let errors: Vec<Value> = speeds.iter().map(|s| json!(LADDER.iter().map(|&l| error_at(&s.decoder, l)).collect::<Vec<_>>())).collect();
+    write_json(
+        &out,
+        &json!({ "frame": [h, w], "frames": SPEED_FRAMES, "rounds": rounds, "signal_fraction": LADDER[0], "ladder": LADDER, "speeds": speeds, "error_bins": errors }),
+    )
 }
