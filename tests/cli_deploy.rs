@@ -98,6 +98,21 @@ fn export_check_and_stream_a_trained_unet() {
         s0.iter().zip(fitted.iter()).all(|(a, b)| (a.is_nan() && b.is_nan()) || (a - b).abs() < 1e-6),
         "infer --depth-fit and reconstruct depth-fit differ"
     );
+    // pooled by likeness: infer --depth-fit --pool-like and reconstruct depth-fit-pooled agree
+    ok(d, &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--depth-fit", "--pool-like", "9", "-o", "out-dp"]);
+    ok(d, &["reconstruct", "depth-fit-pooled:9", "--codes", "unet/codes.json", "--measurements", "y0.npy", "-o", "dp.npy"]);
+    let (streamed, fitted) = (read_npy(&d.join("out-dp/depth.npy")).unwrap(), read_npy(&d.join("dp.npy")).unwrap());
+    let s0 = streamed.index_axis(ndarray::Axis(0), 0);
+    assert!(s0.iter().any(|v| v.is_finite()), "no range fitted");
+    assert!(
+        s0.iter().zip(fitted.iter()).all(|(a, b)| (a.is_nan() && b.is_nan()) || (a - b).abs() < 1e-6),
+        "infer --depth-fit --pool-like 9 and reconstruct depth-fit-pooled:9 differ"
+    );
+    fails(
+        d,
+        &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--depth-fit", "--pool-like", "12", "-o", "bad-dp"],
+        &["--pool-like", "pool_like 12", "odd multiple"],
+    );
     fails(
         d,
         &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--depth-fit", "--returns", "3", "-o", "bad-df"],

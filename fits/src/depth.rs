@@ -125,11 +125,23 @@ pub struct DepthFitOptions {
     /// … and where the weaker of the two holds at least this share of the stronger's amplitude
     /// (summed over the window).
     pub second_amplitude: f64,
+    /// Pool each window with the neighbouring windows of like ranges that tile this side (an
+    /// odd multiple of the window's; 0: the window alone): the first return is the pooled
+    /// cost's best candidate, refined in the tap domain where it is the window's own
+    /// ([`RangeTemplates::pooled_modes`]).
+    pub pool_like: usize,
 }
 
 impl Default for DepthFitOptions {
     fn default() -> Self {
-        DepthFitOptions { fit: RangeFitOptions::default(), min_intensity: 0.02, returns: 2, second_residual: 0.3, second_amplitude: 0.1 }
+        DepthFitOptions {
+            fit: RangeFitOptions::default(),
+            min_intensity: 0.02,
+            returns: 2,
+            second_residual: 0.3,
+            second_amplitude: 0.1,
+            pool_like: 0,
+        }
     }
 }
 
@@ -157,6 +169,14 @@ impl DepthFitOptions {
         }
         if !(0.0..=1.0).contains(&self.second_amplitude) {
             return Err(format!("second_amplitude {}: expected a share in [0, 1]", self.second_amplitude));
+        }
+        if self.pool_like != 0 && !crate::evidence::pooled_side(self.pool_like, self.fit.window) {
+            return Err(format!(
+                "pool_like {}: expected 0 (no pooling) or an odd multiple of the window's side {} above it, up to {} pixels (e.g. 9, 15, 21)",
+                self.pool_like,
+                self.fit.window,
+                crate::range::MAX_WINDOW
+            ));
         }
         if !(1..=2).contains(&self.returns) {
             return Err(format!("returns {}: expected 1 or 2", self.returns));
@@ -424,12 +444,56 @@ impl RangeTemplates {
         // (the cost volume's buffers kept from frame to frame)
         let mut costs = self.frame.take().unwrap_or_default();
         let out = if self.costs_into(y, &mut costs) {
-            self.ranges(&costs, Seeds::Argmin)
+            if self.opts.pool_like > self.opts.fit.window {
+                let u = self.pooled_modes(&costs, self.opts.pool_like);
+                self.ranges(&costs, Seeds::Modes(&u))
+            } else {
+                self.ranges(&costs, Seeds::Argmin)
+            }
         } else {
             Array3::from_elem((self.opts.returns, h, w), f32::NAN)
         };
         self.frame = Some(costs);
         out
+    }
+
+    /// Every lit pixel's first return from its window's costs pooled by likeness over a
+    /// neighbourhood of `side` ([`crate::evidence::similarity_pool`], in the frame's nats): the
+    /// pooled cost's best candidate, refined by a parabola through its neighbours (cyclic), as
+    /// the continuous candidate coordinate [`Seeds::Modes`] takes (NaN where unlit). In bright
+    /// light a window's posterior is sharp, no neighbour of another range weighs in, and the
+    /// best candidate is the window's own (which [`Self::ranges`] refines in the tap domain);
+    /// in dim light the windows of one surface pool as one wider window.
+    ///
+    /// # Shapes
+    /// - `costs`: of `[H·W·C]` → `[H·W]`
+    pub fn pooled_modes(&self, costs: &RangeCosts, side: usize) -> Vec<f32> {
+        let c = self.tpl.candidates();
+        let volume = CostVolume {
+            pixel: &costs.pixel,
+            window: &costs.window,
+            lit: &costs.lit,
+            points: c,
+            height: costs.height,
+            width: costs.width,
+            side: self.opts.fit.window,
+            free_per_pixel: costs.m.saturating_sub(2),
+            shared: 1,
+        };
+        let nats = 1.0 / (2.0 * crate::evidence::noise_level(&volume));
+        let pooled = crate::evidence::similarity_pool(&volume, nats, side);
+        pooled
+            .par_chunks(c)
+            .zip(costs.lit.par_iter())
+            .map(|(v, &lit)| {
+                if !lit {
+                    return f32::NAN;
+                }
+                let b = argmin(v);
+                let at = |k: usize| v[k % c] as f64;
+                (b as f64 + crate::engine::parabola_min(at(b + c - 1), at(b), at(b + 1))) as f32
+            })
+            .collect()
     }
 
     /// Candidates `C` around the cycle (`T` bins × the candidates per bin).
@@ -808,6 +872,56 @@ mod tests {
                 assert!((v - tau).abs() < 0.05, "τ = {tau}: {v} at ({i}, {j})");
                 assert!((v - r).abs() < 0.02, "τ = {tau}: the dense fit {v}, the range fit {r}");
             }
+        }
+    }
+
+    /// Two surfaces, each half the frame: in dim light the windows pooled by likeness place
+    /// the first return better than the 3×3 fit; in bright light they are the fit, and the
+    /// edge between the surfaces stays sharp.
+    #[test]
+    fn pooling_by_likeness_pools_dim_surfaces_and_keeps_bright_edges() {
+        let a = sensor();
+        let dz = C * a.bin_width_s() / 2.0;
+        let (h, w) = (24, 36);
+        let tau = |_: usize, j: usize| if j < w / 2 { 9.3 } else { 21.7 };
+        let clean = taps(&a, h, w, &|i, j| vec![(tau(i, j), 1.0)], 0.02);
+        let errors = |pool_like: usize, y: &ndarray::Array3<f32>, cols: &dyn Fn(usize) -> bool| {
+            let opts = DepthFitOptions { returns: 1, pool_like, ..Default::default() };
+            assert!(opts.validate().is_ok());
+            let got = fit_ranges(&y.view(), &a, &opts);
+            let mut e: Vec<f64> = got
+                .index_axis(Axis(0), 0)
+                .indexed_iter()
+                .filter(|((_, j), _)| cols(*j))
+                .map(|((i, j), &v)| if v.is_finite() { (v as f64 / dz - tau(i, j)).abs() } else { f64::INFINITY })
+                .collect();
+            e.sort_by(f64::total_cmp);
+            e
+        };
+        let away = |j: usize| j.abs_diff(w / 2) > 3 && j.abs_diff(w / 2 - 1) > 3;
+        // (three noise draws a level: the medians of 1 800 pixels)
+        let median = |mut e: Vec<f64>| {
+            e.sort_by(f64::total_cmp);
+            e[e.len() / 2]
+        };
+        for photons in [1.0, 2.0] {
+            let (mut fit, mut pooled) = (Vec::new(), Vec::new());
+            for seed in 3..6 {
+                let dim = crate::testing::noise(&clean, photons, seed, false);
+                fit.extend(errors(0, &dim, &away));
+                pooled.extend(errors(15, &dim, &away));
+            }
+            let (p, q) = (median(fit), median(pooled));
+            assert!(q < 0.8 * p, "{photons} photons a pixel: the pooled median error {q} bins against the 3×3 fit's {p}");
+        }
+        let bright = crate::testing::noise(&clean, 1e5, 5, false);
+        let (fit, pooled) = (errors(0, &bright, &|_| true), errors(15, &bright, &|_| true));
+        let (p, q) = (fit[fit.len() / 2], pooled[pooled.len() / 2]);
+        assert!(q <= 1.1 * p + 0.005, "bright: the pooled median error {q} bins against the 3×3 fit's {p}");
+        let edge = errors(15, &bright, &|j| !away(j));
+        assert!(edge.last().is_some_and(|&e| e < 0.25), "bright: the columns beside the edge {edge:?}");
+        for bad in [3, 4, 11, 18, 1001] {
+            assert!(DepthFitOptions { pool_like: bad, ..Default::default() }.validate().is_err(), "{bad}");
         }
     }
 

@@ -226,6 +226,12 @@ pub fn noise_level(costs: &CostVolume<'_>) -> f32 {
     median(&mut per_dof, f32::total_cmp).filter(|v| *v > 0.0 && v.is_finite()).unwrap_or(1.0)
 }
 
+/// Whether `side` is a neighbourhood the windows of side `window` tile around a pixel's own
+/// ([`similarity_pool`]): an odd multiple of it, above it, up to [`crate::range::MAX_WINDOW`].
+pub fn pooled_side(side: usize, window: usize) -> bool {
+    window > 0 && side > window && side.is_multiple_of(window) && !(side / window).is_multiple_of(2) && side <= crate::range::MAX_WINDOW
+}
+
 /// The costs pooled over windows of like evidence: every pixel's window's cost, plus the
 /// window costs of the neighbouring windows that tile its `side × side` neighbourhood (their
 /// centres a window's side apart, so that no pixel is counted twice), each weighted by how

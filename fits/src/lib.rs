@@ -27,6 +27,8 @@ pub mod evidence;
 pub mod lifetime_cube;
 pub mod lifetime_taps;
 pub mod range;
+#[cfg(test)]
+mod testing;
 
 /// Run `f` compiled for AVX2 and FMA where this CPU has them (chosen at run time), so a
 /// loop of multiply-adds vectorises beyond the baseline SSE2 (the instrument search's

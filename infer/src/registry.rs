@@ -37,6 +37,9 @@ pub mod names {
     pub const TVAL3: &str = "tval3";
     /// Ranges fitted to the tap images (`depth-fit:1`, `depth-fit:2` returns).
     pub const DEPTH_FIT: &str = "depth-fit";
+    /// Ranges fitted to the tap images, the window's costs pooled with those of its
+    /// neighbours of like range (`depth-fit-pooled:N`, N×N neighbourhood).
+    pub const DEPTH_FIT_POOLED: &str = "depth-fit-pooled";
     /// Lifetimes fitted to the tap images.
     pub const LIFETIME_FIT: &str = "lifetime-fit";
     /// Lifetimes fitted to the tap images, the window's costs pooled with those of its
@@ -152,6 +155,14 @@ impl Registry {
                     arg: ArgUse::Optional,
                     cubes: false,
                     open: open_depth_fit,
+                },
+                Entry {
+                    name: DEPTH_FIT_POOLED,
+                    usage: "depth-fit-pooled[:N]",
+                    summary: "the range fit over 3x3 windows, each pooled with the neighbouring 3x3 windows that tile NxN pixels (N = 9, 15, 21…, default 15), weighted by how much their posteriors overlap: the fit in bright light, a wider window on one surface in dim light; two returns; no network",
+                    arg: ArgUse::Optional,
+                    cubes: false,
+                    open: open_depth_fit_pooled,
                 },
                 Entry {
                     name: LIFETIME_FIT,
@@ -328,6 +339,25 @@ fn open_depth_fit(o: &Opening<'_>) -> Result<NamedDecoder> {
     any_sensor(o, Box::new(crate::fitted::DepthFitDecoder::new(opts)?))
 }
 
+fn open_depth_fit_pooled(o: &Opening<'_>) -> Result<NamedDecoder> {
+    let mut opts = o.settings.depth_fit.clone();
+    let max = tcsense_fits::range::MAX_WINDOW;
+    let window = opts.fit.window;
+    opts.pool_like = match o.arg {
+        None => POOL_LIKE_SIDE,
+        Some(n) => {
+            n.parse().ok().filter(|&n: &usize| tcsense_fits::evidence::pooled_side(n, window)).ok_or_else(|| InferError::InvalidParam {
+                field: "decoder",
+                got: o.label.into(),
+                expected: format!(
+                    "depth-fit-pooled:N with N an odd multiple of the window's side {window} above it, up to {max} pixels (e.g. 9, 15, 21)"
+                ),
+            })?
+        }
+    };
+    any_sensor(o, Box::new(crate::fitted::DepthFitDecoder::new(opts)?))
+}
+
 fn open_lifetime_fit(o: &Opening<'_>) -> Result<NamedDecoder> {
     let mut opts = o.settings.tap_fit.clone();
     if let Some(n) = o.arg {
@@ -418,6 +448,8 @@ mod tests {
         assert_eq!(r.open("lifetime-fit:9", &s, &d).unwrap().label, "lifetime-fit:9");
         assert_eq!(r.open("lifetime-fit-pooled", &s, &d).unwrap().label, "lifetime-fit-pooled");
         assert_eq!(r.open("lifetime-fit-pooled:9", &s, &d).unwrap().label, "lifetime-fit-pooled:9");
+        assert_eq!(r.open("depth-fit-pooled", &s, &d).unwrap().label, "depth-fit-pooled");
+        assert_eq!(r.open("depth-fit-pooled:21", &s, &d).unwrap().decoder.name(), names::DEPTH_FIT);
         for bad in [
             "tval3:x",
             "unet",
@@ -432,6 +464,9 @@ mod tests {
             "lifetime-fit-pooled:12",
             "lifetime-fit-pooled:11",
             "lifetime-fit-pooled:999",
+            "depth-fit-pooled:3",
+            "depth-fit-pooled:12",
+            "depth-fit-pooled:x",
         ] {
             assert!(r.open(bad, &s, &d).is_err(), "{bad}");
         }

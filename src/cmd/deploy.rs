@@ -141,10 +141,11 @@ pub struct InferArgs {
     /// Side of the square window of pixels whose costs the fit to the taps sums (odd).
     #[arg(long, requires = "lifetime_fit", default_value_t = 3, value_parser = super::count_in(1, tcsense_fits::range::MAX_WINDOW))]
     window: usize,
-    /// Pool each window with the neighbouring windows of like lifetime that tile this side (an
-    /// odd multiple of --window: 9, 15, 21 for 3×3; the `lifetime-fit-pooled` decoder): the
-    /// 3×3 fit in bright light, a wider window in dim light.
-    #[arg(long, requires = "lifetime_fit", value_parser = super::count_in(1, tcsense_fits::range::MAX_WINDOW))]
+    /// Pool each window with the neighbouring windows of like lifetime (--lifetime-fit) or
+    /// range (--depth-fit) that tile this side (an odd multiple of the window: 9, 15, 21 for
+    /// 3×3; the `lifetime-fit-pooled` and `depth-fit-pooled` decoders): the 3×3 fit in bright
+    /// light, a wider window on one surface or cell in dim light.
+    #[arg(long, value_parser = super::count_in(1, tcsense_fits::range::MAX_WINDOW))]
     pool_like: Option<usize>,
     /// Output directory.
     #[arg(short, long)]
@@ -198,11 +199,16 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
         }
         products.range_fit = None;
     }
+    if a.pool_like.is_some() && !(a.depth_fit || a.lifetime_fit) {
+        bail!("--pool-like: for --depth-fit or --lifetime-fit (it pools the fit's windows); give one of them");
+    }
     if a.depth_fit {
         if !(products.depth || products.ply) {
             bail!("--depth-fit with --products {list}: the fit gives depth and ply; ask for one of them");
         }
-        products.depth_fit = Some(tcsense_fits::depth::DepthFitOptions { returns, ..Default::default() });
+        let opts = tcsense_fits::depth::DepthFitOptions { returns, pool_like: a.pool_like.unwrap_or(0), ..Default::default() };
+        opts.validate().map_err(|e| anyhow::anyhow!("--depth-fit settings (--pool-like): {e}"))?;
+        products.depth_fit = Some(opts);
         if let Some(w) = tcsense_infer::fitted::alias_warning(&model.sensor, model.meta.codes.length()) {
             eprintln!("{w}");
         }

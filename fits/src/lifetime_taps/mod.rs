@@ -138,12 +138,7 @@ impl TapFitOptions {
     }
 }
 
-/// Whether `side` is a neighbourhood the windows of side `window` tile around a pixel's own
-/// ([`crate::evidence::similarity_pool`]): an odd multiple of it, above it, up to
-/// [`crate::range::MAX_WINDOW`].
-pub fn pooled_side(side: usize, window: usize) -> bool {
-    window > 0 && side > window && side.is_multiple_of(window) && !(side / window).is_multiple_of(2) && side <= crate::range::MAX_WINDOW
-}
+pub use crate::evidence::pooled_side;
 
 /// What [`fit_taps`] gives for one frame.
 #[derive(Debug, Clone)]
@@ -821,40 +816,13 @@ mod tests {
 
     /// Noise on taps: Poisson-like (Gaussian of the charge's variance) at `photons` per pixel.
     fn noisy(y: &ndarray::Array3<f32>, photons: f64, seed: u64) -> ndarray::Array3<f32> {
-        noise(y, photons, seed, false)
+        crate::testing::noise(y, photons, seed, false)
     }
 
     /// Shot noise as a sensor has it: [`noisy`]'s, the frame's brightest pixel at `photons` and
     /// every other in proportion to its charge.
     fn shot_noise(y: &ndarray::Array3<f32>, photons: f64, seed: u64) -> ndarray::Array3<f32> {
-        noise(y, photons, seed, true)
-    }
-
-    fn noise(y: &ndarray::Array3<f32>, photons: f64, seed: u64, by_charge: bool) -> ndarray::Array3<f32> {
-        // a splitmix64 stream of uniforms
-        let mut state = seed;
-        let mut uniform = move || {
-            state = state.wrapping_add(0x9E3779B97F4A7C15);
-            let mut z = state;
-            z = (z ^ (z >> 30)).wrapping_mul(0xBF58476D1CE4E5B9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94D049BB133111EB);
-            ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-        };
-        let (m, h, w) = y.dim();
-        let mut out = y.clone();
-        let peak = y.sum_axis(Axis(0)).iter().fold(0f32, |a, &b| a.max(b));
-        for i in 0..h {
-            for j in 0..w {
-                let s: f32 = (0..m).map(|k| y[(k, i, j)]).sum();
-                let scale = photons / if by_charge { peak } else { s } as f64;
-                for k in 0..m {
-                    let e = y[(k, i, j)] as f64 * scale;
-                    let n: f64 = (0..12).map(|_| uniform()).sum::<f64>() - 6.0;
-                    out[(k, i, j)] = ((e + e.max(0.0).sqrt() * n).max(0.0) / scale) as f32;
-                }
-            }
-        }
-        out
+        crate::testing::noise(y, photons, seed, true)
     }
 
     /// The refinement around points chosen elsewhere is the fit's own where the choice is the
