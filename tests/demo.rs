@@ -189,15 +189,15 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
     // fit's error at 0.8 is the ladder's, the U-Net's comes from its own row)
     let speed = json(&demo.join("results/speed-lidar.json"));
     let speeds = speed["speeds"].as_array().unwrap();
-    assert_eq!(speeds.len(), 5, "the two fits, the ADMM-Net and the U-Net through ONNX Runtime, the zoo's evidence U-Net: {speeds:?}");
+    assert_eq!(speeds.len(), 6, "the three fits, the ADMM-Net and the U-Net through ONNX Runtime, the zoo's evidence U-Net: {speeds:?}");
     assert!(speeds.iter().all(|s| s["frames_per_s"].as_f64().is_some_and(|v| v.is_finite() && v > 0.0)), "{speeds:?}");
     let photon_rows = json(&demo.join("results/photon-lidar.json"));
     let bin_m = photon_rows["bin_m"].as_f64().unwrap();
     let fit_at_08 = ladder_value(photon_rows["rows"].as_array().unwrap(), "range fit to the taps, 2 returns", 0.8, "/depth_median_m/0");
     assert_eq!(speeds[1]["decoder"], "range fit to the taps, 2 returns");
     assert!((speed["error_bins"][1][0].as_f64().unwrap() - fit_at_08 / bin_m).abs() < 1e-9, "{speed}");
-    assert!(speed["error_bins"][3][0] != speed["error_bins"][1][0], "each decoder's own errors: {speed}");
-    assert_eq!(cells.iter().filter(|c| c.0 == "results/speed-lidar.json").count(), 5 * 6, "cells from results/speed-lidar.json");
+    assert!(speed["error_bins"][4][0] != speed["error_bins"][1][0], "each decoder's own errors: {speed}");
+    assert_eq!(cells.iter().filter(|c| c.0 == "results/speed-lidar.json").count(), 6 * 6, "cells from results/speed-lidar.json");
     // burn and ONNX Runtime give the same reconstructions of the same measurements
     for (burn, onnx) in [(1, 2), (7, 8)] {
         let (a, b) = (rows[burn]["mse"].as_f64().unwrap(), rows[onnx]["mse"].as_f64().unwrap());
@@ -213,8 +213,8 @@ fn quick_demo_writes_a_complete_report_that_matches_its_results() {
     let prow = photon["rows"].as_array().unwrap();
     assert_eq!(
         prow.len(),
-        7 * 4,
-        "four decoders on the selected codes, the ADMM-Net and the fit on the learned codes and the zoo's evidence U-Net, at four levels"
+        8 * 4,
+        "five decoders on the selected codes, the ADMM-Net and the fit on the learned codes and the zoo's evidence U-Net, at four levels"
     );
     let share = |d: &str, level: f64| ladder_value(prow, d, level, "/depth_within_half_bin/0");
     let fit = "range fit to the taps, 2 returns";

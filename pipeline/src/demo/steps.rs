@@ -231,6 +231,8 @@ pub(super) type FrameJob<'a> = (&'a str, &'a Dataset, &'a Codes, Vec<(&'a str, S
 pub(super) const SELECTED_ADMM: &str = "ADMM-Net + peaks";
 pub(super) const LEARNED_ADMM: &str = "ADMM-Net + peaks, learned codes";
 pub(super) const LEARNED_FIT: &str = "range fit to the taps, 2 returns, learned codes";
+/// The photon ladder's row of the range fit pooled by likeness (`depth-fit-pooled`).
+pub(super) const POOLED_FIT: &str = "range fit pooled by likeness, 2 returns";
 /// The photon ladder's row of the zoo's U-Net on the fit's evidence.
 pub(super) const EVIDENCE_UNET: &str = "U-Net on the fit's evidence (zoo, as shipped, its own codes)";
 
@@ -243,7 +245,8 @@ pub(super) const FLIM_LEARNED_NET: &str = "lifetime network (zoo), codes learned
 pub(super) const LADDER: [f64; 4] = [0.8, 0.1, 0.02, 0.005];
 
 /// The photon-efficiency curves of the demo's decoders on their test splits (noise on, no
-/// ambient light): LiDAR — the range fit to the taps with one and two returns, the ADMM-Net by
+/// ambient light): LiDAR — the range fit to the taps with one and two returns and pooled by
+/// likeness, the ADMM-Net by
 /// peaks, the Aᵀ + U-Net (with its range fit), on the selected codes; the same ADMM-Net
 /// architecture trained with its codes by deep sensing, and the two-return fit, on the learned
 /// codes (both code sets' curves with one decoder architecture); the zoo's U-Net on the fit's
@@ -292,6 +295,7 @@ pub(super) fn photon_curves(
         let decoders = [
             ("range fit to the taps, 1 return", format!("{}:1", names::DEPTH_FIT)),
             ("range fit to the taps, 2 returns", names::DEPTH_FIT.to_string()),
+            (POOLED_FIT, names::DEPTH_FIT_POOLED.to_string()),
             (SELECTED_ADMM, run_of(names::ADMM_NET, "admm-lidar")),
             ("Aᵀ + U-Net + range fit", run_of(names::UNET, "unet-lidar")),
         ];
@@ -398,6 +402,7 @@ pub(super) fn speed_against_accuracy(
         &[
             ("range fit to the taps, 1 return", format!("{}:1", names::DEPTH_FIT)),
             ("range fit to the taps, 2 returns", names::DEPTH_FIT.to_string()),
+            (POOLED_FIT, names::DEPTH_FIT_POOLED.to_string()),
             (SELECTED_ADMM, onnx("admm-lidar")),
             ("Aᵀ + U-Net + range fit", onnx("unet-lidar")),
         ],
