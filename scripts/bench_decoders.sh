@@ -49,7 +49,7 @@ for r in csv.DictReader(open(sys.argv[1])):
     print(",".join([sys.argv[2], r["decoder"], r.get("bounce1_median_m", ""), r["bounce1_mae_m"], r["bounce2_detection"], r.get("bounce2_false_alarm", ""), r["lifetime_mae_s"]]))
 PY
 }
-lidar_decoders=(--decoder depth-fit:1 --decoder depth-fit --decoder "unet:zoo:unet-lidar-designed" --decoder "unet-raw:zoo:unet-lidar-designed" --decoder tval3)
+lidar_decoders=(--decoder depth-fit:1 --decoder depth-fit --decoder depth-fit-pooled --decoder "unet:zoo:unet-lidar-designed" --decoder "unet-raw:zoo:unet-lidar-designed" --decoder tval3)
 for s in standard far near textures dense-sheet; do accuracy "lidar-$s" "$OUT/lidar-$s" "$LIDAR/codes.json" "${lidar_decoders[@]}"; done
 accuracy lidar-motorcycle "$OUT/lidar-test-motorcycle" "$LIDAR/codes.json" "${lidar_decoders[@]}"
 flim_decoders=(--heterodyne 8 --decoder lifetime-fit --decoder "lifetime:zoo:lifetime-flim-designed" --decoder tval3)
@@ -87,6 +87,7 @@ U="$OUT/unet-lidar-designed.onnx"
 L="$OUT/lifetime-flim-designed.onnx"
 timed "depth-fit:1 (infer --depth-fit --returns 1)" "$FRAMES" $B infer --model "$U" --measurements "$OUT/lidar-stack.npy" --depth-fit --returns 1 -o "$OUT/o1"
 timed "depth-fit (infer --depth-fit)" "$FRAMES" $B infer --model "$U" --measurements "$OUT/lidar-stack.npy" --depth-fit -o "$OUT/o2"
+timed "depth-fit-pooled (infer --depth-fit --pool-like 15)" "$FRAMES" $B infer --model "$U" --measurements "$OUT/lidar-stack.npy" --depth-fit --pool-like 15 -o "$OUT/o2p"
 timed "unet + range fit (infer)" "$FRAMES" $B infer --model "$U" --measurements "$OUT/lidar-stack.npy" -o "$OUT/o3"
 timed "unet-raw (infer --no-range-fit)" "$FRAMES" $B infer --model "$U" --measurements "$OUT/lidar-stack.npy" --no-range-fit -o "$OUT/o4"
 timed "tval3 + peaks (reconstruct tval3 then depth)" 2 bash -c "$B reconstruct tval3 --codes $LIDAR/codes.json --irf physical --measurements $OUT/lidar-two.npy -o $OUT/tv.npy && $B depth $OUT/tv.npy -o $OUT/tvd.npy"
@@ -101,7 +102,7 @@ out = sys.argv[1]
 speed = {r["path"].split(" (")[0]: r for r in csv.DictReader(open(f"{out}/speed.csv"))}
 acc = list(csv.DictReader(open(f"{out}/accuracy.csv")))
 label = lambda d: d.replace("unet:zoo:", "unet + range fit: ").replace("unet-raw:zoo:", "unet-raw: ").replace("lifetime:zoo:", "lifetime network: ")
-key = {"depth-fit:1": "depth-fit:1", "depth-fit": "depth-fit", "unet:zoo:unet-lidar-designed": "unet + range fit", "unet-raw:zoo:unet-lidar-designed": "unet-raw", "lifetime-fit": "lifetime-fit", "lifetime:zoo:lifetime-flim-designed": "lifetime network"}
+key = {"depth-fit:1": "depth-fit:1", "depth-fit": "depth-fit", "depth-fit-pooled": "depth-fit-pooled", "unet:zoo:unet-lidar-designed": "unet + range fit", "unet-raw:zoo:unet-lidar-designed": "unet-raw", "lifetime-fit": "lifetime-fit", "lifetime:zoo:lifetime-flim-designed": "lifetime network"}
 f = lambda v, s=1, d=3: f"{float(v)*s:.{d}f}" if v not in ("", "NaN", "nan") else "–"
 for kind, sets in (("lidar", ["standard", "far", "near", "textures", "dense-sheet", "motorcycle"]), ("flim", ["standard", "onset-0ns", "onset-30ns", "irf-1.5ns", "long-lifetimes", "background"])):
     decs = []
