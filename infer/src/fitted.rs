@@ -73,7 +73,11 @@ impl DepthFitDecoder {
 
 impl Decoder for DepthFitDecoder {
     fn name(&self) -> &str {
-        "depth-fit"
+        if self.options.pool_like > 0 {
+            crate::registry::names::DEPTH_FIT_POOLED
+        } else {
+            crate::registry::names::DEPTH_FIT
+        }
     }
 
     fn decode(&mut self, y: ArrayView4<'_, f32>, sensor: &tcsense_sensor::Sensor, ctl: &Control<'_>) -> Result<Decoded> {

@@ -159,7 +159,7 @@ impl Registry {
                 Entry {
                     name: DEPTH_FIT_POOLED,
                     usage: "depth-fit-pooled[:N]",
-                    summary: "the range fit over 3x3 windows, each pooled with the neighbouring 3x3 windows that tile NxN pixels (N = 9, 15, 21…, default 15), weighted by how much their posteriors overlap: the fit in bright light, a wider window on one surface in dim light; two returns; no network",
+                    summary: "the range fit over 3x3 windows, each pooled with the neighbouring 3x3 windows that tile NxN pixels (N = 9, 15, 21…, default 15), weighted by how much their posteriors overlap: the fit in bright light, a wider window on one surface in dim light; two returns (reconstruct --returns 1 for one); no network",
                     arg: ArgUse::Optional,
                     cubes: false,
                     open: open_depth_fit_pooled,
@@ -449,7 +449,8 @@ mod tests {
         assert_eq!(r.open("lifetime-fit-pooled", &s, &d).unwrap().label, "lifetime-fit-pooled");
         assert_eq!(r.open("lifetime-fit-pooled:9", &s, &d).unwrap().label, "lifetime-fit-pooled:9");
         assert_eq!(r.open("depth-fit-pooled", &s, &d).unwrap().label, "depth-fit-pooled");
-        assert_eq!(r.open("depth-fit-pooled:21", &s, &d).unwrap().decoder.name(), names::DEPTH_FIT);
+        assert_eq!(r.open("depth-fit-pooled:21", &s, &d).unwrap().decoder.name(), names::DEPTH_FIT_POOLED);
+        assert_eq!(r.open("depth-fit:1", &s, &d).unwrap().decoder.name(), names::DEPTH_FIT);
         for bad in [
             "tval3:x",
             "unet",

@@ -208,7 +208,7 @@ impl ReconstructArgs {
         if entry == names::LIFETIME_FIT || entry == names::LIFETIME_FIT_POOLED {
             s.tap_fit = self.fit.options()?;
         }
-        if entry == names::DEPTH_FIT {
+        if entry == names::DEPTH_FIT || entry == names::DEPTH_FIT_POOLED {
             s.depth_fit.fit.window = self.fit.window;
             if let Some(r) = self.returns {
                 s.depth_fit.returns = r;
@@ -225,9 +225,9 @@ pub fn decoder_listing() -> String {
 
 pub fn reconstruct(a: ReconstructArgs) -> Result<ExitCode> {
     let name = a.name()?;
-    let depth_fit = entry_name(&name) == names::DEPTH_FIT;
+    let depth_fit = [names::DEPTH_FIT, names::DEPTH_FIT_POOLED].contains(&entry_name(&name));
     if a.returns.is_some() && !depth_fit {
-        bail!("--returns: {name:?} is not depth-fit (its returns are fixed by its training)");
+        bail!("--returns: {name:?} is not depth-fit or depth-fit-pooled (its returns are fixed by its training)");
     }
     let opened = Registry::builtin().open(&name, &a.settings(&name)?, &a.device.device()?)?;
     let sensor = match (opened.sensor, &a.codes) {

@@ -92,7 +92,7 @@ pub(super) fn engine(spec: &str) -> &'static str {
         "ONNX Runtime"
     } else if spec == names::TVAL3 {
         "Rust (TVAL3)"
-    } else if spec == names::LIFETIME_FIT || spec == names::LIFETIME_FIT_POOLED || spec == names::DEPTH_FIT {
+    } else if [names::LIFETIME_FIT, names::LIFETIME_FIT_POOLED, names::DEPTH_FIT, names::DEPTH_FIT_POOLED].contains(&spec) {
         "Rust (fit to the taps)"
     } else {
         "burn (flex)"
