@@ -469,17 +469,7 @@ impl RangeTemplates {
     /// - `costs`: of `[H·W·C]` → `[H·W]`
     pub fn pooled_modes(&self, costs: &RangeCosts, side: usize) -> Vec<f32> {
         let c = self.tpl.candidates();
-        let volume = CostVolume {
-            pixel: &costs.pixel,
-            window: &costs.window,
-            lit: &costs.lit,
-            points: c,
-            height: costs.height,
-            width: costs.width,
-            side: self.opts.fit.window,
-            free_per_pixel: costs.m.saturating_sub(2),
-            shared: 1,
-        };
+        let volume = self.volume(costs);
         let nats = 1.0 / (2.0 * crate::evidence::noise_level(&volume));
         let pooled = crate::evidence::similarity_pool(&volume, nats, side);
         pooled
@@ -494,6 +484,22 @@ impl RangeTemplates {
                 (b as f64 + crate::engine::parabola_min(at(b + c - 1), at(b), at(b + 1))) as f32
             })
             .collect()
+    }
+
+    /// A frame's costs as the fit's [`CostVolume`]: each pixel's amplitude and ambient are its
+    /// own (`M − 2` numbers a pixel about the range), the window shares the range.
+    fn volume<'a>(&self, costs: &'a RangeCosts) -> CostVolume<'a> {
+        CostVolume {
+            pixel: &costs.pixel,
+            window: &costs.window,
+            lit: &costs.lit,
+            points: self.tpl.candidates(),
+            height: costs.height,
+            width: costs.width,
+            side: self.opts.fit.window,
+            free_per_pixel: costs.m.saturating_sub(2),
+            shared: 1,
+        }
     }
 
     /// Candidates `C` around the cycle (`T` bins × the candidates per bin).
@@ -586,18 +592,7 @@ impl RangeTemplates {
             })
             .collect();
         let wider: Vec<&[f32]> = wider.iter().map(|v| v.as_slice()).collect();
-        let volume = CostVolume {
-            pixel: &costs.pixel,
-            window: &costs.window,
-            lit: &costs.lit,
-            points: self.tpl.candidates(),
-            height: costs.height,
-            width: costs.width,
-            side: self.opts.fit.window,
-            free_per_pixel: costs.m.saturating_sub(2),
-            shared: 1,
-        };
-        crate::evidence::evidence_into(&volume, intensity, pool, &wider, buffers)
+        crate::evidence::evidence_into(&self.volume(costs), intensity, pool, &wider, buffers)
     }
 
     /// Steps 2 to 4 of the fit from a frame's costs: the first estimate of every pixel (the

@@ -231,6 +231,11 @@ pub(super) type FrameJob<'a> = (&'a str, &'a Dataset, &'a Codes, Vec<(&'a str, S
 pub(super) const SELECTED_ADMM: &str = "ADMM-Net + peaks";
 pub(super) const LEARNED_ADMM: &str = "ADMM-Net + peaks, learned codes";
 pub(super) const LEARNED_FIT: &str = "range fit to the taps, 2 returns, learned codes";
+/// The photon ladder's rows of the range fit to the taps with one and two returns.
+pub(super) const FIT_ONE: &str = "range fit to the taps, 1 return";
+pub(super) const FIT_TWO: &str = "range fit to the taps, 2 returns";
+/// The photon ladder's row of the Aᵀ + U-Net on the selected codes.
+pub(super) const UNET_FIT: &str = "Aᵀ + U-Net + range fit";
 /// The photon ladder's row of the range fit pooled by likeness (`depth-fit-pooled`).
 pub(super) const POOLED_FIT: &str = "range fit pooled by likeness, 2 returns";
 /// The photon ladder's row of the zoo's U-Net on the fit's evidence.
@@ -293,11 +298,11 @@ pub(super) fn photon_curves(
     if !lidar_json.exists() {
         let a = sensor(selected, lidar)?;
         let decoders = [
-            ("range fit to the taps, 1 return", format!("{}:1", names::DEPTH_FIT)),
-            ("range fit to the taps, 2 returns", names::DEPTH_FIT.to_string()),
+            (FIT_ONE, format!("{}:1", names::DEPTH_FIT)),
+            (FIT_TWO, names::DEPTH_FIT.to_string()),
             (POOLED_FIT, names::DEPTH_FIT_POOLED.to_string()),
             (SELECTED_ADMM, run_of(names::ADMM_NET, "admm-lidar")),
-            ("Aᵀ + U-Net + range fit", run_of(names::UNET, "unet-lidar")),
+            (UNET_FIT, run_of(names::UNET, "unet-lidar")),
         ];
         let mut rows = ladder(lidar, &a, &decoders, lidar_items)?;
         let on_learned = sensor(learned, lidar)?;
@@ -400,11 +405,11 @@ pub(super) fn speed_against_accuracy(
     let mut speeds = timed(
         &sensor(selected, lidar)?,
         &[
-            ("range fit to the taps, 1 return", format!("{}:1", names::DEPTH_FIT)),
-            ("range fit to the taps, 2 returns", names::DEPTH_FIT.to_string()),
+            (FIT_ONE, format!("{}:1", names::DEPTH_FIT)),
+            (FIT_TWO, names::DEPTH_FIT.to_string()),
             (POOLED_FIT, names::DEPTH_FIT_POOLED.to_string()),
             (SELECTED_ADMM, onnx("admm-lidar")),
-            ("Aᵀ + U-Net + range fit", onnx("unet-lidar")),
+            (UNET_FIT, onnx("unet-lidar")),
         ],
     )?;
     if let Some((zoo_dir, _)) = zoo_entry_named(ZOO_EVIDENCE_UNET, lidar) {
@@ -422,9 +427,11 @@ pub(super) fn speed_against_accuracy(
             .and_then(|r| r["depth_median_m"][0].as_f64())
             .map_or(f64::NAN, |m| m / bin_m)
     };
+    let errors: Vec<Vec<f64>> = speeds.iter().map(|s| LADDER.iter().map(|&l| error_at(&s.decoder, l)).collect()).collect();
     let series: Vec<Series> = speeds
         .iter()
-        .map(|s| Series { label: s.decoder.clone(), points: LADDER.iter().map(|&l| (s.frames_per_s, error_at(&s.decoder, l))).collect() })
+        .zip(&errors)
+        .map(|(s, e)| Series { label: s.decoder.clone(), points: e.iter().map(|&e| (s.frames_per_s, e)).collect() })
         .collect();
     let (h, w) = size;
     let figures = dir.join("figures");
@@ -437,7 +444,6 @@ pub(super) fn speed_against_accuracy(
         &series,
         &LADDER.iter().map(|l| l.to_string()).collect::<Vec<_>>(),
     )?;
-    let errors: Vec<Value> = speeds.iter().map(|s| json!(LADDER.iter().map(|&l| error_at(&s.decoder, l)).collect::<Vec<_>>())).collect();
     write_json(
         &out,
         &json!({ "frame": [h, w], "frames": SPEED_FRAMES, "rounds": rounds, "signal_fraction": LADDER[0], "ladder": LADDER, "speeds": speeds, "error_bins": errors }),
