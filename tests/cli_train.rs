@@ -718,6 +718,67 @@ fn the_unet_on_the_range_fit_evidence_trains_decodes_and_streams_as_reconstruct(
     let out = ok(d, &args.iter().map(String::as_str).collect::<Vec<_>>());
     assert!(out.contains("1 relaxed epochs"), "{out}");
     ok(d, &["codes", "check", "evl/codes.json"]);
+    // pooled by likeness: a fine-tune of the run may pool its window (the weights fit either);
+    // recorded, decoded, exported and streamed as the network on the window alone
+    let out = ok(
+        d,
+        &[
+            "train",
+            "unet",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--init-from",
+            "ev",
+            "--pool-like",
+            "9",
+            "--epochs",
+            "1",
+            "-o",
+            "evp",
+        ],
+    );
+    assert!(out.contains("its window pooled by likeness over 9×9"), "{out}");
+    let cfg: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("evp/config.json")).unwrap()).unwrap();
+    assert_eq!(cfg["model"]["pool_like"], serde_json::json!(9));
+    ok(d, &["reconstruct", "unet", "--run", "evp", "--measurements", "y.npy", "-o", "depth-p.npy"]);
+    let pooled = read_npy(&d.join("depth-p.npy")).unwrap();
+    assert!(pooled.iter().any(|v| v.is_finite()), "some returns pooled");
+    ok(d, &["export", "onnx", "--run", "evp", "-o", "evp.onnx"]);
+    ok(d, &["infer", "--model", "evp.onnx", "--measurements", "y.npy", "-o", "inf-p"]);
+    let streamed = read_npy(&d.join("inf-p/depth.npy")).unwrap();
+    for (a, b) in streamed.iter().zip(pooled.index_axis(ndarray::Axis(1), 0).iter()) {
+        assert!((a.is_nan() && b.is_nan()) || (a - b).abs() <= 1e-4 * b.abs().max(1.0), "infer {a} against reconstruct {b} (pooled)");
+    }
+    // refused: a side that tiles no 3×3 windows, pooling without the evidence, learned codes
+    for (extra, needle) in [
+        (&["--pool-like", "4", "--epochs", "1"][..], "pool_like"),
+        (&["--pool-like", "9", "--epochs", "2", "--relaxed-epochs", "1", "--learn-codes"][..], "learn_codes"),
+    ] {
+        let args = train(extra, "bad");
+        fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &[needle]);
+    }
+    fails(
+        d,
+        &[
+            "train",
+            "unet",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--input",
+            "matched",
+            "--pool-like",
+            "9",
+            "--epochs",
+            "1",
+            "-o",
+            "bad",
+        ],
+        &["pool_like", "costs"],
+    );
     assert!(!d.join("bad").exists() && !d.join("m.onnx").exists());
 }
 

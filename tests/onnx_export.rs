@@ -320,10 +320,17 @@ fn lifetime_decoder_on_the_fit_evidence_equals_burn(temper: bool) {
 }
 
 /// The U-Net on the range fit's evidence (a randomised head, so its log-prior and temperature
-/// are not the fit's): ONNX Runtime with the runtime's evidence and refinement gives burn's
-/// product — the same pixels with a return, ranges and confidences to 1e-4 of their scale.
+/// are not the fit's), its window alone and pooled by likeness over 9×9: ONNX Runtime with the
+/// runtime's evidence and refinement gives burn's product — the same pixels with a return,
+/// ranges and confidences to 1e-4 of their scale.
 #[test]
 fn unet_on_the_range_fit_evidence_in_onnx_runtime_equals_burn() {
+    for pool_like in [0, 9] {
+        unet_on_the_range_fit_evidence(pool_like);
+    }
+}
+
+fn unet_on_the_range_fit_evidence(pool_like: usize) {
     use burn::module::Module;
     let net = |m: usize, t: usize| {
         ModelConfig::Unet(
@@ -333,7 +340,8 @@ fn unet_on_the_range_fit_evidence_in_onnx_runtime_equals_burn() {
                 .with_head(tcsense_models::UnetHead::ScoreVolume)
                 .with_input(tcsense_models::UnetInput::Costs)
                 .with_oversample(2)
-                .with_pool(3),
+                .with_pool(3)
+                .with_pool_like(pool_like),
         )
     };
     let physical = Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 };
@@ -342,6 +350,10 @@ fn unet_on_the_range_fit_evidence_in_onnx_runtime_equals_burn() {
         run.net = TrainedNet::Unet(n.map(&mut Jitter(41)));
     }
     let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("meta.onnx");
+    std::fs::write(&path, export(&run, ExportOptions::default()).unwrap()).unwrap();
+    let noted = OnnxModel::open(&path, 1).unwrap().meta.range_evidence.map(|e| e.pool_like);
+    assert_eq!(noted, Some(pool_like), "the metadata records the pooling");
     for (h, w) in [(8, 8), (12, 16)] {
         let y = random_y(4, h, w, 13);
         let want = burn_outputs(&run, &y);

@@ -469,9 +469,7 @@ impl RangeTemplates {
     /// - `costs`: of `[H·W·C]` → `[H·W]`
     pub fn pooled_modes(&self, costs: &RangeCosts, side: usize) -> Vec<f32> {
         let c = self.tpl.candidates();
-        let volume = self.volume(costs);
-        let nats = 1.0 / (2.0 * crate::evidence::noise_level(&volume));
-        let pooled = crate::evidence::similarity_pool(&volume, nats, side);
+        let (pooled, _) = self.pooled_costs(costs, side);
         pooled
             .par_chunks(c)
             .zip(costs.lit.par_iter())
@@ -484,6 +482,18 @@ impl RangeTemplates {
                 (b as f64 + crate::engine::parabola_min(at(b + c - 1), at(b), at(b + 1))) as f32
             })
             .collect()
+    }
+
+    /// Every pixel's window cost pooled by likeness with the neighbouring windows that tile
+    /// `side` ([`crate::evidence::similarity_pool`], in the frame's nats), and the frame's noise
+    /// level (its window's, [`crate::evidence::noise_level`]).
+    ///
+    /// # Shapes
+    /// - `costs`: of `[H·W·C]` → `[H·W·C]`
+    fn pooled_costs(&self, costs: &RangeCosts, side: usize) -> (Vec<f32>, f32) {
+        let volume = self.volume(costs);
+        let noise = crate::evidence::noise_level(&volume);
+        (crate::evidence::similarity_pool(&volume, 1.0 / (2.0 * noise), side), noise)
     }
 
     /// A frame's costs as the fit's [`CostVolume`]: each pixel's amplitude and ambient are its
@@ -563,7 +573,9 @@ impl RangeTemplates {
     /// The fit's evidence of one frame ([`crate::evidence`]): each pixel's amplitude and
     /// ambient are its own, the window shares the range. After the fit's window's
     /// log-likelihood and each pixel's posterior over the candidates, those of its
-    /// [`CONTEXT_WINDOWS`] (the costs summed over wider windows).
+    /// [`CONTEXT_WINDOWS`] (the costs summed over wider windows). Pooled by likeness
+    /// ([`DepthFitOptions::pool_like`]), the window's log-likelihood is its cost pooled with
+    /// its neighbours' ([`RangeTemplates::pooled_modes`]'), in the window's nats.
     ///
     /// # Shapes
     /// - `costs`: of `[H·W·C]`, `intensity`: `[H, W]` → [`Evidence`] of skip `[H, W, SCALES·C]`,
@@ -592,6 +604,12 @@ impl RangeTemplates {
             })
             .collect();
         let wider: Vec<&[f32]> = wider.iter().map(|v| v.as_slice()).collect();
+        if self.opts.pool_like > self.opts.fit.window {
+            // the window's log-likelihood pooled by likeness, in the window's nats
+            let (pooled, noise) = self.pooled_costs(costs, self.opts.pool_like);
+            let volume = CostVolume { window: &pooled, ..self.volume(costs) };
+            return crate::evidence::evidence_at_noise(&volume, noise, intensity, pool, &wider, buffers);
+        }
         crate::evidence::evidence_into(&self.volume(costs), intensity, pool, &wider, buffers)
     }
 
@@ -918,6 +936,42 @@ mod tests {
         for bad in [3, 4, 11, 18, 1001] {
             assert!(DepthFitOptions { pool_like: bad, ..Default::default() }.validate().is_err(), "{bad}");
         }
+    }
+
+    /// Pooled by likeness, the evidence's window log-likelihood is the pooled cost's (0 at its
+    /// best candidate, which is `pooled_modes`' seed, in the window's nats); the pixel's
+    /// posteriors, the wider windows and the noise level are the window's own evidence's.
+    #[test]
+    fn pooled_evidence_is_the_pooled_cost_in_the_window_nats() {
+        let a = sensor();
+        let (h, w) = (16, 20);
+        let clean = taps(&a, h, w, &|_, j| vec![(if j < 10 { 7.2 } else { 18.6 }, 1.0)], 0.02);
+        let y = crate::testing::noise(&clean, 3.0, 7, false);
+        let intensity = y.sum_axis(Axis(0));
+        let opts = |pool_like| DepthFitOptions { returns: 1, pool_like, ..DepthFitOptions::for_evidence(4, 1) };
+        let (plain, pooled) = (RangeTemplates::new(&a, &opts(0)), RangeTemplates::new(&a, &opts(15)));
+        let costs = plain.costs(&y.view()).expect("a frame");
+        let (e0, e1) = (plain.evidence(&costs, &intensity, 4), pooled.evidence(&costs, &intensity, 4));
+        let c = plain.candidates();
+        assert_eq!(e0.noise, e1.noise);
+        assert_eq!(e0.features, e1.features, "the posteriors are the pixel's and the wider windows'");
+        assert_eq!(e0.skip.slice(ndarray::s![.., .., c..]), e1.skip.slice(ndarray::s![.., .., c..]));
+        let (cost, _) = pooled.pooled_costs(&costs, 15);
+        let seeds = pooled.pooled_modes(&costs, 15);
+        let nats = 1.0 / (2.0 * e1.noise);
+        let mut differ = 0;
+        for p in 0..h * w {
+            let own = &cost[p * c..(p + 1) * c];
+            let least = own.iter().fold(f32::INFINITY, |a, &b| a.min(b));
+            for k in 0..c {
+                let want = -(own[k] - least) * nats;
+                assert!((e1.skip[(p / w, p % w, k)] - want).abs() <= 1e-4 * want.abs().max(1.0), "pixel {p}, candidate {k}");
+            }
+            let best = (0..c).max_by(|&i, &j| e1.skip[(p / w, p % w, i)].total_cmp(&e1.skip[(p / w, p % w, j)])).unwrap();
+            assert!((seeds[p] - best as f32).abs() <= 0.5, "pixel {p}: seed {} against {best}", seeds[p]);
+            differ += (0..c).any(|k| e1.skip[(p / w, p % w, k)] != e0.skip[(p / w, p % w, k)]) as usize;
+        }
+        assert!(differ > h * w / 2, "in dim light pooling changes most windows ({differ})");
     }
 
     /// A sheet in front of a wall in half the frame: two returns there (both placed), one on

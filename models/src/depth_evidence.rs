@@ -65,7 +65,12 @@ impl Unet {
     /// The settings of the range fit whose evidence the network reads: every lit pixel (no
     /// intensity floor: the network's confidence decides), the network's returns.
     pub fn fit_options(&self) -> DepthFitOptions {
-        DepthFitOptions::for_evidence(self.oversample, self.returns())
+        DepthFitOptions { pool_like: self.pool_like, ..DepthFitOptions::for_evidence(self.oversample, self.returns()) }
+    }
+
+    /// The side of the neighbourhood the fit's window is pooled over by likeness (0: none).
+    pub fn pool_like(&self) -> usize {
+        self.pool_like
     }
 
     /// Candidates `C` of the evidence and candidates pooled per feature channel (0, · for a
@@ -361,6 +366,85 @@ mod tests {
         assert_eq!(train.dims(), [1, 4 + cfg.candidates(), h, w]);
         let total: Vec<f32> = train.narrow(1, 4, cfg.candidates()).exp().sum_dim(1).into_data().try_into_vec().unwrap();
         assert!(total.iter().all(|v| (v - 1.0).abs() < 1e-4), "a posterior sums to 1");
+    }
+
+    /// Pooled by likeness (`pool_like`), the untrained network is `depth-fit-pooled`: on a
+    /// dim frame of two walls its first returns are that fit's, nearer the truth than the
+    /// network on the window alone; the setting is checked.
+    #[test]
+    fn pooled_by_likeness_the_untrained_network_is_the_pooled_fit() {
+        let device = Device::flex();
+        let a = sensor();
+        let (h, w, t) = (16, 24, a.bins());
+        let range = tcsense_sensor::C * a.bin_width_s() / 2.0 * t as f64;
+        let dz = range / t as f64;
+        let tau = |j: usize| -> f64 {
+            if j < w / 2 {
+                9.3
+            } else {
+                21.7
+            }
+        };
+        let mut x = vec![0.05f32; t * h * w];
+        for i in 0..h {
+            for j in 0..w {
+                let p = tau(j) - 0.5;
+                let t0 = p.floor() as usize;
+                x[t0 * h * w + i * w + j] += (1.0 - (p - p.floor())) as f32;
+                x[(t0 + 1) * h * w + i * w + j] += (p - p.floor()) as f32;
+            }
+        }
+        let st = SensorTensors::new(&a, h, w, &device).unwrap();
+        let clean: Vec<f32> =
+            st.forward(Tensor::<4>::from_data(TensorData::new(x, [1, t, h, w]), &device)).into_data().try_into_vec().unwrap();
+        // about four photons a pixel: shot noise from a splitmix64 stream (twelve uniforms)
+        let per_pixel: f32 = clean.iter().sum::<f32>() / (h * w) as f32;
+        let scale = 4.0 / per_pixel;
+        let mut state = 11u64;
+        let mut uniform = move || {
+            state = state.wrapping_add(0x9E3779B97F4A7C15);
+            let mut z = state;
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58476D1CE4E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D049BB133111EB);
+            ((z ^ (z >> 31)) >> 11) as f32 / (1u64 << 53) as f32
+        };
+        let y: Vec<f32> = clean
+            .iter()
+            .map(|&v| {
+                let e = v * scale;
+                let n: f32 = (0..12).map(|_| uniform()).sum::<f32>() - 6.0;
+                (e + e.sqrt() * n).max(0.0)
+            })
+            .collect();
+        let ya = Array4::from_shape_vec((1, 4, h, w), y).unwrap();
+        let cfg =
+            UnetConfig::new(4, t, range).with_base_width(4).with_levels(2).with_head(UnetHead::ScoreVolume).with_input(UnetInput::Costs);
+        for bad in [3, 4, 11, 65] {
+            assert!(cfg.clone().with_pool_like(bad).validate().is_err(), "{bad}");
+        }
+        assert!(cfg.clone().with_input(UnetInput::Matched).with_pool_like(15).validate().is_err());
+        let (plain, pooled) = (cfg.init(&device), cfg.clone().with_pool_like(15).init(&device));
+        assert_eq!((plain.pool_like(), pooled.pool_like()), (0, 15));
+        let fit = fit_ranges(&ya.index_axis(Axis(0), 0), &a, &pooled.fit_options());
+        let first = |net: &crate::Unet| net.decode_frames(&ya.view(), &st).expect("the evidence's product");
+        let (p0, p1) = (first(&plain), first(&pooled));
+        let (mut same, mut e0, mut e1) = (0, Vec::new(), Vec::new());
+        for i in 0..h {
+            for j in 0..w {
+                let (u, v, f) = (p0[(0, 0, i, j)] as f64 / dz, p1[(0, 0, i, j)] as f64 / dz, fit[(0, i, j)] as f64 / dz);
+                same += ((v - f).abs() < 0.05) as usize;
+                let err = |r: f64| if r.is_finite() { (r - tau(j)).abs() } else { f64::INFINITY };
+                e0.push(err(u));
+                e1.push(err(v));
+            }
+        }
+        assert!(same * 10 >= 9 * h * w, "the pooled network's first return is the pooled fit's on {same} of {} pixels", h * w);
+        let median = |mut e: Vec<f64>| {
+            e.sort_by(f64::total_cmp);
+            e[e.len() / 2]
+        };
+        let (m0, m1) = (median(e0), median(e1));
+        assert!(m1 < 0.8 * m0, "dim light: pooled {m1} bins against the window's {m0}");
     }
 
     #[test]

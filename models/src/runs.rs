@@ -177,7 +177,11 @@ impl ModelConfig {
                     return bad("model.range_m", c.range_m.to_string(), "a positive range in metres");
                 }
                 if let Err(e) = c.validate() {
-                    return bad("model", e, "1–16 candidates per bin, a pool of 1 to the candidates, the score-volume head");
+                    return bad(
+                        "model",
+                        e,
+                        "1–16 candidates per bin, a pool of 1 to the candidates, the score-volume head, pool_like 0 or an odd multiple of 3 up to 63 on the fit's evidence",
+                    );
                 }
             }
             ModelConfig::Lifetime(c) => {
@@ -283,6 +287,8 @@ pub fn upgrade_config(mut v: serde_json::Value) -> serde_json::Value {
                 // runs written before the range fit's evidence (which they do not read)
                 model.entry("oversample").or_insert(serde_json::Value::from(4));
                 model.entry("pool").or_insert(serde_json::Value::from(4));
+                // and before the evidence pooled by likeness
+                model.entry("pool_like").or_insert(serde_json::Value::from(0));
             }
         }
         if obj.get("decoder").and_then(|d| d.as_str()) == Some(network_names::LIFETIME) {

@@ -100,6 +100,11 @@ pub struct UnetConfig {
     /// Candidates pooled into one feature channel ([`UnetInput::Costs`]).
     #[config(default = 4)]
     pub pool: usize,
+    /// The fit's window's log-likelihood pooled by likeness with the neighbouring windows
+    /// that tile this side before the learned prior is added, as `depth-fit-pooled` does
+    /// ([`UnetInput::Costs`]; 0: the window alone, as in runs written before it).
+    #[config(default = 0)]
+    pub pool_like: usize,
 }
 
 /// What the U-Net reads from the taps (see the module documentation).
@@ -157,6 +162,8 @@ pub struct Unet {
     pub(crate) oversample: usize,
     /// Candidates pooled into one feature channel.
     pub(crate) pool: usize,
+    /// The side of the neighbourhood the fit's window is pooled over by likeness (0: none).
+    pub(crate) pool_like: usize,
 }
 
 impl UnetConfig {
@@ -197,6 +204,20 @@ impl UnetConfig {
                 return Err("head: the fit's evidence is read out as a posterior over the candidates, expected score-volume".into());
             }
         }
+        let window = tcsense_fits::range::RangeFitOptions::default().window;
+        if self.pool_like != 0 && !tcsense_fits::evidence::pooled_side(self.pool_like, window) {
+            return Err(format!(
+                "pool_like: {}, expected 0 (the window alone) or an odd multiple of the fit's window {window} above it, up to {} (e.g. 9, 15)",
+                self.pool_like,
+                tcsense_fits::range::MAX_WINDOW
+            ));
+        }
+        if self.pool_like != 0 && self.input != UnetInput::Costs {
+            return Err(format!(
+                "pool_like: {} with the {:?} input, expected the fit's evidence (input costs)",
+                self.pool_like, self.input
+            ));
+        }
         Ok(())
     }
 
@@ -232,6 +253,7 @@ impl UnetConfig {
             candidates: if costs { self.candidates() } else { 0 },
             oversample: self.oversample,
             pool: self.pool,
+            pool_like: if costs { self.pool_like } else { 0 },
         }
     }
 

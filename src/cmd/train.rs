@@ -197,6 +197,12 @@ pub struct UnetArgs {
     /// fit either [default: backprojection].
     #[arg(long, value_enum)]
     input: Option<InputArg>,
+    /// With `--input costs`: pool the fit's 3×3 window's log-likelihood with the neighbouring
+    /// windows of like range that tile this side (9, 15, 21…) before the learned prior is
+    /// added, as `depth-fit-pooled` does: the untrained network is that fit. With --init-from
+    /// it may change: the weights fit either [default: none].
+    #[arg(long, value_parser = super::count_in(1, 63))]
+    pool_like: Option<usize>,
 }
 
 #[derive(Args)]
@@ -462,8 +468,8 @@ impl TrainArgs {
             }
             NetArgs::Unet(n) => {
                 req.decoder = "unet".into();
-                (req.head, req.returns, req.base_width, req.levels, req.input) =
-                    (n.head.and_then(name_of), n.returns, n.base_width, n.levels, n.input.and_then(name_of));
+                (req.head, req.returns, req.base_width, req.levels, req.input, req.pool_like) =
+                    (n.head.and_then(name_of), n.returns, n.base_width, n.levels, n.input.and_then(name_of), n.pool_like);
             }
             NetArgs::Lifetime(n) => {
                 req.decoder = "lifetime".into();

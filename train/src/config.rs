@@ -237,7 +237,12 @@ impl TrainConfig {
                 match m.input {
                     tcsense_models::UnetInput::Matched => "matched filters".to_string(),
                     tcsense_models::UnetInput::Costs =>
-                        format!("the range fit's evidence on {} candidates (pooled by {})", m.candidates(), m.pool),
+                        format!("the range fit's evidence on {} candidates (pooled by {})", m.candidates(), m.pool)
+                            + &if m.pool_like == 0 {
+                                String::new()
+                            } else {
+                                format!(", its window pooled by likeness over {0}×{0}", m.pool_like)
+                            },
                     tcsense_models::UnetInput::Backprojection => "Aᵀ".to_string(),
                 },
                 m.returns,
@@ -446,6 +451,15 @@ impl TrainConfig {
                         "learn_codes",
                         format!("a lifetime network with wider windows {:?}", c.windows),
                         "the fit's own window only: the evidence's differentiable copy has no wider windows yet",
+                    );
+                }
+            }
+            if let ModelConfig::Unet(c) = &self.run.model {
+                if c.pool_like != 0 {
+                    return bad(
+                        "learn_codes",
+                        format!("a U-Net pooled by likeness over {0}×{0}", c.pool_like),
+                        "the fit's own window only: the evidence's differentiable copy does not pool by likeness yet",
                     );
                 }
             }

@@ -62,8 +62,8 @@ pub struct TrainRequest {
     pub points: Option<usize>,
     /// Lifetime decoder on the fit's evidence: sides of the wider windows (`[5, 9, 15]`).
     pub windows: Option<Vec<usize>>,
-    /// Lifetime decoder on the fit's evidence: the side of the neighbourhood its window's
-    /// log-likelihood is pooled over by likeness.
+    /// A decoder on the fit's evidence (U-Net, lifetime): the side of the neighbourhood its
+    /// window's log-likelihood is pooled over by likeness.
     pub pool_like: Option<usize>,
     /// Lifetime decoder on the fit's evidence: the side (in blocks) of the superpixels of each
     /// frame's instrument (0: from its photons).

@@ -45,8 +45,8 @@ pub struct Architecture {
     pub points: Option<usize>,
     /// Lifetime decoder on the fit's evidence: sides of the wider windows.
     pub windows: Option<Vec<usize>>,
-    /// Lifetime decoder on the fit's evidence: the side of the neighbourhood pooled by
-    /// likeness.
+    /// A decoder on the fit's evidence (U-Net, lifetime): the side of the neighbourhood its
+    /// window is pooled over by likeness.
     pub pool_like: Option<usize>,
     /// Lifetime decoder on the fit's evidence: the side of the instrument's superpixels.
     pub instrument_blocks: Option<usize>,
@@ -85,7 +85,7 @@ impl Architecture {
         put("harmonics", self.harmonics.map(|v| s(&v)), l.map(|c| s(&c.harmonics)));
         put("points", self.points.map(|v| s(&v)), l.map(|c| s(&c.points)));
         put("windows", self.windows.as_ref().map(|v| s(v)), l.map(|c| s(&c.windows)));
-        put("pool_like", self.pool_like.map(|v| s(&v)), l.map(|c| s(&c.pool_like)));
+        put("pool_like", self.pool_like.map(|v| s(&v)), l.map(|c| s(&c.pool_like)).or(u.map(|c| s(&c.pool_like))));
         put("instrument_blocks", self.instrument_blocks.map(|v| s(&v)), l.map(|c| s(&c.instrument_blocks)));
         put("temper", self.temper.map(|v| s(&v)), l.map(|c| s(&c.temper)));
         put("refine_near_mode", self.refine_near_mode.map(|v| s(&v)), l.map(|c| s(&c.refine_near_mode)));
@@ -115,6 +115,7 @@ impl Architecture {
                 c.levels = self.levels.unwrap_or(c.levels);
                 c.head = self.head.unwrap_or(c.head);
                 c.input = self.input.unwrap_or(c.input);
+                c.pool_like = self.pool_like.unwrap_or(c.pool_like);
             }
             ModelConfig::Lifetime(c) => {
                 c.harmonics = self.harmonics.unwrap_or(c.harmonics);
@@ -167,13 +168,20 @@ impl Architecture {
     }
 
     /// The source run's network for `--init-from` (in `model`), checked against the given
-    /// settings, with the U-Net's input set where one is given: the weights fit either input,
-    /// so a fine-tune may change what the network reads.
+    /// settings, with the U-Net's input and the pooling by likeness of a network on the fit's
+    /// evidence set where they are given: the weights fit either, so a fine-tune may change
+    /// what the network reads.
     pub fn with_input(&self, model: &mut ModelConfig, run: &Path) -> Result<()> {
-        Architecture { input: None, ..self.clone() }.check(model, run)?;
-        match (model, self.input) {
+        Architecture { input: None, pool_like: None, ..self.clone() }.check(model, run)?;
+        match (&mut *model, self.input) {
             (ModelConfig::Unet(c), Some(i)) => c.input = i,
             (m, Some(_)) => return Err(file_err(&run.join(CONFIG_FILE), format!("a {} run has no --input; leave it out", m.name()))),
+            (_, None) => {}
+        }
+        match (model, self.pool_like) {
+            (ModelConfig::Unet(c), Some(p)) => c.pool_like = p,
+            (ModelConfig::Lifetime(c), Some(p)) => c.pool_like = p,
+            (m, Some(_)) => return Err(file_err(&run.join(CONFIG_FILE), format!("a {} run has no --pool-like; leave it out", m.name()))),
             (_, None) => {}
         }
         Ok(())

@@ -68,13 +68,20 @@ pub struct RangeEvidenceNote {
     pub oversample: usize,
     /// Candidates pooled per feature channel.
     pub pool: usize,
+    /// The side of the neighbourhood the fit's window is pooled over by likeness before the
+    /// graph (0: none, as in models exported before it).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub pool_like: usize,
 }
 
 impl RangeEvidenceNote {
     /// The settings of the range fit whose evidence the model reads, for `returns` per pixel
     /// (as the network computes them: [`tcsense_models::Unet::fit_options`]).
     pub fn fit_options(&self, returns: usize) -> tcsense_fits::depth::DepthFitOptions {
-        tcsense_fits::depth::DepthFitOptions::for_evidence(self.oversample, returns)
+        tcsense_fits::depth::DepthFitOptions {
+            pool_like: self.pool_like,
+            ..tcsense_fits::depth::DepthFitOptions::for_evidence(self.oversample, returns)
+        }
     }
 }
 
@@ -218,7 +225,7 @@ impl OnnxMeta {
             },
             range_evidence: match &run.spec.model {
                 ModelConfig::Unet(c) if c.input == tcsense_models::UnetInput::Costs => {
-                    Some(RangeEvidenceNote { oversample: c.oversample, pool: c.pool })
+                    Some(RangeEvidenceNote { oversample: c.oversample, pool: c.pool, pool_like: c.pool_like })
                 }
                 _ => None,
             },
