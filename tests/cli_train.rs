@@ -745,7 +745,8 @@ fn the_unet_on_the_range_fit_evidence_trains_decodes_and_streams_as_reconstruct(
     ok(d, &["reconstruct", "unet", "--run", "evp", "--measurements", "y.npy", "-o", "depth-p.npy"]);
     let pooled = read_npy(&d.join("depth-p.npy")).unwrap();
     assert!(pooled.iter().any(|v| v.is_finite()), "some returns pooled");
-    ok(d, &["export", "onnx", "--run", "evp", "-o", "evp.onnx"]);
+    let out = ok(d, &["export", "onnx", "--run", "evp", "-o", "evp.onnx"]);
+    assert!(out.contains("pooled by likeness over 9×9"), "{out}");
     ok(d, &["infer", "--model", "evp.onnx", "--measurements", "y.npy", "-o", "inf-p"]);
     let streamed = read_npy(&d.join("inf-p/depth.npy")).unwrap();
     for (a, b) in streamed.iter().zip(pooled.index_axis(ndarray::Axis(1), 0).iter()) {

@@ -69,8 +69,9 @@ pub fn export(cmd: ExportCmd) -> Result<ExitCode> {
             if let Some(e) = &meta.range_evidence {
                 let c = meta.bins * e.oversample;
                 println!(
-                    "  the graph reads the range fit's evidence on {c} candidate ranges over {:.3} m, which `tcsense infer` (and eval onnx:) computes from the measurements and refines in the tap domain (with the fit's second return); its own inputs: evidence [B, H, W, {}], log_likelihood [B, H, W, {}] (the log-likelihoods of {} windows)",
+                    "  the graph reads the range fit's evidence on {c} candidate ranges over {:.3} m{}, which `tcsense infer` (and eval onnx:) computes from the measurements and refines in the tap domain (with the fit's second return); its own inputs: evidence [B, H, W, {}], log_likelihood [B, H, W, {}] (the log-likelihoods of {} windows)",
                     meta.range_m,
+                    if e.pool_like == 0 { String::new() } else { format!(", its 3×3 window pooled by likeness over {0}×{0}", e.pool_like) },
                     tcsense_fits::depth::range_feature_channels(c, e.pool),
                     tcsense_fits::depth::SCALES * c,
                     tcsense_fits::depth::SCALES,
