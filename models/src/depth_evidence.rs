@@ -19,6 +19,11 @@
 //! second return: the fit's, beside that first one
 //! ```
 //!
+//! With `pool_like` N (`train unet --pool-like N`), `L_0` is the fit's 3×3 window's cost pooled
+//! by likeness with the neighbouring 3×3 windows that tile N×N pixels, in the window's nats (the
+//! cost `depth-fit-pooled` seeds from; [`tcsense_fits::depth::RangeTemplates::evidence`]): the
+//! untrained network is that fit, and in dim light the prior adds to a surface's pooled evidence.
+//!
 //! The weights are a window learned pixel by pixel: the fit's 3×3 window is right in bright
 //! light, a wider one in dim light (the fit itself with a 9×9 window takes the motorcycle's
 //! median error at 0.005 of the full well from 4.4 to 0.9 bins, and loses precision at 0.1),
