@@ -438,28 +438,25 @@ impl TrainConfig {
         }
         if let Some(lc) = &self.learn_codes {
             lc.validate(self.epochs)?;
+            // a network on the fit's evidence pooled by likeness (U-Net, lifetime)
+            let pooled = match &self.run.model {
+                ModelConfig::Lifetime(c) => ("a lifetime network", c.pool_like),
+                ModelConfig::Unet(c) => ("a U-Net", c.pool_like),
+                ModelConfig::AdmmNet(_) => ("", 0),
+            };
+            if pooled.1 != 0 {
+                return bad(
+                    "learn_codes",
+                    format!("{} pooled by likeness over {1}×{1}", pooled.0, pooled.1),
+                    "the fit's own window only: the evidence's differentiable copy does not pool by likeness yet",
+                );
+            }
             if let ModelConfig::Lifetime(c) = &self.run.model {
-                if c.pool_like != 0 {
-                    return bad(
-                        "learn_codes",
-                        format!("a lifetime network pooled by likeness over {0}×{0}", c.pool_like),
-                        "the fit's own window only: the evidence's differentiable copy does not pool by likeness yet",
-                    );
-                }
                 if !c.windows.is_empty() {
                     return bad(
                         "learn_codes",
                         format!("a lifetime network with wider windows {:?}", c.windows),
                         "the fit's own window only: the evidence's differentiable copy has no wider windows yet",
-                    );
-                }
-            }
-            if let ModelConfig::Unet(c) = &self.run.model {
-                if c.pool_like != 0 {
-                    return bad(
-                        "learn_codes",
-                        format!("a U-Net pooled by likeness over {0}×{0}", c.pool_like),
-                        "the fit's own window only: the evidence's differentiable copy does not pool by likeness yet",
                     );
                 }
             }
