@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Copy a training run's files into the zoo entry zoo/NAME (config, codes, weights, metrics,
 # timing and the checkpoint; with learned codes also relaxed/ and start_codes.json, once the
-# relaxed phase is done), keeping the entry's PROVENANCE.md and recipe.json. Safe while the
+# relaxed phase is done), keeping the entry's PROVENANCE.md, recipe.json and first_steps.csv. Safe while the
 # run trains: the checkpoint is copied first and the metrics cut to its epoch.
 #
 #   scripts/zoo_snapshot.sh RUN NAME
@@ -22,7 +22,7 @@ if [ -d "$RUN/relaxed" ]; then
   cp -r "$RUN/relaxed" "$TMP/relaxed"
   cp "$RUN/start_codes.json" "$TMP/start_codes.json"
 fi
-for f in PROVENANCE.md recipe.json; do [ -f "$DEST/$f" ] && cp "$DEST/$f" "$TMP/$f"; done
+for f in PROVENANCE.md recipe.json first_steps.csv; do [ -f "$DEST/$f" ] && cp "$DEST/$f" "$TMP/$f"; done
 rm -rf "$DEST"
 mv "$TMP" "$DEST"
 echo "zoo/$NAME: epoch $EPOCH of $RUN"

@@ -138,6 +138,23 @@ fn bad_inputs_exit_2() {
         &["--pause-after 0", "at least one epoch"],
     );
     assert!(!d.join("runp").exists());
+    fails(
+        d,
+        &["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stop-after-steps", "0", "-o", "runp"],
+        &["--stop-after-steps 0", "at least one step"],
+    );
+    assert!(!d.join("runp").exists());
+    // a recipe's first steps: each one's loss printed, then stopped without a checkpoint; the
+    // same command starts over and prints the same losses
+    let first =
+        ["train", "admm-net", "--dataset", "ds", "--codes", "codes.json", "--stages", "1", "--seed", "4", "--stop-after-steps", "2"];
+    let steps = |out: &str| out.lines().filter(|l| l.starts_with("step ")).map(str::to_string).collect::<Vec<_>>();
+    let out = ok(d, &[&first[..], &["-o", "runs"]].concat());
+    assert_eq!(steps(&out).len(), 2, "{out}");
+    assert!(out.contains("stopped after 2 steps") && steps(&out)[1].contains("train loss"), "{out}");
+    assert!(!d.join("runs/checkpoint").exists(), "no checkpoint");
+    assert_eq!(steps(&ok(d, &[&first[..], &["-o", "runs"]].concat())), steps(&out), "the same losses again");
+    fails(d, &[&first[..], &["--pause-after", "1", "-o", "runs"]].concat(), &["--stop-after-steps", "--pause-after"]);
     fails(d, &["reconstruct", "admm-net", "--run", "nothing", "--measurements", "y.npy", "-o", "x.npy"], &["nothing", "config.json"]);
     fails(
         d,
@@ -752,6 +769,48 @@ fn the_unet_on_the_range_fit_evidence_trains_decodes_and_streams_as_reconstruct(
     for (a, b) in streamed.iter().zip(pooled.index_axis(ndarray::Axis(1), 0).iter()) {
         assert!((a.is_nan() && b.is_nan()) || (a - b).abs() <= 1e-4 * b.abs().max(1.0), "infer {a} against reconstruct {b} (pooled)");
     }
+    // a pixel's cross-entropy held at a cap: recorded, said, and continued by a fine-tune of
+    // the run that does not set it
+    let tune = |from: &str, extra: &[&str], out: &str| {
+        let mut a = vec!["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--init-from", from, "--epochs", "1"];
+        a.extend(extra);
+        a.extend(["-o", out]);
+        ok(d, &a)
+    };
+    let cap_of = |run: &str| -> serde_json::Value {
+        serde_json::from_str::<serde_json::Value>(&std::fs::read_to_string(d.join(run).join("config.json")).unwrap()).unwrap()
+            ["grid_nll_cap"]
+            .clone()
+    };
+    let out = tune("evp", &["--grid-nll-cap", "4"], "evc");
+    assert!(out.contains("each pixel's cross-entropy held at 4 nats"), "{out}");
+    assert_eq!(cap_of("evc"), serde_json::json!(4.0));
+    assert_eq!(cap_of("evp"), serde_json::Value::Null, "not written where not asked");
+    let out = tune("evc", &[], "evc2");
+    assert!(out.contains("held at 4 nats"), "{out}");
+    assert_eq!(cap_of("evc2"), serde_json::json!(4.0));
+    // refused: a cap out of its range; a cap for a network on another input
+    fails(d, &["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--grid-nll-cap", "0", "-o", "bad"], &["--grid-nll-cap"]);
+    fails(
+        d,
+        &[
+            "train",
+            "unet",
+            "--dataset",
+            "ds",
+            "--codes",
+            "codes.json",
+            "--input",
+            "matched",
+            "--grid-nll-cap",
+            "4",
+            "--epochs",
+            "1",
+            "-o",
+            "bad",
+        ],
+        &["grid_nll_cap", "score-volume"],
+    );
     // refused: a side that tiles no 3×3 windows, pooling without the evidence, learned codes
     for (extra, needle) in [
         (&["--pool-like", "4", "--epochs", "1"][..], "pool_like"),

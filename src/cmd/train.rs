@@ -203,6 +203,12 @@ pub struct UnetArgs {
     /// it may change: the weights fit either [default: none].
     #[arg(long, value_parser = super::count_in(1, 63))]
     pool_like: Option<usize>,
+    /// With `--input costs`: hold each pixel's cross-entropy in the loss at this many nats, so
+    /// that a pixel whose (pooled) likelihood is sharp and wrong costs no more and gives no
+    /// gradient, instead of bending the learned prior of every pixel (a fine-tune continues
+    /// its source's) [default: not held].
+    #[arg(long, value_name = "NATS", value_parser = super::number_in(0.1, 100.0))]
+    grid_nll_cap: Option<f64>,
 }
 
 #[derive(Args)]
@@ -291,6 +297,11 @@ pub struct TrainArgs {
     /// stays that of --epochs): long trainings go in slices, `--resume --pause-after N` each.
     #[arg(long, value_name = "N")]
     pause_after: Option<usize>,
+    /// Stop after N optimiser steps of this invocation, printing each step's training loss, and
+    /// keep no checkpoint: a quick check that a recipe runs and starts as it did (the zoo's
+    /// replay compares these losses with the entry's `first_steps.csv`).
+    #[arg(long, value_name = "N", conflicts_with_all = ["pause_after", "resume"])]
+    stop_after_steps: Option<usize>,
     /// Start from the weights of a trained run of the same network (fine-tuning on new codes,
     /// another IRF or a recalibrated sensor); `zoo:NAME` starts from a zoo entry. The network's
     /// architecture comes from that run (flags that contradict it are refused).
@@ -359,6 +370,10 @@ pub(crate) struct Bar {
     /// at the next step (the epoch's checkpoint is written), and the run resumes later.
     pub pause: Option<(usize, std::sync::Arc<std::sync::atomic::AtomicBool>)>,
     pub epochs_done: std::sync::atomic::AtomicUsize,
+    /// `--stop-after-steps N`: each step's loss is printed, and after N steps the flag is
+    /// raised and the loop stops before the next one.
+    pub stop_after_steps: Option<(usize, std::sync::Arc<std::sync::atomic::AtomicBool>)>,
+    pub steps_done: std::sync::atomic::AtomicUsize,
 }
 
 impl Bar {
@@ -369,7 +384,7 @@ impl Bar {
                 .unwrap_or_else(|_| ProgressStyle::default_bar())
                 .progress_chars("=> "),
         );
-        Bar { pb, pause: None, epochs_done: Default::default() }
+        Bar { pb, pause: None, epochs_done: Default::default(), stop_after_steps: None, steps_done: Default::default() }
     }
 }
 
@@ -381,6 +396,14 @@ impl Progress for Bar {
         }
         self.pb.set_position(i as u64);
         self.pb.set_message(format!("epoch {} loss {loss:.4e}", epoch + 1));
+        if let Some((n, flag)) = &self.stop_after_steps {
+            let done = self.steps_done.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1;
+            // the format of metrics.csv's train_loss
+            self.pb.suspend(|| println!("step {done:>4}  epoch {:>4}  step in epoch {i:>6}  train loss {loss:.6e}", epoch + 1));
+            if done >= *n {
+                flag.store(true, std::sync::atomic::Ordering::SeqCst);
+            }
+        }
     }
     fn epoch(&self, m: &EpochMetrics) {
         let val: String = m
@@ -470,6 +493,7 @@ impl TrainArgs {
                 req.decoder = "unet".into();
                 (req.head, req.returns, req.base_width, req.levels, req.input, req.pool_like) =
                     (n.head.and_then(name_of), n.returns, n.base_width, n.levels, n.input.and_then(name_of), n.pool_like);
+                req.grid_nll_cap = n.grid_nll_cap;
             }
             NetArgs::Lifetime(n) => {
                 req.decoder = "lifetime".into();
@@ -505,6 +529,9 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
     if a.pause_after == Some(0) {
         bail!("--pause-after 0: expected at least one epoch");
     }
+    if a.stop_after_steps == Some(0) {
+        bail!("--stop-after-steps 0: expected at least one step");
+    }
     let cancel = interrupt_flag();
     let pb = ProgressBar::new(1);
     pb.set_style(
@@ -512,7 +539,13 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
             .unwrap_or_else(|_| ProgressStyle::default_bar())
             .progress_chars("=> "),
     );
-    let bar = Bar { pb: pb.clone(), pause: a.pause_after.map(|n| (n, cancel.clone())), epochs_done: Default::default() };
+    let bar = Bar {
+        pb: pb.clone(),
+        pause: a.pause_after.map(|n| (n, cancel.clone())),
+        epochs_done: Default::default(),
+        stop_after_steps: a.stop_after_steps.map(|n| (n, cancel.clone())),
+        steps_done: Default::default(),
+    };
     let res = request::run(&prepared, &device, &bar, &cancel);
     pb.finish_and_clear();
     match res {
@@ -532,6 +565,14 @@ pub fn run(cmd: TrainCmd) -> Result<ExitCode> {
             println!(
                 "paused after {} epochs: {} holds the checkpoint; continue with --resume",
                 a.pause_after.unwrap_or(0),
+                run_dir.display()
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        Err(TrainError::Cancelled) if a.stop_after_steps.is_some_and(|n| bar.steps_done.load(std::sync::atomic::Ordering::SeqCst) >= n) => {
+            println!(
+                "stopped after {} steps as asked: {} keeps no checkpoint of them (train again to start over)",
+                a.stop_after_steps.unwrap_or(0),
                 run_dir.display()
             );
             Ok(ExitCode::SUCCESS)

@@ -116,7 +116,7 @@ fn time_steps<M: Network>(
     });
     let target = match M::PREDICTION {
         Prediction::Cube => Target::Cube { x: &x, scales: None, emd: false },
-        Prediction::Depth => Target::Depth { depth: &depth, range_m: 10.0, grid: None },
+        Prediction::Depth => Target::Depth { depth: &depth, range_m: 10.0, grid: None, cap: None },
         Prediction::Lifetime => Target::Lifetime { labels: &lifetimes, grid: None, terms: crate::loss::LifetimeTerms::default() },
     };
     let mut times: Vec<[f64; 4]> = Vec::new();

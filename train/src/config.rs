@@ -196,6 +196,12 @@ pub struct TrainConfig {
     /// written before it: [`ConfidenceLoss::Stalled`]; new runs: `Weighted`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub confidence_loss: Option<ConfidenceLoss>,
+    /// A network on a range grid (the U-Net's score volume): the cross-entropy in nats above
+    /// which a pixel's loss is held at that value (`None`: not held). A pixel whose likelihood
+    /// is sharp and wrong (pooled across an edge, a wall that wraps the cycle) then costs its
+    /// cap and gives no gradient, instead of bending the learned prior of every pixel to it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub grid_nll_cap: Option<f64>,
 }
 
 impl TrainConfig {
@@ -270,7 +276,8 @@ impl TrainConfig {
                 _ => String::new(),
             } + &self.grid_ce_weight.map_or(String::new(), |w| format!(", the grid's cross-entropy at {w}"))
                 + if self.lifetime_error == Some(LifetimeError::Log) { ", the lifetimes' error on ln τ" } else { "" }
-                + if self.confidence_loss == Some(ConfidenceLoss::Weighted) { ", the confidence's cross-entropy weighted" } else { "" },
+                + if self.confidence_loss == Some(ConfidenceLoss::Weighted) { ", the confidence's cross-entropy weighted" } else { "" }
+                + &self.grid_nll_cap.map_or(String::new(), |c| format!(", each pixel's cross-entropy held at {c} nats")),
             if self.noise.is_some() { "shot + read" } else { "off" },
             match &self.augment {
                 None => "off".to_string(),
@@ -324,6 +331,7 @@ impl TrainConfig {
             grid_ce_weight: None,
             lifetime_error: None,
             confidence_loss: None,
+            grid_nll_cap: None,
         }
     }
 
@@ -363,6 +371,18 @@ impl TrainConfig {
                     "grid_ce_weight",
                     format!("{w} for {}", self.run.model.name()),
                     "a lifetime network on the fit's evidence (train lifetime --input costs): the weight is of its grid's cross-entropy",
+                );
+            }
+        }
+        if let Some(c) = self.grid_nll_cap {
+            if !(c.is_finite() && (0.1..=100.0).contains(&c)) {
+                return bad("grid_nll_cap", c.to_string(), "a cross-entropy from 0.1 to 100 nats");
+            }
+            if self.run.model.range_grid().is_none() {
+                return bad(
+                    "grid_nll_cap",
+                    format!("{c} for {}", self.run.model.name()),
+                    "a U-Net on a range grid (train unet --head score-volume): the cap is of its grid's cross-entropy",
                 );
             }
         }
@@ -524,6 +544,37 @@ mod tests {
         };
         let e = harmonics.validate().expect_err("refused").to_string();
         assert!(e.contains("grid_ce_weight") && e.contains("--input costs"), "{e}");
+    }
+
+    /// The cap on a pixel's cross-entropy: only for a U-Net on a range grid, from 0.1 to 100
+    /// nats, and a config without one is written as before it existed.
+    #[test]
+    fn the_grid_cross_entropy_cap_is_a_range_grid_networks() {
+        use tcsense_models::{UnetConfig, UnetHead, UnetInput};
+        let grid = TrainConfig::new(
+            ModelConfig::Unet(UnetConfig { input: UnetInput::Costs, head: UnetHead::ScoreVolume, ..UnetConfig::new(4, 8, 10.0) }),
+            Path::new("ds"),
+            Loss::Rmse,
+            Sampling::Heterodyne(4),
+        );
+        assert!(!serde_json::to_string(&grid).expect("json").contains("grid_nll_cap"));
+        for c in [0.1, 6.0, 100.0] {
+            let capped = TrainConfig { grid_nll_cap: Some(c), ..grid.clone() };
+            assert!(capped.validate().is_ok(), "{c}: {:?}", capped.validate());
+            assert!(capped.summary().contains(&format!("held at {c} nats")), "{}", capped.summary());
+        }
+        for c in [0.0, 101.0, f64::NAN, f64::INFINITY] {
+            let e = TrainConfig { grid_nll_cap: Some(c), ..grid.clone() }.validate().expect_err("refused").to_string();
+            assert!(e.contains("grid_nll_cap") && e.contains("0.1 to 100"), "{e}");
+        }
+        for model in [ModelConfig::Unet(UnetConfig::new(4, 8, 10.0)), ModelConfig::Lifetime(tcsense_models::LifetimeNetConfig::new(4, 64))]
+        {
+            let e = TrainConfig { run: RunSpec { model, ..grid.run.clone() }, grid_nll_cap: Some(6.0), ..grid.clone() }
+                .validate()
+                .expect_err("refused")
+                .to_string();
+            assert!(e.contains("grid_nll_cap") && e.contains("score-volume"), "{e}");
+        }
     }
 
     /// The lifetimes' error is a lifetime network's choice and the confidence's loss a grid

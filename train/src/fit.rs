@@ -462,7 +462,7 @@ fn fit<M: Network>(
                 (Some(l), Prediction::Lifetime) => {
                     Target::Lifetime { labels: l, grid: cfg.run.model.lifetime_grid(), terms: cfg.lifetime_terms() }
                 }
-                (Some(d), _) => Target::Depth { depth: d, range_m, grid: cfg.run.model.range_grid() },
+                (Some(d), _) => Target::Depth { depth: d, range_m, grid: cfg.run.model.range_grid(), cap: cfg.grid_nll_cap },
                 (None, _) => Target::Cube {
                     x: &batch.x,
                     scales: batch.scales.as_deref(),
@@ -622,7 +622,7 @@ pub(crate) enum Target<'a> {
     Cube { x: &'a Array4<f32>, scales: Option<&'a [f32]>, emd: bool },
     /// Range labels `[B, K, H, W]` (m, NaN where none), the unambiguous range and the
     /// network's grid of candidate ranges where it has one (`u = r·scale − offset`, cyclic).
-    Depth { depth: &'a Array4<f32>, range_m: f64, grid: Option<(f64, f64)> },
+    Depth { depth: &'a Array4<f32>, range_m: f64, grid: Option<(f64, f64)>, cap: Option<f64> },
     /// Lifetime labels `[B, 5, H, W]` ([`crate::data::load_lifetime_labels`]) and the
     /// network's lifetime grid where it has one (`ln τ₀` in ns, step).
     /// `terms`: how the loss is taken (the run's config).
@@ -654,13 +654,13 @@ pub(crate) fn objective(loss: Loss, pred: Tensor<4>, target: Target<'_>, device:
                 None => cube,
             }
         }
-        Target::Depth { depth, range_m, grid } => {
+        Target::Depth { depth, range_m, grid, cap } => {
             let mask = depth.mapv(|d| if d.is_finite() { 1.0 } else { 0.0 });
             let filled = depth.mapv(|d| if d.is_finite() { d } else { 0.0 });
             let (depth, mask) = (to_tensor(&filled.view(), device), to_tensor(&mask.view(), device));
             match grid {
                 // (the grid's offset is half a bin: the tolerance of "within half a bin")
-                Some(grid) => depth_grid_loss(pred, depth, mask, grid, grid.1),
+                Some(grid) => depth_grid_loss(pred, depth, mask, grid, grid.1, cap),
                 None => depth_loss(pred, depth, mask, range_m),
             }
         }

@@ -112,14 +112,23 @@ pub fn depth_loss(pred: Tensor<4>, depth: Tensor<4>, mask: Tensor<4>, range_m: f
 /// cross-entropy against the exact range made bright pixels, whose likelihood is sharper than
 /// the candidates, dominate the loss with their calibration). Plus the binary cross-entropy of
 /// the first return's confidence against "has a return". The network's second return is the
-/// fit's, so nothing else is learned.
+/// fit's, so nothing else is learned. With `cap`, a pixel's cross-entropy is held at `cap`
+/// nats (no gradient beyond it): a pixel whose likelihood is sharp and wrong costs the cap and
+/// does not bend the learned prior of every other pixel to it.
 ///
 /// # Shapes
 /// - `pred`: `[B, 2K + C, H, W]` (depth in metres, confidence logits, log-posterior over the
 ///   candidates), `depth`: `[B, K, H, W]` (m, 0 where none), `mask`: `[B, K, H, W]` (1 where
 ///   the truth has a return), `grid`: `(scale, offset)`, a range `r` sits at candidate
 ///   `r·scale − offset`; `tolerance` in candidates → `[1]`
-pub fn depth_grid_loss(pred: Tensor<4>, depth: Tensor<4>, mask: Tensor<4>, (scale, offset): (f64, f64), tolerance: f64) -> Tensor<1> {
+pub fn depth_grid_loss(
+    pred: Tensor<4>,
+    depth: Tensor<4>,
+    mask: Tensor<4>,
+    (scale, offset): (f64, f64),
+    tolerance: f64,
+    cap: Option<f64>,
+) -> Tensor<1> {
     const MISSING: f64 = 1e9; // (a return that is not there is never the most probable)
     let [b, k, h, w] = depth.dims();
     let c = pred.dims()[1] - 2 * k;
@@ -137,7 +146,12 @@ pub fn depth_grid_loss(pred: Tensor<4>, depth: Tensor<4>, mask: Tensor<4>, (scal
     let top = x.clone().max_dim(2); // [B, K, 1, H, W]
     let lse = (x - top.clone()).exp().sum_dim(2).log() + top;
     let nll = lse.reshape([b, k, h, w]).neg();
-    let nll = (nll * mask.clone() + mask.neg().add_scalar(1.0).mul_scalar(MISSING)).min_dim(1) * any.clone(); // [B, 1, H, W]
+    let nll = (nll * mask.clone() + mask.neg().add_scalar(1.0).mul_scalar(MISSING)).min_dim(1); // [B, 1, H, W]
+                                                                                                // (held at the cap: no gradient from a pixel beyond it)
+    let nll = match cap {
+        Some(c) => nll.clamp_max(c),
+        None => nll,
+    } * any.clone();
     let count = any.clone().sum().add_scalar(1.0);
     let bce = relu(logit.clone()) - logit.clone() * any + logit.abs().neg().exp().add_scalar(1.0).log();
     nll.sum() / count + bce.mean()
@@ -269,7 +283,7 @@ mod tests {
             let pred = Tensor::<4>::from_data(burn::tensor::TensorData::new(v, [1, 6, 1, 2]), &device);
             let depth = Tensor::<4>::from_floats([[[[3.5, 0.0]]]], &device);
             let mask = Tensor::<4>::from_floats([[[[1.0, 0.0]]]], &device);
-            depth_grid_loss(pred, depth, mask, (1.0, 0.0), 0.5).into_scalar()
+            depth_grid_loss(pred, depth, mask, (1.0, 0.0), 0.5, None).into_scalar()
         };
         let bce = (2f32).ln() + (1.0 + (-2f32).exp()).ln();
         // all the mass near the truth, split or on one side: no cost but the confidence's
@@ -279,6 +293,38 @@ mod tests {
         // a quarter of it: ln 4 over the one pixel with a return (count 2)
         let quarter = loss([0.125, 0.375, 0.375, 0.125], 0.0);
         assert!((quarter - ((4f32).ln() / 2.0 + bce / 2.0)).abs() < 1e-4, "{quarter}");
+    }
+
+    /// Held at a cap, a pixel's cross-entropy costs at most the cap and, beyond it, gives no
+    /// gradient to its log-posterior; below the cap the loss and its gradient are unchanged.
+    #[test]
+    fn a_capped_grid_loss_holds_a_hopeless_pixel_at_the_cap_without_gradient() {
+        let device = Device::flex().autodiff();
+        // one pixel, K = 1, C = 4, the return at candidate 1.0 (only candidate 1 within 0.5)
+        let run = |mass_at_truth: f32, cap: Option<f64>| -> (f32, Vec<f32>) {
+            let rest = (1.0 - mass_at_truth) / 3.0;
+            let mut v = vec![1.0f32, 0.0];
+            v.extend([rest, mass_at_truth, rest, rest].map(f32::ln));
+            let pred = Tensor::<4>::from_data(burn::tensor::TensorData::new(v, [1, 6, 1, 1]), &device).require_grad();
+            let depth = Tensor::<4>::from_floats([[[[1.0]]]], &device);
+            let mask = Tensor::<4>::from_floats([[[[1.0]]]], &device);
+            let l = depth_grid_loss(pred.clone(), depth, mask, (1.0, 0.0), 0.5, cap);
+            let grads = l.backward();
+            let g: Vec<f32> = pred.grad(&grads).expect("a gradient").to_data().try_to_vec::<f32>().unwrap();
+            (l.into_scalar(), g[2..].to_vec())
+        };
+        let bce = (2f32).ln(); // the confidence's term at logit 0, over the one pixel
+                               // hopeless: e^-10 of the mass at the truth costs 10 nats (over a count of 2), held at 3
+        let (free, free_grad) = run((-10f32).exp(), None);
+        let (held, held_grad) = run((-10f32).exp(), Some(3.0));
+        assert!((free - (10.0 / 2.0 + bce)).abs() < 1e-3, "{free}");
+        assert!((held - (3.0 / 2.0 + bce)).abs() < 1e-3, "{held}");
+        assert!(free_grad.iter().any(|g| g.abs() > 0.1), "{free_grad:?}");
+        assert!(held_grad.iter().all(|g| *g == 0.0), "{held_grad:?}");
+        // within the cap nothing changes
+        let (a, ga) = run(0.5, None);
+        let (b, gb) = run(0.5, Some(3.0));
+        assert!((a - b).abs() < 1e-6 && ga == gb, "{a} {b} {ga:?} {gb:?}");
     }
 
     /// A return moved by two bins costs two; a prediction with a fifth of its mass three bins

@@ -74,6 +74,8 @@ pub struct TrainRequest {
     /// Lifetime decoder on the fit's evidence: the weight of the grid's cross-entropy in the
     /// loss.
     pub grid_ce: Option<f64>,
+    /// U-Net on a range grid: the cross-entropy (nats) at which a pixel's loss is held.
+    pub grid_nll_cap: Option<f64>,
     /// Lifetime decoder: the lifetimes' error in the loss, `ns` or `log` (of `ln τ`).
     pub lifetime_error: Option<String>,
     /// Lifetime decoder on the fit's evidence: how its confidence is trained, `weighted` (new
@@ -327,14 +329,22 @@ pub fn prepare(req: &TrainRequest) -> Result<Prepared> {
     }
     // a fine-tune continues its source run's loss, where the request does not set it
     if let (Some(src), false, None) = (&req.init_from, req.resume, &req.config) {
-        (cfg.grid_ce_weight, cfg.lifetime_error, cfg.confidence_loss) = setup::loss_of_run(src)?;
+        let l = setup::loss_of_run(src)?;
+        (cfg.grid_ce_weight, cfg.lifetime_error, cfg.confidence_loss, cfg.grid_nll_cap) =
+            (l.grid_ce_weight, l.lifetime_error, l.confidence_loss, l.grid_nll_cap);
         if cfg.run.model.lifetime_grid().is_none() {
             // (a fine-tune onto the harmonics input: its grid's settings do not apply)
             (cfg.grid_ce_weight, cfg.confidence_loss) = (None, None);
         }
+        if cfg.run.model.range_grid().is_none() {
+            cfg.grid_nll_cap = None;
+        }
     }
     if req.grid_ce.is_some() {
         cfg.grid_ce_weight = req.grid_ce;
+    }
+    if req.grid_nll_cap.is_some() {
+        cfg.grid_nll_cap = req.grid_nll_cap;
     }
     if let Some(e) = req.lifetime_error.as_deref() {
         cfg.lifetime_error = Some(match e {

@@ -248,21 +248,37 @@ pub fn model_for_init(source: &Path, proposed: &ModelConfig, from_config: bool) 
     Ok(model)
 }
 
+/// The loss settings of a run that a fine-tune of it continues with unless told otherwise
+/// (the fields of [`crate::TrainConfig`] of the same names).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct RunLoss {
+    pub grid_ce_weight: Option<f64>,
+    pub lifetime_error: Option<LifetimeError>,
+    pub confidence_loss: Option<ConfidenceLoss>,
+    pub grid_nll_cap: Option<f64>,
+}
+
 /// The loss settings of the run at `source` that a fine-tune of it continues with unless told
-/// otherwise: the grid's cross-entropy weight, the lifetimes' error and the confidence's loss
-/// (a lifetime network on a grid written before the choice: [`ConfidenceLoss::Stalled`], as
-/// it was trained).
-pub fn loss_of_run(source: &Path) -> Result<(Option<f64>, Option<LifetimeError>, Option<ConfidenceLoss>)> {
+/// otherwise: the grid's cross-entropy weight, the lifetimes' error, the confidence's loss (a
+/// lifetime network on a grid written before the choice: [`ConfidenceLoss::Stalled`], as it
+/// was trained) and the range grid's cap on a pixel's cross-entropy.
+pub fn loss_of_run(source: &Path) -> Result<RunLoss> {
     let path = source.join(CONFIG_FILE);
     let v = read_config_json(&path)?;
     let field = |key: &str| v.get(key).filter(|x| !x.is_null()).cloned();
     let parse = |key: &str, x: serde_json::Value| file_err(&path, format!("{key} {x}: not a setting this build knows"));
-    let ce = field("grid_ce_weight").map(|x| x.as_f64().ok_or_else(|| parse("grid_ce_weight", x.clone()))).transpose()?;
+    let number = |key: &str| field(key).map(|x| x.as_f64().ok_or_else(|| parse(key, x.clone()))).transpose();
+    let ce = number("grid_ce_weight")?;
     let error = field("lifetime_error").map(|x| serde_json::from_value(x.clone()).map_err(|_| parse("lifetime_error", x))).transpose()?;
     let confidence =
         field("confidence_loss").map(|x| serde_json::from_value(x.clone()).map_err(|_| parse("confidence_loss", x))).transpose()?;
     let grid = model_of_run(source)?.lifetime_grid().is_some();
-    Ok((ce, error, confidence.or(grid.then_some(ConfidenceLoss::Stalled))))
+    Ok(RunLoss {
+        grid_ce_weight: ce,
+        lifetime_error: error,
+        confidence_loss: confidence.or(grid.then_some(ConfidenceLoss::Stalled)),
+        grid_nll_cap: number("grid_nll_cap")?,
+    })
 }
 
 /// The codes a run trains with: `codes` when given; on resume the run's `codes.json`, or the
@@ -337,11 +353,13 @@ mod tests {
     #[test]
     fn a_fine_tune_reads_its_sources_loss() {
         let zoo = Path::new(env!("CARGO_MANIFEST_DIR")).join("../zoo");
-        assert_eq!(loss_of_run(&zoo.join("lifetime-flim-evidence-fast")).unwrap(), (None, None, Some(ConfidenceLoss::Stalled)));
+        let stalled = RunLoss { confidence_loss: Some(ConfidenceLoss::Stalled), ..Default::default() };
+        assert_eq!(loss_of_run(&zoo.join("lifetime-flim-evidence-fast")).unwrap(), stalled);
         assert_eq!(
             loss_of_run(&zoo.join("lifetime-flim-pooled")).unwrap(),
-            (Some(0.0), Some(LifetimeError::Log), Some(ConfidenceLoss::Stalled))
+            RunLoss { grid_ce_weight: Some(0.0), lifetime_error: Some(LifetimeError::Log), ..stalled }
         );
-        assert_eq!(loss_of_run(&zoo.join("lifetime-flim-designed")).unwrap(), (None, None, None));
+        assert_eq!(loss_of_run(&zoo.join("lifetime-flim-designed")).unwrap(), RunLoss::default());
+        assert_eq!(loss_of_run(&zoo.join("unet-lidar-evidence-pooled")).unwrap(), RunLoss::default());
     }
 }
