@@ -789,6 +789,8 @@ fn the_unet_on_the_range_fit_evidence_trains_decodes_and_streams_as_reconstruct(
     let out = tune("evc", &[], "evc2");
     assert!(out.contains("held at 4 nats"), "{out}");
     assert_eq!(cap_of("evc2"), serde_json::json!(4.0));
+    // (a run trained with it decodes: the cap is training's, not the network's)
+    ok(d, &["reconstruct", "unet", "--run", "evc", "--measurements", "y.npy", "-o", "depth-c.npy"]);
     // refused: a cap out of its range; a cap for a network on another input
     fails(d, &["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--grid-nll-cap", "0", "-o", "bad"], &["--grid-nll-cap"]);
     fails(

@@ -380,6 +380,7 @@ pub const TRAINING_KEYS: &[&str] = &[
     "grid_ce_weight",
     "lifetime_error",
     "confidence_loss",
+    "grid_nll_cap",
 ];
 
 /// Load a run directory on `device`: its config, codes, sensor model and latest weights.

@@ -618,6 +618,7 @@ mod tests {
         cfg.grid_ce_weight = Some(0.0);
         cfg.lifetime_error = Some(LifetimeError::Log);
         cfg.confidence_loss = Some(ConfidenceLoss::Weighted);
+        cfg.grid_nll_cap = Some(4.0);
         let all = tcsense_sensor::json::keys_of(&cfg);
         let spec = tcsense_sensor::json::keys_of(&cfg.run);
         let mut extra: Vec<&str> = all.iter().filter(|k| !spec.contains(k)).map(String::as_str).collect();
