@@ -791,28 +791,8 @@ fn the_unet_on_the_range_fit_evidence_trains_decodes_and_streams_as_reconstruct(
     assert_eq!(cap_of("evc2"), serde_json::json!(4.0));
     // (a run trained with it decodes: the cap is training's, not the network's)
     ok(d, &["reconstruct", "unet", "--run", "evc", "--measurements", "y.npy", "-o", "depth-c.npy"]);
-    // refused: a cap out of its range; a cap for a network on another input
+    // refused: a cap out of its range (and below, a cap for a network on another input)
     fails(d, &["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--grid-nll-cap", "0", "-o", "bad"], &["--grid-nll-cap"]);
-    fails(
-        d,
-        &[
-            "train",
-            "unet",
-            "--dataset",
-            "ds",
-            "--codes",
-            "codes.json",
-            "--input",
-            "matched",
-            "--grid-nll-cap",
-            "4",
-            "--epochs",
-            "1",
-            "-o",
-            "bad",
-        ],
-        &["grid_nll_cap", "score-volume"],
-    );
     // refused: a side that tiles no 3×3 windows, pooling without the evidence, learned codes
     for (extra, needle) in [
         (&["--pool-like", "4", "--epochs", "1"][..], "pool_like"),
@@ -821,26 +801,13 @@ fn the_unet_on_the_range_fit_evidence_trains_decodes_and_streams_as_reconstruct(
         let args = train(extra, "bad");
         fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &[needle]);
     }
-    fails(
-        d,
-        &[
-            "train",
-            "unet",
-            "--dataset",
-            "ds",
-            "--codes",
-            "codes.json",
-            "--input",
-            "matched",
-            "--pool-like",
-            "9",
-            "--epochs",
-            "1",
-            "-o",
-            "bad",
-        ],
-        &["pool_like", "costs"],
-    );
+    // refused on another input than the evidence: pooling it, capping its grid's cross-entropy
+    for (flag, value, needles) in [("--pool-like", "9", ["pool_like", "costs"]), ("--grid-nll-cap", "4", ["grid_nll_cap", "score-volume"])]
+    {
+        let args =
+            ["train", "unet", "--dataset", "ds", "--codes", "codes.json", "--input", "matched", flag, value, "--epochs", "1", "-o", "bad"];
+        fails(d, &args, &needles);
+    }
     assert!(!d.join("bad").exists() && !d.join("m.onnx").exists());
 }
 

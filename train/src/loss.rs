@@ -313,8 +313,9 @@ mod tests {
             let g: Vec<f32> = pred.grad(&grads).expect("a gradient").to_data().try_to_vec::<f32>().unwrap();
             (l.into_scalar(), g[2..].to_vec())
         };
-        let bce = (2f32).ln(); // the confidence's term at logit 0, over the one pixel
-                               // hopeless: e^-10 of the mass at the truth costs 10 nats (over a count of 2), held at 3
+        // the confidence's term at logit 0, over the one pixel
+        let bce = (2f32).ln();
+        // hopeless: e^-10 of the mass at the truth costs 10 nats (over a count of 2), held at 3
         let (free, free_grad) = run((-10f32).exp(), None);
         let (held, held_grad) = run((-10f32).exp(), Some(3.0));
         assert!((free - (10.0 / 2.0 + bce)).abs() < 1e-3, "{free}");
