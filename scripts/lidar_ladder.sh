@@ -6,8 +6,8 @@
 #
 #   scripts/lidar_ladder.sh [OUT] [--decoder NAME …]
 #
-# Defaults: the fit (depth-fit), the fit pooled by likeness (depth-fit-pooled), zoo:unet-lidar-evidence-capped,
-# zoo:unet-lidar-evidence-pooled, zoo:unet-lidar-evidence-wide2 and zoo:unet-lidar-matched through the designed codes. SIZE (64x64), ITEMS (8), LIGHT (0.8,0.1,0.02,0.005) come from the environment.
+# Defaults: the fit (depth-fit), the fit pooled by likeness (depth-fit-pooled), zoo:unet-lidar-evidence-8k,
+# zoo:unet-lidar-evidence-capped2, zoo:unet-lidar-evidence-wide2 and zoo:unet-lidar-matched through the designed codes. SIZE (64x64), ITEMS (8), LIGHT (0.8,0.1,0.02,0.005) come from the environment.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-lidar-ladder}
@@ -23,7 +23,7 @@ mkdir -p "$OUT"
 lidar_test_sets "$OUT/" 80 >/dev/null
 motorcycle_set "$OUT" >/dev/null
 decoders=("$@")
-[ ${#decoders[@]} -eq 0 ] && decoders=(--decoder depth-fit --decoder depth-fit-pooled --decoder zoo:unet-lidar-evidence-capped --decoder zoo:unet-lidar-evidence-pooled --decoder zoo:unet-lidar-evidence-wide2 --decoder zoo:unet-lidar-matched)
+[ ${#decoders[@]} -eq 0 ] && decoders=(--decoder depth-fit --decoder depth-fit-pooled --decoder zoo:unet-lidar-evidence-8k --decoder zoo:unet-lidar-evidence-capped2 --decoder zoo:unet-lidar-evidence-wide2 --decoder zoo:unet-lidar-matched)
 for s in standard far near textures dense-sheet lidar-test-motorcycle; do
   split=train
   [ "$s" = lidar-test-motorcycle ] && split=test

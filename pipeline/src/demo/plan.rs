@@ -79,7 +79,7 @@ pub(super) const ZOO_FLIM_DESIGNED: &str = "lifetime-flim-designed";
 pub(super) const ZOO_FLIM_LEARNED: &str = "lifetime-flim-learned";
 
 /// The zoo's decoders on the fits' evidence, evaluated as shipped on the photon ladder.
-pub(super) const ZOO_EVIDENCE_UNET: &str = "unet-lidar-evidence-capped";
+pub(super) const ZOO_EVIDENCE_UNET: &str = "unet-lidar-evidence-8k";
 pub(super) const ZOO_EVIDENCE_LIFETIME: &str = "lifetime-flim-pooled";
 
 /// Zoo entry `name`'s run directory and network, when the zoo holds it for the dataset's
