@@ -54,6 +54,28 @@ impl SensorError {
 /// Result alias of the sensor crate.
 pub type Result<T> = std::result::Result<T, SensorError>;
 
+/// An invalid parameter. A float that would print with many digits (`1e300` as 301 of them,
+/// `2.5e-9` as `0.0000000025`) is named in scientific notation; integers as they are.
 pub(crate) fn invalid(field: &'static str, got: impl ToString, expected: impl Into<String>) -> SensorError {
-    SensorError::InvalidParam { field, got: got.to_string(), expected: expected.into() }
+    let got = got.to_string();
+    let got = match got.parse::<f64>() {
+        Ok(v) if got.len() > 10 && v.is_finite() && got.parse::<i128>().is_err() => format!("{v:e}"),
+        _ => got,
+    };
+    SensorError::InvalidParam { field, got, expected: expected.into() }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_absurd_number_is_named_in_scientific_notation() {
+        assert_eq!(invalid("laser_fwhm", 1e300, "a duration").to_string(), "invalid laser_fwhm: got 1e300, expected a duration");
+        assert_eq!(invalid("tap_tau", 2.5e-9, "a time").to_string(), "invalid tap_tau: got 2.5e-9, expected a time");
+        assert_eq!(invalid("taps", 9, "1..=8").to_string(), "invalid taps: got 9, expected 1..=8");
+        assert_eq!(invalid("frames", 123456789012u64, "x").to_string(), "invalid frames: got 123456789012, expected x");
+        assert_eq!(invalid("level", 0.25, "x").to_string(), "invalid level: got 0.25, expected x");
+        assert_eq!(invalid("units", "volts", "x").to_string(), "invalid units: got volts, expected x");
+    }
 }
