@@ -259,6 +259,26 @@ fn depth_fit_to_the_taps() {
     let (est, first) = (depth.index_axis(ndarray::Axis(0), 0), truth.index_axis(ndarray::Axis(0), 0));
     let placed = est.iter().zip(first.index_axis(ndarray::Axis(0), 0).iter()).filter(|(e, t)| e.is_finite() && t.is_finite()).count();
     assert!(placed > 32, "{placed} of 64 pixels got a range");
+    // a wider window for the fit (the network-seeded refinement's own window keeps its default)
+    let out = run(
+        d,
+        &[
+            "reconstruct",
+            "depth-fit",
+            "--codes",
+            "codes.json",
+            "--measurements",
+            "y.npy",
+            "--returns",
+            "1",
+            "--window",
+            "5",
+            "-o",
+            "d5.npy",
+        ],
+    );
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert_eq!(&read_npy(&d.join("d5.npy")).unwrap().shape()[1..], &[1, 8, 8]);
     // any registry name reaches reconstruct: a cube decoder with its peaks refined in the tap
     // domain writes the cube and, beside it, the ranges with their confidence
     let out = ok(d, &["reconstruct", "tval3+fit", "--codes", "codes.json", "--measurements", "y.npy", "--maxit", "20", "-o", "tv.npy"]);

@@ -149,9 +149,9 @@ pub struct DepthFitOptions {
     /// ([`RangeTemplates::pooled_modes`]).
     pub pool_like: usize,
     /// The largest side of the window that refines a posterior's mode ([`Seeds::Modes`]): it
-    /// grows from the fit's window while less precise than [`MODE_PRECISION_BINS`] (odd, from
-    /// the fit's window, which keeps it fixed (the fits' default), up to
-    /// [`crate::range::MAX_WINDOW`]; 7 for a network's evidence).
+    /// grows from the fit's window while less precise than [`MODE_PRECISION_BINS`] (odd, up to
+    /// [`crate::range::MAX_WINDOW`]; 7 for a network's evidence; at most the fit's window, as
+    /// the fits' default 3, keeps that window fixed, whatever side it is given).
     pub mode_window: usize,
 }
 
@@ -206,12 +206,12 @@ impl DepthFitOptions {
         if !(1..=2).contains(&self.returns) {
             return Err(format!("returns {}: expected 1 or 2", self.returns));
         }
-        if self.mode_window.is_multiple_of(2) || self.mode_window < self.fit.window || self.mode_window > crate::range::MAX_WINDOW {
+        if self.mode_window.is_multiple_of(2) || self.mode_window > crate::range::MAX_WINDOW {
             return Err(format!(
-                "mode_window {}: expected an odd side from the window's {} up to {} pixels (e.g. 7)",
+                "mode_window {}: expected an odd side up to {} pixels (e.g. 7; at most the window's, {}: never grown)",
                 self.mode_window,
-                self.fit.window,
-                crate::range::MAX_WINDOW
+                crate::range::MAX_WINDOW,
+                self.fit.window
             ));
         }
         Ok(())
@@ -1039,8 +1039,13 @@ mod tests {
         let (fixed, grown) = (ranges(&bright, 3), ranges(&bright, 7));
         assert!(fixed.iter().zip(grown.iter()).all(|(a, b)| a.to_bits() == b.to_bits()), "bright: the window stays the fit's");
         assert!(median(&fixed) < 0.05, "bright: {}", median(&fixed));
-        for bad in [2, 1, 4, 65] {
+        for bad in [0, 2, 4, 65] {
             assert!(DepthFitOptions { mode_window: bad, ..Default::default() }.validate().is_err(), "{bad}");
+        }
+        // a fit given a wider window keeps the default mode window (never grown), as `--window 5`
+        for window in [1, 5, 9] {
+            let opts = DepthFitOptions { fit: RangeFitOptions { window, ..Default::default() }, ..Default::default() };
+            assert!(opts.validate().is_ok(), "window {window}");
         }
     }
 
