@@ -686,11 +686,12 @@ impl RangeTemplates {
         let moded = matches!(seeds, Seeds::Modes(_));
         // a mode's window may grow: the frame's nats per unit of cost (the noise level of the
         // window's evidence, as the evidence reads it)
-        let nats = if moded { 1.0 / (2.0 * crate::evidence::noise_level(&self.volume(costs)) as f64) } else { 0.0 };
+        let grows = moded && opts.mode_window > fit.window;
+        let nats = if grows { 1.0 / (2.0 * crate::evidence::noise_level(&self.volume(costs)) as f64) } else { 0.0 };
 
         // 3. the window on the pixel's surface: search near the first estimate, refine
         let t = tpl.t;
-        let hood_of = |i: usize, j: usize, first: &[f64], half: usize, hood: &mut Vec<usize>| {
+        let hood_of = |i: usize, j: usize, first: &[f64], hood: &mut Vec<usize>| {
             let (p, own) = (i * w + j, first[i * w + j]);
             hood.clear();
             for ii in i.saturating_sub(half)..(i + half + 1).min(h) {
@@ -730,22 +731,21 @@ impl RangeTemplates {
                         let span = (2 * reach as usize + 3).min(cands);
                         let start = (centre - reach - 1).rem_euclid(cands as i64) as usize;
                         let runs = [(start, (start + span).min(cands)), (0, (start + span).saturating_sub(cands))];
+                        hood_of(i, j, first, &mut hood);
                         total.fill(0.0);
-                        let d = loop {
-                            hood_of(i, j, first, grown, &mut hood);
-                            // the window's costs (grown: the ring it gained)
-                            for &q in &hood {
-                                let ring = (q / w).abs_diff(i).max((q % w).abs_diff(j));
-                                if grown == half || ring == grown {
-                                    for &(a, b) in &runs {
-                                        total[a..b].iter_mut().zip(&cost[q * cands + a..q * cands + b]).for_each(|(s, c)| *s += c);
-                                    }
-                                }
+                        let add = |total: &mut [f32], q: usize| {
+                            for &(a, b) in &runs {
+                                total[a..b].iter_mut().zip(&cost[q * cands + a..q * cands + b]).for_each(|(s, c)| *s += c);
                             }
+                        };
+                        for &q in &hood {
+                            add(&mut total, q);
+                        }
+                        let d = loop {
                             let d = (-reach..=reach)
                                 .min_by(|&a, &b| total[at(a)].total_cmp(&total[at(b)]).then(a.abs().cmp(&b.abs())))
                                 .unwrap_or(0);
-                            if !moded || grown >= (opts.mode_window / 2).max(half) {
+                            if !grows || grown >= opts.mode_window / 2 {
                                 break d;
                             }
                             // the cost's curvature at the best candidate, in nats per bin²
@@ -754,7 +754,20 @@ impl RangeTemplates {
                             if d.abs() <= 1 && curvature > 0.0 && curvature.sqrt().recip() <= MODE_PRECISION_BINS {
                                 break d;
                             }
+                            // the ring the window gains, on the pixel's surface
                             grown += 1;
+                            for ii in i.saturating_sub(grown)..(i + grown + 1).min(h) {
+                                for jj in j.saturating_sub(grown)..(j + grown + 1).min(w) {
+                                    let q = ii * w + jj;
+                                    if ii.abs_diff(i).max(jj.abs_diff(j)) == grown
+                                        && lit[q]
+                                        && cyclic_gap(first[q], own, t) <= fit.edge_bins
+                                    {
+                                        hood.push(q);
+                                        add(&mut total, q);
+                                    }
+                                }
+                            }
                         };
                         if moded && d.abs() > 1 {
                             return own; // the mode is not the window's best: the prior's choice stands
@@ -813,7 +826,7 @@ impl RangeTemplates {
                             if !tau.is_finite() {
                                 return None;
                             }
-                            hood_of(i, j, first, half, &mut hood);
+                            hood_of(i, j, first, &mut hood);
                             hood.retain(|&q| tau1[q].is_finite());
                             // one amplitude of the second return over the window: the matched
                             // products add coherently, the noise does not
