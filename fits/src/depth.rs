@@ -706,13 +706,15 @@ impl RangeTemplates {
 
         // 3. the window on the pixel's surface: search near the first estimate, refine
         let t = tpl.t;
+        // a neighbour `q` on the surface of a pixel at range `own` (lit, within edge_bins)
+        let on_surface = |q: usize, own: f64, first: &[f64]| lit[q] && cyclic_gap(first[q], own, t) <= fit.edge_bins;
         let hood_of = |i: usize, j: usize, side: usize, first: &[f64], hood: &mut Vec<usize>| {
             let (p, own) = (i * w + j, first[i * w + j]);
             hood.clear();
             for ii in i.saturating_sub(side)..(i + side + 1).min(h) {
                 for jj in j.saturating_sub(side)..(j + side + 1).min(w) {
                     let q = ii * w + jj;
-                    if q == p || (lit[q] && cyclic_gap(first[q], own, t) <= fit.edge_bins) {
+                    if q == p || on_surface(q, own, first) {
                         hood.push(q);
                     }
                 }
@@ -774,10 +776,7 @@ impl RangeTemplates {
                             for ii in i.saturating_sub(grown)..(i + grown + 1).min(h) {
                                 for jj in j.saturating_sub(grown)..(j + grown + 1).min(w) {
                                     let q = ii * w + jj;
-                                    if ii.abs_diff(i).max(jj.abs_diff(j)) == grown
-                                        && lit[q]
-                                        && cyclic_gap(first[q], own, t) <= fit.edge_bins
-                                    {
+                                    if ii.abs_diff(i).max(jj.abs_diff(j)) == grown && on_surface(q, own, first) {
                                         hood.push(q);
                                         add(&mut total, q);
                                     }
@@ -832,7 +831,9 @@ impl RangeTemplates {
                     let mut zsum = vec![0f32; cands];
                     let mut psum = vec![0f32; cands];
                     let mut g = vec![0.0f64; m];
-                    let mut hood: Vec<usize> = Vec::with_capacity(fit.window * fit.window);
+                    // (the window a first return was refined on: up to mode_window a side)
+                    let side = fit.window.max(opts.mode_window);
+                    let mut hood: Vec<usize> = Vec::with_capacity(side * side);
                     let (first, tau1, sides) = (&first, &tau1, &sides);
                     (0..w)
                         .map(move |j| {
