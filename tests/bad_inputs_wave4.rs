@@ -289,6 +289,12 @@ fn contradictions_and_messages() {
         &["--returns 3"],
     );
     p.refuse(&["infer", "--model", "admm.onnx", "--measurements", "stack2.npy", "--no-range-fit", "-o", "out"], &["--no-range-fit"]);
+    // a decoder that brings its own sensor refuses the flags of another, rather than ignore them
+    for flag in [["--irf", "physical"], ["--laser-fwhm-ns", "1.5"], ["--tap-tau-ns", "0.5"], ["--oversample", "2"]] {
+        let mut args = vec!["reconstruct", "admm-net", "--run", "zoo:admm-lidar-designed", "--measurements", "y32.npy", "-o", "d.npy"];
+        args.extend(flag);
+        p.refuse(&args, &[flag[0], "brings its own sensor", "--calibration"]);
+    }
     p.refuse(
         &["infer", "--model", "admm.onnx", "--measurements", "stack2.npy", "--depth-fit", "--lifetime-fit", "-o", "out"],
         &["--depth-fit", "--lifetime-fit"],

@@ -232,10 +232,17 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<ExitCode> {
     let opened = Registry::builtin().open(&name, &a.settings(&name)?, &a.device.device()?)?;
     let sensor = match (opened.sensor, &a.codes) {
         (Some(_), Some(_)) => bail!("--codes: {name} brings its own sensor (the codes it was trained for); drop --codes"),
-        (Some(own), None) => match &a.calibration {
-            Some(dir) => own.calibrated_from(dir)?,
-            None => own,
-        },
+        (Some(own), None) => {
+            if let Some(flag) = a.response.given() {
+                bail!(
+                    "{flag}: {name} brings its own sensor (the codes, time grid and instrument response it was trained for); drop {flag} (a measured sensor: --calibration DIR)"
+                );
+            }
+            match &a.calibration {
+                Some(dir) => own.calibrated_from(dir)?,
+                None => own,
+            }
+        }
         (None, Some(codes)) => {
             SensorArgs { codes: codes.clone(), response: a.response.clone(), calibration: a.calibration.clone() }.sensor()?
         }

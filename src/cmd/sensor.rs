@@ -8,6 +8,7 @@ use tcsense_sensor::measure::Measurement;
 use tcsense_sensor::noise::Exposure;
 use tcsense_sensor::nonideal::NonIdeal;
 use tcsense_sensor::npy::{read_cube, write_npy};
+use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
 use tcsense_sensor::sweep::{simulate_sweep, SweepSettings};
 use tcsense_sensor::waveform::{self, IrfSpec};
 use tcsense_sensor::{Codes, Irf, NoiseParams, Sampling, Sensor, SensorModel};
@@ -28,19 +29,35 @@ pub struct ResponseArgs {
     /// Heterodyne sweep with K steps of T_c/K (T = L·K; FLIm).
     #[arg(long, value_name = "K")]
     pub heterodyne: Option<usize>,
-    /// Laser pulse FWHM in ns (physical IRF).
-    #[arg(long, default_value_t = 2.55)]
-    pub laser_fwhm_ns: f64,
-    /// First-order tap time constant in ns (physical IRF).
-    #[arg(long, default_value_t = 0.3)]
-    pub tap_tau_ns: f64,
+    /// Laser pulse FWHM in ns (physical IRF) [default: 2.55].
+    #[arg(long, value_name = "NS")]
+    pub laser_fwhm_ns: Option<f64>,
+    /// First-order tap time constant in ns (physical IRF) [default: 0.3].
+    #[arg(long, value_name = "NS")]
+    pub tap_tau_ns: Option<f64>,
 }
 
 impl ResponseArgs {
     /// The IRF these flags name, `default_irf` when `--irf` is not given.
     pub fn irf_spec(&self, default_irf: &str) -> Result<IrfSpec> {
         let desc = self.irf.as_deref().unwrap_or(default_irf);
-        Ok(waveform::parse_irf(desc, self.laser_fwhm_ns * 1e-9, self.tap_tau_ns * 1e-9, "--irf")?)
+        let laser = self.laser_fwhm_ns.map_or(DEFAULT_LASER_FWHM_S, |ns| ns * 1e-9);
+        let tap = self.tap_tau_ns.map_or(DEFAULT_TAP_TAU_S, |ns| ns * 1e-9);
+        Ok(waveform::parse_irf(desc, laser, tap, "--irf")?)
+    }
+
+    /// The first of these flags given on the command line, if any: a decoder that brings its
+    /// own sensor refuses them rather than ignore them.
+    pub fn given(&self) -> Option<&'static str> {
+        [
+            ("--irf", self.irf.is_some()),
+            ("--oversample", self.oversample.is_some()),
+            ("--heterodyne", self.heterodyne.is_some()),
+            ("--laser-fwhm-ns", self.laser_fwhm_ns.is_some()),
+            ("--tap-tau-ns", self.tap_tau_ns.is_some()),
+        ]
+        .into_iter()
+        .find_map(|(flag, given)| given.then_some(flag))
     }
 
     /// The sensor model these flags describe (no calibration, no non-idealities).
