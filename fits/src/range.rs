@@ -228,14 +228,63 @@ fn nnls2(yy: f64, [gy, sy]: [f64; 2], [gg, gs, ss]: [f64; 3]) -> f64 {
         }
     }
     // on the boundary: one of the two alone (or neither)
-    let only = |v: f64, vv: f64| if vv > 0.0 { v.max(0.0).powi(2) / vv } else { 0.0 };
     (yy - only(gy, gg).max(only(sy, ss))).max(0.0)
+}
+
+/// What one column alone removes of `y·y`: `max(v, 0)² / vv` (`v = g·y`, `vv = g·g`).
+fn only(v: f64, vv: f64) -> f64 {
+    if vv > 0.0 {
+        v.max(0.0).powi(2) / vv
+    } else {
+        0.0
+    }
+}
+
+/// The interior of [`nnls2`] for Gram entries that many pixels share (one subpixel type at one
+/// candidate): its determinant found once, and a pixel's divisions made only where both of its
+/// coefficients are non-negative (their signs are their numerators', the determinant being
+/// positive). The same numbers as `nnls2`.
+#[derive(Clone, Copy)]
+struct Face {
+    gg: f64,
+    gs: f64,
+    ss: f64,
+    det: f64,
+    regular: bool,
+}
+
+impl Face {
+    fn new([gg, gs, ss]: [f64; 3]) -> Face {
+        let det = gg * ss - gs * gs;
+        Face { gg, gs, ss, det, regular: det > 1e-12 * gg * ss }
+    }
+
+    /// `nnls2`'s cost where its solve is interior (both coefficients non-negative), else `None`.
+    #[inline]
+    fn interior(&self, yy: f64, gy: f64, sy: f64) -> Option<f64> {
+        if !self.regular {
+            return None;
+        }
+        let (na, nb) = (self.ss * gy - self.gs * sy, self.gg * sy - self.gs * gy);
+        if na >= 0.0 && nb >= 0.0 {
+            let (a, b) = (na / self.det, nb / self.det);
+            Some((yy - a * gy - b * sy).max(0.0))
+        } else {
+            None
+        }
+    }
+
+    /// [`nnls2`] with the columns' single costs `only(gy, gg)`, `only(sy, ss)` given (or found
+    /// only where the solve is not interior).
+    #[inline]
+    fn cost(&self, yy: f64, gy: f64, sy: f64, only_s: f64) -> f64 {
+        self.interior(yy, gy, sy).unwrap_or_else(|| (yy - only(gy, self.gg).max(only_s)).max(0.0))
+    }
 }
 
 /// A symmetric 3×3 Gram matrix with its cofactors and inverse determinant, shared by every pixel of
 /// one subpixel type at one candidate.
 struct Gram3 {
-    g: [[f64; 3]; 3],
     cof: [[f64; 3]; 3],
     inv_det: f64,
     /// The unconstrained solve is well posed.
@@ -250,27 +299,33 @@ impl Gram3 {
             [g[1][0] * g[2][1] - g[1][1] * g[2][0], g[0][1] * g[2][0] - g[0][0] * g[2][1], g[0][0] * g[1][1] - g[0][1] * g[1][0]],
         ];
         let det = g[0][0] * cof[0][0] + g[0][1] * cof[1][0] + g[0][2] * cof[2][0];
-        Gram3 { g, cof, inv_det: 1.0 / det, regular: det > 1e-9 * g[0][0] * g[1][1] * g[2][2] }
+        Gram3 { cof, inv_det: 1.0 / det, regular: det > 1e-9 * g[0][0] * g[1][1] * g[2][2] }
     }
 }
 
 /// [`nnls2`] for three columns: the unconstrained solve if it has no negative coefficient,
 /// else the best of the three faces (each a two-column problem).
 ///
-/// `r`: the columns' inner products with `y`; `gram`: their Gram matrix.
+/// `r`: the columns' inner products with `y`; `gram`: their Gram matrix; `f01`, `f02`: its faces
+/// of columns 0 and 1, 0 and 2.
 ///
 /// `face12`: the cost of the face of columns 1 and 2 alone (which a caller holding those two
-/// fixed computes once).
-fn nnls3(yy: f64, r: [f64; 3], gram: &Gram3, face12: f64) -> f64 {
-    let (g, cof) = (&gram.g, &gram.cof);
+/// fixed computes once); `only1`, `only2`: what columns 1 and 2 alone remove (likewise).
+#[allow(clippy::too_many_arguments)]
+#[inline]
+fn nnls3(yy: f64, r: [f64; 3], gram: &Gram3, f01: &Face, f02: &Face, only1: f64, only2: f64, face12: f64) -> f64 {
+    let cof = &gram.cof;
     if gram.regular {
         let x: [f64; 3] = std::array::from_fn(|i| (cof[i][0] * r[0] + cof[i][1] * r[1] + cof[i][2] * r[2]) * gram.inv_det);
         if x.iter().all(|&v| v >= 0.0) {
             return (yy - x[0] * r[0] - x[1] * r[1] - x[2] * r[2]).max(0.0);
         }
     }
-    let face = |i: usize, j: usize| nnls2(yy, [r[i], r[j]], [g[i][i], g[i][j], g[j][j]]);
-    face(0, 1).min(face(0, 2)).min(face12)
+    let (i01, i02) = (f01.interior(yy, r[0], r[1]), f02.interior(yy, r[0], r[2]));
+    let only0 = if i01.is_none() || i02.is_none() { only(r[0], f01.gg) } else { 0.0 };
+    let face01 = i01.unwrap_or_else(|| (yy - only0.max(only1)).max(0.0));
+    let face02 = i02.unwrap_or_else(|| (yy - only0.max(only2)).max(0.0));
+    face01.min(face02).min(face12)
 }
 
 /// The minimum of `cost` over the candidates within `±half` of `centre` (bins, cyclic),
@@ -286,13 +341,27 @@ fn search(tpl: &Templates, centre: f64, half: f64, cost: &mut dyn FnMut(usize) -
         return None;
     }
     let wrap = |c: i64| c.rem_euclid(cands) as usize;
+    // every cost found is kept (the parabola's neighbours were mostly found on the way)
+    let mut seen: [(i64, f64); 24] = [(i64::MIN, 0.0); 24];
+    let mut len = 0;
+    let mut eval = |c: i64| {
+        if let Some(&(_, v)) = seen[..len].iter().find(|e| e.0 == c) {
+            return v;
+        }
+        let v = cost(wrap(c));
+        if len < seen.len() {
+            seen[len] = (c, v);
+            len += 1;
+        }
+        v
+    };
     // coarse to fine: every bin first (the cost is smooth on the scale of the pulse), then
     // every candidate within a bin of the best
     let step = tpl.os as i64;
     let mut best = (f64::INFINITY, lo);
     let mut c = lo;
     while c <= hi {
-        let v = cost(wrap(c));
+        let v = eval(c);
         if v < best.0 {
             best = (v, c);
         }
@@ -301,7 +370,7 @@ fn search(tpl: &Templates, centre: f64, half: f64, cost: &mut dyn FnMut(usize) -
     let centre_c = best.1;
     for c in (centre_c - step + 1).max(lo)..=(centre_c + step - 1).min(hi) {
         if c != centre_c {
-            let v = cost(wrap(c));
+            let v = eval(c);
             if v < best.0 {
                 best = (v, c);
             }
@@ -311,7 +380,7 @@ fn search(tpl: &Templates, centre: f64, half: f64, cost: &mut dyn FnMut(usize) -
         return None;
     }
     let (r0, c) = best;
-    let (rm, rp) = (cost(wrap(c - 1)), cost(wrap(c + 1)));
+    let (rm, rp) = (eval(c - 1), eval(c + 1));
     let off = crate::engine::parabola_min(rm, r0, rp);
     Some((((c as f64 + tpl.offset + off) / os).rem_euclid(tpl.t as f64), r0))
 }
@@ -327,6 +396,9 @@ struct Neighbour {
     oy: f64,
     /// The cost of the fixed return and the ambient level alone.
     other_cost: f64,
+    /// What the fixed return alone and the ambient level alone remove of `y·y`.
+    only_o: f64,
+    only_s: f64,
 }
 
 /// The costs of one window, with buffers reused from pixel to pixel (no allocation per
@@ -366,7 +438,9 @@ impl<'a> WindowFit<'a> {
         self.hood.clear();
         for (n, at) in pixels {
             let yq = &self.taps[at..][..m];
-            self.hood.push(Neighbour { n, at, yy: dot(yq, yq), sy: dot(yq, tpl.s(n)), oy: 0.0, other_cost: 0.0 });
+            let sy = dot(yq, tpl.s(n));
+            let only_s = only(sy, tpl.gram[n * tpl.candidates()][2]);
+            self.hood.push(Neighbour { n, at, yy: dot(yq, yq), sy, oy: 0.0, other_cost: 0.0, only_o: 0.0, only_s });
         }
         self.hood.sort_by_key(|q| q.n);
         self.groups.clear();
@@ -388,7 +462,15 @@ impl<'a> WindowFit<'a> {
     /// The window's cost of one return at candidate `c`.
     fn single(&self, c: usize) -> f64 {
         let (tpl, m, cands) = (self.tpl, self.tpl.m, self.tpl.candidates());
-        self.hood.iter().map(|q| nnls2(q.yy, [dot(tpl.g(q.n, c), &self.taps[q.at..][..m]), q.sy], tpl.gram[q.n * cands + c])).sum()
+        // (the window's pixels in their order: `groups` are its runs of one type)
+        let mut sum = 0.0;
+        for &(n, lo, hi) in &self.groups {
+            let (g, face) = (tpl.g(n, c), Face::new(tpl.gram[n * cands + c]));
+            for q in &self.hood[lo..hi] {
+                sum += face.cost(q.yy, dot(g, &self.taps[q.at..][..m]), q.sy, q.only_s);
+            }
+        }
+        sum
     }
 
     /// Hold a return fixed at `tau` (bins) for [`Self::joint`].
@@ -403,6 +485,7 @@ impl<'a> WindowFit<'a> {
             q.oy = dot(&self.taps[q.at..][..m], &self.other[q.n * m..][..m]);
             let [oo, os] = self.other_gram[q.n];
             q.other_cost = nnls2(q.yy, [q.oy, q.sy], [oo, os, tpl.gram[q.n * tpl.candidates()][2]]);
+            q.only_o = only(q.oy, oo);
         }
         self.other_tau = tau;
     }
@@ -422,8 +505,9 @@ impl<'a> WindowFit<'a> {
             let [oo, os] = self.other_gram[n];
             let go = dot(g, o);
             let gram = Gram3::new([[gg, go, gs], [go, oo, os], [gs, os, ss]]);
+            let (f01, f02) = (Face::new([gg, go, oo]), Face::new([gg, gs, ss]));
             for q in &self.hood[lo..hi] {
-                sum += nnls3(q.yy, [dot(g, &self.taps[q.at..][..m]), q.oy, q.sy], &gram, q.other_cost);
+                sum += nnls3(q.yy, [dot(g, &self.taps[q.at..][..m]), q.oy, q.sy], &gram, &f01, &f02, q.only_o, q.only_s, q.other_cost);
             }
         }
         sum
@@ -444,9 +528,9 @@ impl<'a> WindowFit<'a> {
         for &(n, lo, hi) in &self.groups {
             tpl.at(n, tau, g);
             let s = tpl.s(n);
-            let gram = [dot(g, g), dot(g, s), dot(s, s)];
+            let face = Face::new([dot(g, g), dot(g, s), dot(s, s)]);
             for q in &self.hood[lo..hi] {
-                sum += nnls2(q.yy, [dot(g, &self.taps[q.at..][..m]), q.sy], gram);
+                sum += face.cost(q.yy, dot(g, &self.taps[q.at..][..m]), q.sy, q.only_s);
             }
         }
         sum
@@ -658,6 +742,56 @@ mod tests {
     use tcsense_sensor::generate::random_codes;
     use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
     use tcsense_sensor::{Irf, SensorParams};
+
+    /// The shared faces give the numbers of `nnls2` on every face, to the bit, on noisy taps
+    /// where some coefficients come out negative (and the costs are what non-negative least
+    /// squares leaves: never above a column alone's).
+    #[test]
+    fn shared_faces_give_nnls2s_numbers_to_the_bit() {
+        let tpl = Templates::new(&sensor(), 4);
+        let cands = tpl.candidates();
+        let mut state = 7u64;
+        let mut uniform = || {
+            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let (mut negative, mut cases) = (0, 0);
+        for _ in 0..4000 {
+            let n = (uniform() * tpl.n as f64) as usize;
+            let (c, k) = ((uniform() * cands as f64) as usize, (uniform() * cands as f64) as usize);
+            let (g, o, s) = (tpl.g(n, c), tpl.g(n, k), tpl.s(n));
+            // a return at c, one at k, ambient, and noise that can outweigh them
+            let (a1, a2, b) = (uniform(), uniform() * uniform(), 0.05 * uniform());
+            let y: Vec<f64> = (0..tpl.m).map(|i| a1 * g[i] + a2 * o[i] + b * s[i] + 0.3 * (uniform() - 0.5)).collect();
+            let r = [dot(g, &y), dot(o, &y), dot(&y, s)];
+            let yy = dot(&y, &y);
+            let [gg, gs, ss] = tpl.gram[n * cands + c];
+            let (go, oo, os) = (dot(g, o), dot(o, o), dot(o, s));
+            // two columns: a face shared by many pixels against nnls2
+            let face = Face::new([gg, gs, ss]);
+            assert_eq!(face.cost(yy, r[0], r[2], only(r[2], ss)).to_bits(), nnls2(yy, [r[0], r[2]], [gg, gs, ss]).to_bits());
+            // three: against the faces each solved by nnls2
+            let gram = Gram3::new([[gg, go, gs], [go, oo, os], [gs, os, ss]]);
+            let face12 = nnls2(yy, [r[1], r[2]], [oo, os, ss]);
+            let reference = {
+                let x: [f64; 3] =
+                    std::array::from_fn(|i| (gram.cof[i][0] * r[0] + gram.cof[i][1] * r[1] + gram.cof[i][2] * r[2]) * gram.inv_det);
+                if gram.regular && x.iter().all(|&v| v >= 0.0) {
+                    (yy - x[0] * r[0] - x[1] * r[1] - x[2] * r[2]).max(0.0)
+                } else {
+                    negative += 1;
+                    nnls2(yy, [r[0], r[1]], [gg, go, oo]).min(nnls2(yy, [r[0], r[2]], [gg, gs, ss])).min(face12)
+                }
+            };
+            let (f01, f02) = (Face::new([gg, go, oo]), Face::new([gg, gs, ss]));
+            let cost = nnls3(yy, r, &gram, &f01, &f02, only(r[1], oo), only(r[2], ss), face12);
+            assert_eq!(cost.to_bits(), reference.to_bits(), "n {n} c {c} k {k}");
+            assert!(cost <= yy - only(r[0], gg) + 1e-12 * yy && cost >= 0.0);
+            cases += 1;
+        }
+        // both paths were taken
+        assert!(negative > cases / 10 && negative < cases, "{negative} of {cases} with a negative coefficient");
+    }
 
     /// The prototype's shape (4 taps, 2×2, L = 32) with the physical IRF.
     fn sensor() -> MeasurementMatrix {
