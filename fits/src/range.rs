@@ -217,18 +217,10 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
 }
 
 /// The least squares of `y` against a non-negative combination of two columns, from their
-/// Gram entries and inner products with `y`: `yy − max fit` over `a, b ≥ 0`.
+/// Gram entries and inner products with `y`: `yy − max fit` over `a, b ≥ 0` (the interior
+/// solve where both coefficients are non-negative, else one of the two alone, or neither).
 fn nnls2(yy: f64, [gy, sy]: [f64; 2], [gg, gs, ss]: [f64; 3]) -> f64 {
-    let det = gg * ss - gs * gs;
-    if det > 1e-12 * gg * ss {
-        let a = (ss * gy - gs * sy) / det;
-        let b = (gg * sy - gs * gy) / det;
-        if a >= 0.0 && b >= 0.0 {
-            return (yy - a * gy - b * sy).max(0.0);
-        }
-    }
-    // on the boundary: one of the two alone (or neither)
-    (yy - only(gy, gg).max(only(sy, ss))).max(0.0)
+    Face::new([gg, gs, ss]).cost(yy, gy, sy, only(sy, ss))
 }
 
 /// What one column alone removes of `y·y`: `max(v, 0)² / vv` (`v = g·y`, `vv = g·g`).
@@ -240,10 +232,9 @@ fn only(v: f64, vv: f64) -> f64 {
     }
 }
 
-/// The interior of [`nnls2`] for Gram entries that many pixels share (one subpixel type at one
-/// candidate): its determinant found once, and a pixel's divisions made only where both of its
-/// coefficients are non-negative (their signs are their numerators', the determinant being
-/// positive). The same numbers as `nnls2`.
+/// [`nnls2`] for Gram entries that many pixels share (one subpixel type at one candidate): its
+/// determinant found once, and a pixel's divisions made only where both of its coefficients
+/// are non-negative (their signs are their numerators', the determinant being positive).
 #[derive(Clone, Copy)]
 struct Face {
     gg: f64,
@@ -743,9 +734,24 @@ mod tests {
     use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
     use tcsense_sensor::{Irf, SensorParams};
 
-    /// The shared faces give the numbers of `nnls2` on every face, to the bit, on noisy taps
-    /// where some coefficients come out negative (and the costs are what non-negative least
-    /// squares leaves: never above a column alone's).
+    /// Two-column non-negative least squares written out: both coefficients by the solve,
+    /// kept where non-negative, else the better column alone.
+    fn nnls2_written_out(yy: f64, [gy, sy]: [f64; 2], [gg, gs, ss]: [f64; 3]) -> f64 {
+        let det = gg * ss - gs * gs;
+        if det > 1e-12 * gg * ss {
+            let a = (ss * gy - gs * sy) / det;
+            let b = (gg * sy - gs * gy) / det;
+            if a >= 0.0 && b >= 0.0 {
+                return (yy - a * gy - b * sy).max(0.0);
+            }
+        }
+        let alone = |v: f64, vv: f64| if vv > 0.0 { v.max(0.0).powi(2) / vv } else { 0.0 };
+        (yy - alone(gy, gg).max(alone(sy, ss))).max(0.0)
+    }
+
+    /// The shared faces (and `nnls2` on them) give the numbers of the two-column solve written
+    /// out on every face, to the bit, on noisy taps where some coefficients come out negative
+    /// (and the costs are what non-negative least squares leaves: never above a column alone's).
     #[test]
     fn shared_faces_give_nnls2s_numbers_to_the_bit() {
         let tpl = Templates::new(&sensor(), 4);
@@ -769,10 +775,12 @@ mod tests {
             let (go, oo, os) = (dot(g, o), dot(o, o), dot(o, s));
             // two columns: a face shared by many pixels against nnls2
             let face = Face::new([gg, gs, ss]);
-            assert_eq!(face.cost(yy, r[0], r[2], only(r[2], ss)).to_bits(), nnls2(yy, [r[0], r[2]], [gg, gs, ss]).to_bits());
+            let written = nnls2_written_out(yy, [r[0], r[2]], [gg, gs, ss]);
+            assert_eq!(face.cost(yy, r[0], r[2], only(r[2], ss)).to_bits(), written.to_bits());
+            assert_eq!(nnls2(yy, [r[0], r[2]], [gg, gs, ss]).to_bits(), written.to_bits());
             // three: against the faces each solved by nnls2
             let gram = Gram3::new([[gg, go, gs], [go, oo, os], [gs, os, ss]]);
-            let face12 = nnls2(yy, [r[1], r[2]], [oo, os, ss]);
+            let face12 = nnls2_written_out(yy, [r[1], r[2]], [oo, os, ss]);
             let reference = {
                 let x: [f64; 3] =
                     std::array::from_fn(|i| (gram.cof[i][0] * r[0] + gram.cof[i][1] * r[1] + gram.cof[i][2] * r[2]) * gram.inv_det);
@@ -780,7 +788,7 @@ mod tests {
                     (yy - x[0] * r[0] - x[1] * r[1] - x[2] * r[2]).max(0.0)
                 } else {
                     negative += 1;
-                    nnls2(yy, [r[0], r[1]], [gg, go, oo]).min(nnls2(yy, [r[0], r[2]], [gg, gs, ss])).min(face12)
+                    nnls2_written_out(yy, [r[0], r[1]], [gg, go, oo]).min(nnls2_written_out(yy, [r[0], r[2]], [gg, gs, ss])).min(face12)
                 }
             };
             let (f01, f02) = (Face::new([gg, go, oo]), Face::new([gg, gs, ss]));
