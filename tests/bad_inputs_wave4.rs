@@ -295,6 +295,33 @@ fn contradictions_and_messages() {
         args.extend(flag);
         p.refuse(&args, &[flag[0], "brings its own sensor", "--calibration"]);
     }
+    // the lifetime fit's settings are refused by decoders that do not take them, rather than
+    // ignored; a known onset is refused by every decoder that fits none
+    for (decoder, flag) in [
+        ("zoo:admm-lidar-designed", ["--window", "5"]),
+        ("zoo:admm-lidar-designed", ["--tau-ns", "1,2"]),
+        ("zoo:admm-lidar-designed", ["--min-intensity", "0.1"]),
+        ("depth-fit", ["--tau-ns", "1,2"]),
+    ] {
+        let mut args = vec!["reconstruct", decoder, "--measurements", "y32.npy", "-o", "d.npy"];
+        if decoder == "depth-fit" {
+            args.extend(["--codes", "dcodes.json"]);
+        }
+        args.extend(flag);
+        p.refuse(&args, &[flag[0], "lifetime-fit", decoder]);
+    }
+    p.refuse(
+        &["reconstruct", "zoo:admm-lidar-designed", "--no-background", "--measurements", "y32.npy", "-o", "d.npy"],
+        &["--no-background"],
+    );
+    p.refuse(
+        &["reconstruct", "depth-fit", "--codes", "dcodes.json", "--onset-ns", "3", "--measurements", "y32.npy", "-o", "d.npy"],
+        &["--onset-ns", "depth-fit fits no onset"],
+    );
+    p.refuse(
+        &["reconstruct", "zoo:admm-lidar-designed", "--onset-ns", "3", "--measurements", "y32.npy", "-o", "d.npy"],
+        &["onset", "ADMM-Net"],
+    );
     p.refuse(
         &["infer", "--model", "admm.onnx", "--measurements", "stack2.npy", "--depth-fit", "--lifetime-fit", "-o", "out"],
         &["--depth-fit", "--lifetime-fit"],

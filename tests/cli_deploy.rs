@@ -351,6 +351,51 @@ fn a_dim_recording_sums_its_frames_for_the_instrument() {
     assert_eq!(instrument_of(&infer("bright3.npy", &["--lifetime-fit"])).2, 1);
 }
 
+/// `reconstruct` gives a lifetime network on the fit's evidence a known onset as `infer`
+/// gives its exported graph one: the same lifetimes, and nearer the truth than at a wrong onset.
+#[test]
+fn a_known_onset_reaches_a_lifetime_network_in_reconstruct_as_in_infer() {
+    let d = tempdir();
+    let d = d.path();
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    std::fs::copy(root.join("zoo/lifetime-flim-designed/codes.json"), d.join("codes.json")).unwrap();
+    ok(d, &["dataset", "flim", "--count", "4", "--size", "32x32", "--heterodyne", "8", "--onset-ns", "30", "--seed", "4", "-o", "f"]);
+    let args = ["simulate", "--codes", "codes.json", "--heterodyne", "8", "--irf", "physical", "--noise", "--cube", "f/test/x_000.npy"];
+    ok(d, &[&args[..], &["--signal-fraction", "0.1", "--seed", "3", "-o", "y.npy"]].concat());
+    let truth = read_npy(&d.join("f/test/lifetime_000.npy")).unwrap();
+    let truth = truth.index_axis(ndarray::Axis(0), 0);
+    let net = "zoo:lifetime-flim-evidence-fast";
+    let lifetimes = |out: &str, onset: Option<&str>| {
+        let mut args = vec!["reconstruct", net, "--measurements", "y.npy", "-o", out];
+        args.extend(onset.map(|t| ["--onset-ns", t]).into_iter().flatten());
+        ok(d, &args);
+        read_npy(&d.join(out)).unwrap().index_axis_move(ndarray::Axis(0), 0).index_axis_move(ndarray::Axis(0), 0)
+    };
+    let mae = |est: &ndarray::ArrayD<f32>| {
+        let errs: Vec<f64> =
+            est.iter().zip(truth.iter()).filter(|(e, t)| e.is_finite() && t.is_finite()).map(|(e, t)| (e - t).abs() as f64).collect();
+        assert!(errs.len() > 100, "{} lifetimes", errs.len());
+        errs.iter().sum::<f64>() / errs.len() as f64 * 1e9
+    };
+    let (known, wrong, fitted) = (lifetimes("known.npy", Some("30")), lifetimes("wrong.npy", Some("34")), lifetimes("fitted.npy", None));
+    let (m_known, m_wrong) = (mae(&known), mae(&wrong));
+    println!("MAE {m_known:.3} ns at the true onset, {m_wrong:.3} at 4 ns late, {:.3} fitted", mae(&fitted));
+    assert!(m_known < 0.5 * m_wrong, "{m_known} against {m_wrong}");
+    assert!(known.iter().zip(fitted.iter()).any(|(a, b)| a != b), "the onset given changed nothing");
+    // the exported graph with `infer --onset-ns`: the same lifetimes
+    ok(d, &["export", "onnx", "--run", net, "-o", "fast.onnx"]);
+    let out = ok(d, &["infer", "--model", "fast.onnx", "--measurements", "y.npy", "--onset-ns", "30", "-o", "out"]);
+    assert!(out.contains("the onset given"), "{out}");
+    let streamed = read_npy(&d.join("out/lifetime.npy")).unwrap();
+    let streamed = streamed.index_axis(ndarray::Axis(0), 0);
+    let off = known
+        .iter()
+        .zip(streamed.iter())
+        .filter(|(a, b)| a.is_nan() != b.is_nan() || (a.is_finite() && (*a - *b).abs() > 1e-4 * b.abs()))
+        .count();
+    assert_eq!(off, 0, "{off} lifetimes differ between reconstruct and infer");
+}
+
 #[test]
 fn admm_net_export_with_the_matrix_as_input_and_eval_through_ort() {
     let d = tempdir();

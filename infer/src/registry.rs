@@ -396,7 +396,8 @@ fn open_lifetime_fit_pooled(o: &Opening<'_>) -> Result<NamedDecoder> {
 /// A training run of the network `kind` (its ranges fitted in the tap domain or not).
 fn open_run(o: &Opening<'_>, kind: &str, range_fit: bool) -> Result<NamedDecoder> {
     let dir = o.arg.unwrap_or_default();
-    let run = runs::open_with(&tcsense_models::zoo::resolve(dir)?, o.device, range_fit)?;
+    let opts = runs::OpenOptions { range_fit, onset_s: o.settings.tap_fit.onset_s };
+    let run = runs::open_opts(&tcsense_models::zoo::resolve(dir)?, o.device, &opts)?;
     let got = run.spec.model.name();
     if got != kind {
         return Err(InferError::File {
@@ -424,7 +425,8 @@ fn open_lifetime(o: &Opening<'_>) -> Result<NamedDecoder> {
 }
 
 fn open_zoo(o: &Opening<'_>) -> Result<NamedDecoder> {
-    let run = runs::open(&tcsense_models::zoo::resolve(o.label)?, o.device)?;
+    let opts = runs::OpenOptions { onset_s: o.settings.tap_fit.onset_s, ..Default::default() };
+    let run = runs::open_opts(&tcsense_models::zoo::resolve(o.label)?, o.device, &opts)?;
     Ok(NamedDecoder { label: o.label.into(), decoder: run.decoder, sensor: Some(run.sensor) })
 }
 

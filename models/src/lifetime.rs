@@ -153,6 +153,10 @@ pub struct LifetimeNet {
     temper: bool,
     /// The mode refined in the tap domain within a point of the fit's argmin.
     refine_near_mode: bool,
+    /// The decays' onset (s) when known (a calibration): the fit whose evidence the network
+    /// reads searches only the IRF's width. Not trained: set when decoding
+    /// ([`LifetimeNet::with_onset`]).
+    onset_s: Option<f64>,
 }
 
 impl LifetimeNetConfig {
@@ -217,6 +221,7 @@ impl LifetimeNetConfig {
             instrument_blocks: self.instrument_blocks,
             temper: costs && self.temper,
             refine_near_mode: costs && self.refine_near_mode,
+            onset_s: None,
         }
     }
 
@@ -410,6 +415,22 @@ impl LifetimeNet {
         self.pool_like
     }
 
+    /// The network decoding with the decays' onset known (s; `None`: fitted to each frame, as
+    /// in training): its evidence comes from the fit at that onset, which then searches only
+    /// the IRF's width (`reconstruct --onset-ns`, as `infer --onset-ns` for its exported graph).
+    /// The harmonics network fits no instrument: an error names it.
+    pub fn with_onset(mut self, onset_s: Option<f64>) -> std::result::Result<Self, String> {
+        if onset_s.is_some() && self.input_kind() != LifetimeInput::Costs {
+            return Err(
+                "a known onset is for a lifetime network on the fit's evidence; this one reads the harmonics of Aᵀy and fits no onset"
+                    .into(),
+            );
+        }
+        self.onset_s = onset_s;
+        self.fit_options().validate()?;
+        Ok(self)
+    }
+
     /// Side of the superpixels each frame's instrument is fitted on (0: from its photons).
     pub fn instrument_blocks(&self) -> usize {
         self.instrument_blocks
@@ -443,6 +464,7 @@ impl LifetimeNet {
             pool_like: self.pool_like,
             instrument_blocks: self.instrument_blocks,
             refine_near_mode: self.refine_near_mode,
+            onset_s: self.onset_s,
             ..Default::default()
         }
     }

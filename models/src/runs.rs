@@ -134,8 +134,9 @@ impl ModelConfig {
     /// Check the hyper-parameters against sane bounds (a config with absurd numbers would
     /// otherwise ask for terabytes when the network is built).
     pub fn validate(&self) -> Result<()> {
-        let bad =
-            |field: &'static str, got: String, expected: &str| Err(ModelError::InvalidParam { field, got, expected: expected.into() });
+        let bad = |field: &'static str, got: String, expected: &str| {
+            Err(crate::ModelError::InvalidParam { field, got, expected: expected.into() })
+        };
         let (taps, bins) = (self.taps(), self.bins());
         if !(1..=64).contains(&taps) {
             return bad("model.taps", taps.to_string(), "1..=64 taps");
@@ -424,13 +425,60 @@ pub fn open(dir: &Path, device: &Device) -> Result<Run> {
 /// [`open`], with a U-Net's ranges refined in the tap domain ([`tcsense_fits::range`], the
 /// default) or as the network outputs them (`range_fit: false`).
 pub fn open_with(dir: &Path, device: &Device, range_fit: bool) -> Result<Run> {
+    open_opts(dir, device, &OpenOptions { range_fit, onset_s: None })
+}
+
+/// How a run's network decodes ([`open_opts`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OpenOptions {
+    /// A U-Net's ranges refined in the tap domain (the default) or as the network gives them.
+    pub range_fit: bool,
+    /// The decays' onset (s) when known, for a lifetime network on the fit's evidence
+    /// ([`crate::lifetime::LifetimeNet::with_onset`]); any other network refuses one.
+    pub onset_s: Option<f64>,
+}
+
+impl Default for OpenOptions {
+    fn default() -> Self {
+        OpenOptions { range_fit: true, onset_s: None }
+    }
+}
+
+/// [`open`] with [`OpenOptions`].
+pub fn open_opts(dir: &Path, device: &Device, opts: &OpenOptions) -> Result<Run> {
     let LoadedRun { dir, spec, sensor, net } = load(dir, device)?;
     let name = spec.model.name();
+    let no_onset = |what: &str| -> Result<()> {
+        match opts.onset_s {
+            Some(t) => Err(crate::ModelError::InvalidParam {
+                field: "onset",
+                got: format!("{} ns", t * 1e9),
+                expected: format!("no onset for {} ({what}): a known onset is for a lifetime network on the fit's evidence", dir.display()),
+            }),
+            None => Ok(()),
+        }
+    };
     let decoder: Box<dyn Decoder> = match net {
-        TrainedNet::AdmmNet(net) => Box::new(NetDecoder::new(name, net, device.clone())),
-        TrainedNet::Unet(net) if !range_fit => Box::new(NetDecoder::new(name, net, device.clone()).without_range_fit()),
-        TrainedNet::Unet(net) => Box::new(NetDecoder::new(name, net, device.clone())),
-        TrainedNet::Lifetime(net) => Box::new(NetDecoder::new(name, net, device.clone())),
+        TrainedNet::AdmmNet(net) => {
+            no_onset("an ADMM-Net")?;
+            Box::new(NetDecoder::new(name, net, device.clone()))
+        }
+        TrainedNet::Unet(net) => {
+            no_onset("a depth U-Net")?;
+            if opts.range_fit {
+                Box::new(NetDecoder::new(name, net, device.clone()))
+            } else {
+                Box::new(NetDecoder::new(name, net, device.clone()).without_range_fit())
+            }
+        }
+        TrainedNet::Lifetime(net) => {
+            let net = net.with_onset(opts.onset_s).map_err(|msg| crate::ModelError::InvalidParam {
+                field: "onset",
+                got: format!("{} ns", opts.onset_s.unwrap_or(0.0) * 1e9),
+                expected: format!("{}: {msg}", dir.display()),
+            })?;
+            Box::new(NetDecoder::new(name, net, device.clone()))
+        }
     };
     Ok(Run { dir, spec, sensor, decoder })
 }

@@ -90,34 +90,56 @@ pub struct TapFitArgs {
     /// The decay onset in ns when known (e.g. from a calibration); default: fitted to each frame.
     #[arg(long)]
     pub onset_ns: Option<f64>,
-    /// Side of the square window of pixels whose fit costs are summed (odd; 1: every pixel alone).
-    #[arg(long, default_value_t = 3)]
-    pub window: usize,
-    /// Lifetimes searched, LO,HI in ns.
-    #[arg(long, default_value = "0.1,25")]
-    pub tau_ns: String,
-    /// Pixels below this fraction of the brightest pixel's charge get no lifetime.
-    #[arg(long, default_value_t = 0.02)]
-    pub min_intensity: f32,
+    /// Side of the square window of pixels whose fit costs are summed (odd; 1: every pixel
+    /// alone) [default: 3]
+    #[arg(long)]
+    pub window: Option<usize>,
+    /// Lifetimes searched, LO,HI in ns [default: 0.1,25]
+    #[arg(long)]
+    pub tau_ns: Option<String>,
+    /// Pixels below this fraction of the brightest pixel's charge get no lifetime [default: 0.02]
+    #[arg(long)]
+    pub min_intensity: Option<f32>,
     /// No background term (when the scene is known to have none).
     #[arg(long)]
     pub no_background: bool,
 }
 
+/// The fit's window when `--window` is not given.
+const DEFAULT_WINDOW: usize = 3;
+
 impl TapFitArgs {
+    /// The fit's window side (`--window`, else 3).
+    pub fn window(&self) -> usize {
+        self.window.unwrap_or(DEFAULT_WINDOW)
+    }
+
+    /// The first of the lifetime fit's own flags given (`--window` only where `window_too`
+    /// is false: the range fit takes it as well), for a decoder that takes none of them.
+    fn given_besides_onset(&self, window_too: bool) -> Option<&'static str> {
+        [
+            (window_too && self.window.is_some(), "--window"),
+            (self.tau_ns.is_some(), "--tau-ns"),
+            (self.min_intensity.is_some(), "--min-intensity"),
+            (self.no_background, "--no-background"),
+        ]
+        .into_iter()
+        .find_map(|(given, flag)| given.then_some(flag))
+    }
+
     pub fn options(&self) -> Result<tcsense_fits::lifetime_taps::TapFitOptions> {
-        let r: Vec<f64> = self
-            .tau_ns
+        let tau_ns = self.tau_ns.as_deref().unwrap_or("0.1,25");
+        let r: Vec<f64> = tau_ns
             .split(',')
             .map(|s| s.trim().parse::<f64>())
             .collect::<std::result::Result<_, _>>()
             .ok()
             .filter(|v: &Vec<f64>| v.len() == 2)
-            .with_context(|| format!("--tau-ns {:?}: expected LO,HI in ns (e.g. 0.1,25)", self.tau_ns))?;
+            .with_context(|| format!("--tau-ns {tau_ns:?}: expected LO,HI in ns (e.g. 0.1,25)"))?;
         let o = tcsense_fits::lifetime_taps::TapFitOptions {
             tau_range_s: [r[0] * 1e-9, r[1] * 1e-9],
-            window: self.window,
-            min_intensity: self.min_intensity,
+            window: self.window(),
+            min_intensity: self.min_intensity.unwrap_or(0.02),
             onset_s: self.onset_ns.map(|t| t * 1e-9),
             background: !self.no_background,
             ..Default::default()
@@ -205,11 +227,32 @@ impl ReconstructArgs {
         if entry == names::TVAL3 {
             s.tval3 = self.tval3.options()?;
         }
-        if entry == names::LIFETIME_FIT || entry == names::LIFETIME_FIT_POOLED {
+        let lifetime_fit = entry == names::LIFETIME_FIT || entry == names::LIFETIME_FIT_POOLED;
+        let depth_fit = entry == names::DEPTH_FIT || entry == names::DEPTH_FIT_POOLED;
+        if lifetime_fit {
             s.tap_fit = self.fit.options()?;
+        } else {
+            if let Some(flag) = self.fit.given_besides_onset(!depth_fit) {
+                bail!(
+                    "{flag}: a setting of the fit of lifetimes to the taps (lifetime-fit, lifetime-fit-pooled){}; {name} does not take it",
+                    if flag == "--window" { " and of depth-fit" } else { "" }
+                );
+            }
+            if let Some(t) = self.fit.onset_ns {
+                // a lifetime network on the fit's evidence takes it (the registry refuses any other run)
+                if !(name.contains(':') && [names::LIFETIME, names::ZOO].contains(&entry)) {
+                    bail!(
+                        "--onset-ns: for the lifetime fits and a lifetime network on the fit's evidence (lifetime:RUN, zoo:NAME; or `tcsense infer --onset-ns` on its exported model); {name} fits no onset"
+                    );
+                }
+                s.tap_fit.onset_s = Some(t * 1e-9);
+                if let Err(e) = s.tap_fit.validate() {
+                    bail!("--onset-ns {t}: {e}");
+                }
+            }
         }
-        if entry == names::DEPTH_FIT || entry == names::DEPTH_FIT_POOLED {
-            s.depth_fit.fit.window = self.fit.window;
+        if depth_fit {
+            s.depth_fit.fit.window = self.fit.window();
             if let Some(r) = self.returns {
                 s.depth_fit.returns = r;
             }
