@@ -394,6 +394,22 @@ fn a_known_onset_reaches_a_lifetime_network_in_reconstruct_as_in_infer() {
         .filter(|(a, b)| a.is_nan() != b.is_nan() || (a.is_finite() && (*a - *b).abs() > 1e-4 * b.abs()))
         .count();
     assert_eq!(off, 0, "{off} lifetimes differ between reconstruct and infer");
+    // `eval --onset-ns`: the dataset's onset to the decoders that fit one (the fit, the network
+    // on its evidence), the harmonics network decoding as without it
+    let eval = |onset: &str, out: &str| -> Vec<f64> {
+        let args = ["eval", "--dataset", "f", "--codes", "codes.json", "--heterodyne", "8", "--irf", "physical", "--light", "0.1"];
+        let decoders = ["--decoder", "lifetime-fit", "--decoder", net, "--decoder", "zoo:lifetime-flim-designed"];
+        let printed = ok(d, &[&args[..], &decoders, &["--seed", "3", "--onset-ns", onset, "-o", out]].concat());
+        assert!(printed.contains(&format!("the onset given: {onset} ns")), "{printed}");
+        let rows: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join(out)).unwrap()).unwrap();
+        rows.as_array().unwrap().iter().map(|r| r["lifetime_mae_s"].as_f64().unwrap() * 1e9).collect()
+    };
+    let (at_truth, late) = (eval("30", "e30.json"), eval("34", "e34.json"));
+    println!("eval: MAE {at_truth:?} ns at the true onset, {late:?} at 4 ns late");
+    assert!(at_truth[0] < 0.5 * late[0] && at_truth[1] < 0.5 * late[1], "{at_truth:?} against {late:?}");
+    assert_eq!(at_truth[2], late[2], "the harmonics network fits no onset");
+    let ds = ["eval", "--dataset", "f", "--codes", "codes.json", "--heterodyne", "8", "--decoder", "tval3"];
+    fails(d, &[&ds[..], &["--onset-ns", "2000"]].concat(), &["--onset-ns"]);
 }
 
 #[test]

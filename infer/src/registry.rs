@@ -89,6 +89,9 @@ pub struct DecoderSettings {
     pub tap_fit: TapFitOptions,
     /// The fit of ranges to the taps (`depth-fit:K` sets its returns).
     pub depth_fit: DepthFitOptions,
+    /// A known onset (`tap_fit.onset_s`) goes to the decoders that fit one and not to the
+    /// others, instead of being refused by those (an evaluation's onset of its dataset).
+    pub onset_where_taken: bool,
 }
 
 /// What an entry's `open` is given.
@@ -316,7 +319,16 @@ pub fn entry_name(name: &str) -> &str {
 /// Open a decoder of the built-in table by name with TVAL3's options `tval3` and every other
 /// decoder's defaults ([`Registry::open`]).
 pub fn open_decoder(name: &str, tval3: &Tval3Options, device: &Device) -> Result<NamedDecoder> {
-    Registry::builtin().open(name, &DecoderSettings { tval3: *tval3, ..Default::default() }, device)
+    open_decoder_at_onset(name, tval3, None, device)
+}
+
+/// [`open_decoder`] with the data's onset (s) when known: the lifetime fits and the lifetime
+/// networks on the fit's evidence take it (they fit only the IRF's width), the others decode
+/// as they would without it.
+pub fn open_decoder_at_onset(name: &str, tval3: &Tval3Options, onset_s: Option<f64>, device: &Device) -> Result<NamedDecoder> {
+    let tap_fit = TapFitOptions { onset_s, ..Default::default() };
+    tap_fit.validate().map_err(|msg| InferError::InvalidParam { field: "onset", got: format!("{onset_s:?} s"), expected: msg })?;
+    Registry::builtin().open(name, &DecoderSettings { tval3: *tval3, tap_fit, onset_where_taken: true, ..Default::default() }, device)
 }
 
 fn any_sensor(o: &Opening<'_>, decoder: Box<dyn Decoder>) -> Result<NamedDecoder> {
@@ -396,7 +408,7 @@ fn open_lifetime_fit_pooled(o: &Opening<'_>) -> Result<NamedDecoder> {
 /// A training run of the network `kind` (its ranges fitted in the tap domain or not).
 fn open_run(o: &Opening<'_>, kind: &str, range_fit: bool) -> Result<NamedDecoder> {
     let dir = o.arg.unwrap_or_default();
-    let opts = runs::OpenOptions { range_fit, onset_s: o.settings.tap_fit.onset_s };
+    let opts = runs::OpenOptions { range_fit, onset_s: o.settings.tap_fit.onset_s, onset_strict: !o.settings.onset_where_taken };
     let run = runs::open_opts(&tcsense_models::zoo::resolve(dir)?, o.device, &opts)?;
     let got = run.spec.model.name();
     if got != kind {
@@ -425,7 +437,7 @@ fn open_lifetime(o: &Opening<'_>) -> Result<NamedDecoder> {
 }
 
 fn open_zoo(o: &Opening<'_>) -> Result<NamedDecoder> {
-    let opts = runs::OpenOptions { onset_s: o.settings.tap_fit.onset_s, ..Default::default() };
+    let opts = runs::OpenOptions { onset_s: o.settings.tap_fit.onset_s, onset_strict: !o.settings.onset_where_taken, ..Default::default() };
     let run = runs::open_opts(&tcsense_models::zoo::resolve(o.label)?, o.device, &opts)?;
     Ok(NamedDecoder { label: o.label.into(), decoder: run.decoder, sensor: Some(run.sensor) })
 }

@@ -427,7 +427,9 @@ impl LifetimeNet {
             );
         }
         self.onset_s = onset_s;
-        self.fit_options().validate()?;
+        if onset_s.is_some() {
+            self.fit_options().validate()?;
+        }
         Ok(self)
     }
 

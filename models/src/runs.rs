@@ -425,7 +425,7 @@ pub fn open(dir: &Path, device: &Device) -> Result<Run> {
 /// [`open`], with a U-Net's ranges refined in the tap domain ([`tcsense_fits::range`], the
 /// default) or as the network outputs them (`range_fit: false`).
 pub fn open_with(dir: &Path, device: &Device, range_fit: bool) -> Result<Run> {
-    open_opts(dir, device, &OpenOptions { range_fit, onset_s: None })
+    open_opts(dir, device, &OpenOptions { range_fit, ..Default::default() })
 }
 
 /// How a run's network decodes ([`open_opts`]).
@@ -434,13 +434,16 @@ pub struct OpenOptions {
     /// A U-Net's ranges refined in the tap domain (the default) or as the network gives them.
     pub range_fit: bool,
     /// The decays' onset (s) when known, for a lifetime network on the fit's evidence
-    /// ([`crate::lifetime::LifetimeNet::with_onset`]); any other network refuses one.
+    /// ([`crate::lifetime::LifetimeNet::with_onset`]).
     pub onset_s: Option<f64>,
+    /// Whether a network that fits no onset refuses `onset_s` (an error naming it) or decodes
+    /// without it (a dataset's onset given to every decoder of an evaluation).
+    pub onset_strict: bool,
 }
 
 impl Default for OpenOptions {
     fn default() -> Self {
-        OpenOptions { range_fit: true, onset_s: None }
+        OpenOptions { range_fit: true, onset_s: None, onset_strict: true }
     }
 }
 
@@ -449,7 +452,7 @@ pub fn open_opts(dir: &Path, device: &Device, opts: &OpenOptions) -> Result<Run>
     let LoadedRun { dir, spec, sensor, net } = load(dir, device)?;
     let name = spec.model.name();
     let no_onset = |what: &str| -> Result<()> {
-        match opts.onset_s {
+        match opts.onset_s.filter(|_| opts.onset_strict) {
             Some(t) => Err(crate::ModelError::InvalidParam {
                 field: "onset",
                 got: format!("{} ns", t * 1e9),
@@ -472,7 +475,9 @@ pub fn open_opts(dir: &Path, device: &Device, opts: &OpenOptions) -> Result<Run>
             }
         }
         TrainedNet::Lifetime(net) => {
-            let net = net.with_onset(opts.onset_s).map_err(|msg| crate::ModelError::InvalidParam {
+            let takes = net.input_kind() == crate::lifetime::LifetimeInput::Costs;
+            let onset = opts.onset_s.filter(|_| takes || opts.onset_strict);
+            let net = net.with_onset(onset).map_err(|msg| crate::ModelError::InvalidParam {
                 field: "onset",
                 got: format!("{} ns", opts.onset_s.unwrap_or(0.0) * 1e9),
                 expected: format!("{}: {msg}", dir.display()),

@@ -76,7 +76,7 @@ pub fn run(a: BenchDecodersArgs) -> Result<()> {
     let mut outputs = Outputs::plan(&[("-o", a.output.as_path()), ("-o's CSV", &csv), ("-o's figure", &png), ("-o's curve", &photon)])?;
     let ds = Dataset::open(&a.dataset)?;
     let sensor = a.sensor.sensor()?;
-    let mut decoders = super::eval::open_for(&ds, &a.sensor, &sensor, &a.decoder, &a.tval3, &a.device)?;
+    let mut decoders = super::eval::open_for(&ds, &a.sensor, &sensor, &a.decoder, &a.tval3, None, &a.device)?;
     let (h, w) = a.frame;
     let (bh, bw) = sensor.nominal().block();
     if h % bh != 0 || w % bw != 0 {

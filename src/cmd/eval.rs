@@ -7,7 +7,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use tcsense_datasets::Dataset;
 use tcsense_infer::eval::{evaluate, evaluate_ladder, EvalRow, EvalSettings};
-use tcsense_infer::registry::open_decoder;
+use tcsense_infer::registry::open_decoder_at_onset;
 use tcsense_sensor::npy::write_bytes;
 use tcsense_sensor::output::Outputs;
 use tcsense_sensor::{NoiseParams, Sampling};
@@ -62,6 +62,11 @@ pub struct EvalArgs {
     /// half a bin, against the brightest tap's signal electrons) into this PNG.
     #[arg(long, value_name = "PNG", requires = "light")]
     plot: Option<PathBuf>,
+    /// The decays' onset in ns when known (a calibration; FLIm datasets): the lifetime fits and
+    /// the lifetime networks on the fit's evidence take it and fit only the IRF's width; the
+    /// other decoders fit no onset and decode as without it. Default: fitted to each item.
+    #[arg(long, value_parser = super::number_in(-1000.0, 1000.0))]
+    onset_ns: Option<f64>,
     /// Noise seed (item i uses a stream derived from it).
     #[arg(long, default_value_t = 0)]
     seed: u64,
@@ -82,7 +87,13 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     let ds = Dataset::open(&a.dataset)?;
     let sensor = a.sensor.sensor()?;
     let nonideal = a.nonideal.nonideal()?;
-    let mut decoders = open_for(&ds, &a.sensor, &sensor, &a.decoder, &a.tval3, &a.device)?;
+    if a.onset_ns.is_some() && ds.manifest.kind != tcsense_datasets::store::Kind::Flim {
+        bail!("--onset-ns: {} is not a FLIm dataset; only lifetime decoders fit an onset", a.dataset.display());
+    }
+    let mut decoders = open_for(&ds, &a.sensor, &sensor, &a.decoder, &a.tval3, a.onset_ns.map(|t| t * 1e-9), &a.device)?;
+    if let Some(t) = a.onset_ns {
+        println!("the onset given: {t} ns (to the lifetime fits and the lifetime networks on the fit's evidence)");
+    }
     let noise = NoiseParams { signal_fraction: NoiseParams::default().signal_fraction * a.brightness, ..NoiseParams::default() };
     let noise = noise.validate().map_err(|e| anyhow::anyhow!("--brightness {}: {e}", a.brightness))?;
     let noisy = a.noise || !a.light.is_empty() || a.sbr.is_some();
@@ -150,6 +161,7 @@ pub(super) fn open_for(
     sensor: &tcsense_sensor::Sensor,
     names: &[String],
     tval3: &Tval3Args,
+    onset_s: Option<f64>,
     device: &super::DeviceArgs,
 ) -> Result<Vec<tcsense_infer::registry::NamedDecoder>> {
     let (codes, spec) = (sensor.codes(), sensor.spec());
@@ -176,7 +188,7 @@ pub(super) fn open_for(
         tcsense_models::Device::flex()
     };
     for name in names {
-        let d = open_decoder(name, &opts, &device)?;
+        let d = open_decoder_at_onset(name, &opts, onset_s, &device)?;
         if let (Some(run_codes), Some((_, run))) = (d.codes(), name.split_once(':')) {
             if run_codes.shape() != codes.shape() || (0..codes.subpixels() * codes.taps()).any(|c| run_codes.channel(c) != codes.channel(c))
             {
