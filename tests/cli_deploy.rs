@@ -402,7 +402,9 @@ fn a_known_onset_reaches_a_lifetime_network_in_reconstruct_as_in_infer() {
         let printed = ok(d, &[&args[..], &decoders, &["--seed", "3", "--onset-ns", onset, "-o", out]].concat());
         assert!(printed.contains(&format!("the onset given: {onset} ns")), "{printed}");
         let rows: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join(out)).unwrap()).unwrap();
-        rows.as_array().unwrap().iter().map(|r| r["lifetime_mae_s"].as_f64().unwrap() * 1e9).collect()
+        let rows = rows.as_array().unwrap();
+        assert!(rows.iter().all(|r| (r["onset_given_s"].as_f64().unwrap() * 1e9 - onset.parse::<f64>().unwrap()).abs() < 1e-9));
+        rows.iter().map(|r| r["lifetime_mae_s"].as_f64().unwrap() * 1e9).collect()
     };
     let (at_truth, late) = (eval("30", "e30.json"), eval("34", "e34.json"));
     println!("eval: MAE {at_truth:?} ns at the true onset, {late:?} at 4 ns late");

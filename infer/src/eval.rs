@@ -53,6 +53,10 @@ pub struct EvalRow {
     /// The light the measurements were simulated at, on a photon ladder ([`evaluate_ladder`]).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub light: Option<Light>,
+    /// The decays' onset (s) given to the decoders that fit one (`eval --onset-ns`); absent:
+    /// fitted to each item.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub onset_given_s: Option<f64>,
     #[serde(skip)]
     /// Per bounce: the counts summed over items, Σ squared and Σ absolute errors.
     depth_sums: Vec<(DepthErrors, f64, f64)>,

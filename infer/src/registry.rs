@@ -295,6 +295,18 @@ impl Registry {
             None => (name, None),
         };
         let entry = self.entry(key).ok_or_else(|| InferError::UnknownDecoder { name: name.into(), known: self.usages() })?;
+        // a known onset is for the decoders that fit one (a network run is checked when opened)
+        if let (Some(t), false) = (settings.tap_fit.onset_s, settings.onset_where_taken) {
+            if ![names::LIFETIME_FIT, names::LIFETIME_FIT_POOLED, names::LIFETIME, names::ZOO].contains(&key) {
+                return Err(InferError::InvalidParam {
+                    field: "onset",
+                    got: format!("{} ns", (t * 1e15).round() / 1e6),
+                    expected: format!(
+                        "no onset for {name}, which fits none: a known onset is for the lifetime fits and the lifetime networks on the fit's evidence (lifetime:RUN, zoo:NAME)"
+                    ),
+                });
+            }
+        }
         match (entry.arg, arg) {
             (ArgUse::None, Some(_)) | (ArgUse::Required, None) | (_, Some("")) => {
                 return Err(InferError::InvalidParam {

@@ -455,7 +455,7 @@ pub fn open_opts(dir: &Path, device: &Device, opts: &OpenOptions) -> Result<Run>
         match opts.onset_s.filter(|_| opts.onset_strict) {
             Some(t) => Err(crate::ModelError::InvalidParam {
                 field: "onset",
-                got: format!("{} ns", t * 1e9),
+                got: format!("{} ns", (t * 1e15).round() / 1e6),
                 expected: format!("no onset for {} ({what}): a known onset is for a lifetime network on the fit's evidence", dir.display()),
             }),
             None => Ok(()),
@@ -479,7 +479,7 @@ pub fn open_opts(dir: &Path, device: &Device, opts: &OpenOptions) -> Result<Run>
             let onset = opts.onset_s.filter(|_| takes || opts.onset_strict);
             let net = net.with_onset(onset).map_err(|msg| crate::ModelError::InvalidParam {
                 field: "onset",
-                got: format!("{} ns", opts.onset_s.unwrap_or(0.0) * 1e9),
+                got: format!("{} ns", (opts.onset_s.unwrap_or(0.0) * 1e15).round() / 1e6),
                 expected: format!("{}: {msg}", dir.display()),
             })?;
             Box::new(NetDecoder::new(name, net, device.clone()))

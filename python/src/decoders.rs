@@ -12,7 +12,7 @@ use pyo3::types::{PyDict, PyList};
 use tcsense_fits::lifetime_taps::TapFitOptions;
 use tcsense_infer::decode::{check_codes, decode_batch};
 use tcsense_infer::fitted::TapFitDecoder;
-use tcsense_infer::registry::open_decoder;
+use tcsense_infer::registry::{DecoderSettings, Registry};
 use tcsense_models::decoder::{Control, Decoded, Decoder, Tval3Decoder};
 use tcsense_models::{runs, zoo, Device, Tval3Options};
 
@@ -148,16 +148,22 @@ fn open_run(py: Python<'_>, run: &Bound<'_, PyAny>, calibration: Option<&Bound<'
 /// `unet:RUN`, `lifetime:RUN`, `zoo:NAME` or `onnx:MODEL.onnx` (through ONNX Runtime); a
 /// decoder of cubes followed by `+fit` also gives `depth`, the cube's peaks refined in the tap
 /// domain (`tval3+fit`, `zoo:admm-lidar-delay+fit`). `tval3` takes TVAL3's settings as keyword arguments (`mu`, `beta`, `maxit`, `tol`, …).
+/// `onset_ns`: the decays' onset when known (a calibration), for `lifetime-fit`,
+/// `lifetime-fit-pooled` and a lifetime network on the fit's evidence (`lifetime:RUN`,
+/// `zoo:NAME`), which then fit only the IRF's width; any other decoder refuses it.
 #[pyfunction(name = "open_decoder")]
-#[pyo3(signature = (name, **tval3))]
-fn open_decoder_py(py: Python<'_>, name: &str, tval3: Option<&Bound<'_, PyDict>>) -> PyResult<PyDecoder> {
+#[pyo3(signature = (name, *, onset_ns=None, **tval3))]
+fn open_decoder_py(py: Python<'_>, name: &str, onset_ns: Option<f64>, tval3: Option<&Bound<'_, PyDict>>) -> PyResult<PyDecoder> {
     let opts: Tval3Options = merged(&Tval3Options::default(), tval3, "tval3 settings")?;
+    let tap_fit = TapFitOptions { onset_s: onset_ns.map(|t| t * 1e-9), ..Default::default() };
+    tap_fit.validate().map_err(|e| err(format!("onset_ns={onset_ns:?}: {e}")))?;
+    let settings = DecoderSettings { tval3: opts, tap_fit, ..Default::default() };
     // `NAME+fit`: the decoder NAME (its kind, codes and sensor) with its ranges refined
     let base = name.strip_suffix("+fit").unwrap_or(name);
     if let Some(("onnx", file)) = base.split_once(':') {
         existing(std::path::Path::new(file), "onnx model")?;
     }
-    let d = run_long(py, |_| open_decoder(name, &opts, &Device::flex()))?.map_err(err)?;
+    let d = run_long(py, |_| Registry::builtin().open(name, &settings, &Device::flex()))?.map_err(err)?;
     // the kind: the network of a run or model, else the name (`tval3`, `lifetime-fit`, `depth-fit`)
     let kind = match base.split_once(':') {
         None => base.to_string(),

@@ -146,10 +146,12 @@ class Decoder:
 def open_run(run: PathLike, *, calibration: Optional[PathLike] = None) -> Decoder:
     """A trained run directory or ``zoo:NAME`` as a decoder with its codes and sensor."""
 
-def open_decoder(name: str, **tval3: Any) -> Decoder:
+def open_decoder(name: str, *, onset_ns: Optional[float] = None, **tval3: Any) -> Decoder:
     """By command-line name: tval3, lifetime-fit, admm-net:RUN, unet:RUN, lifetime:RUN,
     zoo:NAME, onnx:MODEL.onnx; a decoder of cubes followed by ``+fit`` (``tval3+fit``,
-    ``zoo:admm-lidar-delay+fit``) also gives ``depth``, its peaks refined in the tap domain."""
+    ``zoo:admm-lidar-delay+fit``) also gives ``depth``, its peaks refined in the tap domain.
+    ``onset_ns``: the decays' onset when known, for the lifetime fits and a lifetime network on
+    the fit's evidence (they fit only the IRF's width); any other decoder refuses it."""
 
 def tval3(y: F32, sensor: Sensor, **options: Any) -> F32:
     """TVAL3: ``[M, H, W]`` → ``[T, H, W]`` (or batched). Options: mu, beta, maxit, tol,

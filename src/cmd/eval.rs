@@ -114,7 +114,10 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
         evaluate_ladder(&ds, &sensor, &mut decoders, &settings, &a.light, &on_item, &cancel)
     };
     pb.finish_and_clear();
-    let rows = rows?;
+    let mut rows = rows?;
+    for r in rows.iter_mut() {
+        r.onset_given_s = a.onset_ns.map(|t| t * 1e-9);
+    }
     let mut level = None;
     for r in &rows {
         if r.light != level {
