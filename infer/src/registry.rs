@@ -59,6 +59,13 @@ pub mod names {
     pub const ONNX: &str = "onnx";
     /// The suffix that refines a cube decoder's peaks in the tap domain.
     pub const PLUS_FIT: &str = "+fit";
+
+    /// Whether the entry `key` may fit an onset, and so take a known one: the lifetime fits,
+    /// and the network runs and zoo entries (a lifetime network on the fit's evidence; any
+    /// other run refuses it when opened).
+    pub fn fits_onset(key: &str) -> bool {
+        [LIFETIME_FIT, LIFETIME_FIT_POOLED, LIFETIME, ZOO].contains(&key)
+    }
 }
 
 /// A decoder opened by name, with the sensor it was trained for (learned decoders and
@@ -297,7 +304,7 @@ impl Registry {
         let entry = self.entry(key).ok_or_else(|| InferError::UnknownDecoder { name: name.into(), known: self.usages() })?;
         // a known onset is for the decoders that fit one (a network run is checked when opened)
         if let (Some(t), false) = (settings.tap_fit.onset_s, settings.onset_where_taken) {
-            if ![names::LIFETIME_FIT, names::LIFETIME_FIT_POOLED, names::LIFETIME, names::ZOO].contains(&key) {
+            if !names::fits_onset(key) {
                 return Err(InferError::InvalidParam {
                     field: "onset",
                     got: format!("{} ns", (t * 1e15).round() / 1e6),

@@ -134,9 +134,8 @@ impl ModelConfig {
     /// Check the hyper-parameters against sane bounds (a config with absurd numbers would
     /// otherwise ask for terabytes when the network is built).
     pub fn validate(&self) -> Result<()> {
-        let bad = |field: &'static str, got: String, expected: &str| {
-            Err(crate::ModelError::InvalidParam { field, got, expected: expected.into() })
-        };
+        let bad =
+            |field: &'static str, got: String, expected: &str| Err(ModelError::InvalidParam { field, got, expected: expected.into() });
         let (taps, bins) = (self.taps(), self.bins());
         if !(1..=64).contains(&taps) {
             return bad("model.taps", taps.to_string(), "1..=64 taps");
@@ -453,7 +452,7 @@ pub fn open_opts(dir: &Path, device: &Device, opts: &OpenOptions) -> Result<Run>
     let name = spec.model.name();
     let no_onset = |what: &str| -> Result<()> {
         match opts.onset_s.filter(|_| opts.onset_strict) {
-            Some(t) => Err(crate::ModelError::InvalidParam {
+            Some(t) => Err(ModelError::InvalidParam {
                 field: "onset",
                 got: format!("{} ns", (t * 1e15).round() / 1e6),
                 expected: format!("no onset for {} ({what}): a known onset is for a lifetime network on the fit's evidence", dir.display()),
@@ -477,7 +476,7 @@ pub fn open_opts(dir: &Path, device: &Device, opts: &OpenOptions) -> Result<Run>
         TrainedNet::Lifetime(net) => {
             let takes = net.input_kind() == crate::lifetime::LifetimeInput::Costs;
             let onset = opts.onset_s.filter(|_| takes || opts.onset_strict);
-            let net = net.with_onset(onset).map_err(|msg| crate::ModelError::InvalidParam {
+            let net = net.with_onset(onset).map_err(|msg| ModelError::InvalidParam {
                 field: "onset",
                 got: format!("{} ns", (opts.onset_s.unwrap_or(0.0) * 1e15).round() / 1e6),
                 expected: format!("{}: {msg}", dir.display()),

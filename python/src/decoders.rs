@@ -156,7 +156,6 @@ fn open_run(py: Python<'_>, run: &Bound<'_, PyAny>, calibration: Option<&Bound<'
 fn open_decoder_py(py: Python<'_>, name: &str, onset_ns: Option<f64>, tval3: Option<&Bound<'_, PyDict>>) -> PyResult<PyDecoder> {
     let opts: Tval3Options = merged(&Tval3Options::default(), tval3, "tval3 settings")?;
     let tap_fit = TapFitOptions { onset_s: onset_ns.map(|t| t * 1e-9), ..Default::default() };
-    tap_fit.validate().map_err(|e| err(format!("onset_ns={onset_ns:?}: {e}")))?;
     let settings = DecoderSettings { tval3: opts, tap_fit, ..Default::default() };
     // `NAME+fit`: the decoder NAME (its kind, codes and sensor) with its ranges refined
     let base = name.strip_suffix("+fit").unwrap_or(name);

@@ -90,7 +90,8 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     if a.onset_ns.is_some() && ds.manifest.kind != tcsense_datasets::store::Kind::Flim {
         bail!("--onset-ns: {} is not a FLIm dataset; only lifetime decoders fit an onset", a.dataset.display());
     }
-    let mut decoders = open_for(&ds, &a.sensor, &sensor, &a.decoder, &a.tval3, a.onset_ns.map(|t| t * 1e-9), &a.device)?;
+    let onset_s = a.onset_ns.map(|t| t * 1e-9);
+    let mut decoders = open_for(&ds, &a.sensor, &sensor, &a.decoder, &a.tval3, onset_s, &a.device)?;
     if let Some(t) = a.onset_ns {
         println!("the onset given: {t} ns (to the lifetime fits and the lifetime networks on the fit's evidence)");
     }
@@ -116,7 +117,7 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
     pb.finish_and_clear();
     let mut rows = rows?;
     for r in rows.iter_mut() {
-        r.onset_given_s = a.onset_ns.map(|t| t * 1e-9);
+        r.onset_given_s = onset_s;
     }
     let mut level = None;
     for r in &rows {

@@ -105,13 +105,10 @@ pub struct TapFitArgs {
     pub no_background: bool,
 }
 
-/// The fit's window when `--window` is not given.
-const DEFAULT_WINDOW: usize = 3;
-
 impl TapFitArgs {
-    /// The fit's window side (`--window`, else 3).
+    /// The fit's window side (`--window`, else the fit's default, 3).
     pub fn window(&self) -> usize {
-        self.window.unwrap_or(DEFAULT_WINDOW)
+        self.window.unwrap_or(tcsense_fits::lifetime_taps::TapFitOptions::default().window)
     }
 
     /// The first of the lifetime fit's own flags given (`--window` only where `window_too`
@@ -139,7 +136,7 @@ impl TapFitArgs {
         let o = tcsense_fits::lifetime_taps::TapFitOptions {
             tau_range_s: [r[0] * 1e-9, r[1] * 1e-9],
             window: self.window(),
-            min_intensity: self.min_intensity.unwrap_or(0.02),
+            min_intensity: self.min_intensity.unwrap_or(tcsense_fits::lifetime_taps::TapFitOptions::default().min_intensity),
             onset_s: self.onset_ns.map(|t| t * 1e-9),
             background: !self.no_background,
             ..Default::default()
@@ -240,7 +237,7 @@ impl ReconstructArgs {
             }
             if let Some(t) = self.fit.onset_ns {
                 // a lifetime network on the fit's evidence takes it (the registry refuses any other run)
-                if !(name.contains(':') && [names::LIFETIME, names::ZOO].contains(&entry)) {
+                if !names::fits_onset(entry) {
                     bail!(
                         "--onset-ns: for the lifetime fits and a lifetime network on the fit's evidence (lifetime:RUN, zoo:NAME; or `tcsense infer --onset-ns` on its exported model); {name} fits no onset"
                     );
