@@ -100,7 +100,7 @@ pub struct LifetimeNetConfig {
     #[config(default = 0)]
     pub pool_like: usize,
     /// Side, in blocks of the mosaic, of the superpixels each frame's instrument is fitted on
-    /// (0: chosen from the frame's photons, [`tcsense_fits::lifetime_taps::instrument_side`];
+    /// (0: from the frame's photons, [`tcsense_fits::lifetime_taps::TapFitOptions::instrument_blocks`];
     /// 1: every pixel, as in runs written before it; [`LifetimeInput::Costs`]).
     #[config(default = 0)]
     pub instrument_blocks: usize,

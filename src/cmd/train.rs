@@ -77,7 +77,8 @@ pub struct LifetimeArgs {
     pool_like: Option<usize>,
     /// With `--input costs`: fit each frame's onset and IRF width on superpixels of this side
     /// (in blocks of the mosaic; each subpixel type's taps summed over one), 1 for every pixel
-    /// alone [default: 0, chosen from the frame's photons].
+    /// alone [default: 0, from the frame's photons: every pixel alone where they suffice, else
+    /// its brightest pixels under the frame's mixture of lifetimes].
     #[arg(long, value_parser = super::count_in(0, 64))]
     instrument_blocks: Option<usize>,
     /// With `--input costs`: weigh the fit's log-likelihood by a temperature the network sets

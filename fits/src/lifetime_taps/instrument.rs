@@ -46,6 +46,23 @@ pub(super) fn side_of(r: &[f32], weight: &[f32], (m, h, w): (usize, usize, usize
     if most == 1 {
         return 1;
     }
+    let Some((gain, charge)) = frame_gain(r, weight, (m, h, w), (bh, bw), bright) else {
+        return 1;
+    };
+    let photons = charge / gain;
+    ((INSTRUMENT_PHOTONS / photons).sqrt().ceil() as usize).clamp(1, most)
+}
+
+/// The frame's gain `g` (charge per photon, as the noise counts photons) and the median charge
+/// of the brightest pixels `bright`, from neighbouring pixels of one subpixel type (see
+/// [`instrument_side`]); `None` where no pair of them is lit.
+pub(super) fn frame_gain(
+    r: &[f32],
+    weight: &[f32],
+    (m, h, w): (usize, usize, usize),
+    (bh, bw): (usize, usize),
+    bright: &[usize],
+) -> Option<(f64, f64)> {
     let pair = |p: usize, q: usize| -> Option<f64> {
         let (sp, sq) = (weight[p] as f64, weight[q] as f64);
         if sq <= 0.0 {
@@ -76,19 +93,13 @@ pub(super) fn side_of(r: &[f32], weight: &[f32], (m, h, w): (usize, usize, usize
         .collect();
     let mut charges: Vec<f64> = bright.iter().map(|&p| weight[p] as f64).collect();
     let by = |a: &f64, b: &f64| a.total_cmp(b);
-    let (Some(least), Some(charge)) = (median(&mut gains, by), median(&mut charges, by)) else {
-        return 1;
-    };
+    let (least, charge) = (median(&mut gains, by)?, median(&mut charges, by)?);
     // the median of the least of 4 ratios that are each χ² of M − 1 degrees of freedom over
     // M − 1 (times the gain): its quantile 1 − 0.5^¼ = 0.159 (z = −0.998), by Wilson–Hilferty
     let k = m.saturating_sub(1).max(1) as f64;
     let c = (1.0 - 2.0 / (9.0 * k) - 0.998 * (2.0 / (9.0 * k)).sqrt()).max(0.05).powi(3);
     let gain = least / c;
-    if !(gain > 0.0 && gain.is_finite()) {
-        return 1;
-    }
-    let photons = charge / gain;
-    ((INSTRUMENT_PHOTONS / photons).sqrt().ceil() as usize).clamp(1, most)
+    (gain > 0.0 && gain.is_finite()).then_some((gain, charge))
 }
 
 /// The `n` lit (weight above 0) pixels of largest weight, brightest first (ties by index).
@@ -146,6 +157,7 @@ pub(super) fn instrument(
     bright: &[usize],
     m: usize,
     kind: &(dyn Fn(usize) -> usize + Sync),
+    temperature: Option<f64>,
 ) -> (f64, f64) {
     let widths = &opts.irf_fwhm_s;
     if bright.is_empty() {
@@ -156,7 +168,14 @@ pub(super) fn instrument(
     // (on the grid of half steps: the templates are linear between its points)
     let full = grid(opts, 2 * opts.points - 1);
     let frame_cost = |t0: f64, fwhm: f64| -> f64 {
-        brightest_cost(&TypeTable::of(&Templates::new(a, &decays(c, &full, t0, fwhm))), &pixels, usize::MAX, 16, opts.background)
+        brightest_cost(
+            &TypeTable::of(&Templates::new(a, &decays(c, &full, t0, fwhm))),
+            &pixels,
+            usize::MAX,
+            16,
+            opts.background,
+            temperature,
+        )
     };
     let score = |cands: &[(f64, f64)]| -> (f64, f64, f64) {
         cands
@@ -178,8 +197,10 @@ pub(super) fn instrument(
     // (the candidates in the order of a cheap look, the brightest 16 pixels on the grid alone,
     // so that the first searched set a low bound: a candidate is left as soon as its running
     // cost passes the least total found, which it could then only exceed: the same answer)
-    let glance: Vec<f64> =
-        coarse_cands.par_iter().map(|&(wi, j)| brightest_cost(&coarse.tables[wi * bins + j], &pixels, 16, 0, opts.background)).collect();
+    let glance: Vec<f64> = coarse_cands
+        .par_iter()
+        .map(|&(wi, j)| brightest_cost(&coarse.tables[wi * bins + j], &pixels, 16, 0, opts.background, temperature))
+        .collect();
     let mut order: Vec<usize> = (0..coarse_cands.len()).collect();
     order.sort_by(|&x, &y| glance[x].total_cmp(&glance[y]).then(x.cmp(&y)));
     coarse_cands = order.iter().map(|&k| coarse_cands[k]).collect();
@@ -188,7 +209,7 @@ pub(super) fn instrument(
         .par_iter()
         .filter_map(|&(wi, j)| {
             let bound = f64::from_bits(least.load(Ordering::Relaxed));
-            let cost = brightest_cost_within(&coarse.tables[wi * bins + j], &pixels, 128, 10, opts.background, bound)?;
+            let cost = brightest_cost_within(&coarse.tables[wi * bins + j], &pixels, 128, 10, opts.background, bound, temperature)?;
             // (non-negative: the bits order as the numbers)
             least.fetch_min(cost.to_bits(), Ordering::Relaxed);
             Some((cost, wi, j))
@@ -317,7 +338,7 @@ fn correlate(row: &[f32], e: &[f32], o: &mut [f32]) {
 }
 
 /// The cost of the first `count` of `pixels` (normalised taps, weight, type), each at its best
-/// lifetime of `tables`, between the grid's points by `refine` golden sections (a grid's steps
+/// lifetime of `tables` (at a `temperature`, their [`mixture_cost`] instead), between the grid's points by `refine` golden sections (a grid's steps
 /// bias the onset: at the lower cost of a later onset and a shorter lifetime, the coarse
 /// search placed a paper scene's onset 1.2 ns late with a parabola instead).
 pub(super) fn brightest_cost(
@@ -326,8 +347,9 @@ pub(super) fn brightest_cost(
     count: usize,
     refine: usize,
     background: bool,
+    temperature: Option<f64>,
 ) -> f64 {
-    brightest_cost_within(tables, pixels, count, refine, background, f64::INFINITY).unwrap_or(f64::INFINITY)
+    brightest_cost_within(tables, pixels, count, refine, background, f64::INFINITY, temperature).unwrap_or(f64::INFINITY)
 }
 
 /// [`brightest_cost`], left (`None`) as soon as the running total passes `bound`: every
@@ -340,7 +362,11 @@ pub(super) fn brightest_cost_within(
     refine: usize,
     background: bool,
     bound: f64,
+    temperature: Option<f64>,
 ) -> Option<f64> {
+    if let Some(t) = temperature {
+        return mixture_cost(tables, pixels, count, background, t, bound);
+    }
     let g = tables[0].points;
     let mut cost = vec![0f32; g];
     let mut beta = vec![0f32; g];
@@ -368,6 +394,72 @@ pub(super) fn brightest_cost_within(
     Some(total)
 }
 
+/// Background shares of the mixture's components ([`mixture_cost`]).
+/// (Fine at low shares: a frame's background is most often a few per cent of its charge.)
+const SHARES: [f32; 18] = [0.0, 0.01, 0.02, 0.03, 0.05, 0.07, 0.1, 0.13, 0.17, 0.22, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0];
+
+/// EM iterations of the mixture's weights ([`mixture_cost`]).
+const MIXTURE_ITERATIONS: usize = 24;
+
+/// The negative log-likelihood of the first `count` of `pixels` under one mixture of
+/// (lifetime, background share) components shared by the frame, its weights `π` fitted by EM:
+/// pixel `p`'s cost of component `k` is `c_pk` (its taps against the component's, times its
+/// charge), its likelihood `exp(−c_pk / 2t)` at the temperature `t` of a tap's noise, and the
+/// frame's cost `Σ_p −ln Σ_k π_k exp(−c_pk / 2t)`.
+///
+/// A lifetime and a background share fitted to each pixel alone (its least cost) bias a dim
+/// frame's onset late: the pixels' own nuisances fit the noise the better at later onsets (see
+/// docs/lifetimes.md, "Where the dim-light onset's lateness comes from"). The mixture's weights
+/// are the frame's, as many as the components whatever the pixels, and the noise does not fit
+/// them. `None` as soon as its lower bound, every pixel at its least cost, passes `bound` (each
+/// pixel's term is at least that: `π` sums to 1 and every likelihood is at most 1 there).
+fn mixture_cost(
+    tables: &[TypeTable],
+    pixels: &[(Vec<f32>, f32, usize)],
+    count: usize,
+    background: bool,
+    t: f64,
+    bound: f64,
+) -> Option<f64> {
+    let shares: &[f32] = if background { &SHARES } else { &SHARES[..1] };
+    let k_n = tables[0].points * shares.len();
+    let pixels = &pixels[..count.min(pixels.len())];
+    let mut lik = vec![0f64; pixels.len() * k_n];
+    let mut cost = vec![0f32; k_n];
+    let mut floor = 0.0;
+    for (p, (r, w, n)) in pixels.iter().enumerate() {
+        tables[*n].costs_at_shares(r, *w, shares, &mut cost);
+        let least = cost.iter().fold(f32::INFINITY, |a, &b| a.min(b)) as f64;
+        floor += least / (2.0 * t);
+        for (l, &c) in lik[p * k_n..(p + 1) * k_n].iter_mut().zip(&cost) {
+            *l = (-(c as f64 - least) / (2.0 * t)).exp();
+        }
+        if floor > bound {
+            return None;
+        }
+    }
+    let mut pi = vec![1.0 / k_n as f64; k_n];
+    let mut next = vec![0f64; k_n];
+    for _ in 0..MIXTURE_ITERATIONS {
+        next.fill(0.0);
+        for l in lik.chunks_exact(k_n) {
+            let z: f64 = l.iter().zip(&pi).map(|(a, b)| a * b).sum();
+            if z > 0.0 {
+                for ((o, a), b) in next.iter_mut().zip(l).zip(&pi) {
+                    *o += a * b / z;
+                }
+            }
+        }
+        let total: f64 = next.iter().sum();
+        if !(total > 0.0) {
+            break;
+        }
+        pi.iter_mut().zip(&next).for_each(|(p, v)| *p = v / total);
+    }
+    let evidence: f64 = lik.chunks_exact(k_n).map(|l| -l.iter().zip(&pi).map(|(a, b)| a * b).sum::<f64>().max(1e-300).ln()).sum();
+    Some(floor + evidence)
+}
+
 #[cfg(test)]
 mod tests {
     use super::{brightest_cost, brightest_cost_within, correlate, TypeTable};
@@ -388,15 +480,15 @@ mod tests {
             })
             .collect();
         for (refine, background) in [(0, false), (10, true), (16, false)] {
-            let full = brightest_cost(&tables, &pixels, usize::MAX, refine, background);
+            let full = brightest_cost(&tables, &pixels, usize::MAX, refine, background, None);
             assert!(full > 0.0 && full.is_finite());
             for bound in [full, full * 1.5, f64::INFINITY] {
-                let got = brightest_cost_within(&tables, &pixels, usize::MAX, refine, background, bound);
+                let got = brightest_cost_within(&tables, &pixels, usize::MAX, refine, background, bound, None);
                 assert_eq!(got.map(f64::to_bits), Some(full.to_bits()), "bound {bound} at total {full}");
             }
             for bound in [full * (1.0 - 1e-9), full * 0.5, 0.0] {
                 assert_eq!(
-                    brightest_cost_within(&tables, &pixels, usize::MAX, refine, background, bound),
+                    brightest_cost_within(&tables, &pixels, usize::MAX, refine, background, bound, None),
                     None,
                     "bound {bound} below {full}"
                 );

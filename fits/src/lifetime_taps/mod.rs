@@ -20,6 +20,11 @@
 //! same cost summed over the frame's brightest pixels, searched over every bin of the cycle
 //! (a cyclic shift of the templates) and the candidate widths, then refined to a quarter bin.
 //! A delayed scene therefore gives the same lifetimes: the search finds the delayed onset.
+//! In a dim frame each pixel's own best lifetime and background share fit its noise, the better
+//! at later onsets, and the onset comes late; there the frame's brightest pixels are instead
+//! scored under one mixture of (lifetime, background share) components that the frame shares,
+//! its weights fitted by EM at the temperature of a tap's noise (from neighbouring pixels), and
+//! the IRF held at its narrowest width (docs/lifetimes.md, "The frame's mixture").
 //! The lifetimes are searched on a log grid and refined by a parabola through the minimum.
 
 pub mod evidence;
@@ -64,7 +69,9 @@ pub struct TapFitOptions {
     pub pool_like: usize,
     /// Side, in blocks of the sensor's subpixel mosaic, of the superpixels the instrument is
     /// fitted on (each subpixel type's taps summed over the superpixel): 1, every pixel alone;
-    /// 0, chosen from the frame's photons ([`instrument_side`]).
+    /// 0, from the frame's photons: every pixel alone where they hold enough photons
+    /// ([`instrument_side`] of 1), else the brightest pixels alone under the frame's mixture of
+    /// lifetimes and background shares (no superpixels; see the module's notes).
     pub instrument_blocks: usize,
     /// Where a decoder's mode overrules the fit ([`LifetimeTemplates::refine_modes`]): refine
     /// it in the tap domain wherever it is within one point of the grid of the fit's own
@@ -231,12 +238,24 @@ fn instrument_of(f: &Normalised, (m, h, w): (usize, usize, usize), a: &Measureme
         0 => side_of(&f.r, &f.weight, (m, h, w), block, &bright),
         s => s,
     };
-    let (onset_s, irf_fwhm_s) = if side > 1 {
+    // a dim frame: its brightest pixels alone under the frame's mixture, at the temperature
+    // of a tap's noise (`g/M` in the costs' units: a charge `S`'s normalised taps vary by
+    // `g·r̄_k/S`, and the costs are weighted by `S`)
+    let temperature = (side > 1 && opts.instrument_blocks == 0 && opts.onset_s.is_none())
+        .then(|| frame_gain(&f.r, &f.weight, (m, h, w), block, &bright))
+        .flatten()
+        .map(|(gain, _)| gain / m as f64);
+    // at the narrowest IRF width: in dim light the widths are not told apart, and the onset
+    // would drift with the width chosen
+    let (onset_s, irf_fwhm_s) = if temperature.is_some() {
+        let narrow = TapFitOptions { irf_fwhm_s: vec![opts.irf_fwhm_s.iter().copied().fold(f64::INFINITY, f64::min)], ..opts.clone() };
+        instrument(&a.a(), c, &narrow, &f.r, &f.weight, &bright, m, &|p: usize| subpixel_flat(p, w, block), temperature)
+    } else if side > 1 {
         let (r, weight) = superpixels(f, (m, h, w), block, side);
         let types = block.0 * block.1;
-        instrument(&a.a(), c, opts, &r, &weight, &brightest_of(&weight, opts.brightest), m, &|q: usize| q % types)
+        instrument(&a.a(), c, opts, &r, &weight, &brightest_of(&weight, opts.brightest), m, &|q: usize| q % types, None)
     } else {
-        instrument(&a.a(), c, opts, &f.r, &f.weight, &bright, m, &|p: usize| subpixel_flat(p, w, block))
+        instrument(&a.a(), c, opts, &f.r, &f.weight, &bright, m, &|p: usize| subpixel_flat(p, w, block), None)
     };
     Instrument { onset_s, irf_fwhm_s }
 }
@@ -819,10 +838,14 @@ mod tests {
         crate::testing::noise(y, photons, seed, false)
     }
 
-    /// Shot noise as a sensor has it: [`noisy`]'s, the frame's brightest pixel at `photons` and
-    /// every other in proportion to its charge.
+    /// Shot noise as a sensor has it: Poisson, by the sensor's noise model (no read noise), the
+    /// frame's brightest pixel at `photons` and every other in proportion to its charge.
     fn shot_noise(y: &ndarray::Array3<f32>, photons: f64, seed: u64) -> ndarray::Array3<f32> {
-        crate::testing::noise(y, photons, seed, true)
+        use tcsense_sensor::noise::{add_noise, Exposure};
+        let peak = y.sum_axis(ndarray::Axis(0)).iter().fold(0f32, |a, &b| a.max(b));
+        let noise = tcsense_sensor::NoiseParams { full_well_e: 1e12, read_noise_e: 0.0, signal_fraction: 1.0, adc_bits: 0 };
+        let out = add_noise(&y.view().into_dyn(), &noise, Exposure::ElectronsPerUnit(photons / peak as f64), seed).unwrap();
+        out.in_input_units().into_dimensionality().unwrap()
     }
 
     /// The refinement around points chosen elsewhere is the fit's own where the choice is the
@@ -903,9 +926,9 @@ mod tests {
     }
 
     /// The superpixels' side comes from the photons, whatever the frame's units: bright, every
-    /// pixel; in dim light, sides whose superpixels hold about 250 photons (by an estimate that
-    /// reads about twice this noise's photons: taps near zero hold fewer degrees of freedom than
-    /// M − 1); a frame of 8×8 pixels holds 2 blocks at most.
+    /// pixel; in dim light, sides whose superpixels hold about 250 photons, up to 4 blocks (a
+    /// frame of 32×32 pixels holds 8 blocks: 4 is the cap); a frame of 8×8 pixels holds 2 blocks
+    /// at most.
     #[test]
     fn the_instrument_side_reads_the_photons_whatever_the_units() {
         let a = sensor();
@@ -914,7 +937,7 @@ mod tests {
             instrument_side(&f.r, &f.weight, y.dim(), a.block(), 256)
         };
         let y = taps(&a, 32, 32, &cells, 2e-9, 0.5e-9, 0.0);
-        for (photons, want) in [(1e6, 1), (2e4, 1), (60.0, 2), (20.0, 2), (5.0, 3)] {
+        for (photons, want) in [(1e6, 1), (2e4, 1), (60.0, 2), (20.0, 4), (5.0, 4)] {
             let noisy = shot_noise(&y, photons, 3);
             assert_eq!(side(&noisy), want, "{photons} photons");
             assert_eq!(side(&noisy.mapv(|v| v * 1234.5)), want, "{photons} photons in other units");
@@ -969,6 +992,40 @@ mod tests {
         let bright = shot_noise(&y, 1e5, 7);
         assert_eq!(instrument(&bright, 0), instrument(&bright, 1));
         assert!(error(instrument(&bright, 0)) < 0.1e-9);
+    }
+
+    /// In dim light the frame's mixture (the default where the photons ask for superpixels)
+    /// keeps the onset on every pixel alone, where their least costs put it late: over three
+    /// seeds of a frame of four lifetimes (shot noise, 100 photons in the brightest pixel), each
+    /// within 0.25 ns, where the pixels alone read it 0.8 ns late or more. The mixture's
+    /// temperature counts: at a tenth of it the onset comes late again.
+    #[test]
+    fn the_frames_mixture_keeps_the_onset_in_dim_light() {
+        let a = sensor();
+        let t0 = 2e-9;
+        let y = taps(&a, 32, 32, &|i, j| cells(i + 3, j + 5), t0, 0.0, 0.0);
+        let instrument = |y: &ndarray::Array3<f32>, blocks: usize| {
+            estimate_instrument(&y.view(), &a, &TapFitOptions { instrument_blocks: blocks, ..Default::default() })
+        };
+        let late = |i: Instrument| (i.onset_s - t0 + 26.35e-9).rem_euclid(52.7e-9) - 26.35e-9;
+        for seed in 0..3 {
+            let dim = shot_noise(&y, 100.0, seed);
+            let (alone, mixture) = (late(instrument(&dim, 1)), late(instrument(&dim, 0)));
+            assert!(
+                alone > 0.75e-9 && mixture.abs() < 0.25e-9,
+                "seed {seed}: onset {mixture:e} s late under the mixture, {alone:e} s alone"
+            );
+        }
+        // the same search at a tenth of the temperature
+        let dim = shot_noise(&y, 100.0, 0);
+        let f = normalise(&dim.view(), 0.0);
+        let bright = brightest_of(&f.weight, 256);
+        let (gain, _) = frame_gain(&f.r, &f.weight, dim.dim(), a.block(), &bright).unwrap();
+        let c = Cycle::new(a.bins(), a.bin_width_s());
+        let opts = TapFitOptions { irf_fwhm_s: vec![0.0], ..Default::default() };
+        let subpixel = |p: usize| subpixel_flat(p, 32, a.block());
+        let cold = instrument::instrument(&a.a(), c, &opts, &f.r, &f.weight, &bright, 4, &subpixel, Some(0.1 * gain / 4.0));
+        assert!(late(Instrument { onset_s: cold.0, irf_fwhm_s: cold.1 }) > 0.35e-9, "onset {:e} at a tenth of the temperature", cold.0);
     }
 
     #[test]

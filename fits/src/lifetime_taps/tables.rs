@@ -209,6 +209,24 @@ impl TypeTable {
         }
     }
 
+    /// The cost of every lifetime at each background share of `shares` for normalised taps `r`
+    /// `[M]` weighted by `w`, into `out` `[G·J]` (lifetime-major: `out[i·J + j]`), `J` the shares.
+    pub(super) fn costs_at_shares(&self, r: &[f32], w: f32, shares: &[f32], out: &mut [f32]) {
+        let (g, j_n) = (self.points, shares.len());
+        for i in 0..g {
+            let (mut c0, mut pd, mut dd) = (0f32, 0f32, 0f32);
+            for (k, &rk) in r.iter().enumerate() {
+                let (e, d) = (rk - self.g[k * g + i], self.d[k * g + i]);
+                c0 += e * e;
+                pd += e * d;
+                dd += d * d;
+            }
+            for (o, &b) in out[i * j_n..(i + 1) * j_n].iter_mut().zip(shares) {
+                *o = w * (c0 - 2.0 * b * pd + b * b * dd).max(0.0);
+            }
+        }
+    }
+
     /// The cost of lifetime `i` alone and its background share.
     pub(super) fn cost_at(&self, i: usize, r: &[f32], w: f32, background: bool) -> (f32, f32) {
         let g = self.points;

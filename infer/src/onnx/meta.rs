@@ -104,7 +104,8 @@ pub struct EvidenceNote {
     #[serde(default, skip_serializing_if = "is_zero")]
     pub pool_like: usize,
     /// Side, in blocks of the mosaic, of the superpixels each frame's instrument is fitted on
-    /// (0: chosen from the frame's photons; 1, every pixel, in models exported before it).
+    /// (0: from the frame's photons, every pixel alone where they suffice, else the brightest
+    /// pixels under the frame's mixture of lifetimes; 1, every pixel, in models exported before it).
     #[serde(default = "one")]
     pub instrument_blocks: usize,
     /// The graph's mode refined in the tap domain within a point of the fit's argmin (false,
