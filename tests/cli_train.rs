@@ -563,8 +563,10 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
     args.extend(["-o", "evw-ft2"]);
     ok(d, &args);
     assert_eq!(loss_of("evw-ft2"), [serde_json::json!(0.0), serde_json::json!("ns"), serde_json::json!("stalled")]);
-    // each frame's instrument on superpixels as its photons ask (the runs before it: every pixel)
+    // each frame's instrument on superpixels as its photons ask (the runs before it: every
+    // pixel), a dim frame's under the frame's mixture when asked (it decodes so anyway)
     assert_eq!(cfg["model"]["instrument_blocks"], serde_json::json!(0));
+    assert_eq!(cfg["model"]["instrument_mixture"], serde_json::json!(false));
     assert!(out.contains("the instrument on superpixels as the photons ask"), "{out}");
     ok(d, &["reconstruct", "lifetime", "--run", "evw", "--measurements", "y.npy", "-o", "tau-w.npy"]);
     let tau_w = read_npy(&d.join("tau-w.npy")).unwrap();
@@ -584,6 +586,8 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
     fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["windows", "--input costs"]);
     let args = train(&["--instrument-blocks", "2", "--epochs", "1"], "bad");
     fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["instrument_blocks", "--input costs"]);
+    let args = train(&["--instrument-mixture", "--epochs", "1"], "bad");
+    fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["instrument_mixture", "--input costs"]);
     let args = train(&["--temper", "--epochs", "1"], "bad");
     fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["temper", "--input costs"]);
     let args = train(&["--refine-near-mode", "--epochs", "1"], "bad");

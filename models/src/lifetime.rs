@@ -104,6 +104,13 @@ pub struct LifetimeNetConfig {
     /// 1: every pixel, as in runs written before it; [`LifetimeInput::Costs`]).
     #[config(default = 0)]
     pub instrument_blocks: usize,
+    /// With `instrument_blocks` 0, a dim frame's instrument in training on its brightest pixels
+    /// under the frame's mixture (true), or on superpixels (false: about 8× faster to train, and as
+    /// in runs written before it; [`tcsense_fits::lifetime_taps::TapFitOptions::instrument_mixture`]).
+    /// A run decodes with the mixture whatever it was trained with
+    /// ([`LifetimeNet::with_instrument_mixture`]).
+    #[config(default = false)]
+    pub instrument_mixture: bool,
     /// Weigh the log-likelihood (the window's, pooled or widened) by a temperature the head
     /// sets pixel by pixel, `e^{clip(2·o_t, −4, 1)}`, before the prior is added: the network
     /// may soften evidence that is sharp and wrong (a pooled likelihood across a cell's edge, a
@@ -149,6 +156,8 @@ pub struct LifetimeNet {
     pool_like: usize,
     /// Side of the superpixels of the instrument's fit (0: from the frame's photons).
     instrument_blocks: usize,
+    /// A dim frame's instrument under the frame's mixture (else on superpixels).
+    instrument_mixture: bool,
     /// The log-likelihood weighed by a learned temperature (the head's last channel).
     temper: bool,
     /// The mode refined in the tap domain within a point of the fit's argmin.
@@ -219,6 +228,7 @@ impl LifetimeNetConfig {
             windows: if costs { self.windows.clone() } else { Vec::new() },
             pool_like: if costs { self.pool_like } else { 0 },
             instrument_blocks: self.instrument_blocks,
+            instrument_mixture: self.instrument_mixture,
             temper: costs && self.temper,
             refine_near_mode: costs && self.refine_near_mode,
             onset_s: None,
@@ -438,6 +448,20 @@ impl LifetimeNet {
         self.instrument_blocks
     }
 
+    /// Whether a dim frame's instrument is searched under the frame's mixture (else on
+    /// superpixels).
+    pub fn instrument_mixture(&self) -> bool {
+        self.instrument_mixture
+    }
+
+    /// The network decoding with a dim frame's instrument searched under the frame's mixture
+    /// (`true`) or on superpixels. The search is not learned: a run records the one its
+    /// training used, so that its recipe replays, and decodes with the mixture ([`crate::runs::open`]).
+    pub fn with_instrument_mixture(mut self, mixture: bool) -> Self {
+        self.instrument_mixture = mixture;
+        self
+    }
+
     /// Whether the log-likelihood is weighed by a learned temperature (the head's last channel,
     /// after the log-prior, the confidence and the wider windows' log-weights).
     pub fn tempered(&self) -> bool {
@@ -465,6 +489,7 @@ impl LifetimeNet {
             min_intensity: 0.0,
             pool_like: self.pool_like,
             instrument_blocks: self.instrument_blocks,
+            instrument_mixture: self.instrument_mixture,
             refine_near_mode: self.refine_near_mode,
             onset_s: self.onset_s,
             ..Default::default()

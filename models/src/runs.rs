@@ -308,6 +308,8 @@ pub fn upgrade_config(mut v: serde_json::Value) -> serde_json::Value {
                 model.entry("temper").or_insert(serde_json::Value::from(false));
                 // and before the refinement near the mode
                 model.entry("refine_near_mode").or_insert(serde_json::Value::from(false));
+                // and before the frame's mixture in training: superpixels (the default still)
+                model.entry("instrument_mixture").or_insert(serde_json::Value::from(false));
             }
         }
     }
@@ -476,11 +478,15 @@ pub fn open_opts(dir: &Path, device: &Device, opts: &OpenOptions) -> Result<Run>
         TrainedNet::Lifetime(net) => {
             let takes = net.input_kind() == crate::lifetime::LifetimeInput::Costs;
             let onset = opts.onset_s.filter(|_| takes || opts.onset_strict);
-            let net = net.with_onset(onset).map_err(|msg| ModelError::InvalidParam {
-                field: "onset",
-                got: format!("{} ns", (opts.onset_s.unwrap_or(0.0) * 1e15).round() / 1e6),
-                expected: format!("{}: {msg}", dir.display()),
-            })?;
+            let net = net
+                .with_onset(onset)
+                .map_err(|msg| ModelError::InvalidParam {
+                    field: "onset",
+                    got: format!("{} ns", (opts.onset_s.unwrap_or(0.0) * 1e15).round() / 1e6),
+                    expected: format!("{}: {msg}", dir.display()),
+                })?
+                // (the instrument's search is not learned: every run decodes with the best)
+                .with_instrument_mixture(true);
             Box::new(NetDecoder::new(name, net, device.clone()))
         }
     };

@@ -81,6 +81,11 @@ pub struct LifetimeArgs {
     /// its brightest pixels under the frame's mixture of lifetimes].
     #[arg(long, value_parser = super::count_in(0, 64))]
     instrument_blocks: Option<usize>,
+    /// With `--input costs`: in training, fit a dim frame's onset and IRF width on its
+    /// brightest pixels under the frame's mixture of lifetimes and background shares, as every
+    /// run decodes, instead of on superpixels (about 8× slower to train) [default: off].
+    #[arg(long)]
+    instrument_mixture: bool,
     /// With `--input costs`: weigh the fit's log-likelihood by a temperature the network sets
     /// pixel by pixel (`e^{clip(2·o_t, −4, 1)}`, 1 untrained), so that it may soften evidence
     /// that is sharp and wrong (pooled across an edge, a biased instrument) [default: off].
@@ -501,6 +506,7 @@ impl TrainArgs {
                 (req.harmonics, req.base_width, req.levels, req.input, req.points, req.windows, req.pool_like) =
                     (n.harmonics, n.base_width, n.levels, n.input.and_then(name_of), n.points, n.windows.clone(), n.pool_like);
                 req.instrument_blocks = n.instrument_blocks;
+                req.instrument_mixture = n.instrument_mixture.then_some(true);
                 req.temper = n.temper.then_some(true);
                 req.grid_ce = n.grid_ce;
                 req.refine_near_mode = n.refine_near_mode.then_some(true);

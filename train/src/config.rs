@@ -226,7 +226,8 @@ impl TrainConfig {
                         } else {
                             format!(", its window pooled by likeness over {0}×{0}", m.pool_like)
                         } + &match m.instrument_blocks {
-                            0 => ", the instrument on superpixels as the photons ask".to_string(),
+                            0 if m.instrument_mixture => ", a dim frame's instrument under the frame's mixture".to_string(),
+                            0 => ", the instrument on superpixels as the photons ask (decoded under the frame's mixture)".to_string(),
                             1 => ", the instrument on every pixel".to_string(),
                             s => format!(", the instrument on superpixels of {s}×{s} blocks"),
                         } + if m.temper { ", its log-likelihood at a learned temperature" } else { "" }

@@ -84,6 +84,9 @@ pub struct TrainRequest {
     /// Lifetime decoder on the fit's evidence: refine the mode in the tap domain within a point
     /// of the fit's argmin.
     pub refine_near_mode: Option<bool>,
+    /// Lifetime decoder on the fit's evidence: a dim frame's instrument in training under the
+    /// frame's mixture (else on superpixels).
+    pub instrument_mixture: Option<bool>,
     pub epochs: Option<usize>,
     pub lr: Option<f64>,
     /// `cosine` or `constant`.
@@ -184,6 +187,7 @@ impl TrainRequest {
             windows: self.windows.clone(),
             pool_like: self.pool_like,
             instrument_blocks: self.instrument_blocks,
+            instrument_mixture: self.instrument_mixture,
             temper: self.temper,
             refine_near_mode: self.refine_near_mode,
             lifetime_input,

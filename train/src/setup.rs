@@ -50,6 +50,9 @@ pub struct Architecture {
     pub pool_like: Option<usize>,
     /// Lifetime decoder on the fit's evidence: the side of the instrument's superpixels.
     pub instrument_blocks: Option<usize>,
+    /// Lifetime decoder on the fit's evidence: a dim frame's instrument under the frame's
+    /// mixture (false: on superpixels).
+    pub instrument_mixture: Option<bool>,
     /// Lifetime decoder on the fit's evidence: its log-likelihood at a learned temperature.
     pub temper: Option<bool>,
     /// Lifetime decoder on the fit's evidence: its mode refined within a point of the fit's.
@@ -87,6 +90,7 @@ impl Architecture {
         put("windows", self.windows.as_ref().map(|v| s(v)), l.map(|c| s(&c.windows)));
         put("pool_like", self.pool_like.map(|v| s(&v)), l.map(|c| s(&c.pool_like)).or(u.map(|c| s(&c.pool_like))));
         put("instrument_blocks", self.instrument_blocks.map(|v| s(&v)), l.map(|c| s(&c.instrument_blocks)));
+        put("instrument_mixture", self.instrument_mixture.map(|v| s(&v)), l.map(|c| s(&c.instrument_mixture)));
         put("temper", self.temper.map(|v| s(&v)), l.map(|c| s(&c.temper)));
         put("refine_near_mode", self.refine_near_mode.map(|v| s(&v)), l.map(|c| s(&c.refine_near_mode)));
         put("input", self.lifetime_input.map(|v| s(&v)), l.map(|c| s(&c.input)));
@@ -123,6 +127,7 @@ impl Architecture {
                 c.windows = self.windows.clone().unwrap_or_else(|| c.windows.clone());
                 c.pool_like = self.pool_like.unwrap_or(c.pool_like);
                 c.instrument_blocks = self.instrument_blocks.unwrap_or(c.instrument_blocks);
+                c.instrument_mixture = self.instrument_mixture.unwrap_or(c.instrument_mixture);
                 c.temper = self.temper.unwrap_or(c.temper);
                 c.refine_near_mode = self.refine_near_mode.unwrap_or(c.refine_near_mode);
                 c.input = self.lifetime_input.unwrap_or(c.input);
@@ -136,6 +141,12 @@ impl Architecture {
                             self.instrument_blocks.is_some(),
                             "instrument_blocks",
                             c.instrument_blocks.to_string(),
+                            "the instrument is the fit's",
+                        ),
+                        (
+                            self.instrument_mixture == Some(true),
+                            "instrument_mixture",
+                            "--instrument-mixture".into(),
                             "the instrument is the fit's",
                         ),
                         (

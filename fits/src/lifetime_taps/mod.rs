@@ -73,6 +73,10 @@ pub struct TapFitOptions {
     /// ([`instrument_side`] of 1), else the brightest pixels alone under the frame's mixture of
     /// lifetimes and background shares (no superpixels; see the module's notes).
     pub instrument_blocks: usize,
+    /// With `instrument_blocks` 0, where the frame's photons ask for superpixels: its
+    /// brightest pixels alone under the frame's mixture (true), or superpixels of
+    /// [`instrument_side`]'s side (false: as before the mixture).
+    pub instrument_mixture: bool,
     /// Where a decoder's mode overrules the fit ([`LifetimeTemplates::refine_modes`]): refine
     /// it in the tap domain wherever it is within one point of the grid of the fit's own
     /// argmin (the window's cost minimised within about a point of the mode), not only where
@@ -96,6 +100,7 @@ impl Default for TapFitOptions {
             background: true,
             pool_like: 0,
             instrument_blocks: 0,
+            instrument_mixture: true,
             refine_near_mode: false,
         }
     }
@@ -241,7 +246,7 @@ fn instrument_of(f: &Normalised, (m, h, w): (usize, usize, usize), a: &Measureme
     // a dim frame: its brightest pixels alone under the frame's mixture, at the temperature
     // of a tap's noise (`g/M` in the costs' units: a charge `S`'s normalised taps vary by
     // `g·r̄_k/S`, and the costs are weighted by `S`)
-    let temperature = (side > 1 && opts.instrument_blocks == 0 && opts.onset_s.is_none())
+    let temperature = (opts.instrument_mixture && side > 1 && opts.instrument_blocks == 0 && opts.onset_s.is_none())
         .then(|| frame_gain(&f.r, &f.weight, (m, h, w), block, &bright))
         .flatten()
         .map(|(gain, _)| gain / m as f64);

@@ -108,6 +108,10 @@ pub struct EvidenceNote {
     /// pixels under the frame's mixture of lifetimes; 1, every pixel, in models exported before it).
     #[serde(default = "one")]
     pub instrument_blocks: usize,
+    /// With `instrument_blocks` 0, a dim frame's instrument under the frame's mixture (every
+    /// model exported since; false, on superpixels, in models exported before it).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub instrument_mixture: bool,
     /// The graph's mode refined in the tap domain within a point of the fit's argmin (false,
     /// only at it, in models exported before it).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
@@ -141,6 +145,7 @@ impl EvidenceNote {
             min_intensity: 0.0,
             pool_like: self.pool_like,
             instrument_blocks: self.instrument_blocks,
+            instrument_mixture: self.instrument_mixture,
             refine_near_mode: self.refine_near_mode,
             ..Default::default()
         }
@@ -220,6 +225,8 @@ impl OnnxMeta {
                     windows: c.windows.clone(),
                     pool_like: c.pool_like,
                     instrument_blocks: c.instrument_blocks,
+                    // (as every run decodes, whatever its training used)
+                    instrument_mixture: true,
                     refine_near_mode: c.refine_near_mode,
                 }),
                 _ => None,
