@@ -107,8 +107,8 @@ pub struct LifetimeNetConfig {
     /// With `instrument_blocks` 0, a dim frame's instrument in training on its brightest pixels
     /// under the frame's mixture (true), or on superpixels (false: about 8× faster to train, and as
     /// in runs written before it; [`tcsense_fits::lifetime_taps::TapFitOptions::instrument_mixture`]).
-    /// A run decodes with the mixture whatever it was trained with
-    /// ([`LifetimeNet::with_instrument_mixture`]).
+    /// The network decodes with the mixture whatever it was trained with (its
+    /// [`Network::decode_frames`], and so its validation and every decoder of the run).
     #[config(default = false)]
     pub instrument_mixture: bool,
     /// Weigh the log-likelihood (the window's, pooled or widened) by a temperature the head
@@ -454,14 +454,6 @@ impl LifetimeNet {
         self.instrument_mixture
     }
 
-    /// The network decoding with a dim frame's instrument searched under the frame's mixture
-    /// (`true`) or on superpixels. The search is not learned: a run records the one its
-    /// training used, so that its recipe replays, and decodes with the mixture ([`crate::runs::open`]).
-    pub fn with_instrument_mixture(mut self, mixture: bool) -> Self {
-        self.instrument_mixture = mixture;
-        self
-    }
-
     /// Whether the log-likelihood is weighed by a learned temperature (the head's last channel,
     /// after the log-prior, the confidence and the wider windows' log-weights).
     pub fn tempered(&self) -> bool {
@@ -659,7 +651,9 @@ impl Network for LifetimeNet {
         (self.input_kind() == LifetimeInput::Costs).then(|| {
             let (b, _, h, w) = y.dim();
             let device = sensor.lambda.device();
-            let opts = self.fit_options();
+            // (the instrument's search is not learned: decoded with the best, whatever the
+            // training's evidence used)
+            let opts = TapFitOptions { instrument_mixture: true, ..self.fit_options() };
             let mut out = ndarray::Array4::<f32>::zeros((b, OUTPUTS, h, w));
             for i in 0..b {
                 let yi = y.index_axis(ndarray::Axis(0), i);

@@ -478,15 +478,11 @@ pub fn open_opts(dir: &Path, device: &Device, opts: &OpenOptions) -> Result<Run>
         TrainedNet::Lifetime(net) => {
             let takes = net.input_kind() == crate::lifetime::LifetimeInput::Costs;
             let onset = opts.onset_s.filter(|_| takes || opts.onset_strict);
-            let net = net
-                .with_onset(onset)
-                .map_err(|msg| ModelError::InvalidParam {
-                    field: "onset",
-                    got: format!("{} ns", (opts.onset_s.unwrap_or(0.0) * 1e15).round() / 1e6),
-                    expected: format!("{}: {msg}", dir.display()),
-                })?
-                // (the instrument's search is not learned: every run decodes with the best)
-                .with_instrument_mixture(true);
+            let net = net.with_onset(onset).map_err(|msg| ModelError::InvalidParam {
+                field: "onset",
+                got: format!("{} ns", (opts.onset_s.unwrap_or(0.0) * 1e15).round() / 1e6),
+                expected: format!("{}: {msg}", dir.display()),
+            })?;
             Box::new(NetDecoder::new(name, net, device.clone()))
         }
     };
