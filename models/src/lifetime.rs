@@ -105,7 +105,7 @@ pub struct LifetimeNetConfig {
     #[config(default = 0)]
     pub instrument_blocks: usize,
     /// With `instrument_blocks` 0, a dim frame's instrument in training on its brightest pixels
-    /// under the frame's mixture (true), or on superpixels (false: about 8× faster to train, and as
+    /// under the frame's mixture (true), or on superpixels (false: about 5× faster to train, and as
     /// in runs written before it; [`tcsense_fits::lifetime_taps::TapFitOptions::instrument_mixture`]).
     /// The network decodes with the mixture whatever it was trained with (its
     /// [`Network::decode_frames`], and so its validation and every decoder of the run).

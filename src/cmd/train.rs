@@ -83,7 +83,7 @@ pub struct LifetimeArgs {
     instrument_blocks: Option<usize>,
     /// With `--input costs`: in training, fit a dim frame's onset and IRF width on its
     /// brightest pixels under the frame's mixture of lifetimes and background shares, as every
-    /// run decodes, instead of on superpixels (about 8× slower to train) [default: off].
+    /// run decodes, instead of on superpixels (about 5× slower to train) [default: off].
     #[arg(long)]
     instrument_mixture: bool,
     /// With `--input costs`: weigh the fit's log-likelihood by a temperature the network sets
