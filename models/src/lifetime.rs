@@ -448,12 +448,6 @@ impl LifetimeNet {
         self.instrument_blocks
     }
 
-    /// Whether a dim frame's instrument is searched under the frame's mixture (else on
-    /// superpixels).
-    pub fn instrument_mixture(&self) -> bool {
-        self.instrument_mixture
-    }
-
     /// Whether the log-likelihood is weighed by a learned temperature (the head's last channel,
     /// after the log-prior, the confidence and the wider windows' log-weights).
     pub fn tempered(&self) -> bool {

@@ -42,15 +42,17 @@ pub fn instrument_side(r: &[f32], weight: &[f32], (m, h, w): (usize, usize, usiz
 
 /// [`instrument_side`] of the brightest pixels `bright` (as [`brightest_of`] gives them).
 pub(super) fn side_of(r: &[f32], weight: &[f32], (m, h, w): (usize, usize, usize), (bh, bw): (usize, usize), bright: &[usize]) -> usize {
+    side_for(frame_gain(r, weight, (m, h, w), (bh, bw), bright), (h, w), (bh, bw))
+}
+
+/// [`instrument_side`] from the frame's gain and its brightest pixels' median charge
+/// ([`frame_gain`]'s; `None`: 1) for a frame of `h × w` pixels in blocks of `bh × bw`.
+pub(super) fn side_for(gain: Option<(f64, f64)>, (h, w): (usize, usize), (bh, bw): (usize, usize)) -> usize {
     let most = AUTO_MAX_BLOCKS.min((h / bh.max(1)).min(w / bw.max(1)) / 2).max(1);
-    if most == 1 {
-        return 1;
+    match gain {
+        Some((gain, charge)) if most > 1 => ((INSTRUMENT_PHOTONS / (charge / gain)).sqrt().ceil() as usize).clamp(1, most),
+        _ => 1,
     }
-    let Some((gain, charge)) = frame_gain(r, weight, (m, h, w), (bh, bw), bright) else {
-        return 1;
-    };
-    let photons = charge / gain;
-    ((INSTRUMENT_PHOTONS / photons).sqrt().ceil() as usize).clamp(1, most)
 }
 
 /// The frame's gain `g` (charge per photon, as the noise counts photons) and the median charge
@@ -338,9 +340,12 @@ fn correlate(row: &[f32], e: &[f32], o: &mut [f32]) {
 }
 
 /// The cost of the first `count` of `pixels` (normalised taps, weight, type), each at its best
-/// lifetime of `tables` (at a `temperature`, their [`mixture_cost`] instead), between the grid's points by `refine` golden sections (a grid's steps
+/// lifetime of `tables`, between the grid's points by `refine` golden sections (a grid's steps
 /// bias the onset: at the lower cost of a later onset and a shorter lifetime, the coarse
 /// search placed a paper scene's onset 1.2 ns late with a parabola instead).
+///
+/// At a `temperature`, their [`mixture_cost`] instead: the mixture's components sit on the
+/// grid's points, and `refine` is not used.
 pub(super) fn brightest_cost(
     tables: &[TypeTable],
     pixels: &[(Vec<f32>, f32, usize)],

@@ -239,17 +239,15 @@ fn instrument_of(f: &Normalised, (m, h, w): (usize, usize, usize), a: &Measureme
     let block = a.block();
     let c = Cycle::new(a.bins(), a.bin_width_s());
     let bright = brightest_of(&f.weight, opts.brightest);
+    let gain = (opts.instrument_blocks == 0).then(|| frame_gain(&f.r, &f.weight, (m, h, w), block, &bright)).flatten();
     let side = match opts.instrument_blocks {
-        0 => side_of(&f.r, &f.weight, (m, h, w), block, &bright),
+        0 => side_for(gain, (h, w), block),
         s => s,
     };
     // a dim frame: its brightest pixels alone under the frame's mixture, at the temperature
     // of a tap's noise (`g/M` in the costs' units: a charge `S`'s normalised taps vary by
     // `g·r̄_k/S`, and the costs are weighted by `S`)
-    let temperature = (opts.instrument_mixture && side > 1 && opts.instrument_blocks == 0 && opts.onset_s.is_none())
-        .then(|| frame_gain(&f.r, &f.weight, (m, h, w), block, &bright))
-        .flatten()
-        .map(|(gain, _)| gain / m as f64);
+    let temperature = gain.filter(|_| opts.instrument_mixture && side > 1 && opts.onset_s.is_none()).map(|(gain, _)| gain / m as f64);
     // at the narrowest IRF width: in dim light the widths are not told apart, and the onset
     // would drift with the width chosen
     let (onset_s, irf_fwhm_s) = if temperature.is_some() {
