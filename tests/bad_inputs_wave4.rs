@@ -269,6 +269,25 @@ fn absurd_numbers_are_refused_before_anything_is_allocated() {
     );
     p.refuse(&fit(&["--ply", "c.ply", "--fov", "NaN"]), &["--fov"]);
     p.refuse(&["depth", "x.npy", "--length", "8", "--ply", "c.ply", "--fov", "1e9", "-o", "d.npy"], &["--fov"]);
+    // finite but past any sensor: each was taken and gave NaN, infinite or zero output
+    let sim = |flag: &'static str, v: &'static str| -> Vec<&'static str> {
+        vec!["simulate", "--codes", "dcodes.json", "--cube", "x32.npy", "--noise", flag, v, "-o", "yy.npy"]
+    };
+    p.refuse(&sim("--full-well", "1e308"), &["full_well", "up to 1e12"]);
+    p.refuse(&sim("--read-noise", "1e300"), &["read_noise", "up to the full well"]);
+    p.refuse(&sim("--electrons-per-unit", "1e308"), &["electrons_per_unit", "up to 1e12"]);
+    p.refuse(&["dataset", "lidar", "--count", "2", "--size", "8x8", "--ambient", "1e308", "-o", "dl"], &["ambient", "up to 1000"]);
+    for flag in ["--photons", "--ambient", "--read-noise"] {
+        p.refuse(&["codes", "analyze", "dcodes.json", flag, "1e308"], &[flag, "up to 1e9"]);
+    }
+    p.refuse(&["codes", "analyze", "dcodes.json", "--alias-threshold", "1e308"], &["--alias-threshold", "[0, 1.414]"]);
+    p.refuse(&["lifetime", "x.npy", "--length", "8", "--clock-mhz", "inf", "-o", "t.npy"], &["--clock-mhz", "10000"]);
+    p.refuse(&["lifetime", "x.npy", "--bin-width-ps", "1e308", "-o", "t.npy"], &["--bin-width-ps"]);
+    p.refuse(&["depth", "x.npy", "--length", "8", "--min-rel", "NaN", "-o", "d.npy"], &["--min-rel"]);
+    p.refuse(
+        &["train", "unet", "--dataset", "nods", "--codes", "dcodes.json", "--lr", "1e308", "-o", "r"],
+        &["--lr", "learning rate up to 10"],
+    );
     p.finish("absurd numbers");
 }
 

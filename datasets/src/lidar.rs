@@ -211,6 +211,10 @@ impl LidarRandomization {
     }
 }
 
+/// The highest fixed ambient level (relative to the peak voxel: a signal-to-background ratio of
+/// 1/1000 at the brightest voxel).
+pub const MAX_AMBIENT: f64 = 1000.0;
+
 impl LidarParams {
     /// Check ranges.
     pub fn validate(&self) -> Result<()> {
@@ -223,8 +227,8 @@ impl LidarParams {
         if !(0.0..=1.0).contains(&self.sheet_probability) {
             return Err(invalid("sheet_probability", self.sheet_probability, "a probability in [0, 1]"));
         }
-        if !(self.ambient >= 0.0 && self.ambient.is_finite()) {
-            return Err(invalid("ambient", self.ambient, "a non-negative level"));
+        if !(self.ambient >= 0.0 && self.ambient <= MAX_AMBIENT) {
+            return Err(invalid("ambient", self.ambient, format!("a non-negative level up to {MAX_AMBIENT} (relative to the peak voxel)")));
         }
         if self.max_objects == 0 || self.max_objects > 64 {
             return Err(invalid("max_objects", self.max_objects, "1..=64"));

@@ -76,17 +76,21 @@ impl Default for Light {
     }
 }
 
+/// The most electrons a [`Light`] takes per pixel (signal, ambient or read noise σ): far past
+/// any pixel's full well, and where the bounds' sums of squares stay finite.
+pub const MAX_LIGHT_E: f64 = 1e9;
+
 impl Light {
     /// `Err(what was expected)` for values the bounds cannot use.
     pub fn validate(&self) -> Result<(), String> {
-        if !(self.photons.is_finite() && self.photons > 0.0) {
-            return Err(format!("photons {}: expected a positive number of electrons", self.photons));
+        if !(self.photons > 0.0 && self.photons <= MAX_LIGHT_E) {
+            return Err(format!("photons {}: expected a positive number of electrons up to {MAX_LIGHT_E:e}", self.photons));
         }
-        if !(self.ambient.is_finite() && self.ambient >= 0.0) {
-            return Err(format!("ambient {}: expected a non-negative number of electrons", self.ambient));
+        if !(self.ambient >= 0.0 && self.ambient <= MAX_LIGHT_E) {
+            return Err(format!("ambient {}: expected a non-negative number of electrons up to {MAX_LIGHT_E:e}", self.ambient));
         }
-        if !(self.read_noise_e.is_finite() && self.read_noise_e >= 0.0) {
-            return Err(format!("read noise {}: expected a non-negative number of electrons", self.read_noise_e));
+        if !(self.read_noise_e >= 0.0 && self.read_noise_e <= MAX_LIGHT_E) {
+            return Err(format!("read noise {}: expected a non-negative number of electrons up to {MAX_LIGHT_E:e}", self.read_noise_e));
         }
         Ok(())
     }

@@ -36,13 +36,18 @@ impl Exposure {
     /// (`1` for a dark frame).
     pub fn electrons_per_unit(self, peak: f32, noise: &NoiseParams) -> Result<f64> {
         match self {
-            Exposure::ElectronsPerUnit(s) if s.is_finite() && s > 0.0 => Ok(s),
-            Exposure::ElectronsPerUnit(s) => Err(invalid("electrons_per_unit", s, "a positive finite number")),
+            Exposure::ElectronsPerUnit(s) if s > 0.0 && s <= MAX_ELECTRONS_PER_UNIT => Ok(s),
+            Exposure::ElectronsPerUnit(s) => {
+                Err(invalid("electrons_per_unit", s, format!("a positive number up to {MAX_ELECTRONS_PER_UNIT:e}")))
+            }
             Exposure::Auto if peak > 0.0 => Ok(noise.signal_fraction * noise.full_well_e / peak as f64),
             Exposure::Auto => Ok(1.0),
         }
     }
 }
+
+/// The largest explicit scale of the noise model (electrons per unit of the input).
+pub const MAX_ELECTRONS_PER_UNIT: f64 = 1e12;
 
 /// Noisy measurements, in electrons, with the scale used.
 #[derive(Debug, Clone)]
@@ -56,8 +61,9 @@ pub struct NoisyMeasurement {
 impl NoisyMeasurement {
     /// The noisy values back in the units of the noiseless input (`electrons / s`).
     pub fn in_input_units(&self) -> ArrayD<f32> {
-        let s = self.electrons_per_unit as f32;
-        self.electrons.mapv(|e| e / s)
+        // (in f64: a scale past f32's range, from a faint input, still divides)
+        let s = self.electrons_per_unit;
+        self.electrons.mapv(|e| (e as f64 / s) as f32)
     }
     /// ADC codes (digital numbers), `round(e / lsb)`; equals electrons when quantisation is off.
     pub fn in_adc_codes(&self, noise: &NoiseParams) -> ArrayD<f32> {

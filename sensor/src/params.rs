@@ -58,6 +58,10 @@ pub enum Irf {
 /// The largest `signal_fraction`: 100× overexposed.
 pub const MAX_SIGNAL_FRACTION: f64 = 100.0;
 
+/// The largest full well the noise model takes (electrons): far past any pixel's (a model without
+/// clipping takes it), and where every charge stays finite in `f32`.
+pub const MAX_FULL_WELL_E: f64 = 1e12;
+
 /// How the signal is brought to electrons before noise is added.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct NoiseParams {
@@ -81,11 +85,15 @@ impl Default for NoiseParams {
 impl NoiseParams {
     /// Check ranges.
     pub fn validate(self) -> Result<Self> {
-        if !(self.full_well_e.is_finite() && self.full_well_e > 0.0) {
-            return Err(invalid("full_well", self.full_well_e, "a positive number of electrons (e.g. 20000)"));
+        if !(self.full_well_e > 0.0 && self.full_well_e <= MAX_FULL_WELL_E) {
+            return Err(invalid(
+                "full_well",
+                self.full_well_e,
+                format!("a positive number of electrons up to {MAX_FULL_WELL_E:e} (e.g. 20000)"),
+            ));
         }
-        if !(self.read_noise_e.is_finite() && self.read_noise_e >= 0.0) {
-            return Err(invalid("read_noise", self.read_noise_e, "a non-negative number of electrons (e.g. 40)"));
+        if !(self.read_noise_e >= 0.0 && self.read_noise_e <= self.full_well_e) {
+            return Err(invalid("read_noise", self.read_noise_e, "a non-negative number of electrons up to the full well (e.g. 40)"));
         }
         if !(self.signal_fraction > 0.0 && self.signal_fraction <= MAX_SIGNAL_FRACTION) {
             return Err(invalid(
@@ -283,5 +291,19 @@ mod tests {
             assert!(e.to_string().contains(field) && e.to_string().contains("1 µs"), "{e}");
         }
         assert!((p.bin_width_s() - 206e-12).abs() < 1e-12, "Δ ≈ 206 ps at 607 MHz");
+    }
+
+    #[test]
+    fn noise_params_are_bounded() {
+        assert!(NoiseParams::default().validate().is_ok());
+        assert!(NoiseParams { full_well_e: MAX_FULL_WELL_E, read_noise_e: 1e4, ..Default::default() }.validate().is_ok());
+        for full_well_e in [0.0, -1.0, f64::NAN, f64::INFINITY, 1e308, 1.01 * MAX_FULL_WELL_E] {
+            let e = NoiseParams { full_well_e, ..Default::default() }.validate().unwrap_err().to_string();
+            assert!(e.contains("full_well") && e.contains("up to 1e12"), "{e}");
+        }
+        for read_noise_e in [-1.0, f64::NAN, f64::INFINITY, 1e308, 20_001.0] {
+            let e = NoiseParams { read_noise_e, ..Default::default() }.validate().unwrap_err().to_string();
+            assert!(e.contains("read_noise") && e.contains("up to the full well"), "{e}");
+        }
     }
 }

@@ -43,8 +43,8 @@ impl LightArgs {
     pub fn light(&self) -> Result<Light> {
         let l = Light { photons: self.photons, ambient: self.ambient, read_noise_e: self.read_noise };
         l.validate().map_err(|e| anyhow::anyhow!("--photons/--ambient/--read-noise: {e}"))?;
-        if !(self.alias_threshold.is_finite() && self.alias_threshold >= 0.0) {
-            bail!("--alias-threshold {}: expected a distance ≥ 0 (unit signatures are 0 to 1.414 apart)", self.alias_threshold);
+        if !(self.alias_threshold >= 0.0 && self.alias_threshold <= std::f64::consts::SQRT_2) {
+            bail!("--alias-threshold {}: expected a distance in [0, 1.414] (unit signatures are 0 to 1.414 apart)", self.alias_threshold);
         }
         Ok(l)
     }

@@ -435,11 +435,11 @@ pub struct BinArgs {
     /// Masks per cycle L (the oversampling/heterodyne factor is K = T / L).
     #[arg(long, default_value_t = 32)]
     pub length: usize,
-    /// Code clock in MHz.
-    #[arg(long, default_value_t = 607.0)]
+    /// Code clock in MHz (1 to 10 000).
+    #[arg(long, default_value_t = 607.0, value_parser = super::number_in(1.0, 10_000.0))]
     pub clock_mhz: f64,
-    /// Bin width in ps (overrides --length/--clock-mhz).
-    #[arg(long)]
+    /// Bin width in ps (overrides --length/--clock-mhz; 0.01 to 1 000 000).
+    #[arg(long, value_parser = super::number_in(0.01, 1e6))]
     pub bin_width_ps: Option<f64>,
 }
 
@@ -493,9 +493,9 @@ pub struct DepthArgs {
     /// Returns per pixel (multipath bounces, 1 to 16).
     #[arg(long, default_value_t = 2, value_parser = super::count_in(1, 16))]
     peaks: usize,
-    /// Ignore peaks below this fraction of the pixel's maximum.
-    #[arg(long, default_value_t = 0.1)]
-    min_rel: f32,
+    /// Ignore peaks below this fraction of the pixel's maximum (0 to 1).
+    #[arg(long, default_value_t = 0.1, value_parser = super::number_in(0.0, 1.0))]
+    min_rel: f64,
     /// Minimal separation of two returns (bins).
     #[arg(long, default_value_t = 2)]
     min_sep: usize,
@@ -536,7 +536,7 @@ pub fn depth(a: DepthArgs) -> Result<ExitCode> {
     let mut outputs = Outputs::plan(&planned)?;
     let (batched, cubes) = read_cubes(&a.cube)?;
     let dt = a.bins.bin_width(cubes[0].dim().0, &a.cube)?;
-    let opts = PeakOptions { max_peaks: a.peaks, min_rel: a.min_rel, min_sep: a.min_sep };
+    let opts = PeakOptions { max_peaks: a.peaks, min_rel: a.min_rel as f32, min_sep: a.min_sep };
     let maps: Vec<_> = cubes.iter().map(|x| depth_map(&x.view(), dt, &opts)).collect();
     if batched && maps.len() > 1 && (a.products.ply.is_some() || a.products.png.is_some()) {
         bail!("{}: --ply and --png take a single cube; this batch holds {}", a.cube.display(), maps.len());
