@@ -360,15 +360,16 @@ fn decode_file(
     } else if let Some(lifetime) = &d.lifetime {
         let first = lifetime.index_axis(Axis(0), 0);
         let tau_m: Vec<f64> = first.index_axis(Axis(0), 0).iter().filter(|v| v.is_finite()).map(|&v| v as f64).collect();
-        let mean = tau_m.iter().sum::<f64>() / tau_m.len().max(1) as f64;
+        let found = match tau_m.len() {
+            0 => "no pixel with a fluorophore".to_string(),
+            n => format!("{n} pixels with a fluorophore, mean τ_m {:.3} ns", tau_m.iter().sum::<f64>() / n as f64 * 1e9),
+        };
         lines.push(format!(
-            "wrote {}, {} and {}: lifetimes {:?}, {} pixels with a fluorophore, mean τ_m {:.3} ns (first frame) ({time} per frame, {name})",
+            "wrote {}, {} and {}: lifetimes {:?}, {found} (first frame) ({time} per frame, {name})",
             out.written[0].display(),
             out.written[1].display(),
             out.written[2].display(),
             shape(lifetime),
-            tau_m.len(),
-            mean * 1e9,
         ));
         if let Some(p) = &products.png {
             figures::map(

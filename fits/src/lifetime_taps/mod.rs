@@ -441,7 +441,8 @@ impl LifetimeTemplates {
     /// mode itself (the posterior overruled the fit). With
     /// [`TapFitOptions::refine_near_mode`], a mode within one point of the argmin is refined
     /// too, around its own nearest point: the window's cost minimised within about a point of
-    /// the mode.
+    /// the mode. NaN where no pixel of the window holds charge: there is no evidence there,
+    /// whatever the mode.
     ///
     /// # Shapes
     /// - `y`: `[M, H, W]`, `costs`: [`Self::costs`] of `y`, `u`: `[H·W]` → `[H, W]`
@@ -461,13 +462,21 @@ impl LifetimeTemplates {
             (near && mode > 0 && mode + 1 < g).then_some(mode)
         });
         let (l0, step) = self.log_tau;
+        // no lit pixel in the window: no evidence, no lifetime (whatever the mode says)
+        let half = self.window / 2;
+        let seen = |i: usize, j: usize| {
+            (i.saturating_sub(half)..=(i + half).min(h - 1))
+                .any(|a| (j.saturating_sub(half)..=(j + half).min(w - 1)).any(|b| costs.lit[a * w + b]))
+        };
         Array2::from_shape_fn((h, w), |(i, j)| {
             let t = fit.lifetime[(i, j)];
             let v = u[i * w + j];
             if t.is_finite() || !v.is_finite() {
                 t
-            } else {
+            } else if seen(i, j) {
                 (l0 + v as f64 * step).exp() as f32
+            } else {
+                f32::NAN
             }
         })
     }
@@ -900,6 +909,18 @@ mod tests {
             n >= 50 && refined == n && at_fit >= 20,
             "refined near the mode: {refined} of {n} pixels, {at_fit} at the fit's own lifetime"
         );
+        // a dark corner (no charge in rows and columns 0–4): no lifetime where the window holds
+        // no lit pixel (rows and columns 0–3), whatever the mode; the mode beside it
+        let mut dark = y.clone();
+        dark.slice_mut(ndarray::s![.., ..5, ..5]).fill(0.0);
+        let dark_costs = templates.costs(&dark.view());
+        let modes = templates.refine_modes(&dark.view(), &dark_costs, &u);
+        for i in 0..8 {
+            for j in 0..8 {
+                let t = modes[(i, j)];
+                assert_eq!(t.is_nan(), i < 4 && j < 4, "pixel ({i}, {j}): {t:e}");
+            }
+        }
         // the evidence: 0 nats at the argmin of the window's cost, negative elsewhere; the same
         // for the frame times 7 (the noise level takes the scale)
         let e = evidence::evidence(&costs, &y.sum_axis(Axis(0)), 4, 2);
