@@ -401,7 +401,7 @@ fn eval_photon_ladder() {
         csv.lines()
             .next()
             .unwrap()
-            .ends_with("bounce1_within_half_bin,bounce2_within_half_bin,signal_fraction,signal_electrons,sbr,lifetime_false_share")
+            .ends_with("bounce1_within_half_bin,bounce2_within_half_bin,signal_fraction,signal_electrons,sbr,lifetime_false_share,lifetime_mae_common_s,lifetime_common_share")
             && csv.lines().count() == 5,
         "{csv}"
     );

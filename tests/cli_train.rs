@@ -613,6 +613,11 @@ fn the_lifetime_decoder_on_the_fit_evidence_trains_decodes_and_refuses_what_does
         fails(d, &[&args[..], &["-o", "absurd"]].concat(), &[needle]);
         assert!(!d.join("absurd").exists(), "{flag} {v}: a run left behind");
     }
+    // one step in all: its loss is taken before the step, and the weights it leaves are not
+    // finite (a run with them was written before the weights were checked)
+    let args = ["train", "lifetime", "--input", "costs", "--dataset", "f", "--codes", "codes.json", "--epochs", "1", "--max-train", "1"];
+    fails(d, &[&args[..], &["--batch-size", "1", "--lr", "1e308", "-o", "absurd"]].concat(), &["diverged", "nothing was written"]);
+    assert!(!d.join("absurd").exists(), "one step at --lr 1e308: a run left behind");
     // the harmonics' count for a network that reads none
     let args = train(&["--input", "costs", "--harmonics", "5", "--epochs", "1"], "absurd");
     fails(d, &args.iter().map(String::as_str).collect::<Vec<_>>(), &["harmonics", "input costs"]);

@@ -44,6 +44,15 @@ pub struct EvalRow {
     /// Share of the pixels without any fluorophore that got a lifetime (a confidence that says
     /// "fluorophore" everywhere covers every fluorophore).
     pub lifetime_false_share: Option<f64>,
+    /// With two lifetime decoders or more in one call: the MAE (s) over the fluorophore pixels
+    /// that every one of them gave a lifetime, so that a decoder that leaves the hard pixels
+    /// out is compared with one that does not on the same pixels ([`evaluate`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lifetime_mae_common_s: Option<f64>,
+    /// The share of the fluorophore pixels that every lifetime decoder of the call gave a
+    /// lifetime (the pixels of [`Self::lifetime_mae_common_s`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lifetime_common_share: Option<f64>,
     pub seconds_per_frame: f64,
     /// Per bounce: the median absolute range error (m) over the detected returns of every item.
     pub depth_median_m: Vec<f64>,
@@ -240,13 +249,16 @@ impl EvalRow {
                 self.lifetime_false_share.map(|v| format!(", {:.1} % of the background with one", v * 100.0)).unwrap_or_default()
             ));
         }
+        if let (Some(l), Some(c)) = (self.lifetime_mae_common_s, self.lifetime_common_share) {
+            s.push_str(&format!(", {:.3} ns on the {:.1} % every decoder covers", l * 1e9, c * 100.0));
+        }
         s.push_str(&format!("  {:.1} ms/frame", self.seconds_per_frame * 1e3));
         s
     }
 
     /// The rows as CSV, one line per decoder after a header.
     pub fn csv(rows: &[EvalRow]) -> String {
-        let mut csv = String::from("decoder,items,mse,psnr_db,bounce1_rmse_m,bounce1_mae_m,bounce1_detection,bounce2_rmse_m,bounce2_mae_m,bounce2_detection,lifetime_mae_s,seconds_per_frame,lifetime_mae_weighted_s,lifetime_within_02ns,lifetime_coverage,bounce1_false_alarm,bounce2_false_alarm,bounce1_median_m,bounce2_median_m,bounce1_within_half_bin,bounce2_within_half_bin,signal_fraction,signal_electrons,sbr,lifetime_false_share\n");
+        let mut csv = String::from("decoder,items,mse,psnr_db,bounce1_rmse_m,bounce1_mae_m,bounce1_detection,bounce2_rmse_m,bounce2_mae_m,bounce2_detection,lifetime_mae_s,seconds_per_frame,lifetime_mae_weighted_s,lifetime_within_02ns,lifetime_coverage,bounce1_false_alarm,bounce2_false_alarm,bounce1_median_m,bounce2_median_m,bounce1_within_half_bin,bounce2_within_half_bin,signal_fraction,signal_electrons,sbr,lifetime_false_share,lifetime_mae_common_s,lifetime_common_share\n");
         for r in rows {
             let b = |k: usize| r.depth.get(k).map_or(",,".to_string(), |d| format!("{},{},{}", d.rmse_m, d.mae_m, d.detection_rate()));
             let o = |v: Option<f64>| v.map_or(String::new(), |v| v.to_string());
@@ -255,7 +267,7 @@ impl EvalRow {
             let half = |k: usize| o(r.depth_within_half_bin.get(k).copied());
             let light = r.light.map_or(",,".to_string(), |l| format!("{},{},{}", l.signal_fraction, l.signal_electrons, o(l.sbr)));
             csv.push_str(&format!(
-                "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
+                "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
                 r.decoder,
                 r.items,
                 r.mse,
@@ -274,7 +286,9 @@ impl EvalRow {
                 half(0),
                 half(1),
                 light,
-                o(r.lifetime_false_share)
+                o(r.lifetime_false_share),
+                o(r.lifetime_mae_common_s),
+                o(r.lifetime_common_share)
             ));
         }
         csv
@@ -436,6 +450,8 @@ pub fn evaluate(
         .collect::<Result<_>>()?;
     let ctl = Control::quiet(cancel);
     let mut rows = Vec::new();
+    // each lifetime decoder's τ_m estimate of each item `[H, W]`, for the common pixels
+    let mut estimates: Vec<(usize, Vec<ndarray::Array2<f32>>)> = Vec::new();
     for d in decoders.iter_mut() {
         let mut row = EvalRow::new(&d.label);
         for (i, y) in ys.iter().enumerate() {
@@ -464,6 +480,14 @@ pub fn evaluate(
             let cube = out.cube.as_ref().map(|c| c.index_axis(Axis(0), 0));
             let truth_i = intensity.as_ref().map(|t| t.index_axis(Axis(0), i));
             let est_l = out.lifetime.as_ref().map(|l| l.index_axis(Axis(0), 0).index_axis(Axis(0), 0).to_owned());
+            if let (Some(e), true) = (&est_l, lifetime.is_some()) {
+                if i == 0 {
+                    estimates.push((rows.len(), Vec::with_capacity(n)));
+                }
+                if let Some((_, v)) = estimates.last_mut() {
+                    v.push(e.clone());
+                }
+            }
             let lt = truth_l.as_ref().map(|t| (t, truth_i.as_ref(), est_l.as_ref().map(|e| e.view())));
             let lt = lt.as_ref().map(|(t, i, e)| (*t, *i, e.as_ref()));
             row.add_with(cube.as_ref(), &x.index_axis(Axis(0), i), est.as_ref(), truth_d.as_ref(), lt, a.bin_width_s(), secs);
@@ -471,7 +495,42 @@ pub fn evaluate(
         }
         rows.push(row);
     }
+    if let (Some(truth), true) = (&lifetime, estimates.len() > 1) {
+        common_pixels(&mut rows, &estimates, truth, intensity.as_ref());
+    }
     Ok(rows)
+}
+
+/// Each lifetime decoder's MAE over the fluorophore pixels that every one of them estimated
+/// (`estimates`: a decoder's row in `rows` and its estimate of each item `[H, W]`), and the
+/// share of the fluorophore pixels they are.
+fn common_pixels(
+    rows: &mut [EvalRow],
+    estimates: &[(usize, Vec<ndarray::Array2<f32>>)],
+    truth: &ndarray::Array3<f32>,
+    intensity: Option<&ndarray::Array3<f32>>,
+) {
+    let items = estimates.iter().map(|(_, e)| e.len()).min().unwrap_or(0);
+    let common: Vec<ndarray::Array2<bool>> = (0..items)
+        .map(|i| {
+            let mut m = estimates[0].1[i].mapv(f32::is_finite);
+            for (_, e) in &estimates[1..] {
+                m.zip_mut_with(&e[i], |c, v| *c &= v.is_finite());
+            }
+            m
+        })
+        .collect();
+    for (r, est) in estimates {
+        let Some(row) = rows.get_mut(*r) else { continue };
+        let mut sum = LifetimeErrors::default();
+        for (i, mask) in common.iter().enumerate() {
+            let masked = ndarray::Zip::from(&est[i]).and(mask).map_collect(|&v, &c| if c { v } else { f32::NAN });
+            let i_map = intensity.map(|a| a.index_axis(Axis(0), i));
+            sum.add(&masked.view(), &truth.index_axis(Axis(0), i), i_map.as_ref());
+        }
+        row.lifetime_mae_common_s = sum.mae();
+        row.lifetime_common_share = sum.coverage();
+    }
 }
 
 fn file_err(path: &Path, msg: String) -> InferError {
@@ -502,6 +561,29 @@ mod tests {
         // within half a bin (1 ns: 3.75 cm): 0 of 6 first returns, 0 of 3 second (truth counts
         // the missed one)
         assert_eq!(row.depth_within_half_bin, vec![0.0, 0.0]);
-        assert!(EvalRow::csv(&[row]).lines().nth(1).unwrap().ends_with(",1,1.5,0,0,,,,"));
+        assert!(EvalRow::csv(&[row]).lines().nth(1).unwrap().ends_with(",1,1.5,0,0,,,,,,"));
+    }
+
+    /// On the pixels every lifetime decoder covers: a decoder that leaves a pixel out takes it
+    /// out of the others' common MAE too; the share counts the fluorophore pixels.
+    #[test]
+    fn the_common_pixels_are_those_every_decoder_estimated() {
+        let ns = 1e-9f32;
+        // two items of 1×3 pixels; the third pixel of item 1 holds no fluorophore
+        let truth = ndarray::Array3::from_shape_vec((2, 1, 3), vec![1.0 * ns, 2.0 * ns, f32::NAN, 3.0 * ns, 4.0 * ns, 5.0 * ns]).unwrap();
+        let est = |v: [f32; 3]| ndarray::Array2::from_shape_vec((1, 3), v.to_vec()).unwrap();
+        // decoder a: every pixel, errors 0.1, 0.2 | 0.3, 0.4, 0.5 ns
+        let a = vec![est([1.1 * ns, 2.2 * ns, 9.0 * ns]), est([3.3 * ns, 4.4 * ns, 5.5 * ns])];
+        // decoder b: leaves out the first pixel of each item; errors 1 | 1, 1 ns
+        let b = vec![est([f32::NAN, 3.0 * ns, f32::NAN]), est([f32::NAN, 5.0 * ns, 6.0 * ns])];
+        let mut rows = vec![EvalRow::new("cube"), EvalRow::new("a"), EvalRow::new("b")];
+        common_pixels(&mut rows, &[(1, a), (2, b)], &truth, None);
+        assert_eq!(rows[0].lifetime_mae_common_s, None, "a row without lifetimes of its own");
+        // common: (item 0, pixel 1), (item 1, pixels 1 and 2): 3 of the 5 fluorophore pixels
+        let (ma, mb) = (rows[1].lifetime_mae_common_s.unwrap(), rows[2].lifetime_mae_common_s.unwrap());
+        assert!((ma - (0.2 + 0.4 + 0.5) / 3.0 * 1e-9).abs() < 1e-15, "{ma:e}");
+        assert!((mb - 1e-9).abs() < 1e-15, "{mb:e}");
+        assert_eq!(rows[1].lifetime_common_share, Some(0.6));
+        assert_eq!(rows[2].lifetime_common_share, Some(0.6));
     }
 }

@@ -84,16 +84,6 @@ pub fn number_in(lo: f64, hi: f64) -> impl Fn(&str) -> Result<f64, String> + Clo
     }
 }
 
-/// A learning rate (`--lr`, `--codes-lr`): positive, up to `tcsense_train`'s
-/// [`MAX_LEARNING_RATE`](tcsense_train::config::MAX_LEARNING_RATE).
-pub fn learning_rate(s: &str) -> Result<f64, String> {
-    let hi = tcsense_train::config::MAX_LEARNING_RATE;
-    match s.trim().parse::<f64>() {
-        Ok(v) if v > 0.0 && v <= hi => Ok(v),
-        _ => Err(format!("{s:?}: expected a positive learning rate up to {hi} (learning_rate)")),
-    }
-}
-
 /// `--device`: where a learned decoder trains or runs.
 #[derive(clap::Args, Debug, Clone, Copy, Default)]
 pub struct DeviceArgs {

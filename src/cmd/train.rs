@@ -233,8 +233,8 @@ pub struct TrainArgs {
     /// Epochs.
     #[arg(long)]
     epochs: Option<usize>,
-    /// Learning rate (the peak of the schedule; up to 10).
-    #[arg(long, value_parser = super::learning_rate)]
+    /// Learning rate (the peak of the schedule).
+    #[arg(long)]
     lr: Option<f64>,
     /// Learning-rate schedule: `cosine` (new runs: half a cosine down to 1 % over the run
     /// after 50 warm-up steps) or `constant` (the paper's).
@@ -330,8 +330,8 @@ pub struct TrainArgs {
     /// Learned codes: epochs of joint training on relaxed codes (default: two thirds).
     #[arg(long, requires = "learn_codes")]
     relaxed_epochs: Option<usize>,
-    /// Learned codes: Adam learning rate of the code logits (up to 10).
-    #[arg(long, requires = "learn_codes", value_parser = super::learning_rate)]
+    /// Learned codes: Adam learning rate of the code logits.
+    #[arg(long, requires = "learn_codes")]
     codes_lr: Option<f64>,
     /// Learned codes: weight of the identifiability term, a squared hinge on the range alias
     /// (pairs of ranges two masks or more apart whose taps are closer than --alias-threshold);

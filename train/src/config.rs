@@ -94,10 +94,6 @@ pub enum ConfidenceLoss {
 /// The largest batch taken (items a step; a batch larger than the training split is the split).
 pub const MAX_BATCH: usize = 65_536;
 
-/// The highest learning rate a run takes (the networks' and the codes' logits'): past it a
-/// step leaves the weights infinite.
-pub const MAX_LEARNING_RATE: f64 = 10.0;
-
 /// How the learning rate moves over a run's optimiser steps.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Default)]
 #[serde(rename_all = "kebab-case", tag = "kind")]
@@ -412,8 +408,8 @@ impl TrainConfig {
         if !(1..=MAX_BATCH).contains(&self.batch_size) {
             return bad("batch_size", self.batch_size.to_string(), "1 to 65 536 items a step");
         }
-        if !(self.learning_rate > 0.0 && self.learning_rate <= MAX_LEARNING_RATE) {
-            return bad("learning_rate", self.learning_rate.to_string(), "a positive number up to 10");
+        if !(self.learning_rate.is_finite() && self.learning_rate > 0.0) {
+            return bad("learning_rate", self.learning_rate.to_string(), "a positive number");
         }
         self.lr_schedule.validate()?;
         match &self.run.model {

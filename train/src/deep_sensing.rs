@@ -113,8 +113,8 @@ impl LearnCodes {
         if !(self.tau_start > 0.0 && self.tau_end > 0.0 && self.tau_start.is_finite() && self.tau_end.is_finite()) {
             return bad("learn_codes.tau", format!("{} → {}", self.tau_start, self.tau_end), "positive temperatures");
         }
-        if !(self.codes_lr > 0.0 && self.codes_lr <= crate::config::MAX_LEARNING_RATE) {
-            return bad("learn_codes.codes_lr", self.codes_lr.to_string(), "a positive learning rate up to 10");
+        if !(self.codes_lr > 0.0 && self.codes_lr.is_finite()) {
+            return bad("learn_codes.codes_lr", self.codes_lr.to_string(), "a positive learning rate");
         }
         if !(self.penalty_weight >= 0.0 && self.penalty_weight.is_finite() && self.init_margin.is_finite()) {
             return bad("learn_codes.penalty_weight", self.penalty_weight.to_string(), "a non-negative weight and a finite margin");

@@ -484,6 +484,11 @@ fn fit<M: Network>(
             loss_sum += l;
             progress.step(epoch, bi + 1, steps_per_epoch, l);
         }
+        // a step's loss is taken before it moves the weights: the epoch's last step can leave
+        // them infinite with every loss finite (a learning rate far too high)
+        if !weights_finite(&model) {
+            return Err(TrainError::Diverged { loss: f64::NAN, epoch: epoch + 1, step: state.step, kept: true });
+        }
         let mut valid = NetDecoder::new(model_cfg.name(), model.valid().to_device(&infer_device), infer_device.clone());
         let val =
             validate(&mut valid, &sensing.plan, &sensing.sensor, &data.val_x, data.val_labels.as_ref(), cfg.noise.as_ref(), cfg.seed)?;
@@ -508,6 +513,22 @@ fn fit<M: Network>(
         out.push(m);
     }
     Ok((out, model, learner))
+}
+
+/// Whether every float parameter of `model` is finite.
+fn weights_finite<M: Module>(model: &M) -> bool {
+    struct Finite(bool);
+    impl ModuleVisitor for Finite {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            if self.0 {
+                let s: f32 = param.val().abs().sum().into_scalar::<f32>();
+                self.0 = s.is_finite();
+            }
+        }
+    }
+    let mut v = Finite(true);
+    model.visit(&mut v);
+    v.0
 }
 
 /// The sensor of `codes` for validation (whole frames `hw`) and training (frames `thw`).
