@@ -61,9 +61,14 @@ pub struct NoisyMeasurement {
 impl NoisyMeasurement {
     /// The noisy values back in the units of the noiseless input (`electrons / s`).
     pub fn in_input_units(&self) -> ArrayD<f32> {
-        // (in f64: a scale past f32's range, from a faint input, still divides)
-        let s = self.electrons_per_unit;
-        self.electrons.mapv(|e| (e as f64 / s) as f32)
+        let s = self.electrons_per_unit as f32;
+        if s.is_normal() {
+            self.electrons.mapv(|e| e / s)
+        } else {
+            // a scale past f32's range (a faint input's): divided in f64
+            let s = self.electrons_per_unit;
+            self.electrons.mapv(|e| (e as f64 / s) as f32)
+        }
     }
     /// ADC codes (digital numbers), `round(e / lsb)`; equals electrons when quantisation is off.
     pub fn in_adc_codes(&self, noise: &NoiseParams) -> ArrayD<f32> {
