@@ -284,6 +284,12 @@ fn absurd_numbers_are_refused_before_anything_is_allocated() {
     p.refuse(&["lifetime", "x.npy", "--length", "8", "--clock-mhz", "inf", "-o", "t.npy"], &["--clock-mhz", "10000"]);
     p.refuse(&["lifetime", "x.npy", "--bin-width-ps", "1e308", "-o", "t.npy"], &["--bin-width-ps"]);
     p.refuse(&["depth", "x.npy", "--length", "8", "--min-rel", "NaN", "-o", "d.npy"], &["--min-rel"]);
+    // finite values whose sums overflow f32: a cube gave infinite taps, tap images NaN maps
+    write_npy(&p.dir.join("huge_x.npy"), &Array3::<f32>::from_elem((32, 16, 16), 3e38).view()).unwrap();
+    write_npy(&p.dir.join("huge_y.npy"), &Array3::<f32>::from_elem((4, 16, 16), 1e35).view()).unwrap();
+    p.refuse(&["simulate", "--codes", "dcodes.json", "--irf", "physical", "--cube", "huge_x.npy", "-o", "yy.npy"], &["huge_x.npy", "1e30"]);
+    p.refuse(&fit(&[]).iter().map(|a| if *a == "y32.npy" { "huge_y.npy" } else { a }).collect::<Vec<_>>(), &["huge_y.npy", "1e30"]);
+    p.refuse(&["infer", "--model", "unet.onnx", "--measurements", "huge_y.npy", "-o", "out"], &["huge_y.npy", "1e30"]);
     p.finish("absurd numbers");
 }
 

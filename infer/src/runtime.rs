@@ -612,11 +612,12 @@ fn check_frames(meta: &OnnxMeta, path: &Path, y: &ArrayView4<'_, f32>, what: &st
             });
         }
     }
-    if let Some(v) = y.iter().find(|v| !v.is_finite()) {
+    let max = tcsense_sensor::npy::MAX_VALUE;
+    if let Some(v) = y.iter().find(|v| !(v.abs() <= max)) {
         return Err(InferError::InvalidParam {
             field: "measurements",
-            got: format!("{what}: a value {v}"),
-            expected: "finite tap values".into(),
+            got: format!("{what}: a value {v:e}"),
+            expected: format!("finite tap values within ±{max:e}"),
         });
     }
     Ok(())

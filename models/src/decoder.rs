@@ -117,7 +117,7 @@ pub fn check_measurements(y: &ArrayView4<'_, f32>, sensor: &MeasurementMatrix) -
             expected: format!("[B, M, H, W] with B ≥ 1, M = {} taps and H, W non-zero multiples of the {bh}x{bw} block", sensor.taps()),
         }));
     }
-    tcsense_sensor::npy::ensure_finite(&y.view().into_dyn(), "measurements y")?;
+    tcsense_sensor::npy::ensure_usable(&y.view().into_dyn(), "measurements y")?;
     Ok(())
 }
 

@@ -21,6 +21,9 @@ pub enum SensorError {
     /// A NaN or infinity where finite values are required.
     #[error("{what}: non-finite value ({value}) at index {index:?}; inputs must be finite")]
     NonFinite { what: String, index: Vec<usize>, value: f32 },
+    /// A value past [`crate::npy::MAX_VALUE`] in magnitude: sums of such values overflow `f32`.
+    #[error("{what}: value {value:e} at index {index:?} is beyond ±1e30; inputs must stay within it (sums of them overflow f32)")]
+    TooLarge { what: String, index: Vec<usize>, value: f32 },
     /// Codes that break the constraints they were declared with.
     #[error(
         "codes violate their declared constraints ({count} violation(s)); first: {first}. Run `tcsense codes check` for the full list"

@@ -233,17 +233,34 @@ fn decode(kind: char, size: usize, b: [u8; 8]) -> f32 {
     }
 }
 
+/// The largest magnitude of a cube's or a tap image's value: the sums the decoders and the
+/// sensor take over thousands of them stay finite in `f32` (whose range ends at 3.4e38).
+pub const MAX_VALUE: f32 = 1e30;
+
+/// The logical (row-major) position `flat` of an array of `shape` as an index.
+fn unravel(flat: usize, shape: &[usize]) -> Vec<usize> {
+    let mut index = vec![0; shape.len()];
+    let mut rest = flat;
+    for (i, &n) in shape.iter().enumerate().rev() {
+        index[i] = rest % n.max(1);
+        rest /= n.max(1);
+    }
+    index
+}
+
 /// Check that every value of `a` is finite; the error names `what` and the first bad index.
 pub fn ensure_finite<D: Dimension>(a: &ArrayView<'_, f32, D>, what: &str) -> Result<()> {
     if let Some((flat, v)) = a.iter().enumerate().find(|(_, v)| !v.is_finite()) {
-        // unravel the logical (row-major) position into an index
-        let mut index = vec![0; a.ndim()];
-        let mut rest = flat;
-        for (i, &n) in a.shape().iter().enumerate().rev() {
-            index[i] = rest % n.max(1);
-            rest /= n.max(1);
-        }
-        return Err(SensorError::NonFinite { what: what.to_string(), index, value: *v });
+        return Err(SensorError::NonFinite { what: what.to_string(), index: unravel(flat, a.shape()), value: *v });
+    }
+    Ok(())
+}
+
+/// [`ensure_finite`], and every value within ±[`MAX_VALUE`] (a cube's, a tap image's).
+pub fn ensure_usable<D: Dimension>(a: &ArrayView<'_, f32, D>, what: &str) -> Result<()> {
+    ensure_finite(a, what)?;
+    if let Some((flat, v)) = a.iter().enumerate().find(|(_, v)| v.abs() > MAX_VALUE) {
+        return Err(SensorError::TooLarge { what: what.to_string(), index: unravel(flat, a.shape()), value: *v });
     }
     Ok(())
 }
@@ -257,7 +274,7 @@ pub fn read_cube(path: &Path, allow_batch: bool) -> Result<ArrayD<f32>> {
         let expected = if allow_batch { "rank 3 [T, H, W] or rank 4 [B, T, H, W]" } else { "rank 3 [T, H, W]" };
         return Err(SensorError::file(path, format!("array has shape {:?} (rank {}), expected {expected}", a.shape(), a.ndim())));
     }
-    ensure_finite(&a.view(), "cube").map_err(|e| e.in_file(path))?;
+    ensure_usable(&a.view(), "cube").map_err(|e| e.in_file(path))?;
     Ok(a)
 }
 
