@@ -480,17 +480,18 @@ pub fn evaluate(
             let cube = out.cube.as_ref().map(|c| c.index_axis(Axis(0), 0));
             let truth_i = intensity.as_ref().map(|t| t.index_axis(Axis(0), i));
             let est_l = out.lifetime.as_ref().map(|l| l.index_axis(Axis(0), 0).index_axis(Axis(0), 0).to_owned());
-            if let (Some(e), true) = (&est_l, lifetime.is_some()) {
+            let lt = truth_l.as_ref().map(|t| (t, truth_i.as_ref(), est_l.as_ref().map(|e| e.view())));
+            let lt = lt.as_ref().map(|(t, i, e)| (*t, *i, e.as_ref()));
+            row.add_with(cube.as_ref(), &x.index_axis(Axis(0), i), est.as_ref(), truth_d.as_ref(), lt, a.bin_width_s(), secs);
+            // kept for the pixels every lifetime decoder covers (moved: the row is done with it)
+            if let (Some(e), true) = (est_l, lifetime.is_some()) {
                 if i == 0 {
                     estimates.push((rows.len(), Vec::with_capacity(n)));
                 }
                 if let Some((_, v)) = estimates.last_mut() {
-                    v.push(e.clone());
+                    v.push(e);
                 }
             }
-            let lt = truth_l.as_ref().map(|t| (t, truth_i.as_ref(), est_l.as_ref().map(|e| e.view())));
-            let lt = lt.as_ref().map(|(t, i, e)| (*t, *i, e.as_ref()));
-            row.add_with(cube.as_ref(), &x.index_axis(Axis(0), i), est.as_ref(), truth_d.as_ref(), lt, a.bin_width_s(), secs);
             on_item(&d.label, i + 1, n);
         }
         rows.push(row);
