@@ -52,7 +52,7 @@ use tcsense_sensor::{MeasurementMatrix, C};
 
 use crate::engine::{argmin, parabola_min, window_sums};
 use crate::evidence::{CostVolume, Evidence};
-use crate::range::{cyclic_gap, RangeFitOptions, Templates, WindowFit, EXPLAINED, MIN_GAP};
+use crate::range::{cyclic_gap, wrap, wrap_index, RangeFitOptions, Templates, WindowFit, EXPLAINED, MIN_GAP};
 
 /// The pre-screen of a second return: one return of one amplitude over the window must remove at
 /// least this share of the window's single-return residual.
@@ -738,7 +738,7 @@ impl RangeTemplates {
                         // the best candidate within ±search_bins of the first estimate (cyclic)
                         let centre = tpl.nearest(own) as i64;
                         let reach = (fit.search_bins * os).floor() as i64;
-                        let at = |d: i64| (centre + d).rem_euclid(cands as i64) as usize;
+                        let at = |d: i64| wrap_index(centre + d, cands as i64);
                         // a mode's window grows on its surface until its best candidate is the
                         // mode's own (or its neighbour) and known to MODE_PRECISION_BINS (dim
                         // light), up to mode_window
@@ -746,7 +746,7 @@ impl RangeTemplates {
                         // only the candidates the search and its refinement read: ±(reach + 1)
                         // around the centre, as at most two runs of the cyclic axis
                         let span = (2 * reach as usize + 3).min(cands);
-                        let start = (centre - reach - 1).rem_euclid(cands as i64) as usize;
+                        let start = wrap_index(centre - reach - 1, cands as i64);
                         let runs = [(start, (start + span).min(cands)), (0, (start + span).saturating_sub(cands))];
                         hood_of(i, j, half, first, &mut hood);
                         total.fill(0.0);
@@ -792,7 +792,7 @@ impl RangeTemplates {
                         let best = at(d);
                         win.set_window(hood.iter().map(|&q| (kind(q), q * m)));
                         let offset = refine(&total, best, fit.oversample, &mut |x| win.single_at(tpl.tau(best) + x / os, &mut g));
-                        ((tpl.tau(best) + offset / os).rem_euclid(t as f64), grown)
+                        (wrap(tpl.tau(best) + offset / os, t as f64), grown)
                     })
                     .collect::<Vec<_>>()
             })
@@ -879,8 +879,10 @@ impl RangeTemplates {
                             let mut seeds = [(f32::NEG_INFINITY, 0usize); SEEDS];
                             for c in 0..cands {
                                 let v = total[c];
-                                if v >= total[(c + cands - 1) % cands]
-                                    && v >= total[(c + 1) % cands]
+                                // (the cyclic neighbours, without a division per candidate)
+                                let (before, after) = (if c == 0 { cands - 1 } else { c - 1 }, if c + 1 == cands { 0 } else { c + 1 });
+                                if v >= total[before]
+                                    && v >= total[after]
                                     && v > seeds[SEEDS - 1].0
                                     && cyclic_gap(tpl.tau(c), tau, t) >= MIN_GAP
                                 {

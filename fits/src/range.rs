@@ -61,9 +61,37 @@ pub(crate) const EXPLAINED: f64 = 1e-6;
 /// the same.
 pub(crate) const MIN_GAP: f64 = 2.0;
 
+/// `x.rem_euclid(t)` (`t > 0`) bit for bit, without the division where `x` is within a cycle
+/// of 0 (`x % t` is `x` there): the fits wrap positions on every candidate they read.
+#[inline]
+pub(crate) fn wrap(x: f64, t: f64) -> f64 {
+    if x.abs() < t {
+        if x < 0.0 {
+            x + t
+        } else {
+            x
+        }
+    } else {
+        x.rem_euclid(t)
+    }
+}
+
+/// `c.rem_euclid(n)` (`n > 0`) as an index, without the division where `c` is within a cycle
+/// of 0.
+#[inline]
+pub(crate) fn wrap_index(c: i64, n: i64) -> usize {
+    (if (0..n).contains(&c) {
+        c
+    } else if (-n..0).contains(&c) {
+        c + n
+    } else {
+        c.rem_euclid(n)
+    }) as usize
+}
+
 /// Distance between two positions on a cycle of `t` bins.
 pub(crate) fn cyclic_gap(a: f64, b: f64, t: usize) -> f64 {
-    let g = (a - b).rem_euclid(t as f64);
+    let g = wrap(a - b, t as f64);
     g.min(t as f64 - g)
 }
 
@@ -180,7 +208,7 @@ impl Templates {
 
     /// The candidate nearest `tau` (bins, cyclic).
     pub(crate) fn nearest(&self, tau: f64) -> usize {
-        ((tau * self.os as f64 - self.offset).round() as i64).rem_euclid(self.candidates() as i64) as usize
+        wrap_index((tau * self.os as f64 - self.offset).round() as i64, self.candidates() as i64)
     }
 
     /// `g_n(τ)` for any `τ` (bins), cyclic.
@@ -204,7 +232,7 @@ impl Templates {
 /// Where a template at `τ` (bins, cyclic over `t`) reads `A`: `(1 − f)·A[:, t0] + f·A[:, t1]`
 /// (bin `t`'s column is the response to light at its centre, `t + ½`).
 pub(crate) fn columns(t: usize, tau: f64) -> (usize, usize, f64) {
-    let p = (tau - 0.5).rem_euclid(t as f64);
+    let p = wrap(tau - 0.5, t as f64);
     let t0 = p.floor() as usize % t;
     (t0, (t0 + 1) % t, p - p.floor())
 }
@@ -331,7 +359,7 @@ fn search(tpl: &Templates, centre: f64, half: f64, cost: &mut dyn FnMut(usize) -
     if hi < lo {
         return None;
     }
-    let wrap = |c: i64| c.rem_euclid(cands) as usize;
+    let index = |c: i64| wrap_index(c, cands);
     // every cost found is kept (the parabola's neighbours were mostly found on the way)
     let mut seen: [(i64, f64); 24] = [(i64::MIN, 0.0); 24];
     let mut len = 0;
@@ -339,7 +367,7 @@ fn search(tpl: &Templates, centre: f64, half: f64, cost: &mut dyn FnMut(usize) -
         if let Some(&(_, v)) = seen[..len].iter().find(|e| e.0 == c) {
             return v;
         }
-        let v = cost(wrap(c));
+        let v = cost(index(c));
         if len < seen.len() {
             seen[len] = (c, v);
             len += 1;
@@ -373,7 +401,7 @@ fn search(tpl: &Templates, centre: f64, half: f64, cost: &mut dyn FnMut(usize) -
     let (r0, c) = best;
     let (rm, rp) = (eval(c - 1), eval(c + 1));
     let off = crate::engine::parabola_min(rm, r0, rp);
-    Some((((c as f64 + tpl.offset + off) / os).rem_euclid(tpl.t as f64), r0))
+    Some((wrap((c as f64 + tpl.offset + off) / os, tpl.t as f64), r0))
 }
 
 /// One neighbour of the window: its subpixel type, where its taps start, `y·y`, `y·s`, and
@@ -563,7 +591,7 @@ impl<'a> WindowFit<'a> {
         let best = 0.5 * (lo + hi);
         // keep the grid's estimate where the polish found nothing better (a flat cost)
         if self.single_at(best, g) <= self.single_at(tau, g) {
-            best.rem_euclid(self.tpl.t as f64)
+            wrap(best, self.tpl.t as f64)
         } else {
             tau
         }
@@ -733,6 +761,43 @@ mod tests {
     use tcsense_sensor::generate::random_codes;
     use tcsense_sensor::params::{DEFAULT_LASER_FWHM_S, DEFAULT_TAP_TAU_S};
     use tcsense_sensor::{Irf, SensorParams};
+
+    /// `wrap` and `wrap_index` are `rem_euclid` to the bit, inside a cycle of 0 (their fast
+    /// path) and beyond it, at its edges, for -0 and NaN.
+    #[test]
+    fn wrapping_without_a_division_is_rem_euclid_to_the_bit() {
+        for t in [1.0f64, 3.0, 32.0, 256.0] {
+            let xs = [
+                0.0,
+                -0.0,
+                1e-300,
+                -1e-300,
+                -1e-17,
+                0.5,
+                -0.5,
+                t - 1e-12,
+                t,
+                -t,
+                -t + 1e-12,
+                t + 0.25,
+                -t - 0.25,
+                5.5 * t,
+                -7.25 * t,
+                1e300,
+                -1e300,
+            ];
+            for x in xs.into_iter().chain((-400..400).map(|k| k as f64 * 0.37)) {
+                assert_eq!(wrap(x, t).to_bits(), x.rem_euclid(t).to_bits(), "{x} mod {t}");
+            }
+            assert!(wrap(f64::NAN, t).is_nan() && wrap(f64::INFINITY, t).is_nan());
+        }
+        for n in [1i64, 4, 128] {
+            for c in -1000..1000 {
+                assert_eq!(wrap_index(c, n), c.rem_euclid(n) as usize, "{c} mod {n}");
+            }
+            assert_eq!(wrap_index(i64::MIN, n), i64::MIN.rem_euclid(n) as usize);
+        }
+    }
 
     /// Two-column non-negative least squares written out: both coefficients by the solve,
     /// kept where non-negative, else the better column alone.

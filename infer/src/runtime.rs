@@ -612,15 +612,12 @@ fn check_frames(meta: &OnnxMeta, path: &Path, y: &ArrayView4<'_, f32>, what: &st
             });
         }
     }
-    let max = tcsense_sensor::npy::MAX_VALUE;
-    if let Some(v) = y.iter().find(|v| !(v.abs() <= max)) {
-        return Err(InferError::InvalidParam {
-            field: "measurements",
-            got: format!("{what}: a value {v:e}"),
-            expected: format!("finite tap values within ±{max:e}"),
-        });
-    }
-    Ok(())
+    // (the rule every reader of tap images and cubes applies, with the first bad index)
+    tcsense_sensor::npy::ensure_usable(y, what).map_err(|e| InferError::InvalidParam {
+        field: "measurements",
+        got: e.to_string(),
+        expected: format!("finite tap values within ±{:e}", tcsense_sensor::npy::MAX_VALUE),
+    })
 }
 
 /// An exported model behind the decoder contract (`eval --decoder onnx:model.onnx`).
