@@ -420,7 +420,18 @@ fn eval_photon_ladder() {
     assert_eq!(fit_amb["light"]["sbr"].as_f64(), Some(1.0));
     let (clean, ambient) = (at("depth-fit", 0.8)["depth_median_m"][0].as_f64().unwrap(), fit_amb["depth_median_m"][0].as_f64().unwrap());
     assert!(ambient > clean, "ambient {ambient} vs none {clean}");
-    // bad ladders
+    assert!(fit_amb.get("clipped_share").is_none(), "nothing clipped at SBR 1: {fit_amb}");
+    // fifty times as much ambient as signal light fills the wells in bright light: the pixels
+    // with a clipped tap get no range (counted against detection), the others are read as before
+    let out = ok(d, &with(&["--sbr", "0.02", "-o", "sat.json"]));
+    assert!(out.contains("of the pixels have a tap clipped at the full well"), "{out}");
+    let sat: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("sat.json")).unwrap()).unwrap();
+    for r in sat.as_array().unwrap().iter().filter(|r| r["light"]["signal_fraction"].as_f64() == Some(0.8)) {
+        let share = r["clipped_share"].as_f64().unwrap_or(0.0);
+        let first = &r["depth"][0];
+        let detected = first["detected"].as_f64().unwrap() / first["truth"].as_f64().unwrap();
+        assert!(share > 0.5 && detected <= 1.0 - share + 1e-9, "{}: {share} clipped, {detected} detected", r["decoder"]);
+    }
     fails(d, &with(&["--light", "0"]), &["--light"]);
     fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--light", "NaN"], &["--light"]);
     fails(d, &["eval", "--dataset", "ds", "--codes", "codes.json", "--light", "0.5", "--sbr=-1"], &["--sbr"]);
@@ -496,4 +507,81 @@ fn bench_decoders_speed_beside_accuracy() {
         &["nowhere"],
     );
     assert!(!d.join("bad").exists(), "a refused bench leaves no files");
+}
+
+/// A pixel with a tap clipped at the full well gets no range: from the clip level `simulate`
+/// records beside the measurements, or one given (`--clip-level`, in the tap images' units);
+/// the other pixels keep the ranges they get without it.
+#[test]
+fn clipped_pixels_get_no_range() {
+    let d = tempdir();
+    let d = d.path();
+    lidar(d);
+    let fit = |y: &str, out: &str, extra: &[&str]| -> String {
+        let args: Vec<&str> = ["reconstruct", "depth-fit", "--codes", "codes.json", "--measurements", y, "-o", out]
+            .iter()
+            .copied()
+            .chain(extra.iter().copied())
+            .collect();
+        ok(d, &args)
+    };
+    // noise at the automatic exposure (brightest tap at 80 % of full well): nothing clipped
+    ok(d, &["simulate", "--codes", "codes.json", "--cube", "ds/test/x_000.npy", "--noise", "--seed", "2", "-o", "y.npy"]);
+    let meta: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("y.meta.json")).unwrap()).unwrap();
+    let clip = meta["clip_level"].as_f64().unwrap();
+    let y = read_npy(&d.join("y.npy")).unwrap();
+    assert!(y.iter().all(|&v| (v as f64) < clip) && y.iter().fold(0f32, |m, &v| m.max(v)) as f64 > 0.7 * clip, "clip {clip}");
+    let out = fit("y.npy", "plain.npy", &[]);
+    assert!(!out.contains("clipped"), "{out}");
+    let plain = read_npy(&d.join("plain.npy")).unwrap();
+    // a level inside the taps' range: the pixels with a tap at it or above lose their ranges
+    let mut sorted: Vec<f32> = y.iter().copied().collect();
+    sorted.sort_by(f32::total_cmp);
+    let level = sorted[sorted.len() * 3 / 4];
+    let out = fit("y.npy", "cut.npy", &["--clip-level", &level.to_string()]);
+    let cut = read_npy(&d.join("cut.npy")).unwrap();
+    let conf = read_npy(&d.join("cut.confidence.npy")).unwrap();
+    let mut unread = 0;
+    for i in 0..8 {
+        for j in 0..8 {
+            let clipped = (0..4).any(|m| y[[0, m, i, j]] >= level.to_string().parse::<f32>().unwrap() * (1.0 - 1e-6));
+            unread += clipped as usize;
+            for k in 0..2 {
+                let (c, p) = (cut[[0, k, i, j]], plain[[0, k, i, j]]);
+                if clipped {
+                    assert!(c.is_nan() && conf[[0, k, i, j]] == 0.0, "({i}, {j})");
+                } else {
+                    assert!(c.to_bits() == p.to_bits(), "({i}, {j}): {c} against {p}");
+                }
+            }
+        }
+    }
+    assert!(unread > 8 && unread < 64, "{unread} pixels clipped");
+    assert!(out.contains(&format!("{unread} pixels with a tap clipped at the full well")), "{out}");
+    // a simulation that fills the wells: every pixel clipped, from its sidecar alone
+    ok(
+        d,
+        &[
+            "simulate",
+            "--codes",
+            "codes.json",
+            "--cube",
+            "ds/test/x_000.npy",
+            "--noise",
+            "--electrons-per-unit",
+            "1e9",
+            "--seed",
+            "2",
+            "-o",
+            "full.npy",
+        ],
+    );
+    let out = fit("full.npy", "full-d.npy", &[]);
+    assert!(out.contains("64 pixels with a tap clipped") && out.contains("returns per bounce [0, 0]"), "{out}");
+    fails(
+        d,
+        &["reconstruct", "depth-fit", "--codes", "codes.json", "--measurements", "y.npy", "-o", "z.npy", "--clip-level=-1"],
+        &["--clip-level"],
+    );
+    assert!(!d.join("z.npy").exists());
 }

@@ -93,8 +93,16 @@ fn a_decoder_added_with_one_entry_reaches_decode_and_eval() {
     let never = AtomicBool::new(false);
     let out = d.join("xhat.npy");
     let mut outputs = Outputs::plan(&[("-o", out.as_path())]).unwrap();
-    tcsense_infer::decode::decode_file(opened.decoder.as_mut(), &sensor, &d.join("y.npy"), &out, &Control::quiet(&never), &mut outputs)
-        .unwrap();
+    tcsense_infer::decode::decode_file(
+        opened.decoder.as_mut(),
+        &sensor,
+        &d.join("y.npy"),
+        &out,
+        &Control::quiet(&never),
+        &mut outputs,
+        None,
+    )
+    .unwrap();
     outputs.commit().unwrap();
     let xhat = read_npy(&out).unwrap().into_dimensionality::<Ix3>().unwrap();
     let want = sensor.matrix().plan(8, 8).unwrap().adjoint(&y.view()).unwrap() * 2.0;

@@ -81,6 +81,8 @@ pub struct DecodedFile {
     pub seconds_per_frame: f64,
     /// The files written, the main output first.
     pub written: Vec<PathBuf>,
+    /// Pixels (over all frames) with a tap at the clip level: no range or lifetime there.
+    pub clipped: usize,
 }
 
 /// The files beside a decoder's main output `output`: `OUTPUT.confidence.npy` (depth and
@@ -96,7 +98,9 @@ pub fn companions(output: &Path) -> [PathBuf; 3] {
 /// confidence at `OUTPUT.confidence.npy`; or the lifetimes `[4, H, W]` with the confidence and
 /// the intensity (`OUTPUT.intensity.npy`) — staged in `outputs` (planned with `output` and its
 /// [`companions`]), which the caller commits once every other output of the command is
-/// written too. Nothing is written when decoding fails.
+/// written too. Nothing is written when decoding fails. With a `clip_level` (what a tap
+/// clipped at the full well reads: [`tcsense_sensor::sidecar::Sidecar::clip_level`]), the
+/// pixels with a tap at it get no range and no lifetime (their confidence 0).
 pub fn decode_file(
     decoder: &mut dyn Decoder,
     sensor: &Sensor,
@@ -104,15 +108,23 @@ pub fn decode_file(
     output: &Path,
     ctl: &Control<'_>,
     outputs: &mut Outputs,
+    clip_level: Option<f32>,
 ) -> Result<DecodedFile> {
     let (batched, y) = read_measurements(measurements, sensor)?;
     let frames = y.dim().0;
     let t0 = std::time::Instant::now();
-    let decoded = decode_batch(decoder, sensor, y.view(), ctl).map_err(|e| match e {
+    let mut decoded = decode_batch(decoder, sensor, y.view(), ctl).map_err(|e| match e {
         InferError::Cancelled => InferError::Cancelled,
         e => InferError::File { path: measurements.to_path_buf(), msg: e.to_string() },
     })?;
     let seconds_per_frame = t0.elapsed().as_secs_f64() / frames.max(1) as f64;
+    // no range and no lifetime where a tap reads the clip level: nothing there can be read
+    let clipped = clip_level.map_or(0, |level| {
+        let level = level * (1.0 - 1e-6);
+        let unread = y.map_axis(Axis(1), |taps| taps.iter().any(|&v| v >= level)); // [B, H, W]
+        decoded.without_pixels(&unread.view());
+        unread.iter().filter(|&&u| u).count()
+    });
     let unbatch = |a: &Array4<f32>| -> ArrayD<f32> {
         if batched {
             a.clone().into_dyn()
@@ -140,5 +152,5 @@ pub fn decode_file(
         write_npy(&outputs.stage(&path)?, &unbatch(a).view())?;
         written.push(path);
     }
-    Ok(DecodedFile { decoded, batched, frames, seconds_per_frame, written })
+    Ok(DecodedFile { decoded, batched, frames, seconds_per_frame, written, clipped })
 }

@@ -3,7 +3,7 @@
 //! row per decoder holds the mean MSE and PSNR, depth errors per bounce (LiDAR), lifetime MAE
 //! (FLIm) and the time per frame.
 
-use ndarray::{Array4, ArrayView2, ArrayView3, Axis, Ix3, Ix4};
+use ndarray::{Array3, Array4, ArrayD, ArrayView2, ArrayView3, Axis, Ix3, Ix4};
 use serde::Serialize;
 use std::path::Path;
 use std::sync::atomic::AtomicBool;
@@ -11,7 +11,7 @@ use std::time::Instant;
 use tcsense_datasets::Dataset;
 use tcsense_models::decoder::{Control, Decoded};
 use tcsense_models::ModelError;
-use tcsense_sensor::measure::{measure_batch, measure_batch_at, signal_exposure};
+use tcsense_sensor::measure::{clipped_pixels, measure, signal_exposure};
 use tcsense_sensor::noise::derive_seed;
 use tcsense_sensor::noise::Exposure;
 use tcsense_sensor::nonideal::NonIdeal;
@@ -66,6 +66,10 @@ pub struct EvalRow {
     /// fitted to each item.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub onset_given_s: Option<f64>,
+    /// The share of the items' pixels with a tap clipped at the full well, where no decoder
+    /// gives a range or a lifetime (absent: none clipped).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub clipped_share: Option<f64>,
     #[serde(skip)]
     /// Per bounce: the counts summed over items, Σ squared and Σ absolute errors.
     depth_sums: Vec<(DepthErrors, f64, f64)>,
@@ -420,9 +424,9 @@ pub fn evaluate(
             expected: "a positive signal-to-background ratio (e.g. 1: as much ambient light as signal)".into(),
         });
     }
-    // the measurements every decoder sees, [1, M, H, W] per item
-    let ys: Vec<Array4<f32>> = (0..n)
-        .map(|i| -> Result<Array4<f32>> {
+    // the measurements every decoder sees, [1, M, H, W] per item, with their clipped pixels
+    let measured: Vec<(Array4<f32>, Option<Array3<bool>>)> = (0..n)
+        .map(|i| -> Result<(Array4<f32>, Option<Array3<bool>>)> {
             let xi = x.slice_axis(Axis(0), ndarray::Slice::from(i..i + 1));
             let seed = derive_seed(settings.seed, i as u64);
             // ambient light: a constant added to every bin; the exposure is the signal's own
@@ -435,32 +439,54 @@ pub fn evaluate(
                 None => (None, Exposure::Auto),
             };
             let xi = lit.as_ref().map_or(xi, |l| l.view());
+            let four = |a: ArrayD<f32>| a.into_dimensionality::<Ix4>().map_err(|e| file_err(&ds.dir, e.to_string()));
+            // the pixels with a tap clipped at the full well, [1, H, W] (noise on)
+            let three = |a: ArrayD<bool>| a.into_dimensionality::<Ix3>().map_err(|e| file_err(&ds.dir, e.to_string()));
             let Some(real) = &real else {
-                return match (&lit, &settings.noise) {
-                    (Some(_), Some(noise)) => Ok(measure_batch_at(&plan, &xi, Some(noise), exposure, seed)?),
-                    _ => Ok(measure_batch(&plan, &xi, settings.noise.as_ref(), seed)?),
+                let exposure = match (&lit, &settings.noise) {
+                    (Some(_), Some(_)) => exposure,
+                    _ => Exposure::Auto,
                 };
+                let m = measure(&plan, &xi.view().into_dyn(), settings.noise.as_ref(), exposure, seed)?;
+                let clipped = settings.noise.and_then(|n| m.clipped(n.full_well_e)).map(three).transpose()?;
+                return Ok((four(m.into_input_units())?, clipped));
             };
             // a real sensor: raw electrons, corrected with the calibration's maps when there is one
             let m = real.measure(&xi, &noise_model, settings.noise.is_some(), exposure, seed)?;
+            let clipped = settings.noise.map(|n| three(clipped_pixels(&m.electrons.view().into_dyn(), n.full_well_e))).transpose()?;
             let s = m.electrons_per_unit as f32;
             let e: Array4<f32> = m.electrons.into_dimensionality().map_err(|e| file_err(&ds.dir, e.to_string()))?;
-            Ok(sensor.correct(e.view())?.mapv(|v| v / s))
+            Ok((sensor.correct(e.view())?.mapv(|v| v / s), clipped))
         })
         .collect::<Result<_>>()?;
+    let (ys, clipped): (Vec<Array4<f32>>, Vec<Option<Array3<bool>>>) = measured.into_iter().unzip();
+    let clipped: Vec<Option<Array3<bool>>> = clipped.into_iter().map(|c| c.filter(|c| c.iter().any(|&v| v))).collect();
+    let clipped_share = clipped.iter().any(Option::is_some).then(|| {
+        let count: usize = clipped.iter().flatten().map(|c| c.iter().filter(|&&v| v).count()).sum();
+        count as f64 / (n * h * w) as f64
+    });
     let ctl = Control::quiet(cancel);
     let mut rows = Vec::new();
     // each lifetime decoder's τ_m estimate of each item `[H, W]`, for the common pixels
     let mut estimates: Vec<(usize, Vec<ndarray::Array2<f32>>)> = Vec::new();
     for d in decoders.iter_mut() {
-        let mut row = EvalRow::new(&d.label);
+        let mut row = EvalRow { clipped_share, ..EvalRow::new(&d.label) };
         for (i, y) in ys.iter().enumerate() {
             let t0 = Instant::now();
-            let out: Decoded = d.decoder.decode(y.view(), sensor, &ctl).map_err(|e| match e {
+            let mut out: Decoded = d.decoder.decode(y.view(), sensor, &ctl).map_err(|e| match e {
                 ModelError::Cancelled => InferError::Cancelled,
                 e => e.into(),
             })?;
             let secs = t0.elapsed().as_secs_f64();
+            // no range and no lifetime where a tap is clipped: nothing there can be read (a
+            // decoder of cubes too: its ranges, the cube's peaks as the row finds them, masked)
+            if let Some(c) = &clipped[i] {
+                if let (None, Some(cube), Some(truth)) = (&out.depth, &out.cube, &depth) {
+                    let opts = PeakOptions { max_peaks: truth.dim().1, ..Default::default() };
+                    out.depth = Some(depth_map(&cube.index_axis(Axis(0), 0), a.bin_width_s(), &opts).0.insert_axis(Axis(0)));
+                }
+                out.without_pixels(&c.view());
+            }
             if out.cube.is_none() && out.depth.is_none() && out.lifetime.is_none() {
                 return Err(InferError::InvalidParam {
                     field: "decoder",

@@ -52,6 +52,35 @@ pub struct Decoded {
     pub intensity: Option<Array4<f32>>,
 }
 
+impl Decoded {
+    /// No range and no lifetime where `unread` is set (a pixel with a tap clipped at the full
+    /// well: no decoder can read it): its ranges and lifetimes NaN, their confidences 0. Cubes
+    /// and intensities stay as decoded.
+    ///
+    /// # Shapes
+    /// - `unread`: `[B, H, W]`, as the decoded maps
+    pub fn without_pixels(&mut self, unread: &ndarray::ArrayView3<'_, bool>) {
+        let blank = |maps: &mut Option<Array4<f32>>, value: f32| {
+            if let Some(m) = maps {
+                for (mut frame, mask) in m.outer_iter_mut().zip(unread.outer_iter()) {
+                    for mut channel in frame.outer_iter_mut() {
+                        channel.zip_mut_with(&mask, |v, &u| {
+                            if u {
+                                *v = value;
+                            }
+                        });
+                    }
+                }
+            }
+        };
+        blank(&mut self.depth, f32::NAN);
+        blank(&mut self.lifetime, f32::NAN);
+        if self.depth.is_some() || self.lifetime.is_some() {
+            blank(&mut self.confidence, 0.0);
+        }
+    }
+}
+
 /// Where a decoder is in a batch, for progress display.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Step {
@@ -152,5 +181,36 @@ impl Decoder for Tval3Decoder {
             out.assign(&x);
         }
         Ok(Decoded { cube: Some(cube), ..Default::default() })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The unread pixels lose their ranges, lifetimes and confidences, in every frame and
+    /// channel; the others, the cube and the intensity keep theirs.
+    #[test]
+    fn unread_pixels_get_no_range_and_no_lifetime() {
+        let maps = |c: usize| Some(Array4::from_shape_fn((2, c, 2, 2), |(b, k, i, j)| (b * 8 + k * 4 + i * 2 + j) as f32 + 1.0));
+        let mut out = Decoded { cube: maps(3), depth: maps(2), confidence: maps(2), lifetime: None, intensity: maps(1) };
+        let before = out.clone();
+        let unread = ndarray::Array3::from_shape_fn((2, 2, 2), |(b, i, j)| (b, i, j) == (0, 1, 0) || (b, i, j) == (1, 0, 1));
+        out.without_pixels(&unread.view());
+        for ((b, k, i, j), &v) in out.depth.as_ref().unwrap().indexed_iter() {
+            let c = out.confidence.as_ref().unwrap()[(b, k, i, j)];
+            if unread[(b, i, j)] {
+                assert!(v.is_nan() && c == 0.0, "{:?}", (b, k, i, j));
+            } else {
+                assert_eq!((v, c), (before.depth.as_ref().unwrap()[(b, k, i, j)], before.confidence.as_ref().unwrap()[(b, k, i, j)]));
+            }
+        }
+        assert_eq!((&out.cube, &out.intensity), (&before.cube, &before.intensity));
+        // lifetimes: all four channels
+        let mut out = Decoded { lifetime: maps(4), confidence: maps(1), ..Default::default() };
+        out.without_pixels(&unread.view());
+        let l = out.lifetime.unwrap();
+        assert!((0..4).all(|k| l[(0, k, 1, 0)].is_nan() && l[(1, k, 0, 1)].is_nan()) && l[(0, 0, 0, 0)] == 1.0);
+        assert_eq!(out.confidence.unwrap()[(1, 0, 0, 1)], 0.0);
     }
 }

@@ -25,7 +25,7 @@
 //! assert_eq!(noisy, measure_batch(&plan, &x.view(), Some(&NoiseParams::default()), 7).unwrap());
 //! ```
 
-use ndarray::{Array4, ArrayD, ArrayView4, ArrayViewD, Ix3, Ix4};
+use ndarray::{Array4, ArrayD, ArrayView4, ArrayViewD, Axis, Ix3, Ix4};
 
 use crate::error::{invalid, Result};
 use crate::noise::{add_noise, Exposure, NoisyMeasurement};
@@ -49,6 +49,31 @@ impl Measurement {
             Measurement::Noisy(n) => n.in_input_units(),
         }
     }
+}
+
+impl Measurement {
+    /// The pixels with a tap clipped at the full well `full_well_e` (electrons; noiseless
+    /// measurements clip nothing): a pixel none of whose taps can be read.
+    ///
+    /// # Shapes
+    /// - `[M, H, W]` → `[H, W]`, or `[B, M, H, W]` → `[B, H, W]`
+    pub fn clipped(&self, full_well_e: f64) -> Option<ArrayD<bool>> {
+        match self {
+            Measurement::Noiseless(_) => None,
+            Measurement::Noisy(n) => Some(clipped_pixels(&n.electrons.view(), full_well_e)),
+        }
+    }
+}
+
+/// The pixels of electron counts `e` with a tap at the full well `full_well_e` or above (within
+/// a millionth: the clip, quantised or not, lands there).
+///
+/// # Shapes
+/// - `e`: `[M, H, W]` → `[H, W]`, or `[B, M, H, W]` → `[B, H, W]`
+pub fn clipped_pixels(e: &ArrayViewD<'_, f32>, full_well_e: f64) -> ArrayD<bool> {
+    let level = (full_well_e * (1.0 - 1e-6)) as f32;
+    let taps = Axis(e.ndim() - 3);
+    e.map_axis(taps, |t| t.iter().any(|&v| v >= level))
 }
 
 /// Measure cubes `x` (`[T, H, W]` or a batch `[B, T, H, W]`) with `plan`'s sensor; with
@@ -147,5 +172,23 @@ mod tests {
         let single = measure(&plan, &x.view().into_dyn(), Some(&noise), Exposure::Auto, 3).unwrap().into_input_units();
         assert_eq!(single, a1.index_axis(Axis(0), 0).into_dyn());
         assert!(measure(&plan, &ndarray::Array2::<f32>::zeros((8, 4)).view().into_dyn(), None, Exposure::Auto, 0).is_err());
+    }
+
+    /// A pixel with one tap at the full well (quantised there or clipped) is clipped; one just
+    /// below it, or noiseless measurements, are not.
+    #[test]
+    fn the_clipped_pixels_are_those_with_a_tap_at_the_full_well() {
+        let fw = 20_000.0;
+        let mut e = ndarray::Array4::<f32>::from_elem((2, 4, 2, 3), 100.0); // [B, M, H, W]
+        e[(0, 2, 0, 1)] = fw as f32;
+        e[(1, 0, 1, 2)] = fw as f32 * (1.0 - 1e-7); // the clip through a rounding
+        e[(1, 3, 0, 0)] = fw as f32 * 0.999;
+        let c = clipped_pixels(&e.view().into_dyn(), fw);
+        assert_eq!(c.shape(), &[2, 2, 3]);
+        let set: Vec<usize> = c.iter().enumerate().filter(|(_, &v)| v).map(|(i, _)| i).collect();
+        assert_eq!(set, vec![1, 6 + 5], "[0, 0, 1] and [1, 1, 2] of [2, 2, 3]");
+        let frame = clipped_pixels(&e.index_axis(Axis(0), 0).into_dyn(), fw); // [M, H, W] → [H, W]
+        assert_eq!(frame.shape(), &[2, 3]);
+        assert!(Measurement::Noiseless(e.into_dyn()).clipped(fw).is_none());
     }
 }

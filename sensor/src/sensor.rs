@@ -106,6 +106,21 @@ impl Measurement {
             },
         }
     }
+
+    /// What a tap clipped at the full well reads in `units` (the value [`Self::in_units`] gives
+    /// it); `None` for noiseless measurements, which clip nothing.
+    pub fn clip_level(&self, units: Units, noise: &NoiseParams) -> Option<f32> {
+        match self {
+            Measurement::Noiseless(_) => None,
+            Measurement::Noisy(n) => {
+                let full = crate::noise::NoisyMeasurement {
+                    electrons: ndarray::ArrayD::from_elem(ndarray::IxDyn(&[1]), noise.full_well_e as f32),
+                    electrons_per_unit: n.electrons_per_unit,
+                };
+                Measurement::Noisy(full).in_units(units, noise).iter().next().copied()
+            }
+        }
+    }
 }
 
 /// One sensor: codes, spec, nominal `A`, and optionally a calibration and non-idealities.

@@ -55,6 +55,10 @@ pub struct Sidecar {
     /// their seed); absent for the ideal sensor.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sensor: Option<crate::nonideal::NonIdeal>,
+    /// What a tap clipped at the full well reads, in `units`: a pixel with a tap at it cannot
+    /// be read (absent: not known, or noise off).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub clip_level: Option<f32>,
 }
 
 impl Sidecar {
@@ -83,6 +87,7 @@ impl Sidecar {
             seed,
             units: units.into(),
             sensor: None,
+            clip_level: None,
         }
     }
 

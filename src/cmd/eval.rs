@@ -126,6 +126,9 @@ pub fn run(a: EvalArgs) -> Result<ExitCode> {
                 let ambient = l.sbr.map_or("no ambient".to_string(), |s| format!("SBR {s}"));
                 println!("\nsignal {} of the full well ({:.0} e⁻ in the brightest tap), {ambient}", l.signal_fraction, l.signal_electrons);
             }
+            if let Some(c) = r.clipped_share {
+                println!("{:.1} % of the pixels have a tap clipped at the full well: no range or lifetime there", 100.0 * c);
+            }
             println!("{:<24} {:>5} {:>11} {:>8}", "decoder", "items", "MSE", "PSNR dB");
             level = r.light;
         }

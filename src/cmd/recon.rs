@@ -194,6 +194,11 @@ pub struct ReconstructArgs {
     pub no_range_fit: bool,
     #[command(flatten)]
     pub products: DepthProductArgs,
+    /// What a tap clipped at the full well reads, in the tap images' units (an ADC's full
+    /// scale; `simulate` records its own in `y.meta.json`, used when this is not given):
+    /// pixels with a tap at it get no range and no lifetime.
+    #[arg(long, value_parser = super::number_in(1e-30, 1e30))]
+    pub clip_level: Option<f64>,
     #[command(flatten)]
     pub device: super::DeviceArgs,
 }
@@ -294,7 +299,12 @@ pub fn reconstruct(a: ReconstructArgs) -> Result<ExitCode> {
         }
     }
     let mut decoder = opened.decoder;
-    decode_file(decoder.as_mut(), &sensor, &a.measurements, &a.output, &a.products)
+    // the clip level: given, else the one a simulation recorded beside the measurements
+    let clip_level = match a.clip_level {
+        Some(v) => Some(v as f32),
+        None => tcsense_sensor::sidecar::Sidecar::read_for(&a.measurements)?.and_then(|s| s.clip_level),
+    };
+    decode_file(decoder.as_mut(), &sensor, &a.measurements, &a.output, &a.products, clip_level)
 }
 
 /// Decode the tap images in `measurements` (`[M, H, W]` or a batch `[B, M, H, W]`) with any
@@ -306,6 +316,7 @@ fn decode_file(
     measurements: &Path,
     output: &Path,
     products: &DepthProductArgs,
+    clip_level: Option<f32>,
 ) -> Result<ExitCode> {
     // every output checked before any work: distinct, not a directory, writable; all of them
     // appear together once the last is written
@@ -338,6 +349,7 @@ fn decode_file(
         output,
         &Control { cancel: &cancel, progress: &progress },
         &mut outputs,
+        clip_level,
     );
     pb.finish_and_clear();
     let out = match out {
@@ -355,6 +367,9 @@ fn decode_file(
     };
     let d = &out.decoded;
     let mut lines = Vec::new();
+    if out.clipped > 0 {
+        lines.push(format!("{} pixels with a tap clipped at the full well: no range or lifetime there", out.clipped));
+    }
     if let Some(cube) = &d.cube {
         lines.push(format!("wrote {}: x̂ {:?} ({time} per frame, {name})", output.display(), shape(cube)));
     } else if let Some(lifetime) = &d.lifetime {

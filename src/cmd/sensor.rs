@@ -357,8 +357,12 @@ pub fn simulate(a: SimulateArgs) -> Result<ExitCode> {
         );
     }
     let units = if a.noise || !sensor.nonideal().is_ideal() { a.units.into() } else { tcsense_sensor::Units::Input };
+    let clip_level = measured.clip_level(units, &noise);
     let y = measured.in_units(units, &noise);
-    let sidecar = sensor.sidecar(a.noise.then_some(noise), a.noise.then_some(a.seed), units.name());
+    let sidecar = tcsense_sensor::sidecar::Sidecar {
+        clip_level,
+        ..sensor.sidecar(a.noise.then_some(noise), a.noise.then_some(a.seed), units.name())
+    };
     write_npy(output, &y.view())?;
     let meta = sidecar.write_for(output)?;
     println!("wrote {}: y {:?} (sensor in {})", output.display(), y.shape(), meta.display());
