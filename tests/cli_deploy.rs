@@ -108,6 +108,39 @@ fn export_check_and_stream_a_trained_unet() {
         s0.iter().zip(fitted.iter()).all(|(a, b)| (a.is_nan() && b.is_nan()) || (a - b).abs() < 1e-6),
         "infer --depth-fit --pool-like 9 and reconstruct depth-fit-pooled:9 differ"
     );
+    // a clip level (as reconstruct takes it): the pixels of each frame with a tap at it get no
+    // range and a confidence 0, the others the ranges they get without it
+    let mut sorted: Vec<f32> = y0.iter().copied().collect();
+    sorted.sort_by(f32::total_cmp);
+    let level = sorted[sorted.len() * 9 / 10].to_string();
+    for (plain, extra) in [("out-fit", None), ("out-df", Some("--depth-fit"))] {
+        let mut args = vec!["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--clip-level", &level, "-o", "out-clip"];
+        args.extend(extra);
+        ok(d, &args);
+        let (cut, conf, base) = (
+            read_npy(&d.join("out-clip/depth.npy")).unwrap(),
+            read_npy(&d.join("out-clip/confidence.npy")).unwrap(),
+            read_npy(&d.join(plain).join("depth.npy")).unwrap(),
+        );
+        let l: f32 = level.parse().unwrap();
+        let mut unread = [0usize; 3];
+        for f in 0..3 {
+            for i in 0..8 {
+                for j in 0..8 {
+                    let clipped = (0..4).any(|m| stack[[f, m, i, j]] >= l * (1.0 - 1e-6));
+                    unread[f] += clipped as usize;
+                    for k in 0..2 {
+                        let (c, b) = (cut[[f, k, i, j]], base[[f, k, i, j]]);
+                        assert!(
+                            if clipped { c.is_nan() && conf[[f, k, i, j]] == 0.0 } else { c.to_bits() == b.to_bits() },
+                            "{plain}, frame {f} ({i}, {j}): {c} against {b}"
+                        );
+                    }
+                }
+            }
+        }
+        assert!(unread[0] > 0 && unread[0] < 64 && unread[0] <= unread[1] && unread[1] <= unread[2], "{unread:?}");
+    }
     fails(
         d,
         &["infer", "--model", "unet.onnx", "--measurements", "stack.npy", "--depth-fit", "--pool-like", "12", "-o", "bad-dp"],

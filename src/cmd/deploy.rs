@@ -148,6 +148,11 @@ pub struct InferArgs {
     /// light, a wider window on one surface or cell in dim light.
     #[arg(long, value_parser = super::count_in(1, tcsense_fits::range::MAX_WINDOW))]
     pool_like: Option<usize>,
+    /// What a tap clipped at the full well reads, in the frames' units (an ADC's full scale;
+    /// `simulate` records its own in `y.meta.json`, used when this is not given): pixels with
+    /// a tap at it get no range and no lifetime.
+    #[arg(long, value_parser = super::number_in(1e-30, 1e30))]
+    clip_level: Option<f64>,
     /// Output directory.
     #[arg(short, long)]
     output: PathBuf,
@@ -250,7 +255,10 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
         }
         None => None,
     };
-    if let Some(meta) = tcsense_sensor::sidecar::Sidecar::read_for(&a.measurements)? {
+    let sidecar = tcsense_sensor::sidecar::Sidecar::read_for(&a.measurements)?;
+    // the clip level: given, else the one a simulation recorded beside the measurements
+    products.clip_level = a.clip_level.map(|v| v as f32).or(sidecar.as_ref().and_then(|s| s.clip_level));
+    if let Some(meta) = sidecar {
         let path = tcsense_sensor::sidecar::Sidecar::path_for(&a.measurements);
         match (&recalibrated, &model.meta.calibration) {
             // a recalibrated matrix: the measurements must carry its digest

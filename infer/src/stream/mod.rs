@@ -202,6 +202,15 @@ fn stream_into(
     let (m, h, w) = first.dim();
     model.check(&first.view().insert_axis(Axis(0)), &first_path.display().to_string())?;
     let kind = ModelKind::of(&model.meta.decoder);
+    // a frame's pixels with a tap at the clip level (as read), [H, W]; None: none
+    let clip = products.clip_level;
+    let clipped = move |a: &Array3<f32>| {
+        clip.map(|level| {
+            let level = level * (1.0 - 1e-6);
+            a.map_axis(Axis(0), |taps| taps.iter().any(|&v| v >= level))
+        })
+        .filter(|u| u.iter().any(|&v| v))
+    };
     let cube_model = kind == ModelKind::Cube;
     let (t, k) = (
         model.meta.bins,
@@ -317,10 +326,12 @@ fn stream_into(
     };
     let stage = stage.as_ref();
     let mut infer_seconds = 0.0;
-    type Frame = (usize, Array3<f32>, PathBuf, Option<FrameEvidence>);
+    // (a frame, its file, its evidence and its pixels with a tap at the clip level, [H, W])
+    type Frame = (usize, Array3<f32>, PathBuf, Option<FrameEvidence>, Option<ndarray::Array2<bool>>);
     let result: Result<()> = std::thread::scope(|scope| {
         let (ftx, frx) = sync_channel::<Result<Frame>>(2);
-        let (otx, orx) = sync_channel::<(usize, Vec<Array4<f32>>, Option<Array3<f32>>, Option<FrameEvidence>)>(2);
+        let (otx, orx) =
+            sync_channel::<(usize, Vec<Array4<f32>>, Option<Array3<f32>>, Option<FrameEvidence>, Option<ndarray::Array2<bool>>)>(2);
         // reader (into the evidence stage when there is one)
         let (rtx, rrx) = sync_channel::<Result<Frame>>(2);
         // the graph's inputs back to the evidence stage once the graph has run: the next
@@ -328,14 +339,18 @@ fn stream_into(
         let (btx, brx) = sync_channel::<EvidenceBuffers>(4);
         let to_next = if stage.is_some() { rtx } else { ftx.clone() };
         let reader = scope.spawn(move || {
-            if to_next.send(Ok((0, first, first_path, None))).is_err() {
+            let unread0 = clipped(&first);
+            if to_next.send(Ok((0, first, first_path, None, unread0))).is_err() {
                 return;
             }
             for i in 1..frames {
                 if cancel.load(Ordering::Relaxed) {
                     return;
                 }
-                let r = source.read(i, taps).map(|(a, p)| (i, a, p, None));
+                let r = source.read(i, taps).map(|(a, p)| {
+                    let unread = clipped(&a);
+                    (i, a, p, None, unread)
+                });
                 let stop = r.is_err();
                 if to_next.send(r).is_err() || stop {
                     return;
@@ -349,7 +364,7 @@ fn stream_into(
                     if cancel.load(Ordering::Relaxed) {
                         return;
                     }
-                    let r = msg.and_then(|(i, mut y, path, _)| {
+                    let r = msg.and_then(|(i, mut y, path, _, unread)| {
                         if y.dim() != (m, h, w) {
                             return Err(file_err(&path, format!("frame of shape {:?}; the first frame was [{m}, {h}, {w}]", y.shape())));
                         }
@@ -357,7 +372,7 @@ fn stream_into(
                         stage.check(&y4, &path.display().to_string()).map_err(|e| in_file(&path, e))?;
                         stage.correct(&mut y);
                         let ev = stage.evidence(&y.view(), brx.try_recv().unwrap_or_default());
-                        Ok((i, y, path, Some(ev)))
+                        Ok((i, y, path, Some(ev), unread))
                     });
                     let stop = r.is_err();
                     if ftx.send(r).is_err() || stop {
@@ -370,12 +385,13 @@ fn stream_into(
         let mut refine = refine;
         let writer = scope.spawn(move || -> Result<()> {
             let mut done = 0;
-            for (i, mut outs, y, ev) in orx {
+            for (i, mut outs, y, ev, unread) in orx {
                 if let (Some(refine), Some(ev), Some(y)) = (refine.as_mut(), ev, y.as_ref()) {
                     refine.finish(&y.view(), ev, &mut outs);
                 }
-                let fitted = templates.zip(y.as_ref()).map(|(tpl, y)| tpl.fit(&y.view()));
-                let ranges = range_templates.as_mut().zip(y.as_ref()).map(|(tpl, y)| tpl.fit(&y.view()));
+                let mut fitted = templates.zip(y.as_ref()).map(|(tpl, y)| tpl.fit(&y.view()));
+                let mut ranges = range_templates.as_mut().zip(y.as_ref()).map(|(tpl, y)| tpl.fit(&y.view()));
+
                 if let (Some(opts), Some(y)) = (range_fit, y.as_ref()) {
                     // the network's ranges refined in the tap domain (masked first, as the
                     // decoder contract gives them to the fit)
@@ -383,7 +399,13 @@ fn stream_into(
                     mask_depth(&mut depth[0], &conf[0]);
                     refine_ranges(y.view().insert_axis(Axis(0)), sensor, &mut depth[0], opts);
                 }
-                write_frame(i, outs, fitted, ranges, &mut writers, products, kind, bin_s, t, &peak_opts, out)?;
+                // no range and no lifetime where a tap is clipped (the products as decoded, then
+                // masked, as reconstruct masks them): the network's confidence 0 there, its and
+                // the fits' ranges and lifetimes NaN
+                if let Some(u) = &unread {
+                    write::without_pixels(u, kind, &mut outs, fitted.as_mut(), ranges.as_mut());
+                }
+                write_frame(i, outs, fitted, ranges, &mut writers, products, kind, bin_s, t, &peak_opts, out, unread.as_ref())?;
                 done += 1;
                 on_frame(i + 1, frames);
             }
@@ -404,7 +426,7 @@ fn stream_into(
                 status = Err(InferError::Cancelled);
                 break;
             }
-            let (i, y, path, mut ev) = match msg {
+            let (i, y, path, mut ev, unread) = match msg {
                 Ok(v) => v,
                 Err(e) => {
                     status = Err(e);
@@ -433,7 +455,7 @@ fn stream_into(
                 let _ = btx.try_send(ev.take_buffers());
             }
             let keep = templates.is_some() || range_fit.is_some() || depth_fit || ev.is_some();
-            if otx.send((i, outs, keep.then_some(y), ev)).is_err() {
+            if otx.send((i, outs, keep.then_some(y), ev, unread)).is_err() {
                 break;
             }
         }

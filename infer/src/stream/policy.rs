@@ -66,6 +66,9 @@ pub struct Products {
     /// through the model's sensor ([`tcsense_fits::depth`]) instead of the model's;
     /// `None`: the model's.
     pub depth_fit: Option<DepthFitOptions>,
+    /// What a tap clipped at the full well reads, in the frames' units (as read, before any
+    /// calibration): the pixels with a tap at it get no range and no lifetime; `None`: none.
+    pub clip_level: Option<f32>,
 }
 
 impl Products {
@@ -86,6 +89,7 @@ impl Products {
             onset_s: None,
             range_fit: Some(RangeFitOptions::default()),
             depth_fit: None,
+            clip_level: None,
         };
         let (allowed, _) = kind.products();
         for item in list.split(',').map(str::trim).filter(|s| !s.is_empty()) {

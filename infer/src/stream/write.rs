@@ -2,6 +2,7 @@
 //! temporary files, and the products of one frame.
 
 use super::*;
+use ndarray::Array2;
 
 /// An `f32` `.npy` stack written frame by frame into a temporary file, renamed on
 /// [`NpyStackWriter::finish`]; dropped unfinished, the temporary file is removed.
@@ -91,6 +92,7 @@ pub(super) fn write_frame(
     bins: usize,
     peak_opts: &PeakOptions,
     out: &Path,
+    unread: Option<&Array2<bool>>,
 ) -> Result<()> {
     let omega = 2.0 * std::f64::consts::PI / (bins as f64 * bin_s);
     if let Some(fit) = &fitted {
@@ -129,7 +131,11 @@ pub(super) fn write_frame(
                 w.push(cube.iter())?;
             }
             if depth_by_model && (p.depth || p.peaks || p.ply) {
-                let (depth, amp) = depth_map(&cube, bin_s, peak_opts);
+                let (mut depth, mut amp) = depth_map(&cube, bin_s, peak_opts);
+                if let Some(u) = unread {
+                    blank(&mut depth, u, f32::NAN);
+                    blank(&mut amp, u, 0.0);
+                }
                 if let Some(w) = wr.depth.as_mut() {
                     w.push(depth.iter())?;
                 }
@@ -142,7 +148,11 @@ pub(super) fn write_frame(
             }
             if by_model && (p.lifetime || p.phasor) {
                 // the reconvolution fit (IRF fitted to the frame)
-                let fit = tcsense_fits::lifetime_cube::fit_cube(&cube, bin_s, &tcsense_fits::lifetime_cube::FitOptions::default());
+                let mut fit = tcsense_fits::lifetime_cube::fit_cube(&cube, bin_s, &tcsense_fits::lifetime_cube::FitOptions::default());
+                if let Some(u) = unread {
+                    blank(&mut fit.lifetimes, u, f32::NAN);
+                    blank(&mut fit.phasor, u, f32::NAN);
+                }
                 if let Some(w) = wr.lifetime.as_mut() {
                     w.push(fit.lifetimes.index_axis(Axis(0), 0).iter())?;
                 }
@@ -197,4 +207,59 @@ pub(super) fn write_frame(
         ModelKind::Lifetime | ModelKind::Depth => {}
     }
     Ok(())
+}
+
+/// Each `[H, W]` plane of `a` `[C, H, W]` set to `value` where `unread`.
+fn blank(a: &mut Array3<f32>, unread: &Array2<bool>, value: f32) {
+    for mut plane in a.outer_iter_mut() {
+        plane.zip_mut_with(unread, |v, &u| {
+            if u {
+                *v = value;
+            }
+        });
+    }
+}
+
+/// No range and no lifetime where `unread` (`[H, W]`: a tap clipped at the full well): a
+/// depth or lifetime model's confidence 0 there (its ranges and lifetimes are masked by it
+/// downstream, and its ranges set NaN now), the fit's lifetimes and ranges NaN.
+pub(super) fn without_pixels(
+    unread: &Array2<bool>,
+    kind: ModelKind,
+    outs: &mut [Array4<f32>],
+    fitted: Option<&mut TapFit>,
+    ranges: Option<&mut Array3<f32>>,
+) {
+    let frame = |a: &mut Array4<f32>, value: f32| {
+        for mut f in a.outer_iter_mut() {
+            for mut plane in f.outer_iter_mut() {
+                plane.zip_mut_with(unread, |v, &u| {
+                    if u {
+                        *v = value;
+                    }
+                });
+            }
+        }
+    };
+    match (kind, outs) {
+        (ModelKind::Depth, [depth, confidence, ..]) => {
+            frame(depth, f32::NAN);
+            frame(confidence, 0.0);
+        }
+        (ModelKind::Lifetime, [lifetime, confidence, ..]) => {
+            frame(lifetime, f32::NAN);
+            frame(confidence, 0.0);
+        }
+        _ => {}
+    }
+    if let Some(fit) = fitted {
+        fit.lifetime.zip_mut_with(unread, |v, &u| {
+            if u {
+                *v = f32::NAN;
+            }
+        });
+    }
+    if let Some(r) = ranges {
+        blank(r, unread, f32::NAN);
+    }
 }
