@@ -58,17 +58,27 @@ fn decode_with<'py>(
     decoder: &Mutex<Box<dyn Decoder>>,
     sensor: &PySensor,
     y: &Bound<'py, PyAny>,
+    clip_level: Option<f32>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let arr = f32_array(y, "y")?;
     check_rank(arr.shape(), &[3, 4], "y", "[M, H, W] or [B, M, H, W]")?;
     let v = arr.as_array();
     let batched = v.ndim() == 4;
     let v = if batched { v.into_dimensionality::<Ix4>() } else { v.insert_axis(Axis(0)).into_dimensionality::<Ix4>() }.map_err(err)?;
-    let out = run_long(py, |cancel| {
+    // the pixels with a tap at the clip level, [B, H, W]: no range and no lifetime there
+    let unread = match clip_level {
+        Some(l) if l.is_finite() && l > 0.0 => Some(v.map_axis(Axis(1), |taps| taps.iter().any(|&t| t >= l * (1.0 - 1e-6)))),
+        Some(l) => return Err(err(format!("clip_level {l}: expected a positive level in the tap images' units"))),
+        None => None,
+    };
+    let mut out = run_long(py, |cancel| {
         let mut d = decoder.lock().unwrap_or_else(|e| e.into_inner());
         decode_batch(d.as_mut(), &sensor.inner, v, &Control::quiet(cancel))
     })?
     .map_err(err)?;
+    if let Some(u) = &unread {
+        out.without_pixels(&u.view());
+    }
     decoded_dict(py, out, batched)
 }
 
@@ -78,9 +88,17 @@ impl PyDecoder {
     /// the decoder's own, for runs and ONNX models). Returns a dict of the arrays the decoder
     /// gives: `cube [T, H, W]`, `depth` and `confidence [K, H, W]` (m), `lifetime [4, H, W]`
     /// (τ_m, τ₁, τ₂ in s, α₁) with `confidence` and `intensity [1, H, W]` — with a leading batch
-    /// axis when `y` had one. Runs with the GIL released; Ctrl-C stops it.
-    #[pyo3(signature = (y, sensor = None))]
-    fn decode<'py>(&self, py: Python<'py>, y: &Bound<'py, PyAny>, sensor: Option<&Bound<'py, PySensor>>) -> PyResult<Bound<'py, PyDict>> {
+    /// axis when `y` had one. With `clip_level` (what a tap clipped at the full well reads),
+    /// the pixels with a tap at it get no range and no lifetime. Runs with the GIL released;
+    /// Ctrl-C stops it.
+    #[pyo3(signature = (y, sensor = None, *, clip_level = None))]
+    fn decode<'py>(
+        &self,
+        py: Python<'py>,
+        y: &Bound<'py, PyAny>,
+        sensor: Option<&Bound<'py, PySensor>>,
+        clip_level: Option<f32>,
+    ) -> PyResult<Bound<'py, PyDict>> {
         let own = self.sensor.as_ref().map(|s| s.bind(py).clone());
         let Some(s) = sensor.cloned().or(own) else {
             return Err(err(format!("{}: give the sensor the measurements come from: decode(y, sensor)", self.label)));
@@ -88,7 +106,7 @@ impl PyDecoder {
         let s = s.get();
         let trained = self.sensor.as_ref().map(|t| t.get().inner.codes());
         check_codes(&self.label, trained, &s.inner).map_err(err)?;
-        decode_with(py, &self.inner, s, y)
+        decode_with(py, &self.inner, s, y, clip_level)
     }
 
     /// `tval3`, `lifetime-fit`, `admm-net`, `unet`, `lifetime` or `onnx`.
@@ -190,18 +208,23 @@ fn tval3<'py>(
 ) -> PyResult<Bound<'py, PyAny>> {
     let opts: Tval3Options = merged(&Tval3Options::default(), options, "tval3 settings")?;
     let dec: Mutex<Box<dyn Decoder>> = Mutex::new(Box::new(Tval3Decoder::new(opts).map_err(err)?));
-    let d = decode_with(py, &dec, sensor.get(), y)?;
+    let d = decode_with(py, &dec, sensor.get(), y, None)?;
     d.get_item("cube")?.ok_or_else(|| err("tval3 gave no cube"))
 }
 
 /// Lifetimes fitted to the tap images directly (`tcsense reconstruct lifetime-fit`): y
 /// `[M, H, W]` or `[B, M, H, W]` → dict `lifetime [4, H, W]` (τ_m, τ₁, τ₂ in s, α₁),
-/// `confidence`, `intensity [1, H, W]`.
+/// `confidence`, `intensity [1, H, W]`; no lifetime where a tap reads `clip_level`.
 #[pyfunction]
-#[pyo3(signature = (y, sensor))]
-fn lifetime_fit<'py>(py: Python<'py>, y: &Bound<'py, PyAny>, sensor: &Bound<'py, PySensor>) -> PyResult<Bound<'py, PyDict>> {
+#[pyo3(signature = (y, sensor, *, clip_level = None))]
+fn lifetime_fit<'py>(
+    py: Python<'py>,
+    y: &Bound<'py, PyAny>,
+    sensor: &Bound<'py, PySensor>,
+    clip_level: Option<f32>,
+) -> PyResult<Bound<'py, PyDict>> {
     let dec: Mutex<Box<dyn Decoder>> = Mutex::new(Box::new(TapFitDecoder::new(TapFitOptions::default()).map_err(err)?));
-    decode_with(py, &dec, sensor.get(), y)
+    decode_with(py, &dec, sensor.get(), y, clip_level)
 }
 
 /// The zoo's entries as dicts: name, dir, decoder, domain, learned_codes, codes, epochs,

@@ -126,11 +126,13 @@ class Sensor:
 class Decoder:
     """Tap images in; cubes, depth or lifetimes out. From ``open_run`` or ``open_decoder``."""
 
-    def decode(self, y: F32, sensor: Optional[Sensor] = None) -> Dict[str, F32]:
+    def decode(self, y: F32, sensor: Optional[Sensor] = None, *, clip_level: Optional[float] = None) -> Dict[str, F32]:
         """Decode ``y [M, H, W]`` (or ``[B, M, H, W]``) taken by ``sensor`` (default: the
         decoder's own). Gives the keys the decoder has: ``cube [T, H, W]``; ``depth`` (m, NaN
         where no return) and ``confidence [K, H, W]``; ``lifetime [4, H, W]`` (τ_m, τ₁, τ₂ in s,
-        α₁), ``confidence`` and ``intensity [1, H, W]``. GIL released; Ctrl-C stops it."""
+        α₁), ``confidence`` and ``intensity [1, H, W]``. With ``clip_level`` (what a tap clipped
+        at the full well reads), the pixels with a tap at it get no range and no lifetime. GIL
+        released; Ctrl-C stops it."""
     @property
     def kind(self) -> str:
         """tval3, lifetime-fit, admm-net, unet, lifetime or onnx."""
@@ -157,8 +159,9 @@ def tval3(y: F32, sensor: Sensor, **options: Any) -> F32:
     """TVAL3: ``[M, H, W]`` → ``[T, H, W]`` (or batched). Options: mu, beta, maxit, tol,
     tol_inn, nonneg, tv_norm, weights, …"""
 
-def lifetime_fit(y: F32, sensor: Sensor) -> Dict[str, F32]:
-    """Lifetimes fitted to the tap images: ``lifetime [4, H, W]``, ``confidence``, ``intensity``."""
+def lifetime_fit(y: F32, sensor: Sensor, *, clip_level: Optional[float] = None) -> Dict[str, F32]:
+    """Lifetimes fitted to the tap images: ``lifetime [4, H, W]``, ``confidence``, ``intensity``;
+    no lifetime where a tap reads ``clip_level``."""
 
 def zoo_list() -> List[Dict[str, Any]]:
     """The zoo's entries: name, dir, decoder, domain, learned_codes, codes, epochs, validation, title, weights_bytes."""

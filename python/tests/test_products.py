@@ -102,3 +102,21 @@ def test_a_known_onset_reaches_a_lifetime_network():
         tcsense.open_decoder("tval3", onset_ns=30.0)
     with pytest.raises(tcsense.TcsenseError, match="onset"):
         tcsense.open_decoder(name, onset_ns=float("nan"))
+
+
+def test_clipped_pixels_get_no_range():
+    # a tap at the clip level: that pixel's ranges NaN and confidences 0, the cube untouched,
+    # every other pixel as decoded without the level
+    dec = tcsense.open_decoder("zoo:admm-lidar-delay+fit")
+    x = np.full((32, 8, 8), 0.01, dtype=np.float32)
+    x[9] += np.linspace(0.2, 1.0, 64, dtype=np.float32).reshape(8, 8)
+    y = dec.sensor.forward(x)
+    level = float(np.quantile(y, 0.9))
+    out, plain = dec.decode(y, clip_level=level), dec.decode(y)
+    unread = (y >= level * (1 - 1e-6)).any(axis=0)
+    assert 0 < unread.sum() < 64
+    assert np.isnan(out["depth"][:, unread]).all() and (out["confidence"][:, unread] == 0).all()
+    np.testing.assert_array_equal(out["depth"][:, ~unread], plain["depth"][:, ~unread])
+    np.testing.assert_array_equal(out["cube"], plain["cube"])
+    with pytest.raises(Exception, match="clip_level"):
+        dec.decode(y, clip_level=-1.0)
