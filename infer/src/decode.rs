@@ -119,12 +119,17 @@ pub fn decode_file(
     })?;
     let seconds_per_frame = t0.elapsed().as_secs_f64() / frames.max(1) as f64;
     // no range and no lifetime where a tap reads the clip level: nothing there can be read
-    let clipped = clip_level.map_or(0, |level| {
-        let level = level * (1.0 - 1e-6);
-        let unread = y.map_axis(Axis(1), |taps| taps.iter().any(|&v| v >= level)); // [B, H, W]
-        decoded.without_pixels(&unread.view());
-        unread.iter().filter(|&&u| u).count()
-    });
+    let clipped = match clip_level {
+        Some(level) => {
+            let unread = tcsense_sensor::measure::at_clip_level(&y.view().into_dyn(), level); // [B, H, W]
+            let unread = unread
+                .into_dimensionality::<ndarray::Ix3>()
+                .map_err(|e| InferError::File { path: measurements.to_path_buf(), msg: e.to_string() })?;
+            decoded.without_pixels(&unread.view());
+            unread.iter().filter(|&&u| u).count()
+        }
+        None => 0,
+    };
     let unbatch = |a: &Array4<f32>| -> ArrayD<f32> {
         if batched {
             a.clone().into_dyn()

@@ -439,21 +439,21 @@ pub fn evaluate(
                 None => (None, Exposure::Auto),
             };
             let xi = lit.as_ref().map_or(xi, |l| l.view());
-            let four = |a: ArrayD<f32>| a.into_dimensionality::<Ix4>().map_err(|e| file_err(&ds.dir, e.to_string()));
+            let as_batch = |a: ArrayD<f32>| a.into_dimensionality::<Ix4>().map_err(|e| file_err(&ds.dir, e.to_string()));
             // the pixels with a tap clipped at the full well, [1, H, W] (noise on)
-            let three = |a: ArrayD<bool>| a.into_dimensionality::<Ix3>().map_err(|e| file_err(&ds.dir, e.to_string()));
+            let as_masks = |a: ArrayD<bool>| a.into_dimensionality::<Ix3>().map_err(|e| file_err(&ds.dir, e.to_string()));
             let Some(real) = &real else {
                 let exposure = match (&lit, &settings.noise) {
                     (Some(_), Some(_)) => exposure,
                     _ => Exposure::Auto,
                 };
                 let m = measure(&plan, &xi.view().into_dyn(), settings.noise.as_ref(), exposure, seed)?;
-                let clipped = settings.noise.and_then(|n| m.clipped(n.full_well_e)).map(three).transpose()?;
-                return Ok((four(m.into_input_units())?, clipped));
+                let clipped = settings.noise.and_then(|n| m.clipped(n.full_well_e)).map(as_masks).transpose()?;
+                return Ok((as_batch(m.into_input_units())?, clipped));
             };
             // a real sensor: raw electrons, corrected with the calibration's maps when there is one
             let m = real.measure(&xi, &noise_model, settings.noise.is_some(), exposure, seed)?;
-            let clipped = settings.noise.map(|n| three(clipped_pixels(&m.electrons.view().into_dyn(), n.full_well_e))).transpose()?;
+            let clipped = settings.noise.map(|n| as_masks(clipped_pixels(&m.electrons.view().into_dyn(), n.full_well_e))).transpose()?;
             let s = m.electrons_per_unit as f32;
             let e: Array4<f32> = m.electrons.into_dimensionality().map_err(|e| file_err(&ds.dir, e.to_string()))?;
             Ok((sensor.correct(e.view())?.mapv(|v| v / s), clipped))

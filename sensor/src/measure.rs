@@ -65,15 +65,23 @@ impl Measurement {
     }
 }
 
-/// The pixels of electron counts `e` with a tap at the full well `full_well_e` or above (within
-/// a millionth: the clip, quantised or not, lands there).
+/// The pixels of electron counts `e` with a tap at the full well `full_well_e` or above.
 ///
 /// # Shapes
 /// - `e`: `[M, H, W]` → `[H, W]`, or `[B, M, H, W]` → `[B, H, W]`
 pub fn clipped_pixels(e: &ArrayViewD<'_, f32>, full_well_e: f64) -> ArrayD<bool> {
-    let level = (full_well_e * (1.0 - 1e-6)) as f32;
-    let taps = Axis(e.ndim() - 3);
-    e.map_axis(taps, |t| t.iter().any(|&v| v >= level))
+    at_clip_level(e, full_well_e as f32)
+}
+
+/// The pixels of tap images `y` with a tap at `level` or above (within a millionth: a clip,
+/// quantised or rescaled, lands there), in `y`'s units: what no decoder can read.
+///
+/// # Shapes
+/// - `y`: `[M, H, W]` → `[H, W]`, or `[B, M, H, W]` → `[B, H, W]`
+pub fn at_clip_level(y: &ArrayViewD<'_, f32>, level: f32) -> ArrayD<bool> {
+    let level = level * (1.0 - 1e-6);
+    let taps = Axis(y.ndim() - 3);
+    y.map_axis(taps, |t| t.iter().any(|&v| v >= level))
 }
 
 /// Measure cubes `x` (`[T, H, W]` or a batch `[B, T, H, W]`) with `plan`'s sensor; with

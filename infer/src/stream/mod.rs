@@ -205,9 +205,8 @@ fn stream_into(
     // a frame's pixels with a tap at the clip level (as read), [H, W]; None: none
     let clip = products.clip_level;
     let clipped = move |a: &Array3<f32>| {
-        clip.map(|level| {
-            let level = level * (1.0 - 1e-6);
-            a.map_axis(Axis(0), |taps| taps.iter().any(|&v| v >= level))
+        clip.and_then(|level| {
+            tcsense_sensor::measure::at_clip_level(&a.view().into_dyn(), level).into_dimensionality::<ndarray::Ix2>().ok()
         })
         .filter(|u| u.iter().any(|&v| v))
     };
