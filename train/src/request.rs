@@ -226,6 +226,9 @@ pub fn prepare(req: &TrainRequest) -> Result<Prepared> {
     // the network: the run's own on resume; the source run's with init_from; else a config
     // file's or the defaults, shaped by the architecture settings
     let mut cfg = if req.resume {
+        // a training that holds the run (even one that has not written its config yet) is
+        // what the resume meets, not a missing run
+        crate::run_dir::RunLock::free(run_dir)?;
         let saved = run_dir.join(CONFIG_FILE);
         if !saved.exists() {
             return Err(file_err(run_dir, format!("no run to resume ({CONFIG_FILE} missing)")));

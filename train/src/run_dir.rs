@@ -298,21 +298,31 @@ impl RunLock {
                     return Ok(RunLock { path });
                 }
                 Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
-                    let holder = std::fs::read_to_string(&path).ok().and_then(|s| s.trim().parse::<u32>().ok());
-                    match holder {
-                        Some(pid) if process_alive(pid) => {
-                            return Err(file_err(run, format!("another training (process {pid}) is writing this run directory; wait for it or stop it (its lock is {})", path.display())));
-                        }
-                        // the holder is gone (killed): take the lock over
-                        _ => {
-                            let _ = std::fs::remove_file(&path);
-                        }
-                    }
+                    Self::free(run)?;
+                    // the holder is gone (killed): take the lock over
+                    let _ = std::fs::remove_file(&path);
                 }
                 Err(e) => return Err(file_err(&path, e)),
             }
         }
         Err(file_err(&path, "cannot take the run directory's lock"))
+    }
+
+    /// `Ok` unless another running training holds `run`'s lock (one that is starting, too,
+    /// before it has written anything else there): a resume is refused then, naming it.
+    pub fn free(run: &Path) -> Result<()> {
+        let path = run.join(LOCK_FILE);
+        let holder = std::fs::read_to_string(&path).ok().and_then(|s| s.trim().parse::<u32>().ok());
+        match holder {
+            Some(pid) if process_alive(pid) => Err(file_err(
+                run,
+                format!(
+                    "another training (process {pid}) is writing this run directory; wait for it or stop it (its lock is {})",
+                    path.display()
+                ),
+            )),
+            _ => Ok(()),
+        }
     }
 }
 
