@@ -121,10 +121,7 @@ pub fn decode_file(
     // no range and no lifetime where a tap reads the clip level: nothing there can be read
     let clipped = match clip_level {
         Some(level) => {
-            let unread = tcsense_sensor::measure::at_clip_level(&y.view().into_dyn(), level); // [B, H, W]
-            let unread = unread
-                .into_dimensionality::<ndarray::Ix3>()
-                .map_err(|e| InferError::File { path: measurements.to_path_buf(), msg: e.to_string() })?;
+            let unread = tcsense_sensor::measure::at_clip_level(&y.view(), level); // [B, H, W]
             decoded.without_pixels(&unread.view());
             unread.iter().filter(|&&u| u).count()
         }

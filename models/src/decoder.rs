@@ -26,7 +26,7 @@
 //! assert_eq!(out.cube.unwrap().dim(), (1, 8, 4, 4)); // [B, T, H, W]
 //! ```
 
-use ndarray::{Array4, ArrayView4, Axis};
+use ndarray::{Array, Array4, ArrayView, ArrayView4, Axis, Dimension};
 use std::sync::atomic::{AtomicBool, Ordering};
 use tcsense_sensor::{MeasurementMatrix, Sensor, SensorError};
 
@@ -60,17 +60,11 @@ impl Decoded {
     /// # Shapes
     /// - `unread`: `[B, H, W]`, as the decoded maps
     pub fn without_pixels(&mut self, unread: &ndarray::ArrayView3<'_, bool>) {
+        // (each frame's mask over every channel: [B, 1, H, W])
+        let unread = unread.view().insert_axis(Axis(1));
         let blank = |maps: &mut Option<Array4<f32>>, value: f32| {
             if let Some(m) = maps {
-                for (mut frame, mask) in m.outer_iter_mut().zip(unread.outer_iter()) {
-                    for mut channel in frame.outer_iter_mut() {
-                        channel.zip_mut_with(&mask, |v, &u| {
-                            if u {
-                                *v = value;
-                            }
-                        });
-                    }
-                }
+                set_where(m, &unread, value);
             }
         };
         blank(&mut self.depth, f32::NAN);
@@ -79,6 +73,16 @@ impl Decoded {
             blank(&mut self.confidence, 0.0);
         }
     }
+}
+
+/// `maps` set to `value` where `unread`, which spans their trailing axes (a frame's `[H, W]`
+/// over `[C, H, W]` maps; `[B, 1, H, W]` over `[B, C, H, W]`).
+pub fn set_where<D: Dimension, E: Dimension>(maps: &mut Array<f32, D>, unread: &ArrayView<'_, bool, E>, value: f32) {
+    maps.zip_mut_with(unread, |v, &u| {
+        if u {
+            *v = value;
+        }
+    });
 }
 
 /// Where a decoder is in a batch, for progress display.

@@ -67,9 +67,7 @@ fn decode_with<'py>(
     let v = if batched { v.into_dimensionality::<Ix4>() } else { v.insert_axis(Axis(0)).into_dimensionality::<Ix4>() }.map_err(err)?;
     // the pixels with a tap at the clip level, [B, H, W]: no range and no lifetime there
     let unread = match clip_level {
-        Some(l) if l.is_finite() && l > 0.0 => {
-            Some(tcsense_sensor::measure::at_clip_level(&v.into_dyn(), l).into_dimensionality::<ndarray::Ix3>().map_err(err)?)
-        }
+        Some(l) if l.is_finite() && l > 0.0 => Some(tcsense_sensor::measure::at_clip_level(&v, l)),
         Some(l) => return Err(err(format!("clip_level {l}: expected a positive level in the tap images' units"))),
         None => None,
     };

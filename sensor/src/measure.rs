@@ -25,7 +25,7 @@
 //! assert_eq!(noisy, measure_batch(&plan, &x.view(), Some(&NoiseParams::default()), 7).unwrap());
 //! ```
 
-use ndarray::{Array4, ArrayD, ArrayView4, ArrayViewD, Axis, Ix3, Ix4};
+use ndarray::{Array, Array4, ArrayD, ArrayView, ArrayView4, ArrayViewD, Axis, Ix3, Ix4, RemoveAxis};
 
 use crate::error::{invalid, Result};
 use crate::noise::{add_noise, Exposure, NoisyMeasurement};
@@ -49,9 +49,7 @@ impl Measurement {
             Measurement::Noisy(n) => n.in_input_units(),
         }
     }
-}
 
-impl Measurement {
     /// The pixels with a tap clipped at the full well `full_well_e` (electrons; noiseless
     /// measurements clip nothing): a pixel none of whose taps can be read.
     ///
@@ -78,7 +76,7 @@ pub fn clipped_pixels(e: &ArrayViewD<'_, f32>, full_well_e: f64) -> ArrayD<bool>
 ///
 /// # Shapes
 /// - `y`: `[M, H, W]` → `[H, W]`, or `[B, M, H, W]` → `[B, H, W]`
-pub fn at_clip_level(y: &ArrayViewD<'_, f32>, level: f32) -> ArrayD<bool> {
+pub fn at_clip_level<D: RemoveAxis>(y: &ArrayView<'_, f32, D>, level: f32) -> Array<bool, D::Smaller> {
     let level = level * (1.0 - 1e-6);
     let taps = Axis(y.ndim() - 3);
     y.map_axis(taps, |t| t.iter().any(|&v| v >= level))

@@ -204,12 +204,8 @@ fn stream_into(
     let kind = ModelKind::of(&model.meta.decoder);
     // a frame's pixels with a tap at the clip level (as read), [H, W]; None: none
     let clip = products.clip_level;
-    let clipped = move |a: &Array3<f32>| {
-        clip.and_then(|level| {
-            tcsense_sensor::measure::at_clip_level(&a.view().into_dyn(), level).into_dimensionality::<ndarray::Ix2>().ok()
-        })
-        .filter(|u| u.iter().any(|&v| v))
-    };
+    let clipped =
+        move |a: &Array3<f32>| clip.map(|level| tcsense_sensor::measure::at_clip_level(&a.view(), level)).filter(|u| u.iter().any(|&v| v));
     let cube_model = kind == ModelKind::Cube;
     let (t, k) = (
         model.meta.bins,

@@ -3,6 +3,7 @@
 
 use super::*;
 use ndarray::Array2;
+use tcsense_models::decoder::set_where;
 
 /// An `f32` `.npy` stack written frame by frame into a temporary file, renamed on
 /// [`NpyStackWriter::finish`]; dropped unfinished, the temporary file is removed.
@@ -133,8 +134,8 @@ pub(super) fn write_frame(
             if depth_by_model && (p.depth || p.peaks || p.ply) {
                 let (mut depth, mut amp) = depth_map(&cube, bin_s, peak_opts);
                 if let Some(u) = unread {
-                    blank(&mut depth, u, f32::NAN);
-                    blank(&mut amp, u, 0.0);
+                    set_where(&mut depth, &u.view(), f32::NAN);
+                    set_where(&mut amp, &u.view(), 0.0);
                 }
                 if let Some(w) = wr.depth.as_mut() {
                     w.push(depth.iter())?;
@@ -150,8 +151,8 @@ pub(super) fn write_frame(
                 // the reconvolution fit (IRF fitted to the frame)
                 let mut fit = tcsense_fits::lifetime_cube::fit_cube(&cube, bin_s, &tcsense_fits::lifetime_cube::FitOptions::default());
                 if let Some(u) = unread {
-                    blank(&mut fit.lifetimes, u, f32::NAN);
-                    blank(&mut fit.phasor, u, f32::NAN);
+                    set_where(&mut fit.lifetimes, &u.view(), f32::NAN);
+                    set_where(&mut fit.phasor, &u.view(), f32::NAN);
                 }
                 if let Some(w) = wr.lifetime.as_mut() {
                     w.push(fit.lifetimes.index_axis(Axis(0), 0).iter())?;
@@ -209,17 +210,6 @@ pub(super) fn write_frame(
     Ok(())
 }
 
-/// Each `[H, W]` plane of `a` `[C, H, W]` set to `value` where `unread`.
-fn blank(a: &mut Array3<f32>, unread: &Array2<bool>, value: f32) {
-    for mut plane in a.outer_iter_mut() {
-        plane.zip_mut_with(unread, |v, &u| {
-            if u {
-                *v = value;
-            }
-        });
-    }
-}
-
 /// No range and no lifetime where `unread` (`[H, W]`: a tap clipped at the full well): a
 /// depth or lifetime model's confidence 0 there (its ranges and lifetimes are masked by it
 /// downstream, and its ranges set NaN now), the fit's lifetimes and ranges NaN.
@@ -230,36 +220,18 @@ pub(super) fn without_pixels(
     fitted: Option<&mut TapFit>,
     ranges: Option<&mut Array3<f32>>,
 ) {
-    let frame = |a: &mut Array4<f32>, value: f32| {
-        for mut f in a.outer_iter_mut() {
-            for mut plane in f.outer_iter_mut() {
-                plane.zip_mut_with(unread, |v, &u| {
-                    if u {
-                        *v = value;
-                    }
-                });
-            }
-        }
-    };
+    let unread = unread.view();
     match (kind, outs) {
-        (ModelKind::Depth, [depth, confidence, ..]) => {
-            frame(depth, f32::NAN);
-            frame(confidence, 0.0);
-        }
-        (ModelKind::Lifetime, [lifetime, confidence, ..]) => {
-            frame(lifetime, f32::NAN);
-            frame(confidence, 0.0);
+        (ModelKind::Depth | ModelKind::Lifetime, [maps, confidence, ..]) => {
+            set_where(maps, &unread, f32::NAN);
+            set_where(confidence, &unread, 0.0);
         }
         _ => {}
     }
     if let Some(fit) = fitted {
-        fit.lifetime.zip_mut_with(unread, |v, &u| {
-            if u {
-                *v = f32::NAN;
-            }
-        });
+        set_where(&mut fit.lifetime, &unread, f32::NAN);
     }
     if let Some(r) = ranges {
-        blank(r, unread, f32::NAN);
+        set_where(r, &unread, f32::NAN);
     }
 }
