@@ -87,6 +87,15 @@ fn decoders_refuse_measurements_of_another_sensor() {
     assert!(!d.join("bad5").exists());
 
     // without the sidecar nothing is checked (a sensor's raw dump); a broken one is refused
+    // a clip level that no tap image can have is refused, naming the field (not every pixel
+    // masked, or none)
+    let text = std::fs::read_to_string(d.join("y.meta.json")).unwrap();
+    let mut meta: serde_json::Value = serde_json::from_str(&text).unwrap();
+    meta["clip_level"] = serde_json::json!(-5.0);
+    std::fs::write(d.join("y.meta.json"), meta.to_string()).unwrap();
+    fails(d, &["reconstruct", "admm-net", "--run", "run", "--measurements", "y.npy", "-o", "bad7.npy"], &["y.meta.json", "clip_level"]);
+    assert!(!d.join("bad7.npy").exists());
+    std::fs::write(d.join("y.meta.json"), text).unwrap();
     std::fs::rename(d.join("y.meta.json"), d.join("kept.json")).unwrap();
     ok(d, &["reconstruct", "admm-net", "--run", "run", "--measurements", "y.npy", "-o", "x2.npy"]);
     std::fs::write(d.join("y.meta.json"), "{\"format\": \"tcsense-measurements\"}").unwrap();

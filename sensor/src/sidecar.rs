@@ -118,6 +118,12 @@ impl Sidecar {
                 format!("format {:?} version {}; expected {FORMAT:?} version {VERSION}", s.format, s.version),
             ));
         }
+        if let Some(c) = s.clip_level.filter(|c| !(c.is_finite() && *c > 0.0 && *c <= crate::npy::MAX_VALUE)) {
+            return Err(SensorError::file(
+                &path,
+                format!("clip_level {c}: expected a positive level in the tap images' units, up to 1e30"),
+            ));
+        }
         Ok(Some(s))
     }
 
