@@ -371,10 +371,10 @@ fn open_depth_fit(o: &Opening<'_>) -> Result<NamedDecoder> {
 }
 
 fn open_depth_fit_pooled(o: &Opening<'_>) -> Result<NamedDecoder> {
-    let mut opts = o.settings.depth_fit.clone();
+    let opts = o.settings.depth_fit.clone();
     let max = tcsense_fits::range::MAX_WINDOW;
     let window = opts.fit.window;
-    opts.pool_like = match o.arg {
+    let side = match o.arg {
         None => POOL_LIKE_SIDE,
         Some(n) => {
             n.parse().ok().filter(|&n: &usize| tcsense_fits::evidence::pooled_side(n, window)).ok_or_else(|| InferError::InvalidParam {
@@ -386,7 +386,7 @@ fn open_depth_fit_pooled(o: &Opening<'_>) -> Result<NamedDecoder> {
             })?
         }
     };
-    any_sensor(o, Box::new(crate::fitted::DepthFitDecoder::new(opts)?))
+    any_sensor(o, Box::new(crate::fitted::DepthFitDecoder::new(opts.pooled(side))?))
 }
 
 fn open_lifetime_fit(o: &Opening<'_>) -> Result<NamedDecoder> {

@@ -212,7 +212,7 @@ pub fn infer(a: InferArgs, threads: Option<usize>) -> Result<ExitCode> {
         if !(products.depth || products.ply) {
             bail!("--depth-fit with --products {list}: the fit gives depth and ply; ask for one of them");
         }
-        let opts = tcsense_fits::depth::DepthFitOptions { returns, pool_like: a.pool_like.unwrap_or(0), ..Default::default() };
+        let opts = tcsense_fits::depth::DepthFitOptions { returns, ..Default::default() }.pooled(a.pool_like.unwrap_or(0));
         opts.validate().map_err(|e| anyhow::anyhow!("--depth-fit settings (--pool-like): {e}"))?;
         products.depth_fit = Some(opts);
         if let Some(w) = tcsense_infer::fitted::alias_warning(&model.sensor, model.meta.codes.length()) {
