@@ -62,5 +62,6 @@ pub fn evidence_into(
         let (pooled, noise) = costs.pooled_by_likeness(&window, taps);
         return crate::evidence::evidence_at_noise(&costs.volume(&pooled, taps), noise, intensity, pool, &sums, buffers);
     }
-    crate::evidence::evidence_into(&costs.volume(&window, taps), intensity, pool, &sums, buffers)
+    let noise = costs.noise_level(&window, taps);
+    crate::evidence::evidence_at_noise(&costs.volume(&window, taps), noise, intensity, pool, &sums, buffers)
 }

@@ -456,7 +456,7 @@ impl LifetimeTemplates {
         assert!(u.len() == h * w && costs.lit.len() == h * w, "refine_modes: one mode per pixel");
         let g = self.points();
         // the frame's nats per unit of cost (the window's noise level, as the evidence reads it)
-        let nats = 1.0 / (2.0 * crate::evidence::noise_level(&costs.volume(&costs.window_sums(), m)) as f64);
+        let nats = 1.0 / (2.0 * costs.noise_level_here(m) as f64);
         let f = normalise(y, self.min_intensity);
         let fit = self.refine_normalised(f, y.dim(), costs, |p, total| {
             let best = argmin(total);
@@ -512,7 +512,17 @@ impl LifetimeTemplates {
         let lit: Vec<bool> = weight.iter().map(|&v| v > 0.0).collect();
         let mut rows = Vec::new();
         window_rows(&pixel, &lit, (h, w), g, self.window, &mut rows);
-        LifetimeCosts { pixel, rows, lit, points: g, height: h, width: w, window: self.window, pool_like: self.pool_like }
+        LifetimeCosts {
+            pixel,
+            rows,
+            lit,
+            points: g,
+            height: h,
+            width: w,
+            window: self.window,
+            pool_like: self.pool_like,
+            noise: std::sync::OnceLock::new(),
+        }
     }
 
     /// The refinement of every pixel around the point of the grid `choose(p, window's cost)`
@@ -641,6 +651,8 @@ pub struct LifetimeCosts {
     /// The side of the neighbourhood the templates pool by likeness (0: none), which
     /// [`evidence::evidence`] pools the window's costs over.
     pub pool_like: usize,
+    /// The window's noise level ([`Self::noise_level`]), found once a frame.
+    noise: std::sync::OnceLock<f32>,
 }
 
 impl LifetimeCosts {
@@ -671,8 +683,27 @@ impl LifetimeCosts {
     /// - `window`: `[H·W·G]` → `([H·W·G], noise)`
     pub fn pooled_by_likeness(&self, window: &[f32], taps: usize) -> (Vec<f32>, f32) {
         let volume = self.volume(window, taps);
-        let noise = crate::evidence::noise_level(&volume);
+        let noise = self.noise_level(window, taps);
         (crate::evidence::similarity_pool(&volume, 1.0 / (2.0 * noise), self.pool_like), noise)
+    }
+
+    /// The frame's noise level of the window's costs ([`crate::evidence::noise_level`]: twice
+    /// it turns a cost into nats), for their window sums `window` ([`Self::window_sums`]) and
+    /// `M` taps a pixel. Found on the first call and kept: the evidence and the refinement of
+    /// a network's modes read the same level.
+    ///
+    /// # Shapes
+    /// - `window`: `[H·W·G]`
+    pub fn noise_level(&self, window: &[f32], taps: usize) -> f32 {
+        *self.noise.get_or_init(|| crate::evidence::noise_level(&self.volume(window, taps)))
+    }
+
+    /// [`Self::noise_level`], the window sums computed here when the level is not known yet.
+    fn noise_level_here(&self, taps: usize) -> f32 {
+        match self.noise.get() {
+            Some(&v) => v,
+            None => self.noise_level(&self.window_sums(), taps),
+        }
     }
 
     /// The cost summed over the window around every pixel, what the fit minimises `[H·W·G]`.
