@@ -1033,7 +1033,7 @@ mod tests {
             e.sort_by(f64::total_cmp);
             e
         };
-        let errors = |pool_like: usize, y: &ndarray::Array3<f32>, cols: &dyn Fn(usize) -> bool| errors_in(pool_like, 99, y, cols);
+        let errors = |pool_like: usize, y: &ndarray::Array3<f32>, cols: &dyn Fn(usize) -> bool| errors_in(pool_like, usize::MAX, y, cols);
         let away = |j: usize| j.abs_diff(w / 2) > 3 && j.abs_diff(w / 2 - 1) > 3;
         // (three noise draws a level: the medians of 1 800 pixels)
         let median = |mut e: Vec<f64>| {

@@ -700,10 +700,7 @@ impl LifetimeCosts {
 
     /// [`Self::noise_level`], the window sums computed here when the level is not known yet.
     fn noise_level_here(&self, taps: usize) -> f32 {
-        match self.noise.get() {
-            Some(&v) => v,
-            None => self.noise_level(&self.window_sums(), taps),
-        }
+        *self.noise.get_or_init(|| crate::evidence::noise_level(&self.volume(&self.window_sums(), taps)))
     }
 
     /// The cost summed over the window around every pixel, what the fit minimises `[H·W·G]`.
