@@ -5,7 +5,7 @@
 #
 #   scripts/lifetime_ladder.sh [OUT] [--decoder NAME …]
 #
-# Defaults: the fit to the taps (3×3, and pooled by likeness over 15×15), zoo:lifetime-flim-pooled, zoo:lifetime-flim-pooled-fast,
+# Defaults: the fit to the taps (3×3, and pooled by likeness over 15×15), zoo:lifetime-flim-pooled, zoo:lifetime-flim-pooled-fast, zoo:lifetime-flim-pooled-wide,
 # zoo:lifetime-flim-evidence-fast, zoo:lifetime-flim-evidence and zoo:lifetime-flim-designed through
 # the designed codes. SIZE (64x64), ITEMS (8), LIGHT (0.8,0.1,0.02,0.005) and SBR (none) come from
 # the environment.
@@ -23,7 +23,7 @@ B=target/release/tcsense
 mkdir -p "$OUT"
 flim_test_sets "$OUT/" 80 >/dev/null
 decoders=("$@")
-[ ${#decoders[@]} -eq 0 ] && decoders=(--decoder lifetime-fit --decoder lifetime-fit-pooled --decoder zoo:lifetime-flim-pooled --decoder zoo:lifetime-flim-pooled-fast --decoder zoo:lifetime-flim-evidence-fast --decoder zoo:lifetime-flim-evidence --decoder zoo:lifetime-flim-designed)
+[ ${#decoders[@]} -eq 0 ] && decoders=(--decoder lifetime-fit --decoder lifetime-fit-pooled --decoder zoo:lifetime-flim-pooled --decoder zoo:lifetime-flim-pooled-fast --decoder zoo:lifetime-flim-pooled-wide --decoder zoo:lifetime-flim-evidence-fast --decoder zoo:lifetime-flim-evidence --decoder zoo:lifetime-flim-designed)
 sbr=()
 [ -n "${SBR:-}" ] && sbr=(--sbr "$SBR")
 for s in standard onset-0ns onset-30ns irf-1.5ns long-lifetimes background; do
