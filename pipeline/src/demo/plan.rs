@@ -78,10 +78,10 @@ pub(super) const ZOO_FLIM_CUBE: &str = "admm-flim-delay";
 pub(super) const ZOO_FLIM_DESIGNED: &str = "lifetime-flim-designed";
 pub(super) const ZOO_FLIM_LEARNED: &str = "lifetime-flim-learned";
 
-/// The zoo's decoders on the fits' evidence, evaluated as shipped on the photon ladder (for
-/// lifetimes the pooled network trained on a flatter prior: the lowest errors at 0.02, the rate
-/// of `-fast`).
+/// The zoo's decoders on the fits' evidence, evaluated as shipped on the photon ladder.
 pub(super) const ZOO_EVIDENCE_UNET: &str = "unet-lidar-evidence-8k";
+/// For lifetimes the pooled network trained on a flatter prior: the lowest errors at 0.02, at
+/// the rate of `-fast`.
 pub(super) const ZOO_EVIDENCE_LIFETIME: &str = "lifetime-flim-pooled-wide";
 
 /// Zoo entry `name`'s run directory and network, when the zoo holds it for the dataset's
