@@ -28,15 +28,7 @@ if [ -z "${B:-}" ]; then
 fi
 . scripts/ood_sets.sh
 mkdir -p "$OUT"
-if [ -z "${LIDAR_SETS:-}" ]; then
-  LIDAR_SETS=$OUT/lidar-sets
-  if [ ! -f "$LIDAR_SETS/.done" ]; then
-    mkdir -p "$LIDAR_SETS"
-    lidar_test_sets "$LIDAR_SETS/" "$COUNT"
-    motorcycle_set "$LIDAR_SETS"
-    touch "$LIDAR_SETS/.done"
-  fi
-fi
+lidar_sets_in "$OUT" "$COUNT"
 
 SHAPE=(--taps 4 --block 2x2 --length 32 --seed 1)
 ALL=(--tap-constraint --hamming 2 --window 2)

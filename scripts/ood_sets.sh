@@ -1,8 +1,8 @@
-# The out-of-distribution test sets, sourced by scripts/ood.sh, scripts/lifetime_bench.sh and
-# scripts/zoo_ood.sh (one definition, so their tables measure the same scenes). Each set
-# differs from the randomised generator in one thing — as close as the flags get to the
-# paper's generator: the LiDAR sets fix the randomised generator's knobs to the paper's ranges
-# but for the one under test. Needs B (the tcsense binary) and SIZE (HxW).
+# The out-of-distribution test sets, sourced by scripts/ood.sh, scripts/lifetime_bench.sh,
+# scripts/zoo_ood.sh, scripts/zoo_codes_compare.sh and scripts/codes_headroom.sh (one definition,
+# so their tables measure the same scenes). Each set differs from the randomised generator in one
+# thing — as close as the flags get to the paper's generator: the LiDAR sets fix the randomised
+# generator's knobs to the paper's ranges but for the one under test. Needs B (the tcsense binary) and SIZE (HxW).
 
 # lidar_test_sets PREFIX COUNT: PREFIX{standard,far,near,textures,dense-sheet}
 lidar_test_sets() {
@@ -38,4 +38,28 @@ flim_test_sets() {
   $F $FIX --irf-fwhm-ns 1.5 --seed 14 -o "${p}irf-1.5ns"
   $F --onset-ns 2 --lifetimes 1,3 --tau-ns 4,8 --irf-fwhm-ns 0 --background 0 --brightness 1 --seed 15 -o "${p}long-lifetimes"
   $F --onset-ns 2 --lifetimes 3 --tau-ns 0.5,3.5 --brightness 1 --irf-fwhm-ns 0 --background 0.05 --seed 16 -o "${p}background"
+}
+
+# lidar_sets_in OUT COUNT: sets LIDAR_SETS, unless given, to OUT/lidar-sets, made there once
+# (lidar_test_sets and the motorcycle; a .done mark says they are whole)
+lidar_sets_in() {
+  [ -n "${LIDAR_SETS:-}" ] && return
+  LIDAR_SETS=$1/lidar-sets
+  if [ ! -f "$LIDAR_SETS/.done" ]; then
+    mkdir -p "$LIDAR_SETS"
+    lidar_test_sets "$LIDAR_SETS/" "$2"
+    motorcycle_set "$LIDAR_SETS"
+    touch "$LIDAR_SETS/.done"
+  fi
+}
+
+# flim_sets_in OUT COUNT: the same for FLIM_SETS (flim_test_sets in OUT/flim-sets)
+flim_sets_in() {
+  [ -n "${FLIM_SETS:-}" ] && return
+  FLIM_SETS=$1/flim-sets
+  if [ ! -f "$FLIM_SETS/.done" ]; then
+    mkdir -p "$FLIM_SETS"
+    flim_test_sets "$FLIM_SETS/" "$2"
+    touch "$FLIM_SETS/.done"
+  fi
 }

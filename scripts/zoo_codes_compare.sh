@@ -28,23 +28,8 @@ if [ -z "${B:-}" ]; then
 fi
 . scripts/ood_sets.sh
 mkdir -p "$OUT"
-if [ -z "${LIDAR_SETS:-}" ]; then
-  LIDAR_SETS=$OUT/lidar-sets
-  if [ ! -f "$LIDAR_SETS/.done" ]; then
-    mkdir -p "$LIDAR_SETS"
-    lidar_test_sets "$LIDAR_SETS/" "$COUNT"
-    motorcycle_set "$LIDAR_SETS"
-    touch "$LIDAR_SETS/.done"
-  fi
-fi
-if [ -z "${FLIM_SETS:-}" ]; then
-  FLIM_SETS=$OUT/flim-sets
-  if [ ! -f "$FLIM_SETS/.done" ]; then
-    mkdir -p "$FLIM_SETS"
-    flim_test_sets "$FLIM_SETS/" "$COUNT"
-    touch "$FLIM_SETS/.done"
-  fi
-fi
+lidar_sets_in "$OUT" "$COUNT"
+flim_sets_in "$OUT" "$COUNT"
 LADDER=0.8,0.1,0.02,0.005
 
 # ladder ENTRY DOMAIN: the entry on every set of its domain, through its own codes
