@@ -2,7 +2,8 @@
 # scripts/zoo_ood.sh, scripts/zoo_codes_compare.sh and scripts/codes_headroom.sh (one definition,
 # so their tables measure the same scenes). Each set differs from the randomised generator in one
 # thing — as close as the flags get to the paper's generator: the LiDAR sets fix the randomised
-# generator's knobs to the paper's ranges but for the one under test. Needs B (the tcsense binary) and SIZE (HxW).
+# generator's knobs to the paper's ranges but for the one under test. Needs B (the tcsense
+# binary) and SIZE (HxW).
 
 # lidar_test_sets PREFIX COUNT: PREFIX{standard,far,near,textures,dense-sheet}
 lidar_test_sets() {
