@@ -20,7 +20,7 @@ def errors(path):
     out = {}
     for r in json.load(open(path)):
         m = r.get("depth_median_m") or []
-        if m and m[0] == m[0]:
+        if m and not math.isnan(m[0]):
             out[(r["decoder"], r["light"]["signal_fraction"])] = m[0]
     return out
 
@@ -38,7 +38,11 @@ def main():
         print(f"| {n} | {r['range_alias']['distance']:.3f} | {r['range']['worst_bins']:.3f} | {r['range']['mean_bins']:.3f} |")
 
     sets = sorted(f[:-5] for f in os.listdir(os.path.join(out, "eval", designed)) if f.endswith(".json"))
-    base = {s: errors(os.path.join(out, "eval", designed, s + ".json")) for s in sets}
+    # every ladder read once: {code set: {set: errors}}
+    ladders = {
+        n: {s: errors(p) for s in sets if os.path.exists(p := os.path.join(out, "eval", n, s + ".json"))} for n in names
+    }
+    base = ladders[designed]
     decoders = sorted({d for e in base.values() for d, _ in e})
     levels = sorted({l for e in base.values() for _, l in e}, reverse=True)
     print(f"\nFirst-return median error over {designed}'s, geometric mean over {len(sets)} sets (min–max):")
@@ -50,11 +54,8 @@ def main():
             cells = []
             for l in levels:
                 ratios = []
-                for s in sets:
-                    p = os.path.join(out, "eval", n, s + ".json")
-                    if not os.path.exists(p):
-                        continue
-                    mine, theirs = errors(p).get((d, l)), base[s].get((d, l))
+                for s, mine in ladders[n].items():
+                    mine, theirs = mine.get((d, l)), base[s].get((d, l))
                     if mine and theirs:
                         ratios.append(mine / theirs)
                 if ratios:

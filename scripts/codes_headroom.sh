@@ -8,8 +8,9 @@
 #
 #   scripts/codes_headroom.sh [OUT]      (default OUT = codes-headroom-out; about 45 minutes on 2 cores)
 #
-# Writes OUT/CODES.json (codes), OUT/eval/CODES/SET.json (`eval --light … -o`), OUT/bounds.txt and
-# prints the table of docs/codes.md: per code set its alias and bounds, then per decoder and
+# Writes OUT/CODES.json and OUT/flim-CODES.json (codes), OUT/bounds.json and OUT/flim-bounds.json
+# (`codes analyze --json`), OUT/eval/CODES/SET.json (`eval --light … -o`), and prints (and writes
+# to OUT/table.md) the table of docs/codes.md: per code set its alias and bounds, then per decoder and
 # light level the geometric mean over the sets of its error over the designed codes' (with the
 # range over the sets). From the environment: SIZE (64x64), COUNT (80 scenes per set, 8 in the
 # test split), ITEMS (8), SEED (5), LIDAR_SETS (a directory holding the sets already: standard,
@@ -44,36 +45,41 @@ DESIGNS=(
   "tap --tap-constraint"
   "unconstrained-dim --photons 300 --ambient 30"
 )
-NAMES=()
-for d in "${DESIGNS[@]}"; do
-  read -r name flags <<< "$d"
-  NAMES+=("$name")
-  if [ ! -f "$OUT/$name.json" ]; then
-    echo "== codes select: $name"
-    # shellcheck disable=SC2086
-    "$B" codes select --criterion range "${SHAPE[@]}" $flags -o "$OUT/$name.json.tmp" > /dev/null
-    mv "$OUT/$name.json.tmp" "$OUT/$name.json"
-  fi
-done
-if cmp -s "$OUT/designed.json" zoo/unet-lidar-designed/codes.json; then
-  echo "designed.json is the zoo's designed codes (zoo/unet-lidar-designed/codes.json), byte for byte"
-fi
-# bits_from DIR FIRST OTHER…: how many bits each code set is from FIRST's
+# design FILE SELECT_FLAGS…: `codes select` into FILE, once (written whole or not at all)
+design() {
+  local f=$1
+  shift
+  [ -f "$f" ] && return
+  echo "== codes select $*"
+  "$B" codes select "$@" -o "$f.tmp" > /dev/null
+  mv "$f.tmp" "$f"
+}
+
+# bits_from FIRST OTHER…: how many bits each codes file is from FIRST's
 bits_from() {
   python3 - "$@" <<'EOF'
 import json, sys
 # bits: per subpixel, per tap, one string of L masks
-bits = {n: "".join("".join(t) for t in json.load(open(f"{sys.argv[1]}/{n}.json"))["bits"]) for n in sys.argv[2:]}
-for n in sys.argv[3:]:
-    d = sum(u != v for u, v in zip(bits[sys.argv[2]], bits[n]))
-    print(f"{n}: {d} bits from {sys.argv[2]}" if d else f"{n}: the bits of {sys.argv[2]}")
+bits = {p: "".join("".join(t) for t in json.load(open(p))["bits"]) for p in sys.argv[1:]}
+first = sys.argv[1]
+for p in sys.argv[2:]:
+    d = sum(u != v for u, v in zip(bits[first], bits[p]))
+    print(f"{p}: {d} bits from {first}" if d else f"{p}: the bits of {first}")
 EOF
 }
-bits_from "$OUT" "${NAMES[@]}"
+
+NAMES=()
+CODES=()
+for d in "${DESIGNS[@]}"; do
+  read -r name flags <<< "$d"
+  NAMES+=("$name")
+  CODES+=("$OUT/$name.json")
+  # shellcheck disable=SC2086
+  design "$OUT/$name.json" --criterion range "${SHAPE[@]}" $flags
+done
+bits_from zoo/unet-lidar-designed/codes.json "${CODES[@]}"
 
 # the bounds at dim light (300 e⁻ signal, 30 e⁻ ambient), LiDAR and FLIm (heterodyne 8)
-CODES=()
-for n in "${NAMES[@]}"; do CODES+=("$OUT/$n.json"); done
 "$B" codes analyze "${CODES[@]}" --irf physical --photons 300 --ambient 30 --json > "$OUT/bounds.json"
 FLIM=(
   "designed ${ALL[*]}"
@@ -84,18 +90,11 @@ FLIM=(
 FCODES=()
 for d in "${FLIM[@]}"; do
   read -r name flags <<< "$d"
-  f=$OUT/flim-$name.json
-  FCODES+=("$f")
-  if [ ! -f "$f" ]; then
-    echo "== codes select --criterion lifetime: $name"
-    # shellcheck disable=SC2086
-    "$B" codes select --criterion lifetime --heterodyne 8 "${SHAPE[@]}" $flags -o "$f.tmp" > /dev/null
-    mv "$f.tmp" "$f"
-  fi
+  FCODES+=("$OUT/flim-$name.json")
+  # shellcheck disable=SC2086
+  design "$OUT/flim-$name.json" --criterion lifetime --heterodyne 8 "${SHAPE[@]}" $flags
 done
-bits_from "$OUT" flim-designed flim-designed-dim flim-search-5x flim-unconstrained-dim
-cp zoo/lifetime-flim-designed/codes.json "$OUT/flim-zoo.json"
-bits_from "$OUT" flim-zoo flim-designed
+bits_from zoo/lifetime-flim-designed/codes.json "${FCODES[@]}"
 "$B" codes analyze "${FCODES[@]}" --irf physical --heterodyne 8 --photons 300 --ambient 30 --json > "$OUT/flim-bounds.json"
 
 # the ladder: every code set through the range fit, per pixel and pooled, the same items and noise
@@ -108,4 +107,4 @@ for n in "${NAMES[@]}"; do
       --light 0.8,0.1,0.02,0.005 --decoder depth-fit --decoder depth-fit-pooled -o "$OUT/eval/$n/$s.json" > /dev/null
   done
 done
-.venv/bin/python scripts/codes_headroom.py "$OUT" "${NAMES[@]}" | tee "$OUT/table.md"
+python3 scripts/codes_headroom.py "$OUT" "${NAMES[@]}" | tee "$OUT/table.md"
