@@ -404,3 +404,98 @@ fn measurements_that_break_the_metadata_are_refused() {
     std::fs::write(dir.path().join("foreign.onnx"), b"not a model").unwrap();
     assert!(OnnxModel::open(&dir.path().join("foreign.onnx"), 1).is_err());
 }
+
+/// A U-Net on the range fit's evidence exported as one graph from the taps
+/// (`export onnx --from-taps`): ONNX Runtime on the file alone gives the posterior's mode and
+/// the first return's confidence that the split graph gives on the evidence `tcsense infer`
+/// computes, with and without the pooling by likeness, on two frame sizes of noisy slopes.
+#[test]
+fn unet_on_the_range_fit_evidence_from_the_taps_equals_the_split_graph() {
+    use burn::module::Module;
+    use tcsense_fits::evidence::EvidenceBuffers;
+    for pool_like in [0, 9] {
+        let net = |m: usize, t: usize| {
+            ModelConfig::Unet(
+                UnetConfig::new(m, t, 12.0)
+                    .with_base_width(4)
+                    .with_levels(2)
+                    .with_head(tcsense_models::UnetHead::ScoreVolume)
+                    .with_input(tcsense_models::UnetInput::Costs)
+                    .with_oversample(2)
+                    .with_pool(3)
+                    .with_pool_like(pool_like),
+            )
+        };
+        let physical = Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 };
+        let mut run = random_run(net, (2, 2), Sampling::Oversample(1), physical, 8);
+        if let TrainedNet::Unet(n) = run.net {
+            run.net = TrainedNet::Unet(n.map(&mut Jitter(41)));
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let (split, whole) = (dir.path().join("split.onnx"), dir.path().join("whole.onnx"));
+        std::fs::write(&split, export(&run, ExportOptions::default()).unwrap()).unwrap();
+        std::fs::write(&whole, export(&run, ExportOptions { from_taps: true, ..Default::default() }).unwrap()).unwrap();
+        let mut split = OnnxModel::open(&split, 1).unwrap();
+        let mut whole = OnnxModel::open(&whole, 1).unwrap();
+        assert_eq!((whole.meta.range_evidence, whole.meta.returns), (None, 1), "a plain depth model of one return");
+        let a = run.sensor.matrix().a().to_owned();
+        let (_, m, t) = a.dim();
+        for (h, w, amplitude) in [(8, 12, 300.0), (16, 16, 300.0), (16, 16, 6.0)] {
+            // a slope across the frame on an ambient floor, Poisson-like noise, one dark pixel
+            let mut rng = rand::rngs::StdRng::seed_from_u64(3 + h as u64);
+            let mut y = Array4::<f32>::zeros((1, m, h, w));
+            for i in 0..h {
+                for j in 0..w {
+                    let n = (i % 2) * 2 + j % 2;
+                    let tau = 1.0 + (t as f64 - 2.0) * j as f64 / w as f64 + 0.2 * i as f64;
+                    let (t0, f) = ((tau - 0.5).floor() as usize % t, (tau - 0.5).fract());
+                    for k in 0..m {
+                        let g = (1.0 - f) * a[(n, k, t0)] as f64 + f * a[(n, k, (t0 + 1) % t)] as f64;
+                        let s: f64 = (0..t).map(|b| a[(n, k, b)] as f64).sum();
+                        let mean = amplitude * g + 2.0 * s;
+                        y[(0, k, i, j)] = (mean + mean.sqrt() * rng.random_range(-1.7..1.7)).max(0.0) as f32;
+                    }
+                }
+            }
+            y.slice_mut(ndarray::s![0, .., 1, 2]).fill(0.0);
+            let got = whole.run(y.view()).unwrap();
+            let (stage, _) = split.evidence_stages().unwrap();
+            let ev = stage.evidence(&y.index_axis(ndarray::Axis(0), 0), EvidenceBuffers::default());
+            let want = split.run_graph_on_evidence(&ev).unwrap(); // mode_range, first_confidence
+            let (depth, conf) = (&got[0], &got[1]);
+            assert!(depth[(0, 0, 1, 2)].is_nan() && conf[(0, 0, 1, 2)] == 0.0, "the dark pixel has no return");
+            let (mut agree, mut returns) = (0, 0);
+            for i in 0..h {
+                for j in 0..w {
+                    if (i, j) == (1, 2) {
+                        continue;
+                    }
+                    let (c_got, c_want) = (conf[(0, 0, i, j)], want[1][(0, 0, i, j)]);
+                    assert!((c_got - c_want).abs() <= 1e-3, "{h}x{w} ({i}, {j}): confidence {c_got} against {c_want}");
+                    let d = depth[(0, 0, i, j)];
+                    assert_eq!(d.is_nan(), c_want < 0.5, "{h}x{w} ({i}, {j}): a return exactly where confident");
+                    let r = want[0][(0, 0, i, j)];
+                    returns += usize::from(c_want >= 0.5);
+                    agree += usize::from(c_want < 0.5 || (d - r).abs() <= 1e-3 || (d - r).abs() >= 12.0 - 1e-3);
+                }
+            }
+            eprintln!("{h}x{w} at {amplitude}, pool_like {pool_like}: {returns} returns, {agree} agree");
+            // (in dim light a flat posterior's mode may tie: f32 rounding picks either)
+            assert!(
+                returns > 0 && 20 * agree >= 19 * (h * w - 1),
+                "{h}x{w} at {amplitude}, pool_like {pool_like}: {agree} of {} modes within 1 mm",
+                h * w - 1
+            );
+        }
+    }
+    // only for a U-Net on the range fit's evidence, with its sensor baked in
+    let plain = random_run(
+        |m, t| ModelConfig::Unet(UnetConfig::new(m, t, 12.0).with_base_width(4).with_levels(2)),
+        (2, 2),
+        Sampling::Oversample(1),
+        Irf::Ideal,
+        9,
+    );
+    let refused = export(&plain, ExportOptions { from_taps: true, ..Default::default() }).unwrap_err();
+    assert!(refused.to_string().contains("--from-taps"), "{refused}");
+}

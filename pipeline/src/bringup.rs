@@ -376,7 +376,7 @@ pub fn run(options: &BringupOptions, dir: &Path, obs: &dyn Observer, cancel: &At
             if !out.exists() {
                 let from = if d["condition"] == CALIBRATION_ALONE { e.dir.clone() } else { runs_dir.join(&e.name) };
                 let run = runs::load(&from, &Device::flex())?;
-                let bytes = export_to(&run, ExportOptions { matrix_input: false, calibration: Some(&cal) }, &out)?;
+                let bytes = export_to(&run, ExportOptions { calibration: Some(&cal), ..Default::default() }, &out)?;
                 obs.line(&format!(
                     "  wrote {} ({:.1} kB, {}), raw {} tap images of {}x{}",
                     out.display(),

@@ -45,7 +45,7 @@ fn export_onnx(
         let loaded = runs::load(&dir, &Device::flex()).map_err(err)?;
         let calibrated = cal_dir.as_ref().map(|d| loaded.sensor.clone().calibrated_from(d)).transpose().map_err(err)?;
         let cal = calibrated.as_ref().and_then(|s| s.calibration()).cloned();
-        export_to(&loaded, ExportOptions { matrix_input, calibration: cal.as_ref() }, &out).map_err(err)
+        export_to(&loaded, ExportOptions { matrix_input, calibration: cal.as_ref(), ..Default::default() }, &out).map_err(err)
     })?
 }
 

@@ -30,6 +30,13 @@ pub enum ExportCmd {
         /// in the graph, and decodes with its matrix.
         #[arg(long, value_name = "DIR")]
         calibration: Option<PathBuf>,
+        /// A U-Net on the range fit's evidence (`zoo:unet-lidar-evidence-*`) as one graph from
+        /// the tap images: the evidence (cost volume, windows, noise level, pooling by likeness)
+        /// computed in the graph, so that any ONNX runtime decodes the taps with the file alone.
+        /// Its depth is the posterior's mode, one return; `tcsense infer` refines it in the tap
+        /// domain as for any depth network (`--no-range-fit`: the graph's own).
+        #[arg(long)]
+        from_taps: bool,
         /// Output model.
         #[arg(short, long)]
         output: PathBuf,
@@ -38,11 +45,11 @@ pub enum ExportCmd {
 
 pub fn export(cmd: ExportCmd) -> Result<ExitCode> {
     match cmd {
-        ExportCmd::Onnx { run, matrix_input, calibration, output } => {
+        ExportCmd::Onnx { run, matrix_input, calibration, from_taps, output } => {
             let loaded = runs::load(&run, &Device::flex())?;
             let calibrated = calibration.as_ref().map(|d| loaded.sensor.clone().calibrated_from(d)).transpose()?;
             let cal = calibrated.as_ref().and_then(|s| s.calibration()).cloned();
-            let opts = ExportOptions { matrix_input, calibration: cal.as_ref() };
+            let opts = ExportOptions { matrix_input, calibration: cal.as_ref(), from_taps };
             let bytes = export_to(&loaded, opts, &output)?;
             let meta = tcsense_infer::onnx::OnnxMeta::of_run(&loaded, opts);
             println!(
@@ -66,6 +73,9 @@ pub fn export(cmd: ExportCmd) -> Result<ExitCode> {
                 },
                 meta.outputs().join(", ")
             );
+            if from_taps {
+                println!("  one graph from the taps: the range fit's evidence, the network and its posterior's mode (one return) in the graph; any ONNX runtime decodes with this file alone");
+            }
             if let Some(e) = &meta.range_evidence {
                 let c = meta.bins * e.oversample;
                 println!(

@@ -182,7 +182,8 @@ impl OnnxMeta {
             ModelConfig::AdmmNet(_) => ((bh, bw), 0, 0.0),
             ModelConfig::Unet(c) => {
                 let s = c.stride();
-                ((lcm(bh, s), lcm(bw, s)), c.returns, c.range_m)
+                // (one graph from the taps gives the first return alone)
+                ((lcm(bh, s), lcm(bw, s)), if opts.from_taps { 1 } else { c.returns }, c.range_m)
             }
             ModelConfig::Lifetime(c) => {
                 let s = c.stride();
@@ -232,7 +233,7 @@ impl OnnxMeta {
                 _ => None,
             },
             range_evidence: match &run.spec.model {
-                ModelConfig::Unet(c) if c.input == tcsense_models::UnetInput::Costs => {
+                ModelConfig::Unet(c) if c.input == tcsense_models::UnetInput::Costs && !opts.from_taps => {
                     Some(RangeEvidenceNote { oversample: c.oversample, pool: c.pool, pool_like: c.pool_like })
                 }
                 _ => None,

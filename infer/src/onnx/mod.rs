@@ -18,6 +18,7 @@
 
 pub mod graph;
 pub mod meta;
+pub mod range_graph;
 pub mod sensor;
 
 use burn::nn::conv::Conv2d;
@@ -59,11 +60,17 @@ pub struct ExportOptions<'a> {
     /// frame size, subtracts its dark offsets and divides by its gains (`(y − d) / G`), and
     /// decodes with its matrix; the metadata records it.
     pub calibration: Option<&'a Calibration>,
+    /// A U-Net on the range fit's evidence as one graph from the tap images
+    /// ([`range_graph`]): the evidence computed in the graph, not by the runtime.
+    pub from_taps: bool,
 }
 
 /// The ONNX model of a trained run, serialised.
 pub fn export(run: &LoadedRun, opts: ExportOptions<'_>) -> Result<Vec<u8>> {
     let meta = OnnxMeta::of_run(run, opts);
+    if opts.from_taps {
+        return from_taps(run, &meta, opts);
+    }
     if let TrainedNet::Lifetime(net) = &run.net {
         if net.input_kind() == tcsense_models::LifetimeInput::Costs {
             return lifetime_on_evidence(net, &meta, opts);
@@ -151,6 +158,30 @@ pub fn export(run: &LoadedRun, opts: ExportOptions<'_>) -> Result<Vec<u8>> {
         got: e.to_string(),
         expected: "a serialisable model".into(),
     })
+}
+
+/// [`range_graph::unet_from_taps`] of a run, for a U-Net on the range fit's evidence only,
+/// without a matrix input or a calibration (the graph bakes the sensor's templates in).
+fn from_taps(run: &LoadedRun, meta: &OnnxMeta, opts: ExportOptions<'_>) -> Result<Vec<u8>> {
+    let refuse = |got: &str| InferError::InvalidParam {
+        field: "export",
+        got: got.into(),
+        expected:
+            "--from-taps for a U-Net on the range fit's evidence (zoo:unet-lidar-evidence-*), without --matrix-input or --calibration"
+                .into(),
+    };
+    match &run.net {
+        TrainedNet::Unet(net) if net.input_kind() == tcsense_models::UnetInput::Costs => {
+            if opts.matrix_input {
+                return Err(refuse("--from-taps with --matrix-input"));
+            }
+            if opts.calibration.is_some() {
+                return Err(refuse("--from-taps with --calibration"));
+            }
+            range_graph::unet_from_taps(net, run.sensor.matrix(), meta, net.fit_options().fit.window)
+        }
+        _ => Err(refuse(&format!("--from-taps for a {} that does not read the range fit's evidence", run.spec.model.name()))),
+    }
 }
 
 /// Export `run` to `path` (written to a temporary file, then renamed).
