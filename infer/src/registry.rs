@@ -57,6 +57,9 @@ pub mod names {
     pub const ZOO: &str = "zoo";
     /// An exported model through ONNX Runtime (`onnx:MODEL.onnx`).
     pub const ONNX: &str = "onnx";
+    /// An exported depth model through ONNX Runtime, its ranges as the graph gives them
+    /// (`onnx-raw:MODEL.onnx`).
+    pub const ONNX_RAW: &str = "onnx-raw";
     /// The suffix that refines a cube decoder's peaks in the tap domain.
     pub const PLUS_FIT: &str = "+fit";
 
@@ -237,6 +240,14 @@ impl Registry {
                     arg: ArgUse::Required,
                     cubes: true,
                     open: open_onnx,
+                },
+                Entry {
+                    name: ONNX_RAW,
+                    usage: "onnx-raw:MODEL.onnx",
+                    summary: "an exported depth model through ONNX Runtime, its ranges as the graph gives them (no range fit after it: for a graph from the taps, `export onnx --from-taps`, what any ONNX runtime gives with the file alone)",
+                    arg: ArgUse::Required,
+                    cubes: false,
+                    open: open_onnx_raw,
                 },
             ],
         }
@@ -465,6 +476,13 @@ fn open_onnx(o: &Opening<'_>) -> Result<NamedDecoder> {
     let model = crate::runtime::OnnxModel::open(Path::new(o.arg.unwrap_or_default()), 0)?;
     let sensor = model.meta.sensor()?;
     Ok(NamedDecoder { label: o.label.into(), decoder: Box::new(crate::runtime::OnnxDecoder::new(model)), sensor: Some(sensor) })
+}
+
+fn open_onnx_raw(o: &Opening<'_>) -> Result<NamedDecoder> {
+    let model = crate::runtime::OnnxModel::open(Path::new(o.arg.unwrap_or_default()), 0)?;
+    let sensor = model.meta.sensor()?;
+    let decoder = crate::runtime::OnnxDecoder::new(model).without_range_fit();
+    Ok(NamedDecoder { label: o.label.into(), decoder: Box::new(decoder), sensor: Some(sensor) })
 }
 
 #[cfg(test)]
