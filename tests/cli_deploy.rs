@@ -573,8 +573,9 @@ fn export_and_bench_infer_bad_inputs_exit_2() {
 
 /// `export onnx --from-taps` of the zoo's U-Net on the range fit's evidence: one graph from
 /// the tap images, which onnx's full checker passes and onnxruntime-Python runs with the file
-/// alone, giving what `tcsense infer --no-range-fit` writes (NaN where no return, in the same
-/// pixels); other models are refused with exit status 2 and no file.
+/// alone, giving what `tcsense infer` writes by default (the graph refines its ranges itself;
+/// NaN where no return, in the same pixels); other models are refused with exit status 2 and
+/// no file.
 #[test]
 fn an_evidence_unet_exports_as_one_graph_from_the_taps() {
     let d = tempdir();
@@ -585,7 +586,7 @@ fn an_evidence_unet_exports_as_one_graph_from_the_taps() {
     ok(d, &["simulate", "--codes", codes, "--irf", "physical", "--cube", "ds/train/x_000.npy", "--noise", "--seed", "1", "-o", "y.npy"]);
     let out = ok(d, &["export", "onnx", "--run", "zoo:unet-lidar-evidence-8k", "--from-taps", "-o", "taps.onnx"]);
     assert!(out.contains("one graph from the taps"), "{out}");
-    ok(d, &["infer", "--model", "taps.onnx", "--measurements", "y.npy", "--no-range-fit", "-o", "out"]);
+    ok(d, &["infer", "--model", "taps.onnx", "--measurements", "y.npy", "-o", "out"]);
     let depth = read_npy(&d.join("out/depth.npy")).unwrap();
     assert_eq!(depth.shape(), &[1, 1, 16, 16], "one frame, one return");
     assert!(depth.iter().filter(|v| v.is_finite()).count() > 128, "returns on most pixels");

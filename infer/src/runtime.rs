@@ -683,8 +683,9 @@ impl Decoder for OnnxDecoder {
         if self.model.meta.decoder == "unet" {
             let (mut depth, confidence) = (cat(0)?, cat(1)?);
             mask_depth(&mut depth, &confidence);
-            // (a U-Net on the range fit's evidence is refined in the tap domain already)
-            if let (Some(opts), None) = (&self.range_fit, self.model.meta.range_evidence) {
+            // (a U-Net on the range fit's evidence is refined in the tap domain already, by the
+            // runtime or in its graph from the taps)
+            if let (Some(opts), None, false) = (&self.range_fit, self.model.meta.range_evidence, self.model.meta.refined_in_graph) {
                 refine_ranges(y, sensor, &mut depth, opts);
             }
             Ok(Decoded { depth: Some(depth), confidence: Some(confidence), ..Default::default() })

@@ -32,9 +32,10 @@ pub enum ExportCmd {
         calibration: Option<PathBuf>,
         /// A U-Net on the range fit's evidence (`zoo:unet-lidar-evidence-*`) as one graph from
         /// the tap images: the evidence (cost volume, windows, noise level, pooling by likeness)
-        /// computed in the graph, so that any ONNX runtime decodes the taps with the file alone.
-        /// Its depth is the posterior's mode, one return; `tcsense infer` refines it in the tap
-        /// domain as for any depth network (`--no-range-fit`: the graph's own).
+        /// computed in the graph, and the posterior's mode refined in the tap domain on the
+        /// smallest window (3×3 to 7×7, of like-range neighbours) that pins it, so that any ONNX
+        /// runtime decodes the taps with the file alone. One return (no second); `tcsense
+        /// infer` writes the graph's product as it is.
         #[arg(long)]
         from_taps: bool,
         /// Output model.
@@ -74,7 +75,7 @@ pub fn export(cmd: ExportCmd) -> Result<ExitCode> {
                 meta.outputs().join(", ")
             );
             if from_taps {
-                println!("  one graph from the taps: the range fit's evidence, the network and its posterior's mode (one return) in the graph; any ONNX runtime decodes with this file alone");
+                println!("  one graph from the taps: the range fit's evidence, the network, its posterior's mode refined in the tap domain (one return) in the graph; any ONNX runtime decodes with this file alone");
             }
             if let Some(e) = &meta.range_evidence {
                 let c = meta.bins * e.oversample;

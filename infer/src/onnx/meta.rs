@@ -58,6 +58,10 @@ pub struct OnnxMeta {
     /// A U-Net on the range fit's evidence: the candidate ranges the runtime computes the
     /// evidence on; key `range_evidence`.
     pub range_evidence: Option<RangeEvidenceNote>,
+    /// A U-Net on the range fit's evidence as one graph from the taps (`export onnx
+    /// --from-taps`): the graph refines its first return in the tap domain itself, and the
+    /// runtime adds no range fit; key `refined_in_graph`.
+    pub refined_in_graph: bool,
 }
 
 /// The candidate ranges of a U-Net on the range fit's evidence
@@ -232,6 +236,7 @@ impl OnnxMeta {
                 }),
                 _ => None,
             },
+            refined_in_graph: opts.from_taps,
             range_evidence: match &run.spec.model {
                 ModelConfig::Unet(c) if c.input == tcsense_models::UnetInput::Costs && !opts.from_taps => {
                     Some(RangeEvidenceNote { oversample: c.oversample, pool: c.pool, pool_like: c.pool_like })
@@ -306,6 +311,9 @@ impl OnnxMeta {
         if let Some(e) = &self.range_evidence {
             p.push(("range_evidence", json(serde_json::to_string(e))));
         }
+        if self.refined_in_graph {
+            p.push(("refined_in_graph", "true".into()));
+        }
         if self.decoder == "unet" {
             p.push(("returns", self.returns.to_string()));
             p.push(("range_m", format!("{}", self.range_m)));
@@ -357,6 +365,11 @@ impl OnnxMeta {
             "true" => true,
             "false" => false,
             v => return Err(err("matrix_input", format!("got {v:?}, expected true or false"))),
+        };
+        let refined_in_graph = match get("refined_in_graph").as_deref() {
+            None | Some("false") => false,
+            Some("true") if decoder == "unet" => true,
+            Some(v) => return Err(err("refined_in_graph", format!("got {v:?}, expected true (a U-Net's graph from the taps) or false"))),
         };
         let (returns, range_m) = if decoder == "unet" { (num("returns")?, float("range_m")?) } else { (0, 0.0) };
         let matrix_values: Option<Vec<f32>> = get("sensor_matrix_values")
@@ -440,6 +453,7 @@ impl OnnxMeta {
             matrix_input,
             matrix_values,
             calibration,
+            refined_in_graph,
         };
         // the codes and sensor model must give the declared shape
         let a = meta.matrix().map_err(|e| err("codes", e.to_string()))?;

@@ -13,11 +13,17 @@
 //! the 3×3 window pooled by likeness (Bhattacharyya weights of the window posteriors)
 //! features: pooled posteriors of the pixel and the wider windows, log intensity, lit
 //! log-likelihoods: −(C_w − min C_w)·ν of the (pooled) window and the wider ones
-//! → the U-Net's log-prior + the windows' log-likelihoods → posterior mode (parabola) → range
+//! → the U-Net's log-prior + the windows' log-likelihoods → posterior mode (parabola)
+//! → refined in the tap domain: the window's cost (like-range neighbours, templates linear
+//!   between the bins) at 13 positions ±1.5 candidates around the mode, on the smallest window
+//!   of 3×3, 5×5, 7×7 whose least position the cost pins to 0.12 bins (else the mode stands)
+//! → range (m), NaN where unlit or below half confidence
 //! ```
 //!
-//! What stays with `tcsense infer` (and is not in this graph): the mode refined in the tap
-//! domain on a window grown in dim light, and the fit's second return.
+//! As `tcsense infer` refines the split graph's mode ([`tcsense_fits::depth::RangeTemplates::ranges`]),
+//! but with a parabola through the positions instead of golden sections, and where the
+//! window pins the range rather than wherever its least grid point is within one of the mode.
+//! The fit's second return stays with `tcsense infer` on the split export; this graph gives one.
 
 use tcsense_fits::depth::{candidate_columns, CONTEXT_WINDOWS, SCALES};
 use tcsense_models::Unet;
@@ -28,7 +34,7 @@ use super::{posterior_mode, trunk_rows, unet_trunk, windowed_likelihood, OnnxMet
 use crate::{InferError, Result};
 
 /// Outputs of the graph from the taps: the first return (m; NaN where unlit or below half
-/// confidence), its confidence, and the posterior's mode (m, before any refinement).
+/// confidence) and its confidence.
 pub const DEPTH_OUTPUT: &str = "depth";
 pub const CONFIDENCE_OUTPUT: &str = "confidence";
 
@@ -181,8 +187,8 @@ fn per_type(g: &mut Graph, hint: &str, v: &[Vec<f32>]) -> String {
 /// solve is posed and both amplitudes are non-negative, else the better column alone.
 ///
 /// # Shapes
-/// - `y`: `[B, M, H, W]` → `[B, C, H, W]` (before the lit mask)
-fn pixel_costs(g: &mut Graph, fr: &FrameShape, y: &str, sensor: &MeasurementMatrix, oversample: usize) -> String {
+/// - `yb`: the taps in blocks ([`to_blocks`]) → `[B, C, H, W]` (before the lit mask)
+fn pixel_costs(g: &mut Graph, fr: &FrameShape, yb: &str, sensor: &MeasurementMatrix, oversample: usize) -> String {
     let a = sensor.a();
     let (n, m, t) = a.dim();
     let block = sensor.block();
@@ -215,12 +221,11 @@ fn pixel_costs(g: &mut Graph, fr: &FrameShape, y: &str, sensor: &MeasurementMatr
             inv_gg[k][ci] = if p > 0.0 { (1.0 / p) as f32 } else { 0.0 };
         }
     }
-    let yb = to_blocks(g, fr, y, m, block); // [B, N, M, P]
     let gw = g.weight("templates", &[n, c, m], &gmat);
     let sw = g.weight("ambient_template", &[n, 1, m], &svec);
-    let gy = g.op("MatMul", &[&gw, &yb]); // [B, N, C, P]
-    let sy = g.op("MatMul", &[&sw, &yb]); // [B, N, 1, P]
-    let y2 = g.op("Mul", &[&yb, &yb]);
+    let gy = g.op("MatMul", &[&gw, yb]); // [B, N, C, P]
+    let sy = g.op("MatMul", &[&sw, yb]); // [B, N, 1, P]
+    let y2 = g.op("Mul", &[yb, yb]);
     let axis2 = g.ints("axis2", &[2]);
     let yy = g.node("ReduceSum", &[&y2, &axis2], &[Attr::Int("keepdims", 1)]); // [B, N, 1, P]
     let (gg, gs, inv_det, inv_gg) =
@@ -253,6 +258,265 @@ fn pixel_costs(g: &mut Graph, fr: &FrameShape, y: &str, sensor: &MeasurementMatr
     from_blocks(g, fr, &cost, c, block)
 }
 
+/// Positions of the refinement around a mode: `REFINE_POINTS` candidates `REFINE_STEP` apart
+/// (±1.5 candidates of the grid: the fit's best within one of the mode, refined within one of it).
+const REFINE_POINTS: usize = 13;
+const REFINE_STEP: f32 = 0.25;
+
+/// The first return refined in the tap domain where the fit's window pins it, as `tcsense
+/// infer` refines a mode on a window that stays `window × window` in bright light: the
+/// window's single-return cost (each pixel its own amplitude and ambient, the templates
+/// between the bins linear as the fit's, the neighbours of like range alone: within
+/// `edge_bins` of the pixel's mode) at [`REFINE_POINTS`] positions around the mode, the
+/// parabola through the least and its neighbours; taken where the least is inside the
+/// positions and the cost's curvature there places it to [`tcsense_fits::depth::MODE_PRECISION_BINS`]
+/// in the frame's nats, elsewhere (dim light) the mode stands.
+///
+/// # Shapes
+/// - `yb`: taps in blocks `[B, N, M, P]`, `u`: modes `[B, 1, H, W]` (candidates),
+///   `neg_nats`: `−ν` `[B, 1, 1, 1]` → `[B, 1, H, W]` (candidates)
+#[allow(clippy::too_many_arguments)]
+fn refine_first(
+    g: &mut Graph,
+    fr: &FrameShape,
+    yb: &str,
+    sensor: &MeasurementMatrix,
+    os: usize,
+    window: usize,
+    u: &str,
+    neg_nats: &str,
+) -> String {
+    let a = sensor.a();
+    let (n, m, t) = a.dim();
+    let block = sensor.block();
+    let c = (t * os) as f32;
+    // per type: Aᵀ [N, T, M], the ambient's column s [N, 1, M], and the tables of the
+    // templates' Gram entries between neighbouring bins: A_tᵀA_t, A_tᵀA_{t+1}, A_tᵀs, sᵀs
+    let (mut at, mut sv) = (vec![0f32; n * t * m], vec![0f32; n * m]);
+    let (mut d0, mut d1, mut a_s, mut ss) =
+        (vec![vec![0f32; t]; n], vec![vec![0f32; t]; n], vec![vec![0f32; t]; n], vec![vec![0f32; 1]; n]);
+    for k in 0..n {
+        let s: Vec<f64> = (0..m).map(|mm| (0..t).map(|j| a[(k, mm, j)] as f64).sum()).collect();
+        ss[k][0] = s.iter().map(|v| v * v).sum::<f64>() as f32;
+        for (mm, v) in s.iter().enumerate() {
+            sv[k * m + mm] = *v as f32;
+        }
+        for j in 0..t {
+            let col = |j: usize| (0..m).map(move |mm| a[(k, mm, j)] as f64);
+            for (mm, v) in col(j).enumerate() {
+                at[(k * t + j) * m + mm] = v as f32;
+            }
+            d0[k][j] = col(j).map(|v| v * v).sum::<f64>() as f32;
+            d1[k][j] = col(j).zip(col((j + 1) % t)).map(|(x, y)| x * y).sum::<f64>() as f32;
+            a_s[k][j] = col(j).zip(&s).map(|(x, y)| x * y).sum::<f64>() as f32;
+        }
+    }
+    let atw = g.weight("adjoint", &[n, t, m], &at);
+    let sw = g.weight("ambient_template", &[n, 1, m], &sv);
+    let aty = g.op("MatMul", &[&atw, yb]); // [B, N, T, P]
+    let sy = g.op("MatMul", &[&sw, yb]); // [B, N, 1, P]
+    let y2 = g.op("Mul", &[yb, yb]);
+    let axis2 = g.ints("axis2", &[2]);
+    let yy = g.node("ReduceSum", &[&y2, &axis2], &[Attr::Int("keepdims", 1)]); // [B, N, 1, P]
+    let shape = g.op("Shape", &[&aty]);
+    let shape1 = g.op("Shape", &[&yy]);
+    let tables: Vec<String> = [("gram_diagonal", &d0), ("gram_next", &d1), ("gram_ambient", &a_s)]
+        .iter()
+        .map(|(hint, v)| {
+            let w = per_type(g, hint, v);
+            g.op("Expand", &[&w, &shape])
+        })
+        .collect();
+    let ss = per_type(g, "gram_ss", &ss);
+    let ss = g.op("Expand", &[&ss, &shape1]);
+    let parts = [aty.as_str(), &tables[0], &tables[1], &tables[2], &yy, &sy, &ss];
+    let q = g.node("Concat", &parts, &[Attr::Int("axis", 2)]); // [B, N, 4T + 3, P]
+    let q = from_blocks(g, fr, &q, 4 * t + 3, block); // [B, 4T + 3, H, W]
+    let lit = {
+        let yf = from_blocks(g, fr, &yy, 1, block);
+        let nil = g.scalar("nil", 0.0);
+        let l = g.op("Greater", &[&yf, &nil]);
+        g.node("Cast", &[&l], &[Attr::Int("to", onnx_protobuf::tensor_proto::DataType::FLOAT as i64)])
+    };
+    let q = g.node("Concat", &[&q, &lit, u], &[Attr::Int("axis", 1)]); // [B, 4T + 5, H, W]
+                                                                       // the positions around each mode and where they read the templates: p = τ − ½ on the cycle
+                                                                       // of bins, t₀ = ⌊p⌋, f = p − t₀, t₁ = t₀ + 1
+    let steps: Vec<f32> = (0..REFINE_POINTS).map(|k| (k as f32 - (REFINE_POINTS - 1) as f32 / 2.0) * REFINE_STEP).collect();
+    let steps = g.weight("refine_steps", &[1, REFINE_POINTS, 1, 1], &steps);
+    let uk = g.op("Add", &[u, &steps]); // [B, K, H, W]
+    let (half_os, per_bin, tf) =
+        (g.scalar("half_oversample", 0.5 * os as f32), g.scalar("per_bin", 1.0 / os as f32), g.scalar("bins", t as f32));
+    let tau = g.op("Add", &[&uk, &half_os]);
+    let tau = g.op("Mul", &[&tau, &per_bin]);
+    let half = g.scalar("half", 0.5);
+    let p = g.op("Sub", &[&tau, &half]);
+    let p = g.node("Mod", &[&p, &tf], &[Attr::Int("fmod", 1)]);
+    let p = g.op("Add", &[&p, &tf]);
+    let p = g.node("Mod", &[&p, &tf], &[Attr::Int("fmod", 1)]);
+    let t0f = g.op("Floor", &[&p]);
+    let f = g.op("Sub", &[&p, &t0f]);
+    let to_int = |g: &mut Graph, x: &str| g.node("Cast", &[x], &[Attr::Int("to", onnx_protobuf::tensor_proto::DataType::INT64 as i64)]);
+    let ti = g.ints("bins_i", &[t as i64]);
+    let t0 = to_int(g, &t0f);
+    let t0 = g.op("Mod", &[&t0, &ti]);
+    let one_i = g.ints("one", &[1]);
+    let t1 = g.op("Add", &[&t0, &one_i]);
+    let t1 = g.op("Mod", &[&t1, &ti]);
+    let unit = g.scalar("unit", 1.0);
+    let f1 = g.op("Sub", &[&unit, &f]);
+    let (ff, f1f) = (g.op("Mul", &[&f, &f]), g.op("Mul", &[&f1, &f1]));
+    let two_ff1 = g.op("Mul", &[&f, &f1]);
+    let two = g.scalar("two", 2.0);
+    let two_ff1 = g.op("Mul", &[&two_ff1, &two]);
+    // the window's cost at every position, summed over the like-range neighbours, ring by ring
+    // of the windows that grow from the fit's up to the largest a mode's refinement takes
+    let hw = (window / 2).max(tcsense_fits::depth::MODE_MAX_HALF) as i64;
+    let pads = g.ints("pads", &[0, 0, hw, hw, 0, 0, hw, hw]);
+    let qp = g.op("Pad", &[&q, &pads]);
+    let axes = g.ints("axes23", &[2, 3]);
+    let end = |d: i64| if hw - d > 0 { -(hw - d) } else { i64::MAX };
+    let (cf, gap) = (
+        g.scalar("candidates", c),
+        g.scalar("edge_candidates", (tcsense_fits::range::RangeFitOptions::default().edge_bins * os as f64) as f32),
+    );
+    let (nil, tiny) = (g.scalar("nil", 0.0), g.scalar("tiny", 1e-30));
+    let mut total: Option<String> = None;
+    let mut sums: Vec<String> = Vec::new();
+    for ring in 0..=hw {
+        let offsets: Vec<(i64, i64)> = (-ring..=ring)
+            .flat_map(|di| (-ring..=ring).map(move |dj| (di, dj)))
+            .filter(|&(di, dj)| di.abs().max(dj.abs()) == ring)
+            .collect();
+        for (di, dj) in offsets {
+            let (st, en) = (g.ints("starts", &[hw + di, hw + dj]), g.ints("ends", &[end(di), end(dj)]));
+            let qs = g.op("Slice", &[&qp, &st, &en, &axes]);
+            let ch = |g: &mut Graph, start: usize, len: usize| super::channels(g, &qs, start, len);
+            let (aty_q, d0_q, d1_q, as_q) = (ch(g, 0, t), ch(g, t, t), ch(g, 2 * t, t), ch(g, 3 * t, t));
+            let (yy_q, sy_q, ss_q, lit_q, u_q) =
+                (ch(g, 4 * t, 1), ch(g, 4 * t + 1, 1), ch(g, 4 * t + 2, 1), ch(g, 4 * t + 3, 1), ch(g, 4 * t + 4, 1));
+            let at_ = |g: &mut Graph, x: &str, i: &str| g.node("GatherElements", &[x, i], &[Attr::Int("axis", 1)]);
+            let (a0, a1) = (at_(g, &aty_q, &t0), at_(g, &aty_q, &t1));
+            let gy = g.op("Sub", &[&a1, &a0]);
+            let gy = g.op("Mul", &[&gy, &f]);
+            let gy = g.op("Add", &[&a0, &gy]);
+            let (g00, g01, g11) = (at_(g, &d0_q, &t0), at_(g, &d1_q, &t0), at_(g, &d0_q, &t1));
+            let (x, yv, z) = (g.op("Mul", &[&g00, &f1f]), g.op("Mul", &[&g01, &two_ff1]), g.op("Mul", &[&g11, &ff]));
+            let gg = g.op("Add", &[&x, &yv]);
+            let gg = g.op("Add", &[&gg, &z]);
+            let (s0, s1) = (at_(g, &as_q, &t0), at_(g, &as_q, &t1));
+            let gs = g.op("Sub", &[&s1, &s0]);
+            let gs = g.op("Mul", &[&gs, &f]);
+            let gs = g.op("Add", &[&s0, &gs]);
+            // the two-column NNLS (as `pixel_costs`, the Gram entries of this position)
+            let (ggss, gs2) = (g.op("Mul", &[&gg, &ss_q]), g.op("Mul", &[&gs, &gs]));
+            let det = g.op("Sub", &[&ggss, &gs2]);
+            let eps = g.scalar("posed", 1e-12);
+            let bound = g.op("Mul", &[&ggss, &eps]);
+            let posed = g.op("Greater", &[&det, &bound]);
+            let det = g.op("Max", &[&det, &tiny]);
+            let (x1, x2) = (g.op("Mul", &[&ss_q, &gy]), g.op("Mul", &[&gs, &sy_q]));
+            let amp_g = g.op("Sub", &[&x1, &x2]);
+            let amp_g = g.op("Div", &[&amp_g, &det]);
+            let (x1, x2) = (g.op("Mul", &[&gg, &sy_q]), g.op("Mul", &[&gs, &gy]));
+            let amp_s = g.op("Sub", &[&x1, &x2]);
+            let amp_s = g.op("Div", &[&amp_s, &det]);
+            let (x1, x2) = (g.op("Mul", &[&amp_g, &gy]), g.op("Mul", &[&amp_s, &sy_q]));
+            let inside = g.op("Sub", &[&yy_q, &x1]);
+            let inside = g.op("Sub", &[&inside, &x2]);
+            let rg = g.op("Relu", &[&gy]);
+            let only_g = g.op("Mul", &[&rg, &rg]);
+            let ggt = g.op("Max", &[&gg, &tiny]);
+            let only_g = g.op("Div", &[&only_g, &ggt]);
+            let rs = g.op("Relu", &[&sy_q]);
+            let only_s = g.op("Mul", &[&rs, &rs]);
+            let sst = g.op("Max", &[&ss_q, &tiny]);
+            let only_s = g.op("Div", &[&only_s, &sst]);
+            let best = g.op("Max", &[&only_g, &only_s]);
+            let boundary = g.op("Sub", &[&yy_q, &best]);
+            let (ga, gb) = (g.op("GreaterOrEqual", &[&amp_g, &nil]), g.op("GreaterOrEqual", &[&amp_s, &nil]));
+            let both = g.op("And", &[&ga, &gb]);
+            let both = g.op("And", &[&both, &posed]);
+            let v = g.op("Where", &[&both, &inside, &boundary]);
+            let v = g.op("Relu", &[&v]);
+            // a neighbour of like range (within the edge gap, on the cycle), lit
+            let d = g.op("Sub", &[&u_q, u]);
+            let d = g.op("Abs", &[&d]);
+            let other = g.op("Sub", &[&cf, &d]);
+            let other = g.op("Abs", &[&other]);
+            let d = g.op("Min", &[&d, &other]);
+            let near = g.op("LessOrEqual", &[&d, &gap]);
+            let near = g.node("Cast", &[&near], &[Attr::Int("to", onnx_protobuf::tensor_proto::DataType::FLOAT as i64)]);
+            let keep = g.op("Mul", &[&near, &lit_q]);
+            let v = g.op("Mul", &[&v, &keep]);
+            total = Some(match total {
+                None => v,
+                Some(acc) => g.op("Add", &[&acc, &v]),
+            });
+        }
+        if 2 * ring as usize + 1 >= window {
+            sums.push(total.clone().expect("a window of one pixel at least")); // [B, K, H, W]
+        }
+    }
+    // the smallest window that pins its least position, refined there; else the mode stands
+    let mut out = u.to_string();
+    for total in sums.iter().rev() {
+        let (take, refined) = pinned(g, total, u, neg_nats, os, &cf);
+        out = g.op("Where", &[&take, &refined, &out]);
+    }
+    out
+}
+
+/// Where the window's cost `total` `[B, K, H, W]` at the positions around the modes `u`
+/// `[B, 1, H, W]` pins its least position, and that position refined by the parabola through
+/// its neighbours (candidates, on the cycle of `c`): `(take [B, 1, H, W] bool, refined)`.
+fn pinned(g: &mut Graph, total: &str, u: &str, neg_nats: &str, os: usize, cf: &str) -> (String, String) {
+    let (two, half, tiny) = (g.scalar("two", 2.0), g.scalar("half", 0.5), g.scalar("tiny", 1e-30));
+    // the least position, the parabola through it and its neighbours, its precision
+    let k = g.node("ArgMin", &[total], &[Attr::Int("axis", 1), Attr::Int("keepdims", 1)]);
+    let sides = g.ints("refine_sides", &[-1, 0, 1]);
+    let side_shape = g.ints("side_shape", &[1, 3, 1, 1]);
+    let sides = g.op("Reshape", &[&sides, &side_shape]);
+    let idx = g.op("Add", &[&k, &sides]);
+    let (first, last) = (g.ints("zero", &[0]), g.ints("last", &[REFINE_POINTS as i64 - 1]));
+    let idx = g.op("Clip", &[&idx, &first, &last]);
+    let c3 = g.node("GatherElements", &[total, &idx], &[Attr::Int("axis", 1)]); // [B, 3, H, W]
+    let (lo, mid, hi) = (super::channels(g, &c3, 0, 1), super::channels(g, &c3, 1, 1), super::channels(g, &c3, 2, 1));
+    let two_mid = g.op("Mul", &[&mid, &two]);
+    let curv = g.op("Add", &[&lo, &hi]);
+    let curv = g.op("Sub", &[&curv, &two_mid]);
+    let num = g.op("Sub", &[&lo, &hi]);
+    let num = g.op("Mul", &[&num, &half]);
+    let den = g.op("Max", &[&curv, &tiny]);
+    let offset = g.op("Div", &[&num, &den]);
+    let neg_half = g.scalar("neg_half", -0.5);
+    let offset = g.op("Clip", &[&offset, &neg_half, &half]);
+    // inside the positions, curving upwards, and precise: curvature·os²·ν/step² ≥ 1/precision²
+    let (zero_i, last_i) = (g.ints("zero", &[0]), g.ints("last", &[REFINE_POINTS as i64 - 1]));
+    let (above, below) = (g.op("Greater", &[&k, &zero_i]), g.op("Less", &[&k, &last_i]));
+    let interior = g.op("And", &[&above, &below]);
+    let nats = g.op("Neg", &[neg_nats]);
+    let kappa = g.op("Mul", &[&curv, &nats]);
+    let scale = g.scalar("bins_per_step2", (os * os) as f32 / (REFINE_STEP * REFINE_STEP));
+    let kappa = g.op("Mul", &[&kappa, &scale]);
+    let need = g.scalar(
+        "precision_curvature",
+        (1.0 / (tcsense_fits::depth::MODE_PRECISION_BINS * tcsense_fits::depth::MODE_PRECISION_BINS)) as f32,
+    );
+    let precise = g.op("GreaterOrEqual", &[&kappa, &need]);
+    let take = g.op("And", &[&interior, &precise]);
+    let kf = g.node("Cast", &[&k], &[Attr::Int("to", onnx_protobuf::tensor_proto::DataType::FLOAT as i64)]);
+    let centre = g.scalar("centre_point", (REFINE_POINTS - 1) as f32 / 2.0);
+    let du = g.op("Sub", &[&kf, &centre]);
+    let du = g.op("Add", &[&du, &offset]);
+    let step = g.scalar("refine_step", REFINE_STEP);
+    let du = g.op("Mul", &[&du, &step]);
+    let refined = g.op("Add", &[u, &du]);
+    let refined = g.node("Mod", &[&refined, cf], &[Attr::Int("fmod", 1)]);
+    let refined = g.op("Add", &[&refined, cf]);
+    let refined = g.node("Mod", &[&refined, cf], &[Attr::Int("fmod", 1)]);
+    (take, refined)
+}
+
 /// The U-Net on the range fit's evidence as one graph from the taps (see the module's notes).
 ///
 /// # Shapes
@@ -279,7 +543,8 @@ pub(super) fn unet_from_taps(net: &Unet, sensor: &MeasurementMatrix, meta: &Onnx
     let nil = g.scalar("nil", 0.0);
     let lit = g.op("Greater", &[&intensity, &nil]);
     let litf = g.node("Cast", &[&lit], &[Attr::Int("to", onnx_protobuf::tensor_proto::DataType::FLOAT as i64)]);
-    let cost = pixel_costs(&mut g, &fr, &y, sensor, os);
+    let yb = to_blocks(&mut g, &fr, &y, m, block); // [B, N, M, P]
+    let cost = pixel_costs(&mut g, &fr, &yb, sensor, os);
     let cost = g.op("Mul", &[&cost, &litf]); // [B, C, H, W]
                                              // the fit's window and the frame's noise level: the median least window cost per degree of
                                              // freedom (each pixel's amplitude and ambient its own, the window's range shared)
@@ -409,6 +674,7 @@ pub(super) fn unet_from_taps(net: &Unet, sensor: &MeasurementMatrix, meta: &Onnx
     let logits = g.op("Add", &[&likelihood, &prior]);
     let u = posterior_mode(&mut g, &logits, c, true);
     let u = g.op("Reshape", &[&u, &frame_shape]);
+    let u = refine_first(&mut g, &fr, &yb, sensor, os, window, &u, &neg_nats);
     let (half_os, per) =
         (g.scalar("half_oversample", 0.5 * os as f32), g.scalar("metres_per_candidate", (net.range_m() / c as f64) as f32));
     let r = g.op("Add", &[&u, &half_os]);
@@ -426,7 +692,7 @@ pub(super) fn unet_from_taps(net: &Unet, sensor: &MeasurementMatrix, meta: &Onnx
     g.output(&depth, DEPTH_OUTPUT, &frame);
     g.output(&conf, CONFIDENCE_OUTPUT, &frame);
     let doc = format!(
-        "tcsense U-Net on the range fit's evidence, one graph from the taps ({c} candidate ranges over {:.3} m, {} levels{}): measurements [B, {m}, H, W] -> depth (m) [B, 1, H, W] (the posterior's mode; NaN where unlit or below half confidence), confidence [B, 1, H, W]",
+        "tcsense U-Net on the range fit's evidence, one graph from the taps ({c} candidate ranges over {:.3} m, {} levels{}): measurements [B, {m}, H, W] -> depth (m) [B, 1, H, W] (the posterior's mode refined in the tap domain where a window pins it; NaN where unlit or below half confidence), confidence [B, 1, H, W]",
         net.range_m(),
         net.down().len(),
         if pool_like > window { format!(", the {window}×{window} window pooled by likeness over {pool_like}×{pool_like}") } else { String::new() },

@@ -287,8 +287,9 @@ fn stream_into(
         .range_fit
         .as_ref()
         .filter(|_| kind == ModelKind::Depth && (products.depth || products.ply) && products.depth_fit.is_none())
-        // (a U-Net on the range fit's evidence is refined in the tap domain already)
-        .filter(|_| model.meta.range_evidence.is_none());
+        // (a U-Net on the range fit's evidence is refined in the tap domain already, by the
+        // runtime or in its graph from the taps)
+        .filter(|_| model.meta.range_evidence.is_none() && !model.meta.refined_in_graph);
     let mut range_templates = match &products.depth_fit {
         Some(opts) => {
             if kind == ModelKind::Lifetime {
