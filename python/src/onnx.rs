@@ -23,15 +23,17 @@ pub fn open_model(path: &Path, threads: usize) -> PyResult<OnnxModel> {
 /// Export a trained run (a directory or `zoo:NAME`) to an ONNX file (opset 17, IR 9):
 /// `matrix_input` takes the sensor matrix as a second input; `calibration` (a `tcsense
 /// calibrate` directory) builds its dark and gain correction and measured matrix into the
-/// graph. Returns the bytes written (`tcsense export onnx`).
+/// graph; `from_taps` writes a U-Net on the range fit's evidence as one graph from the tap
+/// images (`tcsense export onnx --from-taps`). Returns the bytes written (`tcsense export onnx`).
 #[pyfunction]
-#[pyo3(signature = (run, out, *, matrix_input = false, calibration = None))]
+#[pyo3(signature = (run, out, *, matrix_input = false, calibration = None, from_taps = false))]
 fn export_onnx(
     py: Python<'_>,
     run: &Bound<'_, PyAny>,
     out: &Bound<'_, PyAny>,
     matrix_input: bool,
     calibration: Option<&Bound<'_, PyAny>>,
+    from_taps: bool,
 ) -> PyResult<usize> {
     let spec = path_of(run)?.to_string_lossy().into_owned();
     let dir = zoo::resolve(&spec).map_err(err)?;
@@ -45,7 +47,7 @@ fn export_onnx(
         let loaded = runs::load(&dir, &Device::flex()).map_err(err)?;
         let calibrated = cal_dir.as_ref().map(|d| loaded.sensor.clone().calibrated_from(d)).transpose().map_err(err)?;
         let cal = calibrated.as_ref().and_then(|s| s.calibration()).cloned();
-        export_to(&loaded, ExportOptions { matrix_input, calibration: cal.as_ref(), ..Default::default() }, &out).map_err(err)
+        export_to(&loaded, ExportOptions { matrix_input, calibration: cal.as_ref(), from_taps }, &out).map_err(err)
     })?
 }
 

@@ -212,8 +212,9 @@ def point_cloud(depth: F32, *, fov_deg: float = 40.0) -> F32:
 def write_ply(path: PathLike, depth: F32, amplitude: F32, *, fov_deg: float = 40.0) -> int:
     """ASCII PLY of a range map; returns the number of points."""
 
-def export_onnx(run: PathLike, out: PathLike, *, matrix_input: bool = False, calibration: Optional[PathLike] = None) -> int:
-    """Export a run or ``zoo:NAME`` to ONNX (opset 17); returns the bytes written."""
+def export_onnx(run: PathLike, out: PathLike, *, matrix_input: bool = False, calibration: Optional[PathLike] = None, from_taps: bool = False) -> int:
+    """Export a run or ``zoo:NAME`` to ONNX (opset 17); returns the bytes written. ``from_taps``: a U-Net on
+    the range fit's evidence as one graph from the tap images (evidence, network and refined first return)."""
 
 def onnxruntime_version() -> str: ...
 

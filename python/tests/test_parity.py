@@ -2,6 +2,7 @@
 the same bits."""
 
 import json
+import pathlib
 
 import numpy as np
 import pytest
@@ -140,6 +141,26 @@ def test_onnx_export_and_inference_match_cli(cli, zoo_run, scene, tmp_path):
     assert np.array_equal(dec.decode(y)["cube"], cube[0])
     # the same network in burn, to rounding
     np.testing.assert_allclose(cube[0], zoo_run.decode(y)["cube"], rtol=0, atol=1e-4 * float(np.abs(cube).max()))
+
+
+def test_onnx_export_from_the_taps_matches_cli(cli, scene, tmp_path):
+    """A U-Net on the range fit's evidence as one graph from the taps: the same bytes as the CLI's,
+    the measurements as its only input, one refined return; other models are refused."""
+    zoo = "zoo:unet-lidar-evidence-8k"
+    n = tcsense.export_onnx(zoo, tmp_path / "py.onnx", from_taps=True)
+    cli("export", "onnx", "--run", zoo, "--from-taps", "-o", tmp_path / "cli.onnx")
+    assert n == (tmp_path / "py.onnx").stat().st_size
+    assert (tmp_path / "py.onnx").read_bytes() == (tmp_path / "cli.onnx").read_bytes()
+    codes = tcsense.Codes.load(pathlib.Path(__file__).resolve().parents[2] / "zoo" / "unet-lidar-evidence-8k" / "codes.json")
+    y = tcsense.Sensor(codes, irf="physical").measure(scene, noise=True, seed=2)
+    model = tcsense.OnnxModel(tmp_path / "py.onnx", threads=1)
+    assert model.metadata["refined_in_graph"] == "true"
+    depth, confidence = model.run(y)
+    assert depth.shape == confidence.shape == (1, 1, 8, 8)
+    assert np.isfinite(depth).sum() > 32 and np.nanmax(depth) < float(model.metadata["range_m"])
+    with pytest.raises(Exception, match="from-taps"):
+        tcsense.export_onnx("zoo:unet-lidar-designed", tmp_path / "bad.onnx", from_taps=True)
+    assert not (tmp_path / "bad.onnx").exists()
 
 
 def test_dataset_matches_cli(cli, tmp_path):
