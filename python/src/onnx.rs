@@ -111,6 +111,7 @@ impl PyOnnxModel {
         d.set_item("sampling", format!("{:?}", m.sampling))?;
         d.set_item("matrix_input", m.matrix_input)?;
         d.set_item("calibration_size", m.calibration.as_ref().map(|c| c.size))?;
+        d.set_item("refined_in_graph", m.refined_in_graph)?;
         Ok(d)
     }
 

@@ -154,7 +154,7 @@ def test_onnx_export_from_the_taps_matches_cli(cli, scene, tmp_path):
     codes = tcsense.Codes.load(pathlib.Path(__file__).resolve().parents[2] / "zoo" / "unet-lidar-evidence-8k" / "codes.json")
     y = tcsense.Sensor(codes, irf="physical").measure(scene, noise=True, seed=2)
     model = tcsense.OnnxModel(tmp_path / "py.onnx", threads=1)
-    assert model.metadata["refined_in_graph"] == "true"
+    assert model.metadata["refined_in_graph"] is True
     depth, confidence = model.run(y)
     assert depth.shape == confidence.shape == (1, 1, 8, 8)
     assert np.isfinite(depth).sum() > 32 and np.nanmax(depth) < float(model.metadata["range_m"])
