@@ -330,11 +330,13 @@ fn unet_on_the_range_fit_evidence_in_onnx_runtime_equals_burn() {
     }
 }
 
-fn unet_on_the_range_fit_evidence(pool_like: usize) {
+/// A small U-Net on the range fit's evidence over `range` m (2 candidates a bin, pooled by 3,
+/// `pool_like`) with a randomised head, through random codes of 8 masks, physical IRF.
+fn evidence_unet_run(range: f64, pool_like: usize) -> LoadedRun {
     use burn::module::Module;
-    let net = |m: usize, t: usize| {
+    let net = move |m: usize, t: usize| {
         ModelConfig::Unet(
-            UnetConfig::new(m, t, 12.0)
+            UnetConfig::new(m, t, range)
                 .with_base_width(4)
                 .with_levels(2)
                 .with_head(tcsense_models::UnetHead::ScoreVolume)
@@ -349,6 +351,11 @@ fn unet_on_the_range_fit_evidence(pool_like: usize) {
     if let TrainedNet::Unet(n) = run.net {
         run.net = TrainedNet::Unet(n.map(&mut Jitter(41)));
     }
+    run
+}
+
+fn unet_on_the_range_fit_evidence(pool_like: usize) {
+    let run = evidence_unet_run(12.0, pool_like);
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("meta.onnx");
     std::fs::write(&path, export(&run, ExportOptions::default()).unwrap()).unwrap();
@@ -411,31 +418,12 @@ fn measurements_that_break_the_metadata_are_refused() {
 /// computes, with and without the pooling by likeness, on two frame sizes of noisy slopes.
 #[test]
 fn unet_on_the_range_fit_evidence_from_the_taps_equals_the_split_graph() {
-    use burn::module::Module;
     use tcsense_fits::evidence::EvidenceBuffers;
     for pool_like in [0, 9] {
         // (the network's range the sensor's cycle, as in every trained run)
-        let net = |range: f64| {
-            move |m: usize, t: usize| {
-                ModelConfig::Unet(
-                    UnetConfig::new(m, t, range)
-                        .with_base_width(4)
-                        .with_levels(2)
-                        .with_head(tcsense_models::UnetHead::ScoreVolume)
-                        .with_input(tcsense_models::UnetInput::Costs)
-                        .with_oversample(2)
-                        .with_pool(3)
-                        .with_pool_like(pool_like),
-                )
-            }
-        };
-        let physical = Irf::Physical { laser_fwhm_s: 2.55e-9, tap_tau_s: 0.3e-9 };
-        let probe = random_run(net(12.0), (2, 2), Sampling::Oversample(1), physical, 8);
+        let probe = evidence_unet_run(12.0, pool_like);
         let cycle = tcsense_sensor::C * probe.sensor.matrix().bin_width_s() / 2.0 * probe.sensor.matrix().bins() as f64;
-        let mut run = random_run(net(cycle), (2, 2), Sampling::Oversample(1), physical, 8);
-        if let TrainedNet::Unet(n) = run.net {
-            run.net = TrainedNet::Unet(n.map(&mut Jitter(41)));
-        }
+        let run = evidence_unet_run(cycle, pool_like);
         let dir = tempfile::tempdir().unwrap();
         let (split, whole) = (dir.path().join("split.onnx"), dir.path().join("whole.onnx"));
         std::fs::write(&split, export(&run, ExportOptions::default()).unwrap()).unwrap();

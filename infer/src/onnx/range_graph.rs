@@ -182,6 +182,54 @@ fn per_type(g: &mut Graph, hint: &str, v: &[Vec<f32>]) -> String {
     g.weight(hint, &[1, n, k, 1], &flat)
 }
 
+/// A pixel's products with a template `g` and the ambient's column `s` (`yy`, `g·y`, `s·y`) and
+/// their Gram entries, broadcasting over candidates or positions.
+struct Gram<'a> {
+    yy: &'a str,
+    gy: &'a str,
+    sy: &'a str,
+    gg: &'a str,
+    gs: &'a str,
+    ss: &'a str,
+}
+
+/// `1/det` of the Gram matrix (0 where not `posed`), `1/g·g` and `1/s·s` (0 where 0).
+struct Inverses<'a> {
+    det: &'a str,
+    posed: &'a str,
+    gg: &'a str,
+    ss: &'a str,
+}
+
+/// The least squares of `y` against a non-negative combination of `g` and `s` (the fit's
+/// `nnls2`): `yy − a·g·y − b·s·y` where the solve is posed and both amplitudes are ≥ 0, else
+/// `yy` less what the better column alone removes; at least 0.
+fn nnls2(g: &mut Graph, p: Gram<'_>, inv: Inverses<'_>) -> String {
+    let (ss_gy, gs_sy) = (g.op("Mul", &[p.ss, p.gy]), g.op("Mul", &[p.gs, p.sy]));
+    let amp_g = g.op("Sub", &[&ss_gy, &gs_sy]);
+    let amp_g = g.op("Mul", &[&amp_g, inv.det]);
+    let (gg_sy, gs_gy) = (g.op("Mul", &[p.gg, p.sy]), g.op("Mul", &[p.gs, p.gy]));
+    let amp_s = g.op("Sub", &[&gg_sy, &gs_gy]);
+    let amp_s = g.op("Mul", &[&amp_s, inv.det]);
+    let (ag, bs) = (g.op("Mul", &[&amp_g, p.gy]), g.op("Mul", &[&amp_s, p.sy]));
+    let inside = g.op("Sub", &[p.yy, &ag]);
+    let inside = g.op("Sub", &[&inside, &bs]);
+    let rg = g.op("Relu", &[p.gy]);
+    let only_g = g.op("Mul", &[&rg, &rg]);
+    let only_g = g.op("Mul", &[&only_g, inv.gg]);
+    let rs = g.op("Relu", &[p.sy]);
+    let only_s = g.op("Mul", &[&rs, &rs]);
+    let only_s = g.op("Mul", &[&only_s, inv.ss]);
+    let best = g.op("Max", &[&only_g, &only_s]);
+    let boundary = g.op("Sub", &[p.yy, &best]);
+    let nil = g.scalar("nil", 0.0);
+    let (ga, gb) = (g.op("GreaterOrEqual", &[&amp_g, &nil]), g.op("GreaterOrEqual", &[&amp_s, &nil]));
+    let both = g.op("And", &[&ga, &gb]);
+    let both = g.op("And", &[&both, inv.posed]);
+    let v = g.op("Where", &[&both, &inside, &boundary]);
+    g.op("Relu", &[&v])
+}
+
 /// Each pixel's single-return cost at every candidate (the fit's dense pass,
 /// `tcsense_fits::depth`): `yy − max fit` over `a, b ≥ 0`, the two columns together where the
 /// solve is posed and both amplitudes are non-negative, else the better column alone.
@@ -231,30 +279,13 @@ fn pixel_costs(g: &mut Graph, fr: &FrameShape, yb: &str, sensor: &MeasurementMat
     let (gg, gs, inv_det, inv_gg) =
         (per_type(g, "gram_gg", &gg), per_type(g, "gram_gs", &gs), per_type(g, "inv_det", &inv_det), per_type(g, "inv_gg", &inv_gg));
     let (ss, inv_ss) = (per_type(g, "gram_ss", &ss), per_type(g, "inv_ss", &inv_ss));
-    let (ss_gy, gs_sy) = (g.op("Mul", &[&ss, &gy]), g.op("Mul", &[&gs, &sy]));
-    let amp_g = g.op("Sub", &[&ss_gy, &gs_sy]);
-    let amp_g = g.op("Mul", &[&amp_g, &inv_det]);
-    let (gg_sy, gs_gy) = (g.op("Mul", &[&gg, &sy]), g.op("Mul", &[&gs, &gy]));
-    let amp_s = g.op("Sub", &[&gg_sy, &gs_gy]);
-    let amp_s = g.op("Mul", &[&amp_s, &inv_det]);
-    let (ag, bs) = (g.op("Mul", &[&amp_g, &gy]), g.op("Mul", &[&amp_s, &sy]));
-    let inside = g.op("Sub", &[&yy, &ag]);
-    let inside = g.op("Sub", &[&inside, &bs]);
-    let rg = g.op("Relu", &[&gy]);
-    let only_g = g.op("Mul", &[&rg, &rg]);
-    let only_g = g.op("Mul", &[&only_g, &inv_gg]);
-    let rs = g.op("Relu", &[&sy]);
-    let only_s = g.op("Mul", &[&rs, &rs]);
-    let only_s = g.op("Mul", &[&only_s, &inv_ss]);
-    let best = g.op("Max", &[&only_g, &only_s]);
-    let boundary = g.op("Sub", &[&yy, &best]);
     let nil = g.scalar("nil", 0.0);
-    let (ga, gb, posed) =
-        (g.op("GreaterOrEqual", &[&amp_g, &nil]), g.op("GreaterOrEqual", &[&amp_s, &nil]), g.op("Greater", &[&inv_det, &nil]));
-    let both = g.op("And", &[&ga, &gb]);
-    let both = g.op("And", &[&both, &posed]);
-    let v = g.op("Where", &[&both, &inside, &boundary]);
-    let cost = g.op("Relu", &[&v]); // [B, N, C, P]
+    let posed = g.op("Greater", &[&inv_det, &nil]);
+    let cost = nnls2(
+        g,
+        Gram { yy: &yy, gy: &gy, sy: &sy, gg: &gg, gs: &gs, ss: &ss },
+        Inverses { det: &inv_det, posed: &posed, gg: &inv_gg, ss: &inv_ss },
+    ); // [B, N, C, P]
     from_blocks(g, fr, &cost, c, block)
 }
 
@@ -379,7 +410,7 @@ fn refine_first(
         g.scalar("candidates", c),
         g.scalar("edge_candidates", (tcsense_fits::range::RangeFitOptions::default().edge_bins * os as f64) as f32),
     );
-    let (nil, tiny) = (g.scalar("nil", 0.0), g.scalar("tiny", 1e-30));
+    let tiny = g.scalar("tiny", 1e-30);
     let mut total: Option<String> = None;
     let mut sums: Vec<String> = Vec::new();
     for ring in 0..=hw {
@@ -413,31 +444,16 @@ fn refine_first(
             let eps = g.scalar("posed", 1e-12);
             let bound = g.op("Mul", &[&ggss, &eps]);
             let posed = g.op("Greater", &[&det, &bound]);
-            let det = g.op("Max", &[&det, &tiny]);
-            let (x1, x2) = (g.op("Mul", &[&ss_q, &gy]), g.op("Mul", &[&gs, &sy_q]));
-            let amp_g = g.op("Sub", &[&x1, &x2]);
-            let amp_g = g.op("Div", &[&amp_g, &det]);
-            let (x1, x2) = (g.op("Mul", &[&gg, &sy_q]), g.op("Mul", &[&gs, &gy]));
-            let amp_s = g.op("Sub", &[&x1, &x2]);
-            let amp_s = g.op("Div", &[&amp_s, &det]);
-            let (x1, x2) = (g.op("Mul", &[&amp_g, &gy]), g.op("Mul", &[&amp_s, &sy_q]));
-            let inside = g.op("Sub", &[&yy_q, &x1]);
-            let inside = g.op("Sub", &[&inside, &x2]);
-            let rg = g.op("Relu", &[&gy]);
-            let only_g = g.op("Mul", &[&rg, &rg]);
-            let ggt = g.op("Max", &[&gg, &tiny]);
-            let only_g = g.op("Div", &[&only_g, &ggt]);
-            let rs = g.op("Relu", &[&sy_q]);
-            let only_s = g.op("Mul", &[&rs, &rs]);
-            let sst = g.op("Max", &[&ss_q, &tiny]);
-            let only_s = g.op("Div", &[&only_s, &sst]);
-            let best = g.op("Max", &[&only_g, &only_s]);
-            let boundary = g.op("Sub", &[&yy_q, &best]);
-            let (ga, gb) = (g.op("GreaterOrEqual", &[&amp_g, &nil]), g.op("GreaterOrEqual", &[&amp_s, &nil]));
-            let both = g.op("And", &[&ga, &gb]);
-            let both = g.op("And", &[&both, &posed]);
-            let v = g.op("Where", &[&both, &inside, &boundary]);
-            let v = g.op("Relu", &[&v]);
+            let inverse = |g: &mut Graph, x: &str| {
+                let x = g.op("Max", &[x, &tiny]);
+                g.op("Div", &[&unit, &x])
+            };
+            let (inv_det, inv_gg, inv_ss) = (inverse(g, &det), inverse(g, &gg), inverse(g, &ss_q));
+            let v = nnls2(
+                g,
+                Gram { yy: &yy_q, gy: &gy, sy: &sy_q, gg: &gg, gs: &gs, ss: &ss_q },
+                Inverses { det: &inv_det, posed: &posed, gg: &inv_gg, ss: &inv_ss },
+            );
             // a neighbour of like range (within the edge gap, on the cycle), lit
             let d = g.op("Sub", &[&u_q, u]);
             let d = g.op("Abs", &[&d]);
