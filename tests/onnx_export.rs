@@ -452,6 +452,13 @@ fn unet_on_the_range_fit_evidence_from_the_taps_equals_the_split_graph() {
             }
             y.slice_mut(ndarray::s![0, .., 1, 2]).fill(0.0);
             let got = whole.run(y.view()).unwrap();
+            // any scale of the taps gives the same products (times a power of two: to the bit)
+            for k in [-70, 60] {
+                let scaled = whole.run(y.mapv(|v| v * 2f32.powi(k)).view()).unwrap();
+                for (a, b) in scaled.iter().zip(&got) {
+                    assert!(a.iter().zip(b.iter()).all(|(p, q)| p.to_bits() == q.to_bits()), "{h}x{w}: the taps times 2^{k}");
+                }
+            }
             let (stage, _) = split.evidence_stages().unwrap();
             let ev = stage.evidence(&y.index_axis(ndarray::Axis(0), 0), EvidenceBuffers::default());
             let want = split.run_graph_on_evidence(&ev).unwrap(); // mode_range, first_confidence

@@ -249,6 +249,17 @@ impl DepthFitOptions {
     }
 }
 
+/// The power of two that brings `top` (a frame's largest magnitude) into [1, 2); 1 where it is
+/// 0 or not finite.
+fn unit_scale(top: f32) -> f32 {
+    if top > 0.0 && top.is_finite() {
+        // (within f32's normal exponents: a subnormal frame is scaled as far as they go)
+        (2f64).powi((-(top.log2().floor() as i32)).clamp(-126, 127)) as f32
+    } else {
+        1.0
+    }
+}
+
 /// The candidates' templates of one subpixel type, struct of arrays in f32 for the dense pass:
 /// `g[k·C + c]`, the Gram entries `g·g`, `g·s` and `1/det` per candidate, `s` and `s·s`.
 struct Dense {
@@ -440,6 +451,10 @@ pub struct RangeCosts {
     pub height: usize,
     pub width: usize,
     pub m: usize,
+    /// The power of two the frame's taps were multiplied by before the costs
+    /// ([`RangeTemplates::costs`]: its largest magnitude brought into [1, 2)), so that its
+    /// squares neither overflow nor underflow f32 at any scale; the costs are in its square.
+    pub scale: f32,
 }
 
 /// Where [`RangeTemplates::ranges`] starts each pixel.
@@ -603,10 +618,12 @@ impl RangeTemplates {
         if m != tpl.m || h == 0 || w == 0 {
             return false;
         }
-        // taps [H·W][M] (f32 for the dense pass, f64 for the window fits) and who has light
+        // taps [H·W][M] (f32 for the dense pass, f64 for the window fits) and who has light,
+        // times a power of two (exact: the ranges are the frame's as given, at any scale)
+        let scale = unit_scale(y.iter().fold(0f32, |a, &v| a.max(v.abs())));
         let mut y32 = vec![0f32; h * w * m];
         for ((k, i, j), &v) in y.indexed_iter() {
-            y32[(i * w + j) * m + k] = v;
+            y32[(i * w + j) * m + k] = v * scale;
         }
         let charge: Vec<f32> = (0..h * w).map(|p| y32[p * m..(p + 1) * m].iter().sum()).collect();
         let floor = self.opts.min_intensity * charge.iter().fold(0f32, |a, &b| a.max(b));
@@ -630,7 +647,7 @@ impl RangeTemplates {
         taps.clear();
         taps.extend(y32.iter().map(|&v| v as f64));
         *lit_out = lit;
-        (costs.height, costs.width, costs.m) = (h, w, m);
+        (costs.height, costs.width, costs.m, costs.scale) = (h, w, m, scale);
         true
     }
 
@@ -668,13 +685,17 @@ impl RangeTemplates {
             })
             .collect();
         let wider: Vec<&[f32]> = wider.iter().map(|v| v.as_slice()).collect();
-        if self.opts.pool_like > self.opts.fit.window {
+        let mut evidence = if self.opts.pool_like > self.opts.fit.window {
             // the window's log-likelihood pooled by likeness, in the window's nats
             let (pooled, noise) = self.pooled_costs(costs, self.opts.pool_like);
             let volume = CostVolume { window: &pooled, ..self.volume(costs) };
-            return crate::evidence::evidence_at_noise(&volume, noise, intensity, pool, &wider, buffers);
-        }
-        crate::evidence::evidence_into(&self.volume(costs), intensity, pool, &wider, buffers)
+            crate::evidence::evidence_at_noise(&volume, noise, intensity, pool, &wider, buffers)
+        } else {
+            crate::evidence::evidence_into(&self.volume(costs), intensity, pool, &wider, buffers)
+        };
+        // the noise level in the units of the taps as given (the costs are in the scale's square)
+        evidence.noise = evidence.noise / costs.scale / costs.scale;
+        evidence
     }
 
     /// Steps 2 to 4 of the fit from a frame's costs: the first estimate of every pixel (the
@@ -986,6 +1007,37 @@ mod tests {
         y
     }
 
+    /// The taps at any scale give the same ranges, to the bit where the scale is a power of two
+    /// (the costs are computed on the frame brought into [1, 2)), and the same evidence, whose
+    /// noise level is in the units of the taps as given: without the scaling, taps of 2^70
+    /// overflow f32 in their squares and taps of 2^-75 underflow.
+    #[test]
+    fn the_taps_at_any_scale_give_the_same_ranges_and_evidence() {
+        let a = sensor();
+        let clean = taps(&a, 12, 12, &|i, j| vec![(4.0 + 0.7 * j as f64, 0.8), (20.0 + 0.3 * i as f64, 0.3)], 0.01);
+        let y = crate::testing::noise(&clean, 300.0, 3, false);
+        let opts = DepthFitOptions::default().pooled(9);
+        let mut templates = RangeTemplates::new(&a, &opts);
+        let want = templates.fit(&y.view());
+        assert!(want.iter().filter(|v| v.is_finite()).count() > 144, "returns found");
+        let costs = templates.costs(&y.view()).unwrap();
+        let base = templates.evidence(&costs, &y.sum_axis(Axis(0)), 4);
+        for k in [70, 30, -30, -75] {
+            let s = 2f32.powi(k);
+            let ys = y.mapv(|v| v * s);
+            let got = templates.fit(&ys.view());
+            assert!(got.iter().zip(want.iter()).all(|(p, q)| p.to_bits() == q.to_bits()), "ranges of the taps times 2^{k}");
+            let costs = templates.costs(&ys.view()).unwrap();
+            let ev = templates.evidence(&costs, &ys.sum_axis(Axis(0)), 4);
+            assert_eq!(ev.skip, base.skip, "log-likelihoods of the taps times 2^{k}");
+            assert_eq!(ev.features, base.features, "posteriors of the taps times 2^{k}");
+            let noise = base.noise as f64 * (s as f64).powi(2);
+            if noise < f32::MAX as f64 && noise > f32::MIN_POSITIVE as f64 {
+                assert_eq!(ev.noise as f64, noise, "the noise level times 2^{}", 2 * k);
+            }
+        }
+    }
+
     /// With no estimate to start from, every return of the cycle is found (a global search) and
     /// placed where the range fit started a bin away places it: within 0.02 bins of each other.
     #[test]
@@ -1178,7 +1230,8 @@ mod tests {
         assert_eq!(e0.skip.slice(ndarray::s![.., .., c..]), e1.skip.slice(ndarray::s![.., .., c..]));
         let (cost, _) = pooled.pooled_costs(&costs, 15);
         let seeds = pooled.pooled_modes(&costs, 15);
-        let nats = 1.0 / (2.0 * e1.noise);
+        // (the costs are in the square of the scale the taps were brought to, the noise level in the taps' units)
+        let nats = 1.0 / (2.0 * e1.noise * costs.scale * costs.scale);
         let mut differ = 0;
         for p in 0..h * w {
             let own = &cost[p * c..(p + 1) * c];

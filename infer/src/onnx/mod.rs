@@ -180,7 +180,7 @@ fn from_taps(run: &LoadedRun, meta: &OnnxMeta, opts: ExportOptions<'_>) -> Resul
             }
             range_graph::unet_from_taps(net, run.sensor.matrix(), meta, net.fit_options().fit.window)
         }
-        _ => Err(refuse(&format!("--from-taps for a {} that does not read the range fit's evidence", run.spec.model.name()))),
+        _ => Err(refuse(&format!("--from-taps for a model that does not read the range fit's evidence ({})", run.spec.model.name()))),
     }
 }
 

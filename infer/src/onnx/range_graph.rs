@@ -175,6 +175,25 @@ fn softmax_channels(g: &mut Graph, x: &str) -> String {
     g.op("Div", &[&e, &total])
 }
 
+/// Each frame of `y` `[B, M, H, W]` times the power of two that brings its largest magnitude
+/// into [1, 2): exact in floating point, so the products are those of the frame as given, and
+/// the squares and sums of the cost volume neither overflow nor underflow f32 at any scale of
+/// the taps (every product of the graph is invariant to the frame's scale).
+fn unit_scale(g: &mut Graph, y: &str) -> String {
+    let abs = g.op("Abs", &[y]);
+    let top = g.node("ReduceMax", &[&abs], &[Attr::Ints("axes", &[1, 2, 3]), Attr::Int("keepdims", 1)]); // [B, 1, 1, 1]
+    let tiny = g.scalar("least_normal", f32::MIN_POSITIVE);
+    let top = g.op("Max", &[&top, &tiny]);
+    let log2 = g.op("Log", &[&top]);
+    let ln2 = g.scalar("ln2", std::f32::consts::LN_2);
+    let log2 = g.op("Div", &[&log2, &ln2]);
+    let e = g.op("Floor", &[&log2]);
+    let e = g.op("Neg", &[&e]);
+    let two = g.scalar("two", 2.0);
+    let scale = g.op("Pow", &[&two, &e]);
+    g.op("Mul", &[y, &scale])
+}
+
 /// The per-type constants `[N][K]` as `[1, N, K, 1]`.
 fn per_type(g: &mut Graph, hint: &str, v: &[Vec<f32>]) -> String {
     let (n, k) = (v.len(), v[0].len());
@@ -553,6 +572,7 @@ pub(super) fn unet_from_taps(net: &Unet, sensor: &MeasurementMatrix, meta: &Onnx
     let frame = [Dim::Named("batch"), Dim::Fixed(1), Dim::Named("height"), Dim::Named("width")];
     let y = g.input(super::INPUT, &[Dim::Named("batch"), Dim::Fixed(m), Dim::Named("height"), Dim::Named("width")]);
     let fr = FrameShape::of(&mut g, &y, block);
+    let y = unit_scale(&mut g, &y);
     // lit: the pixels with charge
     let axis1 = g.ints("axis1", &[1]);
     let intensity = g.node("ReduceSum", &[&y, &axis1], &[Attr::Int("keepdims", 1)]); // [B, 1, H, W]
