@@ -5,7 +5,9 @@
 //! with the exported file alone.
 //!
 //! ```text
-//! y [B, M, H, W] → per pixel of subpixel type n, every candidate c of the cycle (C = T·oversample):
+//! y [B, M, H, W] → each frame times the power of two that brings its largest tap into [1, 2)
+//!   (exact; no square overflows or underflows f32 at any scale of the taps)
+//! → per pixel of subpixel type n, every candidate c of the cycle (C = T·oversample):
 //!   g_c = A_n P_c, s = A_n 1                       templates (baked, as the fit's dense pass)
 //!   cost_c = min_{a, b ≥ 0} ‖y − a g_c − b s‖²      the two-column NNLS, 0 where Σy ≤ 0 (unlit)
 //! window sums of the costs (3×3, then 5, 9, 15)    separable box filters (AveragePool × side)
