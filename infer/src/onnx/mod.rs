@@ -152,12 +152,7 @@ pub fn export(run: &LoadedRun, opts: ExportOptions<'_>) -> Result<Vec<u8>> {
             format!("tcsense A^T + U-Net ({} levels): measurements [B, M, H, W] -> depth (m), confidence [B, K, H, W]", net.levels())
         }
     };
-    let model = g.into_model(&doc, &meta.to_props());
-    model.write_to_bytes().map_err(|e| InferError::InvalidParam {
-        field: "ONNX model",
-        got: e.to_string(),
-        expected: "a serialisable model".into(),
-    })
+    model_bytes(g, &doc, &meta)
 }
 
 /// [`range_graph::unet_from_taps`] of a run, for a U-Net on the range fit's evidence only,
@@ -182,6 +177,15 @@ fn from_taps(run: &LoadedRun, meta: &OnnxMeta, opts: ExportOptions<'_>) -> Resul
         }
         _ => Err(refuse(&format!("--from-taps for a model that does not read the range fit's evidence ({})", run.spec.model.name()))),
     }
+}
+
+/// The model of graph `g`, documented by `doc`, with `meta` in its `metadata_props`, serialised.
+fn model_bytes(g: Graph, doc: &str, meta: &OnnxMeta) -> Result<Vec<u8>> {
+    g.into_model(doc, &meta.to_props()).write_to_bytes().map_err(|e| InferError::InvalidParam {
+        field: "ONNX model",
+        got: e.to_string(),
+        expected: "a serialisable model".into(),
+    })
 }
 
 /// Export `run` to `path` (written to a temporary file, then renamed).
@@ -651,12 +655,7 @@ fn unet_on_evidence(net: &Unet, meta: &OnnxMeta, opts: ExportOptions<'_>) -> Res
         net.down().len(),
         tcsense_fits::depth::SCALES * c
     );
-    let model = g.into_model(&doc, &meta.to_props());
-    model.write_to_bytes().map_err(|e| InferError::InvalidParam {
-        field: "ONNX model",
-        got: e.to_string(),
-        expected: "a serialisable model".into(),
-    })
+    model_bytes(g, &doc, meta)
 }
 
 /// The fit's window's log-likelihood plus the `wide` wider windows' at the weights the head
@@ -763,12 +762,7 @@ fn lifetime_on_evidence(net: &LifetimeNet, meta: &OnnxMeta, opts: ExportOptions<
         (1 + wide) * points,
         if wide == 0 { "" } else { " (the windows' log-likelihoods, window-major)" }
     );
-    let model = g.into_model(&doc, &meta.to_props());
-    model.write_to_bytes().map_err(|e| InferError::InvalidParam {
-        field: "ONNX model",
-        got: e.to_string(),
-        expected: "a serialisable model".into(),
-    })
+    model_bytes(g, &doc, meta)
 }
 
 fn unet(g: &mut Graph, net: &Unet, sensor: &SensorGraph, y: &str) -> Result<(String, String)> {

@@ -251,13 +251,47 @@ fn nnls2(g: &mut Graph, p: Gram<'_>, inv: Inverses<'_>) -> String {
     g.op("Relu", &[&v])
 }
 
+/// The taps in the code's blocks and their products that every template fit of the graph
+/// reads, computed once a frame: `y·y` and the ambient's column's `s·y` per pixel, with the
+/// column `s = A_n 1` (f64, as the fit's) per subpixel type.
+struct Taps {
+    /// `[B, N, M, P]` ([`to_blocks`]).
+    blocks: String,
+    /// `y·y` and `s·y`, `[B, N, 1, P]` each.
+    yy: String,
+    sy: String,
+    /// `s` per type `[N][M]`.
+    s: Vec<Vec<f64>>,
+}
+
+impl Taps {
+    fn of(g: &mut Graph, fr: &FrameShape, y: &str, sensor: &MeasurementMatrix) -> Taps {
+        let a = sensor.a();
+        let (n, m, t) = a.dim();
+        let blocks = to_blocks(g, fr, y, m, sensor.block());
+        let s: Vec<Vec<f64>> = (0..n).map(|k| (0..m).map(|mm| (0..t).map(|j| a[(k, mm, j)] as f64).sum()).collect()).collect();
+        let flat: Vec<f32> = s.iter().flatten().map(|&v| v as f32).collect();
+        let sw = g.weight("ambient_template", &[n, 1, m], &flat);
+        let sy = g.op("MatMul", &[&sw, &blocks]);
+        let y2 = g.op("Mul", &[&blocks, &blocks]);
+        let axis2 = g.ints("axis2", &[2]);
+        let yy = g.node("ReduceSum", &[&y2, &axis2], &[Attr::Int("keepdims", 1)]);
+        Taps { blocks, yy, sy, s }
+    }
+
+    /// `sᵀs` of type `k`.
+    fn ss(&self, k: usize) -> f64 {
+        self.s[k].iter().map(|v| v * v).sum()
+    }
+}
+
 /// Each pixel's single-return cost at every candidate (the fit's dense pass,
 /// `tcsense_fits::depth`): `yy − max fit` over `a, b ≥ 0`, the two columns together where the
 /// solve is posed and both amplitudes are non-negative, else the better column alone.
 ///
 /// # Shapes
-/// - `yb`: the taps in blocks ([`to_blocks`]) → `[B, C, H, W]` (before the lit mask)
-fn pixel_costs(g: &mut Graph, fr: &FrameShape, yb: &str, sensor: &MeasurementMatrix, oversample: usize) -> String {
+/// - `taps`: of `[B, M, H, W]` ([`Taps`]) → `[B, C, H, W]` (before the lit mask)
+fn pixel_costs(g: &mut Graph, fr: &FrameShape, taps: &Taps, sensor: &MeasurementMatrix, oversample: usize) -> String {
     let a = sensor.a();
     let (n, m, t) = a.dim();
     let block = sensor.block();
@@ -267,13 +301,9 @@ fn pixel_costs(g: &mut Graph, fr: &FrameShape, yb: &str, sensor: &MeasurementMat
     let mut gmat = vec![0f32; n * c * m]; // [N, C, M]
     let (mut gg, mut gs, mut inv_det, mut inv_gg) =
         (vec![vec![0f32; c]; n], vec![vec![0f32; c]; n], vec![vec![0f32; c]; n], vec![vec![0f32; c]; n]);
-    let (mut svec, mut ss, mut inv_ss) = (vec![0f32; n * m], vec![vec![0f32; 1]; n], vec![vec![0f32; 1]; n]);
+    let (mut ss, mut inv_ss) = (vec![vec![0f32; 1]; n], vec![vec![0f32; 1]; n]);
     for k in 0..n {
-        let s: Vec<f64> = (0..m).map(|mm| (0..t).map(|j| a[(k, mm, j)] as f64).sum()).collect();
-        let s2: f64 = s.iter().map(|v| v * v).sum();
-        for (mm, v) in s.iter().enumerate() {
-            svec[k * m + mm] = *v as f32;
-        }
+        let (s, s2) = (&taps.s[k], taps.ss(k));
         ss[k][0] = s2 as f32;
         inv_ss[k][0] = if ss[k][0] > 0.0 { 1.0 / ss[k][0] } else { 0.0 };
         for (ci, &(t0, t1, f)) in cols.iter().enumerate() {
@@ -282,7 +312,7 @@ fn pixel_costs(g: &mut Graph, fr: &FrameShape, yb: &str, sensor: &MeasurementMat
                 gmat[(k * c + ci) * m + mm] = *v as f32;
             }
             let p: f64 = gv.iter().map(|v| v * v).sum();
-            let q: f64 = gv.iter().zip(&s).map(|(x, y)| x * y).sum();
+            let q: f64 = gv.iter().zip(s).map(|(x, y)| x * y).sum();
             let det = p * s2 - q * q;
             gg[k][ci] = p as f32;
             gs[k][ci] = q as f32;
@@ -291,22 +321,15 @@ fn pixel_costs(g: &mut Graph, fr: &FrameShape, yb: &str, sensor: &MeasurementMat
         }
     }
     let gw = g.weight("templates", &[n, c, m], &gmat);
-    let sw = g.weight("ambient_template", &[n, 1, m], &svec);
-    let gy = g.op("MatMul", &[&gw, yb]); // [B, N, C, P]
-    let sy = g.op("MatMul", &[&sw, yb]); // [B, N, 1, P]
-    let y2 = g.op("Mul", &[yb, yb]);
-    let axis2 = g.ints("axis2", &[2]);
-    let yy = g.node("ReduceSum", &[&y2, &axis2], &[Attr::Int("keepdims", 1)]); // [B, N, 1, P]
+    let gy = g.op("MatMul", &[&gw, &taps.blocks]); // [B, N, C, P]
+    let (yy, sy) = (taps.yy.as_str(), taps.sy.as_str());
     let (gg, gs, inv_det, inv_gg) =
         (per_type(g, "gram_gg", &gg), per_type(g, "gram_gs", &gs), per_type(g, "inv_det", &inv_det), per_type(g, "inv_gg", &inv_gg));
     let (ss, inv_ss) = (per_type(g, "gram_ss", &ss), per_type(g, "inv_ss", &inv_ss));
     let nil = g.scalar("nil", 0.0);
     let posed = g.op("Greater", &[&inv_det, &nil]);
-    let cost = nnls2(
-        g,
-        Gram { yy: &yy, gy: &gy, sy: &sy, gg: &gg, gs: &gs, ss: &ss },
-        Inverses { det: &inv_det, posed: &posed, gg: &inv_gg, ss: &inv_ss },
-    ); // [B, N, C, P]
+    let cost =
+        nnls2(g, Gram { yy, gy: &gy, sy, gg: &gg, gs: &gs, ss: &ss }, Inverses { det: &inv_det, posed: &posed, gg: &inv_gg, ss: &inv_ss }); // [B, N, C, P]
     from_blocks(g, fr, &cost, c, block)
 }
 
@@ -325,34 +348,32 @@ const REFINE_STEP: f32 = 0.25;
 /// in the frame's nats, elsewhere (dim light) the mode stands.
 ///
 /// # Shapes
-/// - `yb`: taps in blocks `[B, N, M, P]`, `u`: modes `[B, 1, H, W]` (candidates),
-///   `neg_nats`: `−ν` `[B, 1, 1, 1]` → `[B, 1, H, W]` (candidates)
+/// - `taps`: of `[B, M, H, W]` ([`Taps`]), `u`: modes `[B, 1, H, W]` (candidates), `litf`: the
+///   lit mask `[B, 1, H, W]` (the evidence's), `neg_nats`: `−ν` `[B, 1, 1, 1]` → `[B, 1, H, W]`
+///   (candidates)
 #[allow(clippy::too_many_arguments)]
 fn refine_first(
     g: &mut Graph,
     fr: &FrameShape,
-    yb: &str,
+    taps: &Taps,
     sensor: &MeasurementMatrix,
     os: usize,
     window: usize,
-    u: &str,
+    (u, litf): (&str, &str),
     neg_nats: &str,
 ) -> String {
     let a = sensor.a();
     let (n, m, t) = a.dim();
     let block = sensor.block();
     let c = (t * os) as f32;
-    // per type: Aᵀ [N, T, M], the ambient's column s [N, 1, M], and the tables of the
-    // templates' Gram entries between neighbouring bins: A_tᵀA_t, A_tᵀA_{t+1}, A_tᵀs, sᵀs
-    let (mut at, mut sv) = (vec![0f32; n * t * m], vec![0f32; n * m]);
+    // per type: Aᵀ [N, T, M] and the tables of the templates' Gram entries between
+    // neighbouring bins: A_tᵀA_t, A_tᵀA_{t+1}, A_tᵀs, sᵀs
+    let mut at = vec![0f32; n * t * m];
     let (mut d0, mut d1, mut a_s, mut ss) =
         (vec![vec![0f32; t]; n], vec![vec![0f32; t]; n], vec![vec![0f32; t]; n], vec![vec![0f32; 1]; n]);
     for k in 0..n {
-        let s: Vec<f64> = (0..m).map(|mm| (0..t).map(|j| a[(k, mm, j)] as f64).sum()).collect();
-        ss[k][0] = s.iter().map(|v| v * v).sum::<f64>() as f32;
-        for (mm, v) in s.iter().enumerate() {
-            sv[k * m + mm] = *v as f32;
-        }
+        let s = &taps.s[k];
+        ss[k][0] = taps.ss(k) as f32;
         for j in 0..t {
             let col = |j: usize| (0..m).map(move |mm| a[(k, mm, j)] as f64);
             for (mm, v) in col(j).enumerate() {
@@ -360,18 +381,14 @@ fn refine_first(
             }
             d0[k][j] = col(j).map(|v| v * v).sum::<f64>() as f32;
             d1[k][j] = col(j).zip(col((j + 1) % t)).map(|(x, y)| x * y).sum::<f64>() as f32;
-            a_s[k][j] = col(j).zip(&s).map(|(x, y)| x * y).sum::<f64>() as f32;
+            a_s[k][j] = col(j).zip(s).map(|(x, y)| x * y).sum::<f64>() as f32;
         }
     }
     let atw = g.weight("adjoint", &[n, t, m], &at);
-    let sw = g.weight("ambient_template", &[n, 1, m], &sv);
-    let aty = g.op("MatMul", &[&atw, yb]); // [B, N, T, P]
-    let sy = g.op("MatMul", &[&sw, yb]); // [B, N, 1, P]
-    let y2 = g.op("Mul", &[yb, yb]);
-    let axis2 = g.ints("axis2", &[2]);
-    let yy = g.node("ReduceSum", &[&y2, &axis2], &[Attr::Int("keepdims", 1)]); // [B, N, 1, P]
+    let aty = g.op("MatMul", &[&atw, &taps.blocks]); // [B, N, T, P]
+    let (yy, sy) = (taps.yy.as_str(), taps.sy.as_str());
     let shape = g.op("Shape", &[&aty]);
-    let shape1 = g.op("Shape", &[&yy]);
+    let shape1 = g.op("Shape", &[yy]);
     let tables: Vec<String> = [("gram_diagonal", &d0), ("gram_next", &d1), ("gram_ambient", &a_s)]
         .iter()
         .map(|(hint, v)| {
@@ -381,16 +398,10 @@ fn refine_first(
         .collect();
     let ss = per_type(g, "gram_ss", &ss);
     let ss = g.op("Expand", &[&ss, &shape1]);
-    let parts = [aty.as_str(), &tables[0], &tables[1], &tables[2], &yy, &sy, &ss];
+    let parts = [aty.as_str(), &tables[0], &tables[1], &tables[2], yy, sy, &ss];
     let q = g.node("Concat", &parts, &[Attr::Int("axis", 2)]); // [B, N, 4T + 3, P]
     let q = from_blocks(g, fr, &q, 4 * t + 3, block); // [B, 4T + 3, H, W]
-    let lit = {
-        let yf = from_blocks(g, fr, &yy, 1, block);
-        let nil = g.scalar("nil", 0.0);
-        let l = g.op("Greater", &[&yf, &nil]);
-        g.node("Cast", &[&l], &[Attr::Int("to", onnx_protobuf::tensor_proto::DataType::FLOAT as i64)])
-    };
-    let q = g.node("Concat", &[&q, &lit, u], &[Attr::Int("axis", 1)]); // [B, 4T + 5, H, W]
+    let q = g.node("Concat", &[&q, litf, u], &[Attr::Int("axis", 1)]); // [B, 4T + 5, H, W]
                                                                        // the positions around each mode and where they read the templates: p = τ − ½ on the cycle
                                                                        // of bins, t₀ = ⌊p⌋, f = p − t₀, t₁ = t₀ + 1
     let steps: Vec<f32> = (0..REFINE_POINTS).map(|k| (k as f32 - (REFINE_POINTS - 1) as f32 / 2.0) * REFINE_STEP).collect();
@@ -581,8 +592,8 @@ pub(super) fn unet_from_taps(net: &Unet, sensor: &MeasurementMatrix, meta: &Onnx
     let nil = g.scalar("nil", 0.0);
     let lit = g.op("Greater", &[&intensity, &nil]);
     let litf = g.node("Cast", &[&lit], &[Attr::Int("to", onnx_protobuf::tensor_proto::DataType::FLOAT as i64)]);
-    let yb = to_blocks(&mut g, &fr, &y, m, block); // [B, N, M, P]
-    let cost = pixel_costs(&mut g, &fr, &yb, sensor, os);
+    let taps = Taps::of(&mut g, &fr, &y, sensor);
+    let cost = pixel_costs(&mut g, &fr, &taps, sensor, os);
     let cost = g.op("Mul", &[&cost, &litf]); // [B, C, H, W]
                                              // the fit's window and the frame's noise level: the median least window cost per degree of
                                              // freedom (each pixel's amplitude and ambient its own, the window's range shared)
@@ -712,7 +723,7 @@ pub(super) fn unet_from_taps(net: &Unet, sensor: &MeasurementMatrix, meta: &Onnx
     let logits = g.op("Add", &[&likelihood, &prior]);
     let u = posterior_mode(&mut g, &logits, c, true);
     let u = g.op("Reshape", &[&u, &frame_shape]);
-    let u = refine_first(&mut g, &fr, &yb, sensor, os, window, &u, &neg_nats);
+    let u = refine_first(&mut g, &fr, &taps, sensor, os, window, (&u, &litf), &neg_nats);
     let (half_os, per) =
         (g.scalar("half_oversample", 0.5 * os as f32), g.scalar("metres_per_candidate", (net.range_m() / c as f64) as f32));
     let r = g.op("Add", &[&u, &half_os]);
@@ -735,10 +746,5 @@ pub(super) fn unet_from_taps(net: &Unet, sensor: &MeasurementMatrix, meta: &Onnx
         net.down().len(),
         if pool_like > window { format!(", the {window}×{window} window pooled by likeness over {pool_like}×{pool_like}") } else { String::new() },
     );
-    let model = g.into_model(&doc, &meta.to_props());
-    protobuf::Message::write_to_bytes(&model).map_err(|e| InferError::InvalidParam {
-        field: "ONNX model",
-        got: e.to_string(),
-        expected: "a serialisable model".into(),
-    })
+    super::model_bytes(g, &doc, meta)
 }
