@@ -598,4 +598,51 @@ fn an_evidence_unet_exports_as_one_graph_from_the_taps() {
         &["--from-taps", "range fit's evidence"],
     );
     assert!(!d.join("bad.onnx").exists());
+    // eval's onnx-raw decoder: the graph's own product; a missing model or none named is refused
+    let report = ok(
+        d,
+        &[
+            "eval",
+            "--dataset",
+            "ds",
+            "--split",
+            "train",
+            "--items",
+            "1",
+            "--codes",
+            codes,
+            "--irf",
+            "physical",
+            "--decoder",
+            "onnx-raw:taps.onnx",
+            "-o",
+            "raw.json",
+        ],
+    );
+    assert!(report.contains("onnx-raw:taps.onnx"), "{report}");
+    fails(
+        d,
+        &[
+            "eval",
+            "--dataset",
+            "ds",
+            "--split",
+            "train",
+            "--items",
+            "1",
+            "--codes",
+            codes,
+            "--decoder",
+            "onnx-raw:nope.onnx",
+            "-o",
+            "bad.json",
+        ],
+        &["nope.onnx", "no such file"],
+    );
+    fails(
+        d,
+        &["eval", "--dataset", "ds", "--split", "train", "--items", "1", "--codes", codes, "--decoder", "onnx-raw", "-o", "bad.json"],
+        &["onnx-raw:MODEL.onnx"],
+    );
+    assert!(!d.join("bad.json").exists());
 }
